@@ -1,0 +1,182 @@
+//! The device traits the scheduler drives. Drivers implement them over real or simulated
+//! links; the scheduler never links a hardware library.
+
+use std::future::Future;
+use std::time::Duration;
+
+use crate::error::{DeviceError, InputError};
+use crate::time::Timestamp;
+use crate::units::{Diopters, PowerRange};
+
+/// What a lens reports about itself. Fields a device cannot measure are `None`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensState {
+    pub power: Diopters,
+    pub current_ma: Option<f32>,
+    pub temperature_c: Option<f32>,
+    pub settled: Option<bool>,
+    /// Host time at which the reply arrived.
+    pub host_time: Timestamp,
+}
+
+/// A focus-tunable lens. Implementations enforce [`VarifocalLens::power_range`] themselves:
+/// a request outside it is clamped or refused, and never sent.
+pub trait VarifocalLens: Send {
+    /// The range this driver will drive the lens within.
+    fn power_range(&self) -> PowerRange;
+    /// Commands `power`; resolves when the command is on the wire, with that host time.
+    fn set_power(
+        &mut self,
+        power: Diopters,
+    ) -> impl Future<Output = Result<Timestamp, DeviceError>> + Send;
+    /// Reads back power, current and temperature.
+    fn state(&mut self) -> impl Future<Output = Result<LensState, DeviceError>> + Send;
+}
+
+/// One eye's gaze ray in the head frame.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct EyeRay {
+    /// Eye position (cornea or rotation centre, as the tracker reports), millimetres.
+    pub origin_mm: [f32; 3],
+    /// Unit gaze direction; +z forward, +x right, +y up.
+    pub direction: [f32; 3],
+    pub pupil_mm: f32,
+    pub valid: bool,
+}
+
+/// Both eyes at one instant.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct GazeSample {
+    /// The tracker's own clock.
+    pub device_time: Timestamp,
+    /// When the host received the sample.
+    pub host_receive_time: Timestamp,
+    /// The device time mapped onto the host timeline by the driver's clock-offset estimate.
+    pub host_time: Timestamp,
+    pub left: EyeRay,
+    pub right: EyeRay,
+}
+
+/// A source of binocular gaze samples, in order.
+pub trait GazeSource: Send {
+    /// Nominal sample rate, Hz.
+    fn rate_hz(&self) -> f32;
+    /// Waits for the next sample.
+    fn next_sample(&mut self) -> impl Future<Output = Result<GazeSample, DeviceError>> + Send;
+}
+
+/// Most planes a plane schedule may hold (the wire protocol's limit).
+pub const MAX_PLANES: usize = 16;
+
+/// The focal planes a multifocal rig cycles through, one per sub-frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlaneSchedule {
+    planes: Vec<Diopters>,
+    subframe_period: Duration,
+    settle_allowance: Duration,
+}
+
+impl PlaneSchedule {
+    pub fn new(
+        planes: Vec<Diopters>,
+        subframe_period: Duration,
+        settle_allowance: Duration,
+    ) -> Result<Self, InputError> {
+        if planes.is_empty() || planes.len() > MAX_PLANES {
+            return Err(InputError::InvalidValue(format!(
+                "a plane schedule needs 1 to {MAX_PLANES} planes, got {}",
+                planes.len()
+            )));
+        }
+        if let Some(p) = planes.iter().find(|p| !p.is_finite()) {
+            return Err(InputError::InvalidValue(format!(
+                "plane power {p} is not finite"
+            )));
+        }
+        if subframe_period.is_zero() {
+            return Err(InputError::InvalidValue(
+                "sub-frame period must be > 0".into(),
+            ));
+        }
+        if settle_allowance >= subframe_period {
+            return Err(InputError::InvalidValue(format!(
+                "settle allowance {settle_allowance:?} must be shorter than the sub-frame period {subframe_period:?}"
+            )));
+        }
+        Ok(PlaneSchedule {
+            planes,
+            subframe_period,
+            settle_allowance,
+        })
+    }
+    pub fn planes(&self) -> &[Diopters] {
+        &self.planes
+    }
+    pub fn subframe_period(&self) -> Duration {
+        self.subframe_period
+    }
+    pub fn settle_allowance(&self) -> Duration {
+        self.settle_allowance
+    }
+    /// One full cycle through every plane.
+    pub fn frame_period(&self) -> Duration {
+        self.subframe_period * self.planes.len() as u32
+    }
+}
+
+/// Something that went wrong during a sequence, as the sync hardware saw it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SequencerFault {
+    MissedVsync,
+    LateSettle,
+    Other(u16),
+}
+
+/// What the sync hardware reports while a schedule runs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SequencerEvent {
+    SubframeStart {
+        frame: u32,
+        plane_index: u8,
+        device_time: Timestamp,
+        host_time: Timestamp,
+        /// Lens power reached at the sub-frame's start, when the hardware measures it.
+        lens_power: Option<Diopters>,
+    },
+    Fault {
+        fault: SequencerFault,
+        frame: u32,
+        plane_index: u8,
+        host_time: Timestamp,
+    },
+}
+
+/// Sync hardware that steps a lens through focal planes in lockstep with a display.
+pub trait PlaneSequencer: Send {
+    fn program(
+        &mut self,
+        schedule: &PlaneSchedule,
+    ) -> impl Future<Output = Result<(), DeviceError>> + Send;
+    fn start(&mut self) -> impl Future<Output = Result<(), DeviceError>> + Send;
+    fn stop(&mut self) -> impl Future<Output = Result<(), DeviceError>> + Send;
+    /// Waits for the next event.
+    fn next_event(&mut self) -> impl Future<Output = Result<SequencerEvent, DeviceError>> + Send;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plane_schedule_validation() {
+        let ms = Duration::from_millis;
+        let ok = PlaneSchedule::new(vec![Diopters(0.2), Diopters(2.0)], ms(4), ms(2)).unwrap();
+        assert_eq!(ok.frame_period(), ms(8));
+        assert!(PlaneSchedule::new(vec![], ms(4), ms(1)).is_err());
+        assert!(PlaneSchedule::new(vec![Diopters(1.0); 17], ms(4), ms(1)).is_err());
+        assert!(PlaneSchedule::new(vec![Diopters(f32::NAN)], ms(4), ms(1)).is_err());
+        assert!(PlaneSchedule::new(vec![Diopters(1.0)], ms(0), ms(0)).is_err());
+        let e = PlaneSchedule::new(vec![Diopters(1.0)], ms(4), ms(4)).unwrap_err();
+        assert!(e.to_string().contains("settle allowance"));
+    }
+}

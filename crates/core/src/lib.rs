@@ -1,0 +1,21 @@
+//! dioptra-core: units, time, optics, images, device traits and errors.
+//! Everything here is pure: no I/O, no device libraries.
+
+pub mod clock_sync;
+pub mod device;
+pub mod error;
+pub mod image;
+pub mod optics;
+pub mod time;
+pub mod units;
+
+pub use clock_sync::ClockMapper;
+pub use device::{
+    EyeRay, GazeSample, GazeSource, LensState, PlaneSchedule, PlaneSequencer, SequencerEvent,
+    SequencerFault, VarifocalLens,
+};
+pub use error::{DeviceError, InputError, LinkError};
+pub use image::{DepthMap, Plane, RgbImage, Rgbd};
+pub use optics::EyeModel;
+pub use time::{Clock, SimClock, SystemClock, Timestamp};
+pub use units::{Diopters, Meters, Millimeters, PowerRange};

@@ -1,0 +1,202 @@
+//! Serial ports and their USB identity, read from sysfs.
+//!
+//! `serialport` without libudev cannot say which USB device a tty belongs to, so this reads
+//! it directly: `<sys>/class/tty/<name>/device` leads into the device tree, and the nearest
+//! directory above it with `idVendor` and `idProduct` is the USB device (for ttyACM that is
+//! the interface's parent; for ttyUSB one level more, past the usb-serial port).
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use super::{FoundDevice, Interface};
+
+/// USB serial ports under `sys_root` (normally `/sys`). Ttys that are not on USB (virtual
+/// consoles, ptys, on-board UARTs) are left out: open those by path. Err is a note saying
+/// why nothing could be listed.
+pub fn serial_ports(sys_root: &Path) -> Result<Vec<FoundDevice>, String> {
+    let class = sys_root.join("class/tty");
+    let entries = fs::read_dir(&class).map_err(|e| {
+        format!(
+            "serial ports not listed: cannot read {} ({e}); is sysfs mounted?",
+            class.display()
+        )
+    })?;
+    // Resolve the root too, so the walk up can tell when it leaves the tree.
+    let root = fs::canonicalize(sys_root).unwrap_or_else(|_| sys_root.to_path_buf());
+    let mut found = Vec::new();
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        // Virtual ttys have no `device` link.
+        let Ok(device) = fs::canonicalize(entry.path().join("device")) else {
+            continue;
+        };
+        let Some(usb) = usb_device_above(&device, &root) else {
+            continue;
+        };
+        let hex = |attr| read_attr(&usb, attr).and_then(|s| u16::from_str_radix(&s, 16).ok());
+        let mut d = FoundDevice::new(
+            Interface::Serial,
+            // sysfs writes '/' in device names as '!'.
+            format!("/dev/{}", name.replace('!', "/")),
+        );
+        d.vid = hex("idVendor");
+        d.pid = hex("idProduct");
+        d.serial = read_attr(&usb, "serial");
+        d.manufacturer = read_attr(&usb, "manufacturer");
+        d.product = read_attr(&usb, "product");
+        found.push(d);
+    }
+    Ok(found)
+}
+
+fn usb_device_above(device: &Path, root: &Path) -> Option<PathBuf> {
+    device
+        .ancestors()
+        .take_while(|dir| dir.starts_with(root) && *dir != root)
+        .find(|dir| dir.join("idVendor").is_file() && dir.join("idProduct").is_file())
+        .map(Path::to_path_buf)
+}
+
+/// A sysfs attribute, trimmed; `None` when absent, unreadable or empty.
+fn read_attr(dir: &Path, attr: &str) -> Option<String> {
+    let raw = fs::read(dir.join(attr)).ok()?;
+    let text = String::from_utf8_lossy(&raw).trim().to_string();
+    (!text.is_empty()).then_some(text)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::symlink;
+
+    /// Builds `<root>/devices/...` and `<root>/class/tty/<name>` the way the kernel lays
+    /// them out, with relative symlinks.
+    struct FakeSys {
+        dir: tempfile::TempDir,
+    }
+
+    impl FakeSys {
+        fn new() -> Self {
+            let dir = tempfile::tempdir().unwrap();
+            fs::create_dir_all(dir.path().join("class/tty")).unwrap();
+            FakeSys { dir }
+        }
+        fn root(&self) -> &Path {
+            self.dir.path()
+        }
+        fn usb_device(&self, path: &str, attrs: &[(&str, &str)]) {
+            let d = self.root().join(path);
+            fs::create_dir_all(&d).unwrap();
+            for (k, v) in attrs {
+                fs::write(d.join(k), format!("{v}\n")).unwrap();
+            }
+        }
+        /// A tty class entry whose `device` link points at `device_path` (or none).
+        fn tty(&self, name: &str, device_path: Option<&str>) {
+            let dev = self.root().join("devices/virtual/tty").join(name);
+            fs::create_dir_all(&dev).unwrap();
+            if let Some(p) = device_path {
+                fs::create_dir_all(self.root().join(p)).unwrap();
+                symlink(self.root().join(p), dev.join("device")).unwrap();
+            }
+            symlink(
+                format!("../../devices/virtual/tty/{name}"),
+                self.root().join("class/tty").join(name),
+            )
+            .unwrap();
+        }
+    }
+
+    #[test]
+    fn usb_serial_ports_get_ids_and_strings_from_the_usb_device() {
+        let sys = FakeSys::new();
+        let usb1 = "devices/pci0000:00/0000:00:14.0/usb1/1-2";
+        sys.usb_device(
+            usb1,
+            &[
+                ("idVendor", "03eb"),
+                ("idProduct", "2018"),
+                ("serial", "LD400123"),
+                ("manufacturer", "Optotune"),
+                ("product", "Lens Driver 4"),
+                ("bInterfaceNumber", "00"),
+            ],
+        );
+        // CDC-ACM: the tty's device is the USB interface, directly under the USB device.
+        sys.tty("ttyACM0", Some(&format!("{usb1}/1-2:1.0")));
+        // USB-serial (FTDI): interface, then the usb-serial port, then the tty.
+        let usb2 = "devices/pci0000:00/0000:00:14.0/usb1/1-3";
+        sys.usb_device(usb2, &[("idVendor", "0403"), ("idProduct", "faf0")]);
+        sys.tty("ttyUSB0", Some(&format!("{usb2}/1-3:1.0/ttyUSB0")));
+        // An on-board UART and a virtual console: not USB, not listed.
+        sys.tty("ttyS0", Some("devices/platform/serial8250"));
+        sys.tty("tty1", None);
+
+        let mut ports = serial_ports(sys.root()).unwrap();
+        ports.sort_by(|a, b| a.location.cmp(&b.location));
+        assert_eq!(ports.len(), 2, "{ports:?}");
+        let acm = &ports[0];
+        assert_eq!(acm.location, "/dev/ttyACM0");
+        assert_eq!((acm.vid, acm.pid), (Some(0x03eb), Some(0x2018)));
+        assert_eq!(acm.serial.as_deref(), Some("LD400123"));
+        assert_eq!(acm.manufacturer.as_deref(), Some("Optotune"));
+        assert_eq!(acm.product.as_deref(), Some("Lens Driver 4"));
+        assert_eq!(acm.interface, Interface::Serial);
+        let ftdi = &ports[1];
+        assert_eq!(ftdi.location, "/dev/ttyUSB0");
+        assert_eq!((ftdi.vid, ftdi.pid), (Some(0x0403), Some(0xfaf0)));
+        assert_eq!(ftdi.serial, None);
+    }
+
+    #[test]
+    fn malformed_ids_and_odd_names_do_not_break_the_listing() {
+        let sys = FakeSys::new();
+        let usb = "devices/usb2/2-1";
+        sys.usb_device(
+            usb,
+            &[
+                ("idVendor", "zzzz"),
+                ("idProduct", "12345"),
+                ("serial", "  "),
+            ],
+        );
+        sys.tty("ttyGS!0", Some(&format!("{usb}/2-1:1.0")));
+        let ports = serial_ports(sys.root()).unwrap();
+        assert_eq!(ports.len(), 1);
+        assert_eq!(ports[0].location, "/dev/ttyGS/0");
+        assert_eq!(
+            (ports[0].vid, ports[0].pid, ports[0].serial.as_deref()),
+            (None, None, None)
+        );
+    }
+
+    #[test]
+    fn the_walk_up_stops_at_the_sysfs_root() {
+        // idVendor above the root must not be picked up.
+        let outer = tempfile::tempdir().unwrap();
+        fs::write(outer.path().join("idVendor"), "03eb\n").unwrap();
+        fs::write(outer.path().join("idProduct"), "2018\n").unwrap();
+        let root = outer.path().join("sys");
+        fs::create_dir_all(root.join("class/tty")).unwrap();
+        fs::create_dir_all(root.join("devices/x/tty9")).unwrap();
+        fs::create_dir_all(root.join("devices/virtual/tty/tty9")).unwrap();
+        symlink(
+            root.join("devices/x/tty9"),
+            root.join("devices/virtual/tty/tty9/device"),
+        )
+        .unwrap();
+        symlink(
+            root.join("devices/virtual/tty/tty9"),
+            root.join("class/tty/tty9"),
+        )
+        .unwrap();
+        assert_eq!(serial_ports(&root).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn a_missing_sysfs_is_a_note_not_a_failure() {
+        let empty = tempfile::tempdir().unwrap();
+        let note = serial_ports(empty.path()).unwrap_err();
+        assert!(note.starts_with("serial ports not listed"), "{note}");
+    }
+}
