@@ -2,6 +2,11 @@
 //! add a variant to [`Command`] and a module beside this file.
 
 mod devices;
+mod gaze_cmd;
+mod lens_cmd;
+mod render_cmd;
+mod sim_cmd;
+mod sync_cmd;
 mod udev;
 
 use clap::{Parser, Subcommand};
@@ -23,6 +28,28 @@ enum Command {
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
     Udev(udev::Args),
+    /// Talk to one varifocal lens: info, get, set, sweep, temp.
+    Lens(lens_cmd::Args),
+    /// Talk to one eye tracker: info, stream (`--device sim:saccades` runs a simulated one).
+    Gaze(gaze_cmd::Args),
+    /// Simulators: `sim scene` renders a procedural scene's ground truth.
+    Sim(sim_cmd::Args),
+    /// Talk to multifocal sync hardware: status, program, start, stop, events.
+    Sync(sync_cmd::Args),
+    /// Depth of field from RGB-D at one focus (gather or lightfield).
+    Render(render_cmd::RenderArgs),
+    /// A focal stack from RGB-D (default 40 slices over 0.1-4.0 D).
+    Focalstack(render_cmd::FocalStackArgs),
+    /// Multifocal layers from RGB-D (linear or optimized blending).
+    Decompose(render_cmd::DecomposeArgs),
+    /// What the eye sees focusing at q through a varifocal, multifocal or light-field display.
+    Retina(render_cmd::RetinaArgs),
+    /// PSNR and SSIM of two images (sRGB-encoded), optionally inside a mask.
+    Metrics(render_cmd::MetricsArgs),
+    /// A dense light field synthesised from 5 or 9 sparse RGB-D views.
+    Lightfield(render_cmd::LightFieldArgs),
+    /// Log-polar foveated sampling and inverse-distance interpolation of an image.
+    Foveate(render_cmd::FoveateArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -30,6 +57,17 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
+        Command::Lens(args) => lens_cmd::run(args),
+        Command::Gaze(args) => gaze_cmd::run(args),
+        Command::Sim(args) => sim_cmd::run(args),
+        Command::Sync(args) => sync_cmd::run(args),
+        Command::Render(args) => render_cmd::render(args),
+        Command::Focalstack(args) => render_cmd::focalstack(args),
+        Command::Decompose(args) => render_cmd::decompose(args),
+        Command::Retina(args) => render_cmd::retina(args),
+        Command::Metrics(args) => render_cmd::metrics(args),
+        Command::Lightfield(args) => render_cmd::lightfield(args),
+        Command::Foveate(args) => render_cmd::foveate(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -1,1 +1,21 @@
-//! Optics methods (defocus, focal stacks, multifocal decomposition, retina, light fields, foveation, metrics) on CPU and wgpu backends. Filled by the renderer issue.
+//! Optics methods (defocus, focal stacks, multifocal decomposition, retina, light fields,
+//! foveation, metrics) behind a [`Backend`] seam, with the CPU backend as the reference.
+//! All colour maths is in linear light; sRGB appears only in [`io`] and in the metrics.
+
+pub mod backend;
+mod common;
+pub mod error;
+pub mod foveate;
+pub mod gather;
+pub mod io;
+pub mod kernel;
+pub mod lightfield;
+pub mod metrics;
+pub mod multifocal;
+pub mod retina;
+pub mod views;
+
+pub use backend::{backend, Backend, Cpu, DefocusMethod};
+pub use error::RenderError;
+pub use lightfield::LightFieldParams;
+pub use multifocal::{Layers, OptimizeParams, OptimizeReport};

@@ -105,6 +105,9 @@ impl<L: ByteLink> ProtocolClient<L> {
     /// was handed to the link. Its reply is not awaited: a refusal surfaces from
     /// [`ProtocolClient::take_unawaited_error`] or the next call that reads.
     pub async fn send(&mut self, message: &Message) -> Result<(u16, Timestamp), DeviceError> {
+        // Read what has arrived first: replies nobody awaits would otherwise fill the link
+        // until the device blocks on writing them.
+        self.poll().await?;
         let (id, t) = self.write_request(message).await?;
         self.unawaited.push_back(id);
         if self.unawaited.len() > MAX_UNAWAITED {
@@ -119,10 +122,16 @@ impl<L: ByteLink> ProtocolClient<L> {
         let (id, _) = self.write_request(message).await?;
         let deadline = Instant::now() + self.reply_timeout;
         loop {
-            let r = self
-                .read_one(deadline)
-                .await
-                .map_err(|e| self.explain_timeout(e))?;
+            let r = match self.read_one(deadline).await {
+                Ok(r) => r,
+                Err(e) => {
+                    if matches!(e, DeviceError::Link(LinkError::Timeout { .. })) {
+                        // A frame whose delimiter was lost would swallow the next good reply.
+                        self.decoder.reset();
+                    }
+                    return Err(self.explain_timeout(e));
+                }
+            };
             if r.request_id == id {
                 return match r.message {
                     Message::Error { code, detail } => Err(refused(code, &detail)),
@@ -406,6 +415,34 @@ mod tests {
         let mut buf = [0u8; 64];
         let n = dev.read(&mut buf, Duration::from_millis(1)).await.unwrap();
         assert_eq!(decode_frame(&buf[..n]).unwrap().message, Message::GetLimits);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn lost_delimiter_costs_one_request_not_two() {
+        let (host, mut dev) = memory::pair(4096);
+        // Answers every request with Ack, but drops the first reply's 0x00 delimiter.
+        tokio::spawn(async move {
+            let mut decoder = FrameDecoder::new();
+            let mut buf = [0u8; 256];
+            let mut first = true;
+            while let Ok(n) = dev.read(&mut buf, Duration::from_secs(10)).await {
+                let frames: Vec<_> = decoder.push(&buf[..n]).collect();
+                for f in frames.into_iter().flatten() {
+                    let mut out = [0u8; MAX_FRAME_LEN];
+                    let n = encode_frame(f.request_id, &Message::Ack, &mut out).unwrap();
+                    let n = if first { n - 1 } else { n };
+                    first = false;
+                    let _ = dev.write_all(&out[..n]).await;
+                }
+            }
+        });
+        let mut c = ProtocolClient::new(host, Arc::new(SimClock::default()));
+        assert!(c.request(&Message::Start).await.is_err());
+        // The half frame was dropped at the timeout, so it cannot swallow the next reply.
+        assert_eq!(
+            c.request(&Message::Stop).await.unwrap().message,
+            Message::Ack
+        );
     }
 
     #[tokio::test]

@@ -1,0 +1,315 @@
+//! `dioptra lens --device DRIVER:PATH info|get|set|sweep|temp`: talk to one varifocal lens.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use clap::Subcommand;
+use dioptra_core::{Clock, Diopters, LensState, PowerRange, SystemClock, Timestamp, VarifocalLens};
+use dioptra_lens::ids::{DIOPTRA_LENS_PID, DIOPTRA_VID};
+use dioptra_lens::optotune::{self, protocol::Status};
+use dioptra_lens::{
+    ControllerConfig, LensController, LensLimits, Opener, Optotune, OptotuneConfig, OutOfRange,
+};
+use dioptra_transport::serial::{SerialLink, SerialSettings};
+use dioptra_transport::usb::{UsbBulkLink, UsbSelector};
+use dioptra_transport::{ByteLink, LinkError};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// DRIVER:PATH: optotune:/dev/ttyACM0, lens:/dev/ttyACM1 (CDC-ACM) or lens:usb[:SERIAL]
+    /// (USB bulk endpoints).
+    #[arg(long)]
+    device: String,
+    /// Lowest power the rig allows, diopters (narrowed further to what the lens reaches).
+    #[arg(long, default_value_t = -10.0, allow_hyphen_values = true)]
+    min_d: f32,
+    /// Highest power the rig allows, diopters.
+    #[arg(long, default_value_t = 10.0, allow_hyphen_values = true)]
+    max_d: f32,
+    /// Refuse an out-of-range power instead of clamping it.
+    #[arg(long)]
+    refuse: bool,
+    #[command(subcommand)]
+    action: Action,
+}
+
+#[derive(Subcommand, Debug)]
+enum Action {
+    /// Identity, limits and mode of the device.
+    Info,
+    /// Power, current and temperature now.
+    Get,
+    /// Command a power, diopters.
+    Set {
+        #[arg(allow_hyphen_values = true)]
+        diopters: f32,
+        /// Then print the lens state every 5 ms for this long.
+        #[arg(long, default_value_t = 0)]
+        watch_ms: u64,
+    },
+    /// Step through powers FROM:TO (diopters), reading the state after each dwell.
+    Sweep {
+        #[arg(allow_hyphen_values = true)]
+        range: String,
+        #[arg(long, default_value_t = 0.5)]
+        step: f32,
+        #[arg(long, default_value_t = 50)]
+        dwell_ms: u64,
+    },
+    /// Lens temperature (and, on an Optotune, the status bits).
+    Temp,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    rt.block_on(run_async(args))
+}
+
+async fn run_async(args: Args) -> Result<()> {
+    let (driver, path) = args
+        .device
+        .split_once(':')
+        .context("--device must be DRIVER:PATH, e.g. optotune:/dev/ttyACM0")?;
+    let power = PowerRange::new(Diopters(args.min_d), Diopters(args.max_d))
+        .context("--min-d must not exceed --max-d, and both must be finite")?;
+    let policy = if args.refuse {
+        OutOfRange::Refuse
+    } else {
+        OutOfRange::Clamp
+    };
+    let limits = LensLimits::new(power).with_policy(policy);
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    match driver {
+        "optotune" => {
+            let opener = serial_opener(path, optotune::BAUD);
+            let mut d = Optotune::connect_with(opener, OptotuneConfig::new(limits), clock.clone())
+                .await
+                .with_context(|| {
+                    format!("cannot start an Optotune Lens Driver 4 session on {path}")
+                })?;
+            match &args.action {
+                Action::Info => optotune_info(&mut d).await,
+                Action::Temp => {
+                    let t = d.temperature_c().await?;
+                    let s = d.status().await?;
+                    println!("temperature {t:.2} °C");
+                    println!("status {:#010x}{}", s.0, describe_status(s));
+                    Ok(())
+                }
+                action => common(&mut d, action, &*clock).await,
+            }
+        }
+        "lens" => {
+            let cfg = ControllerConfig::new(limits);
+            if let Some(rest) = path.strip_prefix("usb") {
+                let mut sel = UsbSelector::new(DIOPTRA_VID, DIOPTRA_LENS_PID);
+                if let Some(serial) = rest.strip_prefix(':').filter(|s| !s.is_empty()) {
+                    sel = sel.serial(serial);
+                }
+                let opener = Opener::new(move || {
+                    let sel = sel.clone();
+                    async move {
+                        tokio::task::spawn_blocking(move || UsbBulkLink::open(&sel))
+                            .await
+                            .map_err(|e| LinkError::Io(e.to_string()))?
+                    }
+                });
+                controller(opener, cfg, &args.action, clock).await
+            } else {
+                controller(serial_opener(path, 115_200), cfg, &args.action, clock).await
+            }
+        }
+        other => bail!("unknown lens driver {other:?}: use optotune:PATH or lens:PATH"),
+    }
+}
+
+/// Reopens the same serial port after an unplug.
+fn serial_opener(path: &str, baud: u32) -> Opener<SerialLink> {
+    let path = path.to_string();
+    Opener::new(move || {
+        let r = SerialLink::open(&path, SerialSettings::baud(baud));
+        async move { r }
+    })
+}
+
+async fn controller<L: ByteLink + 'static>(
+    opener: Opener<L>,
+    cfg: ControllerConfig,
+    action: &Action,
+    clock: Arc<dyn Clock>,
+) -> Result<()> {
+    let mut d = LensController::connect_with(opener, cfg, clock.clone())
+        .await
+        .context("cannot start a dioptra lens controller session")?;
+    match action {
+        Action::Info => {
+            if let Some(i) = d.info() {
+                let v = i.firmware_version;
+                println!("device        dioptra lens controller ({:?})", i.kind);
+                println!("serial        {}", i.serial);
+                println!(
+                    "firmware      {}.{}.{} (protocol {})",
+                    v.major, v.minor, v.patch, i.protocol_version
+                );
+                println!("capabilities  {:#x}", i.capabilities.0);
+            }
+            if let Some(l) = d.device_limits() {
+                println!(
+                    "device limits {:.3} .. {:.3} D, max current {:.2} mA",
+                    l.min_power_d, l.max_power_d, l.max_current_ma
+                );
+            }
+            let r = d.power_range();
+            println!("driving range {:.3} .. {:.3} D", r.min.0, r.max.0);
+            Ok(())
+        }
+        Action::Temp => {
+            let s = d.state().await?;
+            match s.temperature_c {
+                Some(t) => println!("temperature {t:.2} °C"),
+                None => println!("temperature not measured by this controller"),
+            }
+            Ok(())
+        }
+        action => common(&mut d, action, &*clock).await,
+    }
+}
+
+async fn optotune_info<L: ByteLink>(d: &mut Optotune<L>) -> Result<()> {
+    let temp = d.temperature_c().await?;
+    let Some(i) = d.info() else {
+        bail!("not connected")
+    };
+    println!("device        Optotune Lens Driver 4");
+    println!(
+        "firmware      type {} version {}",
+        char::from(i.firmware_type),
+        i.firmware_version
+    );
+    println!("serial        {}", i.serial_number);
+    println!("device id     {}", i.device_id);
+    println!("max current   {:.2} mA", i.max_current_ma);
+    println!(
+        "device range  {:.3} .. {:.3} D (focal-power mode, over its temperature limits)",
+        i.device_range.min.0, i.device_range.max.0
+    );
+    let r = d.power_range();
+    println!("driving range {:.3} .. {:.3} D", r.min.0, r.max.0);
+    println!("mode          {:?}", d.mode());
+    println!("temperature   {temp:.2} °C");
+    Ok(())
+}
+
+fn describe_status(s: Status) -> String {
+    let mut names = Vec::new();
+    if s.0 & Status::FOCAL_POWER_CLAMPED_HIGH != 0 {
+        names.push("focal power clamped high");
+    }
+    if s.0 & Status::FOCAL_POWER_CLAMPED_LOW != 0 {
+        names.push("focal power clamped low");
+    }
+    if s.0 & Status::TEMPERATURE_OUT_OF_LIMITS != 0 {
+        names.push("temperature outside limits");
+    }
+    if names.is_empty() {
+        String::new()
+    } else {
+        format!(" ({})", names.join(", "))
+    }
+}
+
+/// get, set and sweep: the same for every driver.
+async fn common<V: VarifocalLens>(d: &mut V, action: &Action, clock: &dyn Clock) -> Result<()> {
+    let start = clock.now();
+    match action {
+        Action::Get => println!("{}", line(&d.state().await?)),
+        Action::Set { diopters, watch_ms } => {
+            let sent = d.set_power(Diopters(*diopters)).await?;
+            println!(
+                "set {diopters:.3} D (on the wire {:.3} ms after start)",
+                ms(sent, start)
+            );
+            let mut next = tokio::time::Instant::now();
+            let until = next + Duration::from_millis(*watch_ms);
+            while next < until {
+                next += Duration::from_millis(5);
+                tokio::time::sleep_until(next).await;
+                let s = d.state().await?;
+                println!("+{:7.2} ms  {}", ms(s.host_time, sent), line(&s));
+            }
+        }
+        Action::Sweep {
+            range,
+            step,
+            dwell_ms,
+        } => {
+            let (from, to) = parse_range(range)?;
+            if step.is_nan() || *step <= 0.0 || !step.is_finite() {
+                bail!("--step must be a positive number of diopters");
+            }
+            let n = ((to - from).abs() / step + 1e-4).floor() as usize;
+            for k in 0..=n {
+                let p = from + (to - from).signum() * *step * k as f32;
+                let sent = d.set_power(Diopters(p)).await?;
+                tokio::time::sleep(Duration::from_millis(*dwell_ms)).await;
+                let s = d.state().await?;
+                println!(
+                    "{:8.1} ms  set {p:7.3} D  ->  {}",
+                    ms(sent, start),
+                    line(&s)
+                );
+            }
+        }
+        Action::Info | Action::Temp => bail!("{action:?} is handled by each driver"),
+    }
+    Ok(())
+}
+
+fn parse_range(s: &str) -> Result<(f32, f32)> {
+    let (a, b) = s
+        .split_once(':')
+        .context("a sweep range is FROM:TO, e.g. 0:3")?;
+    let a: f32 = a.trim().parse().context("FROM is not a number")?;
+    let b: f32 = b.trim().parse().context("TO is not a number")?;
+    if !a.is_finite() || !b.is_finite() {
+        bail!("sweep bounds must be finite");
+    }
+    Ok((a, b))
+}
+
+fn ms(t: Timestamp, since: Timestamp) -> f64 {
+    t.signed_diff_ns(since) as f64 / 1e6
+}
+
+fn line(s: &LensState) -> String {
+    let opt =
+        |v: Option<f32>, unit: &str| v.map_or("n/a".to_string(), |v| format!("{v:.2} {unit}"));
+    let settled = match s.settled {
+        Some(true) => "settled",
+        Some(false) => "moving",
+        None => "settling not reported",
+    };
+    format!(
+        "power {:.3} D  current {}  temperature {}  {settled}",
+        s.power.0,
+        opt(s.current_ma, "mA"),
+        opt(s.temperature_c, "°C")
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sweep_ranges_parse() {
+        assert_eq!(parse_range("0:3").unwrap(), (0.0, 3.0));
+        assert_eq!(parse_range("-1.5: 2").unwrap(), (-1.5, 2.0));
+        assert!(parse_range("3").is_err());
+        assert!(parse_range("a:1").is_err());
+        assert!(parse_range("0:inf").is_err());
+    }
+}

@@ -1,0 +1,636 @@
+//! `dioptra render | focalstack | decompose | retina | metrics`: the optics methods on files.
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use dioptra_core::{Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
+use dioptra_render::io::{read_color, read_depth, write_color, DepthUnits};
+use dioptra_render::metrics::quality;
+use dioptra_render::multifocal::{linspace, Layers};
+use dioptra_render::retina::{retina_lightfield, LfView};
+use dioptra_render::{backend, Backend, DefocusMethod, LightFieldParams, OptimizeParams};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+
+/// Eye model and backend options shared by the optics commands.
+#[derive(Args, Debug, Clone)]
+pub struct EyeArgs {
+    /// Horizontal field of view of the image, degrees.
+    #[arg(long, default_value_t = 20.0)]
+    pub fov_deg: f32,
+    /// Pupil diameter, millimetres.
+    #[arg(long, default_value_t = 4.0)]
+    pub pupil_mm: f32,
+    /// Compute backend.
+    #[arg(long, default_value = "cpu")]
+    pub backend: String,
+}
+
+impl EyeArgs {
+    pub fn eye(&self) -> Result<EyeModel> {
+        let eye = EyeModel {
+            pupil_diameter: Millimeters(self.pupil_mm),
+            fov_horizontal_deg: self.fov_deg,
+            ..EyeModel::default()
+        };
+        Ok(eye.validated()?)
+    }
+    fn backend(&self) -> Result<Box<dyn Backend>> {
+        Ok(backend(&self.backend)?)
+    }
+}
+
+/// An RGB-D input.
+#[derive(Args, Debug, Clone)]
+pub struct InputArgs {
+    /// Colour image: PNG (8/16-bit sRGB) or EXR/PFM (linear).
+    #[arg(long)]
+    pub color: PathBuf,
+    /// Depth: EXR/PFM in metres or 16-bit PNG in millimetres.
+    #[arg(long)]
+    pub depth: PathBuf,
+    /// Override the depth file's units: m, mm or D.
+    #[arg(long)]
+    pub depth_units: Option<String>,
+}
+
+impl InputArgs {
+    fn load(&self) -> Result<Rgbd> {
+        let color = read_color(&self.color)?;
+        let units = self
+            .depth_units
+            .as_deref()
+            .map(str::parse::<DepthUnits>)
+            .transpose()?;
+        let depth = read_depth(&self.depth, units)?;
+        Rgbd::new(color, depth).with_context(|| {
+            format!(
+                "{} and {} must be the same size",
+                self.color.display(),
+                self.depth.display()
+            )
+        })
+    }
+}
+
+/// Defocus method options.
+#[derive(Args, Debug, Clone)]
+pub struct MethodArgs {
+    /// gather (single-image CoC blur) or lightfield (Yu et al. 2010).
+    #[arg(long, default_value = "lightfield")]
+    pub method: String,
+    /// Virtual lens cameras for the lightfield method.
+    #[arg(long, default_value_t = 36)]
+    pub views: usize,
+}
+
+impl MethodArgs {
+    fn method(&self) -> Result<DefocusMethod> {
+        Ok(match self.method.parse::<DefocusMethod>()? {
+            DefocusMethod::LightField(_) => DefocusMethod::LightField(LightFieldParams {
+                views: self.views,
+                mip: true,
+            }),
+            m => m,
+        })
+    }
+}
+
+pub fn bar(len: usize, what: &str) -> Result<ProgressBar> {
+    let pb = ProgressBar::new(len as u64);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} {elapsed_precise}")?
+            .progress_chars("=> "),
+    );
+    pb.set_message(what.to_string());
+    Ok(pb)
+}
+
+fn parse_list(s: &str) -> Result<Vec<f32>> {
+    s.split(',')
+        .map(|v| {
+            v.trim()
+                .parse::<f32>()
+                .with_context(|| format!("{v:?} in {s:?} is not a number"))
+        })
+        .collect()
+}
+
+fn parse_range(s: &str) -> Result<(f32, f32)> {
+    match parse_list(s)?[..] {
+        [a, b] => Ok((a, b)),
+        _ => bail!("range {s:?} must be two numbers, e.g. 0.1,4.0"),
+    }
+}
+
+fn ensure_dir(p: &Path) -> Result<()> {
+    std::fs::create_dir_all(p).with_context(|| format!("cannot create directory {}", p.display()))
+}
+
+/// File name of a focal-stack slice (shared with `dioptra sim scene`).
+pub fn slice_name(q: Diopters, ext: &str) -> String {
+    format!("focus_{:.2}D.{ext}", q.0)
+}
+
+#[derive(Args, Debug)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    input: InputArgs,
+    /// Focus distance, diopters.
+    #[arg(long)]
+    focus: f32,
+    #[command(flatten)]
+    method: MethodArgs,
+    #[command(flatten)]
+    eye: EyeArgs,
+    /// Output image: .png (8-bit sRGB), .exr or .pfm (linear).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub fn render(a: RenderArgs) -> Result<()> {
+    let input = a.input.load()?;
+    let b = a.eye.backend()?;
+    let t = std::time::Instant::now();
+    let out = b.defocus(
+        &input,
+        &[Diopters(a.focus)],
+        &a.eye.eye()?,
+        a.method.method()?,
+        &|_| {},
+    )?;
+    let img = out
+        .into_iter()
+        .next()
+        .context("the backend returned no image")?;
+    write_color(&a.out, &img)?;
+    println!(
+        "wrote {} ({:.0} ms)",
+        a.out.display(),
+        t.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct FocalStackArgs {
+    #[command(flatten)]
+    input: InputArgs,
+    /// Number of slices.
+    #[arg(long, default_value_t = 40)]
+    slices: usize,
+    /// Focus range, diopters: near,far as lo,hi.
+    #[arg(long, default_value = "0.1,4.0")]
+    range: String,
+    #[command(flatten)]
+    method: MethodArgs,
+    #[command(flatten)]
+    eye: EyeArgs,
+    /// Output directory (one focus_<q>D.<ext> per slice).
+    #[arg(long)]
+    out: PathBuf,
+    /// Slice file type: png or exr.
+    #[arg(long, default_value = "png")]
+    ext: String,
+}
+
+pub fn focalstack(a: FocalStackArgs) -> Result<()> {
+    let input = a.input.load()?;
+    let (lo, hi) = parse_range(&a.range)?;
+    if a.slices == 0 || a.slices > 1000 {
+        bail!("--slices must be 1 to 1000");
+    }
+    let foci = linspace(lo, hi, a.slices);
+    let b = a.eye.backend()?;
+    let pb = bar(foci.len(), "focal stack")?;
+    let stack = b.defocus(&input, &foci, &a.eye.eye()?, a.method.method()?, &|n| {
+        pb.set_position(n as u64)
+    })?;
+    pb.finish();
+    ensure_dir(&a.out)?;
+    for (q, img) in foci.iter().zip(&stack) {
+        write_color(&a.out.join(slice_name(*q, &a.ext)), img)?;
+    }
+    println!("wrote {} slices to {}", stack.len(), a.out.display());
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct DecomposeArgs {
+    #[command(flatten)]
+    input: InputArgs,
+    /// Display planes, diopters.
+    #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
+    planes: String,
+    /// linear (Akeley) or optimized (Narain).
+    #[arg(long, default_value = "optimized")]
+    method: String,
+    /// Optimized: focal samples of the target focal stack.
+    #[arg(long, default_value_t = 22)]
+    focal_samples: usize,
+    /// Optimized: range of the focal samples, diopters.
+    #[arg(long, default_value = "0.1,2.2")]
+    focal_range: String,
+    /// Optimized: directory of target slices named focus_<q>D.<png|exr> (e.g. from `dioptra sim
+    /// scene` or `dioptra focalstack`); without it the targets are rendered with --target-method.
+    #[arg(long)]
+    targets: Option<PathBuf>,
+    /// Optimized: defocus method (gather or lightfield) that renders the targets when
+    /// --targets is absent.
+    #[arg(long, default_value = "lightfield")]
+    target_method: String,
+    /// Optimized: lightfield views for the targets.
+    #[arg(long, default_value_t = 36)]
+    target_views: usize,
+    /// Optimized: iterations.
+    #[arg(long, default_value_t = 100)]
+    iterations: usize,
+    #[command(flatten)]
+    eye: EyeArgs,
+    /// Output directory: layer_<p>D.<ext> per plane.
+    #[arg(long)]
+    out: PathBuf,
+    /// Layer file type: exr (exact) or png (8-bit sRGB).
+    #[arg(long, default_value = "exr")]
+    ext: String,
+}
+
+/// Finds `focus_<q>D.png` or `.exr` in `dir`.
+fn find_slice(dir: &Path, q: Diopters) -> Result<PathBuf> {
+    for ext in ["exr", "png", "pfm"] {
+        let p = dir.join(slice_name(q, ext));
+        if p.exists() {
+            return Ok(p);
+        }
+    }
+    bail!(
+        "{} has no slice for {:.2} D (expected {})",
+        dir.display(),
+        q.0,
+        slice_name(q, "png|exr")
+    )
+}
+
+pub fn layer_name(p: Diopters, ext: &str) -> String {
+    format!("layer_{:.2}D.{ext}", p.0)
+}
+
+pub fn decompose(a: DecomposeArgs) -> Result<()> {
+    let input = a.input.load()?;
+    let planes: Vec<Diopters> = parse_list(&a.planes)?.into_iter().map(Diopters).collect();
+    let eye = a.eye.eye()?;
+    let b = a.eye.backend()?;
+    let linear = b.linear_blend(&input, &planes)?;
+    let layers = match a.method.as_str() {
+        "linear" => linear,
+        "optimized" => {
+            let (lo, hi) = parse_range(&a.focal_range)?;
+            if a.focal_samples == 0 || a.focal_samples > 200 {
+                bail!("--focal-samples must be 1 to 200");
+            }
+            let foci = linspace(lo, hi, a.focal_samples);
+            let targets = match &a.targets {
+                Some(dir) => {
+                    let t = foci
+                        .iter()
+                        .map(|&q| Ok(read_color(&find_slice(dir, q)?)?))
+                        .collect::<Result<Vec<_>>>()?;
+                    if let Some(bad) = t
+                        .iter()
+                        .find(|i| (i.width(), i.height()) != (input.width(), input.height()))
+                    {
+                        bail!(
+                            "target slices are {}x{} but the input is {}x{}",
+                            bad.width(),
+                            bad.height(),
+                            input.width(),
+                            input.height()
+                        );
+                    }
+                    t
+                }
+                None => {
+                    let pb = bar(foci.len(), "targets")?;
+                    let t = b.defocus(
+                        &input,
+                        &foci,
+                        &eye,
+                        MethodArgs {
+                            method: a.target_method.clone(),
+                            views: a.target_views,
+                        }
+                        .method()?,
+                        &|n| pb.set_position(n as u64),
+                    )?;
+                    pb.finish();
+                    t
+                }
+            };
+            let pb = bar(a.iterations, "optimizing")?;
+            let params = OptimizeParams {
+                iterations: a.iterations,
+                tolerance: 0.0,
+            };
+            let (layers, rep) = b.optimized_blend(
+                &targets,
+                &foci,
+                &planes,
+                &eye,
+                Some(&linear),
+                params,
+                &|n| pb.set_position(n as u64),
+            )?;
+            pb.finish();
+            let trace: Vec<String> = rep.rms.iter().map(|(i, r)| format!("{i}:{r:.5}")).collect();
+            println!(
+                "optimized blending: {} iterations; rms retinal error by iteration {}",
+                rep.iterations,
+                trace.join(" ")
+            );
+            layers
+        }
+        m => bail!("unknown decomposition method {m:?}: expected linear or optimized"),
+    };
+    ensure_dir(&a.out)?;
+    for (p, img) in layers.planes.iter().zip(&layers.images) {
+        write_color(&a.out.join(layer_name(*p, &a.ext)), img)?;
+    }
+    println!(
+        "wrote {} layers to {}",
+        layers.images.len(),
+        a.out.display()
+    );
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct RetinaArgs {
+    /// Where the eye focuses, diopters.
+    #[arg(long)]
+    focus: f32,
+    /// Multifocal: directory of layer_<p>D.<ext> files (from `dioptra decompose`).
+    #[arg(long, conflicts_with_all = ["image", "lightfield"])]
+    layers: Option<PathBuf>,
+    /// Multifocal: the display planes, diopters.
+    #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
+    planes: String,
+    /// Varifocal: the image the display shows.
+    #[arg(long, conflicts_with = "lightfield")]
+    image: Option<PathBuf>,
+    /// Varifocal: where the display's image lies, diopters.
+    #[arg(long, default_value_t = 1.0)]
+    display: f32,
+    /// Light field: directory of view_<row>_<col>.png views on a square grid (from `dioptra sim scene`).
+    #[arg(long)]
+    lightfield: Option<PathBuf>,
+    /// Light field: side of the square the views span, metres.
+    #[arg(long, default_value_t = 0.01)]
+    span: f32,
+    #[command(flatten)]
+    eye: EyeArgs,
+    #[arg(long)]
+    out: PathBuf,
+}
+
+/// Reads view_<r>_<c>.<png|exr> files of a square grid from `dir`.
+pub fn read_light_field(dir: &Path, span: f32) -> Result<(Vec<LfView>, f32)> {
+    let mut n = 0;
+    while dir.join(format!("view_{:02}_{:02}.png", 0, n)).exists()
+        || dir.join(format!("view_{:02}_{:02}.exr", 0, n)).exists()
+    {
+        n += 1;
+    }
+    if n == 0 {
+        bail!("{} has no view_00_00.png or .exr", dir.display());
+    }
+    let step = if n > 1 {
+        span / (n - 1) as f32
+    } else {
+        span.max(1e-6)
+    };
+    let mut views = Vec::with_capacity(n * n);
+    for r in 0..n {
+        for c in 0..n {
+            let png = dir.join(format!("view_{r:02}_{c:02}.png"));
+            let path = if png.exists() {
+                png
+            } else {
+                dir.join(format!("view_{r:02}_{c:02}.exr"))
+            };
+            let half = (n - 1) as f32 * 0.5;
+            views.push(LfView {
+                position: [(c as f32 - half) * step, (r as f32 - half) * step],
+                image: read_color(&path)?,
+            });
+        }
+    }
+    Ok((views, step))
+}
+
+pub fn retina(a: RetinaArgs) -> Result<()> {
+    let eye = a.eye.eye()?;
+    let b = a.eye.backend()?;
+    let q = Diopters(a.focus);
+    let img = if let Some(dir) = &a.layers {
+        let planes: Vec<Diopters> = parse_list(&a.planes)?.into_iter().map(Diopters).collect();
+        let images = planes
+            .iter()
+            .map(|&p| {
+                let exr = dir.join(layer_name(p, "exr"));
+                let path = if exr.exists() {
+                    exr
+                } else {
+                    dir.join(layer_name(p, "png"))
+                };
+                Ok(read_color(&path)?)
+            })
+            .collect::<Result<Vec<RgbImage>>>()?;
+        b.retina_multifocal(&Layers { planes, images }, &[q], &eye)?
+            .remove(0)
+    } else if let Some(path) = &a.image {
+        b.retina_varifocal(&read_color(path)?, Diopters(a.display), q, &eye)?
+    } else if let Some(dir) = &a.lightfield {
+        let (views, step) = read_light_field(dir, a.span)?;
+        retina_lightfield(&views, step, q, &eye)?
+    } else {
+        bail!(
+            "give one of --layers DIR (multifocal), --image FILE (varifocal) or --lightfield DIR"
+        );
+    };
+    write_color(&a.out, &img)?;
+    println!("wrote {}", a.out.display());
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct MetricsArgs {
+    /// First image.
+    #[arg(long)]
+    a: PathBuf,
+    /// Second image (same size).
+    #[arg(long)]
+    b: PathBuf,
+    /// Optional mask image: pixels brighter than half are compared.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+}
+
+pub fn metrics(a: MetricsArgs) -> Result<()> {
+    let (x, y) = (read_color(&a.a)?, read_color(&a.b)?);
+    let mask: Option<Plane> = match &a.mask {
+        Some(p) => Some(read_color(p)?.channels[0].clone()),
+        None => None,
+    };
+    let q = quality(&x, &y, mask.as_ref())?;
+    println!("PSNR {:.2} dB", q.psnr);
+    println!("SSIM {:.4}", q.ssim);
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct LightFieldArgs {
+    /// Directory of a light field's view_<r>_<c>.png and view_<r>_<c>_depth.exr (from
+    /// `dioptra sim scene`); the input views are taken from it.
+    #[arg(long)]
+    views: PathBuf,
+    /// How many input views: 5 (corners and centre) or 9 (corners, edge centres, centre).
+    #[arg(long, default_value_t = 9)]
+    inputs: usize,
+    /// Side of the square the input grid spans, metres.
+    #[arg(long, default_value_t = 0.01)]
+    span: f32,
+    /// Views per side of the synthesised light field (over the same square).
+    #[arg(long, default_value_t = 9)]
+    grid: usize,
+    #[command(flatten)]
+    eye: EyeArgs,
+    /// Output directory (view_<r>_<c>.png).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+pub fn lightfield(a: LightFieldArgs) -> Result<()> {
+    use dioptra_render::views::{synthesize_light_field, RgbdView};
+    let mut n = 0;
+    while a.views.join(format!("view_00_{n:02}.png")).exists() {
+        n += 1;
+    }
+    if n < 2 {
+        bail!(
+            "{} needs a grid of at least 2 x 2 views named view_<r>_<c>.png",
+            a.views.display()
+        );
+    }
+    let (m, e) = (n / 2, n - 1);
+    let picks: Vec<(usize, usize)> = match a.inputs {
+        5 => vec![(0, 0), (0, e), (m, m), (e, 0), (e, e)],
+        9 => vec![
+            (0, 0),
+            (0, m),
+            (0, e),
+            (m, 0),
+            (m, m),
+            (m, e),
+            (e, 0),
+            (e, m),
+            (e, e),
+        ],
+        k => bail!("--inputs must be 5 or 9, not {k}"),
+    };
+    let step = a.span / (n - 1) as f32;
+    let half = (n - 1) as f32 * 0.5;
+    let inputs = picks
+        .iter()
+        .map(|&(r, c)| {
+            let color = read_color(&a.views.join(format!("view_{r:02}_{c:02}.png")))?;
+            let depth = read_depth(&a.views.join(format!("view_{r:02}_{c:02}_depth.exr")), None)?;
+            let rgbd =
+                Rgbd::new(color, depth).context("a view's colour and depth differ in size")?;
+            Ok(RgbdView {
+                position: [(c as f32 - half) * step, (r as f32 - half) * step],
+                rgbd,
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let t = std::time::Instant::now();
+    let pb = bar(a.grid * a.grid, "views")?;
+    let lf = synthesize_light_field(&inputs, a.grid, a.span, &a.eye.eye()?, |k| {
+        pb.set_position(k as u64)
+    })?;
+    pb.finish();
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    ensure_dir(&a.out)?;
+    for (k, v) in lf.iter().enumerate() {
+        write_color(
+            &a.out
+                .join(format!("view_{:02}_{:02}.png", k / a.grid, k % a.grid)),
+            &v.image,
+        )?;
+    }
+    println!(
+        "synthesised {} views from {} inputs in {ms:.0} ms into {}",
+        lf.len(),
+        inputs.len(),
+        a.out.display()
+    );
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct FoveateArgs {
+    /// Colour image to sample.
+    #[arg(long)]
+    color: PathBuf,
+    /// Gaze (fovea centre) in pixels, x,y; the image centre by default.
+    #[arg(long)]
+    gaze: Option<String>,
+    /// Log-buffer scale S (2 samples about 10 %, 4 about 4 %).
+    #[arg(long, default_value_t = 2.0)]
+    scale: f32,
+    /// Kernel parameter K.
+    #[arg(long, default_value_t = 1.0)]
+    kernel: f32,
+    /// Per-view radial offset r'.
+    #[arg(long, default_value_t = 1.0)]
+    r_offset: f32,
+    /// Per-view angular offset theta', radians.
+    #[arg(long, default_value_t = 0.0)]
+    theta_offset: f32,
+    /// Interpolated image.
+    #[arg(long)]
+    out: PathBuf,
+    /// Also write the sampling mask here.
+    #[arg(long)]
+    mask_out: Option<PathBuf>,
+}
+
+pub fn foveate(a: FoveateArgs) -> Result<()> {
+    use dioptra_render::foveate::{interpolate, log_polar_mask, LogPolar};
+    let img = read_color(&a.color)?;
+    let (w, h) = (img.width(), img.height());
+    let centre = match &a.gaze {
+        Some(g) => match parse_list(g)?[..] {
+            [x, y] => [x, y],
+            _ => bail!("--gaze must be x,y in pixels"),
+        },
+        None => [w as f32 * 0.5, h as f32 * 0.5],
+    };
+    let p = LogPolar {
+        centre,
+        scale: a.scale,
+        kernel: a.kernel,
+        r_offset: a.r_offset,
+        theta_offset: a.theta_offset,
+    };
+    let (mask, fraction) = log_polar_mask(w, h, &p)?;
+    write_color(&a.out, &interpolate(&img, &mask)?)?;
+    if let Some(m) = &a.mask_out {
+        let mp = mask.clone();
+        write_color(m, &RgbImage::from_planes(mp.clone(), mp.clone(), mp)?)?;
+    }
+    println!(
+        "sampled {:.2} % of pixels; wrote {}",
+        fraction * 100.0,
+        a.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,116 @@
+//! `dioptra sim scene` then `dioptra render` then `dioptra metrics`, and the errors a user
+//! meets first, through the real binary.
+
+use std::path::Path;
+use std::process::Command;
+
+fn dioptra(args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(args)
+        .output()
+        .expect("runs");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
+#[test]
+fn scene_render_metrics_round_trip() {
+    let dir = std::env::temp_dir().join(format!("dioptra-cli-render-{}", std::process::id()));
+    let d = |p: &str| dir.join(p).display().to_string();
+    let (ok, text) = dioptra(&[
+        "sim",
+        "scene",
+        "--seed",
+        "1000001",
+        "--size",
+        "32",
+        "--slices",
+        "2",
+        "--range",
+        "0.5,2.0",
+        "--samples",
+        "16",
+        "--lf-grid",
+        "2",
+        "--out",
+        &d(""),
+    ]);
+    assert!(ok, "{text}");
+    assert!(text.contains("Test split"), "{text}");
+    for f in [
+        "color.png",
+        "color.exr",
+        "depth.exr",
+        "depth.png",
+        "focalstack/focus_2.00D.exr",
+        "lightfield/view_01_01.png",
+    ] {
+        assert!(Path::new(&d(f)).exists(), "{f} missing");
+    }
+    let (ok, text) = dioptra(&[
+        "render",
+        "--color",
+        &d("color.png"),
+        "--depth",
+        &d("depth.exr"),
+        "--focus",
+        "2.0",
+        "--method",
+        "lightfield",
+        "--views",
+        "16",
+        "--out",
+        &d("o.png"),
+    ]);
+    assert!(ok, "{text}");
+    let (ok, text) = dioptra(&[
+        "metrics",
+        "--a",
+        &d("o.png"),
+        "--b",
+        &d("focalstack/focus_2.00D.png"),
+    ]);
+    assert!(ok, "{text}");
+    let psnr: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
+        .unwrap_or_else(|| panic!("no PSNR in {text}"));
+    assert!(psnr > 20.0 && psnr.is_finite(), "{text}");
+    assert!(text.contains("SSIM 0."), "{text}");
+
+    // Clear errors: a missing file, an unreadable format, an unknown backend.
+    let (ok, text) = dioptra(&[
+        "render",
+        "--color",
+        &d("none.png"),
+        "--depth",
+        &d("depth.exr"),
+        "--focus",
+        "1",
+        "--out",
+        &d("x.png"),
+    ]);
+    assert!(
+        !ok && text.contains("none.png") && text.contains("not found"),
+        "{text}"
+    );
+    std::fs::write(d("bad.png"), b"not a png").unwrap();
+    let (ok, text) = dioptra(&["metrics", "--a", &d("color.png"), "--b", &d("bad.png")]);
+    assert!(!ok && text.contains("bad.png"), "{text}");
+    let (ok, text) = dioptra(&[
+        "render",
+        "--color",
+        &d("color.png"),
+        "--depth",
+        &d("depth.exr"),
+        "--focus",
+        "1",
+        "--backend",
+        "vulkan",
+        "--out",
+        &d("x.png"),
+    ]);
+    assert!(!ok && text.contains("backend"), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}

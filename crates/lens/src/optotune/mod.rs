@@ -1,0 +1,468 @@
+//! Optotune Lens Driver 4 (EL-10-30, EL-16-40 lenses) over any [`ByteLink`]: a USB CDC-ACM
+//! port, a pty to `dioptra sim optotune`, or an in-memory link to the simulator.
+//!
+//! On connect the driver handshakes, reads the firmware type (which sets the focal-power
+//! encoding) and maximum current, programs the rig's current and temperature limits, and
+//! puts the lens in focal-power mode so that the device's own temperature compensation works.
+//! After a link error the next call reopens the link through the [`Opener`], if one was
+//! given, and does all of that again.
+
+pub mod protocol;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{
+    Clock, DeviceError, Diopters, LensState, LinkError, PowerRange, Timestamp, VarifocalLens,
+};
+use dioptra_transport::ByteLink;
+use tokio::time::Instant;
+
+use crate::limits::LensLimits;
+use crate::reconnect::Opener;
+use protocol::{Command, FirmwareVersion, Mode, ProtocolError, Scaling, Status};
+
+/// The Lens Driver 4's line settings: 115200 8N1, no flow control.
+pub const BAUD: u32 = 115_200;
+/// Default wait for a reply. The device answers within a few ms; 200 ms covers USB scheduling.
+pub const DEFAULT_REPLY_TIMEOUT: Duration = Duration::from_millis(200);
+
+/// How the driver runs one lens.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OptotuneConfig {
+    pub limits: LensLimits,
+    pub reply_timeout: Duration,
+    /// (lower, upper) °C programmed with `PwTA`: the span focal-power mode compensates over.
+    /// `None` keeps the device's setting.
+    pub temperature_limits_c: Option<(f32, f32)>,
+}
+
+impl OptotuneConfig {
+    pub fn new(limits: LensLimits) -> Self {
+        OptotuneConfig {
+            limits,
+            reply_timeout: DEFAULT_REPLY_TIMEOUT,
+            temperature_limits_c: None,
+        }
+    }
+}
+
+/// What the device said about itself at the last (re)connect.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OptotuneInfo {
+    /// ASCII firmware type letter (`A` uses the +5 D focal-power offset).
+    pub firmware_type: u8,
+    pub firmware_version: FirmwareVersion,
+    pub serial_number: String,
+    pub device_id: String,
+    pub max_current_ma: f32,
+    /// Focal-power range the device reported for its temperature limits.
+    pub device_range: PowerRange,
+}
+
+/// A connected Lens Driver 4.
+pub struct Optotune<L: ByteLink> {
+    link: Option<L>,
+    opener: Option<Opener<L>>,
+    clock: Arc<dyn Clock>,
+    cfg: OptotuneConfig,
+    info: Option<OptotuneInfo>,
+    scaling: Scaling,
+    /// The rig's limits narrowed to the device's range.
+    range: PowerRange,
+    mode: Mode,
+    buf: Vec<u8>,
+    stray_crc_errors: u64,
+    reconnects: u64,
+}
+
+impl<L: ByteLink> std::fmt::Debug for Optotune<L> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Optotune")
+            .field("link", &self.link.as_ref().map(|l| l.describe()))
+            .field("info", &self.info)
+            .field("range", &self.range)
+            .finish_non_exhaustive()
+    }
+}
+
+impl<L: ByteLink> Optotune<L> {
+    /// Opens a session on `link`. Without an [`Opener`] a lost link stays lost.
+    pub async fn connect(
+        link: L,
+        cfg: OptotuneConfig,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Self, DeviceError> {
+        let mut d = Self::unconnected(None, cfg, clock);
+        d.link = Some(link);
+        d.open_session().await?;
+        Ok(d)
+    }
+
+    /// Opens the link with `opener` and keeps it to reopen the link after an unplug.
+    pub async fn connect_with(
+        mut opener: Opener<L>,
+        cfg: OptotuneConfig,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Self, DeviceError> {
+        let link = opener.open().await?;
+        let mut d = Self::unconnected(Some(opener), cfg, clock);
+        d.link = Some(link);
+        d.open_session().await?;
+        Ok(d)
+    }
+
+    fn unconnected(opener: Option<Opener<L>>, cfg: OptotuneConfig, clock: Arc<dyn Clock>) -> Self {
+        Optotune {
+            link: None,
+            opener,
+            clock,
+            range: cfg.limits.power,
+            cfg,
+            info: None,
+            scaling: Scaling::default(),
+            mode: Mode::Other(0),
+            buf: Vec::with_capacity(protocol::MAX_COMMAND_LEN),
+            stray_crc_errors: 0,
+            reconnects: 0,
+        }
+    }
+
+    /// The device's identity, as read at the last (re)connect.
+    pub fn info(&self) -> Option<&OptotuneInfo> {
+        self.info.as_ref()
+    }
+    /// The active mode as this driver last set or read it.
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+    /// `N` replies the device sent to commands that have no reply of their own (`Aw`,
+    /// `PwDA`): each means one such command arrived corrupted and was not applied.
+    pub fn stray_crc_errors(&self) -> u64 {
+        self.stray_crc_errors
+    }
+    /// How often the link was reopened.
+    pub fn reconnects(&self) -> u64 {
+        self.reconnects
+    }
+    pub fn is_connected(&self) -> bool {
+        self.link.is_some()
+    }
+
+    /// Sends any typed command and returns its typed reply. Limits are not checked here:
+    /// prefer [`VarifocalLens::set_power`] and [`Optotune::set_current_ma`].
+    pub async fn request<C: Command>(&mut self, cmd: &C) -> Result<C::Response, DeviceError> {
+        self.ensure_link().await?;
+        let r = self.exchange(cmd).await;
+        self.note(r).map(|(r, _)| r)
+    }
+
+    /// Lens temperature, °C.
+    pub async fn temperature_c(&mut self) -> Result<f32, DeviceError> {
+        self.request(&protocol::GetTemperature).await
+    }
+
+    /// Firmware status bits.
+    pub async fn status(&mut self) -> Result<Status, DeviceError> {
+        self.request(&protocol::GetStatus).await
+    }
+
+    /// Re-reads the focal-power range the device can hold (it moves with the temperature
+    /// limits) and narrows the driving range to it.
+    pub async fn refresh_range(&mut self) -> Result<PowerRange, DeviceError> {
+        let r = self.request(&protocol::GetTemperatureLimits).await?;
+        self.adopt_range(r)?;
+        Ok(self.range)
+    }
+
+    /// Switches to current mode (open loop: the power drifts as the lens warms). Lasts until
+    /// the next reconnect, which restores focal-power mode.
+    pub async fn use_current_mode(&mut self) -> Result<(), DeviceError> {
+        self.request(&protocol::SetCurrentMode).await?;
+        self.mode = Mode::Current;
+        Ok(())
+    }
+
+    /// Switches to focal-power mode and returns the reachable range the device reports.
+    pub async fn use_focal_power_mode(&mut self) -> Result<PowerRange, DeviceError> {
+        let r = self.request(&protocol::SetFocalPowerMode).await?;
+        self.mode = Mode::FocalPower;
+        self.adopt_range(r)
+    }
+
+    /// Sets the drive current (current mode only), within the rig's current limits; returns
+    /// the host time the command was on the wire.
+    pub async fn set_current_ma(&mut self, ma: f32) -> Result<Timestamp, DeviceError> {
+        if self.mode != Mode::Current {
+            return Err(DeviceError::Invalid(
+                "set_current_ma needs current mode; call use_current_mode first".into(),
+            ));
+        }
+        let ma = self
+            .cfg
+            .limits
+            .check_current(ma, self.scaling.max_current_ma)?;
+        self.ensure_link().await?;
+        let r = self.exchange(&protocol::SetCurrent { ma }).await;
+        self.note(r).map(|(_, t)| t)
+    }
+
+    /// Handshake and the setup every session needs.
+    async fn open_session(&mut self) -> Result<(), DeviceError> {
+        let r = self.session_setup().await;
+        self.note(r)
+    }
+
+    async fn session_setup(&mut self) -> Result<(), DeviceError> {
+        self.handshake().await?;
+        let firmware_type = self.exchange(&protocol::GetFirmwareType).await?.0;
+        let firmware_version = self.exchange(&protocol::GetFirmwareVersion).await?.0;
+        let serial_number = self.exchange(&protocol::GetSerialNumber).await?.0;
+        let device_id = self.exchange(&protocol::GetDeviceId).await?.0;
+        let max_current_ma = self.exchange(&protocol::GetMaxCurrent).await?.0;
+        if max_current_ma.is_nan() || max_current_ma <= 0.0 {
+            return Err(DeviceError::Protocol(format!(
+                "device reports a maximum current of {max_current_ma} mA"
+            )));
+        }
+        self.scaling = Scaling {
+            firmware_type,
+            max_current_ma,
+        };
+        if let Some((lo, hi)) = self.cfg.limits.current_ma {
+            // The device holds these too, so they bind in focal-power mode, where it picks the current.
+            let hi = hi.clamp(-max_current_ma, max_current_ma);
+            let lo = lo.clamp(-max_current_ma, hi);
+            self.exchange(&protocol::SetCurrentLimit {
+                which: protocol::CurrentLimit::Upper,
+                ma: hi,
+            })
+            .await?;
+            self.exchange(&protocol::SetCurrentLimit {
+                which: protocol::CurrentLimit::Lower,
+                ma: lo,
+            })
+            .await?;
+        }
+        if let Some((lo, hi)) = self.cfg.temperature_limits_c {
+            self.exchange(&protocol::SetTemperatureLimits {
+                upper_c: hi,
+                lower_c: lo,
+            })
+            .await?;
+        }
+        let range = match self.exchange(&protocol::GetMode).await?.0 {
+            Mode::FocalPower => self.exchange(&protocol::GetTemperatureLimits).await?.0,
+            _ => self.exchange(&protocol::SetFocalPowerMode).await?.0,
+        };
+        self.mode = Mode::FocalPower;
+        let device_range = self.adopt_range(range)?;
+        self.info = Some(OptotuneInfo {
+            firmware_type,
+            firmware_version,
+            serial_number,
+            device_id,
+            max_current_ma,
+            device_range,
+        });
+        Ok(())
+    }
+
+    /// Narrows the rig's range to what the device reports; returns the device's range.
+    fn adopt_range(&mut self, r: protocol::FocalPowerRange) -> Result<PowerRange, DeviceError> {
+        let device = PowerRange::new(Diopters(r.min_d), Diopters(r.max_d)).ok_or_else(|| {
+            DeviceError::Protocol(format!(
+                "device reports an empty focal-power range {}..{} D",
+                r.min_d, r.max_d
+            ))
+        })?;
+        self.range = self.cfg.limits.narrowed_to(device)?;
+        if let Some(info) = &mut self.info {
+            info.device_range = device;
+        }
+        Ok(device)
+    }
+
+    async fn handshake(&mut self) -> Result<(), DeviceError> {
+        let timeout = self.cfg.reply_timeout;
+        let link = self.link.as_mut().ok_or_else(not_connected)?;
+        link.discard_input().await?;
+        link.write_all(protocol::HANDSHAKE).await?;
+        // Stale bytes (a reply to a previous client still in flight, an `N` for its half-sent
+        // command) may come first: look for `Ready\r\n` at the end of what arrives.
+        let deadline = Instant::now() + timeout;
+        let mut got = Vec::with_capacity(32);
+        let mut byte = [0u8; 1];
+        while !got.ends_with(protocol::READY) {
+            if got.len() >= 64 {
+                return Err(DeviceError::Protocol(format!(
+                    "handshake answered {:?} instead of \"Ready\\r\\n\"",
+                    String::from_utf8_lossy(&got)
+                )));
+            }
+            let left = deadline.saturating_duration_since(Instant::now());
+            match link.read_exact(&mut byte, left).await {
+                Ok(()) => got.push(byte[0]),
+                Err(LinkError::Timeout { .. }) => {
+                    return Err(DeviceError::Protocol(format!(
+                        "no \"Ready\\r\\n\" reply to the handshake from {} within {timeout:?} (got {:?}): \
+                         is this an Optotune Lens Driver 4?",
+                        link.describe(),
+                        String::from_utf8_lossy(&got)
+                    )))
+                }
+                Err(e) => return Err(e.into()),
+            }
+        }
+        Ok(())
+    }
+
+    /// Reopens a lost link (if there is an opener) and redoes the session setup.
+    async fn ensure_link(&mut self) -> Result<(), DeviceError> {
+        if self.link.is_some() {
+            return Ok(());
+        }
+        let Some(opener) = self.opener.as_mut() else {
+            return Err(not_connected());
+        };
+        let link = opener.open().await?;
+        tracing::info!(link = %link.describe(), "Lens Driver 4 reconnected");
+        self.link = Some(link);
+        self.reconnects += 1;
+        self.open_session().await
+    }
+
+    /// Drops the link after an error that needs a reconnect.
+    fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
+        if let Err(e) = &r {
+            if e.needs_reconnect() {
+                self.link = None;
+            }
+        }
+        r
+    }
+
+    /// One command and its reply, with stray input drained first. Returns the reply and the
+    /// host time at which the command was handed to the link.
+    async fn exchange<C: Command>(
+        &mut self,
+        cmd: &C,
+    ) -> Result<(C::Response, Timestamp), DeviceError> {
+        let timeout = self.cfg.reply_timeout;
+        let scaling = self.scaling;
+        let link = self.link.as_mut().ok_or_else(not_connected)?;
+        self.stray_crc_errors += drain(link).await?;
+        protocol::encode(cmd, &scaling, &mut self.buf)
+            .map_err(|e| DeviceError::Invalid(e.to_string()))?;
+        link.write_all(&self.buf).await?;
+        let sent = self.clock.now();
+        if C::REPLY_LEN == 0 {
+            return Ok((C::parse(&[], &scaling).map_err(protocol_error)?, sent));
+        }
+        // Longest reply: IR's 10-byte payload + CRC + CRLF.
+        let mut frame = [0u8; 16];
+        let deadline = Instant::now() + timeout;
+        let left = || deadline.saturating_duration_since(Instant::now());
+        let timed_out = |e: LinkError| match e {
+            LinkError::Timeout { .. } => LinkError::Timeout {
+                ms: u64::try_from(timeout.as_millis()).unwrap_or(u64::MAX),
+            }
+            .into(),
+            other => DeviceError::from(other),
+        };
+        link.read_exact(&mut frame[..1], left())
+            .await
+            .map_err(timed_out)?;
+        let len = match frame[0] {
+            b'N' => protocol::CRC_ERROR_REPLY.len(),
+            b'E' => protocol::ERROR_PAYLOAD_LEN + protocol::TRAILER_LEN,
+            _ => C::REPLY_LEN + protocol::TRAILER_LEN,
+        };
+        link.read_exact(&mut frame[1..len], left())
+            .await
+            .map_err(timed_out)?;
+        let r = protocol::decode::<C>(&frame[..len], &scaling).map_err(protocol_error)?;
+        Ok((r, self.clock.now()))
+    }
+}
+
+/// Reads and drops whatever already arrived; returns how many `N\r\n` it held.
+async fn drain<L: ByteLink>(link: &mut L) -> Result<u64, DeviceError> {
+    let mut stray = [0u8; 64];
+    let mut crc_errors = 0;
+    loop {
+        match link.read(&mut stray, Duration::ZERO).await {
+            Ok(n) => {
+                crc_errors += stray[..n]
+                    .windows(3)
+                    .filter(|w| *w == protocol::CRC_ERROR_REPLY)
+                    .count() as u64;
+                if n < stray.len() {
+                    return Ok(crc_errors);
+                }
+            }
+            Err(LinkError::Timeout { .. }) => return Ok(crc_errors),
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
+fn not_connected() -> DeviceError {
+    DeviceError::Link(LinkError::Disconnected(
+        "the Lens Driver 4 link was lost and this driver has no way to reopen it".into(),
+    ))
+}
+
+fn protocol_error(e: ProtocolError) -> DeviceError {
+    match e {
+        ProtocolError::CommandError { code } => DeviceError::Refused {
+            code: u16::from(code),
+            detail: "the Lens Driver 4 answered E (command error)".into(),
+        },
+        ProtocolError::DeviceSawBadCrc => DeviceError::Protocol(
+            "the Lens Driver 4 received a corrupted command (it answered N); check the cable"
+                .into(),
+        ),
+        ProtocolError::Unencodable { .. } => DeviceError::Invalid(e.to_string()),
+        other => DeviceError::Protocol(other.to_string()),
+    }
+}
+
+impl<L: ByteLink> VarifocalLens for Optotune<L> {
+    fn power_range(&self) -> PowerRange {
+        self.range
+    }
+
+    async fn set_power(&mut self, power: Diopters) -> Result<Timestamp, DeviceError> {
+        self.ensure_link().await?;
+        let power = self.cfg.limits.check_power(power, self.range)?;
+        if self.mode != Mode::FocalPower {
+            return Err(DeviceError::Invalid(
+                "set_power needs focal-power mode; call use_focal_power_mode first".into(),
+            ));
+        }
+        let r = self
+            .exchange(&protocol::SetFocalPower { diopters: power.0 })
+            .await;
+        self.note(r).map(|(_, t)| t)
+    }
+
+    async fn state(&mut self) -> Result<LensState, DeviceError> {
+        self.ensure_link().await?;
+        let r = async {
+            let (power, _) = self.exchange(&protocol::GetFocalPower).await?;
+            let (current, _) = self.exchange(&protocol::GetCurrent).await?;
+            let (temperature, host_time) = self.exchange(&protocol::GetTemperature).await?;
+            Ok(LensState {
+                power: Diopters(power),
+                current_ma: Some(current),
+                temperature_c: Some(temperature),
+                // The Lens Driver 4 does not say whether the lens has settled.
+                settled: None,
+                host_time,
+            })
+        }
+        .await;
+        self.note(r)
+    }
+}

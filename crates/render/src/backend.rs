@@ -1,0 +1,126 @@
+//! The backend seam. Callers hold a `&dyn Backend`; every method has a CPU default, so a GPU
+//! backend (wgpu, later) overrides only the methods it implements and inherits the rest.
+
+use crate::error::{invalid, RenderError};
+use crate::gather::gather;
+use crate::lightfield::{LightFieldParams, LightFieldPrep};
+use crate::multifocal::{linear_blend, optimized_blend, Layers, OptimizeParams, OptimizeReport};
+use crate::retina::{retina_multifocal, retina_varifocal};
+use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use std::str::FromStr;
+
+/// A defocus method for RGB-D input.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DefocusMethod {
+    Gather,
+    LightField(LightFieldParams),
+}
+
+impl FromStr for DefocusMethod {
+    type Err = RenderError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "gather" => Ok(DefocusMethod::Gather),
+            "lightfield" => Ok(DefocusMethod::LightField(LightFieldParams::default())),
+            _ => Err(invalid(format!(
+                "unknown defocus method {s:?}: expected gather or lightfield"
+            ))),
+        }
+    }
+}
+
+/// Progress callback: called with the number of units (slices, iterations) done.
+pub type Progress<'a> = &'a (dyn Fn(usize) + Sync);
+
+pub trait Backend: Send + Sync {
+    /// The name `--backend` selects this backend by.
+    fn name(&self) -> &'static str;
+
+    /// Depth-of-field images of `input` at every focus in `foci` (a focal stack; one slice for
+    /// a single render). Work that does not depend on focus is done once.
+    fn defocus(
+        &self,
+        input: &Rgbd,
+        foci: &[Diopters],
+        eye: &EyeModel,
+        method: DefocusMethod,
+        progress: Progress,
+    ) -> Result<Vec<RgbImage>, RenderError> {
+        let mut out = Vec::with_capacity(foci.len());
+        match method {
+            DefocusMethod::Gather => {
+                for &q in foci {
+                    out.push(gather(input, q, eye)?);
+                    progress(out.len());
+                }
+            }
+            DefocusMethod::LightField(p) => {
+                let prep = LightFieldPrep::new(input, eye, p)?;
+                for &q in foci {
+                    out.push(prep.render(q)?);
+                    progress(out.len());
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    fn linear_blend(&self, input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {
+        linear_blend(input, planes)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn optimized_blend(
+        &self,
+        targets: &[RgbImage],
+        foci: &[Diopters],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        init: Option<&Layers>,
+        params: OptimizeParams,
+        progress: Progress,
+    ) -> Result<(Layers, OptimizeReport), RenderError> {
+        optimized_blend(targets, foci, planes, eye, init, params, progress)
+    }
+
+    fn retina_multifocal(
+        &self,
+        layers: &Layers,
+        foci: &[Diopters],
+        eye: &EyeModel,
+    ) -> Result<Vec<RgbImage>, RenderError> {
+        retina_multifocal(layers, foci, eye)
+    }
+
+    fn retina_varifocal(
+        &self,
+        image: &RgbImage,
+        display: Diopters,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<RgbImage, RenderError> {
+        retina_varifocal(image, display, focus, eye)
+    }
+}
+
+/// The CPU backend (rayon): the reference every other backend is checked against.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Cpu;
+
+impl Backend for Cpu {
+    fn name(&self) -> &'static str {
+        "cpu"
+    }
+}
+
+/// The backend named `name` (`cpu`; `wgpu` arrives with the GPU issue).
+pub fn backend(name: &str) -> Result<Box<dyn Backend>, RenderError> {
+    match name {
+        "cpu" => Ok(Box::new(Cpu)),
+        "wgpu" | "gpu" => Err(RenderError::Unsupported {
+            backend: "wgpu",
+            method: "any method yet (use --backend cpu)",
+        }),
+        _ => Err(invalid(format!("unknown backend {name:?}: expected cpu"))),
+    }
+}

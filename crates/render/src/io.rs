@@ -1,0 +1,494 @@
+//! Image files. Colour: PNG 8/16-bit sRGB (decoded to linear on read), EXR and PFM linear.
+//! Depth: EXR or PFM float metres, 16-bit PNG millimetres, unless overridden. Outputs are
+//! chosen by extension: `.png` 8-bit sRGB, `.exr` and `.pfm` linear float.
+
+use crate::error::RenderError;
+use dioptra_core::image::{linear_to_srgb, srgb_to_linear};
+use dioptra_core::{DepthMap, InputError, Plane, RgbImage};
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
+use std::path::Path;
+
+/// What the numbers in a depth file mean.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DepthUnits {
+    Meters,
+    Millimeters,
+    Diopters,
+}
+
+impl std::str::FromStr for DepthUnits {
+    type Err = RenderError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "m" | "meters" | "metres" => Ok(DepthUnits::Meters),
+            "mm" | "millimeters" | "millimetres" => Ok(DepthUnits::Millimeters),
+            "D" | "d" | "diopters" | "dioptres" => Ok(DepthUnits::Diopters),
+            _ => Err(crate::error::invalid(format!(
+                "unknown depth units {s:?}: expected m, mm or D"
+            ))),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Format {
+    Png,
+    Exr,
+    Pfm,
+}
+
+fn format_of(path: &Path) -> Result<Format, RenderError> {
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
+    match ext.as_str() {
+        "png" => Ok(Format::Png),
+        "exr" => Ok(Format::Exr),
+        "pfm" => Ok(Format::Pfm),
+        _ => Err(fmt_err(
+            path,
+            format!("unsupported file type {ext:?}: expected .png, .exr or .pfm"),
+        )),
+    }
+}
+
+fn fmt_err(path: &Path, detail: impl Into<String>) -> RenderError {
+    RenderError::Format {
+        path: path.display().to_string(),
+        detail: detail.into(),
+    }
+}
+
+fn io_err(path: &Path, cause: std::io::Error) -> RenderError {
+    RenderError::Io {
+        path: path.display().to_string(),
+        cause,
+    }
+}
+
+/// Decoded file contents: channels (1 to 4) of f32 samples, row-major, top row first.
+struct Raw {
+    width: usize,
+    height: usize,
+    channels: Vec<Vec<f32>>,
+    /// PNG samples are sRGB-encoded (or integer millimetres for depth), scaled to [0, 1].
+    is_png: bool,
+    max_int: f32,
+}
+
+fn read_png(path: &Path) -> Result<Raw, RenderError> {
+    let f = File::open(path).map_err(|e| io_err(path, e))?;
+    let mut dec = png::Decoder::new(BufReader::new(f));
+    dec.set_transformations(png::Transformations::EXPAND);
+    let mut reader = dec
+        .read_info()
+        .map_err(|e| fmt_err(path, format!("not a readable PNG: {e}")))?;
+    let size = reader
+        .output_buffer_size()
+        .ok_or_else(|| fmt_err(path, "PNG is too large"))?;
+    let mut buf = vec![0u8; size];
+    let info = reader
+        .next_frame(&mut buf)
+        .map_err(|e| fmt_err(path, format!("PNG decode failed: {e}")))?;
+    let (w, h) = (info.width as usize, info.height as usize);
+    let nch = info.color_type.samples();
+    let sixteen = info.bit_depth == png::BitDepth::Sixteen;
+    let bps = if sixteen { 2 } else { 1 };
+    let mut channels = vec![Vec::with_capacity(w * h); nch];
+    for y in 0..h {
+        let row = &buf[y * info.line_size..(y + 1) * info.line_size];
+        for x in 0..w {
+            for (c, ch) in channels.iter_mut().enumerate() {
+                let o = (x * nch + c) * bps;
+                let v = if sixteen {
+                    u16::from_be_bytes([row[o], row[o + 1]]) as f32
+                } else {
+                    row[o] as f32
+                };
+                ch.push(v);
+            }
+        }
+    }
+    Ok(Raw {
+        width: w,
+        height: h,
+        channels,
+        is_png: true,
+        max_int: if sixteen { 65535.0 } else { 255.0 },
+    })
+}
+
+fn read_exr(path: &Path) -> Result<Raw, RenderError> {
+    let img = exr::prelude::read_first_flat_layer_from_file(path)
+        .map_err(|e| fmt_err(path, format!("not a readable EXR: {e}")))?;
+    let layer = &img.layer_data;
+    let (w, h) = (layer.size.width(), layer.size.height());
+    let list = &layer.channel_data.list;
+    let find = |names: &[&str]| {
+        list.iter().position(|c| {
+            let n = c.name.to_string();
+            let last = n.rsplit('.').next().unwrap_or("").to_string();
+            names.iter().any(|m| last.eq_ignore_ascii_case(m))
+        })
+    };
+    let pick: Vec<usize> = match (find(&["R"]), find(&["G"]), find(&["B"])) {
+        (Some(r), Some(g), Some(b)) => vec![r, g, b],
+        _ => match find(&["Z", "Y", "depth", "R"]) {
+            Some(i) => vec![i],
+            None if !list.is_empty() => vec![0],
+            None => return Err(fmt_err(path, "EXR has no channels")),
+        },
+    };
+    let channels = pick
+        .iter()
+        .map(|&i| list[i].sample_data.values_as_f32().collect::<Vec<f32>>())
+        .collect();
+    Ok(Raw {
+        width: w,
+        height: h,
+        channels,
+        is_png: false,
+        max_int: 1.0,
+    })
+}
+
+fn read_pfm(path: &Path) -> Result<Raw, RenderError> {
+    let mut bytes = Vec::new();
+    File::open(path)
+        .map_err(|e| io_err(path, e))?
+        .read_to_end(&mut bytes)
+        .map_err(|e| io_err(path, e))?;
+    // Header: "PF" or "Pf", then width height, then scale (negative = little-endian), each
+    // separated by whitespace, then one whitespace byte and the raster, bottom row first.
+    let mut fields = Vec::new();
+    let mut pos = 0;
+    while fields.len() < 4 {
+        while pos < bytes.len() && bytes[pos].is_ascii_whitespace() {
+            pos += 1;
+        }
+        let start = pos;
+        while pos < bytes.len() && !bytes[pos].is_ascii_whitespace() {
+            pos += 1;
+        }
+        if start == pos {
+            return Err(fmt_err(path, "truncated PFM header"));
+        }
+        fields.push(String::from_utf8_lossy(&bytes[start..pos]).to_string());
+    }
+    pos += 1;
+    let nch = match fields[0].as_str() {
+        "PF" => 3,
+        "Pf" => 1,
+        m => return Err(fmt_err(path, format!("not a PFM file (magic {m:?})"))),
+    };
+    let parse = |s: &str| {
+        s.parse::<usize>()
+            .map_err(|_| fmt_err(path, format!("bad PFM size {s:?}")))
+    };
+    let (w, h) = (parse(&fields[1])?, parse(&fields[2])?);
+    let scale: f32 = fields[3]
+        .parse()
+        .map_err(|_| fmt_err(path, "bad PFM scale"))?;
+    let little = scale < 0.0;
+    let need = w
+        .checked_mul(h)
+        .and_then(|n| n.checked_mul(nch * 4))
+        .ok_or_else(|| fmt_err(path, "PFM too large"))?;
+    let data = bytes
+        .get(pos..pos + need)
+        .ok_or_else(|| fmt_err(path, format!("PFM raster truncated: need {need} bytes")))?;
+    let mut channels = vec![vec![0.0f32; w * h]; nch];
+    for (k, b) in data.chunks_exact(4).enumerate() {
+        let b = [b[0], b[1], b[2], b[3]];
+        let v = if little {
+            f32::from_le_bytes(b)
+        } else {
+            f32::from_be_bytes(b)
+        };
+        let (px, c) = (k / nch, k % nch);
+        let (x, y) = (px % w, h - 1 - px / w);
+        channels[c][y * w + x] = v;
+    }
+    Ok(Raw {
+        width: w,
+        height: h,
+        channels,
+        is_png: false,
+        max_int: 1.0,
+    })
+}
+
+fn read_raw(path: &Path) -> Result<Raw, RenderError> {
+    if !path.exists() {
+        return Err(io_err(
+            path,
+            std::io::Error::new(std::io::ErrorKind::NotFound, "file not found"),
+        ));
+    }
+    match format_of(path)? {
+        Format::Png => read_png(path),
+        Format::Exr => read_exr(path),
+        Format::Pfm => read_pfm(path),
+    }
+}
+
+/// Reads a colour image into linear light.
+pub fn read_color(path: &Path) -> Result<RgbImage, RenderError> {
+    let raw = read_raw(path)?;
+    let (w, h) = (raw.width, raw.height);
+    let pick = |c: usize| -> Vec<f32> {
+        // Grey (+alpha) images repeat channel 0; alpha is dropped.
+        let src = if raw.channels.len() >= 3 {
+            &raw.channels[c]
+        } else {
+            &raw.channels[0]
+        };
+        if raw.is_png {
+            src.iter()
+                .map(|&v| srgb_to_linear(v / raw.max_int))
+                .collect()
+        } else {
+            src.clone()
+        }
+    };
+    let planes = [0, 1, 2].map(pick);
+    if let Some(v) = planes.iter().flatten().find(|v| !v.is_finite()) {
+        return Err(fmt_err(
+            path,
+            format!("colour contains a non-finite value ({v})"),
+        ));
+    }
+    let [r, g, b] = planes;
+    Ok(RgbImage::from_planes(
+        Plane::from_vec(w, h, r)?,
+        Plane::from_vec(w, h, g)?,
+        Plane::from_vec(w, h, b)?,
+    )?)
+}
+
+/// Reads a depth map. `units` overrides the format's default (metres for EXR/PFM,
+/// millimetres for 16-bit PNG). NaN, negative or zero distances are errors naming the pixel.
+pub fn read_depth(path: &Path, units: Option<DepthUnits>) -> Result<DepthMap, RenderError> {
+    let raw = read_raw(path)?;
+    if raw.is_png && raw.max_int < 65535.0 && units.is_none() {
+        return Err(fmt_err(path, "8-bit PNG depth has too little precision: use 16-bit PNG (mm), EXR or PFM, or pass --depth-units"));
+    }
+    let units = units.unwrap_or(if raw.is_png {
+        DepthUnits::Millimeters
+    } else {
+        DepthUnits::Meters
+    });
+    let v = &raw.channels[0];
+    let r = match units {
+        DepthUnits::Meters => DepthMap::from_meters(raw.width, raw.height, v),
+        DepthUnits::Millimeters => {
+            let m: Vec<f32> = v.iter().map(|x| x / 1000.0).collect();
+            DepthMap::from_meters(raw.width, raw.height, &m)
+        }
+        DepthUnits::Diopters => {
+            Plane::from_vec(raw.width, raw.height, v.clone()).and_then(DepthMap::from_diopters)
+        }
+    };
+    r.map_err(|e: InputError| fmt_err(path, e.to_string()))
+}
+
+fn write_png(
+    path: &Path,
+    w: usize,
+    h: usize,
+    samples: &[u8],
+    color: png::ColorType,
+    depth: png::BitDepth,
+) -> Result<(), RenderError> {
+    let f = File::create(path).map_err(|e| io_err(path, e))?;
+    let (wu, hu) = (u32::try_from(w), u32::try_from(h));
+    let (Ok(wu), Ok(hu)) = (wu, hu) else {
+        return Err(fmt_err(path, "image too large for PNG"));
+    };
+    let mut enc = png::Encoder::new(BufWriter::new(f), wu, hu);
+    enc.set_color(color);
+    enc.set_depth(depth);
+    let mut wr = enc
+        .write_header()
+        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))?;
+    wr.write_image_data(samples)
+        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))?;
+    wr.finish()
+        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))
+}
+
+fn write_pfm(path: &Path, w: usize, h: usize, channels: &[&Plane]) -> Result<(), RenderError> {
+    let f = File::create(path).map_err(|e| io_err(path, e))?;
+    let mut out = BufWriter::new(f);
+    let magic = if channels.len() == 3 { "PF" } else { "Pf" };
+    let mut bytes = format!("{magic}\n{w} {h}\n-1.0\n").into_bytes();
+    for y in (0..h).rev() {
+        for x in 0..w {
+            for c in channels {
+                bytes.extend_from_slice(&c.data()[y * w + x].to_le_bytes());
+            }
+        }
+    }
+    out.write_all(&bytes)
+        .and_then(|_| out.flush())
+        .map_err(|e| io_err(path, e))
+}
+
+/// Writes a linear colour image: `.png` as 8-bit sRGB, `.exr`/`.pfm` as linear float.
+pub fn write_color(path: &Path, img: &RgbImage) -> Result<(), RenderError> {
+    let (w, h) = (img.width(), img.height());
+    match format_of(path)? {
+        Format::Png => {
+            let bytes: Vec<u8> = img
+                .to_interleaved()
+                .iter()
+                .map(|&v| (linear_to_srgb(v) * 255.0).round() as u8)
+                .collect();
+            write_png(
+                path,
+                w,
+                h,
+                &bytes,
+                png::ColorType::Rgb,
+                png::BitDepth::Eight,
+            )
+        }
+        Format::Exr => {
+            let c = &img.channels;
+            exr::prelude::write_rgb_file(path, w, h, |x, y| {
+                let i = y * w + x;
+                (c[0].data()[i], c[1].data()[i], c[2].data()[i])
+            })
+            .map_err(|e| fmt_err(path, format!("EXR encode failed: {e}")))
+        }
+        Format::Pfm => write_pfm(path, w, h, &img.channels.each_ref()),
+    }
+}
+
+/// Writes depth as distance: `.png` 16-bit millimetres (clamped to 65.535 m), `.exr`/`.pfm`
+/// float metres (0 D is written as infinity).
+pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {
+    let (w, h) = (depth.width(), depth.height());
+    let meters: Vec<f32> = depth
+        .data()
+        .iter()
+        .map(|&d| if d > 0.0 { 1.0 / d } else { f32::INFINITY })
+        .collect();
+    match format_of(path)? {
+        Format::Png => {
+            let bytes: Vec<u8> = meters
+                .iter()
+                .flat_map(|m| ((m * 1000.0).round().clamp(1.0, 65535.0) as u16).to_be_bytes())
+                .collect();
+            write_png(
+                path,
+                w,
+                h,
+                &bytes,
+                png::ColorType::Grayscale,
+                png::BitDepth::Sixteen,
+            )
+        }
+        Format::Exr => {
+            use exr::prelude::*;
+            let px = SpecificChannels::build()
+                .with_channel("Z")
+                .with_pixel_fn(|p: Vec2<usize>| (meters[p.y() * w + p.x()],));
+            Image::from_channels((w, h), px)
+                .write()
+                .to_file(path)
+                .map_err(|e| fmt_err(path, format!("EXR encode failed: {e}")))
+        }
+        Format::Pfm => {
+            let p = Plane::from_vec(w, h, meters)?;
+            write_pfm(path, w, h, &[&p])
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("dioptra-render-io-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d.join(name)
+    }
+
+    fn sample() -> RgbImage {
+        let d: Vec<f32> = (0..5 * 3 * 3)
+            .map(|i| (i as f32 / 45.0).powf(1.5))
+            .collect();
+        RgbImage::from_interleaved(5, 3, &d).unwrap()
+    }
+
+    #[test]
+    fn float_formats_round_trip_exactly() {
+        let img = sample();
+        for ext in ["exr", "pfm"] {
+            let p = tmp(&format!("c.{ext}"));
+            write_color(&p, &img).unwrap();
+            assert_eq!(read_color(&p).unwrap(), img, "{ext}");
+        }
+        let depth = DepthMap::from_diopters(
+            Plane::from_vec(3, 2, vec![0.0, 0.25, 1.0, 2.0, 4.0, 0.1]).unwrap(),
+        )
+        .unwrap();
+        for ext in ["exr", "pfm", "png"] {
+            let p = tmp(&format!("d.{ext}"));
+            write_depth(&p, &depth).unwrap();
+            let back = read_depth(&p, None).unwrap();
+            for (a, b) in back.data().iter().zip(depth.data()) {
+                // 16-bit PNG holds whole millimetres, and clamps infinity to 65.535 m.
+                let tol = if ext == "png" { 0.016 } else { 1e-6 };
+                assert!((a - b).abs() <= tol, "{ext}: {a} vs {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn png_is_srgb_encoded_and_decoded() {
+        let img = sample();
+        let p = tmp("c.png");
+        write_color(&p, &img).unwrap();
+        let back = read_color(&p).unwrap();
+        // 8-bit sRGB: error below half a code value in the encoded domain.
+        for c in 0..3 {
+            for (a, b) in back.channels[c].data().iter().zip(img.channels[c].data()) {
+                assert!((linear_to_srgb(*a) - linear_to_srgb(*b)).abs() <= 0.5 / 255.0 + 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn clear_errors() {
+        let e = read_color(Path::new("/nonexistent/x.png")).unwrap_err();
+        assert!(e.to_string().contains("not found"), "{e}");
+        let bad = tmp("bad.png");
+        std::fs::write(&bad, b"not a png").unwrap();
+        assert!(matches!(read_color(&bad), Err(RenderError::Format { .. })));
+        assert!(matches!(
+            read_color(Path::new("x.jpg")),
+            Err(RenderError::Io { .. }) | Err(RenderError::Format { .. })
+        ));
+        // NaN and negative depth are rejected with the pixel named
+        let p = tmp("nan.pfm");
+        let plane = Plane::from_vec(2, 1, vec![1.0, f32::NAN]).unwrap();
+        write_pfm(&p, 2, 1, &[&plane]).unwrap();
+        let e = read_depth(&p, None).unwrap_err();
+        assert!(e.to_string().contains("(1, 0)"), "{e}");
+        let plane = Plane::from_vec(2, 1, vec![-1.0, 1.0]).unwrap();
+        write_pfm(&p, 2, 1, &[&plane]).unwrap();
+        assert!(read_depth(&p, None).is_err());
+        let trunc = tmp("t.pfm");
+        std::fs::write(&trunc, b"Pf\n4 4\n-1.0\n\0\0").unwrap();
+        assert!(read_depth(&trunc, None)
+            .unwrap_err()
+            .to_string()
+            .contains("truncated"));
+    }
+}

@@ -1,0 +1,195 @@
+//! Image quality metrics on sRGB-encoded [0, 1] images: PSNR and SSIM (Wang et al. 2004,
+//! 11 x 11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03), optionally inside a mask.
+
+use crate::error::{invalid, mismatch, RenderError};
+use crate::kernel::{gaussian_taps, separable_blur};
+use dioptra_core::image::linear_to_srgb;
+use dioptra_core::{Plane, RgbImage};
+use rayon::prelude::*;
+
+/// PSNR and SSIM of one comparison.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Quality {
+    /// dB; infinite for identical images.
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+fn check(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<(), RenderError> {
+    if (a.width(), a.height()) != (b.width(), b.height()) {
+        return Err(mismatch(format!(
+            "images are {}x{} and {}x{}",
+            a.width(),
+            a.height(),
+            b.width(),
+            b.height()
+        )));
+    }
+    if a.width() == 0 || a.height() == 0 {
+        return Err(invalid("images are empty"));
+    }
+    if let Some(m) = mask {
+        if (m.width(), m.height()) != (a.width(), a.height()) {
+            return Err(mismatch(format!(
+                "mask is {}x{} but images are {}x{}",
+                m.width(),
+                m.height(),
+                a.width(),
+                a.height()
+            )));
+        }
+        if !m.data().iter().any(|&v| v > 0.5) {
+            return Err(invalid("mask selects no pixel (no value > 0.5)"));
+        }
+    }
+    Ok(())
+}
+
+fn encode(p: &Plane) -> Vec<f32> {
+    p.data().par_iter().map(|&v| linear_to_srgb(v)).collect()
+}
+
+fn selected(mask: Option<&Plane>, i: usize) -> bool {
+    mask.is_none_or(|m| m.data()[i] > 0.5)
+}
+
+/// PSNR (dB) of two linear images after sRGB encoding, peak 1, over all channels; inside
+/// `mask` (pixels where it is > 0.5) when given.
+pub fn psnr(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<f64, RenderError> {
+    check(a, b, mask)?;
+    let mut se = 0.0f64;
+    let mut n = 0usize;
+    for c in 0..3 {
+        let (x, y) = (encode(&a.channels[c]), encode(&b.channels[c]));
+        for i in 0..x.len() {
+            if selected(mask, i) {
+                se += ((x[i] - y[i]) as f64).powi(2);
+                n += 1;
+            }
+        }
+    }
+    let mse = se / n as f64;
+    Ok(if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    })
+}
+
+/// Mean SSIM over channels and (masked) pixels, on sRGB-encoded values.
+pub fn ssim(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<f64, RenderError> {
+    check(a, b, mask)?;
+    let (w, h) = (a.width(), a.height());
+    let taps = gaussian_taps(1.5);
+    // 3 sigma of 1.5 rounds up to 5: the 11-tap window of the paper.
+    debug_assert_eq!(taps.len(), 11);
+    let (c1, c2) = (0.01f32 * 0.01, 0.03f32 * 0.03);
+    let mut total = 0.0f64;
+    let mut n = 0usize;
+    for c in 0..3 {
+        let x = encode(&a.channels[c]);
+        let y = encode(&b.channels[c]);
+        let mk = |v: Vec<f32>| Plane::from_vec(w, h, v).map_err(RenderError::from);
+        let xy: Vec<f32> = x.iter().zip(&y).map(|(p, q)| p * q).collect();
+        let xx: Vec<f32> = x.iter().map(|p| p * p).collect();
+        let yy: Vec<f32> = y.iter().map(|p| p * p).collect();
+        let blur = |p: Plane| separable_blur(&p, &taps);
+        let (mx, my) = (blur(mk(x)?), blur(mk(y)?));
+        let (sxx, syy, sxy) = (blur(mk(xx)?), blur(mk(yy)?), blur(mk(xy)?));
+        for i in 0..w * h {
+            if !selected(mask, i) {
+                continue;
+            }
+            let (ux, uy) = (mx.data()[i], my.data()[i]);
+            let vx = sxx.data()[i] - ux * ux;
+            let vy = syy.data()[i] - uy * uy;
+            let cov = sxy.data()[i] - ux * uy;
+            let s = ((2.0 * ux * uy + c1) * (2.0 * cov + c2))
+                / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+            total += s as f64;
+            n += 1;
+        }
+    }
+    Ok(total / n as f64)
+}
+
+/// PSNR and SSIM together.
+pub fn quality(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<Quality, RenderError> {
+    Ok(Quality {
+        psnr: psnr(a, b, mask)?,
+        ssim: ssim(a, b, mask)?,
+    })
+}
+
+/// A disk mask (1 inside) of `radius` pixels around `centre`: the fovea. Its complement
+/// ([`invert_mask`]) is the periphery.
+pub fn disk_mask(width: usize, height: usize, centre: [f32; 2], radius: f32) -> Plane {
+    let mut p = Plane::new(width, height, 0.0);
+    for (i, v) in p.data_mut().iter_mut().enumerate() {
+        let dx = (i % width) as f32 + 0.5 - centre[0];
+        let dy = (i / width) as f32 + 0.5 - centre[1];
+        if dx * dx + dy * dy <= radius * radius {
+            *v = 1.0;
+        }
+    }
+    p
+}
+
+/// 1 where `m` is not selected and 0 where it is.
+pub fn invert_mask(m: &Plane) -> Plane {
+    let mut p = m.clone();
+    p.data_mut()
+        .iter_mut()
+        .for_each(|v| *v = if *v > 0.5 { 0.0 } else { 1.0 });
+    p
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(w: usize, h: usize, k: f32) -> RgbImage {
+        let d: Vec<f32> = (0..w * h * 3)
+            .map(|i| ((i as f32 * k).sin() * 0.5 + 0.5) * 0.8)
+            .collect();
+        RgbImage::from_interleaved(w, h, &d).unwrap()
+    }
+
+    #[test]
+    fn psnr_of_known_error() {
+        // sRGB 0.5 vs 0.6 everywhere: MSE 0.01 -> 20 dB.
+        let lin = dioptra_core::image::srgb_to_linear;
+        let a = RgbImage::new(8, 8, [lin(0.5); 3]);
+        let b = RgbImage::new(8, 8, [lin(0.6); 3]);
+        assert!((psnr(&a, &b, None).unwrap() - 20.0).abs() < 1e-3);
+        assert_eq!(psnr(&a, &a, None).unwrap(), f64::INFINITY);
+    }
+
+    #[test]
+    fn ssim_is_one_for_identical_and_drops_with_noise() {
+        let a = ramp(32, 32, 0.37);
+        assert!((ssim(&a, &a, None).unwrap() - 1.0).abs() < 1e-5);
+        let mut b = a.clone();
+        for ch in b.channels.iter_mut() {
+            for (i, v) in ch.data_mut().iter_mut().enumerate() {
+                *v = (*v + if (i + i / 32) % 2 == 0 { 0.1 } else { -0.1 }).clamp(0.0, 1.0);
+            }
+        }
+        let s = ssim(&a, &b, None).unwrap();
+        assert!(s < 0.9 && s > 0.0, "{s}");
+    }
+
+    #[test]
+    fn mask_restricts_the_comparison() {
+        let a = RgbImage::new(16, 16, [0.2; 3]);
+        let mut b = a.clone();
+        b.channels[0].data_mut()[0] = 0.9; // error only at the corner
+        let fovea = disk_mask(16, 16, [8.0, 8.0], 4.0);
+        assert_eq!(psnr(&a, &b, Some(&fovea)).unwrap(), f64::INFINITY);
+        assert!(psnr(&a, &b, Some(&invert_mask(&fovea)))
+            .unwrap()
+            .is_finite());
+        assert!(psnr(&a, &b, Some(&Plane::new(16, 16, 0.0))).is_err());
+        assert!(psnr(&a, &RgbImage::new(15, 16, [0.2; 3]), None).is_err());
+    }
+}

@@ -1,0 +1,155 @@
+//! What the eye sees focusing at q through a varifocal display, a multifocal layer stack,
+//! or a light-field display.
+
+use crate::common::{check_focus, eye_for};
+use crate::error::{invalid, mismatch, RenderError};
+use crate::kernel::{disk_kernel, FftConv};
+use crate::multifocal::{Layers, MultifocalRetina};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
+use rayon::prelude::*;
+
+/// A varifocal display showing `image` at `display` diopters, seen focusing at `focus`:
+/// the image convolved with the disk PSF of diameter coc(display, focus).
+pub fn retina_varifocal(
+    image: &RgbImage,
+    display: Diopters,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<RgbImage, RenderError> {
+    check_focus(display)?;
+    check_focus(focus)?;
+    if image.width() == 0 || image.height() == 0 {
+        return Err(invalid("image is empty"));
+    }
+    let eye = eye_for(eye, image.width())?;
+    let k = disk_kernel(eye.coc_px(display, focus));
+    if k.radius == 0 {
+        return Ok(image.clone());
+    }
+    let conv = FftConv::new(image.width(), image.height(), k.radius);
+    let c = &image.channels;
+    let (r, g) = conv.convolve_pair(&c[0], Some(&c[1]), &k);
+    let (b, _) = conv.convolve_pair(&c[2], None, &k);
+    Ok(RgbImage::from_planes(r, g, b)?)
+}
+
+/// A multifocal display's retinal images at each focus in `foci`.
+pub fn retina_multifocal(
+    layers: &Layers,
+    foci: &[Diopters],
+    eye: &EyeModel,
+) -> Result<Vec<RgbImage>, RenderError> {
+    let (lo, hi) = foci.iter().fold((f32::INFINITY, 0.0f32), |(lo, hi), q| {
+        (lo.min(q.0), hi.max(q.0))
+    });
+    if foci.is_empty() {
+        return Ok(Vec::new());
+    }
+    let r = MultifocalRetina::new(layers, eye, (Diopters(lo), Diopters(hi)))?;
+    foci.iter().map(|&q| r.render(q)).collect()
+}
+
+/// One view of a light-field display: a pinhole image seen from `position` (metres in the
+/// pupil plane), looking straight ahead.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LfView {
+    pub position: [f32; 2],
+    pub image: RgbImage,
+}
+
+/// Bilinear sample with edge clamping at pixel position (x, y) (centres at +0.5).
+pub(crate) fn bilinear(p: &Plane, x: f32, y: f32) -> f32 {
+    let (w, h) = (p.width() as isize, p.height() as isize);
+    let (fx, fy) = (x - 0.5, y - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - x0, fy - y0);
+    let at =
+        |xi: isize, yi: isize| p.data()[(yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)) as usize];
+    let (xi, yi) = (x0 as isize, y0 as isize);
+    let a = at(xi, yi) * (1.0 - tx) + at(xi + 1, yi) * tx;
+    let b = at(xi, yi + 1) * (1.0 - tx) + at(xi + 1, yi + 1) * tx;
+    a * (1.0 - ty) + b * ty
+}
+
+/// Pupil weight of each view: the area of its cell (the square of side `spacing` around it)
+/// inside the pupil disk, by 32 x 32 subsampling.
+fn pupil_weights(views: &[LfView], spacing: f32, radius: f32) -> Vec<f32> {
+    const N: usize = 32;
+    views
+        .iter()
+        .map(|v| {
+            let mut inside = 0;
+            for j in 0..N {
+                for i in 0..N {
+                    let x = v.position[0] + spacing * ((i as f32 + 0.5) / N as f32 - 0.5);
+                    let y = v.position[1] + spacing * ((j as f32 + 0.5) / N as f32 - 0.5);
+                    if x * x + y * y <= radius * radius {
+                        inside += 1;
+                    }
+                }
+            }
+            inside as f32 / (N * N) as f32
+        })
+        .collect()
+}
+
+/// A light-field display seen by the eye focusing at `focus`: shift-and-add of the views over
+/// the pupil. The view at lens position L is shifted by L q / pitch pixels and weighted by its
+/// share of the pupil; `spacing` is the view grid pitch in metres.
+pub fn retina_lightfield(
+    views: &[LfView],
+    spacing: f32,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<RgbImage, RenderError> {
+    check_focus(focus)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("the light field has no views"))?;
+    let (w, h) = (first.image.width(), first.image.height());
+    if w == 0
+        || h == 0
+        || views
+            .iter()
+            .any(|v| (v.image.width(), v.image.height()) != (w, h))
+    {
+        return Err(mismatch("light-field views are empty or differ in size"));
+    }
+    if !(spacing.is_finite() && spacing > 0.0)
+        || views
+            .iter()
+            .any(|v| !v.position.iter().all(|p| p.is_finite()))
+    {
+        return Err(invalid(format!(
+            "view spacing {spacing} m or a view position is invalid"
+        )));
+    }
+    let eye = eye_for(eye, w)?;
+    let pitch = eye.pixel_pitch_tan();
+    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return Err(invalid("no light-field view lies inside the pupil"));
+    }
+    let mut planes = [0, 1, 2].map(|_| vec![0.0f32; w * h]);
+    for (v, &wt) in views.iter().zip(&weights) {
+        if wt == 0.0 {
+            continue;
+        }
+        let (sx, sy) = (
+            v.position[0] * focus.0 / pitch,
+            v.position[1] * focus.0 / pitch,
+        );
+        for (c, out) in planes.iter_mut().enumerate() {
+            let src = &v.image.channels[c];
+            out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+                for (x, o) in row.iter_mut().enumerate() {
+                    *o += wt / total * bilinear(src, x as f32 + 0.5 - sx, y as f32 + 0.5 - sy);
+                }
+            });
+        }
+    }
+    let [r, g, b] =
+        planes.map(|d| Plane::from_vec(w, h, d).unwrap_or_else(|_| Plane::new(w, h, 0.0)));
+    Ok(RgbImage::from_planes(r, g, b)?)
+}

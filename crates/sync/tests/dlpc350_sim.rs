@@ -1,0 +1,322 @@
+//! The DLPC350 driver against the simulated controller on the in-memory HID link, on tokio's
+//! paused clock.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{
+    DeviceError, Diopters, PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault,
+};
+use dioptra_sim::dlpc350::{self as sim, Dlpc350SimConfig};
+use dioptra_sim::tokio_clock::TokioClock;
+use dioptra_sync::dlpc350::protocol::{PatternDisplay, SequenceAction, SetExposure, TriggerType};
+use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config, FAULT_SEQUENCER_STOPPED};
+use dioptra_transport::hid::memory::MemoryHidLink;
+use dioptra_transport::HidLink;
+
+fn rig() -> (Dlpc350<MemoryHidLink>, sim::Dlpc350Sim) {
+    let (link, sim) = sim::new(Dlpc350SimConfig::default());
+    let driver = Dlpc350::new(link, Arc::new(TokioClock::new()), Dlpc350Config::default());
+    (driver, sim)
+}
+
+fn four_planes(period_us: u64, settle_us: u64) -> PlaneSchedule {
+    PlaneSchedule::new(
+        vec![Diopters(0.2), Diopters(0.8), Diopters(1.4), Diopters(2.0)],
+        Duration::from_micros(period_us),
+        Duration::from_micros(settle_us),
+    )
+    .unwrap()
+}
+
+#[tokio::test(start_paused = true)]
+async fn programs_a_four_plane_sequence_in_order_and_runs_it() {
+    let (mut d, sim) = rig();
+    let v = d.version().await.unwrap();
+    assert_eq!(v.application.to_string(), "3.0.0");
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+
+    let codes: Vec<(bool, u16)> = sim.log().iter().map(|l| (l.read, l.code)).collect();
+    assert!(
+        sim.log().iter().skip(1).all(|l| !l.nack),
+        "{:#?}",
+        sim.log()
+    );
+    let expected: Vec<(bool, u16)> = vec![
+        (true, 0x0205),
+        (false, 0x1A24), // stop
+        (false, 0x1A1B), // pattern display mode
+        (false, 0x1A22), // video-port source
+        (false, 0x1A31), // pattern config
+        (false, 0x1A23), // VSYNC trigger
+        (false, 0x1A29), // exposure and period
+        (false, 0x1A1D), // TRIG_OUT_1
+        (false, 0x1A1E), // TRIG_OUT_2
+        (false, 0x1A33), // open pattern mailbox
+        (false, 0x1A32), // address 0
+        (false, 0x1A34), // entries
+        (false, 0x1A33), // close
+        (false, 0x1A33), // read back: open
+        (false, 0x1A32),
+        (true, 0x1A34),
+        (false, 0x1A33), // close
+        (false, 0x1A1A), // validate
+        (true, 0x1A1A),  // busy
+        (true, 0x1A1A),  // result
+    ];
+    assert_eq!(codes, expected);
+    let log = sim.log();
+    assert_eq!(
+        log[4].payload,
+        vec![3, 1, 3, 0],
+        "4 entries, repeat, TRIG_OUT_2 every 4"
+    );
+    assert_eq!(
+        log[6].payload,
+        [3166u32.to_le_bytes(), 4166u32.to_le_bytes()].concat()
+    );
+    let lut: Vec<_> = sim.lut().into_iter().map(Option::unwrap).collect();
+    assert_eq!(lut.len(), 4);
+    assert!(lut.iter().all(|e| e.bit_depth == 6 && e.leds == 0b111));
+    assert_eq!(lut[0].trigger, TriggerType::ExternalPositive);
+    assert!(lut[0].buffer_swap);
+
+    let mut patterns = sim.subscribe();
+    d.start().await.unwrap();
+    assert!(sim.running());
+    let mut host_times = Vec::new();
+    for k in 0..8u32 {
+        match d.next_event().await.unwrap() {
+            SequencerEvent::SubframeStart {
+                frame,
+                plane_index,
+                host_time,
+                lens_power,
+                ..
+            } => {
+                assert_eq!((frame, u32::from(plane_index)), (k / 4, k % 4));
+                assert_eq!(lens_power, None);
+                host_times.push(host_time);
+            }
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    // Patterns 4166 us apart, each frame's first at a 60 Hz VSYNC.
+    let us = |a: usize, b: usize| host_times[b].saturating_since(host_times[a]).as_micros();
+    assert_eq!((us(0, 1), us(2, 3), us(5, 6)), (4166, 4166, 4166));
+    assert_eq!(us(0, 4), 16_666);
+    tokio::time::sleep(Duration::from_millis(20)).await;
+    // The simulated projector: patterns 4166 us apart within a frame, frames 16666 us apart,
+    // TRIG_OUT_2 once per frame on the first pattern.
+    let seen: Vec<_> = (0..8).map(|_| patterns.try_recv().unwrap()).collect();
+    for (k, e) in seen.iter().enumerate() {
+        assert_eq!(usize::from(e.lut_index), k % 4);
+        assert_eq!(e.trig_out2, k % 4 == 0, "{e:?}");
+        assert!(e.trig_out1);
+        assert_eq!(e.exposure_us, 3166);
+    }
+    assert_eq!(seen[1].device_time_us - seen[0].device_time_us, 4166);
+    assert_eq!(seen[4].device_time_us - seen[0].device_time_us, 16_666);
+    // The driver's predicted starts line up with what the projector did.
+    let dev = |k: usize| seen[k].device_time_us - seen[0].device_time_us;
+    assert_eq!(
+        (0..8).map(dev).collect::<Vec<_>>(),
+        (0..8).map(|k| us(0, k) as u64).collect::<Vec<_>>()
+    );
+    d.stop().await.unwrap();
+    assert!(!sim.running());
+}
+
+#[tokio::test(start_paused = true)]
+async fn impossible_schedules_are_refused_before_anything_is_sent() {
+    let (mut d, sim) = rig();
+    for schedule in [
+        four_planes(4166, 100),  // dark gap under 230 us
+        four_planes(5000, 1000), // 4 x 5 ms overruns the 60 Hz frame
+        four_planes(2000, 0),    // 6-bit patterns need 2.5 ms
+    ] {
+        let e = d.program(&schedule).await.unwrap_err();
+        assert!(matches!(e, DeviceError::Invalid(_)), "{e:?}");
+    }
+    assert!(sim.log().is_empty());
+    let e = d.start().await.unwrap_err();
+    assert!(matches!(e, DeviceError::Invalid(m) if m.contains("program")));
+    assert!(sim.log().is_empty());
+}
+
+#[tokio::test(start_paused = true)]
+async fn the_controller_s_own_rules_come_back_as_refusals() {
+    let (mut d, sim) = rig();
+    // Start before any validation: nack.
+    let e = d
+        .execute(&PatternDisplay(SequenceAction::Start))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(e, DeviceError::Refused { code: 0x1A24, .. }),
+        "{e:?}"
+    );
+    // An exposure 100 us short of the period passes the wire but fails validation.
+    d.execute(&SetExposure {
+        exposure_us: 4066,
+        period_us: 4166,
+    })
+    .await
+    .unwrap();
+    let e = d.validate().await.unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { code: 0x1A1A, detail } if detail.contains("230 us")),
+        "{e:?}"
+    );
+    // Configuration while running is refused.
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+    d.start().await.unwrap();
+    let e = d
+        .execute(&SetExposure {
+            exposure_us: 4166,
+            period_us: 4166,
+        })
+        .await
+        .unwrap_err();
+    assert!(matches!(e, DeviceError::Refused { code: 0x1A29, .. }));
+    assert!(sim.log().last().unwrap().nack);
+}
+
+#[tokio::test(start_paused = true)]
+async fn garbage_and_stale_replies_are_skipped() {
+    let (mut d, sim) = rig();
+    // Garbage to the controller: it ignores it and still answers the next command.
+    d.link_mut()
+        .write_output_report(&[0, 0x40, 0, 0xff, 0xff])
+        .await
+        .unwrap();
+    assert_eq!(sim.garbage_reports(), 1);
+    d.version().await.unwrap();
+    // A reply with a header that cannot be valid, then one to a sequence nobody waits for:
+    // the driver skips both and takes the real reply.
+    let (link, sim2) = sim::new(Dlpc350SimConfig::default());
+    let mut d2 = Dlpc350::new(link, Arc::new(TokioClock::new()), Dlpc350Config::default());
+    let stale = {
+        let mut r = [0u8; 65];
+        r[1..5].copy_from_slice(&[0xc0, 99, 1, 0]);
+        r
+    };
+    sim2.inject_input(&[0, 0xc0, 0, 0xff, 0xff]);
+    sim2.inject_input(&stale);
+    assert_eq!(d2.version().await.unwrap().api.to_string(), "2.1.0");
+    // Only garbage and then silence: a protocol error naming it, not a bare timeout.
+    sim2.inject_input(&[0, 0xc0, 0, 0xff, 0xff]);
+    sim2.mute(true);
+    let e = d2.version().await.unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Protocol(m) if m.contains("512")),
+        "{e:?}"
+    );
+    drop(sim);
+}
+
+#[tokio::test(start_paused = true)]
+async fn unplug_is_a_link_error_and_reconnect_restores_the_sequence() {
+    let (mut d, sim) = rig();
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+    d.start().await.unwrap();
+    sim.unplug("USB cable pulled");
+    // The driver notices at its next status check, at the latest one frame later.
+    let mut result = Ok(());
+    for _ in 0..5 {
+        if let Err(e) = d.next_event().await {
+            result = Err(e);
+            break;
+        }
+    }
+    let e = result.unwrap_err();
+    assert!(e.needs_reconnect(), "{e:?}");
+
+    let (link, sim2) = sim::new(Dlpc350SimConfig::default());
+    d.reconnect(link).await.unwrap();
+    assert!(sim2.running());
+    assert_eq!(sim2.lut().len(), 4);
+    assert!(matches!(
+        d.next_event().await.unwrap(),
+        SequencerEvent::SubframeStart { plane_index: 0, .. }
+    ));
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_sequencer_that_stops_on_its_own_is_a_fault() {
+    let (mut d, sim) = rig();
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+    d.start().await.unwrap();
+    for _ in 0..4 {
+        d.next_event().await.unwrap();
+    }
+    sim.abort_sequence();
+    let ev = d.next_event().await.unwrap();
+    assert!(
+        matches!(
+            ev,
+            SequencerEvent::Fault {
+                fault: SequencerFault::Other(FAULT_SEQUENCER_STOPPED),
+                frame: 1,
+                plane_index: 0,
+                ..
+            }
+        ),
+        "{ev:?}"
+    );
+    assert!(d.status().await.unwrap().hardware.sequence_abort());
+    assert!(matches!(d.next_event().await, Err(DeviceError::Invalid(_))));
+}
+
+#[tokio::test(start_paused = true)]
+async fn long_luts_travel_in_several_reports_both_ways() {
+    use dioptra_sync::dlpc350::protocol::{
+        LutEntry, Mailbox, MailboxControl, SetMailboxAddress, SetPatternConfig, WriteMailbox,
+    };
+    let (mut d, sim) = rig();
+    // 40 one-bit entries: 120 bytes, two reports out and two back.
+    let entries: Vec<LutEntry> = (0..40u8)
+        .map(|i| LutEntry {
+            trigger: TriggerType::Internal,
+            pattern: i % 24,
+            bit_depth: 1,
+            leds: 0b100,
+            invert: false,
+            insert_black: false,
+            buffer_swap: i % 24 == 0,
+            trig_out_prev: false,
+        })
+        .collect();
+    d.execute(&SetPatternConfig {
+        lut_entries: 40,
+        repeat: true,
+        trig_out2_every: 40,
+        images: 1,
+    })
+    .await
+    .unwrap();
+    d.execute(&MailboxControl(Mailbox::PatternLut))
+        .await
+        .unwrap();
+    d.execute(&SetMailboxAddress(0)).await.unwrap();
+    d.execute(&WriteMailbox(entries.clone())).await.unwrap();
+    d.execute(&MailboxControl(Mailbox::Closed)).await.unwrap();
+    assert_eq!(sim.lut().into_iter().flatten().collect::<Vec<_>>(), entries);
+    assert_eq!(d.read_lut().await.unwrap(), entries);
+    // Past entry 127, or with no mailbox open: nack, nothing written.
+    d.execute(&MailboxControl(Mailbox::PatternLut))
+        .await
+        .unwrap();
+    d.execute(&SetMailboxAddress(100)).await.unwrap();
+    let e = d.execute(&WriteMailbox(entries.clone())).await.unwrap_err();
+    assert!(
+        matches!(e, DeviceError::Refused { code: 0x1A34, .. }),
+        "{e:?}"
+    );
+    d.execute(&MailboxControl(Mailbox::Closed)).await.unwrap();
+    let e = d.execute(&WriteMailbox(entries)).await.unwrap_err();
+    assert!(
+        matches!(e, DeviceError::Refused { code: 0x1A34, .. }),
+        "{e:?}"
+    );
+}

@@ -1,0 +1,587 @@
+//! Simulated Optotune Lens Driver 4: the device side of its serial protocol, over the shared
+//! [`LensModel`]. It stands in for the device, not for dioptra's driver, so it is written
+//! from the protocol description (hardware.md, Optotune's manual and the open clients) and
+//! not from the driver's code, and it accepts what other clients send: `V` with or without a
+//! trailing zero byte, `PrTA` with or without its four zero bytes.
+//!
+//! [`OptotuneSim`] is sans-IO (bytes in, bytes out, time passed in); [`serve`] runs it on a
+//! [`ByteLink`] (a pty master, an in-memory link).
+
+use std::time::Duration;
+
+use dioptra_core::{Clock, Diopters, LinkError, PowerRange, Timestamp};
+use dioptra_transport::ByteLink;
+
+use crate::lens_model::{DriveMode, LensModel, LensModelConfig};
+
+/// CRC-16/ARC (reflected 0xA001, init 0, no final XOR), as the Lens Driver 4 computes it.
+const CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_ARC);
+
+/// `E` reply codes. The manual does not list codes; these are the simulator's.
+pub mod error_code {
+    /// No command starts with these bytes.
+    pub const UNKNOWN_COMMAND: u8 = 1;
+    /// An argument is out of the accepted range.
+    pub const BAD_ARGUMENT: u8 = 2;
+    /// The command needs another mode (`Aw` needs current mode, `PwDA` focal-power mode).
+    pub const WRONG_MODE: u8 = 3;
+    /// A real command the simulator does not model (signal-generator and analog modes).
+    pub const NOT_SIMULATED: u8 = 4;
+}
+
+/// Status bits the simulator sets in its `Sr` reply (the driver's `protocol::Status`).
+pub mod status_bit {
+    pub const FOCAL_POWER_CLAMPED_HIGH: u32 = 1 << 0;
+    pub const FOCAL_POWER_CLAMPED_LOW: u32 = 1 << 1;
+    pub const TEMPERATURE_OUT_OF_LIMITS: u32 = 1 << 2;
+}
+
+/// The simulated unit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OptotuneSimConfig {
+    pub lens: LensModelConfig,
+    /// Firmware type letter; `A` encodes focal power with a +5 D offset.
+    pub firmware_type: u8,
+    pub firmware_branch: u8,
+    /// major, minor, build, revision
+    pub firmware_version: (u8, u8, u16, u16),
+    pub part_number: [u8; 3],
+    pub serial_number: [u8; 8],
+    pub device_id: [u8; 8],
+    /// Temperature limits at power-up, (lower, upper) °C.
+    pub temperature_limits_c: (f32, f32),
+    /// Quiet time after which an incomplete command is dropped and answered `N`.
+    pub idle_gap: Duration,
+}
+
+impl Default for OptotuneSimConfig {
+    fn default() -> Self {
+        OptotuneSimConfig {
+            lens: LensModelConfig::default(),
+            firmware_type: b'A',
+            firmware_branch: 1,
+            firmware_version: (1, 6, 0, 2),
+            part_number: *b"LD4",
+            serial_number: *b"SIM00001",
+            device_id: *b"EL103000",
+            temperature_limits_c: (20.0, 40.0),
+            idle_gap: Duration::from_millis(20),
+        }
+    }
+}
+
+/// Mode numbers of `MMA`.
+const MODE_CURRENT: u8 = 1;
+const MODE_FOCAL_POWER: u8 = 5;
+
+/// Command letters and the argument lengths accepted after them (CRC not counted).
+const COMMANDS: &[(&[u8], &[usize])] = &[
+    (b"H", &[0]),
+    (b"F", &[0]),
+    (b"J", &[0]),
+    (b"V", &[0, 1]),
+    (b"X", &[0]),
+    (b"IR", &[8]),
+    (b"CrMA", &[2]),
+    (b"CwMA", &[2]),
+    (b"CrUA", &[2]),
+    (b"CwUA", &[2]),
+    (b"CrLA", &[2]),
+    (b"CwLA", &[2]),
+    (b"Aw", &[2]),
+    (b"Ar", &[2]),
+    (b"TCA", &[0]),
+    (b"PwTA", &[4]),
+    (b"PrTA", &[0, 4]),
+    (b"MwDA", &[0]),
+    (b"MwCA", &[0]),
+    (b"MwSA", &[0]),
+    (b"MwTA", &[0]),
+    (b"MwQA", &[0]),
+    (b"MwAA", &[0]),
+    (b"MMA", &[0]),
+    (b"PwDA", &[4]),
+    (b"PrDA", &[4]),
+    (b"Sr", &[0]),
+];
+const HANDSHAKE: &[u8] = b"Start";
+
+/// A simulated Lens Driver 4 with its lens.
+#[derive(Debug, Clone)]
+pub struct OptotuneSim {
+    cfg: OptotuneSimConfig,
+    lens: LensModel,
+    rx: Vec<u8>,
+    mode: u8,
+    /// Maximum output current in 0.01 mA (`CrMA`/`CwMA`).
+    max_current_centi_ma: i16,
+    /// Software current limits, raw (× 4095 / max).
+    upper_raw: i16,
+    lower_raw: i16,
+    temperature_limits_c: (f32, f32),
+    status: u32,
+    /// Model time.
+    now: Timestamp,
+    handshakes: u64,
+}
+
+impl OptotuneSim {
+    pub fn new(cfg: OptotuneSimConfig) -> Self {
+        let max = (cfg.lens.max_current_ma * 100.0)
+            .round()
+            .clamp(0.0, f32::from(i16::MAX)) as i16;
+        OptotuneSim {
+            lens: LensModel::new(cfg.lens),
+            temperature_limits_c: cfg.temperature_limits_c,
+            cfg,
+            rx: Vec::new(),
+            mode: MODE_CURRENT,
+            max_current_centi_ma: max,
+            upper_raw: 4095,
+            lower_raw: 0,
+            status: 0,
+            now: Timestamp::ZERO,
+            handshakes: 0,
+        }
+    }
+
+    pub fn lens(&self) -> &LensModel {
+        &self.lens
+    }
+    pub fn config(&self) -> &OptotuneSimConfig {
+        &self.cfg
+    }
+    /// `Start` handshakes answered so far.
+    pub fn handshakes(&self) -> u64 {
+        self.handshakes
+    }
+    /// True while part of a command is waiting for the rest.
+    pub fn has_partial_command(&self) -> bool {
+        !self.rx.is_empty()
+    }
+
+    /// Moves the lens model to time `now` (never backwards).
+    pub fn advance_to(&mut self, now: Timestamp) {
+        let dt = now.saturating_since(self.now);
+        if !dt.is_zero() {
+            self.lens.advance(dt);
+            self.now = now;
+        }
+    }
+
+    /// Takes bytes from the host; appends the replies to `out`.
+    pub fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        self.rx.extend_from_slice(bytes);
+        while !self.rx.is_empty() {
+            match self.parse_one(out) {
+                Some(used) => {
+                    self.rx.drain(..used.min(self.rx.len()));
+                }
+                None => break,
+            }
+        }
+    }
+
+    /// The host went quiet with a command incomplete: drop it and answer `N`, as a bad CRC.
+    pub fn idle_timeout(&mut self, out: &mut Vec<u8>) {
+        if !self.rx.is_empty() {
+            self.rx.clear();
+            out.extend_from_slice(b"N\r\n");
+        }
+    }
+
+    /// Handles the command at the front of `rx`; returns the bytes it used, or `None` to wait
+    /// for more.
+    fn parse_one(&mut self, out: &mut Vec<u8>) -> Option<usize> {
+        let rx = &self.rx;
+        if rx.starts_with(HANDSHAKE) {
+            self.handshakes += 1;
+            out.extend_from_slice(b"Ready\r\n");
+            return Some(HANDSHAKE.len());
+        }
+        let maybe_start = HANDSHAKE.starts_with(rx);
+        let spec = COMMANDS.iter().find(|(letters, _)| rx.starts_with(letters));
+        let Some(&(letters, arg_lens)) = spec else {
+            let partial = maybe_start || COMMANDS.iter().any(|(l, _)| l.starts_with(rx));
+            if partial {
+                return None;
+            }
+            // Unknown: answer once and skip to a byte that can start a command.
+            reply(out, &[b'E', error_code::UNKNOWN_COMMAND]);
+            let skip = 1 + rx[1..].iter().take_while(|b| !can_start(**b)).count();
+            return Some(skip);
+        };
+        let mut longest = 0;
+        for &n in arg_lens {
+            let total = letters.len() + n + 2;
+            longest = longest.max(total);
+            if rx.len() < total {
+                continue;
+            }
+            let body = &rx[..total - 2];
+            if CRC.checksum(body) == u16::from_le_bytes([rx[total - 2], rx[total - 1]]) {
+                let (letters, args) = body.split_at(letters.len());
+                let (letters, args) = (letters.to_vec(), args.to_vec());
+                self.execute(&letters, &args, out);
+                return Some(total);
+            }
+        }
+        if rx.len() < longest {
+            return None;
+        }
+        out.extend_from_slice(b"N\r\n");
+        Some(longest)
+    }
+
+    fn scale_power(&self, d: f32) -> i16 {
+        let offset = if self.cfg.firmware_type == b'A' {
+            5.0
+        } else {
+            0.0
+        };
+        ((d + offset) * 200.0)
+            .round()
+            .clamp(f32::from(i16::MIN), f32::from(i16::MAX)) as i16
+    }
+    fn unscale_power(&self, raw: i16) -> f32 {
+        let offset = if self.cfg.firmware_type == b'A' {
+            5.0
+        } else {
+            0.0
+        };
+        f32::from(raw) / 200.0 - offset
+    }
+    fn max_current_ma(&self) -> f32 {
+        f32::from(self.max_current_centi_ma) / 100.0
+    }
+    fn raw_to_ma(&self, raw: i16) -> f32 {
+        f32::from(raw) * self.max_current_ma() / 4095.0
+    }
+    fn ma_to_raw(&self, ma: f32) -> i16 {
+        let max = self.max_current_ma();
+        if max <= 0.0 {
+            return 0;
+        }
+        (ma * 4095.0 / max)
+            .round()
+            .clamp(f32::from(i16::MIN), f32::from(i16::MAX)) as i16
+    }
+
+    /// Currents the software limits allow (the lens model drives 0..=max only).
+    fn current_window_ma(&self) -> (f32, f32) {
+        let hw = self
+            .max_current_ma()
+            .min(self.lens.config().max_current_ma)
+            .max(0.0);
+        let hi = self.raw_to_ma(self.upper_raw).clamp(0.0, hw);
+        let lo = self.raw_to_ma(self.lower_raw).clamp(0.0, hi);
+        (lo, hi)
+    }
+
+    /// Focal powers that can be held at every temperature within the limits and within the
+    /// current window: static power falls with temperature, so the top comes from the upper
+    /// temperature limit and the bottom from the lower one.
+    pub fn holdable_range(&self) -> PowerRange {
+        let now = self.lens.power_range();
+        let cfg = self.lens.config();
+        let span_ma = cfg.max_current_ma.max(1e-3);
+        let (lo_ma, hi_ma) = self.current_window_ma();
+        let at = |ma: f32| now.min.0 + (now.max.0 - now.min.0) * ma / span_ma;
+        let t = self.lens.temperature_c();
+        let (t_lo, t_hi) = self.temperature_limits_c;
+        let max = at(hi_ma) - cfg.drift_d_per_c * (t_hi - t);
+        let min = at(lo_ma) - cfg.drift_d_per_c * (t_lo - t);
+        PowerRange {
+            min: Diopters(min.min(max)),
+            max: Diopters(max),
+        }
+    }
+
+    fn range_reply(&self, echo: &[u8], out: &mut Vec<u8>) {
+        let r = self.holdable_range();
+        let mut p = echo.to_vec();
+        p.push(0);
+        p.extend_from_slice(&self.scale_power(r.max.0).to_be_bytes());
+        p.extend_from_slice(&self.scale_power(r.min.0).to_be_bytes());
+        reply(out, &p);
+    }
+
+    /// Focal-power target within the reachable power range and current window.
+    fn apply_focal_power(&mut self, d: f32) {
+        let now = self.lens.power_range();
+        let span_ma = self.lens.config().max_current_ma.max(1e-3);
+        let (lo_ma, hi_ma) = self.current_window_ma();
+        let at = |ma: f32| now.min.0 + (now.max.0 - now.min.0) * ma / span_ma;
+        let target = d.clamp(at(lo_ma), at(hi_ma));
+        self.status &=
+            !(status_bit::FOCAL_POWER_CLAMPED_HIGH | status_bit::FOCAL_POWER_CLAMPED_LOW);
+        if d > target {
+            self.status |= status_bit::FOCAL_POWER_CLAMPED_HIGH;
+        } else if d < target {
+            self.status |= status_bit::FOCAL_POWER_CLAMPED_LOW;
+        }
+        self.lens.set_focal_power(Diopters(target));
+    }
+
+    fn execute(&mut self, letters: &[u8], args: &[u8], out: &mut Vec<u8>) {
+        let arg16 = |i: usize| i16::from_be_bytes([args[i], args[i + 1]]);
+        match letters {
+            b"H" => reply(out, &[b'H', self.cfg.firmware_type]),
+            b"F" => reply(out, &[b'F', self.cfg.firmware_branch]),
+            b"J" => reply(out, &[&b"J"[..], &self.cfg.part_number].concat()),
+            b"V" => {
+                let (a, b, c, d) = self.cfg.firmware_version;
+                let mut p = vec![b'V', a, b];
+                p.extend_from_slice(&c.to_be_bytes());
+                p.extend_from_slice(&d.to_be_bytes());
+                reply(out, &p);
+            }
+            b"X" => reply(out, &[&b"X"[..], &self.cfg.serial_number].concat()),
+            b"IR" => reply(out, &[&b"IR"[..], &self.cfg.device_id].concat()),
+            b"CrMA" => reply(
+                out,
+                &[&b"CrM"[..], &self.max_current_centi_ma.to_be_bytes()].concat(),
+            ),
+            b"CwMA" => {
+                let v = arg16(0);
+                // The Lens Driver 4 cannot source more than its hardware maximum.
+                let hw = (self.lens.config().max_current_ma * 100.0).round() as i16;
+                if v <= 0 || v > hw {
+                    return reply(out, &[b'E', error_code::BAD_ARGUMENT]);
+                }
+                self.max_current_centi_ma = v;
+                reply(out, &[&b"CwM"[..], &v.to_be_bytes()].concat());
+            }
+            b"CrUA" => reply(out, &[&b"CrU"[..], &self.upper_raw.to_be_bytes()].concat()),
+            b"CrLA" => reply(out, &[&b"CrL"[..], &self.lower_raw.to_be_bytes()].concat()),
+            b"CwUA" | b"CwLA" => {
+                let v = arg16(0).clamp(-4095, 4095);
+                if letters[2] == b'U' {
+                    self.upper_raw = v;
+                } else {
+                    self.lower_raw = v;
+                }
+                self.reapply();
+                reply(out, &[&letters[..3], &v.to_be_bytes()].concat());
+            }
+            b"Aw" => {
+                if self.mode != MODE_CURRENT {
+                    return reply(out, &[b'E', error_code::WRONG_MODE]);
+                }
+                let raw = arg16(0).clamp(self.lower_raw, self.upper_raw.max(self.lower_raw));
+                let ma = self.raw_to_ma(raw);
+                self.lens.set_current_ma(ma);
+            }
+            b"Ar" => {
+                let raw = self.ma_to_raw(self.lens.current_ma());
+                reply(out, &[&b"A"[..], &raw.to_be_bytes()].concat());
+            }
+            b"TCA" => {
+                let raw = (self.lens.temperature_c() * 16.0).round() as i16;
+                reply(out, &[&b"TCA"[..], &raw.to_be_bytes()].concat());
+            }
+            b"PwTA" => {
+                let hi = f32::from(arg16(0)) / 16.0;
+                let lo = f32::from(arg16(2)) / 16.0;
+                if lo > hi {
+                    let mut p = b"PT".to_vec();
+                    p.push(1);
+                    p.extend_from_slice(&[0; 4]);
+                    return reply(out, &p);
+                }
+                self.temperature_limits_c = (lo, hi);
+                self.reapply();
+                self.range_reply(b"PT", out);
+            }
+            b"PrTA" => self.range_reply(b"PT", out),
+            b"MwDA" => {
+                if self.mode != MODE_CURRENT {
+                    // Keep the present current: switching modes does not move the lens.
+                    let ma = self.lens.current_ma();
+                    self.lens.set_current_ma(ma);
+                    self.mode = MODE_CURRENT;
+                }
+                reply(out, b"MwD");
+            }
+            b"MwCA" => {
+                if self.mode != MODE_FOCAL_POWER {
+                    // Hold the power the lens is at now.
+                    let p = self.lens.target_power().0;
+                    self.mode = MODE_FOCAL_POWER;
+                    self.apply_focal_power(p);
+                }
+                self.range_reply(b"MwC", out);
+            }
+            b"MwSA" | b"MwTA" | b"MwQA" | b"MwAA" => reply(out, &[b'E', error_code::NOT_SIMULATED]),
+            b"MMA" => reply(out, &[b'M', b'M', b'A', self.mode]),
+            b"PwDA" => {
+                if self.mode != MODE_FOCAL_POWER {
+                    return reply(out, &[b'E', error_code::WRONG_MODE]);
+                }
+                let d = self.unscale_power(arg16(0));
+                self.apply_focal_power(d);
+            }
+            b"PrDA" => {
+                let raw = self.scale_power(self.lens.power().0);
+                reply(out, &[&b"PD"[..], &raw.to_be_bytes()].concat());
+            }
+            b"Sr" => {
+                let t = self.lens.temperature_c();
+                let (lo, hi) = self.temperature_limits_c;
+                let mut s = self.status & !status_bit::TEMPERATURE_OUT_OF_LIMITS;
+                if t < lo || t > hi {
+                    s |= status_bit::TEMPERATURE_OUT_OF_LIMITS;
+                }
+                reply(out, &[&b"S"[..], &s.to_be_bytes()].concat());
+            }
+            // COMMANDS and this match list the same letters.
+            _ => reply(out, &[b'E', error_code::UNKNOWN_COMMAND]),
+        }
+    }
+
+    /// Re-applies the drive after a limit changed.
+    fn reapply(&mut self) {
+        match self.lens.mode() {
+            DriveMode::FocalPower(d) if self.mode == MODE_FOCAL_POWER => self.apply_focal_power(d),
+            DriveMode::Current(ma) => {
+                let (lo, hi) = self.current_window_ma();
+                self.lens.set_current_ma(ma.clamp(lo, hi));
+            }
+            DriveMode::FocalPower(_) => {}
+        }
+    }
+}
+
+/// Could `b` begin a command or the handshake?
+fn can_start(b: u8) -> bool {
+    b == HANDSHAKE[0] || COMMANDS.iter().any(|(l, _)| l[0] == b)
+}
+
+/// Appends payload, CRC (low byte first) and `\r\n`.
+fn reply(out: &mut Vec<u8>, payload: &[u8]) {
+    out.extend_from_slice(payload);
+    out.extend_from_slice(&CRC.checksum(payload).to_le_bytes());
+    out.extend_from_slice(b"\r\n");
+}
+
+/// Serves `sim` on `link` until the link fails (a pty master waits for clients instead).
+/// The lens model follows `clock`: wall time for a pty served to another process, tokio's
+/// (pausable) clock in tests.
+pub async fn serve<L: ByteLink>(
+    link: &mut L,
+    sim: &mut OptotuneSim,
+    clock: &dyn Clock,
+) -> Result<(), LinkError> {
+    let mut buf = [0u8; 256];
+    let mut out = Vec::with_capacity(64);
+    let gap = sim.cfg.idle_gap;
+    loop {
+        let r = link.read(&mut buf, gap).await;
+        sim.advance_to(clock.now());
+        match r {
+            Ok(n) => sim.receive(&buf[..n], &mut out),
+            Err(LinkError::Timeout { .. }) => sim.idle_timeout(&mut out),
+            Err(e) => return Err(e),
+        }
+        if !out.is_empty() {
+            link.write_all(&out).await?;
+            out.clear();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cmd(body: &[u8]) -> Vec<u8> {
+        let mut v = body.to_vec();
+        v.extend_from_slice(&CRC.checksum(body).to_le_bytes());
+        v
+    }
+
+    fn ask(sim: &mut OptotuneSim, bytes: &[u8]) -> Vec<u8> {
+        let mut out = Vec::new();
+        sim.receive(bytes, &mut out);
+        out
+    }
+
+    /// Splits a reply into payload after checking CRC and CRLF.
+    fn payload(r: &[u8]) -> &[u8] {
+        let (p, t) = r.split_at(r.len() - 4);
+        assert_eq!(&t[2..], b"\r\n");
+        assert_eq!(u16::from_le_bytes([t[0], t[1]]), CRC.checksum(p), "{r:?}");
+        p
+    }
+
+    #[test]
+    fn handshake_and_identity() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        assert_eq!(ask(&mut sim, b"Start"), b"Ready\r\n");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"H"))), b"HA");
+        // `V` alone and `V\0` (the opto client's form) both answer 7 payload bytes.
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"V"))),
+            &[b'V', 1, 6, 0, 0, 0, 2]
+        );
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"V\0"))).len(), 7);
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"X"))), b"XSIM00001");
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"CrMA\0\0"))),
+            &[b'C', b'r', b'M', 0x72, 0x64]
+        );
+    }
+
+    #[test]
+    fn bad_crc_unknown_and_wrong_mode() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        let mut bad = cmd(b"MMA");
+        bad[3] ^= 1;
+        assert_eq!(ask(&mut sim, &bad), b"N\r\n");
+        assert_eq!(
+            payload(&ask(&mut sim, b"zzz")),
+            &[b'E', error_code::UNKNOWN_COMMAND]
+        );
+        // PwDA in current mode: refused, and no silent success.
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0"))),
+            &[b'E', error_code::WRONG_MODE]
+        );
+        // Incomplete command: nothing until the idle gap, then N.
+        assert!(ask(&mut sim, b"MM").is_empty());
+        let mut out = Vec::new();
+        sim.idle_timeout(&mut out);
+        assert_eq!(out, b"N\r\n");
+        assert!(!sim.has_partial_command());
+    }
+
+    #[test]
+    fn focal_power_mode_moves_the_lens_and_set_commands_are_silent() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        let r = ask(&mut sim, &cmd(b"MwCA"));
+        assert_eq!(payload(&r).len(), 8);
+        assert!(ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0")).is_empty()); // 1.5 D, type A
+        sim.advance_to(Timestamp::from_millis(100));
+        let p = payload(&ask(&mut sim, &cmd(b"PrDA\0\0\0\0"))).to_vec();
+        let d = f32::from(i16::from_be_bytes([p[2], p[3]])) / 200.0 - 5.0;
+        assert!((d - 1.5).abs() < 0.01, "{d}");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x05");
+    }
+
+    #[test]
+    fn any_bytes_never_panic() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        let mut x = 0x1234_5678u32;
+        let mut out = Vec::new();
+        for _ in 0..20_000 {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            let b = [x as u8, (x >> 8) as u8, b"PwDACrMA"[(x >> 16) as usize % 8]];
+            sim.receive(&b[..1 + (x >> 24) as usize % 3], &mut out);
+            if x % 7 == 0 {
+                sim.idle_timeout(&mut out);
+            }
+        }
+    }
+}

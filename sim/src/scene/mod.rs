@@ -1,0 +1,319 @@
+//! Procedural scenes and their ground-truth renders.
+//!
+//! Scenes are random layouts of textured planes, slanted plates, boxes, spheres and thin rods in
+//! front of a textured far wall, with heavy occlusion (in the spirit of DeepFocus's procedural
+//! scenes), generated from a seed. Seeds below [`TEST_SEEDS`]`.start` are for training and the
+//! test range never overlaps them.
+//!
+//! The camera is the eye of [`dioptra_core::EyeModel`]: lens at the origin in the z = 0 plane,
+//! x right, y down, z forward; pixel `(x, y)` looks along tangent `((x + 0.5 - W/2) p,
+//! (y + 0.5 - H/2) p)` with `p` the eye's pixel pitch. Depth maps hold z-depth in diopters.
+
+mod geom;
+mod render;
+
+pub use geom::{Pattern, Rot, Shape, Texture};
+pub use render::{
+    render_light_field, render_pinhole, render_thin_lens, render_thin_lens_scrambled,
+    render_thin_lens_stack, Camera, LightFieldView,
+};
+
+use std::ops::Range;
+
+/// Seeds reserved for evaluation. Training seeds are `0..TEST_SEEDS.start`.
+pub const TEST_SEEDS: Range<u64> = 1_000_000..2_000_000;
+
+/// Which side of the train/test split a seed is on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Split {
+    Train,
+    Test,
+}
+
+impl Split {
+    pub fn of(seed: u64) -> Split {
+        if TEST_SEEDS.contains(&seed) {
+            Split::Test
+        } else {
+            Split::Train
+        }
+    }
+    /// The `i`-th seed of this split (test seeds wrap inside [`TEST_SEEDS`]).
+    pub fn seed(self, i: u64) -> u64 {
+        match self {
+            Split::Test => TEST_SEEDS.start + i % (TEST_SEEDS.end - TEST_SEEDS.start),
+            // Training seeds skip the test range entirely.
+            Split::Train if i < TEST_SEEDS.start => i,
+            Split::Train => i.saturating_add(TEST_SEEDS.end - TEST_SEEDS.start),
+        }
+    }
+}
+
+/// One surface: a shape with a texture and an opacity (1 = opaque).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Object {
+    pub shape: Shape,
+    pub texture: Texture,
+    pub alpha: f32,
+}
+
+/// What to put in a generated scene.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SceneOptions {
+    /// Number of objects in front of the wall.
+    pub objects: usize,
+    /// Nearest and farthest object depth, diopters.
+    pub depth_range: (f32, f32),
+    /// Make some surfaces semi-transparent (a known failure case for RGB-D methods).
+    pub semi_transparent: bool,
+}
+
+impl Default for SceneOptions {
+    fn default() -> Self {
+        SceneOptions {
+            objects: 24,
+            depth_range: (0.25, 3.9),
+            semi_transparent: false,
+        }
+    }
+}
+
+/// A scene: objects in front of a textured wall at `wall_depth` metres (fronto-parallel, unbounded).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene {
+    pub objects: Vec<Object>,
+    pub wall_depth: f32,
+    pub wall: Texture,
+    pub seed: u64,
+}
+
+/// PCG32 (O'Neill): small, seeded, the same on every platform.
+struct Pcg(u64);
+
+impl Pcg {
+    fn new(seed: u64) -> Pcg {
+        let mut p = Pcg(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ 0x853c_49e6_748f_ea9b);
+        p.next_u32();
+        p
+    }
+    fn next_u32(&mut self) -> u32 {
+        let old = self.0;
+        self.0 = old
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        let xorshifted = (((old >> 18) ^ old) >> 27) as u32;
+        xorshifted.rotate_right((old >> 59) as u32)
+    }
+    fn unit(&mut self) -> f32 {
+        (self.next_u32() >> 8) as f32 / (1u32 << 24) as f32
+    }
+    fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.unit()
+    }
+}
+
+fn random_texture(rng: &mut Pcg, distance: f32) -> Texture {
+    let mut colour = || [0; 3].map(|_| rng.range(0.02, 0.9));
+    let (a, b) = (colour(), colour());
+    // Feature sizes of about 3 to 14 mrad (2 to 10 pixels at 256 px over 20 degrees).
+    let scale = distance * rng.range(0.003, 0.014);
+    let pattern = match rng.next_u32() % 4 {
+        0 => Pattern::Checker { scale },
+        1 => Pattern::Stripes {
+            scale: scale * 2.0,
+            angle: rng.range(0.0, std::f32::consts::PI),
+        },
+        2 => Pattern::Noise {
+            scale: scale * 2.0,
+            seed: rng.next_u32(),
+        },
+        _ => Pattern::Noise {
+            scale: scale * 4.0,
+            seed: rng.next_u32(),
+        },
+    };
+    Texture { a, b, pattern }
+}
+
+impl Scene {
+    /// The scene for `seed` with default options.
+    pub fn generate(seed: u64) -> Scene {
+        Scene::generate_with(seed, &SceneOptions::default())
+    }
+
+    pub fn generate_with(seed: u64, opts: &SceneOptions) -> Scene {
+        let mut rng = Pcg::new(seed);
+        let (dmin, dmax) = (
+            opts.depth_range.0.min(opts.depth_range.1).max(0.05),
+            opts.depth_range.0.max(opts.depth_range.1).max(0.05),
+        );
+        let wall_depth = 1.0 / rng.range(0.1, 0.2);
+        let wall = random_texture(&mut rng, wall_depth);
+        let half_field = 0.2f32; // a little beyond tan(10 deg) so objects cross the border
+        let mut objects = Vec::with_capacity(opts.objects + 1);
+        // A slanted floor-like plate running from near to far: a continuous depth ramp.
+        let tilt = rng.range(1.1, 1.4);
+        let floor_z = 1.0 / rng.range(0.5, 1.0);
+        objects.push(Object {
+            shape: Shape::Box {
+                center: [0.0, floor_z * rng.range(0.12, 0.18), floor_z],
+                half: [floor_z * 0.5, floor_z * 1.2, 1e-4 * floor_z],
+                rot: Rot::euler(tilt, 0.0, rng.range(-0.2, 0.2)),
+            },
+            texture: random_texture(&mut rng, floor_z),
+            alpha: 1.0,
+        });
+        for _ in 0..opts.objects {
+            // Uniform in diopters, like the depth statistics of DeepFocus's scenes.
+            let z = 1.0 / rng.range(dmin, dmax);
+            // Cluster towards the centre so objects overlap.
+            let cx = rng.range(-half_field, half_field) * rng.range(0.4, 1.0) * z;
+            let cy = rng.range(-half_field, half_field) * rng.range(0.4, 1.0) * z;
+            let size = z * rng.range(0.015, 0.07);
+            let kind = rng.next_u32() % 6;
+            let shape = match kind {
+                0 => Shape::Box {
+                    center: [cx, cy, z],
+                    half: [
+                        size * rng.range(0.7, 1.6),
+                        size * rng.range(0.7, 1.6),
+                        1e-4 * z,
+                    ],
+                    rot: Rot::euler(0.0, 0.0, rng.range(0.0, 3.2)),
+                },
+                1 => Shape::Box {
+                    // slanted plate: big depth change across its face
+                    center: [cx, cy, z],
+                    half: [size * 1.5, size, 1e-4 * z],
+                    rot: Rot::euler(
+                        rng.range(-1.0, 1.0),
+                        rng.range(-1.2, 1.2),
+                        rng.range(0.0, 3.2),
+                    ),
+                },
+                2 => Shape::Box {
+                    center: [cx, cy, z],
+                    half: [
+                        size * rng.range(0.4, 1.0),
+                        size * rng.range(0.4, 1.0),
+                        size * rng.range(0.4, 1.0),
+                    ],
+                    rot: Rot::euler(
+                        rng.range(0.0, 3.2),
+                        rng.range(0.0, 3.2),
+                        rng.range(0.0, 3.2),
+                    ),
+                },
+                3 => Shape::Box {
+                    // thin rod
+                    center: [cx, cy, z],
+                    half: [size * 3.0, size * 0.06, size * 0.06],
+                    rot: Rot::euler(
+                        rng.range(0.0, 3.2),
+                        rng.range(-0.5, 0.5),
+                        rng.range(0.0, 3.2),
+                    ),
+                },
+                _ => Shape::Sphere {
+                    center: [cx, cy, z],
+                    radius: size * rng.range(0.5, 1.0),
+                },
+            };
+            let texture = random_texture(&mut rng, z);
+            let alpha = if opts.semi_transparent && rng.next_u32() % 3 == 0 {
+                rng.range(0.3, 0.7)
+            } else {
+                1.0
+            };
+            objects.push(Object {
+                shape,
+                texture,
+                alpha,
+            });
+        }
+        Scene {
+            objects,
+            wall_depth,
+            wall,
+            seed,
+        }
+    }
+
+    /// Colour and z-depth (metres) of the first surface along `o + t d` (with `d.z = 1`),
+    /// compositing semi-transparent surfaces front to back.
+    pub fn trace(&self, o: [f32; 3], d: [f32; 3]) -> ([f32; 3], f32) {
+        let mut colour = [0.0f32; 3];
+        let mut transmit = 1.0f32;
+        let mut first_z = None;
+        let mut t_min = 1e-4f32;
+        // A few layers of transparency are enough; the loop always ends at the wall.
+        for _ in 0..6 {
+            let mut best: Option<(geom::Hit, &Object)> = None;
+            for obj in &self.objects {
+                if let Some(h) = obj.shape.intersect(o, d, t_min) {
+                    if best.as_ref().is_none_or(|(b, _)| h.t < b.t) {
+                        best = Some((h, obj));
+                    }
+                }
+            }
+            let wall_t = self.wall_depth - o[2];
+            match best {
+                Some((h, obj)) if h.t < wall_t => {
+                    let ndl = geom::dot(h.normal, [-0.36, -0.6, -0.72]).abs();
+                    let shade = 0.55 + 0.45 * ndl;
+                    let c = obj.texture.eval(h.uv);
+                    let a = obj.alpha.clamp(0.0, 1.0);
+                    for k in 0..3 {
+                        colour[k] += transmit * a * c[k] * shade;
+                    }
+                    transmit *= 1.0 - a;
+                    first_z.get_or_insert(o[2] + h.t);
+                    t_min = h.t + 1e-4;
+                    if transmit <= 1e-4 {
+                        break;
+                    }
+                }
+                _ => {
+                    let p = [o[0] + d[0] * wall_t, o[1] + d[1] * wall_t];
+                    let c = self.wall.eval(p);
+                    for k in 0..3 {
+                        colour[k] += transmit * c[k];
+                    }
+                    first_z.get_or_insert(self.wall_depth);
+                    break;
+                }
+            }
+        }
+        (colour, first_z.unwrap_or(self.wall_depth))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seeds_are_deterministic_and_distinct() {
+        assert_eq!(Scene::generate(5), Scene::generate(5));
+        assert_ne!(Scene::generate(5).objects, Scene::generate(6).objects);
+    }
+
+    #[test]
+    fn train_and_test_seeds_never_overlap() {
+        for i in [0u64, 1, 999_999, 1_000_000, 5_000_000, u64::MAX - 1] {
+            assert_eq!(Split::of(Split::Train.seed(i)), Split::Train, "train {i}");
+            assert_eq!(Split::of(Split::Test.seed(i)), Split::Test, "test {i}");
+        }
+    }
+
+    #[test]
+    fn transparency_composites_behind() {
+        let opts = SceneOptions {
+            semi_transparent: true,
+            ..SceneOptions::default()
+        };
+        let s = Scene::generate_with(3, &opts);
+        assert!(s.objects.iter().any(|o| o.alpha < 1.0));
+        assert!(Scene::generate(3).objects.iter().all(|o| o.alpha == 1.0));
+    }
+}
