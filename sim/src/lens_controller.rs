@@ -5,15 +5,15 @@
 
 use std::time::Duration;
 
-use dioptra_core::{Clock, Diopters, LinkError, Timestamp};
+use dioptra_core::{Diopters, Timestamp};
 use dioptra_protocol::{
     truncated, Capabilities, DeviceInfo, DeviceKind, ErrorCode, Fault, FaultKind, FirmwareVersion,
     LensState, Limits, Message, MAX_APPLY_AHEAD_US, PROTOCOL_VERSION,
 };
-use dioptra_transport::ByteLink;
 
 use crate::lens_model::{LensModel, LensModelConfig};
 use crate::protocol_device::ProtocolDevice;
+use crate::serve::ByteDevice;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct LensControllerSimConfig {
@@ -204,26 +204,17 @@ impl LensControllerSim {
     }
 }
 
-/// Serves `sim` on `link` until the link fails (a pty master waits for clients instead).
-pub async fn serve<L: ByteLink>(
-    link: &mut L,
-    sim: &mut LensControllerSim,
-    clock: &dyn Clock,
-) -> Result<(), LinkError> {
-    let mut buf = [0u8; 512];
-    let mut out = Vec::with_capacity(128);
-    loop {
-        let r = link.read(&mut buf, TICK).await;
-        sim.advance_to(clock.now());
-        match r {
-            Ok(n) => sim.receive(&buf[..n], &mut out),
-            Err(LinkError::Timeout { .. }) => {}
-            Err(e) => return Err(e),
-        }
-        if !out.is_empty() {
-            link.write_all(&out).await?;
-            out.clear();
-        }
+pub use crate::serve::serve;
+
+impl ByteDevice for LensControllerSim {
+    fn wait(&self, _now: Timestamp) -> Duration {
+        TICK
+    }
+    fn advance_to(&mut self, now: Timestamp, _out: &mut Vec<u8>) {
+        LensControllerSim::advance_to(self, now)
+    }
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        LensControllerSim::receive(self, bytes, out)
     }
 }
 

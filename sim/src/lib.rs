@@ -1,4 +1,12 @@
-//! Device simulators that speak the real wire bytes, with physical models; procedural scenes and ground-truth renders. Filled by the device and renderer issues.
+//! dioptra-sim: device simulators that speak the real wire bytes, with physical models, and
+//! procedural scenes with ground-truth renders.
+//!
+//! - Devices: [`optotune`] (Optotune Lens Driver 4), [`lens_controller`], [`sync_board`],
+//!   [`dlpc350`] (TI DLPC350 over the in-memory HID link), [`gaze`] (eye-movement generator and
+//!   simulated HID trackers). Byte-speaking devices run on any link through [`serve::serve`].
+//! - Shared models: [`lens_model`] (tunable-lens physics), [`protocol_device`] (the device side
+//!   of dioptra-protocol), [`tokio_clock`].
+//! - Ground truth: [`scene`] (procedural scenes, pinhole, thin-lens and light-field renders).
 
 pub mod dlpc350;
 pub mod gaze;
@@ -7,5 +15,6 @@ pub mod lens_model;
 pub mod optotune;
 pub mod protocol_device;
 pub mod scene;
+pub mod serve;
 pub mod sync_board;
 pub mod tokio_clock;

@@ -9,10 +9,10 @@
 
 use std::time::Duration;
 
-use dioptra_core::{Clock, Diopters, LinkError, PowerRange, Timestamp};
-use dioptra_transport::ByteLink;
+use dioptra_core::{Diopters, PowerRange, Timestamp};
 
 use crate::lens_model::{DriveMode, LensModel, LensModelConfig};
+use crate::serve::ByteDevice;
 
 /// CRC-16/ARC (reflected 0xA001, init 0, no final XOR), as the Lens Driver 4 computes it.
 const CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_ARC);
@@ -464,29 +464,20 @@ fn reply(out: &mut Vec<u8>, payload: &[u8]) {
     out.extend_from_slice(b"\r\n");
 }
 
-/// Serves `sim` on `link` until the link fails (a pty master waits for clients instead).
-/// The lens model follows `clock`: wall time for a pty served to another process, tokio's
-/// (pausable) clock in tests.
-pub async fn serve<L: ByteLink>(
-    link: &mut L,
-    sim: &mut OptotuneSim,
-    clock: &dyn Clock,
-) -> Result<(), LinkError> {
-    let mut buf = [0u8; 256];
-    let mut out = Vec::with_capacity(64);
-    let gap = sim.cfg.idle_gap;
-    loop {
-        let r = link.read(&mut buf, gap).await;
-        sim.advance_to(clock.now());
-        match r {
-            Ok(n) => sim.receive(&buf[..n], &mut out),
-            Err(LinkError::Timeout { .. }) => sim.idle_timeout(&mut out),
-            Err(e) => return Err(e),
-        }
-        if !out.is_empty() {
-            link.write_all(&out).await?;
-            out.clear();
-        }
+pub use crate::serve::serve;
+
+impl ByteDevice for OptotuneSim {
+    fn wait(&self, _now: Timestamp) -> Duration {
+        self.cfg.idle_gap
+    }
+    fn advance_to(&mut self, now: Timestamp, _out: &mut Vec<u8>) {
+        OptotuneSim::advance_to(self, now)
+    }
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        OptotuneSim::receive(self, bytes, out)
+    }
+    fn idle(&mut self, out: &mut Vec<u8>) {
+        self.idle_timeout(out)
     }
 }
 

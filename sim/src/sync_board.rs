@@ -16,15 +16,15 @@
 
 use std::time::Duration;
 
-use dioptra_core::{Clock, Diopters, LinkError, Timestamp};
+use dioptra_core::{Diopters, Timestamp};
 use dioptra_protocol::{
     truncated, Capabilities, DeviceInfo, DeviceKind, ErrorCode, Fault, FaultKind, FirmwareVersion,
     Message, PlaneSchedule, SubframeEvent, PROTOCOL_VERSION,
 };
-use dioptra_transport::ByteLink;
 
 use crate::lens_model::{LensModel, LensModelConfig, SETTLED_TOLERANCE_D};
 use crate::protocol_device::ProtocolDevice;
+use crate::serve::ByteDevice;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct SyncBoardSimConfig {
@@ -317,32 +317,21 @@ impl SyncBoardSim {
     }
 }
 
-/// Serves `sim` on `link` until the link fails (a pty master waits for clients instead).
-pub async fn serve<L: ByteLink>(
-    link: &mut L,
-    sim: &mut SyncBoardSim,
-    clock: &dyn Clock,
-) -> Result<(), LinkError> {
-    let mut buf = [0u8; 512];
-    let mut out = Vec::with_capacity(512);
-    loop {
-        // Wake for the board's next sub-frame work, or every few ms to let the lens move.
-        let now = clock.now();
-        let wait = sim.next_due().map_or(Duration::from_millis(5), |due| {
+pub use crate::serve::serve;
+
+impl ByteDevice for SyncBoardSim {
+    /// Wake for the board's next sub-frame work, or every few ms to let the lens move.
+    fn wait(&self, now: Timestamp) -> Duration {
+        self.next_due().map_or(Duration::from_millis(5), |due| {
             due.saturating_since(now)
                 .clamp(Duration::from_micros(50), Duration::from_millis(5))
-        });
-        let r = link.read(&mut buf, wait).await;
-        sim.advance_to(clock.now(), &mut out);
-        match r {
-            Ok(n) => sim.receive(&buf[..n], &mut out),
-            Err(LinkError::Timeout { .. }) => {}
-            Err(e) => return Err(e),
-        }
-        if !out.is_empty() {
-            link.write_all(&out).await?;
-            out.clear();
-        }
+        })
+    }
+    fn advance_to(&mut self, now: Timestamp, out: &mut Vec<u8>) {
+        SyncBoardSim::advance_to(self, now, out)
+    }
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        SyncBoardSim::receive(self, bytes, out)
     }
 }
 
