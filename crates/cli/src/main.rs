@@ -52,6 +52,14 @@ enum Command {
     Foveate(render_cmd::FoveateArgs),
 }
 
+/// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
+fn block_on<T>(work: impl std::future::Future<Output = anyhow::Result<T>>) -> anyhow::Result<T> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?
+        .block_on(work)
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {

@@ -273,10 +273,7 @@ where
     if !pty {
         bail!("`dioptra {what}` serves other processes on a pseudo-terminal: add --pty");
     }
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?;
-    rt.block_on(async {
+    crate::block_on(async {
         let pair = dioptra_transport::pty::PtyPair::open()?;
         println!("{}", pair.slave_path.display());
         std::io::stdout().flush()?;
