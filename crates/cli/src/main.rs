@@ -32,7 +32,7 @@ enum Command {
     Lens(lens_cmd::Args),
     /// Talk to one eye tracker: info, stream (`--device sim:saccades` runs a simulated one).
     Gaze(gaze_cmd::Args),
-    /// Simulators: `sim scene` renders a procedural scene's ground truth.
+    /// Simulators: devices on a pty (`optotune`, `lens`, `sync`) and procedural scenes (`scene`).
     Sim(sim_cmd::Args),
     /// Talk to multifocal sync hardware: status, program, start, stop, events.
     Sync(sync_cmd::Args),
