@@ -298,8 +298,18 @@ async fn sequencer_action<S: PlaneSequencer>(
             s.program(&schedule.schedule()?).await?;
             s.start().await?;
             let mut shown = 0u64;
+            // Ctrl-C stops the sequence before exiting, so the lens is not left stepping.
+            let ctrl_c = tokio::signal::ctrl_c();
+            tokio::pin!(ctrl_c);
             while count == 0 || shown < count {
-                match s.next_event().await {
+                let next = tokio::select! {
+                    ev = s.next_event() => ev,
+                    _ = &mut ctrl_c => {
+                        eprintln!("interrupted: stopping the sequence");
+                        break;
+                    }
+                };
+                match next {
                     Ok(ev) => print_event(&ev, clock),
                     Err(e) if e.needs_reconnect() => {
                         eprintln!("device lost ({e}); waiting for it to come back");
