@@ -7,7 +7,7 @@
 //! images over DeepFocus's 22 foci 0.1..2.2 D.
 
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
-use dioptra_render::metrics::quality;
+use dioptra_render::metrics::{depth_edge_mask, quality};
 use dioptra_render::multifocal::{default_focal_samples, linspace, DEFAULT_PLANES};
 use dioptra_render::{backend, DefocusMethod, LightFieldParams, OptimizeParams};
 use dioptra_sim::scene::{
@@ -15,30 +15,6 @@ use dioptra_sim::scene::{
     Scene, Split,
 };
 use std::time::Instant;
-
-/// Pixels within `r` of a depth step larger than 0.3 D: where occlusion matters.
-fn boundary_mask(input: &Rgbd, r: isize) -> Plane {
-    let (w, h) = (input.width() as isize, input.height() as isize);
-    let d = input.depth.data();
-    let mut m = Plane::new(w as usize, h as usize, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let c = d[(y * w + x) as usize];
-            let edge = [(1, 0), (0, 1)].iter().any(|&(dx, dy)| {
-                let (nx, ny) = (x + dx, y + dy);
-                nx < w && ny < h && (d[(ny * w + nx) as usize] - c).abs() > 0.3
-            });
-            if edge {
-                for yy in (y - r).max(0)..(y + r + 1).min(h) {
-                    for xx in (x - r).max(0)..(x + r + 1).min(w) {
-                        m.data_mut()[(yy * w + xx) as usize] = 1.0;
-                    }
-                }
-            }
-        }
-    }
-    m
-}
 
 fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
@@ -87,12 +63,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let scene = Scene::generate(seed);
         let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 8)?;
         let input = Rgbd::new(color, depth)?;
-        let mask = boundary_mask(
-            &input,
+        let mask = depth_edge_mask(
+            &input.depth,
+            0.3,
             (eye.with_width(size as u32)
                 .coc_px(Diopters(0.0), Diopters(1.0))
                 * 0.5)
-                .ceil() as isize,
+                .ceil() as usize,
         );
         let t0 = Instant::now();
         let gt = render_thin_lens_stack(&scene, &cam, &foci, samples, |_| {})?;

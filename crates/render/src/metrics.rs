@@ -4,7 +4,7 @@
 use crate::error::{invalid, mismatch, RenderError};
 use crate::kernel::{gaussian_taps, separable_blur};
 use dioptra_core::image::linear_to_srgb;
-use dioptra_core::{Plane, RgbImage};
+use dioptra_core::{DepthMap, Plane, RgbImage};
 use rayon::prelude::*;
 
 /// PSNR and SSIM of one comparison.
@@ -121,6 +121,29 @@ pub fn quality(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<Quali
     })
 }
 
+/// Pixels within `radius` of a depth step larger than `step` diopters: the occlusion
+/// boundaries where defocus methods fail first. 1 inside, 0 outside.
+pub fn depth_edge_mask(depth: &DepthMap, step: f32, radius: usize) -> Plane {
+    let (w, h) = (depth.width(), depth.height());
+    let d = depth.data();
+    let mut m = Plane::new(w, h, 0.0);
+    for y in 0..h {
+        for x in 0..w {
+            let c = d[y * w + x];
+            let edge = (x + 1 < w && (d[y * w + x + 1] - c).abs() > step)
+                || (y + 1 < h && (d[(y + 1) * w + x] - c).abs() > step);
+            if edge {
+                for yy in y.saturating_sub(radius)..(y + radius + 1).min(h) {
+                    m.data_mut()
+                        [yy * w + x.saturating_sub(radius)..yy * w + (x + radius + 1).min(w)]
+                        .fill(1.0);
+                }
+            }
+        }
+    }
+    m
+}
+
 /// A disk mask (1 inside) of `radius` pixels around `centre`: the fovea. Its complement
 /// ([`invert_mask`]) is the periphery.
 pub fn disk_mask(width: usize, height: usize, centre: [f32; 2], radius: f32) -> Plane {
@@ -191,5 +214,25 @@ mod tests {
             .is_finite());
         assert!(psnr(&a, &b, Some(&Plane::new(16, 16, 0.0))).is_err());
         assert!(psnr(&a, &RgbImage::new(15, 16, [0.2; 3]), None).is_err());
+    }
+
+    #[test]
+    fn depth_edge_mask_marks_both_sides_of_a_step() {
+        // A 6x3 map with a 1 D step between columns 2 and 3.
+        let mut v = vec![0.5f32; 18];
+        for y in 0..3 {
+            for x in 3..6 {
+                v[y * 6 + x] = 1.5;
+            }
+        }
+        let depth = DepthMap::from_diopters(Plane::from_vec(6, 3, v).unwrap()).unwrap();
+        let m = depth_edge_mask(&depth, 0.3, 1);
+        for y in 0..3 {
+            assert_eq!(m.row(y), &[0.0, 1.0, 1.0, 1.0, 0.0, 0.0]);
+        }
+        assert!(depth_edge_mask(&depth, 2.0, 1)
+            .data()
+            .iter()
+            .all(|&v| v == 0.0));
     }
 }

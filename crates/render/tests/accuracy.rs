@@ -3,7 +3,7 @@
 //! figures come from `cargo run --release -p dioptra-render --example accuracy`.
 
 use dioptra_core::{Diopters, EyeModel, Plane, Rgbd};
-use dioptra_render::metrics::psnr;
+use dioptra_render::metrics::{depth_edge_mask, psnr};
 use dioptra_render::multifocal::{linspace, DEFAULT_PLANES};
 use dioptra_render::retina::{retina_lightfield, LfView};
 use dioptra_render::{backend, DefocusMethod, LightFieldParams, OptimizeParams};
@@ -14,30 +14,6 @@ use dioptra_sim::scene::{
 
 fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len() as f64
-}
-
-/// Pixels within `r` of a depth step larger than 0.3 D.
-fn boundary_mask(input: &Rgbd, r: isize) -> Plane {
-    let (w, h) = (input.width() as isize, input.height() as isize);
-    let d = input.depth.data();
-    let mut m = Plane::new(w as usize, h as usize, 0.0);
-    for y in 0..h {
-        for x in 0..w {
-            let c = d[(y * w + x) as usize];
-            let edge = [(1, 0), (0, 1)].iter().any(|&(dx, dy)| {
-                let (nx, ny) = (x + dx, y + dy);
-                nx < w && ny < h && (d[(ny * w + nx) as usize] - c).abs() > 0.3
-            });
-            if edge {
-                for yy in (y - r).max(0)..(y + r + 1).min(h) {
-                    for xx in (x - r).max(0)..(x + r + 1).min(w) {
-                        m.data_mut()[(yy * w + xx) as usize] = 1.0;
-                    }
-                }
-            }
-        }
-    }
-    m
 }
 
 #[test]
@@ -66,7 +42,7 @@ fn lightfield_beats_gather_near_occlusion_boundaries() {
         let scene = Scene::generate(Split::Test.seed(s));
         let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 6).unwrap();
         let input = Rgbd::new(color, depth).unwrap();
-        let mask = boundary_mask(&input, 3);
+        let mask = depth_edge_mask(&input.depth, 0.3, 3);
         let gt = render_thin_lens_stack(&scene, &cam, &foci, 64, |_| {}).unwrap();
         let g = cpu
             .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
