@@ -42,6 +42,14 @@ fn benches(c: &mut Criterion) {
                 .expect("lightfield")
         })
     });
+    // Focused at the near end of the range, far content is blurred most: the coarse pyramid
+    // levels (built only when a focus needs them) are read here.
+    g.bench_function("lightfield_36_focus_4D", |b| {
+        b.iter(|| {
+            cpu.defocus(black_box(&input), &[Diopters(4.0)], &eye, lf, &|_| {})
+                .expect("lightfield")
+        })
+    });
     g.bench_function("linear_blend_4", |b| {
         b.iter(|| {
             cpu.linear_blend(black_box(&input), &planes)

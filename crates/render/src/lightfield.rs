@@ -13,11 +13,12 @@
 //! pyramid at the level of its blur per view spacing (Yu eq. 8), which turns the N discrete
 //! copies of a defocused point into a smooth disk.
 
-use crate::common::{check_focus, check_rgbd, eye_for};
+use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, RenderError};
 use crate::kernel::{gaussian_taps, separable_blur};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 /// Parameters of the light-field method.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -47,8 +48,10 @@ pub struct LightFieldPrep<'a> {
     input: &'a Rgbd,
     eye: EyeModel,
     params: LightFieldParams,
-    /// Levels x channels, full resolution (exact Gaussians rather than decimated mips).
-    levels: Vec<[Plane; 3]>,
+    /// Levels x channels, full resolution (exact Gaussians rather than decimated mips). Built
+    /// on first use: a focus near the content reads only the fine levels, and the coarse ones
+    /// (97-tap blurs) cost most.
+    levels: Vec<OnceLock<[Plane; 3]>>,
     lens: Vec<[f32; 2]>,
 }
 
@@ -147,17 +150,7 @@ impl<'a> LightFieldPrep<'a> {
         }
         let eye = eye_for(eye, input.width())?;
         let nlev = if params.mip { LEVEL_SIGMA.len() } else { 1 };
-        let levels = (0..nlev)
-            .map(|l| {
-                input.color.channels.each_ref().map(|p| {
-                    if l == 0 {
-                        p.clone()
-                    } else {
-                        separable_blur(p, &gaussian_taps(LEVEL_SIGMA[l]))
-                    }
-                })
-            })
-            .collect();
+        let levels = (0..nlev).map(|_| OnceLock::new()).collect();
         let radius = 0.5 * eye.pupil_diameter.to_meters().0;
         let lens = halton_disk(params.views)
             .into_iter()
@@ -176,18 +169,36 @@ impl<'a> LightFieldPrep<'a> {
     /// sub-pixel position instead costs accuracy: bilinear taps mix across depth edges, while
     /// the rounding error averages out over the views.)
     fn fetch(&self, i: usize, sigma: f32) -> [f32; 3] {
+        let l = self.level_below(sigma);
+        if l == self.levels.len() - 1 {
+            return self.level(l).each_ref().map(|p| p.data()[i]);
+        }
+        let (s0, s1) = (LEVEL_SIGMA[l], LEVEL_SIGMA[l + 1]);
+        let t = ((sigma - s0) / (s1 - s0)).clamp(0.0, 1.0);
+        let (a, b) = (self.level(l), self.level(l + 1));
+        [0, 1, 2].map(|c| a[c].data()[i] * (1.0 - t) + b[c].data()[i] * t)
+    }
+
+    /// The finest level whose successor is at least `sigma` (or the top level).
+    fn level_below(&self, sigma: f32) -> usize {
         let top = self.levels.len() - 1;
         let mut l = 0;
         while l < top && LEVEL_SIGMA[l + 1] < sigma {
             l += 1;
         }
-        if l == top {
-            return self.levels[top].each_ref().map(|p| p.data()[i]);
-        }
-        let (s0, s1) = (LEVEL_SIGMA[l], LEVEL_SIGMA[l + 1]);
-        let t = ((sigma - s0) / (s1 - s0)).clamp(0.0, 1.0);
-        let (a, b) = (&self.levels[l], &self.levels[l + 1]);
-        [0, 1, 2].map(|c| a[c].data()[i] * (1.0 - t) + b[c].data()[i] * t)
+        l
+    }
+
+    fn level(&self, l: usize) -> &[Plane; 3] {
+        self.levels[l].get_or_init(|| {
+            self.input.color.channels.each_ref().map(|p| {
+                if l == 0 {
+                    p.clone()
+                } else {
+                    separable_blur(p, &gaussian_taps(LEVEL_SIGMA[l]))
+                }
+            })
+        })
     }
 
     /// The image seen focusing at `focus`.
@@ -200,6 +211,13 @@ impl<'a> LightFieldPrep<'a> {
         let f = self.eye.lens_to_retina.to_meters().0;
         let spacing = 1.0 / (self.lens.len() as f32).sqrt();
         let q = focus.0;
+        // Build the levels this focus reads before the parallel fetch, so no worker waits on
+        // another's lazy build.
+        let max_sigma = PREFILTER * max_coc(self.input, &self.eye, focus) * spacing;
+        let needed = (self.level_below(max_sigma) + 1).min(self.levels.len() - 1);
+        (0..=needed).for_each(|l| {
+            self.level(l);
+        });
         // A ray's prefilter depends only on its source pixel's depth and the focus, not on the
         // view: prefilter every source pixel once per focus instead of once per ray.
         let pre: Vec<[f32; 3]> = (0..n)
