@@ -6,6 +6,7 @@ pub mod device;
 pub mod error;
 pub mod image;
 pub mod optics;
+pub mod sampling;
 pub mod time;
 pub mod units;
 

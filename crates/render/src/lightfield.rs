@@ -16,6 +16,7 @@
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, RenderError};
 use crate::kernel::{gaussian_taps, separable_blur};
+use dioptra_core::sampling::radical_inverse;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 use std::sync::OnceLock;
@@ -53,17 +54,6 @@ pub struct LightFieldPrep<'a> {
     /// (97-tap blurs) cost most.
     levels: Vec<OnceLock<[Plane; 3]>>,
     lens: Vec<[f32; 2]>,
-}
-
-fn radical_inverse(mut i: u32, base: u32) -> f32 {
-    let inv = 1.0 / base as f32;
-    let (mut f, mut r) = (inv, 0.0f32);
-    while i > 0 {
-        r += f * (i % base) as f32;
-        i /= base;
-        f *= inv;
-    }
-    r
 }
 
 /// `n` lens positions on the unit disk from the Halton (2, 3) sequence, area-preserving.

@@ -7,6 +7,7 @@
 //! noise instead of ghost copies of edges.
 
 use super::Scene;
+use dioptra_core::sampling::radical_inverse;
 use dioptra_core::{DepthMap, Diopters, EyeModel, InputError, Plane, RgbImage};
 use rayon::prelude::*;
 
@@ -56,17 +57,6 @@ pub struct LightFieldView {
     pub position: [f32; 2],
     pub color: RgbImage,
     pub depth: DepthMap,
-}
-
-fn radical_inverse(mut i: u32, base: u32) -> f32 {
-    let inv = 1.0 / base as f32;
-    let (mut f, mut r) = (inv, 0.0f32);
-    while i > 0 {
-        r += f * (i % base) as f32;
-        i /= base;
-        f *= inv;
-    }
-    r
 }
 
 /// Shirley's concentric map of the unit square onto the unit disk (area preserving).
