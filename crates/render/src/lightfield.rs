@@ -69,19 +69,15 @@ pub fn halton_disk(n: usize) -> Vec<[f32; 2]> {
 
 /// Forward-warps every source pixel `i` (depth `d` diopters) to `x + shift (d - q)` pixels,
 /// keeping per target pixel the nearest source (max of (diopter bits, index + 1) keys; 0 is
-/// empty) in `exact`. Yu et al. widen each write to fill rounding cracks; the same fill is
-/// done here once per empty target pixel instead of eight extra writes per source: `wide`
-/// gets the farthest key among its 3 x 3 neighbours, since a crack inside a surface is
-/// surrounded by that surface while a disocclusion should show background, not dilated
-/// foreground.
-pub(crate) fn splat(
+/// empty) in `exact`. Yu et al. widen each write to fill rounding cracks; here the fill is
+/// read on demand by [`wide_key`] for the pixels no exact write reached.
+pub(crate) fn splat_exact(
     depth: &[f32],
     w: usize,
     h: usize,
     shift: [f32; 2],
     q: f32,
     exact: &mut [u64],
-    wide: &mut [u64],
 ) {
     exact.iter_mut().for_each(|v| *v = 0);
     for (y, row) in depth.chunks(w).enumerate().take(h) {
@@ -96,33 +92,62 @@ pub(crate) fn splat(
             exact[j] = exact[j].max(key);
         }
     }
+}
+
+/// The widened-write key of an empty target pixel `(x, y)`: the farthest key among its 3 x 3
+/// neighbours in `exact` (0 if none), since a crack inside a surface is surrounded by that
+/// surface while a disocclusion should show background, not dilated foreground. Equivalent
+/// to Yu et al.'s eight extra writes per source, done once per empty pixel.
+#[inline]
+pub(crate) fn wide_key(exact: &[u64], w: usize, h: usize, x: usize, y: usize) -> u64 {
+    let mut best = u64::MAX;
+    for ny in y.saturating_sub(1)..(y + 2).min(h) {
+        for &k in &exact[ny * w + x.saturating_sub(1)..ny * w + (x + 2).min(w)] {
+            if k != 0 && k < best {
+                best = k;
+            }
+        }
+    }
+    if best == u64::MAX {
+        0
+    } else {
+        best
+    }
+}
+
+/// [`splat_exact`], with the widened fill of every empty pixel stored in `wide` (for callers
+/// that look pixels up more than once).
+pub(crate) fn splat(
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    shift: [f32; 2],
+    q: f32,
+    exact: &mut [u64],
+    wide: &mut [u64],
+) {
+    splat_exact(depth, w, h, shift, q, exact);
     for y in 0..h {
         for x in 0..w {
             let j = y * w + x;
-            wide[j] = 0;
-            if exact[j] != 0 {
-                continue;
-            }
-            let mut best = u64::MAX;
-            for ny in y.saturating_sub(1)..(y + 2).min(h) {
-                for nx in x.saturating_sub(1)..(x + 2).min(w) {
-                    let k = exact[ny * w + nx];
-                    if k != 0 && k < best {
-                        best = k;
-                    }
-                }
-            }
-            if best != u64::MAX {
-                wide[j] = best;
-            }
+            wide[j] = if exact[j] != 0 {
+                0
+            } else {
+                wide_key(exact, w, h, x, y)
+            };
         }
     }
 }
 
+/// The source pixel a splat key names, if any.
+#[inline]
+fn key_source(key: u64) -> Option<usize> {
+    (key != 0).then(|| (key & 0xffff_ffff) as usize - 1)
+}
+
 /// The source pixel seen at target `j` after [`splat`], if any.
 pub(crate) fn resolve(exact: &[u64], wide: &[u64], j: usize) -> Option<usize> {
-    let key = if exact[j] != 0 { exact[j] } else { wide[j] };
-    (key != 0).then(|| (key & 0xffff_ffff) as usize - 1)
+    key_source(if exact[j] != 0 { exact[j] } else { wide[j] })
 }
 
 impl<'a> LightFieldPrep<'a> {
@@ -230,14 +255,18 @@ impl<'a> LightFieldPrep<'a> {
                     .div_ceil(rayon::current_num_threads().max(1)),
             )
             .fold(
-                || (vec![[0.0f32; 4]; n], vec![0u64; n], vec![0u64; n]),
-                |(mut acc, mut exact, mut wide), l| {
+                || (vec![[0.0f32; 4]; n], vec![0u64; n]),
+                |(mut acc, mut exact), l| {
                     let (sx, sy) = (-l[0] / pitch, -l[1] / pitch);
-                    splat(depth, w, h, [sx, sy], q, &mut exact, &mut wide);
+                    splat_exact(depth, w, h, [sx, sy], q, &mut exact);
                     for (y, row) in acc.chunks_mut(w).enumerate() {
                         let ry = (y as f32 + 0.5 - 0.5 * h as f32) * pitch + l[1] / f;
                         for (x, a) in row.iter_mut().enumerate() {
-                            let Some(src) = resolve(&exact, &wide, y * w + x) else {
+                            let mut key = exact[y * w + x];
+                            if key == 0 {
+                                key = wide_key(&exact, w, h, x, y);
+                            }
+                            let Some(src) = key_source(key) else {
                                 continue; // invalid ray: disoccluded in this view
                             };
                             let c = pre[src];
@@ -251,10 +280,10 @@ impl<'a> LightFieldPrep<'a> {
                             a[3] += wgt;
                         }
                     }
-                    (acc, exact, wide)
+                    (acc, exact)
                 },
             )
-            .map(|(acc, _, _)| acc)
+            .map(|(acc, _)| acc)
             .reduce(
                 || vec![[0.0f32; 4]; n],
                 |mut a, b| {
