@@ -472,6 +472,40 @@ pub struct MetricsArgs {
     /// Optional mask image: pixels brighter than half are compared.
     #[arg(long)]
     mask: Option<PathBuf>,
+    /// Also report each foveal region (fovea, periphery 1 and 2: rings of diameter 0.1, 0.4
+    /// and 1 image diagonal) around --gaze.
+    #[arg(long, conflicts_with = "mask")]
+    regions: bool,
+    /// Gaze (region centre) in pixels, x,y; the image centre by default.
+    #[arg(long, requires = "regions")]
+    gaze: Option<String>,
+}
+
+/// `--gaze x,y` in pixels, or the centre of a `w` x `h` image.
+fn gaze_point(gaze: &Option<String>, w: usize, h: usize) -> Result<[f32; 2]> {
+    Ok(match gaze {
+        Some(g) => match parse_list(g)?[..] {
+            [x, y] if x.is_finite() && y.is_finite() => [x, y],
+            _ => bail!("--gaze must be x,y in pixels, for example --gaze 256,256"),
+        },
+        None => [w as f32 * 0.5, h as f32 * 0.5],
+    })
+}
+
+/// Prints PSNR and SSIM per foveal region.
+fn print_regions(a: &RgbImage, b: &RgbImage, centre: [f32; 2]) -> Result<()> {
+    for (region, q) in dioptra_render::metrics::quality_by_region(a, b, centre)? {
+        match q {
+            Some(q) => println!(
+                "{:<12} PSNR {:.2} dB  SSIM {:.4}",
+                region.name(),
+                q.psnr,
+                q.ssim
+            ),
+            None => println!("{:<12} (no pixel of the image lies in it)", region.name()),
+        }
+    }
+    Ok(())
 }
 
 pub fn metrics(a: MetricsArgs) -> Result<()> {
@@ -483,6 +517,9 @@ pub fn metrics(a: MetricsArgs) -> Result<()> {
     let q = quality(&x, &y, mask.as_ref())?;
     println!("PSNR {:.2} dB", q.psnr);
     println!("SSIM {:.4}", q.ssim);
+    if a.regions {
+        print_regions(&x, &y, gaze_point(&a.gaze, x.width(), x.height())?)?;
+    }
     Ok(())
 }
 
@@ -601,19 +638,17 @@ pub struct FoveateArgs {
     /// Also write the sampling mask here.
     #[arg(long)]
     mask_out: Option<PathBuf>,
+    /// Image to score the interpolated result against per foveal region (the input itself by
+    /// default: what sampling and interpolation lose).
+    #[arg(long)]
+    reference: Option<PathBuf>,
 }
 
 pub fn foveate(a: FoveateArgs) -> Result<()> {
     use dioptra_render::foveate::{interpolate, log_polar_mask, LogPolar};
     let img = read_color(&a.color)?;
     let (w, h) = (img.width(), img.height());
-    let centre = match &a.gaze {
-        Some(g) => match parse_list(g)?[..] {
-            [x, y] => [x, y],
-            _ => bail!("--gaze must be x,y in pixels"),
-        },
-        None => [w as f32 * 0.5, h as f32 * 0.5],
-    };
+    let centre = gaze_point(&a.gaze, w, h)?;
     let p = LogPolar {
         centre,
         scale: a.scale,
@@ -622,7 +657,8 @@ pub fn foveate(a: FoveateArgs) -> Result<()> {
         theta_offset: a.theta_offset,
     };
     let (mask, fraction) = log_polar_mask(w, h, &p)?;
-    write_color(&a.out, &interpolate(&img, &mask)?)?;
+    let out = interpolate(&img, &mask)?;
+    write_color(&a.out, &out)?;
     if let Some(m) = &a.mask_out {
         let mp = mask.clone();
         write_color(m, &RgbImage::from_planes(mp.clone(), mp.clone(), mp)?)?;
@@ -632,5 +668,10 @@ pub fn foveate(a: FoveateArgs) -> Result<()> {
         fraction * 100.0,
         a.out.display()
     );
+    let reference = match &a.reference {
+        Some(r) => read_color(r)?,
+        None => img,
+    };
+    print_regions(&out, &reference, centre)?;
     Ok(())
 }

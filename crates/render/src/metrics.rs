@@ -158,6 +158,80 @@ pub fn disk_mask(width: usize, height: usize, centre: [f32; 2], radius: f32) -> 
     p
 }
 
+/// The radial regions Thumuluri & Sharma 2020 (sec. 6) report quality in, centred on the
+/// gaze: with L the image diagonal, the fovea is the disk of diameter 0.1 L, periphery 1 the
+/// ring out to diameter 0.4 L and periphery 2 the ring out to diameter L. The paper draws
+/// only the boundaries; rings (not nested disks) keep each figure from being dominated by the
+/// regions inside it. Pixels beyond 0.5 L (an off-centre gaze) belong to no region.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FovealRegion {
+    Fovea,
+    Periphery1,
+    Periphery2,
+}
+
+impl FovealRegion {
+    pub const ALL: [FovealRegion; 3] = [
+        FovealRegion::Fovea,
+        FovealRegion::Periphery1,
+        FovealRegion::Periphery2,
+    ];
+
+    /// Inner and outer diameters as fractions of the image diagonal.
+    pub fn diameters(self) -> (f32, f32) {
+        match self {
+            FovealRegion::Fovea => (0.0, 0.1),
+            FovealRegion::Periphery1 => (0.1, 0.4),
+            FovealRegion::Periphery2 => (0.4, 1.0),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            FovealRegion::Fovea => "fovea",
+            FovealRegion::Periphery1 => "periphery 1",
+            FovealRegion::Periphery2 => "periphery 2",
+        }
+    }
+
+    /// The region's mask (1 inside) for a `width` x `height` image and gaze `centre` (pixels).
+    pub fn mask(self, width: usize, height: usize, centre: [f32; 2]) -> Plane {
+        let diag = ((width * width + height * height) as f32).sqrt();
+        let (inner, outer) = self.diameters();
+        let (r0, r1) = (0.5 * inner * diag, 0.5 * outer * diag);
+        let mut p = Plane::new(width, height, 0.0);
+        for (i, v) in p.data_mut().iter_mut().enumerate() {
+            let dx = (i % width.max(1)) as f32 + 0.5 - centre[0];
+            let dy = (i / width.max(1)) as f32 + 0.5 - centre[1];
+            let r = (dx * dx + dy * dy).sqrt();
+            // The fovea includes its centre; each ring excludes its inner boundary.
+            if (r > r0 || inner == 0.0) && r <= r1 {
+                *v = 1.0;
+            }
+        }
+        p
+    }
+}
+
+/// PSNR and SSIM in each [`FovealRegion`] around `centre`; `None` for a region with no pixel
+/// in the image (a gaze far off-centre on a small image).
+pub fn quality_by_region(
+    a: &RgbImage,
+    b: &RgbImage,
+    centre: [f32; 2],
+) -> Result<[(FovealRegion, Option<Quality>); 3], RenderError> {
+    check(a, b, None)?;
+    let (w, h) = (a.width(), a.height());
+    let mut out = FovealRegion::ALL.map(|r| (r, None));
+    for slot in out.iter_mut() {
+        let m = slot.0.mask(w, h, centre);
+        if m.data().iter().any(|&v| v > 0.5) {
+            slot.1 = Some(quality(a, b, Some(&m))?);
+        }
+    }
+    Ok(out)
+}
+
 /// 1 where `m` is not selected and 0 where it is.
 pub fn invert_mask(m: &Plane) -> Plane {
     let mut p = m.clone();
@@ -176,6 +250,52 @@ mod tests {
             .map(|i| ((i as f32 * k).sin() * 0.5 + 0.5) * 0.8)
             .collect();
         RgbImage::from_interleaved(w, h, &d).unwrap()
+    }
+
+    #[test]
+    fn foveal_regions_partition_the_central_disk() {
+        let (w, h) = (64, 48);
+        let c = [32.0, 24.0];
+        let masks = FovealRegion::ALL.map(|r| r.mask(w, h, c));
+        let diag = ((w * w + h * h) as f32).sqrt();
+        for i in 0..w * h {
+            let dx = (i % w) as f32 + 0.5 - c[0];
+            let dy = (i / w) as f32 + 0.5 - c[1];
+            let r = (dx * dx + dy * dy).sqrt();
+            let hits: Vec<usize> = (0..3).filter(|&k| masks[k].data()[i] > 0.5).collect();
+            // Every pixel within half the diagonal is in exactly one region, by radius.
+            let expect = if r <= 0.05 * diag {
+                0
+            } else if r <= 0.2 * diag {
+                1
+            } else {
+                2
+            };
+            assert_eq!(hits, vec![expect], "pixel {i} at radius {r}");
+        }
+    }
+
+    #[test]
+    fn quality_by_region_sees_where_the_error_is() {
+        let a = ramp(64, 64, 0.21);
+        let mut b = a.clone();
+        // Damage only the corners: the fovea stays perfect, periphery 2 does not.
+        for ch in b.channels.iter_mut() {
+            for (i, v) in ch.data_mut().iter_mut().enumerate() {
+                let (x, y) = (i % 64, i / 64);
+                if (x < 8 || x >= 56) && (y < 8 || y >= 56) {
+                    *v = 1.0 - *v;
+                }
+            }
+        }
+        let q = quality_by_region(&a, &b, [32.0, 32.0]).unwrap();
+        let fovea = q[0].1.unwrap();
+        let p2 = q[2].1.unwrap();
+        assert_eq!(fovea.psnr, f64::INFINITY);
+        assert!(p2.psnr < 30.0 && p2.ssim < 0.99, "{p2:?}");
+        // A gaze far outside the image leaves the fovea empty, not an error.
+        let off = quality_by_region(&a, &b, [1000.0, 1000.0]).unwrap();
+        assert!(off[0].1.is_none());
     }
 
     #[test]
