@@ -1,6 +1,7 @@
 //! Every method against the thin-lens ground truth rendered by dioptra-sim on test-split
-//! scenes. Sizes and sample counts are small enough for the test profile; the 256 x 256
-//! figures come from `cargo run --release -p dioptra-render --example accuracy`.
+//! scenes. The accuracy targets are checked at 256 x 256 with ground-truth sample
+//! counts the test profile affords (each test states its own); the fuller sweep (40 foci,
+//! 256 samples per pixel) is `cargo run --release -p dioptra-render --example accuracy`.
 
 use dioptra_core::{Diopters, EyeModel, Plane, Rgbd};
 use dioptra_render::metrics::{depth_edge_mask, psnr};
@@ -18,19 +19,21 @@ fn mean(v: &[f64]) -> f64 {
 
 #[test]
 fn ground_truth_own_error_is_small() {
-    // 64 against an independent 256 rays per pixel; the 256 x 256 reference uses 256.
-    let cam = Camera::square(EyeModel::default(), 64);
+    // 64 against an independent 256 rays per pixel at 256 x 256: the references below use
+    // 48 to 64 samples, so their own error is about this figure.
+    let cam = Camera::square(EyeModel::default(), 256);
     let scene = Scene::generate(Split::Test.seed(0));
     let a = render_thin_lens_scrambled(&scene, &cam, Diopters(0.1), 64, 1).unwrap();
     let b = render_thin_lens(&scene, &cam, Diopters(0.1), 256).unwrap();
     let p = psnr(&a, &b, None).unwrap();
+    eprintln!("ground truth 64 vs 256 samples per pixel: {p:.2} dB");
     assert!(p > 45.0, "{p} dB");
 }
 
 #[test]
 fn lightfield_beats_gather_near_occlusion_boundaries() {
     let eye = EyeModel::default();
-    let cam = Camera::square(eye, 96);
+    let cam = Camera::square(eye, 256);
     let cpu = backend("cpu").unwrap();
     let foci = [Diopters(0.1), Diopters(1.0), Diopters(2.5), Diopters(4.0)];
     let lf = DefocusMethod::LightField(LightFieldParams {
@@ -67,7 +70,7 @@ fn lightfield_beats_gather_near_occlusion_boundaries() {
 #[test]
 fn optimized_multifocal_beats_linear() {
     let eye = EyeModel::default();
-    let cam = Camera::square(eye, 64);
+    let cam = Camera::square(eye, 256);
     let cpu = backend("cpu").unwrap();
     let scene = Scene::generate(Split::Test.seed(2));
     let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 6).unwrap();
