@@ -137,6 +137,9 @@ pub struct FocusPolicy {
     pub window: DepthWindow,
     /// Without a depth map, vergence alone sets focus when its 1-sd uncertainty is below this.
     pub vergence_only_max_sigma_d: f64,
+    /// A "saccade" smaller than this, degrees, is tracker noise or a microsaccade: the
+    /// fixation goes on (no onset command, no landing prediction).
+    pub min_saccade_deg: f64,
 }
 
 impl Default for FocusPolicy {
@@ -148,6 +151,7 @@ impl Default for FocusPolicy {
             predict_landing: true,
             window: DepthWindow::default(),
             vergence_only_max_sigma_d: 0.3,
+            min_saccade_deg: 1.0,
         }
     }
 }

@@ -243,6 +243,8 @@ pub struct Scheduler {
     /// A fixation target outside the deadband, and since when.
     pending: Option<(Timestamp, Diopters)>,
     landing_sent: bool,
+    /// Where the current (or last) saccade started.
+    saccade_from: Option<Angles>,
     lens_link: LinkStatus,
     next_command_id: u64,
     tracked: Option<Tracked>,
@@ -260,6 +262,8 @@ pub struct Scheduler {
 
 /// How far ahead the landing point is predicted (the processor clamps to its own maximum).
 const LANDING_HORIZON: Duration = Duration::from_millis(100);
+/// A saccade this young may still be a noise spike: no landing prediction yet.
+const MIN_SACCADE_FOR_LANDING: Duration = Duration::from_millis(6);
 /// A saccade whose speed fell below this share of its peak is decelerating.
 const DECELERATING: f64 = 0.8;
 
@@ -285,6 +289,7 @@ impl Scheduler {
             last_command_at: None,
             pending: None,
             landing_sent: false,
+            saccade_from: None,
             lens_link: LinkStatus::Connected,
             next_command_id: 0,
             tracked: None,
@@ -407,6 +412,7 @@ impl Scheduler {
             );
         }
         let prev = self.prev_phase;
+        let before = self.processor.state().smoothed;
         let st = *self.processor.push(s);
         self.prev_phase = st.phase;
         if let Some(a) = st.smoothed {
@@ -419,13 +425,17 @@ impl Scheduler {
             EyePhase::Saccade => {
                 if prev != EyePhase::Saccade {
                     self.landing_sent = false;
-                    self.pending = None;
+                    self.saccade_from = before;
                 }
                 self.saccade_landing(now, &st, s, out);
             }
             EyePhase::Fixation | EyePhase::Pursuit => {
+                // A tiny "saccade" (tracker noise, a microsaccade) does not end the fixation.
+                let small = prev == EyePhase::Saccade
+                    && matches!((self.saccade_from, st.raw), (Some(a), Some(b))
+                        if a.distance_deg(&b) < self.cfg.focus.min_saccade_deg);
                 let onset = self.reevaluate
-                    || !matches!(prev, EyePhase::Fixation | EyePhase::Pursuit)
+                    || (!matches!(prev, EyePhase::Fixation | EyePhase::Pursuit) && !small)
                     || self.commanded.is_none();
                 let gaze = if onset { st.raw } else { st.smoothed };
                 let vergence = st.vergence.map(|v| (v.diopters, v.sigma_d));
@@ -456,13 +466,25 @@ impl Scheduler {
         s: &GazeSample,
         out: &mut Vec<Command>,
     ) {
-        if !self.cfg.focus.predict_landing || self.landing_sent {
+        // Noise spikes look like saccades for a sample or two; a real one between objects
+        // lasts 20 ms or more.
+        if !self.cfg.focus.predict_landing
+            || self.landing_sent
+            || since(st.time, st.phase_since) < MIN_SACCADE_FOR_LANDING
+        {
             return;
         }
         let Some(peak) = self.processor.saccade_peak_dps() else {
             return;
         };
         if st.speed_dps >= DECELERATING * peak {
+            return;
+        }
+        let travelled = match (self.saccade_from, st.raw) {
+            (Some(a), Some(b)) => a.distance_deg(&b),
+            _ => 0.0,
+        };
+        if travelled < self.cfg.focus.min_saccade_deg {
             return;
         }
         let Some(landing) = self.processor.predict(now + LANDING_HORIZON) else {
