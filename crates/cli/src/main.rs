@@ -5,6 +5,8 @@ mod devices;
 mod gaze_cmd;
 mod lens_cmd;
 mod render_cmd;
+mod replay;
+mod serve;
 mod sim_cmd;
 mod sync_cmd;
 mod udev;
@@ -50,6 +52,10 @@ enum Command {
     Lightfield(render_cmd::LightFieldArgs),
     /// Log-polar foveated sampling and inverse-distance interpolation of an image.
     Foveate(render_cmd::FoveateArgs),
+    /// The display-control daemon: devices, scheduler, display, control API, recording.
+    Serve(serve::Args),
+    /// Drive a scheduler from a `serve` recording (MCAP) and compare its commands.
+    Replay(replay::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -76,6 +82,8 @@ fn main() -> std::process::ExitCode {
         Command::Metrics(args) => render_cmd::metrics(args),
         Command::Lightfield(args) => render_cmd::lightfield(args),
         Command::Foveate(args) => render_cmd::foveate(args),
+        Command::Serve(args) => serve::run(args),
+        Command::Replay(args) => replay::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
