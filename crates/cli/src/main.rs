@@ -1,6 +1,7 @@
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
 //! add a variant to [`Command`] and a module beside this file.
 
+mod demo;
 mod devices;
 mod gaze_cmd;
 mod lens_cmd;
@@ -26,6 +27,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The whole loop on simulated devices and a procedural scene: summary, frames, charts.
+    Demo(demo::Args),
     /// List serial, USB and HID devices, each with the dioptra driver that matches it.
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
@@ -69,6 +72,7 @@ fn block_on<T>(work: impl std::future::Future<Output = anyhow::Result<T>>) -> an
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Demo(args) => demo::run_demo(args),
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
         Command::Lens(args) => lens_cmd::run(args),
