@@ -468,7 +468,12 @@ impl RigConfig {
         })?;
         let cfg: RigConfig = serde_path_to_error::deserialize(de).map_err(|e| {
             let key = e.path().to_string();
-            let message = e.into_inner().message().to_string();
+            let inner = e.into_inner();
+            let mut message = inner.message().to_string();
+            if let Some(span) = inner.span() {
+                let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
+                message += &format!(" (line {line})");
+            }
             ConfigError::Parse { key, message }
         })?;
         cfg.validate()?;
@@ -719,6 +724,12 @@ pub(crate) mod tests {
         let e = err(&SIM_RIG.replace("park_power = 0.5", "park_power = \"far\""));
         assert_eq!(e.key(), "devices.lens.park_power", "{e}");
         assert!(e.to_string().contains("expected f32"), "{e}");
+        let line = SIM_RIG
+            .lines()
+            .position(|l| l.starts_with("park_power"))
+            .unwrap()
+            + 1;
+        assert!(e.to_string().contains(&format!("(line {line})")), "{e}");
     }
 
     #[test]
