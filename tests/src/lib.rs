@@ -483,6 +483,11 @@ pub async fn run(opts: RigOptions, frames: &mut dyn Frames) -> Result<Run, Devic
             let received = matches!(ev, Event::Gaze(_)).then(WallInstant::now);
             out.clear();
             sched.step(now, ev, &mut out);
+            // A lens command goes out before anything else (a render) runs on this thread,
+            // as it would from the daemon's scheduler task.
+            let lens_first = out
+                .iter()
+                .any(|c| matches!(c, Command::SetLensPower { .. }));
             for cmd in out.drain(..) {
                 match cmd {
                     Command::SetLensPower {
@@ -524,6 +529,9 @@ pub async fn run(opts: RigOptions, frames: &mut dyn Frames) -> Result<Run, Devic
                         let _ = stop_tx.send(());
                     }
                     _ => {}
+                }
+                if lens_first && matches!(cmd, Command::SetLensPower { .. }) {
+                    tokio::task::yield_now().await;
                 }
             }
         }

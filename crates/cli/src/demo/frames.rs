@@ -168,6 +168,10 @@ impl DemoFrames {
         })
     }
 
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
     pub fn eye(&self) -> EyeModel {
         self.eye
     }

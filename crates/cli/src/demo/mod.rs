@@ -142,10 +142,6 @@ fn summary(r: &Run, mode: Mode) {
             "lens settle (command on the wire to settled readback): {}",
             p50_p99(l.stage(Stage::WireToSettled))
         );
-        println!(
-            "host receive to lens command on the wire (simulated clock): {}",
-            p50_p99(l.stage(Stage::HostToWire))
-        );
         match (
             percentile(&r.log.host_path, 50.0),
             percentile(&r.log.host_path, 99.0),
@@ -160,7 +156,7 @@ fn summary(r: &Run, mode: Mode) {
         }
     }
     println!(
-        "tracker to host: {}",
+        "tracker to host, after the driver's clock mapping (one-way evidence cannot see the constant part of the delay): {}",
         p50_p99(l.stage(Stage::TrackerToHost))
     );
     println!(
@@ -217,7 +213,8 @@ fn score(r: &Run, frames: &DemoFrames, kept: &[Kept], args: &Args) -> Result<()>
             continue;
         };
         let accommodation = Diopters(p.vergence_d.unwrap_or(1.0).max(0.0) as f32);
-        let lens = p.lens_power;
+        // Only a varifocal display moves its lens with gaze.
+        let lens = p.lens_power.filter(|_| frames.mode() == Mode::Varifocal);
         let eye_img = frames.eye_view(k, accommodation, lens)?;
         let truth = frames.ground_truth(k, accommodation, args.truth_samples)?;
         let q = metrics::quality(&eye_img, &truth, None)?;
