@@ -108,7 +108,7 @@ impl From<Method> for String {
 
 /// The methods the daemon renders.
 pub const RENDERED: &str =
-    "gather or lightfield-defocus (varifocal), linear or optimized (multifocal)";
+    "gather or lightfield-defocus (varifocal), linear or optimized (multifocal), views (light field)";
 
 /// Every method's name, for messages.
 pub fn methods() -> String {
@@ -133,7 +133,7 @@ impl Method {
     /// Why the daemon cannot render with this method, if it cannot.
     pub fn unavailable(self) -> Option<String> {
         match self.0 {
-            RenderMethod::Network | RenderMethod::Views => Some(format!(
+            RenderMethod::Network => Some(format!(
                 "{} is not rendered by `dioptra serve` yet; use {}",
                 self.as_str(),
                 RENDERED

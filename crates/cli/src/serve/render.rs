@@ -1,7 +1,10 @@
 //! The daemon's render workers' work: the rig shows a procedural scene (dioptra-sim, seed
 //! `display.scene_seed`) rendered once as RGB-D at the display's size, and each frame is made
 //! from it by the configured method on the CPU backend. The scene is static, so a multifocal
-//! decomposition (which does not depend on the focus) is made once per method and reused.
+//! decomposition (which does not depend on the focus) is made once per method and reused, and
+//! so is the light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled
+//! by `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
+//! 5 x 5 pixels (0.25 mm pitch, 0.94 mm gap, 15 mm eye relief).
 
 use std::sync::{Arc, Mutex};
 
@@ -20,7 +23,14 @@ pub struct Renderer {
     eye: EyeModel,
     planes: Vec<Diopters>,
     layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
+    scene: dioptra_sim::scene::Scene,
+    cam: dioptra_sim::scene::Camera,
+    panel: Mutex<Option<Arc<RgbImage>>>,
 }
+
+/// The light field shown in light-field mode: views per side and the pupil span they cover.
+const LF_GRID: usize = 5;
+const LF_SPAN_M: f32 = 0.004;
 
 impl std::fmt::Debug for Renderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -44,11 +54,15 @@ impl Renderer {
         let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
         let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
         let (color, depth) = dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
+        let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
         Ok(Renderer {
             input: Rgbd::new(color, depth)?,
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
             layers: Mutex::new(Vec::new()),
+            scene,
+            cam,
+            panel: Mutex::new(None),
         })
     }
 
@@ -66,7 +80,8 @@ impl Renderer {
         focus: Diopters,
     ) -> Result<Vec<RgbImage>, RenderError> {
         match (mode, method.0) {
-            (_, RenderMethod::Network | RenderMethod::Views) => Err(RenderError::Unsupported {
+            (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
+            (_, RenderMethod::Network) => Err(RenderError::Unsupported {
                 backend: "daemon CPU",
                 method: method.as_str(),
             }),
@@ -88,6 +103,36 @@ impl Renderer {
                 &self.eye,
             )?]),
         }
+    }
+
+    /// The lenslet panel image of the scene's light field.
+    fn panel(&self) -> Result<Arc<RgbImage>, RenderError> {
+        use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
+        if let Some(p) = lock(&self.panel).as_ref() {
+            return Ok(p.clone());
+        }
+        let (w, h) = (self.cam.width, self.cam.height);
+        // Views at half size: a panel of 5 px per lenslet cannot show more.
+        let vcam = dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
+        let views =
+            dioptra_sim::scene::render_light_field(&self.scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+        let images: Vec<RgbImage> = views.into_iter().map(|v| v.color).collect();
+        let grid = ViewGrid {
+            grid: LF_GRID,
+            spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+            views: &images,
+            pixel_pitch_tan: vcam.eye.pixel_pitch_tan(),
+        };
+        let display = LensletDisplay {
+            lenslets: [(w / 5).max(1), (h / 5).max(1)],
+            pixels_per_lenslet: 5,
+            lenslet_pitch_m: 0.000_25,
+            gap_m: 0.000_94,
+            eye_relief_m: 0.015,
+        };
+        let panel = Arc::new(elemental_images(&grid, &display)?);
+        *lock(&self.panel) = Some(panel.clone());
+        Ok(panel)
     }
 
     fn layers(&self, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {

@@ -626,10 +626,21 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
         before, after,
         "the sync board kept sequencing after leaving multifocal"
     );
-    // Light-field mode needs a method the daemon does not render yet: refused, with why.
+    // Light-field mode: the lenslet panel of the scene's light field is shown.
+    let shown = sh.status_json()["counts"]["frames_shown"].as_u64().unwrap();
     let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
-    assert_eq!(s, StatusCode::CONFLICT, "{v}");
-    assert!(v["error"].as_str().unwrap().contains("views"), "{v}");
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(sh.status_json()["method"], json!("views"));
+    eventually("light-field frames", || {
+        let v = sh.status_json();
+        (v["counts"]["frames_shown"].as_u64() > Some(shown + 3)
+            && v["counts"]["render_errors"] == json!(0))
+        .then_some(())
+    })
+    .await;
+    // The network is not rendered by the daemon: refused, with why.
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
