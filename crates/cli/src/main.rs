@@ -1,10 +1,13 @@
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
 //! add a variant to [`Command`] and a module beside this file.
 
+mod demo;
 mod devices;
 mod gaze_cmd;
 mod lens_cmd;
 mod render_cmd;
+mod replay;
+mod serve;
 mod sim_cmd;
 mod sync_cmd;
 mod udev;
@@ -24,6 +27,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The whole loop on simulated devices and a procedural scene: summary, frames, charts.
+    Demo(demo::Args),
     /// List serial, USB and HID devices, each with the dioptra driver that matches it.
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
@@ -50,6 +55,10 @@ enum Command {
     Lightfield(render_cmd::LightFieldArgs),
     /// Log-polar foveated sampling and inverse-distance interpolation of an image.
     Foveate(render_cmd::FoveateArgs),
+    /// The display-control daemon: devices, scheduler, display, control API, recording.
+    Serve(serve::Args),
+    /// Drive a scheduler from a `serve` recording (MCAP) and compare its commands.
+    Replay(replay::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -63,6 +72,7 @@ fn block_on<T>(work: impl std::future::Future<Output = anyhow::Result<T>>) -> an
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
+        Command::Demo(args) => demo::run_demo(args),
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
         Command::Lens(args) => lens_cmd::run(args),
@@ -76,6 +86,8 @@ fn main() -> std::process::ExitCode {
         Command::Metrics(args) => render_cmd::metrics(args),
         Command::Lightfield(args) => render_cmd::lightfield(args),
         Command::Foveate(args) => render_cmd::foveate(args),
+        Command::Serve(args) => serve::run(args),
+        Command::Replay(args) => replay::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -1,5 +1,5 @@
 //! Speed targets (issue 4): parse one report ≤ 1 µs median; link to GazeSource stream
-//! ≤ 50 µs median. Also the processor's cost per sample and descriptor parsing.
+//! ≤ 50 µs median. Also descriptor parsing. (The gaze processor's cost is in dioptra-sched's bench.)
 
 use std::sync::Arc;
 
@@ -10,7 +10,6 @@ use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::protocol::{ModeRequest, TrackerLayout};
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::hid_descriptor;
-use dioptra_gaze::processing::{GazeProcessor, ProcessorConfig};
 use dioptra_sim::gaze::csv::Replay;
 use dioptra_sim::gaze::{dioptra_tracker as sim_dt, hid_tracker as sim_hid};
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene};
@@ -99,41 +98,5 @@ fn link_to_stream(c: &mut Criterion) {
     });
 }
 
-fn processing(c: &mut Criterion) {
-    let mut g = GazeGenerator::new(
-        Scene::named("saccades").unwrap(),
-        GeneratorConfig::default(),
-    )
-    .unwrap();
-    let stream: Vec<dioptra_core::GazeSample> = (0..10_000)
-        .map(|_| {
-            let s = g.next_truth().reported;
-            let eye = dioptra_gaze::dioptra_tracker::protocol::eye_ray;
-            let t = dioptra_core::Timestamp::from_micros(s.device_time_us);
-            dioptra_core::GazeSample {
-                device_time: t,
-                host_receive_time: t,
-                host_time: t,
-                left: eye(&s.left),
-                right: eye(&s.right),
-            }
-        })
-        .collect();
-    let mut p = GazeProcessor::new(ProcessorConfig::default());
-    let mut i = 0;
-    c.bench_function("processor: push one sample + predict 20 ms ahead", |b| {
-        b.iter(|| {
-            if i == stream.len() {
-                p = GazeProcessor::new(ProcessorConfig::default());
-                i = 0;
-            }
-            let s = &stream[i];
-            i += 1;
-            p.push(s);
-            p.predict(s.host_time + std::time::Duration::from_millis(20))
-        })
-    });
-}
-
-criterion_group!(benches, parse_report, link_to_stream, processing);
+criterion_group!(benches, parse_report, link_to_stream);
 criterion_main!(benches);

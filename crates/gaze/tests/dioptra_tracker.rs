@@ -7,7 +7,7 @@ use dioptra_core::{DeviceError, GazeSource, LinkError};
 use dioptra_gaze::dioptra_tracker::protocol::{decode_sample_report, StreamControl};
 use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::protocol::ReportError;
-use dioptra_gaze::processing::{EyePhase, GazeProcessor, ProcessorConfig};
+use dioptra_sched::processing::{EyePhase, GazeProcessor, ProcessorConfig};
 use dioptra_sim::gaze::dioptra_tracker::{self as sim_tracker, encode_sample_report};
 use dioptra_sim::gaze::generator::TruePhase;
 use dioptra_sim::gaze::{Faults, GazeGenerator, GeneratorConfig, Scene};

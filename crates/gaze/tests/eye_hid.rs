@@ -9,7 +9,7 @@ use dioptra_gaze::eye_hid::protocol::{
 };
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::hid_descriptor::{self, ReportKind};
-use dioptra_gaze::processing::Angles;
+use dioptra_sched::processing::Angles;
 use dioptra_sim::gaze::hid_tracker::{self, HidTrackerSetup};
 use dioptra_sim::gaze::{Faults, GazeGenerator, GeneratorConfig, Scene};
 use dioptra_sim::tokio_clock::TokioClock;
@@ -77,7 +77,7 @@ async fn streams_gaze_that_matches_the_generator() {
         assert_eq!(s.device_time.as_micros(), t.reported.device_time_us);
         assert!(s.left.valid && s.right.valid);
         // Both rays meet at the gaze point on the screen plane (z = 0 in the driver's frame).
-        let v = dioptra_gaze::processing::vergence::vergence(&s.left, &s.right, 0.1).unwrap();
+        let v = dioptra_sched::processing::vergence::vergence(&s.left, &s.right, 0.1).unwrap();
         assert!(v.point_mm.unwrap()[2].abs() < 0.5, "{v:?}");
         // The cyclopean direction is the generator's gaze (µm rounding aside).
         let d: Vec<f64> = (0..3)

@@ -2,7 +2,7 @@
 
 use dioptra_core::{GazeSample, Timestamp};
 use dioptra_gaze::dioptra_tracker::protocol::eye_ray;
-use dioptra_gaze::processing::{EyePhase, GazeProcessor, GazeState, ProcessorConfig};
+use dioptra_sched::processing::{EyePhase, GazeProcessor, GazeState, ProcessorConfig};
 use dioptra_sim::gaze::generator::{TruePhase, TruthSample};
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene};
 

@@ -4,7 +4,7 @@
 //! clock.
 //!
 //! ```
-//! use dioptra_gaze::processing::{GazeProcessor, ProcessorConfig};
+//! use dioptra_sched::processing::{GazeProcessor, ProcessorConfig};
 //! # let samples: Vec<dioptra_core::GazeSample> = vec![];
 //! let mut p = GazeProcessor::new(ProcessorConfig::default());
 //! for s in &samples {
@@ -210,6 +210,12 @@ impl GazeProcessor {
 
     pub fn state(&self) -> &GazeState {
         &self.state
+    }
+
+    /// Peak angular speed so far of the running saccade, deg/s; `None` outside saccades.
+    /// Speed below the peak means the saccade is decelerating towards its landing point.
+    pub fn saccade_peak_dps(&self) -> Option<f64> {
+        self.detector.active().map(|(_, peak)| peak)
     }
 
     fn set_phase(&mut self, phase: EyePhase, t: Timestamp) {

@@ -1,0 +1,430 @@
+//! The demo's renderer side: an animated procedural scene, its RGB-D frames, the CPU render
+//! methods per mode, and the few frames kept for scoring against ground truth.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result};
+use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Timestamp};
+use dioptra_loop_tests::Frames;
+use dioptra_render::multifocal::linear_blend;
+use dioptra_render::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
+use dioptra_render::views::{synthesize_light_field, RgbdView};
+use dioptra_render::{gather::gather, Layers};
+use dioptra_sched::depth::{window_depth, DepthWindow};
+use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
+use dioptra_sched::processing::Angles;
+use dioptra_sched::{FrameRequest, Mode, SchedulerConfig};
+use dioptra_sim::gaze::generator::{Segment, Target};
+use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, SceneOptions, Shape};
+
+/// The light field shown in light-field mode: 5 x 5 views over the 4 mm pupil, synthesised
+/// from 5 sparse RGB-D views (centre and corners).
+const LF_GRID: usize = 5;
+const LF_SPAN_M: f32 = 0.004;
+
+/// A lenslet display in front of the eye: 24 x 24 lenslets of 5 x 5 pixels (one per view).
+const LENSLETS: LensletDisplay = LensletDisplay {
+    lenslets: [24, 24],
+    pixels_per_lenslet: 5,
+    lenslet_pitch_m: 0.00025,
+    gap_m: 0.00094,
+    eye_relief_m: 0.015,
+};
+
+/// The scene's RGB-D input is re-rendered at most this often (20 Hz animation): ray casting
+/// it is the demo's own cost, not the display pipeline's.
+const SCENE_UPDATE: Duration = Duration::from_millis(50);
+
+/// What a frame's renderer made.
+pub enum Output {
+    Image(RgbImage),
+    Layers(Layers),
+    LightField { views: Vec<LfView>, panel: RgbImage },
+}
+
+/// A frame kept for scoring.
+pub struct Kept {
+    pub frame: u64,
+    pub display_time: Timestamp,
+    pub scene: Scene,
+    pub input: Rgbd,
+    pub output: Output,
+}
+
+/// One moving object: index, resting centre, amplitude (m), frequency (Hz), phase.
+struct Mover {
+    index: usize,
+    rest: [f32; 3],
+    amplitude: f32,
+    hz: f32,
+    phase: f32,
+}
+
+pub struct DemoFrames {
+    mode: Mode,
+    base: Scene,
+    movers: Vec<Mover>,
+    cam: Camera,
+    /// Light-field views are made at half size: the lenslet panel (120 px) cannot show more,
+    /// and view synthesis is the slow part.
+    lf_cam: Camera,
+    eye: EyeModel,
+    planes: Vec<Diopters>,
+    targets: Vec<Target>,
+    seconds: f64,
+    printed_second: u64,
+    current: Option<(Scene, Rgbd, Vec<RgbdView>)>,
+    current_at: Option<Timestamp>,
+    keep_after: Vec<Timestamp>,
+    kept: Vec<Kept>,
+    started: Instant,
+}
+
+fn centre(s: &Shape) -> [f32; 3] {
+    match *s {
+        Shape::Box { center, .. } | Shape::Sphere { center, .. } => center,
+    }
+}
+
+fn set_centre(s: &mut Shape, c: [f32; 3]) {
+    match s {
+        Shape::Box { center, .. } | Shape::Sphere { center, .. } => *center = c,
+    }
+}
+
+/// Gaze angles of a scene point (scene: x right, y down, z forward).
+fn angles_of(p: [f32; 3]) -> Angles {
+    Angles::from_direction([f64::from(p[0]), -f64::from(p[1]), f64::from(p[2])])
+}
+
+impl DemoFrames {
+    pub fn new(mode: Mode, seed: u64, size: usize, seconds: f64) -> Result<Self> {
+        let base = Scene::generate_with(
+            seed,
+            &SceneOptions {
+                objects: 12,
+                depth_range: (0.3, 3.0),
+                semi_transparent: false,
+            },
+        );
+        let eye = EyeModel::default();
+        let cam = Camera::square(eye, size);
+        let lf_cam = Camera::square(eye, (size / 2).max(16));
+        let (_, depth) =
+            render_pinhole(&base, &cam, [0.0, 0.0], 1).context("cannot render the demo scene")?;
+        let targets = pick_targets(&depth, eye.fov_horizontal_deg);
+        // Animate objects away from the gaze targets, so the viewer's objects stay put.
+        let movers = base
+            .objects
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| {
+                let a = angles_of(centre(&o.shape));
+                targets.iter().all(|t| {
+                    a.distance_deg(&Angles {
+                        yaw_deg: t.yaw_deg,
+                        pitch_deg: t.pitch_deg,
+                    }) > 5.0
+                })
+            })
+            .take(4)
+            .enumerate()
+            .map(|(k, (index, o))| {
+                let rest = centre(&o.shape);
+                Mover {
+                    index,
+                    rest,
+                    amplitude: 0.02 * rest[2],
+                    hz: 0.3 + 0.15 * k as f32,
+                    phase: k as f32 * 1.7,
+                }
+            })
+            .collect();
+        let planes = SchedulerConfig::new(Mode::Multifocal)
+            .planes
+            .map(|p| p.planes().to_vec())
+            .unwrap_or_default();
+        let keep_after = [0.3, 0.55, 0.8]
+            .iter()
+            .map(|f| Timestamp::ZERO + Duration::from_secs_f64(seconds * f))
+            .collect();
+        Ok(DemoFrames {
+            mode,
+            base,
+            movers,
+            cam,
+            lf_cam,
+            eye,
+            planes,
+            targets,
+            seconds,
+            printed_second: 0,
+            current: None,
+            current_at: None,
+            keep_after,
+            kept: Vec::new(),
+            started: Instant::now(),
+        })
+    }
+
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    pub fn eye(&self) -> EyeModel {
+        self.eye
+    }
+
+    /// The viewer's script: fixate each target in turn, with a blink now and then.
+    pub fn gaze_scene(&self) -> dioptra_sim::gaze::Scene {
+        let mut script = Vec::new();
+        for i in 0..self.targets.len() {
+            script.push(Segment::Fixate { target: i, ms: 700 });
+            if i == 1 {
+                script.push(Segment::Blink { ms: 150 });
+            }
+        }
+        dioptra_sim::gaze::Scene {
+            name: "demo".into(),
+            targets: self.targets.clone(),
+            script,
+        }
+    }
+
+    fn scene_at(&self, t: Timestamp) -> Scene {
+        let mut s = self.base.clone();
+        let secs = t.as_secs_f64() as f32;
+        for m in &self.movers {
+            if let Some(o) = s.objects.get_mut(m.index) {
+                let dx = m.amplitude * (std::f32::consts::TAU * m.hz * secs + m.phase).sin();
+                set_centre(&mut o.shape, [m.rest[0] + dx, m.rest[1], m.rest[2]]);
+            }
+        }
+        s
+    }
+
+    pub fn take_kept(&mut self) -> Vec<Kept> {
+        std::mem::take(&mut self.kept)
+    }
+
+    /// What the eye focused at `accommodation` sees of a kept frame, with the lens (varifocal)
+    /// really at `lens`.
+    pub fn eye_view(
+        &self,
+        k: &Kept,
+        accommodation: Diopters,
+        lens: Option<Diopters>,
+    ) -> Result<RgbImage> {
+        Ok(match &k.output {
+            Output::Image(img) => {
+                let display = Diopters(lens.unwrap_or(accommodation).0.max(0.0));
+                retina_varifocal(img, display, accommodation, &self.eye)?
+            }
+            Output::Layers(l) => retina_multifocal(l, &[accommodation], &self.eye)?
+                .pop()
+                .context("no retinal image")?,
+            Output::LightField { views, .. } => retina_lightfield(
+                views,
+                LF_SPAN_M / (LF_GRID - 1) as f32,
+                accommodation,
+                &self.eye,
+            )?,
+        })
+    }
+
+    pub fn ground_truth(
+        &self,
+        k: &Kept,
+        accommodation: Diopters,
+        samples: u32,
+    ) -> Result<RgbImage> {
+        let cam = match k.output {
+            Output::LightField { .. } => &self.lf_cam,
+            _ => &self.cam,
+        };
+        Ok(render_thin_lens(&k.scene, cam, accommodation, samples)?)
+    }
+
+    /// The displayed image(s) of a kept frame, named for their files.
+    pub fn rendered_images(&self, k: &Kept) -> Vec<(String, RgbImage)> {
+        match &k.output {
+            Output::Image(img) => vec![("rendered".into(), img.clone())],
+            Output::Layers(l) => l
+                .images
+                .iter()
+                .zip(&l.planes)
+                .map(|(img, p)| (format!("layer_{:.1}D", p.0), img.clone()))
+                .collect(),
+            Output::LightField { panel, .. } => vec![("rendered".into(), panel.clone())],
+        }
+    }
+
+    fn render_output(
+        &self,
+        req: &FrameRequest,
+        input: &Rgbd,
+        sparse: &[RgbdView],
+    ) -> Option<Output> {
+        Some(match self.mode {
+            Mode::Varifocal => {
+                let q = Diopters(req.focus.unwrap_or(Diopters(1.0)).0.max(0.0));
+                Output::Image(gather(input, q, &self.eye).ok()?)
+            }
+            Mode::Multifocal => Output::Layers(linear_blend(input, &self.planes).ok()?),
+            Mode::LightField => {
+                let views =
+                    synthesize_light_field(sparse, LF_GRID, LF_SPAN_M, &self.eye, |_| {}).ok()?;
+                let images: Vec<RgbImage> = views.iter().map(|v| v.image.clone()).collect();
+                let grid = ViewGrid {
+                    grid: LF_GRID,
+                    spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+                    views: &images,
+                    pixel_pitch_tan: self.lf_cam.eye.pixel_pitch_tan(),
+                };
+                let panel = elemental_images(&grid, &LENSLETS).ok()?;
+                Output::LightField { views, panel }
+            }
+        })
+    }
+}
+
+impl Frames for DemoFrames {
+    fn depth(&mut self, t: Timestamp) -> Option<Arc<DepthMap>> {
+        let second = t.as_secs_f64() as u64;
+        if second > self.printed_second {
+            self.printed_second = second;
+            println!(
+                "  {second:>3} / {:.0} s simulated ({:.1} s wall)",
+                self.seconds,
+                self.started.elapsed().as_secs_f64()
+            );
+        }
+        if self
+            .current_at
+            .is_some_and(|c| t.saturating_since(c) < SCENE_UPDATE)
+        {
+            return None;
+        }
+        self.current_at = Some(t);
+        let scene = self.scene_at(t);
+        let (color, depth) = render_pinhole(&scene, &self.cam, [0.0, 0.0], 1).ok()?;
+        let rgbd = Rgbd::new(color, depth.clone()).ok()?;
+        let mut sparse = Vec::new();
+        if self.mode == Mode::LightField {
+            let h = LF_SPAN_M * 0.5;
+            for position in [[0.0, 0.0], [-h, -h], [h, -h], [-h, h], [h, h]] {
+                let (c, d) = render_pinhole(&scene, &self.lf_cam, position, 1).ok()?;
+                sparse.push(RgbdView {
+                    position,
+                    rgbd: Rgbd::new(c, d).ok()?,
+                });
+            }
+        }
+        self.current = Some((scene, rgbd, sparse));
+        Some(Arc::new(depth))
+    }
+
+    fn render(&mut self, req: &FrameRequest) -> Duration {
+        let Some((scene, input, sparse)) = &self.current else {
+            return Duration::ZERO;
+        };
+        let started = Instant::now();
+        let output = self.render_output(req, input, sparse);
+        let took = started.elapsed();
+        if let (Some(output), Some(&after)) = (output, self.keep_after.first()) {
+            if req.display_time >= after {
+                self.keep_after.remove(0);
+                self.kept.push(Kept {
+                    frame: req.frame.0,
+                    display_time: req.display_time,
+                    scene: scene.clone(),
+                    input: input.clone(),
+                    output,
+                });
+            }
+        }
+        took
+    }
+}
+
+/// Up to four gaze targets on uniform surfaces at different depths.
+fn pick_targets(depth: &DepthMap, fov_deg: f32) -> Vec<Target> {
+    let window = DepthWindow {
+        radius_deg: 1.2,
+        ..DepthWindow::default()
+    };
+    let mut cands: Vec<Target> = Vec::new();
+    let step = 1.5;
+    let mut yaw = -7.5;
+    while yaw <= 7.5 {
+        let mut pitch = -7.5;
+        while pitch <= 7.5 {
+            let a = Angles {
+                yaw_deg: yaw,
+                pitch_deg: pitch,
+            };
+            if let Some(w) = window_depth(depth, a.direction(), fov_deg, &window) {
+                let s = w.surfaces()[0];
+                if s.share > 0.97 && (0.25..=3.5).contains(&s.diopters) {
+                    cands.push(Target {
+                        yaw_deg: yaw,
+                        pitch_deg: pitch,
+                        diopters: f64::from(s.diopters),
+                    });
+                }
+            }
+            pitch += step;
+        }
+        yaw += step;
+    }
+    cands.sort_by(|a, b| a.diopters.total_cmp(&b.diopters));
+    let mut picked: Vec<Target> = Vec::new();
+    // Spread over depth: nearest, farthest, then the ones most unlike those picked.
+    let far_apart = |t: &Target, p: &[Target]| {
+        p.iter().all(|q| {
+            (t.yaw_deg - q.yaw_deg).hypot(t.pitch_deg - q.pitch_deg) >= 4.0
+                && (t.diopters - q.diopters).abs() >= 0.2
+        })
+    };
+    for t in cands.iter().rev().chain(cands.iter()) {
+        if picked.len() < 2 && far_apart(t, &picked) {
+            picked.push(*t);
+        }
+    }
+    while picked.len() < 4 {
+        let best = cands
+            .iter()
+            .filter(|t| far_apart(t, &picked))
+            .max_by(|a, b| {
+                let d = |t: &Target| {
+                    picked
+                        .iter()
+                        .map(|q| (t.diopters - q.diopters).abs())
+                        .fold(f64::INFINITY, f64::min)
+                };
+                d(a).total_cmp(&d(b))
+            })
+            .copied();
+        match best {
+            Some(t) => picked.push(t),
+            None => break,
+        }
+    }
+    if picked.len() < 2 {
+        // A scene with no clear surfaces: look straight ahead and at a corner of the wall.
+        picked = vec![
+            Target {
+                yaw_deg: 0.0,
+                pitch_deg: 0.0,
+                diopters: 1.0,
+            },
+            Target {
+                yaw_deg: 6.0,
+                pitch_deg: 5.0,
+                diopters: 0.5,
+            },
+        ];
+    }
+    picked
+}

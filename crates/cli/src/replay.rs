@@ -1,0 +1,322 @@
+//! `dioptra replay FILE`: drives a fresh scheduler from a recording made by `dioptra serve`
+//! and compares what it commands with what was recorded.
+//!
+//! The recording's `/start` message holds the rig config and the scheduler's state when it
+//! began; every input the loop gave the scheduler (gaze, lens state and wire times, sync
+//! events, finished frames, frame ticks, API commands) is fed again at its recorded time and in
+//! its recorded order. The scheduler is deterministic, so a recording that began with the
+//! daemon replays to the same lens commands and render requests.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use dioptra_core::{Diopters, Timestamp};
+use serde::Serialize;
+
+use crate::serve::config::{Method, Mode, RigConfig};
+use crate::serve::devices::DeviceInput;
+use crate::serve::engine::{Command, Engine, Input};
+use crate::serve::recording::{self, ControlRec, Rec, Recorded};
+use crate::serve::render::Renderer;
+use crate::serve::Control;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// An MCAP recording written by `dioptra serve`.
+    pub file: PathBuf,
+    /// Print the report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One command, as recorded or as replayed, with the time the loop handled it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum Cmd {
+    Lens {
+        t_ns: u64,
+        id: u64,
+        power_d: f32,
+        reason: String,
+    },
+    Render {
+        t_ns: u64,
+        frame: u64,
+        method: String,
+        focus_d: Option<f32>,
+    },
+    Present {
+        t_ns: u64,
+        frame: u64,
+        layer: Option<u8>,
+        at_ns: u64,
+        repeat: bool,
+    },
+    StopSequencer {
+        t_ns: u64,
+    },
+}
+
+impl Cmd {
+    /// A recorded command, or `None` for an input.
+    fn recorded(t: Timestamp, r: &Rec) -> Option<Cmd> {
+        Some(match r {
+            Rec::LensCommand(c) => Cmd::Lens {
+                t_ns: t.0,
+                id: c.id,
+                power_d: c.power_d,
+                reason: c.reason.clone(),
+            },
+            Rec::Render(c) => Cmd::Render {
+                t_ns: t.0,
+                frame: c.frame,
+                method: c.method.clone(),
+                focus_d: c.focus_d,
+            },
+            Rec::Present(c) => Cmd::Present {
+                t_ns: t.0,
+                frame: c.frame,
+                layer: c.layer,
+                at_ns: c.at_ns,
+                repeat: c.repeat,
+            },
+            Rec::StopSequencer(_) => Cmd::StopSequencer { t_ns: t.0 },
+            _ => return None,
+        })
+    }
+
+    /// A command the replayed scheduler gave, in the form the daemon records it.
+    fn replayed(t: Timestamp, c: &Command) -> Option<Cmd> {
+        Some(match *c {
+            Command::SetLensPower {
+                id, power, reason, ..
+            } => Cmd::Lens {
+                t_ns: t.0,
+                id: id.0,
+                power_d: power.0,
+                reason: crate::serve::engine::reason_name(reason),
+            },
+            Command::RenderFrame(req) => Cmd::Render {
+                t_ns: t.0,
+                frame: req.frame.0,
+                method: req.method.as_str().into(),
+                focus_d: req.focus.map(|d| d.0),
+            },
+            Command::Present {
+                frame,
+                vsync,
+                repeat,
+                ..
+            } => Cmd::Present {
+                t_ns: t.0,
+                frame: frame.0,
+                layer: None,
+                at_ns: vsync.0,
+                repeat,
+            },
+            Command::PresentLayer {
+                frame,
+                layer,
+                start,
+                repeat,
+                ..
+            } => Cmd::Present {
+                t_ns: t.0,
+                frame: frame.0,
+                layer: Some(layer),
+                at_ns: start.0,
+                repeat,
+            },
+            Command::StopSequencer => Cmd::StopSequencer { t_ns: t.0 },
+            _ => return None,
+        })
+    }
+
+    fn is_lens(&self) -> bool {
+        matches!(self, Cmd::Lens { .. })
+    }
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplayReport {
+    pub file: PathBuf,
+    pub complete: bool,
+    pub from_start: bool,
+    pub mode: String,
+    pub method: String,
+    /// Seconds from the first to the last message.
+    pub duration_s: f64,
+    /// Messages per topic.
+    pub topics: BTreeMap<String, u64>,
+    pub recorded: Vec<Cmd>,
+    pub replayed: Vec<Cmd>,
+    /// Commands equal in both, position by position, before the first difference.
+    pub matching_prefix: usize,
+    pub first_difference: Option<(Option<Cmd>, Option<Cmd>)>,
+    pub scheduler: serde_json::Value,
+}
+
+impl ReplayReport {
+    pub fn identical(&self) -> bool {
+        self.first_difference.is_none()
+    }
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let report = replay_file(&args.file)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_summary(&report);
+    }
+    if report.from_start && !report.identical() {
+        bail!(
+            "the replayed scheduler differs from the recording after {} matching commands",
+            report.matching_prefix
+        );
+    }
+    Ok(())
+}
+
+fn print_summary(r: &ReplayReport) {
+    println!("recording {}", r.file.display());
+    println!(
+        "  {:.2} s, mode {}, method {}, {}{}",
+        r.duration_s,
+        r.mode,
+        r.method,
+        if r.complete {
+            "complete"
+        } else {
+            "cut off (read up to the cut)"
+        },
+        if r.from_start {
+            ", recorded from daemon start"
+        } else {
+            ", started mid-run (the scheduler's history before it is unknown)"
+        }
+    );
+    for (topic, n) in &r.topics {
+        println!("  {topic:<14} {n}");
+    }
+    let lens = |v: &[Cmd]| v.iter().filter(|c| c.is_lens()).count();
+    println!(
+        "commands: recorded {} ({} lens), replayed {} ({} lens)",
+        r.recorded.len(),
+        lens(&r.recorded),
+        r.replayed.len(),
+        lens(&r.replayed),
+    );
+    match &r.first_difference {
+        None => println!("replay identical to the recording"),
+        Some((a, b)) => println!(
+            "first difference after {} matching commands: recorded {a:?}, replayed {b:?}",
+            r.matching_prefix
+        ),
+    }
+}
+
+pub fn replay_file(path: &Path) -> Result<ReplayReport> {
+    let rec = recording::read(path)?;
+    let mut r = replay(&rec)?;
+    r.file = path.to_path_buf();
+    Ok(r)
+}
+
+/// Replays a recording through a fresh scheduler.
+pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
+    let Some((t0, Rec::Start(start))) = rec.messages.first() else {
+        bail!("the recording does not begin with a /start message; was it written by `dioptra serve`?");
+    };
+    let mut cfg = RigConfig::parse(&start.config).context("the rig config in the recording")?;
+    cfg.mode = Mode::parse(&start.mode)
+        .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
+    cfg.method = Method::parse(&start.method)
+        .with_context(|| format!("unknown method {:?} in the recording", start.method))?;
+    let renderer = Renderer::new(&cfg).context("cannot render the recorded rig's scene")?;
+    let mut engine = Engine::new(&cfg, renderer.input())
+        .map_err(anyhow::Error::msg)
+        .context("cannot start the scheduler")?;
+    if !start.from_start {
+        // The daemon gave the scene's depth at its start, before this recording began.
+        let _ = engine.step(*t0, Input::Depth);
+    }
+    if let Some(d) = start.manual_focus_d {
+        // Set before the recording began: its commands are not in the file.
+        let _ = engine.step(*t0, Input::Control(Control::ManualFocus(Some(d))));
+    }
+    let mut topics = BTreeMap::new();
+    let mut recorded = Vec::new();
+    let mut replayed = Vec::new();
+    let last = rec.messages.last().map_or(*t0, |(t, _)| *t);
+    for (t, m) in &rec.messages {
+        *topics.entry(m.topic().to_string()).or_insert(0u64) += 1;
+        if let Some(c) = Cmd::recorded(*t, m) {
+            recorded.push(c);
+            continue;
+        }
+        let input = match m {
+            Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into())),
+            Rec::LensState(s) => Input::Device(DeviceInput::LensState(s.into())),
+            Rec::LensWire(w) => Input::Device(DeviceInput::LensWire {
+                id: w.id,
+                requested: Diopters(w.requested_d),
+                wire_time: Timestamp(w.wire_ns),
+            }),
+            Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(l.up)),
+            Rec::Sync(e) => Input::Device(DeviceInput::Sync(e.into())),
+            Rec::Frame(f) => Input::RenderFinished {
+                frame: f.frame,
+                method: Method::parse(&f.method)
+                    .with_context(|| format!("unknown method {:?} in /frame", f.method))?,
+                render_time: Duration::from_nanos(f.render_ns),
+            },
+            Rec::Depth(_) => Input::Depth,
+            Rec::Tick(_) => Input::Tick,
+            Rec::Shutdown(_) => Input::Shutdown,
+            Rec::Control(c) => Input::Control(match c {
+                ControlRec::Mode { mode } => Control::Mode(
+                    Mode::parse(mode).with_context(|| format!("unknown mode {mode:?}"))?,
+                ),
+                ControlRec::Method { method } => Control::Method(
+                    Method::parse(method).with_context(|| format!("unknown method {method:?}"))?,
+                ),
+                ControlRec::ManualFocus { diopters } => Control::ManualFocus(*diopters),
+            }),
+            // Start is first and handled above; commands were taken by Cmd::recorded.
+            _ => continue,
+        };
+        // An input the scheduler refused produced no commands in the run either.
+        let Ok(cmds) = engine.step(*t, input) else {
+            continue;
+        };
+        replayed.extend(cmds.iter().filter_map(|c| Cmd::replayed(*t, c)));
+    }
+    let matching_prefix = recorded
+        .iter()
+        .zip(&replayed)
+        .take_while(|(a, b)| a == b)
+        .count();
+    let first_difference = (matching_prefix < recorded.len().max(replayed.len())).then(|| {
+        (
+            recorded.get(matching_prefix).cloned(),
+            replayed.get(matching_prefix).cloned(),
+        )
+    });
+    Ok(ReplayReport {
+        file: PathBuf::new(),
+        complete: rec.complete,
+        from_start: start.from_start,
+        mode: start.mode.clone(),
+        method: start.method.clone(),
+        duration_s: last.saturating_since(*t0).as_secs_f64(),
+        topics,
+        recorded,
+        replayed,
+        matching_prefix,
+        first_difference,
+        scheduler: engine.status(),
+    })
+}

@@ -1,0 +1,336 @@
+//! The control API: HTTP JSON commands and a WebSocket stream.
+//!
+//! | method | path | body | does |
+//! |---|---|---|---|
+//! | GET | `/status` | | mode, method, focus, devices, frames, latency, recording |
+//! | POST | `/mode` | `{"mode": "varifocal"}` | varifocal, multifocal or lightfield |
+//! | POST | `/method` | `{"method": "gather"}` | a render method that fits the mode |
+//! | POST | `/focus` | `{"diopters": 1.5}` or `{"diopters": null}` | manual focus, or back to gaze |
+//! | POST | `/recording/start` | | starts an MCAP recording in `recording.dir` |
+//! | POST | `/recording/stop` | | finishes it; answers with its path and message count |
+//! | POST | `/shutdown` | | parks the lens, finishes files, exits |
+//! | POST | `/sim/{lens,gaze,sync}/{unplug,replug}` | | simulated devices only: pull or restore the cable |
+//! | GET | `/stream` | | WebSocket: one JSON text message per gaze sample, focus change and frame |
+//!
+//! Errors are `{"error": "...", "key": "..."}` with a 4xx status: 400 for a body that is not
+//! JSON, 422 for JSON of the wrong shape or a value out of range, 404 for an unknown path,
+//! 405 for a wrong method, 409 when the request conflicts with the daemon's state.
+
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use serde::de::DeserializeOwned;
+use serde::Deserialize;
+use serde_json::json;
+use tokio::sync::broadcast;
+
+use super::config::{methods, Method, Mode};
+use super::{Control, Shared};
+
+/// A 4xx/5xx answer with a JSON body.
+#[derive(Debug)]
+pub struct ApiError {
+    status: StatusCode,
+    error: String,
+    key: Option<String>,
+}
+
+impl ApiError {
+    pub fn new(status: StatusCode, error: impl Into<String>) -> Self {
+        ApiError {
+            status,
+            error: error.into(),
+            key: None,
+        }
+    }
+    pub fn message(&self) -> &str {
+        &self.error
+    }
+    fn at(mut self, key: &str) -> Self {
+        self.key = Some(key.to_string());
+        self
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let mut body = json!({ "error": self.error });
+        if let Some(k) = self.key {
+            body["key"] = json!(k);
+        }
+        (self.status, Json(body)).into_response()
+    }
+}
+
+/// Parses a JSON body, naming the key that is wrong.
+fn body<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
+    if bytes.iter().all(u8::is_ascii_whitespace) {
+        return Err(ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "the request needs a JSON body",
+        ));
+    }
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    // Serde also reads a struct from an array of its fields; the API takes objects only.
+    let first = bytes.iter().find(|b| !b.is_ascii_whitespace());
+    if first.is_some_and(|b| *b != b'{')
+        && serde_json::from_slice::<serde_json::Value>(bytes).is_ok()
+    {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "expected a JSON object, e.g. {\"diopters\": 1.5}",
+        ));
+    }
+    let r: Result<T, _> = serde_path_to_error::deserialize(&mut de);
+    let v = r.map_err(|e| {
+        let path = e.path().to_string();
+        json_error(e.into_inner(), (path != ".").then_some(path))
+    })?;
+    // Trailing bytes after the value.
+    de.end().map_err(|e| json_error(e, None))?;
+    Ok(v)
+}
+
+fn json_error(inner: serde_json::Error, path: Option<String>) -> ApiError {
+    let status = if inner.is_syntax() || inner.is_eof() {
+        StatusCode::BAD_REQUEST
+    } else {
+        StatusCode::UNPROCESSABLE_ENTITY
+    };
+    let what = if status == StatusCode::BAD_REQUEST {
+        format!("the body is not valid JSON: {inner}")
+    } else {
+        inner.to_string()
+    };
+    let err = ApiError::new(status, what);
+    match path {
+        Some(p) => err.at(&p),
+        None => err,
+    }
+}
+
+pub fn router(shared: Arc<Shared>) -> Router {
+    Router::new()
+        .route("/status", get(status))
+        .route("/mode", post(set_mode))
+        .route("/method", post(set_method))
+        .route("/focus", post(set_focus))
+        .route("/recording/start", post(recording_start))
+        .route("/recording/stop", post(recording_stop))
+        .route("/shutdown", post(shutdown))
+        .route("/sim/{device}/{action}", post(sim_plug))
+        .route("/stream", get(stream))
+        .fallback(|| async {
+            ApiError::new(
+                StatusCode::NOT_FOUND,
+                "no such endpoint; see GET /status, POST /mode, /method, /focus, \
+                 /recording/start, /recording/stop, /shutdown, and GET /stream (WebSocket)",
+            )
+        })
+        .method_not_allowed_fallback(|| async {
+            ApiError::new(
+                StatusCode::METHOD_NOT_ALLOWED,
+                "wrong method for this endpoint: GET /status and /stream, POST for commands",
+            )
+        })
+        .with_state(shared)
+}
+
+async fn status(State(s): State<Arc<Shared>>) -> Json<serde_json::Value> {
+    Json(s.status_json())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ModeBody {
+    mode: String,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MethodBody {
+    method: String,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FocusBody {
+    /// Diopters; `null` hands focus back to gaze.
+    diopters: Option<f64>,
+}
+
+async fn set_mode(
+    State(s): State<Arc<Shared>>,
+    b: Bytes,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let m: ModeBody = body(&b)?;
+    let mode = Mode::parse(&m.mode).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            format!(
+                "unknown mode {:?}: expected varifocal, multifocal or lightfield",
+                m.mode
+            ),
+        )
+        .at("mode")
+    })?;
+    if mode == Mode::Multifocal && s.cfg.devices.sync.is_none() {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "multifocal mode needs a sync board, and the rig config has no [devices.sync]",
+        )
+        .at("mode"));
+    }
+    s.control(Control::Mode(mode)).await?;
+    Ok(Json(json!({ "mode": mode.as_str() })))
+}
+
+async fn set_method(
+    State(s): State<Arc<Shared>>,
+    b: Bytes,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let m: MethodBody = body(&b)?;
+    let method = Method::parse(&m.method).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            format!(
+                "unknown method {:?}: expected one of {}",
+                m.method,
+                methods()
+            ),
+        )
+        .at("method")
+    })?;
+    if let Some(why) = method.unavailable() {
+        return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at("method"));
+    }
+    s.control(Control::Method(method)).await?;
+    Ok(Json(json!({ "method": method.as_str() })))
+}
+
+async fn set_focus(
+    State(s): State<Arc<Shared>>,
+    b: Bytes,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let f: FocusBody = body(&b)?;
+    let r = s.cfg.optics.lens_range;
+    let d = match f.diopters {
+        None => None,
+        Some(d) if d.is_finite() && (f64::from(r.min)..=f64::from(r.max)).contains(&d) => {
+            Some(d as f32)
+        }
+        Some(d) => {
+            return Err(ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "focus {d} D is outside the lens range {}..{} D (optics.lens_range)",
+                    r.min, r.max
+                ),
+            )
+            .at("diopters"))
+        }
+    };
+    s.control(Control::ManualFocus(d)).await?;
+    Ok(Json(json!({ "manual_focus_d": d })))
+}
+
+async fn recording_start(
+    State(s): State<Arc<Shared>>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let path = s.start_recording(false)?;
+    Ok(Json(json!({ "recording": path })))
+}
+
+async fn recording_stop(State(s): State<Arc<Shared>>) -> Result<Json<serde_json::Value>, ApiError> {
+    let stats = s.stop_recording().await?;
+    Ok(Json(json!({
+        "path": stats.path,
+        "messages": stats.messages,
+        "dropped": stats.dropped,
+    })))
+}
+
+/// Simulated rigs only: unplug or replug a simulated device, as its cable would.
+async fn sim_plug(
+    State(s): State<Arc<Shared>>,
+    Path((device, action)): Path<(String, String)>,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    let sims = s.sims.get();
+    let plug = sims.and_then(|sims| match device.as_str() {
+        "lens" => sims.lens.as_ref().map(|(_, p)| p),
+        "gaze" => sims.gaze.as_ref(),
+        "sync" => sims.sync.as_ref(),
+        _ => None,
+    });
+    let Some(plug) = plug else {
+        return Err(ApiError::new(
+            StatusCode::NOT_FOUND,
+            format!("{device:?} is not a simulated device of this rig (lens, gaze or sync with port = \"sim\")"),
+        )
+        .at("device"));
+    };
+    match action.as_str() {
+        "unplug" => plug.unplug(),
+        "replug" => plug.replug(),
+        _ => {
+            return Err(ApiError::new(
+                StatusCode::NOT_FOUND,
+                format!("unknown action {action:?}: expected unplug or replug"),
+            )
+            .at("action"))
+        }
+    }
+    Ok(Json(
+        json!({ "device": device, "plugged": plug.is_plugged() }),
+    ))
+}
+
+async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json::Value>) {
+    tracing::info!("shutdown requested through the API");
+    s.cancel.cancel();
+    (
+        StatusCode::ACCEPTED,
+        Json(json!({ "status": "stopping: parking the lens and finishing files" })),
+    )
+}
+
+async fn stream(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {
+    let rx = s.stream.subscribe();
+    let cancel = s.cancel.clone();
+    ws.on_upgrade(move |socket| forward(socket, rx, cancel))
+}
+
+async fn forward(
+    mut socket: WebSocket,
+    mut rx: broadcast::Receiver<Arc<str>>,
+    cancel: tokio_util::sync::CancellationToken,
+) {
+    loop {
+        let msg = tokio::select! {
+            _ = cancel.cancelled() => break,
+            m = rx.recv() => m,
+            incoming = socket.recv() => match incoming {
+                // The client closed, or went away.
+                None | Some(Err(_)) | Some(Ok(Message::Close(_))) => return,
+                Some(Ok(_)) => continue,
+            },
+        };
+        let text = match msg {
+            Ok(t) => t.to_string(),
+            Err(broadcast::error::RecvError::Lagged(n)) => {
+                json!({ "type": "lagged", "skipped": n }).to_string()
+            }
+            Err(broadcast::error::RecvError::Closed) => break,
+        };
+        if socket.send(Message::Text(text.into())).await.is_err() {
+            return;
+        }
+    }
+    let _ = socket.send(Message::Close(None)).await;
+}

@@ -1,0 +1,809 @@
+//! The rig config (`rig.toml`): devices, optics, eye model, mode, method, display, API and
+//! recording. Parsing is strict (`deny_unknown_fields`) and every error names the key and the
+//! form it expects, e.g. `optics.lens_range: min must be below max`.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use dioptra_sched::RenderMethod;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// What went wrong with a rig config. `key` is the dotted path of the offending key.
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    #[error("cannot read the rig config {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{key}: {message}")]
+    Parse { key: String, message: String },
+    #[error("{key}: {message}")]
+    Invalid { key: String, message: String },
+}
+
+impl ConfigError {
+    /// The dotted key the error is about (`.` for the whole file).
+    #[cfg(test)]
+    pub fn key(&self) -> &str {
+        match self {
+            ConfigError::Read { .. } => ".",
+            ConfigError::Parse { key, .. } | ConfigError::Invalid { key, .. } => key,
+        }
+    }
+}
+
+fn invalid(key: &str, message: impl Into<String>) -> ConfigError {
+    ConfigError::Invalid {
+        key: key.to_string(),
+        message: message.into(),
+    }
+}
+
+/// How the display shows depth.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    Varifocal,
+    Multifocal,
+    Lightfield,
+}
+
+impl Mode {
+    pub fn parse(s: &str) -> Option<Mode> {
+        match s {
+            "varifocal" => Some(Mode::Varifocal),
+            "multifocal" => Some(Mode::Multifocal),
+            "lightfield" => Some(Mode::Lightfield),
+            _ => None,
+        }
+    }
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Varifocal => "varifocal",
+            Mode::Multifocal => "multifocal",
+            Mode::Lightfield => "lightfield",
+        }
+    }
+}
+
+impl Mode {
+    pub fn from_sched(m: dioptra_sched::Mode) -> Mode {
+        match m {
+            dioptra_sched::Mode::Varifocal => Mode::Varifocal,
+            dioptra_sched::Mode::Multifocal => Mode::Multifocal,
+            dioptra_sched::Mode::LightField => Mode::Lightfield,
+        }
+    }
+    /// The scheduler's name for this mode.
+    pub fn sched(self) -> dioptra_sched::Mode {
+        match self {
+            Mode::Varifocal => dioptra_sched::Mode::Varifocal,
+            Mode::Multifocal => dioptra_sched::Mode::Multifocal,
+            Mode::Lightfield => dioptra_sched::Mode::LightField,
+        }
+    }
+}
+
+/// The render method, by the scheduler's names: gather, lightfield-defocus (varifocal);
+/// linear, optimized (multifocal); views (light field); network (any).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub struct Method(pub RenderMethod);
+
+impl TryFrom<String> for Method {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        Method::parse(&s)
+            .ok_or_else(|| format!("unknown method {s:?}: expected one of {}", methods()))
+    }
+}
+
+impl From<Method> for String {
+    fn from(m: Method) -> String {
+        m.as_str().into()
+    }
+}
+
+/// The methods the daemon renders.
+pub const RENDERED: &str =
+    "gather or lightfield-defocus (varifocal), linear or optimized (multifocal), views (light field)";
+
+/// Every method's name, for messages.
+pub fn methods() -> String {
+    RenderMethod::ALL
+        .iter()
+        .map(|m| m.as_str())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+impl Method {
+    pub fn parse(s: &str) -> Option<Method> {
+        s.parse::<RenderMethod>().ok().map(Method)
+    }
+    pub fn as_str(self) -> &'static str {
+        self.0.as_str()
+    }
+    /// Whether this method makes images for `mode`.
+    pub fn fits(self, mode: Mode) -> bool {
+        self.0.suits(mode.sched())
+    }
+    /// Why the daemon cannot render with this method, if it cannot.
+    pub fn unavailable(self) -> Option<String> {
+        match self.0 {
+            RenderMethod::Network => Some(format!(
+                "{} is not rendered by `dioptra serve` yet; use {}",
+                self.as_str(),
+                RENDERED
+            )),
+            _ => None,
+        }
+    }
+    /// The methods that fit `mode`, for messages.
+    pub fn for_mode(mode: Mode) -> String {
+        RenderMethod::ALL
+            .iter()
+            .filter(|m| m.suits(mode.sched()))
+            .map(|m| m.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+/// Where a device is: simulated in-process, a device path, or a USB/HID VID:PID.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub enum Port {
+    Sim,
+    Path(PathBuf),
+    VidPid(u16, u16),
+}
+
+impl TryFrom<String> for Port {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        if s == "sim" {
+            return Ok(Port::Sim);
+        }
+        if s.starts_with('/') {
+            return Ok(Port::Path(PathBuf::from(s)));
+        }
+        if let Some((v, p)) = s.split_once(':') {
+            let hex = |x: &str| (x.len() == 4).then(|| u16::from_str_radix(x, 16).ok())?;
+            if let (Some(v), Some(p)) = (hex(v), hex(p)) {
+                return Ok(Port::VidPid(v, p));
+            }
+        }
+        Err(format!(
+            "invalid port {s:?}: expected \"sim\", a device path such as \"/dev/ttyACM0\", \
+             or a USB VID:PID in hex such as \"1209:d10a\""
+        ))
+    }
+}
+
+impl From<Port> for String {
+    fn from(p: Port) -> String {
+        match p {
+            Port::Sim => "sim".into(),
+            Port::Path(p) => p.display().to_string(),
+            Port::VidPid(v, p) => format!("{v:04x}:{p:04x}"),
+        }
+    }
+}
+
+impl std::fmt::Display for Port {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&String::from(self.clone()))
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LensDriver {
+    /// Optotune Lens Driver 4.
+    Optotune,
+    /// The dioptra lens controller.
+    Lens,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum GazeDriver {
+    /// The dioptra binocular tracker.
+    DioptraTracker,
+    /// A HID usage page 0x12 eye tracker.
+    Hid,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SyncDriver {
+    /// The dioptra sync board.
+    Sync,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LensDevice {
+    pub driver: LensDriver,
+    pub port: Port,
+    /// Power the lens is parked at on shutdown, diopters (inside `optics.lens_range`).
+    pub park_power: f32,
+    /// Settle time of the simulated lens, ms (sim only).
+    #[serde(default = "default_settle_ms")]
+    pub sim_settle_ms: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GazeDevice {
+    pub driver: GazeDriver,
+    pub port: Port,
+    /// Scenario of the simulated tracker (sim only): saccades, fixation, pursuit, vergence, blinks.
+    #[serde(default = "default_scenario")]
+    pub sim_scenario: String,
+    /// Sample rate of the simulated tracker, Hz (sim only).
+    #[serde(default = "default_gaze_rate")]
+    pub sim_rate_hz: f64,
+    /// Seed of the simulated tracker (sim only).
+    #[serde(default = "default_seed")]
+    pub sim_seed: u64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SyncDevice {
+    pub driver: SyncDriver,
+    pub port: Port,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Devices {
+    pub lens: LensDevice,
+    pub gaze: GazeDevice,
+    /// Needed for multifocal mode.
+    pub sync: Option<SyncDevice>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Range {
+    pub min: f32,
+    pub max: f32,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Optics {
+    /// Distance from the eye to the display's virtual image with the lens at 0 D, metres.
+    pub display_distance_m: f32,
+    /// Powers the rig may drive the lens to, diopters.
+    pub lens_range: Range,
+    /// Multifocal plane powers in display order, diopters.
+    #[serde(default = "default_planes")]
+    pub planes: Vec<f32>,
+    /// Multifocal sub-frame rate, Hz (one plane per sub-frame).
+    #[serde(default = "default_subframe_hz")]
+    pub subframe_hz: f64,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Eye {
+    #[serde(default = "default_pupil")]
+    pub pupil_mm: f32,
+    #[serde(default = "default_fov")]
+    pub fov_deg: f32,
+    #[serde(default = "default_ipd")]
+    pub ipd_mm: f32,
+}
+
+impl Default for Eye {
+    fn default() -> Self {
+        Eye {
+            pupil_mm: default_pupil(),
+            fov_deg: default_fov(),
+            ipd_mm: default_ipd(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SinkKind {
+    /// Frame timing (and optionally PNGs) recorded, nothing shown: tests, CI.
+    Headless,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Display {
+    #[serde(default = "default_sink")]
+    pub sink: SinkKind,
+    #[serde(default = "default_size")]
+    pub width: u32,
+    #[serde(default = "default_size")]
+    pub height: u32,
+    /// Frame rate the renderer runs at, Hz.
+    #[serde(default = "default_frame_hz")]
+    pub frame_hz: f64,
+    /// Write every Nth shown frame as a PNG (0: none).
+    #[serde(default)]
+    pub png_every: u32,
+    /// Where PNGs go (headless sink).
+    pub png_dir: Option<PathBuf>,
+    /// Seed of the procedural scene the renderer shows.
+    #[serde(default = "default_scene_seed")]
+    pub scene_seed: u64,
+}
+
+impl Default for Display {
+    fn default() -> Self {
+        Display {
+            sink: default_sink(),
+            width: default_size(),
+            height: default_size(),
+            frame_hz: default_frame_hz(),
+            png_every: 0,
+            png_dir: None,
+            scene_seed: default_scene_seed(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Api {
+    /// TCP address; loopback unless `allow_remote` is true.
+    pub listen: Option<String>,
+    /// Unix socket path (created with 0600 permissions), instead of `listen`.
+    pub unix: Option<PathBuf>,
+    #[serde(default)]
+    pub allow_remote: bool,
+}
+
+impl Default for Api {
+    fn default() -> Self {
+        Api {
+            listen: Some(DEFAULT_LISTEN.into()),
+            unix: None,
+            allow_remote: false,
+        }
+    }
+}
+
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:7420";
+
+/// Where the API listens, validated.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Listen {
+    Tcp(SocketAddr),
+    Unix(PathBuf),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Recording {
+    /// Directory for MCAP files (`dioptra-<unix seconds>.mcap`).
+    pub dir: PathBuf,
+    /// Start recording when the daemon starts.
+    #[serde(default)]
+    pub start: bool,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RigConfig {
+    pub mode: Mode,
+    pub method: Method,
+    pub devices: Devices,
+    pub optics: Optics,
+    #[serde(default)]
+    pub eye: Eye,
+    #[serde(default)]
+    pub display: Display,
+    #[serde(default)]
+    pub api: Api,
+    pub recording: Option<Recording>,
+}
+
+fn default_settle_ms() -> f64 {
+    15.0
+}
+fn default_scenario() -> String {
+    "saccades".into()
+}
+fn default_gaze_rate() -> f64 {
+    250.0
+}
+fn default_seed() -> u64 {
+    1
+}
+fn default_planes() -> Vec<f32> {
+    vec![0.2, 0.8, 1.4, 2.0]
+}
+fn default_subframe_hz() -> f64 {
+    240.0
+}
+fn default_pupil() -> f32 {
+    4.0
+}
+fn default_fov() -> f32 {
+    20.0
+}
+fn default_ipd() -> f32 {
+    63.0
+}
+fn default_sink() -> SinkKind {
+    SinkKind::Headless
+}
+fn default_size() -> u32 {
+    96
+}
+fn default_frame_hz() -> f64 {
+    60.0
+}
+fn default_scene_seed() -> u64 {
+    1_000_001
+}
+
+impl RigConfig {
+    /// Reads and validates a rig config file.
+    pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text)
+    }
+
+    /// Parses and validates rig config text.
+    pub fn parse(text: &str) -> Result<RigConfig, ConfigError> {
+        let de = toml::Deserializer::parse(text).map_err(|e| ConfigError::Parse {
+            key: ".".into(),
+            message: one_line(&e.to_string()),
+        })?;
+        let cfg: RigConfig = serde_path_to_error::deserialize(de).map_err(|e| {
+            let key = e.path().to_string();
+            let inner = e.into_inner();
+            let mut message = inner.message().to_string();
+            if let Some(span) = inner.span() {
+                let line = text[..span.start.min(text.len())].matches('\n').count() + 1;
+                message += &format!(" (line {line})");
+            }
+            ConfigError::Parse { key, message }
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Range and consistency checks serde cannot express.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let o = &self.optics;
+        let r = o.lens_range;
+        if !(r.min.is_finite() && r.max.is_finite()) {
+            return Err(invalid(
+                "optics.lens_range",
+                "min and max must be finite numbers of diopters",
+            ));
+        }
+        if r.min >= r.max {
+            return Err(invalid(
+                "optics.lens_range",
+                format!(
+                    "min must be below max (got min = {}, max = {})",
+                    r.min, r.max
+                ),
+            ));
+        }
+        if !(-20.0..=20.0).contains(&r.min) || !(-20.0..=20.0).contains(&r.max) {
+            return Err(invalid(
+                "optics.lens_range",
+                "expected powers within -20..20 D",
+            ));
+        }
+        if !(o.display_distance_m.is_finite() && o.display_distance_m > 0.0) {
+            return Err(invalid(
+                "optics.display_distance_m",
+                format!(
+                    "expected a positive distance in metres, e.g. 1.0 (got {})",
+                    o.display_distance_m
+                ),
+            ));
+        }
+        if o.planes.is_empty() || o.planes.len() > dioptra_core::device::MAX_PLANES {
+            return Err(invalid(
+                "optics.planes",
+                format!(
+                    "expected 1 to {} plane powers in diopters, e.g. [0.2, 0.8, 1.4, 2.0]",
+                    dioptra_core::device::MAX_PLANES
+                ),
+            ));
+        }
+        if let Some(p) = o
+            .planes
+            .iter()
+            .find(|p| !(p.is_finite() && (r.min..=r.max).contains(*p)))
+        {
+            return Err(invalid(
+                "optics.planes",
+                format!(
+                    "plane {p} D is outside optics.lens_range {}..{} D",
+                    r.min, r.max
+                ),
+            ));
+        }
+        if !(o.subframe_hz.is_finite() && (1.0..=10_000.0).contains(&o.subframe_hz)) {
+            return Err(invalid(
+                "optics.subframe_hz",
+                "expected a sub-frame rate of 1 to 10000 Hz",
+            ));
+        }
+        let park = self.devices.lens.park_power;
+        if !(park.is_finite() && (r.min..=r.max).contains(&park)) {
+            return Err(invalid(
+                "devices.lens.park_power",
+                format!(
+                    "{park} D is outside optics.lens_range {}..{} D: the lens must park inside the rig's range",
+                    r.min, r.max
+                ),
+            ));
+        }
+        let settle = self.devices.lens.sim_settle_ms;
+        if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
+            return Err(invalid(
+                "devices.lens.sim_settle_ms",
+                "expected a settle time of 0 to 1000 ms",
+            ));
+        }
+        let g = &self.devices.gaze;
+        if g.port == Port::Sim && !dioptra_sim::gaze::SCENARIOS.contains(&g.sim_scenario.as_str()) {
+            return Err(invalid(
+                "devices.gaze.sim_scenario",
+                format!(
+                    "unknown scenario {:?}; expected one of {}",
+                    g.sim_scenario,
+                    dioptra_sim::gaze::SCENARIOS.join(", ")
+                ),
+            ));
+        }
+        if !(g.sim_rate_hz.is_finite() && (1.0..=2000.0).contains(&g.sim_rate_hz)) {
+            return Err(invalid(
+                "devices.gaze.sim_rate_hz",
+                "expected a sample rate of 1 to 2000 Hz",
+            ));
+        }
+        if g.driver == GazeDriver::Hid && matches!(g.port, Port::Sim) {
+            return Err(invalid(
+                "devices.gaze.port",
+                "the simulated tracker is the dioptra tracker: use driver = \"dioptra-tracker\" with port = \"sim\"",
+            ));
+        }
+        if self.mode == Mode::Multifocal && self.devices.sync.is_none() {
+            return Err(invalid(
+                "devices.sync",
+                "multifocal mode needs a sync board: add [devices.sync] with driver = \"sync\" and a port",
+            ));
+        }
+        if !self.method.fits(self.mode) {
+            return Err(invalid(
+                "method",
+                format!(
+                    "{} does not render for {} mode; expected {}",
+                    self.method.as_str(),
+                    self.mode.as_str(),
+                    Method::for_mode(self.mode)
+                ),
+            ));
+        }
+        if let Some(why) = self.method.unavailable() {
+            return Err(invalid("method", why));
+        }
+        let e = &self.eye;
+        dioptra_core::EyeModel {
+            pupil_diameter: dioptra_core::Millimeters(e.pupil_mm),
+            fov_horizontal_deg: e.fov_deg,
+            ..Default::default()
+        }
+        .validated()
+        .map_err(|err| invalid("eye", err.to_string()))?;
+        if !(e.ipd_mm.is_finite() && (40.0..=90.0).contains(&e.ipd_mm)) {
+            return Err(invalid("eye.ipd_mm", "expected 40 to 90 mm"));
+        }
+        let d = &self.display;
+        if !(8..=4096).contains(&d.width) || !(8..=4096).contains(&d.height) {
+            return Err(invalid(
+                "display",
+                "width and height must be 8 to 4096 pixels",
+            ));
+        }
+        if !(d.frame_hz.is_finite() && (1.0..=1000.0).contains(&d.frame_hz)) {
+            return Err(invalid("display.frame_hz", "expected 1 to 1000 Hz"));
+        }
+        if d.png_every > 0 && d.png_dir.is_none() {
+            return Err(invalid(
+                "display.png_dir",
+                "display.png_every is set: give a directory for the PNGs",
+            ));
+        }
+        self.listen()?;
+        Ok(())
+    }
+
+    /// Where the API listens. A non-loopback address needs `api.allow_remote = true`.
+    pub fn listen(&self) -> Result<Listen, ConfigError> {
+        let a = &self.api;
+        match (&a.listen, &a.unix) {
+            (Some(_), Some(_)) => Err(invalid(
+                "api",
+                "give either listen (TCP) or unix (a socket path), not both",
+            )),
+            (None, Some(p)) => Ok(Listen::Unix(p.clone())),
+            (listen, None) => {
+                let s = listen.as_deref().unwrap_or(DEFAULT_LISTEN);
+                let addr: SocketAddr = s.parse().map_err(|_| {
+                    invalid(
+                        "api.listen",
+                        format!(
+                            "{s:?} is not an address: expected IP:PORT, e.g. \"127.0.0.1:7420\""
+                        ),
+                    )
+                })?;
+                if !addr.ip().is_loopback() && !a.allow_remote {
+                    return Err(invalid(
+                        "api.listen",
+                        format!(
+                            "{addr} is reachable from other machines and the API has no authentication; \
+                             use 127.0.0.1 or set api.allow_remote = true if you mean it"
+                        ),
+                    ));
+                }
+                Ok(Listen::Tcp(addr))
+            }
+        }
+    }
+}
+
+fn one_line(s: &str) -> String {
+    s.lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A complete simulated rig; tests edit it.
+    pub const SIM_RIG: &str = include_str!("../../examples/rig-sim.toml");
+
+    fn err(text: &str) -> ConfigError {
+        match RigConfig::parse(text) {
+            Ok(c) => panic!("config accepted: {c:?}"),
+            Err(e) => e,
+        }
+    }
+
+    #[test]
+    fn the_example_config_parses() {
+        let c = RigConfig::parse(SIM_RIG).unwrap();
+        assert_eq!(c.mode, Mode::Varifocal);
+        assert_eq!(c.devices.lens.port, Port::Sim);
+        assert_eq!(
+            c.listen().unwrap(),
+            Listen::Tcp("127.0.0.1:7420".parse().unwrap())
+        );
+    }
+
+    #[test]
+    fn lens_range_min_must_be_below_max() {
+        let e = err(&SIM_RIG.replace(
+            "lens_range = { min = -1.0, max = 4.0 }",
+            "lens_range = { min = 3.0, max = 1.0 }",
+        ));
+        assert_eq!(e.key(), "optics.lens_range");
+        assert!(e.to_string().contains("min must be below max"), "{e}");
+    }
+
+    #[test]
+    fn unknown_keys_are_named() {
+        let e = err(&SIM_RIG.replace("[optics]", "[optics]\nfocal_lenght = 3"));
+        assert_eq!(e.key(), "optics.focal_lenght", "{e}");
+        let s = e.to_string();
+        assert!(s.contains("unknown field `focal_lenght`"), "{s}");
+        assert!(s.contains("expected one of `display_distance_m`"), "{s}");
+    }
+
+    #[test]
+    fn wrong_types_name_the_key_and_form() {
+        let e = err(&SIM_RIG.replace("park_power = 0.5", "park_power = \"far\""));
+        assert_eq!(e.key(), "devices.lens.park_power", "{e}");
+        assert!(e.to_string().contains("expected f32"), "{e}");
+        let line = SIM_RIG
+            .lines()
+            .position(|l| l.starts_with("park_power"))
+            .unwrap()
+            + 1;
+        assert!(e.to_string().contains(&format!("(line {line})")), "{e}");
+    }
+
+    #[test]
+    fn unknown_mode_lists_the_modes() {
+        let e = err(&SIM_RIG.replace("mode = \"varifocal\"", "mode = \"holographic\""));
+        assert_eq!(e.key(), "mode");
+        let s = e.to_string();
+        assert!(s.contains("varifocal") && s.contains("multifocal"), "{s}");
+    }
+
+    #[test]
+    fn bad_ports_say_the_accepted_forms() {
+        let e = err(&SIM_RIG.replace("port = \"sim\"\npark_power", "port = \"COM3\"\npark_power"));
+        assert_eq!(e.key(), "devices.lens.port", "{e}");
+        assert!(e.to_string().contains("VID:PID"), "{e}");
+        let ok = RigConfig::parse(&SIM_RIG.replace(
+            "port = \"sim\"\npark_power",
+            "port = \"/dev/ttyACM0\"\npark_power",
+        ))
+        .unwrap();
+        assert_eq!(ok.devices.lens.port, Port::Path("/dev/ttyACM0".into()));
+    }
+
+    #[test]
+    fn missing_sections_are_named() {
+        let start = SIM_RIG.find("[devices.gaze]").unwrap();
+        let end = SIM_RIG.find("[optics]").unwrap();
+        let text = format!("{}{}", &SIM_RIG[..start], &SIM_RIG[end..]);
+        let e = err(&text);
+        assert!(e.to_string().contains("missing field `gaze`"), "{e}");
+        assert_eq!(e.key(), "devices");
+    }
+
+    #[test]
+    fn park_power_must_be_inside_the_lens_range() {
+        let e = err(&SIM_RIG.replace("park_power = 0.5", "park_power = 9.0"));
+        assert_eq!(e.key(), "devices.lens.park_power");
+    }
+
+    #[test]
+    fn multifocal_needs_a_sync_board_and_a_decomposition() {
+        let text = SIM_RIG.replace("mode = \"varifocal\"", "mode = \"multifocal\"");
+        let start = text.find("[devices.sync]").unwrap();
+        let end = text.find("[optics]").unwrap();
+        let no_sync = format!("{}{}", &text[..start], &text[end..]);
+        assert_eq!(err(&no_sync).key(), "devices.sync");
+        let e = err(&text);
+        assert_eq!(e.key(), "method");
+        assert!(e.to_string().contains("linear, optimized"), "{e}");
+        let ok = RigConfig::parse(&text.replace("method = \"gather\"", "method = \"linear\""));
+        assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn a_remote_listen_address_needs_allow_remote() {
+        let text = SIM_RIG.replace("127.0.0.1:7420", "0.0.0.0:7420");
+        let e = err(&text);
+        assert_eq!(e.key(), "api.listen");
+        assert!(e.to_string().contains("allow_remote"), "{e}");
+        let ok = RigConfig::parse(&text.replace("[api]", "[api]\nallow_remote = true")).unwrap();
+        assert!(matches!(ok.listen().unwrap(), Listen::Tcp(a) if !a.ip().is_loopback()));
+        let e = err(&SIM_RIG.replace("127.0.0.1:7420", "localhost"));
+        assert!(e.to_string().contains("IP:PORT"), "{e}");
+    }
+
+    #[test]
+    fn toml_syntax_errors_say_where() {
+        let e = err("mode = varifocal");
+        assert!(e.to_string().contains("line 1"), "{e}");
+    }
+
+    #[test]
+    fn planes_outside_the_lens_range_are_refused() {
+        let e = err(&SIM_RIG.replace("planes = [0.2, 0.8, 1.4, 2.0]", "planes = [0.2, 8.0]"));
+        assert_eq!(e.key(), "optics.planes");
+    }
+}

@@ -1,0 +1,930 @@
+//! One task per device. Each task connects (retrying with exponential backoff while the rest
+//! of the daemon runs), then serves its device until it is lost (back to connecting) or the
+//! daemon stops (the lens is parked first). Every task reports its state to the
+//! [`Registry`] the API shows: connecting, ok or lost, with the last error.
+//!
+//! With `port = "sim"` the device is a dioptra-sim simulator run in-process and reached
+//! through `dioptra_transport::memory` links, so the real driver runs on the real bytes.
+//! A [`SimPlug`] can unplug and replug it, as a cable would.
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use dioptra_core::{
+    Clock, DeviceError, Diopters, GazeSample, GazeSource, LensState, LinkError, PlaneSchedule,
+    PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
+};
+use dioptra_lens::{
+    ControllerConfig, LensController, LensLimits, Opener, Optotune, OptotuneConfig,
+};
+use dioptra_sim::lens_model::{LensModel, LensModelConfig};
+use dioptra_sim::serve::ByteDevice;
+use dioptra_transport::memory::{self, MemoryLink};
+use serde::Serialize;
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+
+use super::config::{GazeDriver, LensDriver, Port, RigConfig};
+
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    // Every critical section leaves the data consistent, so a poisoned lock is still usable.
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A device's connection state, as the API shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum State {
+    Connecting,
+    Ok,
+    Lost,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DeviceStatus {
+    pub driver: String,
+    pub port: String,
+    pub state: State,
+    /// The last error, kept after the device comes back.
+    pub last_error: Option<String>,
+    /// Successful connects so far (more than one: it was lost and came back).
+    pub connects: u64,
+    /// Failed connects and losses so far.
+    pub failures: u64,
+}
+
+/// Every device's status, shared between the device tasks and the API.
+#[derive(Debug, Default)]
+pub struct Registry(Mutex<BTreeMap<String, DeviceStatus>>);
+
+impl Registry {
+    pub fn snapshot(&self) -> BTreeMap<String, DeviceStatus> {
+        lock(&self.0).clone()
+    }
+    fn add(self: &Arc<Self>, name: &str, driver: &str, port: &Port) -> DeviceHandle {
+        lock(&self.0).insert(
+            name.to_string(),
+            DeviceStatus {
+                driver: driver.to_string(),
+                port: port.to_string(),
+                state: State::Connecting,
+                last_error: None,
+                connects: 0,
+                failures: 0,
+            },
+        );
+        DeviceHandle {
+            registry: self.clone(),
+            name: name.to_string(),
+        }
+    }
+}
+
+/// One device's entry in the [`Registry`].
+#[derive(Debug, Clone)]
+pub struct DeviceHandle {
+    registry: Arc<Registry>,
+    name: String,
+}
+
+impl DeviceHandle {
+    fn update(&self, f: impl FnOnce(&mut DeviceStatus)) {
+        if let Some(s) = lock(&self.registry.0).get_mut(&self.name) {
+            f(s);
+        }
+    }
+    fn connecting(&self) {
+        self.update(|s| s.state = State::Connecting);
+    }
+    fn ok(&self) {
+        self.update(|s| {
+            s.state = State::Ok;
+            s.connects += 1;
+        });
+        tracing::info!(device = %self.name, "connected");
+    }
+    fn lost(&self, e: &DeviceError) {
+        self.update(|s| {
+            s.state = State::Lost;
+            s.failures += 1;
+            s.last_error = Some(e.to_string());
+        });
+        tracing::warn!(device = %self.name, error = %e, "lost; retrying");
+    }
+    /// An error that did not cost the connection (a refusal, a timeout).
+    fn error(&self, e: &DeviceError) {
+        self.update(|s| s.last_error = Some(e.to_string()));
+        tracing::warn!(device = %self.name, error = %e, "device error");
+    }
+}
+
+/// Exponential backoff between connection attempts.
+#[derive(Debug, Clone)]
+pub struct Backoff {
+    next: Duration,
+    min: Duration,
+    max: Duration,
+}
+
+impl Backoff {
+    pub fn new(min: Duration, max: Duration) -> Self {
+        Backoff {
+            next: min,
+            min,
+            max,
+        }
+    }
+    /// The wait before the next attempt; doubles each call up to the maximum.
+    pub fn next_wait(&mut self) -> Duration {
+        let w = self.next;
+        self.next = (self.next * 2).min(self.max);
+        w
+    }
+    pub fn reset(&mut self) {
+        self.next = self.min;
+    }
+}
+
+pub const BACKOFF_MIN: Duration = Duration::from_millis(100);
+pub const BACKOFF_MAX: Duration = Duration::from_secs(5);
+/// A connect attempt that takes longer than this is abandoned and retried.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// How often the lens task reads the lens's state.
+const LENS_POLL: Duration = Duration::from_millis(10);
+/// How long parking may take before shutdown goes on without it.
+const PARK_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// Connects, retrying with backoff; `None` when cancelled first.
+async fn connect_retrying<D, F, Fut>(
+    dev: &DeviceHandle,
+    cancel: &CancellationToken,
+    backoff: &mut Backoff,
+    connect: &mut F,
+) -> Option<D>
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<D, DeviceError>>,
+{
+    loop {
+        dev.connecting();
+        let attempt = tokio::time::timeout(CONNECT_TIMEOUT, connect());
+        let r = tokio::select! {
+            _ = cancel.cancelled() => return None,
+            r = attempt => r,
+        };
+        let r = r.unwrap_or_else(|_| {
+            Err(DeviceError::Link(LinkError::Timeout {
+                ms: CONNECT_TIMEOUT.as_millis() as u64,
+            }))
+        });
+        match r {
+            Ok(d) => {
+                dev.ok();
+                backoff.reset();
+                return Some(d);
+            }
+            Err(e) => {
+                dev.lost(&e);
+                let wait = backoff.next_wait();
+                tokio::select! {
+                    _ = cancel.cancelled() => return None,
+                    _ = tokio::time::sleep(wait) => {}
+                }
+            }
+        }
+    }
+}
+
+/// What a device task tells the loop.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DeviceInput {
+    Gaze(GazeSample),
+    LensState(LensState),
+    /// Lens command `id` (for `requested`) went on the wire at `wire_time`.
+    LensWire {
+        id: u64,
+        requested: Diopters,
+        wire_time: Timestamp,
+    },
+    /// The lens link came up (true) or went down (false).
+    LensLink(bool),
+    Sync(SequencerEvent),
+}
+
+/// Whether an error means the device must be reconnected.
+fn is_lost(e: &DeviceError) -> bool {
+    e.needs_reconnect() || matches!(e, DeviceError::Link(LinkError::Unavailable(_)))
+}
+
+/// How the lens was left at shutdown.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ParkReport {
+    pub park_power: f32,
+    /// Power the lens reported after parking, when it answered.
+    pub reported_power: Option<f32>,
+    pub error: Option<String>,
+}
+
+/// The lens task: applies the newest commanded power, reads the state every [`LENS_POLL`],
+/// and parks the lens at `park` when cancelled.
+pub async fn lens_task<D, F, Fut>(
+    mut connect: F,
+    dev: DeviceHandle,
+    mut commands: watch::Receiver<Option<(u64, Diopters)>>,
+    out: mpsc::Sender<DeviceInput>,
+    park: Diopters,
+    cancel: CancellationToken,
+) -> ParkReport
+where
+    D: VarifocalLens,
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<D, DeviceError>>,
+{
+    let mut backoff = Backoff::new(BACKOFF_MIN, BACKOFF_MAX);
+    loop {
+        let Some(mut lens) = connect_retrying(&dev, &cancel, &mut backoff, &mut connect).await
+        else {
+            return ParkReport {
+                park_power: park.0,
+                reported_power: None,
+                error: Some("the lens was not connected at shutdown, so it was not parked".into()),
+            };
+        };
+        // The scheduler sends its current target again when told the link is back.
+        let _ = out.send(DeviceInput::LensLink(true)).await;
+        let mut poll = tokio::time::interval(LENS_POLL);
+        poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let lost = loop {
+            tokio::select! {
+                biased;
+                _ = cancel.cancelled() => return park_lens(&mut lens, park).await,
+                r = commands.changed() => {
+                    if r.is_err() {
+                        // The loop is gone: nothing more will be commanded.
+                        cancel.cancelled().await;
+                        continue;
+                    }
+                    let Some((id, p)) = *commands.borrow_and_update() else { continue };
+                    match lens.set_power(p).await {
+                        Ok(t) => {
+                            let _ = out.try_send(DeviceInput::LensWire { id, requested: p, wire_time: t });
+                        }
+                        Err(e) if is_lost(&e) => break e,
+                        Err(e) => dev.error(&e),
+                    }
+                }
+                _ = poll.tick() => match lens.state().await {
+                    Ok(s) => {
+                        let _ = out.try_send(DeviceInput::LensState(s));
+                    }
+                    Err(e) if is_lost(&e) => break e,
+                    Err(e) => dev.error(&e),
+                },
+            }
+        };
+        dev.lost(&lost);
+        let _ = out.send(DeviceInput::LensLink(false)).await;
+    }
+}
+
+/// Commands `park` and waits (up to [`PARK_TIMEOUT`]) until the lens reports it.
+async fn park_lens<D: VarifocalLens>(lens: &mut D, park: Diopters) -> ParkReport {
+    let mut report = ParkReport {
+        park_power: park.0,
+        reported_power: None,
+        error: None,
+    };
+    if let Err(e) = lens.set_power(park).await {
+        report.error = Some(format!("parking the lens failed: {e}"));
+        return report;
+    }
+    let wait = async {
+        loop {
+            match lens.state().await {
+                Ok(s) => {
+                    report.reported_power = Some(s.power.0);
+                    let close = (s.power.0 - park.0).abs() <= 0.02;
+                    if close && s.settled != Some(false) {
+                        return;
+                    }
+                }
+                Err(e) => {
+                    report.error = Some(format!("reading the parked lens failed: {e}"));
+                    return;
+                }
+            }
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+    };
+    if tokio::time::timeout(PARK_TIMEOUT, wait).await.is_err() {
+        report.error = Some(format!(
+            "the lens did not report {} D within {PARK_TIMEOUT:?} of the park command",
+            park.0
+        ));
+    }
+    report
+}
+
+/// The gaze task: forwards every sample to the loop.
+pub async fn gaze_task<G, F, Fut>(
+    mut connect: F,
+    dev: DeviceHandle,
+    out: mpsc::Sender<DeviceInput>,
+    cancel: CancellationToken,
+) where
+    G: GazeSource,
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<G, DeviceError>>,
+{
+    let mut backoff = Backoff::new(BACKOFF_MIN, BACKOFF_MAX);
+    loop {
+        let Some(mut g) = connect_retrying(&dev, &cancel, &mut backoff, &mut connect).await else {
+            return;
+        };
+        let lost = loop {
+            let r = tokio::select! {
+                _ = cancel.cancelled() => return,
+                r = g.next_sample() => r,
+            };
+            match r {
+                Ok(s) => {
+                    if out.send(DeviceInput::Gaze(s)).await.is_err() {
+                        return;
+                    }
+                }
+                Err(e) if is_lost(&e) => break e,
+                Err(e) => dev.error(&e),
+            }
+        };
+        dev.lost(&lost);
+    }
+}
+
+/// The sync task: runs `schedule` while the mode is multifocal, forwards its events, and
+/// stops the sequence when the mode changes or the daemon stops.
+pub async fn sync_task<S, F, Fut>(
+    mut connect: F,
+    dev: DeviceHandle,
+    schedule: PlaneSchedule,
+    mut multifocal: watch::Receiver<bool>,
+    out: mpsc::Sender<DeviceInput>,
+    cancel: CancellationToken,
+) where
+    S: PlaneSequencer,
+    F: FnMut() -> Fut,
+    Fut: Future<Output = Result<S, DeviceError>>,
+{
+    let mut backoff = Backoff::new(BACKOFF_MIN, BACKOFF_MAX);
+    loop {
+        let Some(mut s) = connect_retrying(&dev, &cancel, &mut backoff, &mut connect).await else {
+            return;
+        };
+        let mut running = false;
+        multifocal.mark_changed();
+        let lost: DeviceError = loop {
+            tokio::select! {
+                biased;
+                _ = cancel.cancelled() => {
+                    if running {
+                        if let Err(e) = s.stop().await {
+                            dev.error(&e);
+                        }
+                    }
+                    return;
+                }
+                r = multifocal.changed() => {
+                    if r.is_err() {
+                        cancel.cancelled().await;
+                        continue;
+                    }
+                    let want = *multifocal.borrow_and_update();
+                    let r = if want && !running {
+                        match s.program(&schedule).await {
+                            Ok(()) => s.start().await,
+                            Err(e) => Err(e),
+                        }
+                    } else if !want && running {
+                        s.stop().await
+                    } else {
+                        Ok(())
+                    };
+                    match r {
+                        Ok(()) => running = want,
+                        Err(e) if is_lost(&e) => break e,
+                        Err(e) => dev.error(&e),
+                    }
+                }
+                r = s.next_event(), if running => match r {
+                    Ok(ev) => {
+                        let _ = out.try_send(DeviceInput::Sync(ev));
+                    }
+                    Err(e) if is_lost(&e) => break e,
+                    Err(e) => dev.error(&e),
+                },
+            }
+        };
+        dev.lost(&lost);
+    }
+}
+
+/// Plugs and unplugs a simulated device, as its cable would.
+#[derive(Default)]
+pub struct SimPlug {
+    plugged: AtomicBool,
+    /// Cuts the current connection.
+    current: Mutex<Option<Box<dyn FnOnce() + Send>>>,
+}
+
+impl std::fmt::Debug for SimPlug {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimPlug")
+            .field("plugged", &self.is_plugged())
+            .finish_non_exhaustive()
+    }
+}
+
+impl SimPlug {
+    fn new() -> Arc<Self> {
+        Arc::new(SimPlug {
+            plugged: AtomicBool::new(true),
+            current: Mutex::new(None),
+        })
+    }
+    pub fn is_plugged(&self) -> bool {
+        self.plugged.load(Ordering::Acquire)
+    }
+    /// Cuts the link and refuses new ones until [`SimPlug::replug`].
+    pub fn unplug(&self) {
+        self.plugged.store(false, Ordering::Release);
+        if let Some(cut) = lock(&self.current).take() {
+            cut();
+        }
+    }
+    pub fn replug(&self) {
+        self.plugged.store(true, Ordering::Release);
+    }
+    fn check(&self, what: &str) -> Result<(), LinkError> {
+        if self.is_plugged() {
+            Ok(())
+        } else {
+            Err(LinkError::Unavailable(format!(
+                "the simulated {what} is unplugged"
+            )))
+        }
+    }
+    fn set_current(&self, cut: impl FnOnce() + Send + 'static) {
+        if let Some(old) = lock(&self.current).replace(Box::new(cut)) {
+            old();
+        }
+    }
+}
+
+/// A byte-speaking simulator shared between its serve tasks (one per connection) and the
+/// test or API that inspects it.
+struct Shared<D>(Arc<Mutex<D>>);
+
+impl<D: ByteDevice> ByteDevice for Shared<D> {
+    fn wait(&self, now: Timestamp) -> Duration {
+        lock(&self.0).wait(now)
+    }
+    fn advance_to(&mut self, now: Timestamp, out: &mut Vec<u8>) {
+        lock(&self.0).advance_to(now, out)
+    }
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        lock(&self.0).receive(bytes, out)
+    }
+    fn idle(&mut self, out: &mut Vec<u8>) {
+        lock(&self.0).idle(out)
+    }
+}
+
+/// Opens a new in-memory link to a shared simulator, served on `clock`.
+fn sim_opener<D: ByteDevice + Send + 'static>(
+    what: &'static str,
+    device: Arc<Mutex<D>>,
+    plug: Arc<SimPlug>,
+    clock: Arc<dyn Clock>,
+) -> Opener<MemoryLink> {
+    Opener::new(move || {
+        let device = device.clone();
+        let plug = plug.clone();
+        let clock = clock.clone();
+        async move {
+            plug.check(what)?;
+            let (host, mut end) = memory::pair(4096);
+            let faults = end.faults();
+            plug.set_current(move || faults.disconnect("unplugged"));
+            tokio::spawn(async move {
+                let mut shared = Shared(device);
+                let _ = dioptra_sim::serve::serve(&mut end, &mut shared, clock.as_ref()).await;
+            });
+            Ok(host.named(format!("simulated {what}")))
+        }
+    })
+}
+
+/// The simulated lens of a `sim` rig, for tests and the API to look at.
+#[derive(Clone)]
+pub enum SimLens {
+    Optotune(Arc<Mutex<dioptra_sim::optotune::OptotuneSim>>),
+    Controller(Arc<Mutex<dioptra_sim::lens_controller::LensControllerSim>>),
+}
+
+impl SimLens {
+    /// The lens model as the simulator last advanced it.
+    pub fn model(&self) -> LensModel {
+        match self {
+            SimLens::Optotune(d) => lock(d).lens().clone(),
+            SimLens::Controller(d) => lock(d).lens().clone(),
+        }
+    }
+}
+
+/// Handles on the simulated devices of a rig (empty for hardware).
+#[derive(Clone, Default)]
+pub struct SimDevices {
+    pub lens: Option<(SimLens, Arc<SimPlug>)>,
+    pub gaze: Option<Arc<SimPlug>>,
+    pub sync: Option<Arc<SimPlug>>,
+}
+
+/// Channels between the device tasks and the loop.
+pub struct DeviceLinks {
+    /// The newest lens command: (scheduler's command id, power).
+    pub lens_commands: watch::Sender<Option<(u64, Diopters)>>,
+    pub multifocal: watch::Sender<bool>,
+}
+
+/// Spawned device tasks: the lens task's park report comes back through `lens`.
+pub struct DeviceTasks {
+    pub lens: tokio::task::JoinHandle<ParkReport>,
+    pub others: Vec<tokio::task::JoinHandle<()>>,
+}
+
+fn lens_limits(cfg: &RigConfig) -> Result<LensLimits, DeviceError> {
+    let r = cfg.optics.lens_range;
+    PowerRange::new(Diopters(r.min), Diopters(r.max))
+        .map(LensLimits::new)
+        .ok_or_else(|| DeviceError::Invalid("optics.lens_range is empty".into()))
+}
+
+fn lens_model_cfg(cfg: &RigConfig) -> LensModelConfig {
+    LensModelConfig {
+        settle_time: Duration::from_secs_f64(cfg.devices.lens.sim_settle_ms / 1000.0),
+        ..Default::default()
+    }
+}
+
+fn serial(path: &std::path::Path) -> Result<dioptra_transport::serial::SerialLink, LinkError> {
+    dioptra_transport::serial::SerialLink::open(
+        path,
+        dioptra_transport::serial::SerialSettings::baud(115_200),
+    )
+}
+
+fn unsupported_port(what: &str, port: &Port) -> DeviceError {
+    DeviceError::Link(LinkError::Unavailable(format!(
+        "the {what} cannot be reached at {port}: give its device path (e.g. /dev/ttyACM0) or \"sim\""
+    )))
+}
+
+/// Starts every device task of `cfg`. Returns the sim handles, the channels and the tasks.
+pub fn spawn_devices(
+    cfg: &RigConfig,
+    registry: &Arc<Registry>,
+    clock: Arc<dyn Clock>,
+    out: mpsc::Sender<DeviceInput>,
+    cancel: &CancellationToken,
+) -> Result<(SimDevices, DeviceLinks, DeviceTasks), DeviceError> {
+    let mut sims = SimDevices::default();
+    let (lens_tx, lens_rx) = watch::channel(None);
+    let (mf_tx, mf_rx) = watch::channel(cfg.mode == super::config::Mode::Multifocal);
+    let limits = lens_limits(cfg)?;
+    let park = Diopters(cfg.devices.lens.park_power);
+    let l = &cfg.devices.lens;
+    let lens_dev = registry.add(
+        "lens",
+        match l.driver {
+            LensDriver::Optotune => "optotune",
+            LensDriver::Lens => "lens",
+        },
+        &l.port,
+    );
+    let c = cancel.clone();
+    let out_l = out.clone();
+    let lens = match (&l.driver, &l.port) {
+        (LensDriver::Optotune, Port::Sim) => {
+            let dev = Arc::new(Mutex::new(dioptra_sim::optotune::OptotuneSim::new(
+                dioptra_sim::optotune::OptotuneSimConfig {
+                    lens: lens_model_cfg(cfg),
+                    ..Default::default()
+                },
+            )));
+            let plug = SimPlug::new();
+            sims.lens = Some((SimLens::Optotune(dev.clone()), plug.clone()));
+            let opener = Arc::new(tokio::sync::Mutex::new(sim_opener(
+                "Lens Driver 4",
+                dev,
+                plug,
+                clock.clone(),
+            )));
+            let clock = clock.clone();
+            tokio::spawn(lens_task(
+                move || {
+                    let (opener, clock) = (opener.clone(), clock.clone());
+                    async move {
+                        let link = opener.lock().await.open().await?;
+                        Optotune::connect(link, OptotuneConfig::new(limits), clock).await
+                    }
+                },
+                lens_dev,
+                lens_rx,
+                out_l,
+                park,
+                c,
+            ))
+        }
+        (LensDriver::Lens, Port::Sim) => {
+            let dev = Arc::new(Mutex::new(
+                dioptra_sim::lens_controller::LensControllerSim::new(
+                    dioptra_sim::lens_controller::LensControllerSimConfig {
+                        lens: lens_model_cfg(cfg),
+                        ..Default::default()
+                    },
+                ),
+            ));
+            let plug = SimPlug::new();
+            sims.lens = Some((SimLens::Controller(dev.clone()), plug.clone()));
+            let opener = Arc::new(tokio::sync::Mutex::new(sim_opener(
+                "lens controller",
+                dev,
+                plug,
+                clock.clone(),
+            )));
+            let clock = clock.clone();
+            tokio::spawn(lens_task(
+                move || {
+                    let (opener, clock) = (opener.clone(), clock.clone());
+                    async move {
+                        let link = opener.lock().await.open().await?;
+                        LensController::connect(link, ControllerConfig::new(limits), clock).await
+                    }
+                },
+                lens_dev,
+                lens_rx,
+                out_l,
+                park,
+                c,
+            ))
+        }
+        (LensDriver::Optotune, port) => {
+            let port = port.clone();
+            let clock = clock.clone();
+            tokio::spawn(lens_task(
+                move || {
+                    let (port, clock) = (port.clone(), clock.clone());
+                    async move {
+                        let Port::Path(p) = &port else {
+                            return Err(unsupported_port("Lens Driver 4", &port));
+                        };
+                        let link = serial(p)?;
+                        Optotune::connect(link, OptotuneConfig::new(limits), clock).await
+                    }
+                },
+                lens_dev,
+                lens_rx,
+                out_l,
+                park,
+                c,
+            ))
+        }
+        (LensDriver::Lens, port) => {
+            let port = port.clone();
+            let clock = clock.clone();
+            tokio::spawn(lens_task(
+                move || {
+                    let (port, clock) = (port.clone(), clock.clone());
+                    async move {
+                        let Port::Path(p) = &port else {
+                            return Err(unsupported_port("lens controller", &port));
+                        };
+                        let link = serial(p)?;
+                        LensController::connect(link, ControllerConfig::new(limits), clock).await
+                    }
+                },
+                lens_dev,
+                lens_rx,
+                out_l,
+                park,
+                c,
+            ))
+        }
+    };
+
+    let mut others = Vec::new();
+    let g = &cfg.devices.gaze;
+    let gaze_dev = registry.add(
+        "gaze",
+        match g.driver {
+            GazeDriver::DioptraTracker => "dioptra-tracker",
+            GazeDriver::Hid => "hid",
+        },
+        &g.port,
+    );
+    let tracker_cfg = dioptra_gaze::dioptra_tracker::DioptraTrackerConfig::default;
+    match (&g.driver, &g.port) {
+        (_, Port::Sim) => {
+            let plug = SimPlug::new();
+            sims.gaze = Some(plug.clone());
+            let gen_cfg = dioptra_sim::gaze::GeneratorConfig {
+                rate_hz: g.sim_rate_hz,
+                seed: g.sim_seed,
+                ipd_mm: f64::from(cfg.eye.ipd_mm),
+                ..Default::default()
+            };
+            let scenario = g.sim_scenario.clone();
+            let clock = clock.clone();
+            others.push(tokio::spawn(gaze_task(
+                move || {
+                    let (plug, clock, scenario) = (plug.clone(), clock.clone(), scenario.clone());
+                    async move {
+                        plug.check("eye tracker")?;
+                        let scene =
+                            dioptra_sim::gaze::Scene::named(&scenario).ok_or_else(|| {
+                                DeviceError::Invalid(format!("unknown gaze scenario {scenario:?}"))
+                            })?;
+                        let generator = dioptra_sim::gaze::GazeGenerator::new(scene, gen_cfg)
+                            .map_err(DeviceError::Invalid)?;
+                        let (link, tracker) =
+                            dioptra_sim::gaze::dioptra_tracker::spawn(Box::new(generator));
+                        plug.set_current(move || {
+                            tracker.disconnect("unplugged");
+                            drop(tracker);
+                        });
+                        dioptra_gaze::dioptra_tracker::DioptraTracker::connect(
+                            link,
+                            tracker_cfg(),
+                            clock,
+                        )
+                        .await
+                    }
+                },
+                gaze_dev,
+                out.clone(),
+                cancel.clone(),
+            )));
+        }
+        (driver, port) => {
+            let (driver, port) = (*driver, port.clone());
+            let clock = clock.clone();
+            let open =
+                move |port: &Port| -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
+                    Ok(match port {
+                        Port::VidPid(v, p) => {
+                            dioptra_transport::hid::HidapiLink::open(*v, *p, None)?
+                        }
+                        Port::Path(p) => {
+                            dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?
+                        }
+                        Port::Sim => return Err(unsupported_port("eye tracker", port)),
+                    })
+                };
+            match driver {
+                GazeDriver::DioptraTracker => others.push(tokio::spawn(gaze_task(
+                    move || {
+                        let (link, clock) = (open(&port), clock.clone());
+                        async move {
+                            dioptra_gaze::dioptra_tracker::DioptraTracker::connect(
+                                link?,
+                                tracker_cfg(),
+                                clock,
+                            )
+                            .await
+                        }
+                    },
+                    gaze_dev,
+                    out.clone(),
+                    cancel.clone(),
+                ))),
+                GazeDriver::Hid => others.push(tokio::spawn(gaze_task(
+                    move || {
+                        let (link, clock) = (open(&port), clock.clone());
+                        async move {
+                            dioptra_gaze::eye_hid::HidEyeTracker::connect(
+                                link?,
+                                dioptra_gaze::eye_hid::HidTrackerConfig::default(),
+                                clock,
+                            )
+                            .await
+                        }
+                    },
+                    gaze_dev,
+                    out.clone(),
+                    cancel.clone(),
+                ))),
+            }
+        }
+    }
+
+    if let Some(s) = &cfg.devices.sync {
+        let sync_dev = registry.add("sync", "sync", &s.port);
+        let schedule = PlaneSchedule::new(
+            cfg.optics.planes.iter().copied().map(Diopters).collect(),
+            Duration::from_secs_f64(1.0 / cfg.optics.subframe_hz),
+            Duration::from_secs_f64(0.25 / cfg.optics.subframe_hz),
+        )
+        .map_err(|e| DeviceError::Invalid(format!("optics.planes: {e}")))?;
+        match &s.port {
+            Port::Sim => {
+                let dev = Arc::new(Mutex::new(dioptra_sim::sync_board::SyncBoardSim::new(
+                    dioptra_sim::sync_board::SyncBoardSimConfig {
+                        lens: lens_model_cfg(cfg),
+                        ..Default::default()
+                    },
+                )));
+                let plug = SimPlug::new();
+                sims.sync = Some(plug.clone());
+                let opener = Arc::new(tokio::sync::Mutex::new(sim_opener(
+                    "sync board",
+                    dev,
+                    plug,
+                    clock.clone(),
+                )));
+                let clock = clock.clone();
+                others.push(tokio::spawn(sync_task(
+                    move || {
+                        let (opener, clock) = (opener.clone(), clock.clone());
+                        async move {
+                            let link = opener.lock().await.open().await?;
+                            dioptra_sync::board::SyncBoard::connect(link, clock).await
+                        }
+                    },
+                    sync_dev,
+                    schedule,
+                    mf_rx,
+                    out.clone(),
+                    cancel.clone(),
+                )));
+            }
+            port => {
+                let port = port.clone();
+                let clock = clock.clone();
+                others.push(tokio::spawn(sync_task(
+                    move || {
+                        let (port, clock) = (port.clone(), clock.clone());
+                        async move {
+                            let Port::Path(p) = &port else {
+                                return Err(unsupported_port("sync board", &port));
+                            };
+                            dioptra_sync::board::SyncBoard::connect(serial(p)?, clock).await
+                        }
+                    },
+                    sync_dev,
+                    schedule,
+                    mf_rx,
+                    out.clone(),
+                    cancel.clone(),
+                )));
+            }
+        }
+    }
+    Ok((
+        sims,
+        DeviceLinks {
+            lens_commands: lens_tx,
+            multifocal: mf_tx,
+        },
+        DeviceTasks { lens, others },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_to_its_cap_and_resets() {
+        let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(500));
+        let waits: Vec<_> = (0..5).map(|_| b.next_wait().as_millis()).collect();
+        assert_eq!(waits, [100, 200, 400, 500, 500]);
+        b.reset();
+        assert_eq!(b.next_wait().as_millis(), 100);
+    }
+
+    #[test]
+    fn a_link_that_is_gone_needs_a_reconnect_and_a_refusal_does_not() {
+        assert!(is_lost(&DeviceError::Link(LinkError::Disconnected(
+            "x".into()
+        ))));
+        assert!(is_lost(&DeviceError::Link(LinkError::Unavailable(
+            "x".into()
+        ))));
+        assert!(!is_lost(&DeviceError::Refused {
+            code: 2,
+            detail: "no".into()
+        }));
+    }
+}

@@ -1,0 +1,242 @@
+//! The adapter between the daemon and [`dioptra_sched::Scheduler`]: the rig config becomes a
+//! [`SchedulerConfig`], the daemon's inputs become scheduler events, and API commands the
+//! scheduler would ignore (a method that does not suit the mode) are refused here with a
+//! reason, so the API can say why. The daemon loop and `dioptra replay` both drive the
+//! scheduler through this one adapter, so a replay sees exactly what the run saw.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{
+    DepthMap, Diopters, EyeModel, Millimeters, PlaneSchedule, PowerRange, Rgbd, Timestamp,
+};
+use dioptra_sched::{
+    CommandId, DisplayTiming, Event, FrameId, LensDynamics, LinkStatus, RenderMethod, Scheduler,
+    SchedulerConfig,
+};
+use serde_json::json;
+
+pub use dioptra_sched::Command;
+
+use super::config::{Method, Mode, RigConfig};
+use super::devices::DeviceInput;
+use super::Control;
+
+/// What the daemon gives the scheduler.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Input {
+    Device(DeviceInput),
+    Control(Control),
+    /// The depth map of the scene being shown (the adapter holds it).
+    Depth,
+    RenderFinished {
+        frame: u64,
+        method: Method,
+        render_time: Duration,
+    },
+    /// A timer the scheduler asked for ([`Engine::next_wakeup`]).
+    Tick,
+    Shutdown,
+}
+
+/// `FixationOnset` -> `fixation_onset`: how recordings and the stream name a focus reason.
+pub fn reason_name(r: dioptra_sched::FocusReason) -> String {
+    let mut out = String::new();
+    for (i, ch) in format!("{r:?}").chars().enumerate() {
+        if ch.is_ascii_uppercase() && i > 0 {
+            out.push('_');
+        }
+        out.push(ch.to_ascii_lowercase());
+    }
+    out
+}
+
+/// The scheduler, configured from a rig config.
+pub struct Engine {
+    sched: Scheduler,
+    depth: Arc<DepthMap>,
+}
+
+impl std::fmt::Debug for Engine {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Engine").finish_non_exhaustive()
+    }
+}
+
+/// The scheduler's settings for a rig.
+pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
+    let mut s = SchedulerConfig::new(cfg.mode.sched());
+    s.method = cfg.method.0;
+    s.eye = EyeModel {
+        pupil_diameter: Millimeters(cfg.eye.pupil_mm),
+        fov_horizontal_deg: cfg.eye.fov_deg,
+        width_px: cfg.display.width,
+        ..EyeModel::default()
+    };
+    let r = cfg.optics.lens_range;
+    s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
+        .ok_or("optics.lens_range: min must be below max")?;
+    s.lens = LensDynamics {
+        settle_time: Duration::from_secs_f64(cfg.devices.lens.sim_settle_ms / 1000.0),
+        ..LensDynamics::default()
+    };
+    s.park_power = Diopters(cfg.devices.lens.park_power);
+    let period = Duration::from_secs_f64(1.0 / cfg.display.frame_hz);
+    s.display = DisplayTiming {
+        frame_period: period,
+        render_lead: period,
+        ..DisplayTiming::default()
+    };
+    // Always given, so that the API can switch to multifocal mode.
+    s.planes = Some(
+        PlaneSchedule::new(
+            cfg.optics.planes.iter().copied().map(Diopters).collect(),
+            Duration::from_secs_f64(1.0 / cfg.optics.subframe_hz),
+            Duration::from_secs_f64(0.25 / cfg.optics.subframe_hz),
+        )
+        .map_err(|e| format!("optics.planes: {e}"))?,
+    );
+    s.validate().map_err(|e| e.to_string())?;
+    Ok(s)
+}
+
+impl Engine {
+    /// A scheduler for `cfg`, reading fixation depth from `scene`'s depth map.
+    pub fn new(cfg: &RigConfig, scene: &Rgbd) -> Result<Engine, String> {
+        let sched = Scheduler::new(sched_config(cfg)?).map_err(|e| e.to_string())?;
+        Ok(Engine {
+            sched,
+            depth: Arc::new(scene.depth.clone()),
+        })
+    }
+
+    pub fn mode(&self) -> Mode {
+        Mode::from_sched(self.sched.config().mode)
+    }
+    pub fn method(&self) -> Method {
+        Method(self.sched.config().method)
+    }
+    pub fn next_wakeup(&self) -> Option<Timestamp> {
+        self.sched.next_wakeup()
+    }
+    pub fn scheduler(&self) -> &Scheduler {
+        &self.sched
+    }
+
+    /// Steps the scheduler. API commands it would ignore are refused with the reason.
+    pub fn step(&mut self, now: Timestamp, input: Input) -> Result<Vec<Command>, String> {
+        let event = match input {
+            Input::Device(d) => match d {
+                DeviceInput::Gaze(g) => Event::Gaze(g),
+                DeviceInput::LensState(s) => Event::LensState(s),
+                DeviceInput::LensWire { id, wire_time, .. } => Event::LensCommandWritten {
+                    id: CommandId(id),
+                    wire_time,
+                },
+                DeviceInput::LensLink(up) => Event::LensLink(if up {
+                    LinkStatus::Connected
+                } else {
+                    LinkStatus::Lost
+                }),
+                DeviceInput::Sync(e) => Event::Sequencer(e),
+            },
+            Input::Control(c) => match c {
+                Control::ManualFocus(d) => Event::ManualFocus(d.map(Diopters)),
+                Control::Method(m) => {
+                    if !m.fits(self.mode()) {
+                        return Err(format!(
+                            "{} does not make {} frames; use {}",
+                            m.as_str(),
+                            self.mode().as_str(),
+                            Method::for_mode(self.mode())
+                        ));
+                    }
+                    Event::SetMethod(m.0)
+                }
+                Control::Mode(m) => {
+                    let method = if self.method().fits(m) {
+                        self.method()
+                    } else {
+                        Method(RenderMethod::default_for(m.sched()))
+                    };
+                    if let Some(why) = method.unavailable() {
+                        return Err(format!(
+                            "{} mode would render with {}, and {why}",
+                            m.as_str(),
+                            method.as_str()
+                        ));
+                    }
+                    Event::SetMode(m.sched())
+                }
+            },
+            Input::Depth => Event::Depth(self.depth.clone()),
+            Input::RenderFinished {
+                frame,
+                method,
+                render_time,
+            } => Event::RenderFinished {
+                frame: FrameId(frame),
+                method: method.0,
+                render_time,
+            },
+            Input::Tick => Event::Tick,
+            Input::Shutdown => Event::Shutdown,
+        };
+        let mut out = Vec::new();
+        self.sched.step(now, event, &mut out);
+        Ok(out)
+    }
+
+    /// The scheduler's status and latency figures, for `GET /status` and replay reports.
+    pub fn status(&self) -> serde_json::Value {
+        let s = self.sched.status();
+        let c = s.counters;
+        let lat = self.sched.latency();
+        let stages: serde_json::Map<String, serde_json::Value> = dioptra_sched::Stage::ALL
+            .iter()
+            .filter_map(|&st| {
+                let h = lat.stage(st);
+                (!h.is_empty()).then(|| {
+                    (
+                        st.as_str().to_string(),
+                        json!({
+                            "count": h.len(),
+                            "p50_us": h.value_at_quantile(0.5),
+                            "p99_us": h.value_at_quantile(0.99),
+                            "max_us": h.max(),
+                        }),
+                    )
+                })
+            })
+            .collect();
+        json!({
+            "mode": Mode::from_sched(s.mode).as_str(),
+            "method": s.method.as_str(),
+            "phase": format!("{:?}", s.phase).to_lowercase(),
+            "vergence_d": s.vergence_d,
+            "fixation_depth_d": s.fixation_depth.map(|d| d.0),
+            "commanded_d": s.commanded_power.map(|d| d.0),
+            "lens_link": format!("{:?}", s.lens_link).to_lowercase(),
+            "last_settle_ms": s.last_settle.map(|d| d.as_secs_f64() * 1e3),
+            "shown_frame": s.shown_frame.map(|f| f.0),
+            "counters": {
+                "gaze_samples": c.gaze_samples,
+                "saccades": c.saccades,
+                "blinks": c.blinks,
+                "lens_commands": c.lens_commands,
+                "lens_commands_held": c.lens_commands_held,
+                "lens_readbacks": c.lens_readbacks,
+                "lens_link_losses": c.lens_link_losses,
+                "frames_requested": c.frames_requested,
+                "frames_rendered": c.frames_rendered,
+                "frames_presented": c.frames_presented,
+                "misses": c.misses,
+                "late_frames": c.late_frames,
+                "renders_skipped": c.renders_skipped,
+                "sequencer_faults": c.sequencer_faults,
+                "ignored_events": c.ignored_events,
+            },
+            "latency_us": stages,
+        })
+    }
+}

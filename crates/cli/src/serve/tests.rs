@@ -1,0 +1,646 @@
+//! The daemon on simulated devices: API (in-process and over real sockets), shutdown,
+//! device loss and recovery, recording and replay. Real time with short polls; no test
+//! asserts how long anything took.
+
+use std::path::Path;
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use http_body_util::BodyExt;
+use serde_json::{json, Value};
+use tower::ServiceExt;
+
+use super::config::tests::SIM_RIG;
+use super::config::RigConfig;
+use super::devices::State;
+use super::{api, Daemon, Listening};
+
+/// The example sim rig on an ephemeral port, recording into `dir` (from the start if `record`).
+fn sim_config(dir: &Path, record: bool) -> RigConfig {
+    let text = SIM_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace(
+            "dir = \"recordings\"",
+            &format!("dir = {:?}", dir.join("rec").display().to_string()),
+        )
+        .replace("start = false", &format!("start = {record}"));
+    RigConfig::parse(&text).unwrap()
+}
+
+/// Polls `f` every 10 ms until it returns `Some`, for at most 20 s.
+async fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
+    for _ in 0..2000 {
+        if let Some(v) = f() {
+            return v;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    panic!("timed out waiting for {what}");
+}
+
+async fn call(app: &axum::Router, method: &str, path: &str, body: &str) -> (StatusCode, Value) {
+    let req = Request::builder()
+        .method(method)
+        .uri(path)
+        .header("content-type", "application/json")
+        .body(Body::from(body.to_string()))
+        .unwrap();
+    let resp = app.clone().oneshot(req).await.unwrap();
+    let status = resp.status();
+    let bytes = resp.into_body().collect().await.unwrap().to_bytes();
+    let v = serde_json::from_slice(&bytes).unwrap_or_else(|e| {
+        panic!(
+            "{method} {path}: body is not JSON ({e}): {:?}",
+            String::from_utf8_lossy(&bytes)
+        )
+    });
+    (status, v)
+}
+
+fn status_of(d: &Daemon) -> Value {
+    d.shared().status_json()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_api_rejects_malformed_requests_with_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let app = api::router(d.shared().clone());
+
+    // (method, path, body, status, key, words in the error)
+    type Case<'a> = (
+        &'a str,
+        &'a str,
+        &'a str,
+        StatusCode,
+        Option<&'a str>,
+        &'a str,
+    );
+    let cases: &[Case] = &[
+        // (method, path, body, status, key, words in the error)
+        (
+            "POST",
+            "/focus",
+            "{\"diopters\": ",
+            StatusCode::BAD_REQUEST,
+            None,
+            "not valid JSON",
+        ),
+        (
+            "POST",
+            "/focus",
+            "",
+            StatusCode::BAD_REQUEST,
+            None,
+            "needs a JSON body",
+        ),
+        (
+            "POST",
+            "/focus",
+            "{\"diopters\": \"near\"}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("diopters"),
+            "invalid type: string",
+        ),
+        (
+            "POST",
+            "/focus",
+            "{\"diopters\": 9.5}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("diopters"),
+            "outside the lens range -1..4 D",
+        ),
+        (
+            "POST",
+            "/focus",
+            "{\"power\": 1}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            None,
+            "unknown field `power`",
+        ),
+        (
+            "POST",
+            "/focus",
+            "[1.0]",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            None,
+            "expected a JSON object",
+        ),
+        (
+            "POST",
+            "/focus",
+            "{\"diopters\": 1.0} x",
+            StatusCode::BAD_REQUEST,
+            None,
+            "trailing characters",
+        ),
+        (
+            "POST",
+            "/mode",
+            "{\"mode\": \"holographic\"}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("mode"),
+            "expected varifocal, multifocal or lightfield",
+        ),
+        (
+            "POST",
+            "/mode",
+            "{\"mode\": 3}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("mode"),
+            "invalid type: integer",
+        ),
+        (
+            "POST",
+            "/method",
+            "{\"method\": \"magic\"}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("method"),
+            "expected one of gather",
+        ),
+        (
+            "POST",
+            "/method",
+            "{\"method\": \"network\"}",
+            StatusCode::UNPROCESSABLE_ENTITY,
+            Some("method"),
+            "not rendered by `dioptra serve` yet",
+        ),
+        (
+            "POST",
+            "/method",
+            "{\"method\": \"linear\"}",
+            StatusCode::CONFLICT,
+            None,
+            "does not make varifocal frames",
+        ),
+        (
+            "POST",
+            "/recording/stop",
+            "",
+            StatusCode::CONFLICT,
+            None,
+            "not recording",
+        ),
+        (
+            "GET",
+            "/nowhere",
+            "",
+            StatusCode::NOT_FOUND,
+            None,
+            "no such endpoint",
+        ),
+        (
+            "GET",
+            "/focus",
+            "",
+            StatusCode::METHOD_NOT_ALLOWED,
+            None,
+            "wrong method",
+        ),
+    ];
+    for (method, path, body, want, key, words) in cases {
+        let (status, v) = call(&app, method, path, body).await;
+        assert_eq!(status, *want, "{method} {path} {body}: {v}");
+        let err = v["error"]
+            .as_str()
+            .unwrap_or_else(|| panic!("no error in {v}"));
+        assert!(
+            err.contains(words),
+            "{method} {path} {body}: {err:?} lacks {words:?}"
+        );
+        if let Some(k) = key {
+            assert_eq!(v["key"], json!(k), "{method} {path} {body}: {v}");
+        }
+    }
+    // Nothing malformed reached the scheduler.
+    assert_eq!(status_of(&d)["focus"]["manual_d"], Value::Null);
+    // Well-formed requests work.
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 2.5}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(status_of(&d)["focus"]["manual_d"], json!(2.5));
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": null}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(status_of(&d)["focus"]["manual_d"], Value::Null);
+    let (s, v) = call(
+        &app,
+        "POST",
+        "/method",
+        "{\"method\": \"lightfield-defocus\"}",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(status_of(&d)["method"], json!("lightfield-defocus"));
+
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+}
+
+/// Minimal HTTP/1.1 over a real socket: (status, JSON body).
+async fn http(addr: std::net::SocketAddr, method: &str, path: &str, body: &str) -> (u16, Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut out = Vec::new();
+    s.read_to_end(&mut out).await.unwrap();
+    parse_http(&out)
+}
+
+fn parse_http(out: &[u8]) -> (u16, Value) {
+    let text = String::from_utf8_lossy(out);
+    let status: u16 = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP response: {text:?}"));
+    let (head, body) = text.split_once("\r\n\r\n").unwrap();
+    let body = if head
+        .to_ascii_lowercase()
+        .contains("transfer-encoding: chunked")
+    {
+        // One or more chunks: "len\r\ndata\r\n" ... "0\r\n\r\n".
+        let mut rest = body;
+        let mut joined = String::new();
+        while let Some((len, tail)) = rest.split_once("\r\n") {
+            let n = usize::from_str_radix(len.trim(), 16).unwrap_or(0);
+            if n == 0 {
+                break;
+            }
+            joined.push_str(&tail[..n]);
+            rest = &tail[n + 2..];
+        }
+        joined
+    } else {
+        body.to_string()
+    };
+    (status, serde_json::from_str(&body).unwrap_or(Value::Null))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    assert!(addr.ip().is_loopback() && addr.port() != 0);
+    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+
+    // The stream carries gaze samples from the simulated tracker.
+    let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/stream"))
+        .await
+        .unwrap();
+    let mut kinds = std::collections::BTreeSet::new();
+    while kinds.len() < 2 {
+        let text = next_text(&mut ws).await;
+        let v: Value = serde_json::from_str(&text).unwrap();
+        kinds.insert(v["type"].as_str().unwrap().to_string());
+        kinds.retain(|k| k == "gaze" || k == "frame");
+    }
+
+    let (code, v) = http(addr, "GET", "/status", "").await;
+    assert_eq!(code, 200);
+    assert_eq!(v["mode"], json!("varifocal"));
+    for dev in ["lens", "gaze", "sync"] {
+        assert!(v["devices"][dev].is_object(), "{dev} missing in {v}");
+    }
+    // Every device comes up.
+    let mut v = v;
+    for _ in 0..2000 {
+        if ["lens", "gaze", "sync"]
+            .iter()
+            .all(|dev| v["devices"][dev]["state"] == json!("ok"))
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        v = http(addr, "GET", "/status", "").await.1;
+    }
+    assert_eq!(v["devices"]["lens"]["state"], json!("ok"), "{v}");
+
+    // Manual focus reaches the simulated lens.
+    let (code, v) = http(addr, "POST", "/focus", "{\"diopters\": 1.75}").await;
+    assert_eq!(code, 200, "{v}");
+    eventually("the lens to reach 1.75 D", || {
+        let m = lens_sim.model();
+        ((m.power().0 - 1.75).abs() < 0.02 && (m.target_power().0 - 1.75).abs() < 1e-4)
+            .then_some(())
+    })
+    .await;
+    let (code, v) = http(addr, "POST", "/focus", "{\"diopters\": -7}").await;
+    assert_eq!(code, 422, "{v}");
+
+    let (code, _) = http(addr, "POST", "/shutdown", "").await;
+    assert_eq!(code, 202);
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+    let m = lens_sim.model();
+    assert!((m.target_power().0 - 0.5).abs() < 1e-4, "{m:?}");
+    assert!(
+        (m.power().0 - 0.5).abs() < 0.03,
+        "lens at {} D, not parked",
+        m.power().0
+    );
+    // The port is closed.
+    assert!(tokio::net::TcpStream::connect(addr).await.is_err());
+}
+
+/// The next text message of a WebSocket, within 20 s.
+async fn next_text<S>(ws: &mut S) -> String
+where
+    S: futures_util::Stream<
+            Item = Result<
+                tokio_tungstenite::tungstenite::Message,
+                tokio_tungstenite::tungstenite::Error,
+            >,
+        > + Unpin,
+{
+    use futures_util::StreamExt;
+    loop {
+        let m = tokio::time::timeout(Duration::from_secs(20), ws.next())
+            .await
+            .expect("no stream message within 20 s")
+            .expect("stream ended")
+            .expect("stream error");
+        if let tokio_tungstenite::tungstenite::Message::Text(t) = m {
+            return t.to_string();
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_parks_the_lens_and_finishes_the_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
+    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+    let sh = d.shared().clone();
+    // Run until gaze has moved the lens and frames have been shown.
+    eventually("gaze-driven lens commands and frames", || {
+        let v = sh.status_json();
+        (v["counts"]["lens_commands"].as_u64() >= Some(2)
+            && v["counts"]["frames_shown"].as_u64() >= Some(3))
+        .then_some(())
+    })
+    .await;
+    let rec_path = {
+        let v = sh.status_json();
+        std::path::PathBuf::from(v["recording"].as_str().unwrap())
+    };
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+    // The lens is where the config parks it: the simulator's own state says so.
+    let m = lens_sim.model();
+    assert!((m.target_power().0 - 0.5).abs() < 1e-4, "{m:?}");
+    assert!((m.power().0 - 0.5).abs() < 0.03, "{m:?}");
+    let park = report.park.unwrap();
+    assert!(
+        (park.reported_power.unwrap() - 0.5).abs() < 0.03,
+        "{park:?}"
+    );
+    // The recording is complete (summary and footer written) and holds the run.
+    let stats = report.recording.unwrap().unwrap();
+    assert_eq!(stats.path, rec_path);
+    let back = super::recording::read(&rec_path).unwrap();
+    assert!(back.complete);
+    assert_eq!(back.messages.len() as u64, stats.messages);
+    let count = |topic: &str| {
+        back.messages
+            .iter()
+            .filter(|(_, r)| r.topic() == topic)
+            .count()
+    };
+    assert!(count("/gaze") > 10, "{}", count("/gaze"));
+    assert!(count("/lens/command") >= 2);
+    assert!(count("/lens/state") > 0);
+    assert!(count("/frame") >= 3);
+    let bytes = std::fs::read(&rec_path).unwrap();
+    let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+    assert_eq!(
+        summary.stats.unwrap().message_count,
+        stats.messages,
+        "the summary counts every message"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let sh = d.shared().clone();
+    let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
+    eventually("the lens to connect", || {
+        (state("lens") == Some(State::Ok)).then_some(())
+    })
+    .await;
+    let app = api::router(sh.clone());
+    let (s, v) = call(&app, "POST", "/sim/lens/unplug", "").await;
+    assert_eq!((s, &v["plugged"]), (StatusCode::OK, &json!(false)), "{v}");
+    eventually("the lens to be lost", || {
+        (state("lens") == Some(State::Lost)).then_some(())
+    })
+    .await;
+    let lost = sh.registry.snapshot()["lens"].clone();
+    assert!(lost.last_error.is_some(), "{lost:?}");
+    // Gaze keeps flowing while the lens is gone.
+    let gaze_then = sh.status_json()["counts"]["gaze_samples"].as_u64().unwrap();
+    eventually("gaze samples while the lens is lost", || {
+        (sh.status_json()["counts"]["gaze_samples"].as_u64().unwrap() > gaze_then + 5).then_some(())
+    })
+    .await;
+    // It keeps failing (with backoff) while unplugged ...
+    eventually("a retry", || {
+        (sh.registry.snapshot()["lens"].failures > lost.failures).then_some(())
+    })
+    .await;
+    assert_eq!(state("lens"), Some(State::Lost));
+    let v = sh.status_json();
+    assert!(
+        v["devices"]["lens"]["last_error"]
+            .as_str()
+            .unwrap()
+            .contains("unplugged"),
+        "{v}"
+    );
+    // ... and comes back when plugged in again.
+    assert_eq!(sh.status_json()["sim_lens"]["plugged"], json!(false));
+    let (s, v) = call(&app, "POST", "/sim/lens/replug", "").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    eventually("the lens to reconnect", || {
+        (state("lens") == Some(State::Ok)).then_some(())
+    })
+    .await;
+    assert_eq!(sh.registry.snapshot()["lens"].connects, 2);
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    let missing = dir.path().join("ttyACM-missing");
+    cfg.devices.lens.port = super::config::Port::Path(missing.clone());
+    let d = Daemon::start(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let lens = eventually("a failed lens connect", || {
+        let s = sh.registry.snapshot()["lens"].clone();
+        (s.failures >= 2).then_some(s)
+    })
+    .await;
+    assert_eq!(lens.state, State::Lost);
+    let err = lens.last_error.unwrap();
+    assert!(err.contains("ttyACM-missing"), "{err}");
+    eventually("gaze samples", || {
+        (sh.status_json()["counts"]["gaze_samples"].as_u64().unwrap() > 5).then_some(())
+    })
+    .await;
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    // It could not park a lens it never reached, and says so.
+    assert!(!report.ok());
+    assert!(report.problems()[0].contains("not connected"), "{report:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_api_on_a_unix_socket_is_private() {
+    use std::os::unix::fs::PermissionsExt;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let dir = tempfile::tempdir().unwrap();
+    let sock = dir.path().join("dioptra.sock");
+    let text = SIM_RIG.replace(
+        "listen = \"127.0.0.1:7420\"",
+        &format!("unix = {:?}", sock.display().to_string()),
+    );
+    let d = Daemon::start(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let mode = std::fs::metadata(&sock).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode, 0o600);
+    let mut s = tokio::net::UnixStream::connect(&sock).await.unwrap();
+    s.write_all(b"GET /status HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        .await
+        .unwrap();
+    let mut out = Vec::new();
+    s.read_to_end(&mut out).await.unwrap();
+    let (code, v) = parse_http(&out);
+    assert_eq!(code, 200);
+    assert_eq!(v["mode"], json!("varifocal"));
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+    assert!(!sock.exists(), "the socket is removed on shutdown");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_recorded_run_replays_to_the_same_commands() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
+    let sh = d.shared().clone();
+    eventually("a few gaze-driven lens commands", || {
+        (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
+    })
+    .await;
+    // An API command is part of the run too.
+    sh.control(super::Control::ManualFocus(Some(2.0)))
+        .await
+        .unwrap();
+    sh.control(super::Control::ManualFocus(None)).await.unwrap();
+    eventually("frames", || {
+        (sh.status_json()["counts"]["frames_shown"].as_u64() >= Some(5)).then_some(())
+    })
+    .await;
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    let stats = report.recording.unwrap().unwrap();
+    let r = crate::replay::replay_file(&stats.path).unwrap();
+    assert!(r.complete && r.from_start);
+    let lens = r
+        .recorded
+        .iter()
+        .filter(|c| matches!(c, crate::replay::Cmd::Lens { .. }))
+        .count();
+    assert!(lens >= 4, "{:?}", r.recorded);
+    assert!(r
+        .recorded
+        .iter()
+        .any(|c| matches!(c, crate::replay::Cmd::Lens { power_d, .. } if *power_d == 2.0)));
+    assert!(
+        r.identical(),
+        "first difference {:?} after {}",
+        r.first_difference,
+        r.matching_prefix
+    );
+    assert_eq!(r.recorded, r.replayed);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    eventually("the sync board to connect", || {
+        (sh.registry.snapshot()["sync"].state == State::Ok).then_some(())
+    })
+    .await;
+    // Varifocal: the board is connected but not sequencing.
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert_eq!(sh.status_json()["counts"]["sync_events"], json!(0));
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"multifocal\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let v = sh.status_json();
+    assert_eq!(v["mode"], json!("multifocal"));
+    // The scheduler picked a decomposition for the new mode.
+    assert_eq!(v["method"], json!("linear"));
+    let mut v = sh.status_json();
+    for _ in 0..2000 {
+        v = sh.status_json();
+        if v["counts"]["sync_events"].as_u64() > Some(40)
+            && v["scheduler"]["counters"]["frames_presented"].as_u64() > Some(4)
+        {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert!(
+        v["scheduler"]["counters"]["frames_presented"].as_u64() > Some(4),
+        "no layered frames: {v:#}"
+    );
+    assert!(v["counts"]["frames_shown"].as_u64() > Some(2), "{v}");
+    // Back to varifocal: the sequence stops.
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"varifocal\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let before = sh.status_json()["counts"]["sync_events"].as_u64().unwrap();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let after = sh.status_json()["counts"]["sync_events"].as_u64().unwrap();
+    assert_eq!(
+        before, after,
+        "the sync board kept sequencing after leaving multifocal"
+    );
+    // Light-field mode: the lenslet panel of the scene's light field is shown.
+    let shown = sh.status_json()["counts"]["frames_shown"].as_u64().unwrap();
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(sh.status_json()["method"], json!("views"));
+    eventually("light-field frames", || {
+        let v = sh.status_json();
+        (v["counts"]["frames_shown"].as_u64() > Some(shown + 3)
+            && v["counts"]["render_errors"] == json!(0))
+        .then_some(())
+    })
+    .await;
+    // The network is not rendered by the daemon: refused, with why.
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}

@@ -1,0 +1,932 @@
+//! The scheduler: events in, commands out. See the crate documentation for the contract.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{DepthMap, Diopters, GazeSample, LensState, SequencerEvent, Timestamp};
+
+use crate::config::{ConfigError, Mode, RenderMethod, SchedulerConfig};
+use crate::depth::fixation_depth;
+use crate::latency::{Latency, Stage};
+use crate::lens::LensPredictor;
+use crate::processing::{Angles, EyePhase, GazeProcessor, GazeState};
+
+/// A frame's number. Whole-frame modes count display slots from 0; in multifocal mode it is
+/// the sync hardware's frame number.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct FrameId(pub u64);
+
+/// Names one lens command, so the executor can report when it went on the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct CommandId(pub u64);
+
+/// Whether the lens's link is up, as the executor last reported.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LinkStatus {
+    #[default]
+    Connected,
+    Lost,
+}
+
+/// Why the lens was commanded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FocusReason {
+    /// The first sample of a fixation (after a saccade, a blink, or at start).
+    FixationOnset,
+    /// The depth under a continuing fixation or pursuit changed, and stayed changed.
+    Fixation,
+    /// The depth at a decelerating saccade's predicted landing point.
+    SaccadeLanding,
+    /// A manual focus from the operator.
+    Manual,
+    /// The lens came back after its link was lost: the current target again.
+    Reconnect,
+    /// Shutdown: the configured park power.
+    Park,
+}
+
+/// What the executor reports to the scheduler. `now` (passed beside it) is when it happened.
+#[derive(Debug, Clone, PartialEq)]
+#[non_exhaustive]
+pub enum Event {
+    /// A binocular gaze sample, with its device, receive and mapped host times.
+    Gaze(GazeSample),
+    /// A lens readback; re-anchors the lens model and completes settle timing.
+    LensState(LensState),
+    /// Command `id` went on the wire at `wire_time` (what `VarifocalLens::set_power` returns).
+    LensCommandWritten { id: CommandId, wire_time: Timestamp },
+    /// The lens link went down or came back (after the driver reopened it).
+    LensLink(LinkStatus),
+    /// The depth map (diopters) of the scene frame now being rendered, spanning the eye
+    /// model's horizontal field. Fixation depth is read from the latest one.
+    Depth(Arc<DepthMap>),
+    /// An event from the multifocal sync hardware.
+    Sequencer(SequencerEvent),
+    /// The renderer finished `frame`, which took `render_time`.
+    RenderFinished {
+        frame: FrameId,
+        method: RenderMethod,
+        render_time: Duration,
+    },
+    /// Focus at this distance (diopters) regardless of gaze; `None` returns to gaze.
+    ManualFocus(Option<Diopters>),
+    /// Switches mode (ignored, and counted, when the mode cannot run with this config).
+    SetMode(Mode),
+    /// Switches render method (ignored, and counted, when it does not suit the mode).
+    SetMethod(RenderMethod),
+    /// A display vsync at this time: whole-frame modes lock their frame clock to it.
+    Vsync(Timestamp),
+    /// Nothing happened; lets timers (frame requests, vsyncs) run. See
+    /// [`Scheduler::next_wakeup`].
+    Tick,
+    /// Stop: park the lens (and stop the sequencer in multifocal mode); no more frames.
+    Shutdown,
+}
+
+/// A frame for the renderer to make.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameRequest {
+    pub frame: FrameId,
+    pub mode: Mode,
+    pub method: RenderMethod,
+    /// Varifocal: the focus to render defocus for, diopters: the lens power predicted at
+    /// `display_time`, through the focus map. `None` in other modes.
+    pub focus: Option<Diopters>,
+    /// Varifocal: the lens power predicted at `display_time`.
+    pub lens_power: Option<Diopters>,
+    /// When the frame's light reaches the eye (first sub-frame in multifocal mode).
+    pub display_time: Timestamp,
+    /// Latest smoothed gaze (for foveation), and the host time of its sample.
+    pub gaze: Option<Angles>,
+    pub gaze_time: Option<Timestamp>,
+}
+
+/// What the scheduler asks the executor to do, in order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[non_exhaustive]
+pub enum Command {
+    /// Drive the lens to `power`. The scheduler's model assumes it takes effect at
+    /// `apply_at` (`now` + the configured command latency): a driver that can schedule
+    /// (`LensController::set_power_at`) may apply it exactly then; others send it at once.
+    /// Report the wire time with [`Event::LensCommandWritten`].
+    SetLensPower {
+        id: CommandId,
+        power: Diopters,
+        apply_at: Timestamp,
+        reason: FocusReason,
+    },
+    /// Render a frame; report [`Event::RenderFinished`] when done. One is in flight at most.
+    RenderFrame(FrameRequest),
+    /// Whole-frame modes: show `frame` from the vsync at `vsync`. `repeat` when it is the
+    /// frame already on screen (a deadline miss).
+    Present {
+        frame: FrameId,
+        vsync: Timestamp,
+        display_time: Timestamp,
+        repeat: bool,
+    },
+    /// Multifocal: show layer `layer` of `frame` in the sub-frame that started at `start`
+    /// (sync-hardware frame `sync_frame`). `repeat` when `frame` was shown in the previous
+    /// cycle too (its successor missed its deadline).
+    PresentLayer {
+        frame: FrameId,
+        layer: u8,
+        sync_frame: u32,
+        start: Timestamp,
+        repeat: bool,
+    },
+    /// Stop the sync hardware's sequence (before parking the lens on shutdown).
+    StopSequencer,
+}
+
+/// Running totals.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Counters {
+    pub gaze_samples: u64,
+    pub saccades: u64,
+    pub blinks: u64,
+    pub lens_commands: u64,
+    /// Focus changes not sent because the lens link was down (the latest is sent on reconnect).
+    pub lens_commands_held: u64,
+    pub lens_readbacks: u64,
+    pub lens_link_losses: u64,
+    pub frames_requested: u64,
+    pub frames_rendered: u64,
+    /// Vsyncs (whole-frame) or plane cycles (multifocal) that showed a frame.
+    pub frames_presented: u64,
+    /// Presentations that showed the previous frame again because the next was not ready.
+    pub misses: u64,
+    /// New frames shown later than the slot they were rendered for.
+    pub late_frames: u64,
+    /// Frame slots not requested because the renderer was still busy.
+    pub renders_skipped: u64,
+    pub sequencer_faults: u64,
+    /// Events that could not be applied (unknown frame, unsuitable method or mode).
+    pub ignored_events: u64,
+}
+
+/// What the scheduler is doing now.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Status {
+    pub mode: Mode,
+    pub method: RenderMethod,
+    pub phase: EyePhase,
+    /// Latest smoothed gaze.
+    pub gaze: Option<Angles>,
+    /// Fused vergence depth, diopters.
+    pub vergence_d: Option<f64>,
+    pub manual_focus: Option<Diopters>,
+    /// Depth at the gaze point the last time it was read, diopters.
+    pub fixation_depth: Option<Diopters>,
+    /// The lens power last commanded (or held while the link is down).
+    pub commanded_power: Option<Diopters>,
+    pub lens_link: LinkStatus,
+    /// Last command's time from the wire to a settled readback.
+    pub last_settle: Option<Duration>,
+    pub shown_frame: Option<FrameId>,
+    pub shutting_down: bool,
+    pub counters: Counters,
+}
+
+/// The command whose latency is being followed.
+#[derive(Debug, Clone, Copy)]
+struct Tracked {
+    id: CommandId,
+    power: Diopters,
+    sent_at: Timestamp,
+    /// (host receive, mapped device time) of the gaze sample that caused it.
+    trigger: Option<(Timestamp, Timestamp)>,
+    wire: Option<Timestamp>,
+    settled: bool,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct InFlight {
+    frame: FrameId,
+    gaze_time: Option<Timestamp>,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Ready {
+    frame: FrameId,
+    at: Timestamp,
+    gaze_time: Option<Timestamp>,
+}
+
+/// Finished frames remembered (newest last); the newest ready by a deadline is shown.
+const READY_KEPT: usize = 4;
+
+/// Whole-frame display clock: slot k's vsync is `base + (k - base_slot) * period`.
+#[derive(Debug, Clone, Copy)]
+struct FrameClock {
+    base: Timestamp,
+    base_slot: u64,
+    next_request: u64,
+    next_vsync: u64,
+}
+
+/// The sans-IO scheduler. See the crate documentation.
+#[derive(Debug, Clone)]
+pub struct Scheduler {
+    cfg: SchedulerConfig,
+    processor: GazeProcessor,
+    lens: LensPredictor,
+    latency: Latency,
+    depth: Option<Arc<DepthMap>>,
+    counters: Counters,
+    prev_phase: EyePhase,
+    /// Treat the next fixation sample as an onset (after manual focus or a mode change).
+    reevaluate: bool,
+    manual: Option<Diopters>,
+    commanded: Option<Diopters>,
+    last_command_at: Option<Timestamp>,
+    /// A fixation target outside the deadband, and since when.
+    pending: Option<(Timestamp, Diopters)>,
+    landing_sent: bool,
+    /// Where the current (or last) saccade started.
+    saccade_from: Option<Angles>,
+    lens_link: LinkStatus,
+    next_command_id: u64,
+    tracked: Option<Tracked>,
+    last_settle: Option<Duration>,
+    fixation_depth: Option<Diopters>,
+    last_gaze: Option<(Timestamp, Angles)>,
+    clock: Option<FrameClock>,
+    in_flight: Option<InFlight>,
+    ready: Vec<Ready>,
+    shown: Option<FrameId>,
+    /// Multifocal: the frame shown in the current plane cycle, and whether it is a repeat.
+    cycle: Option<(FrameId, bool)>,
+    shutting_down: bool,
+}
+
+/// How far ahead the landing point is predicted (the processor clamps to its own maximum).
+const LANDING_HORIZON: Duration = Duration::from_millis(100);
+/// A saccade this young may still be a noise spike: no landing prediction yet.
+const MIN_SACCADE_FOR_LANDING: Duration = Duration::from_millis(6);
+/// A saccade whose speed fell below this share of its peak is decelerating.
+const DECELERATING: f64 = 0.8;
+
+fn since(later: Timestamp, earlier: Timestamp) -> Duration {
+    later.saturating_since(earlier)
+}
+
+impl Scheduler {
+    /// A scheduler for `cfg`; the error names the bad setting.
+    pub fn new(cfg: SchedulerConfig) -> Result<Self, ConfigError> {
+        cfg.validate()?;
+        let latency = Latency::new().map_err(|e| ConfigError::Histogram(e.to_string()))?;
+        Ok(Scheduler {
+            processor: GazeProcessor::new(cfg.gaze),
+            lens: LensPredictor::new(cfg.lens),
+            latency,
+            depth: None,
+            counters: Counters::default(),
+            prev_phase: EyePhase::Unknown,
+            reevaluate: false,
+            manual: None,
+            commanded: None,
+            last_command_at: None,
+            pending: None,
+            landing_sent: false,
+            saccade_from: None,
+            lens_link: LinkStatus::Connected,
+            next_command_id: 0,
+            tracked: None,
+            last_settle: None,
+            fixation_depth: None,
+            last_gaze: None,
+            clock: None,
+            in_flight: None,
+            ready: Vec::with_capacity(READY_KEPT + 1),
+            shown: None,
+            cycle: None,
+            shutting_down: false,
+            cfg,
+        })
+    }
+
+    pub fn config(&self) -> &SchedulerConfig {
+        &self.cfg
+    }
+
+    /// Handles `event`, which happened at `now`, and appends the resulting commands to `out`
+    /// (it does not clear `out`; reuse one buffer to avoid allocating). Timers due by `now`
+    /// (frame requests, vsyncs) run after the event. `now` should not go backwards; an
+    /// earlier `now` is treated as a late report, never as time travel.
+    pub fn step(&mut self, now: Timestamp, event: Event, out: &mut Vec<Command>) {
+        match event {
+            Event::Gaze(s) => self.on_gaze(now, &s, out),
+            Event::LensState(s) => self.on_lens_state(&s),
+            Event::LensCommandWritten { id, wire_time } => self.on_written(id, wire_time),
+            Event::LensLink(l) => self.on_link(now, l, out),
+            Event::Depth(d) => self.depth = Some(d),
+            Event::Sequencer(e) => self.on_sequencer(now, &e, out),
+            Event::RenderFinished {
+                frame,
+                method,
+                render_time,
+            } => self.on_render_finished(now, frame, method, render_time),
+            Event::ManualFocus(f) => self.on_manual(now, f, out),
+            Event::SetMode(m) => self.on_mode(m),
+            Event::SetMethod(m) => {
+                if m.suits(self.cfg.mode) {
+                    self.cfg.method = m;
+                } else {
+                    self.counters.ignored_events += 1;
+                }
+            }
+            Event::Vsync(t) => self.on_vsync(t),
+            Event::Tick => {}
+            Event::Shutdown => self.on_shutdown(now, out),
+        }
+        self.run_frame_clock(now, out);
+    }
+
+    /// When the scheduler next has something to do with no event (a frame request or a
+    /// vsync): step it with [`Event::Tick`] then. `None` when only events move it (multifocal
+    /// mode, shutdown, or before the first step).
+    pub fn next_wakeup(&self) -> Option<Timestamp> {
+        if self.shutting_down || self.cfg.mode == Mode::Multifocal {
+            return None;
+        }
+        let c = self.clock?;
+        let lead = self.cfg.display.render_lead;
+        Some(
+            self.vsync_time(&c, c.next_request)
+                .saturating_sub(lead)
+                .min(self.vsync_time(&c, c.next_vsync)),
+        )
+    }
+
+    pub fn status(&self) -> Status {
+        let st = self.processor.state();
+        Status {
+            mode: self.cfg.mode,
+            method: self.cfg.method,
+            phase: st.phase,
+            gaze: st.smoothed,
+            vergence_d: st.vergence.map(|v| v.diopters),
+            manual_focus: self.manual,
+            fixation_depth: self.fixation_depth,
+            commanded_power: self.commanded,
+            lens_link: self.lens_link,
+            last_settle: self.last_settle,
+            shown_frame: self.shown,
+            shutting_down: self.shutting_down,
+            counters: Counters {
+                saccades: st.saccades,
+                blinks: st.blinks,
+                ..self.counters
+            },
+        }
+    }
+
+    pub fn latency(&self) -> &Latency {
+        &self.latency
+    }
+
+    /// The gaze processor's state after the latest sample.
+    pub fn gaze(&self) -> &GazeState {
+        self.processor.state()
+    }
+
+    /// Lens power the model predicts at `t` from the commands and readbacks so far.
+    pub fn predicted_lens_power(&self, t: Timestamp) -> Option<Diopters> {
+        self.lens.power_at(t)
+    }
+
+    /// When the model predicts the lens settles (within the settled tolerance) after `from`.
+    pub fn predicted_settle(&self, from: Timestamp) -> Option<Timestamp> {
+        self.lens.settled_by(from, self.cfg.settled_tolerance_d)
+    }
+
+    // ---- focus ----
+
+    fn on_gaze(&mut self, now: Timestamp, s: &GazeSample, out: &mut Vec<Command>) {
+        self.counters.gaze_samples += 1;
+        if s.host_receive_time >= s.host_time {
+            self.latency.record(
+                Stage::TrackerToHost,
+                since(s.host_receive_time, s.host_time),
+            );
+        }
+        let prev = self.prev_phase;
+        let before = self.processor.state().smoothed;
+        let st = *self.processor.push(s);
+        self.prev_phase = st.phase;
+        if let Some(a) = st.smoothed {
+            self.last_gaze = Some((st.time, a));
+        }
+        if self.cfg.mode != Mode::Varifocal || self.shutting_down || self.manual.is_some() {
+            return;
+        }
+        match st.phase {
+            EyePhase::Saccade => {
+                if prev != EyePhase::Saccade {
+                    self.landing_sent = false;
+                    self.saccade_from = before;
+                }
+                self.saccade_landing(now, &st, s, out);
+            }
+            EyePhase::Fixation | EyePhase::Pursuit => {
+                // A tiny "saccade" (tracker noise, a microsaccade) does not end the fixation.
+                let small = prev == EyePhase::Saccade
+                    && matches!((self.saccade_from, st.raw), (Some(a), Some(b))
+                        if a.distance_deg(&b) < self.cfg.focus.min_saccade_deg);
+                let onset = self.reevaluate
+                    || (!matches!(prev, EyePhase::Fixation | EyePhase::Pursuit) && !small)
+                    || self.commanded.is_none();
+                let gaze = if onset { st.raw } else { st.smoothed };
+                let vergence = st.vergence.map(|v| (v.diopters, v.sigma_d));
+                let Some(target) = gaze.and_then(|a| self.focus_power(a.direction(), vergence))
+                else {
+                    return;
+                };
+                if onset {
+                    self.reevaluate = false;
+                    self.pending = None;
+                    self.command_if_moved(now, target, FocusReason::FixationOnset, Some(s), out);
+                } else {
+                    self.fixation_update(now, target, s, out);
+                }
+            }
+            EyePhase::Blink | EyePhase::Lost | EyePhase::Unknown => {
+                // Hold focus: the eye is shut or unseen, and will most likely reopen on the
+                // same thing.
+                self.pending = None;
+            }
+        }
+    }
+
+    fn saccade_landing(
+        &mut self,
+        now: Timestamp,
+        st: &GazeState,
+        s: &GazeSample,
+        out: &mut Vec<Command>,
+    ) {
+        // Noise spikes look like saccades for a sample or two; a real one between objects
+        // lasts 20 ms or more.
+        if !self.cfg.focus.predict_landing
+            || self.landing_sent
+            || since(st.time, st.phase_since) < MIN_SACCADE_FOR_LANDING
+        {
+            return;
+        }
+        let Some(peak) = self.processor.saccade_peak_dps() else {
+            return;
+        };
+        if st.speed_dps >= DECELERATING * peak {
+            return;
+        }
+        let travelled = match (self.saccade_from, st.raw) {
+            (Some(a), Some(b)) => a.distance_deg(&b),
+            _ => 0.0,
+        };
+        if travelled < self.cfg.focus.min_saccade_deg {
+            return;
+        }
+        let Some(landing) = self.processor.predict(now + LANDING_HORIZON) else {
+            return;
+        };
+        // Vergence is still on the old target mid-saccade: the depth map alone decides.
+        if let Some(target) = self.focus_power(landing.direction, None) {
+            self.landing_sent = true;
+            self.command_if_moved(now, target, FocusReason::SaccadeLanding, Some(s), out);
+        }
+    }
+
+    /// During a fixation: send a new target only once it has held outside the deadband for
+    /// the confirm time, and no more often than the minimum interval.
+    fn fixation_update(
+        &mut self,
+        now: Timestamp,
+        target: Diopters,
+        s: &GazeSample,
+        out: &mut Vec<Command>,
+    ) {
+        let band = self.cfg.focus.deadband_d;
+        if self
+            .commanded
+            .is_some_and(|c| (c.0 - target.0).abs() <= band)
+        {
+            self.pending = None;
+            return;
+        }
+        match self.pending {
+            Some((t0, p)) if (p.0 - target.0).abs() <= band => {
+                let confirmed = since(now, t0) >= self.cfg.focus.confirm;
+                let spaced = self
+                    .last_command_at
+                    .is_none_or(|t| since(now, t) >= self.cfg.focus.min_interval);
+                if confirmed && spaced {
+                    self.pending = None;
+                    self.command_if_moved(now, target, FocusReason::Fixation, Some(s), out);
+                }
+            }
+            _ => self.pending = Some((now, target)),
+        }
+    }
+
+    /// The lens power for looking along `direction`: depth map first, vergence without one.
+    fn focus_power(
+        &mut self,
+        direction: [f64; 3],
+        vergence: Option<(f64, f64)>,
+    ) -> Option<Diopters> {
+        let from_map = self.depth.as_ref().and_then(|d| {
+            fixation_depth(
+                d,
+                direction,
+                self.cfg.eye.fov_horizontal_deg,
+                &self.cfg.focus.window,
+                vergence,
+            )
+        });
+        let depth = from_map.or_else(|| {
+            vergence
+                .filter(|v| v.1 <= self.cfg.focus.vergence_only_max_sigma_d && v.0.is_finite())
+                .map(|v| Diopters(v.0.max(0.0) as f32))
+        })?;
+        self.fixation_depth = Some(depth);
+        let power = self.cfg.focus_map.power_for(depth);
+        power.is_finite().then(|| self.cfg.lens_range.clamp(power))
+    }
+
+    fn command_if_moved(
+        &mut self,
+        now: Timestamp,
+        power: Diopters,
+        reason: FocusReason,
+        trigger: Option<&GazeSample>,
+        out: &mut Vec<Command>,
+    ) {
+        let band = self.cfg.focus.deadband_d;
+        if self
+            .commanded
+            .is_some_and(|c| (c.0 - power.0).abs() <= band)
+        {
+            return;
+        }
+        self.command(now, power, reason, trigger, out);
+    }
+
+    fn command(
+        &mut self,
+        now: Timestamp,
+        power: Diopters,
+        reason: FocusReason,
+        trigger: Option<&GazeSample>,
+        out: &mut Vec<Command>,
+    ) {
+        let power = self.cfg.lens_range.clamp(power);
+        if !power.is_finite() {
+            return;
+        }
+        self.commanded = Some(power);
+        self.last_command_at = Some(now);
+        if self.lens_link == LinkStatus::Lost {
+            self.counters.lens_commands_held += 1;
+            return;
+        }
+        let id = CommandId(self.next_command_id);
+        self.next_command_id += 1;
+        let apply_at = now + self.cfg.lens.command_latency;
+        self.lens.command(apply_at, power);
+        self.counters.lens_commands += 1;
+        self.tracked = Some(Tracked {
+            id,
+            power,
+            sent_at: now,
+            trigger: trigger.map(|s| (s.host_receive_time, s.host_time)),
+            wire: None,
+            settled: false,
+        });
+        out.push(Command::SetLensPower {
+            id,
+            power,
+            apply_at,
+            reason,
+        });
+    }
+
+    fn on_written(&mut self, id: CommandId, wire: Timestamp) {
+        let Some(t) = self.tracked.as_mut().filter(|t| t.id == id) else {
+            return;
+        };
+        t.wire = Some(wire);
+        if let Some((receive, _)) = t.trigger {
+            self.latency.record(Stage::HostToWire, since(wire, receive));
+        }
+    }
+
+    fn on_lens_state(&mut self, s: &LensState) {
+        self.counters.lens_readbacks += 1;
+        self.lens
+            .observe(s.host_time, s.power, self.cfg.readback_tolerance_d);
+        let tol = self.cfg.settled_tolerance_d;
+        let Some(t) = self.tracked.as_mut() else {
+            return;
+        };
+        let start = t.wire.unwrap_or(t.sent_at);
+        if t.settled || s.host_time < start {
+            return;
+        }
+        if s.settled.unwrap_or(true) && (s.power.0 - t.power.0).abs() <= tol {
+            t.settled = true;
+            let d = since(s.host_time, start);
+            self.last_settle = Some(d);
+            self.latency.record(Stage::WireToSettled, d);
+            if let Some((_, gaze)) = t.trigger {
+                self.latency
+                    .record(Stage::GazeToSettled, since(s.host_time, gaze));
+            }
+        }
+    }
+
+    fn on_link(&mut self, now: Timestamp, l: LinkStatus, out: &mut Vec<Command>) {
+        match (self.lens_link, l) {
+            (LinkStatus::Connected, LinkStatus::Lost) => {
+                self.lens_link = LinkStatus::Lost;
+                self.counters.lens_link_losses += 1;
+                // Where the lens is after a reconnect is unknown until it is read back.
+                self.lens.forget();
+                self.tracked = None;
+            }
+            (LinkStatus::Lost, LinkStatus::Connected) => {
+                self.lens_link = LinkStatus::Connected;
+                let target = if self.shutting_down {
+                    Some(self.cfg.park_power)
+                } else {
+                    self.commanded
+                };
+                if let Some(p) = target {
+                    self.command(now, p, FocusReason::Reconnect, None, out);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn on_manual(&mut self, now: Timestamp, focus: Option<Diopters>, out: &mut Vec<Command>) {
+        match focus {
+            Some(f) if f.is_finite() && !self.shutting_down => {
+                self.manual = Some(f);
+                self.pending = None;
+                self.fixation_depth = Some(f);
+                let p = self.cfg.focus_map.power_for(f);
+                if p.is_finite() {
+                    self.command(now, p, FocusReason::Manual, None, out);
+                }
+            }
+            None => {
+                self.manual = None;
+                self.reevaluate = true;
+            }
+            Some(_) => self.counters.ignored_events += 1,
+        }
+    }
+
+    fn on_mode(&mut self, m: Mode) {
+        if m == self.cfg.mode {
+            return;
+        }
+        if m == Mode::Multifocal && self.cfg.planes.is_none() {
+            self.counters.ignored_events += 1;
+            return;
+        }
+        self.cfg.mode = m;
+        if !self.cfg.method.suits(m) {
+            self.cfg.method = RenderMethod::default_for(m);
+        }
+        self.clock = None;
+        self.in_flight = None;
+        self.ready.clear();
+        self.shown = None;
+        self.cycle = None;
+        self.reevaluate = true;
+    }
+
+    fn on_shutdown(&mut self, now: Timestamp, out: &mut Vec<Command>) {
+        if self.shutting_down {
+            return;
+        }
+        self.shutting_down = true;
+        self.pending = None;
+        if self.cfg.mode == Mode::Multifocal {
+            out.push(Command::StopSequencer);
+        }
+        self.command(now, self.cfg.park_power, FocusReason::Park, None, out);
+    }
+
+    // ---- frames ----
+
+    fn request(&mut self, frame: FrameId, display_time: Timestamp, out: &mut Vec<Command>) {
+        let (focus, lens_power) = if self.cfg.mode == Mode::Varifocal {
+            let p = self
+                .lens
+                .power_at(display_time)
+                .or(self.commanded)
+                .unwrap_or(self.cfg.park_power);
+            (Some(self.cfg.focus_map.focus_of(p)), Some(p))
+        } else {
+            (None, None)
+        };
+        let gaze_time = self.last_gaze.map(|g| g.0);
+        self.in_flight = Some(InFlight { frame, gaze_time });
+        self.counters.frames_requested += 1;
+        out.push(Command::RenderFrame(FrameRequest {
+            frame,
+            mode: self.cfg.mode,
+            method: self.cfg.method,
+            focus,
+            lens_power,
+            display_time,
+            gaze: self.last_gaze.map(|g| g.1),
+            gaze_time,
+        }));
+    }
+
+    fn on_render_finished(
+        &mut self,
+        now: Timestamp,
+        frame: FrameId,
+        method: RenderMethod,
+        render_time: Duration,
+    ) {
+        let Some(f) = self.in_flight.filter(|f| f.frame == frame) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        self.in_flight = None;
+        self.counters.frames_rendered += 1;
+        self.latency.record_render(method, render_time);
+        if self.ready.len() == READY_KEPT {
+            self.ready.remove(0);
+        }
+        self.ready.push(Ready {
+            frame,
+            at: now,
+            gaze_time: f.gaze_time,
+        });
+    }
+
+    /// The newest frame finished by `deadline`.
+    fn ready_by(&self, deadline: Timestamp) -> Option<Ready> {
+        self.ready.iter().rev().find(|r| r.at <= deadline).copied()
+    }
+
+    /// Decides what to show from `deadline` on; returns (frame, repeat).
+    fn choose_frame(
+        &mut self,
+        deadline: Timestamp,
+        slot: FrameId,
+        display_time: Timestamp,
+    ) -> Option<(FrameId, bool)> {
+        let r = self.ready_by(deadline)?;
+        let repeat = self.shown == Some(r.frame);
+        self.counters.frames_presented += 1;
+        if repeat {
+            self.counters.misses += 1;
+        } else {
+            if r.frame != slot {
+                self.counters.late_frames += 1;
+            }
+            if let Some(g) = r.gaze_time {
+                self.latency
+                    .record(Stage::GazeToDisplay, since(display_time, g));
+            }
+        }
+        self.shown = Some(r.frame);
+        Some((r.frame, repeat))
+    }
+
+    fn vsync_time(&self, c: &FrameClock, slot: u64) -> Timestamp {
+        let p = self.cfg.display.frame_period;
+        if slot >= c.base_slot {
+            c.base + p.saturating_mul((slot - c.base_slot).min(u64::from(u32::MAX)) as u32)
+        } else {
+            c.base.saturating_sub(
+                p.saturating_mul((c.base_slot - slot).min(u64::from(u32::MAX)) as u32),
+            )
+        }
+    }
+
+    fn on_vsync(&mut self, t: Timestamp) {
+        if self.cfg.mode == Mode::Multifocal {
+            return;
+        }
+        let Some(mut c) = self.clock else {
+            // The first vsync is slot 1's, so slot 0 can be requested a lead before it.
+            self.clock = Some(FrameClock {
+                base: t,
+                base_slot: 0,
+                next_request: 0,
+                next_vsync: 0,
+            });
+            return;
+        };
+        // Lock the slot nearest `t` to it.
+        let p = self.cfg.display.frame_period.as_nanos().max(1) as i128;
+        let off = t.signed_diff_ns(self.vsync_time(&c, c.next_vsync)) as i128;
+        let k = c.next_vsync as i128 + (off + p / 2).div_euclid(p);
+        c.base = t;
+        c.base_slot = k.max(0) as u64;
+        self.clock = Some(c);
+    }
+
+    fn run_frame_clock(&mut self, now: Timestamp, out: &mut Vec<Command>) {
+        if self.shutting_down || self.cfg.mode == Mode::Multifocal {
+            return;
+        }
+        let lead = self.cfg.display.render_lead;
+        let period = self.cfg.display.frame_period;
+        let mut c = *self.clock.get_or_insert(FrameClock {
+            base: now + lead,
+            base_slot: 0,
+            next_request: 0,
+            next_vsync: 0,
+        });
+        // After a long stall, skip ahead instead of replaying every missed slot.
+        let behind = since(now, self.vsync_time(&c, c.next_vsync));
+        if behind > period.saturating_mul(4) {
+            let skip = (behind.as_nanos() / period.as_nanos().max(1)) as u64;
+            c.next_vsync += skip;
+            c.next_request = c.next_request.max(c.next_vsync);
+            self.counters.renders_skipped += skip;
+        }
+        loop {
+            let req_t = self.vsync_time(&c, c.next_request).saturating_sub(lead);
+            let vs_t = self.vsync_time(&c, c.next_vsync);
+            if req_t <= now && req_t <= vs_t && c.next_request >= c.next_vsync {
+                let slot = c.next_request;
+                c.next_request += 1;
+                if self.in_flight.is_none() {
+                    let display = self.vsync_time(&c, slot) + self.cfg.display.latency;
+                    self.request(FrameId(slot), display, out);
+                } else {
+                    self.counters.renders_skipped += 1;
+                }
+            } else if vs_t <= now {
+                let slot = c.next_vsync;
+                c.next_vsync += 1;
+                c.next_request = c.next_request.max(c.next_vsync);
+                let display = vs_t + self.cfg.display.latency;
+                if let Some((frame, repeat)) = self.choose_frame(vs_t, FrameId(slot), display) {
+                    out.push(Command::Present {
+                        frame,
+                        vsync: vs_t,
+                        display_time: display,
+                        repeat,
+                    });
+                }
+            } else {
+                break;
+            }
+        }
+        self.clock = Some(c);
+    }
+
+    fn on_sequencer(&mut self, _now: Timestamp, e: &SequencerEvent, out: &mut Vec<Command>) {
+        let (frame, plane, start) = match *e {
+            SequencerEvent::Fault { .. } => {
+                self.counters.sequencer_faults += 1;
+                return;
+            }
+            SequencerEvent::SubframeStart {
+                frame,
+                plane_index,
+                host_time,
+                ..
+            } => (frame, plane_index, host_time),
+        };
+        if self.cfg.mode != Mode::Multifocal || self.shutting_down {
+            return;
+        }
+        if plane == 0 {
+            let slot = FrameId(u64::from(frame));
+            self.cycle = self.choose_frame(start, slot, start);
+            // Layers for the next cycle, unless the renderer is still busy.
+            if self.in_flight.is_none() {
+                let period = self
+                    .cfg
+                    .planes
+                    .as_ref()
+                    .map_or(self.cfg.display.frame_period, |p| p.frame_period());
+                self.request(FrameId(u64::from(frame) + 1), start + period, out);
+            } else {
+                self.counters.renders_skipped += 1;
+            }
+        }
+        if let Some((f, repeat)) = self.cycle {
+            out.push(Command::PresentLayer {
+                frame: f,
+                layer: plane,
+                sync_frame: frame,
+                start,
+                repeat,
+            });
+        }
+    }
+}

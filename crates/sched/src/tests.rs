@@ -1,0 +1,447 @@
+//! The scheduler on synthetic events with known answers.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{
+    DepthMap, Diopters, EyeRay, GazeSample, LensState, Plane, SequencerEvent, Timestamp,
+};
+
+use crate::*;
+
+const IPD_MM: f64 = 64.0;
+
+/// Both eyes on the point at (`yaw`, `pitch`) degrees and `diopters`; `valid` false = blink.
+fn sample(t_us: u64, yaw: f64, pitch: f64, diopters: f64, valid: bool) -> GazeSample {
+    let (y, p) = (yaw.to_radians(), pitch.to_radians());
+    let dist = 1000.0 / diopters;
+    let pt = [
+        p.cos() * y.sin() * dist,
+        p.sin() * dist,
+        p.cos() * y.cos() * dist,
+    ];
+    let eye = |x: f64| {
+        let d = [pt[0] - x, pt[1], pt[2]];
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        EyeRay {
+            origin_mm: [x as f32, 0.0, 0.0],
+            direction: [(d[0] / n) as f32, (d[1] / n) as f32, (d[2] / n) as f32],
+            pupil_mm: 4.0,
+            valid,
+        }
+    };
+    let t = Timestamp::from_micros(t_us);
+    GazeSample {
+        device_time: t,
+        host_receive_time: t + Duration::from_micros(800),
+        host_time: t,
+        left: eye(-IPD_MM / 2.0),
+        right: eye(IPD_MM / 2.0),
+    }
+}
+
+/// Left half 2 D (0.5 m), right half 0.5 D (2 m).
+fn split_depth() -> Arc<DepthMap> {
+    let w = 256;
+    let mut p = Plane::new(w, w, 0.5);
+    for y in 0..w {
+        for x in 0..w / 2 {
+            p.data_mut()[y * w + x] = 2.0;
+        }
+    }
+    Arc::new(DepthMap::from_diopters(p).unwrap())
+}
+
+fn lens_commands(out: &[Command]) -> Vec<(Diopters, FocusReason)> {
+    out.iter()
+        .filter_map(|c| match c {
+            Command::SetLensPower { power, reason, .. } => Some((*power, *reason)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Min-jerk position fraction.
+fn min_jerk(s: f64) -> f64 {
+    let s = s.clamp(0.0, 1.0);
+    s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
+}
+
+/// Steps one 500 Hz gaze sample at its receive time; returns the commands it caused.
+fn gaze(s: &mut Scheduler, g: GazeSample) -> Vec<Command> {
+    let mut out = Vec::new();
+    s.step(g.host_receive_time, Event::Gaze(g), &mut out);
+    out
+}
+
+#[test]
+fn saccade_between_depths_moves_focus_once_and_blinks_hold_it() {
+    let mut s = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    let mut out = Vec::new();
+    s.step(Timestamp::ZERO, Event::Depth(split_depth()), &mut out);
+    let mut t = 0u64;
+    let mut all = Vec::new();
+    // 300 ms on the near object at -5 degrees.
+    for _ in 0..150 {
+        let c = gaze(&mut s, sample(t, -5.0, 0.0, 2.0, true));
+        all.extend(lens_commands(&c).into_iter().map(|c| (t, c)));
+        t += 2000;
+    }
+    assert_eq!(all.len(), 1, "{all:?}");
+    assert_eq!(all[0].0, 0, "first fixation sample commands");
+    assert_eq!(all[0].1, (Diopters(2.0), FocusReason::FixationOnset));
+    // A 10 degree saccade to the far object (43 ms), then fixation there.
+    let start = t;
+    let dur = 43_000u64;
+    let mut landed_at = None;
+    while t < start + dur + 200_000 {
+        let f = min_jerk((t - start) as f64 / dur as f64);
+        let yaw = -5.0 + 10.0 * f;
+        // Vergence follows slowly: still near at landing.
+        let d = 2.0 - 1.5 * (1.0 - (-((t - start) as f64) / 150_000.0).exp());
+        let c = gaze(&mut s, sample(t, yaw, 0.0, d, true));
+        if t >= start + dur && landed_at.is_none() {
+            landed_at = Some(t);
+        }
+        all.extend(lens_commands(&c).into_iter().map(|c| (t, c)));
+        t += 2000;
+    }
+    let moved: Vec<_> = all[1..].to_vec();
+    assert_eq!(moved.len(), 1, "one command per saccade: {moved:?}");
+    let (when, (power, reason)) = moved[0];
+    assert_eq!(power, Diopters(0.5));
+    assert_eq!(reason, FocusReason::SaccadeLanding);
+    // Commanded before the eye landed: during the saccade.
+    assert!(
+        when > start && when < landed_at.unwrap(),
+        "{when} {landed_at:?}"
+    );
+    assert_eq!(s.status().counters.saccades, 1);
+    // A 150 ms blink, then the eyes reopen on the same object: nothing to do.
+    for _ in 0..75 {
+        assert!(lens_commands(&gaze(&mut s, sample(t, 5.0, 0.0, 0.5, false))).is_empty());
+        t += 2000;
+    }
+    assert_eq!(s.status().phase, crate::processing::EyePhase::Blink);
+    for _ in 0..50 {
+        assert!(lens_commands(&gaze(&mut s, sample(t, 5.0, 0.0, 0.5, true))).is_empty());
+        t += 2000;
+    }
+    assert_eq!(s.status().counters.blinks, 1);
+    assert_eq!(s.status().commanded_power, Some(Diopters(0.5)));
+}
+
+#[test]
+fn without_landing_prediction_the_command_comes_at_fixation_onset() {
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.focus.predict_landing = false;
+    let mut s = Scheduler::new(cfg).unwrap();
+    let mut out = Vec::new();
+    s.step(Timestamp::ZERO, Event::Depth(split_depth()), &mut out);
+    let mut t = 0;
+    for _ in 0..100 {
+        gaze(&mut s, sample(t, -5.0, 0.0, 2.0, true));
+        t += 2000;
+    }
+    let start = t;
+    let mut cmd = None;
+    let mut onset = None;
+    while t < start + 200_000 {
+        let f = min_jerk((t - start) as f64 / 43_000.0);
+        let c = gaze(&mut s, sample(t, -5.0 + 10.0 * f, 0.0, 2.0, true));
+        let fixating = s.status().phase == crate::processing::EyePhase::Fixation;
+        if fixating && t > start + 10_000 && onset.is_none() {
+            onset = Some(t);
+        }
+        if let Some(c) = lens_commands(&c).first() {
+            cmd.get_or_insert((t, *c));
+        }
+        t += 2000;
+    }
+    let (when, (power, reason)) = cmd.expect("no command after the saccade");
+    assert_eq!((power, reason), (Diopters(0.5), FocusReason::FixationOnset));
+    assert_eq!(Some(when), onset, "on the sample the fixation was detected");
+}
+
+#[test]
+fn frames_render_at_the_focus_the_lens_will_have_at_display_time() {
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.display.latency = Duration::from_millis(4);
+    // A short render budget: a frame asked for just after a command shows mid-move.
+    cfg.display.render_lead = Duration::from_millis(5);
+    let mut s = Scheduler::new(cfg).unwrap();
+    let mut requests = Vec::new();
+    let mut t = Timestamp::ZERO;
+    // Manual focus at 0.5 D, then 3 D at 96 ms; a renderer that takes 3 ms.
+    let mut events = vec![
+        (Timestamp::ZERO, Event::ManualFocus(Some(Diopters(0.5)))),
+        (
+            Timestamp::from_millis(96),
+            Event::ManualFocus(Some(Diopters(3.0))),
+        ),
+    ];
+    while t < Timestamp::from_millis(200) {
+        events.sort_by_key(|e| e.0);
+        let (at, ev) = match events.first() {
+            Some(e) if e.0 <= t => events.remove(0),
+            _ => (t, Event::Tick),
+        };
+        let mut out = Vec::new();
+        s.step(at, ev, &mut out);
+        for c in out {
+            if let Command::RenderFrame(r) = c {
+                // The focus is the model's prediction when the frame is asked for.
+                let want = s.predicted_lens_power(r.display_time).unwrap();
+                assert_eq!(r.lens_power, Some(want));
+                assert_eq!(r.focus, Some(want));
+                if at >= Timestamp::from_millis(96) {
+                    requests.push(r);
+                }
+                events.push((
+                    at + Duration::from_millis(3),
+                    Event::RenderFinished {
+                        frame: r.frame,
+                        method: r.method,
+                        render_time: Duration::from_millis(3),
+                    },
+                ));
+            }
+        }
+        let next_event = events.iter().map(|e| e.0).min();
+        t = s
+            .next_wakeup()
+            .into_iter()
+            .chain(next_event)
+            .min()
+            .unwrap()
+            .max(t);
+    }
+    assert!(requests.len() >= 5, "{}", requests.len());
+    let mut moving = 0;
+    for r in &requests {
+        let p = r.lens_power.unwrap().0;
+        if (p - 3.0).abs() > 0.05 {
+            moving += 1;
+            assert!(p > 0.5, "{r:?}");
+        }
+    }
+    // The frame displayed while the lens moves is rendered for where the lens will be then,
+    // not for the target.
+    assert!(moving >= 1, "{requests:?}");
+    assert_eq!(s.status().counters.misses, 0);
+}
+
+fn subframe(frame: u32, plane: u8, t: Timestamp) -> Event {
+    Event::Sequencer(SequencerEvent::SubframeStart {
+        frame,
+        plane_index: plane,
+        device_time: t,
+        host_time: t,
+        lens_power: None,
+    })
+}
+
+/// Multifocal with 4 planes at 240 Hz and a renderer taking `render`: (misses, presented).
+fn multifocal(render: Duration, cycles: u32) -> (u64, u64, Vec<(u64, bool)>) {
+    let mut s = Scheduler::new(SchedulerConfig::new(Mode::Multifocal)).unwrap();
+    let period = Duration::from_nanos(4_166_667);
+    let mut pending: Option<(Timestamp, FrameId)> = None;
+    let mut shown = Vec::new();
+    for f in 0..cycles {
+        for plane in 0..4u8 {
+            let t = Timestamp::from_millis(10) + period * (f * 4 + u32::from(plane));
+            if let Some((done, frame)) = pending.filter(|p| p.0 <= t) {
+                let mut o = Vec::new();
+                s.step(
+                    done,
+                    Event::RenderFinished {
+                        frame,
+                        method: RenderMethod::Linear,
+                        render_time: render,
+                    },
+                    &mut o,
+                );
+                pending = None;
+            }
+            let mut out = Vec::new();
+            s.step(t, subframe(f, plane, t), &mut out);
+            for c in out {
+                match c {
+                    Command::RenderFrame(r) => pending = Some((t + render, r.frame)),
+                    Command::PresentLayer {
+                        frame,
+                        layer,
+                        repeat,
+                        ..
+                    } => {
+                        assert_eq!(layer, plane);
+                        if layer == 0 {
+                            shown.push((frame.0, repeat));
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    let c = s.status().counters;
+    (c.misses, c.frames_presented, shown)
+}
+
+#[test]
+fn multifocal_shows_layers_in_lockstep_and_counts_misses() {
+    // Fast: every cycle shows the frame rendered for it.
+    let (misses, presented, shown) = multifocal(Duration::from_millis(5), 200);
+    assert_eq!(misses, 0);
+    assert_eq!(presented, 199);
+    assert!(shown.windows(2).all(|w| w[1].0 == w[0].0 + 1));
+    // 1.5 frame periods: every other cycle repeats; 2.5: two of three.
+    for (render_ms, want) in [(25u64, 1.0 / 2.0), (42, 2.0 / 3.0)] {
+        let (misses, presented, shown) = multifocal(Duration::from_millis(render_ms), 300);
+        let repeats = shown.iter().filter(|s| s.1).count() as u64;
+        assert_eq!(misses, repeats);
+        let share = misses as f64 / presented as f64;
+        assert!((share - want).abs() < 0.02, "{render_ms} ms: {share}");
+    }
+}
+
+#[test]
+fn lost_link_holds_the_target_and_reconnect_sends_it_then_shutdown_parks() {
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.park_power = Diopters(0.25);
+    let mut s = Scheduler::new(cfg).unwrap();
+    let mut out = Vec::new();
+    s.step(Timestamp::ZERO, Event::LensLink(LinkStatus::Lost), &mut out);
+    s.step(
+        Timestamp::from_millis(1),
+        Event::ManualFocus(Some(Diopters(1.5))),
+        &mut out,
+    );
+    assert!(lens_commands(&out).is_empty());
+    assert_eq!(s.status().counters.lens_commands_held, 1);
+    s.step(
+        Timestamp::from_millis(2),
+        Event::LensLink(LinkStatus::Connected),
+        &mut out,
+    );
+    assert_eq!(
+        lens_commands(&out),
+        [(Diopters(1.5), FocusReason::Reconnect)]
+    );
+    out.clear();
+    s.step(Timestamp::from_millis(3), Event::Shutdown, &mut out);
+    assert_eq!(lens_commands(&out), [(Diopters(0.25), FocusReason::Park)]);
+    // Nothing moves the lens after shutdown, and no more frames are asked for.
+    out.clear();
+    s.step(
+        Timestamp::from_millis(4),
+        Event::ManualFocus(Some(Diopters(2.0))),
+        &mut out,
+    );
+    s.step(Timestamp::from_millis(50), Event::Tick, &mut out);
+    assert!(out.is_empty(), "{out:?}");
+}
+
+#[test]
+fn settle_latency_is_measured_from_the_wire_to_a_settled_readback() {
+    let mut s = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    let mut out = Vec::new();
+    s.step(Timestamp::ZERO, Event::Depth(split_depth()), &mut out);
+    let g = sample(0, -5.0, 0.0, 2.0, true);
+    out.clear();
+    s.step(g.host_receive_time, Event::Gaze(g), &mut out);
+    let Some(Command::SetLensPower { id, .. }) = out.first().copied() else {
+        panic!("{out:?}");
+    };
+    let wire = g.host_receive_time + Duration::from_micros(120);
+    s.step(
+        wire,
+        Event::LensCommandWritten {
+            id,
+            wire_time: wire,
+        },
+        &mut out,
+    );
+    let state = |ms: u64, p: f32, settled| LensState {
+        power: Diopters(p),
+        current_ma: None,
+        temperature_c: None,
+        settled: Some(settled),
+        host_time: wire + Duration::from_millis(ms),
+    };
+    for (ms, p, settled) in [
+        (5, 1.2, false),
+        (10, 1.99, false),
+        (14, 2.0, true),
+        (20, 2.0, true),
+    ] {
+        let st = state(ms, p, settled);
+        s.step(st.host_time, Event::LensState(st), &mut out);
+    }
+    let l = s.latency();
+    assert_eq!(l.stage(Stage::HostToWire).len(), 1);
+    assert!((119..=121).contains(&l.stage(Stage::HostToWire).max()));
+    assert_eq!(l.stage(Stage::WireToSettled).len(), 1);
+    assert!((13_990..=14_010).contains(&l.stage(Stage::WireToSettled).max()));
+    // From the tracker's exposure: 0.8 ms to the host, 0.12 ms to the wire, 14 ms to settle.
+    let g2s = l.stage(Stage::GazeToSettled).max();
+    assert!((14_900..=14_940).contains(&g2s), "{g2s}");
+    assert_eq!(s.status().last_settle, Some(Duration::from_millis(14)));
+}
+
+#[test]
+fn config_errors_name_the_setting_and_bad_events_are_counted_not_fatal() {
+    let mut cfg = SchedulerConfig::new(Mode::Multifocal);
+    cfg.planes = None;
+    let e = Scheduler::new(cfg).unwrap_err();
+    assert!(e.to_string().contains("`planes`"), "{e}");
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.method = RenderMethod::Linear;
+    assert!(Scheduler::new(cfg)
+        .unwrap_err()
+        .to_string()
+        .contains("`method`"));
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.park_power = Diopters(9.0);
+    assert!(Scheduler::new(cfg)
+        .unwrap_err()
+        .to_string()
+        .contains("park_power"));
+
+    let mut s = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    let mut out = Vec::new();
+    s.step(
+        Timestamp::ZERO,
+        Event::RenderFinished {
+            frame: FrameId(77),
+            method: RenderMethod::Gather,
+            render_time: Duration::ZERO,
+        },
+        &mut out,
+    );
+    s.step(
+        Timestamp::ZERO,
+        Event::SetMethod(RenderMethod::Views),
+        &mut out,
+    );
+    s.step(
+        Timestamp::ZERO,
+        Event::ManualFocus(Some(Diopters(f32::NAN))),
+        &mut out,
+    );
+    // Garbage gaze: NaN directions and times going backwards.
+    let mut g = sample(1000, 0.0, 0.0, 1.0, true);
+    g.left.direction = [f32::NAN; 3];
+    g.right.origin_mm = [f32::INFINITY; 3];
+    s.step(Timestamp::from_millis(1), Event::Gaze(g), &mut out);
+    s.step(
+        Timestamp::from_millis(1),
+        Event::Gaze(sample(0, 0.0, 0.0, 1.0, true)),
+        &mut out,
+    );
+    let st = s.status();
+    assert_eq!(st.counters.ignored_events, 3);
+    assert_eq!(st.method, RenderMethod::Gather);
+    assert_eq!(st.counters.gaze_samples, 2);
+    assert!(lens_commands(&out).is_empty());
+}

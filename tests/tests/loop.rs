@@ -1,0 +1,436 @@
+//! The whole loop on simulated devices and tokio's paused clock: the scheduler with the real
+//! lens, eye-tracker and sync-board drivers against their simulators.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
+use dioptra_loop_tests::{run, Action, Frames, RigOptions, Run};
+use dioptra_sched::{Command, FocusReason, FrameRequest, LinkStatus, Mode};
+use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
+use dioptra_sim::gaze::Scene;
+
+const NEAR_D: f32 = 2.0; // 0.5 m
+const FAR_D: f32 = 0.5; // 2 m
+
+/// Two objects filling the field: left half at 0.5 m, right half at 2 m (256 px over 20°).
+fn split_depth() -> Arc<DepthMap> {
+    let w = 256;
+    let mut p = Plane::new(w, w, FAR_D);
+    for y in 0..w {
+        for x in 0..w / 2 {
+            p.data_mut()[y * w + x] = NEAR_D;
+        }
+    }
+    Arc::new(DepthMap::from_diopters(p).unwrap())
+}
+
+/// A renderer that takes a fixed simulated time and shows the split scene.
+struct Fixed {
+    depth: Option<Arc<DepthMap>>,
+    render: Duration,
+}
+
+impl Fixed {
+    fn new(render: Duration) -> Self {
+        Fixed {
+            depth: Some(split_depth()),
+            render,
+        }
+    }
+}
+
+impl Frames for Fixed {
+    fn depth(&mut self, _t: Timestamp) -> Option<Arc<DepthMap>> {
+        self.depth.take()
+    }
+    fn render(&mut self, _req: &FrameRequest) -> Duration {
+        self.render
+    }
+}
+
+fn target(yaw: f64, diopters: f32) -> Target {
+    Target {
+        yaw_deg: yaw,
+        pitch_deg: 1.0,
+        diopters: f64::from(diopters),
+    }
+}
+
+/// Fixations alternating between the near object (left) and the far one (right).
+fn near_far(ms: u32) -> Scene {
+    Scene {
+        name: "near-far".into(),
+        targets: vec![target(-5.0, NEAR_D), target(5.0, FAR_D)],
+        script: vec![
+            Segment::Fixate { target: 0, ms },
+            Segment::Fixate { target: 1, ms },
+        ],
+    }
+}
+
+fn options(mode: Mode, scene: Scene, seconds: f64) -> RigOptions {
+    let mut o = RigOptions::new(mode, scene, Duration::from_secs_f64(seconds));
+    // Blinks only where a test scripts them.
+    o.gaze.blink_rate_hz = 0.0;
+    o
+}
+
+async fn go(opts: RigOptions, render: Duration) -> Run {
+    run(opts, &mut Fixed::new(render)).await.unwrap()
+}
+
+/// True saccades as (start, landing) times, µs, with the depth of the target landed on.
+fn saccades(r: &Run) -> Vec<(u64, u64, f64)> {
+    let mut out = Vec::new();
+    let mut start = None;
+    for w in r.log.truth.windows(2) {
+        match (w[0].phase, w[1].phase) {
+            (p, TruePhase::Saccade) if p != TruePhase::Saccade => start = Some(w[1].time_us),
+            (TruePhase::Saccade, TruePhase::Fixation) => {
+                if let Some(s) = start.take() {
+                    out.push((s, w[1].time_us, w[1].target_diopters));
+                }
+            }
+            _ => {}
+        }
+    }
+    out
+}
+
+fn us(t: Timestamp) -> u64 {
+    t.as_micros()
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_saccade_between_near_and_far_moves_the_lens_by_landing_and_it_settles_in_time() {
+    let opts = options(Mode::Varifocal, near_far(500), 3.2);
+    let settle = opts.lens.lens.settle_time;
+    let period_us = (1e6 / opts.gaze.rate_hz) as u64;
+    let max_delivery_us = opts.gaze_latency_us.0 + opts.gaze_latency_us.1;
+    let r = go(opts, Duration::from_millis(4)).await;
+    let sacc = saccades(&r);
+    assert!(sacc.len() >= 5, "{sacc:?}");
+    let cmds = &r.log.lens_commands;
+    for &(start, land, depth) in &sacc {
+        // The first command to the new depth after the saccade began.
+        let c = cmds
+            .iter()
+            .find(|c| us(c.t) >= start && (f64::from(c.power.0) - depth).abs() < 0.05)
+            .unwrap_or_else(|| panic!("no command to {depth} D after {start} µs: {cmds:?}"));
+        // Within one gaze sample of the fixation's onset, counting the sample's delivery.
+        assert!(
+            us(c.t) <= land + max_delivery_us + period_us,
+            "command at {} µs, landing at {land} µs",
+            us(c.t)
+        );
+        // Nothing else was sent for this fixation, so settling is timed from that command.
+        let next = cmds
+            .iter()
+            .find(|n| n.t > c.t && n.reason != FocusReason::Park)
+            .map_or(u64::MAX, |n| us(n.t));
+        assert!(next > land + 300_000, "a second command at {next} µs");
+        // Parking at the end of the run also ends the window.
+        let next = cmds
+            .iter()
+            .find(|n| n.t > c.t)
+            .map_or(u64::MAX, |n| us(n.t));
+        // The real (simulated) lens settles within 2 % of the step within its settle time
+        // of the command reaching the wire (probes are 1 ms apart).
+        let wire = us(c.wire.expect("the command went on the wire"));
+        let prev = r
+            .log
+            .probes
+            .iter()
+            .rev()
+            .find(|p| us(p.t) <= wire)
+            .and_then(|p| p.lens_power)
+            .unwrap();
+        let tol = 0.02 * (c.power.0 - prev.0).abs().max(0.5);
+        let settled_at = r
+            .log
+            .probes
+            .iter()
+            .filter(|p| us(p.t) >= wire && us(p.t) < next.min(wire + 200_000))
+            .scan(None, |since: &mut Option<u64>, p| {
+                let ok = (p.lens_power.unwrap().0 - c.power.0).abs() <= tol;
+                *since = if ok { since.or(Some(us(p.t))) } else { None };
+                Some(*since)
+            })
+            .last()
+            .flatten()
+            .expect("the lens never settled");
+        let took = Duration::from_micros(settled_at - wire);
+        assert!(
+            took <= settle + Duration::from_millis(1),
+            "settled {took:?} after the wire, settle time {settle:?}"
+        );
+        // And it had settled by (or within a settle time of) the eye landing.
+        assert!(settled_at <= land + 1000 * settle.as_millis() as u64);
+    }
+    let st = r.scheduler.status();
+    assert_eq!(st.counters.saccades as usize, sacc.len());
+    assert!(r.log.gaze_errors.is_empty(), "{:?}", r.log.gaze_errors);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_blink_holds_focus() {
+    let scene = Scene {
+        name: "blink".into(),
+        targets: vec![target(-5.0, NEAR_D)],
+        script: vec![
+            Segment::Fixate { target: 0, ms: 600 },
+            Segment::Blink { ms: 180 },
+        ],
+    };
+    let r = go(
+        options(Mode::Varifocal, scene, 2.5),
+        Duration::from_millis(4),
+    )
+    .await;
+    let blinks: Vec<u64> = r
+        .log
+        .truth
+        .iter()
+        .filter(|s| s.phase == TruePhase::Blink)
+        .map(|s| s.time_us)
+        .collect();
+    assert!(blinks.len() > 200, "{} blink samples", blinks.len());
+    assert!(r.scheduler.status().counters.blinks >= 3);
+    // One command at the first fixation, and none for the blinks or after them (park aside).
+    let gaze_cmds: Vec<_> = r
+        .log
+        .lens_commands
+        .iter()
+        .filter(|c| c.reason != FocusReason::Park)
+        .collect();
+    assert_eq!(gaze_cmds.len(), 1, "{gaze_cmds:?}");
+    assert_eq!(gaze_cmds[0].power, Diopters(NEAR_D));
+    // The real lens stays where it was through every blink.
+    let in_blink = r
+        .log
+        .probes
+        .iter()
+        .filter(|p| blinks.binary_search(&(us(p.t) / 2000 * 2000)).is_ok());
+    let mut n = 0;
+    for p in in_blink {
+        n += 1;
+        assert!(
+            (p.lens_power.unwrap().0 - NEAR_D).abs() < 0.03,
+            "{:?} at {}",
+            p.lens_power,
+            p.t
+        );
+    }
+    assert!(n > 200, "{n} probes in blinks");
+}
+
+/// Lens commands over a 5 s fixation right on the near/far edge with a noisy tracker (drift
+/// and microsaccades carry the gaze back and forth across it), the eyes verged between the
+/// two surfaces so vergence favours neither.
+async fn edge_fixation(policy: impl FnOnce(&mut dioptra_sched::SchedulerConfig)) -> Run {
+    let scene = Scene {
+        name: "edge".into(),
+        targets: vec![target(0.0, 0.5 * (NEAR_D + FAR_D))],
+        script: vec![Segment::Fixate {
+            target: 0,
+            ms: 10_000,
+        }],
+    };
+    let mut opts = options(Mode::Varifocal, scene, 5.0);
+    opts.gaze.noise_deg = 0.1;
+    opts.probe = None;
+    policy(&mut opts.sched);
+    go(opts, Duration::from_millis(4)).await
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_noisy_fixation_at_an_edge_does_not_make_the_lens_chase_noise() {
+    let gaze_cmds = |r: &Run| {
+        r.log
+            .lens_commands
+            .iter()
+            .filter(|c| c.reason != FocusReason::Park)
+            .count()
+    };
+    let r = edge_fixation(|_| {}).await;
+    let n = gaze_cmds(&r);
+    // The minimum interval bounds it at 33 in 5 s; smoothing, the confirm time and the
+    // deadband leave only the times the drifting gaze really stayed across the edge.
+    assert!(
+        n <= 10,
+        "{n} lens commands in 5 s: {:?}",
+        r.log.lens_commands
+    );
+    assert!(r.log.gaze_samples > 2000);
+    // The same gaze read naively (unsmoothed, every change sent at once) does chase: the
+    // check above does not pass for want of noise.
+    let naive = edge_fixation(|c| {
+        c.focus.deadband_d = 0.0;
+        c.focus.confirm = Duration::ZERO;
+        c.focus.min_interval = Duration::ZERO;
+        c.gaze.smoothing.min_cutoff_hz = 1000.0;
+    })
+    .await;
+    assert!(
+        gaze_cmds(&naive) > 5 * n.max(1),
+        "naive: {}",
+        gaze_cmds(&naive)
+    );
+}
+
+/// Multifocal with the sync board for 1000 frames; returns (misses, presented, run).
+async fn multifocal(render: Duration) -> (u64, u64, Run) {
+    let scene = Scene::named("saccades").unwrap();
+    let mut opts = options(Mode::Multifocal, scene, 1000.0 / 60.0 + 0.05);
+    opts.probe = None;
+    let r = go(opts, render).await;
+    let c = r.scheduler.status().counters;
+    (c.misses, c.frames_presented, r)
+}
+
+/// Checks lockstep: layer i in sub-frame i, the four layers of a cycle from one frame.
+/// Returns the number of cycles whose frame repeated the previous cycle's.
+fn check_lockstep(r: &Run) -> u64 {
+    let mut layers: Vec<(u32, u8, u64, bool)> = Vec::new();
+    for (_, c) in &r.log.presents {
+        if let Command::PresentLayer {
+            frame,
+            layer,
+            sync_frame,
+            repeat,
+            ..
+        } = *c
+        {
+            layers.push((sync_frame, layer, frame.0, repeat));
+        }
+    }
+    let mut repeats = 0;
+    let mut prev: Option<u64> = None;
+    for (k, l) in layers.iter().enumerate() {
+        if k > 0 {
+            let p = layers[k - 1];
+            let want = if p.1 == 3 {
+                (p.0 + 1, 0)
+            } else {
+                (p.0, p.1 + 1)
+            };
+            assert_eq!((l.0, l.1), want, "sub-frames out of step at {k}");
+        }
+        if l.1 == 0 {
+            if prev == Some(l.2) {
+                repeats += 1;
+                assert!(l.3, "a repeat not flagged at {k}");
+            } else {
+                assert!(!l.3);
+            }
+            prev = Some(l.2);
+        } else {
+            assert_eq!(
+                Some(l.2),
+                prev,
+                "layers of one cycle from two frames at {k}"
+            );
+        }
+    }
+    repeats
+}
+
+#[tokio::test(start_paused = true)]
+async fn multifocal_runs_1000_frames_without_a_miss_when_rendering_keeps_up() {
+    let (misses, presented, r) = multifocal(Duration::from_millis(5)).await;
+    assert!(presented >= 1000, "{presented} frames");
+    assert_eq!(misses, 0);
+    assert_eq!(check_lockstep(&r), 0);
+    assert!(r.log.sequencer_events >= 4000);
+}
+
+#[tokio::test(start_paused = true)]
+async fn multifocal_counts_misses_when_rendering_is_slow() {
+    // 1.5 frame periods per frame: every other cycle must show its predecessor again.
+    let (misses, presented, r) = multifocal(Duration::from_millis(25)).await;
+    assert!(presented >= 999, "{presented} frames");
+    assert_eq!(misses, check_lockstep(&r), "counted vs seen");
+    let share = misses as f64 / presented as f64;
+    assert!((share - 0.5).abs() < 0.01, "{misses} of {presented}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
+    let mut opts = options(Mode::Varifocal, near_far(400), 4.0);
+    opts.actions = vec![
+        (Duration::from_millis(1300), Action::UnplugLens),
+        (Duration::from_millis(1900), Action::ReplugLens),
+    ];
+    let r = go(opts, Duration::from_millis(4)).await;
+    let links: Vec<LinkStatus> = r.log.link_events.iter().map(|l| l.1).collect();
+    assert_eq!(links, [LinkStatus::Lost, LinkStatus::Connected]);
+    assert_eq!(r.lens.opened(), 2);
+    let (lost_at, back_at) = (r.log.link_events[0].0, r.log.link_events[1].0);
+    assert!(
+        us(lost_at) >= 1_300_000 && us(lost_at) < 1_310_000,
+        "{lost_at}"
+    );
+    assert!(
+        us(back_at) >= 1_900_000 && us(back_at) < 2_000_000,
+        "{back_at}"
+    );
+    // Gaze kept flowing while the lens was away.
+    let during = r
+        .log
+        .truth
+        .iter()
+        .filter(|s| s.time_us > us(lost_at) && s.time_us < us(back_at))
+        .count();
+    assert!(during > 250, "{during}");
+    assert_eq!(r.scheduler.status().counters.lens_link_losses, 1);
+    // After reconnecting, the lens follows the gaze again: at each probe well inside a
+    // fixation after the replug, the real lens is at the depth looked at.
+    let mut checked = 0;
+    for p in r
+        .log
+        .probes
+        .iter()
+        .filter(|p| us(p.t) > us(back_at) + 50_000)
+    {
+        let Some(truth) = r.log.truth.iter().rev().find(|s| s.time_us <= us(p.t)) else {
+            continue;
+        };
+        // 60 ms into a fixation (saccade, detection and settle are over).
+        let steady = r
+            .log
+            .truth
+            .iter()
+            .filter(|s| s.time_us + 60_000 >= truth.time_us && s.time_us <= truth.time_us)
+            .all(|s| s.phase == TruePhase::Fixation);
+        if steady && us(p.t) < 4_000_000 {
+            let lens = p.lens_power.unwrap().0;
+            assert!(
+                (f64::from(lens) - truth.target_diopters).abs() < 0.05,
+                "at {}: lens {lens}, target {}",
+                p.t,
+                truth.target_diopters
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 1000, "{checked}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn shutdown_parks_the_lens() {
+    let mut opts = options(Mode::Varifocal, near_far(300), 1.0);
+    opts.sched.park_power = Diopters(0.25);
+    let r = go(opts, Duration::from_millis(4)).await;
+    let last = r.log.lens_commands.last().unwrap();
+    assert_eq!(last.reason, FocusReason::Park);
+    assert_eq!(last.power, Diopters(0.25));
+    assert!(last.wire.is_some());
+    let end = r.log.probes.last().unwrap();
+    assert!((end.lens_target.unwrap().0 - 0.25).abs() < 1e-4, "{end:?}");
+    assert!((end.lens_power.unwrap().0 - 0.25).abs() < 0.01, "{end:?}");
+    assert!(r.scheduler.status().shutting_down);
+    // Frames stop with shutdown.
+    let shutdown_at = last.t;
+    assert!(r.log.frames_requested.iter().all(|f| f.0 <= shutdown_at));
+}
