@@ -1,0 +1,592 @@
+//! Host side of each GPU method: the same checks as its CPU twin, uploads, dispatches and
+//! readbacks through one [`Frame`] per output slice (a handful of submissions per call).
+
+use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, WG, WG1};
+use super::GpuError;
+use crate::backend::Progress;
+use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
+use crate::error::{invalid, mismatch, RenderError};
+use crate::kernel::{disk_kernel, gaussian_taps};
+use crate::lightfield::{halton_disk, LightFieldParams};
+use crate::metrics::Quality;
+use crate::multifocal::{check_planes, Layers};
+use crate::retina::{pupil_weights, LfView};
+use bytemuck::{Pod, Zeroable};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+
+type Out<T> = Result<(T, FrameStats), RenderError>;
+
+fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
+    u32::try_from(v).map_err(|_| invalid(format!("{what} {v} is too large for the GPU backend")))
+}
+
+fn groups2(w: u32, h: u32, z: u32) -> [u32; 3] {
+    [w.div_ceil(WG), h.div_ceil(WG), z]
+}
+
+/// Planar colour: R plane, then G, then B.
+fn planar(img: &RgbImage) -> Vec<f32> {
+    let mut v = Vec::with_capacity(3 * img.width() * img.height());
+    for c in &img.channels {
+        v.extend_from_slice(c.data());
+    }
+    v
+}
+
+fn image(data: &[f32], w: usize, h: usize) -> Result<RgbImage, RenderError> {
+    let n = w * h;
+    if data.len() < 3 * n {
+        return Err(GpuError::Validation(format!(
+            "readback of {} values, expected {}",
+            data.len(),
+            3 * n
+        ))
+        .into());
+    }
+    let p = |c: usize| Plane::from_vec(w, h, data[c * n..(c + 1) * n].to_vec());
+    Ok(RgbImage::from_planes(p(0)?, p(1)?, p(2)?)?)
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GatherP {
+    w: u32,
+    h: u32,
+    n_off: u32,
+    reach: u32,
+    focus: f32,
+    pupil_m: f32,
+    pitch: f32,
+    _pad: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct SizeP {
+    w: u32,
+    h: u32,
+    k: u32,
+    _pad: u32,
+}
+
+/// Gather blur, one frame per focus; colour and depth are uploaded once.
+pub(super) fn gather(
+    ctx: &GpuContext,
+    input: &Rgbd,
+    foci: &[Diopters],
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<RgbImage>> {
+    check_rgbd(input)?;
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, input.width())?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(foci.len());
+    let mut inputs: Option<(BufRef, BufRef)> = None;
+    for &q in foci {
+        let reach = (0.5 * max_coc(input, &eye, q) + 0.5).ceil().min(256.0) as isize;
+        // The CPU's tap order exactly: distance, ties in generation order (stable sort).
+        let mut offsets: Vec<[f32; 4]> = (-reach..=reach)
+            .flat_map(|dy| {
+                (-reach..=reach).map(move |dx| {
+                    [
+                        dx as f32,
+                        dy as f32,
+                        ((dx * dx + dy * dy) as f32).sqrt(),
+                        0.0,
+                    ]
+                })
+            })
+            .filter(|o| o[2] <= reach as f32 + 0.5)
+            .collect();
+        offsets.sort_by(|a, b| a[2].total_cmp(&b[2]));
+        let mut f = Frame::new(ctx)?;
+        let (color, depth) = match &inputs {
+            Some(b) => b.clone(),
+            None => {
+                let b = (
+                    f.upload("colour image", &planar(&input.color))?,
+                    f.upload("depth map", input.depth.data())?,
+                );
+                inputs = Some(b.clone());
+                b
+            }
+        };
+        let off = f.upload("gather offsets", &offsets)?;
+        let tex = f.scratch("packed texels", 16 * n)?;
+        let radius = f.scratch("radius", 4 * n)?;
+        let tmp = f.scratch("max filter", 4 * n)?;
+        let lmax = f.scratch("max filter", 4 * n)?;
+        let dst = f.scratch("output image", 12 * n)?;
+        let p = GatherP {
+            w: wu,
+            h: hu,
+            n_off: dim(offsets.len(), "offset count")?,
+            reach: reach as u32,
+            focus: q.0,
+            pupil_m: eye.pupil_diameter.to_meters().0,
+            pitch: eye.pixel_pitch_tan(),
+            _pad: 0,
+        };
+        let g = groups2(wu, hu, 1);
+        f.dispatch(Kernel::GatherPrep, &p, &[&color, &depth, &tex, &radius], g)?;
+        f.dispatch(Kernel::MaxH, &p, &[&radius, &tmp], g)?;
+        f.dispatch(Kernel::MaxV, &p, &[&tmp, &lmax], g)?;
+        f.dispatch(Kernel::Gather, &p, &[&tex, &depth, &lmax, &off, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(image(&rb.f32s(r), w, h)?);
+        progress(out.len());
+    }
+    Ok((out, total))
+}
+
+/// Linear blending in one dispatch.
+pub(super) fn linear_blend(ctx: &GpuContext, input: &Rgbd, planes: &[Diopters]) -> Out<Layers> {
+    check_planes(planes)?;
+    check_rgbd(input)?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let (n, np) = ((w * h) as u64, planes.len());
+    let mut f = Frame::new(ctx)?;
+    let color = f.upload("colour image", &planar(&input.color))?;
+    let depth = f.upload("depth map", input.depth.data())?;
+    let pl: Vec<f32> = planes.iter().map(|p| p.0).collect();
+    let pbuf = f.upload("planes", &pl)?;
+    let bytes = 12 * n * np as u64;
+    let dst = f.scratch("layer stack", bytes)?;
+    let p = SizeP {
+        w: wu,
+        h: hu,
+        k: np as u32,
+        _pad: 0,
+    };
+    f.dispatch(
+        Kernel::LinearBlend,
+        &p,
+        &[&color, &depth, &pbuf, &dst],
+        groups2(wu, hu, 1),
+    )?;
+    let r = f.read(&dst, bytes);
+    let (rb, s) = f.finish()?;
+    let data = rb.f32s(r);
+    let stride = 3 * w * h;
+    let images = (0..np)
+        .map(|l| image(data.get(l * stride..).unwrap_or(&[]), w, h))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((
+        Layers {
+            planes: planes.to_vec(),
+            images,
+        },
+        s,
+    ))
+}
+
+/// Convolves `layers` (same size) with per-focus, per-layer disk kernels and sums over the
+/// layers: `kernels[f][l]` is the diameter for focus f and layer l. Foci are batched per
+/// dispatch as far as the output buffer limit allows.
+fn convolve_sum(
+    ctx: &GpuContext,
+    layers: &[&RgbImage],
+    diameters: &[Vec<f32>],
+) -> Out<Vec<RgbImage>> {
+    let (w, h) = (layers[0].width(), layers[0].height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let nl = layers.len();
+    let mut kinfo: Vec<[u32; 4]> = Vec::new();
+    let mut weights: Vec<f32> = Vec::new();
+    for row in diameters {
+        for &d in row {
+            let k = disk_kernel(d);
+            kinfo.push([dim(weights.len(), "kernel size")?, k.radius as u32, 0, 0]);
+            weights.extend_from_slice(&k.weights);
+        }
+    }
+    let mut f = Frame::new(ctx)?;
+    let mut all = Vec::with_capacity(3 * w * h * nl);
+    for l in layers {
+        all.extend_from_slice(&planar(l));
+    }
+    let lbuf = f.upload("layer images", &all)?;
+    let kbuf = f.upload("kernel table", &kinfo)?;
+    let wbuf = f.upload("kernel weights", &weights)?;
+    let max = ctx.max_binding();
+    let per = ((max / (12 * n)) as usize).clamp(1, 1024);
+    let mut reads = Vec::new();
+    for (c, chunk) in diameters.chunks(per).enumerate() {
+        let nf = chunk.len();
+        // The chunk's kernel rows start at c * per * nl: pass them as their own table.
+        let rows: Vec<[u32; 4]> = kinfo[c * per * nl..(c * per + nf) * nl].to_vec();
+        let kb = if c == 0 && nf == diameters.len() {
+            kbuf.clone()
+        } else {
+            f.upload("kernel table", &rows)?
+        };
+        let dst = f.scratch("retinal images", 12 * n * nf as u64)?;
+        let p = SizeP {
+            w: wu,
+            h: hu,
+            k: nl as u32,
+            _pad: 0,
+        };
+        f.dispatch(
+            Kernel::Convolve,
+            &p,
+            &[&lbuf, &kb, &wbuf, &dst],
+            groups2(wu, hu, nf as u32),
+        )?;
+        reads.push((f.read(&dst, 12 * n * nf as u64), nf));
+    }
+    let (rb, s) = f.finish()?;
+    let mut out = Vec::with_capacity(diameters.len());
+    for (r, nf) in reads {
+        let data = rb.f32s(r);
+        for k in 0..nf {
+            out.push(image(data.get(k * 3 * w * h..).unwrap_or(&[]), w, h)?);
+        }
+    }
+    Ok((out, s))
+}
+
+pub(super) fn retina_varifocal(
+    ctx: &GpuContext,
+    image: &RgbImage,
+    display: Diopters,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Out<RgbImage> {
+    check_focus(display)?;
+    check_focus(focus)?;
+    if image.width() == 0 || image.height() == 0 {
+        return Err(invalid("image is empty"));
+    }
+    let eye = eye_for(eye, image.width())?;
+    let d = eye.coc_px(display, focus);
+    let (mut v, s) = convolve_sum(ctx, &[image], &[vec![d]])?;
+    let img = v
+        .pop()
+        .ok_or_else(|| GpuError::Validation("no image".into()))?;
+    Ok((img, s))
+}
+
+pub(super) fn retina_multifocal(
+    ctx: &GpuContext,
+    layers: &Layers,
+    foci: &[Diopters],
+    eye: &EyeModel,
+) -> Out<Vec<RgbImage>> {
+    if foci.is_empty() {
+        return Ok((Vec::new(), FrameStats::default()));
+    }
+    layers.check()?;
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, layers.width())?;
+    let diameters: Vec<Vec<f32>> = foci
+        .iter()
+        .map(|&q| layers.planes.iter().map(|&p| eye.coc_px(p, q)).collect())
+        .collect();
+    let imgs: Vec<&RgbImage> = layers.images.iter().collect();
+    convolve_sum(ctx, &imgs, &diameters)
+}
+
+pub(super) fn retina_lightfield(
+    ctx: &GpuContext,
+    views: &[LfView],
+    spacing: f32,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Out<RgbImage> {
+    check_focus(focus)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("the light field has no views"))?;
+    let (w, h) = (first.image.width(), first.image.height());
+    if w == 0
+        || h == 0
+        || views
+            .iter()
+            .any(|v| (v.image.width(), v.image.height()) != (w, h))
+    {
+        return Err(mismatch("light-field views are empty or differ in size"));
+    }
+    if !(spacing.is_finite() && spacing > 0.0)
+        || views
+            .iter()
+            .any(|v| !v.position.iter().all(|p| p.is_finite()))
+    {
+        return Err(invalid(format!(
+            "view spacing {spacing} m or a view position is invalid"
+        )));
+    }
+    let eye = eye_for(eye, w)?;
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let pitch = eye.pixel_pitch_tan();
+    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return Err(invalid("no light-field view lies inside the pupil"));
+    }
+    // Views outside the pupil carry no weight: they are never uploaded.
+    let used: Vec<(&LfView, [f32; 4])> = views
+        .iter()
+        .zip(&weights)
+        .filter(|(_, &wt)| wt != 0.0)
+        .map(|(v, &wt)| {
+            let sx = v.position[0] * focus.0 / pitch;
+            let sy = v.position[1] * focus.0 / pitch;
+            (v, [sx, sy, wt / total, 0.0])
+        })
+        .collect();
+    let n = (w * h) as u64;
+    let max = ctx.max_binding();
+    // Batches of at most 16 views keep uploads and compute overlapping on a real GPU.
+    let per = ((max / (12 * n)) as usize).clamp(1, 16);
+    let mut f = Frame::new(ctx)?;
+    let dst = f.zeroed("retinal image", 12 * n)?;
+    for batch in used.chunks(per) {
+        let mut data = Vec::with_capacity(batch.len() * 3 * w * h);
+        for (v, _) in batch {
+            data.extend_from_slice(&planar(&v.image));
+        }
+        let vb = f.upload("light-field views", &data)?;
+        let params: Vec<[f32; 4]> = batch.iter().map(|b| b.1).collect();
+        let pb = f.upload("view shifts", &params)?;
+        let p = SizeP {
+            w: wu,
+            h: hu,
+            k: batch.len() as u32,
+            _pad: 0,
+        };
+        f.dispatch(Kernel::ShiftAdd, &p, &[&vb, &pb, &dst], groups2(wu, hu, 1))?;
+    }
+    let r = f.read(&dst, 12 * n);
+    let (rb, s) = f.finish()?;
+    Ok((image(&rb.f32s(r), w, h)?, s))
+}
+
+/// Separable blur of `planes` planes of `src` into a fresh buffer (rows, then columns).
+fn blur(
+    f: &mut Frame,
+    src: &BufRef,
+    planes: u32,
+    w: u32,
+    h: u32,
+    taps: &[f32],
+) -> Result<BufRef, RenderError> {
+    let bytes = 4 * (w as u64) * (h as u64) * planes as u64;
+    let tb = f.upload("blur taps", taps)?;
+    let tmp = f.scratch("blur", bytes)?;
+    let dst = f.scratch("blur", bytes)?;
+    let p = SizeP {
+        w,
+        h,
+        k: taps.len() as u32,
+        _pad: 0,
+    };
+    f.dispatch(Kernel::BlurH, &p, &[src, &tb, &tmp], groups2(w, h, planes))?;
+    f.dispatch(Kernel::BlurV, &p, &[&tmp, &tb, &dst], groups2(w, h, planes))?;
+    Ok(dst)
+}
+
+/// PSNR and SSIM in one frame: per-workgroup partial sums, added on the host in f64.
+pub(super) fn quality(
+    ctx: &GpuContext,
+    a: &RgbImage,
+    b: &RgbImage,
+    mask: Option<&Plane>,
+) -> Out<Quality> {
+    crate::metrics::check(a, b, mask)?;
+    let (w, h) = (a.width(), a.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = w * h;
+    let groups = dim(n.div_ceil(WG1 as usize), "pixel count")?;
+    let ones;
+    let m = match mask {
+        Some(m) => m.data(),
+        None => {
+            ones = vec![1.0f32; n];
+            &ones[..]
+        }
+    };
+    let selected = m.iter().filter(|&&v| v > 0.5).count() * 3;
+    let mut f = Frame::new(ctx)?;
+    let ab = f.upload("image a", &planar(a))?;
+    let bb = f.upload("image b", &planar(b))?;
+    let mb = f.upload("mask", m)?;
+    let p = SizeP {
+        w: wu,
+        h: hu,
+        k: 0,
+        _pad: 0,
+    };
+    let se = f.scratch("partial sums", 4 * groups as u64)?;
+    f.dispatch(Kernel::PsnrSum, &p, &[&ab, &bb, &mb, &se], [groups, 1, 1])?;
+    let q = f.scratch("ssim terms", 4 * 15 * n as u64)?;
+    f.dispatch(Kernel::SsimPrep, &p, &[&ab, &bb, &q], groups2(wu, hu, 1))?;
+    let qb = blur(&mut f, &q, 15, wu, hu, &gaussian_taps(1.5))?;
+    let ss = f.scratch("partial sums", 4 * groups as u64)?;
+    f.dispatch(Kernel::SsimSum, &p, &[&qb, &mb, &ss], [groups, 1, 1])?;
+    let (r1, r2) = (
+        f.read(&se, 4 * groups as u64),
+        f.read(&ss, 4 * groups as u64),
+    );
+    let (rb, s) = f.finish()?;
+    let sum = |v: Vec<f32>| v.iter().map(|&x| x as f64).sum::<f64>();
+    let mse = sum(rb.f32s(r1)) / selected as f64;
+    let psnr = if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    };
+    Ok((
+        Quality {
+            psnr,
+            ssim: sum(rb.f32s(r2)) / selected as f64,
+        },
+        s,
+    ))
+}
+
+/// Standard deviations of the pyramid levels and the prefilter per view spacing: the CPU's
+/// constants in src/lightfield.rs (private there), repeated in shaders/lightfield.wgsl.
+const LEVEL_SIGMA: [f32; 7] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
+const PREFILTER: f32 = 0.35;
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct LfP {
+    w: u32,
+    h: u32,
+    nv: u32,
+    v0: u32,
+    focus: f32,
+    pupil_m: f32,
+    pitch: f32,
+    spacing: f32,
+    lens_f: f32,
+    top: u32,
+    nlev: u32,
+    _pad: u32,
+}
+
+/// Light-field depth of field: the pyramid once per call, then one frame per focus.
+pub(super) fn lightfield(
+    ctx: &GpuContext,
+    input: &Rgbd,
+    foci: &[Diopters],
+    eye: &EyeModel,
+    params: LightFieldParams,
+    progress: Progress,
+) -> Out<Vec<RgbImage>> {
+    check_rgbd(input)?;
+    if !(1..=1024).contains(&params.views) {
+        return Err(invalid(format!(
+            "views = {} is invalid: expected 1 to 1024",
+            params.views
+        )));
+    }
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, input.width())?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let pitch = eye.pixel_pitch_tan();
+    let radius = 0.5 * eye.pupil_diameter.to_meters().0;
+    let views: Vec<[f32; 4]> = halton_disk(params.views)
+        .into_iter()
+        .map(|p| {
+            let l = [p[0] * radius, p[1] * radius];
+            [-l[0] / pitch, -l[1] / pitch, l[0], l[1]]
+        })
+        .collect();
+    let spacing = 1.0 / (params.views as f32).sqrt();
+    let top = if params.mip { LEVEL_SIGMA.len() - 1 } else { 0 };
+    let level_below = |sigma: f32| {
+        let mut l = 0;
+        while l < top && LEVEL_SIGMA[l + 1] < sigma {
+            l += 1;
+        }
+        l
+    };
+    // The levels the sharpest-to-blurriest focus of this call reads, built once.
+    let nlev = foci
+        .iter()
+        .map(|&q| (level_below(PREFILTER * max_coc(input, &eye, q) * spacing) + 1).min(top) + 1)
+        .max()
+        .unwrap_or(1);
+    let max = ctx.max_binding();
+    let chunk = ((max / (4 * n)) as usize).clamp(1, params.views);
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(foci.len());
+    let mut shared: Option<(BufRef, BufRef, BufRef, BufRef)> = None;
+    for &q in foci {
+        let mut f = Frame::new(ctx)?;
+        let (color, depth, levels, vbuf) = match &shared {
+            Some(s) => s.clone(),
+            None => {
+                let color = f.upload("colour image", &planar(&input.color))?;
+                let depth = f.upload("depth map", input.depth.data())?;
+                let vbuf = f.upload("lens samples", &views)?;
+                let levels = f.scratch("Gaussian pyramid", 12 * n * nlev as u64)?;
+                f.copy(&color, 0, &levels, 0, 12 * n);
+                for (l, &sigma) in LEVEL_SIGMA.iter().enumerate().take(nlev).skip(1) {
+                    let b = blur(&mut f, &color, 3, wu, hu, &gaussian_taps(sigma))?;
+                    f.copy(&b, 0, &levels, 12 * n * l as u64, 12 * n);
+                }
+                let s = (color, depth, levels, vbuf);
+                shared = Some(s.clone());
+                s
+            }
+        };
+        let mut p = LfP {
+            w: wu,
+            h: hu,
+            nv: 0,
+            v0: 0,
+            focus: q.0,
+            pupil_m: eye.pupil_diameter.to_meters().0,
+            pitch,
+            spacing,
+            lens_f: eye.lens_to_retina.to_meters().0,
+            top: top as u32,
+            nlev: nlev as u32,
+            _pad: 0,
+        };
+        let g = groups2(wu, hu, 1);
+        let pre = f.scratch("prefiltered colour", 16 * n)?;
+        f.dispatch(Kernel::LfPrefilter, &p, &[&levels, &depth, &pre], g)?;
+        let acc = f.zeroed("accumulator", 16 * n)?;
+        let dkey = f.scratch("depth keys", 4 * n * chunk as u64)?;
+        let ikey = f.scratch("index keys", 4 * n * chunk as u64)?;
+        for v0 in (0..params.views).step_by(chunk) {
+            let nv = chunk.min(params.views - v0);
+            p.v0 = v0 as u32;
+            p.nv = nv as u32;
+            f.clear(&dkey);
+            f.clear(&ikey);
+            let gz = groups2(wu, hu, nv as u32);
+            f.dispatch(Kernel::LfSplatDepth, &p, &[&depth, &vbuf, &dkey], gz)?;
+            f.dispatch(Kernel::LfSplatIndex, &p, &[&depth, &vbuf, &dkey, &ikey], gz)?;
+            f.dispatch(
+                Kernel::LfAccumulate,
+                &p,
+                &[&dkey, &ikey, &pre, &vbuf, &acc],
+                g,
+            )?;
+        }
+        let dst = f.scratch("output image", 12 * n)?;
+        f.dispatch(Kernel::LfFinish, &p, &[&acc, &color, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(image(&rb.f32s(r), w, h)?);
+        progress(out.len());
+    }
+    Ok((out, total))
+}
