@@ -110,6 +110,28 @@ fn benches(c: &mut Criterion) {
         gpu.retina_lightfield(black_box(&views), 0.001, Diopters(1.0), &eye)
             .expect("retina lf");
     });
+    // Optimized blending against the 22-slice gather focal stack: 10 iterations here (the CPU
+    // bench runs 100), since lavapipe needs about a second per iteration; scale by 10.
+    let foci = dioptra_render::multifocal::default_focal_samples();
+    let targets = dioptra_render::Cpu
+        .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
+        .expect("targets");
+    let params = dioptra_render::OptimizeParams {
+        iterations: 10,
+        tolerance: 0.0,
+    };
+    run("optimized_10", &mut || {
+        gpu.optimized_blend(
+            black_box(&targets),
+            &foci,
+            &planes,
+            &eye,
+            Some(&layers),
+            params,
+            &|_| {},
+        )
+        .expect("optimized");
+    });
     let other = dioptra_render::Cpu
         .defocus(&input, &q, &eye, DefocusMethod::Gather, &|_| {})
         .expect("gather")

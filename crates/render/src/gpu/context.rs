@@ -35,6 +35,9 @@ pub(crate) enum Kernel {
     LfSplatIndex,
     LfAccumulate,
     LfFinish,
+    OptResidual,
+    OptStep,
+    OptSqSum,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -43,9 +46,10 @@ const RETINA_WGSL: &str = include_str!("../../shaders/retina.wgsl");
 const BLUR_WGSL: &str = include_str!("../../shaders/blur.wgsl");
 const METRICS_WGSL: &str = include_str!("../../shaders/metrics.wgsl");
 const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
+const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 
 impl Kernel {
-    const ALL: [Kernel; 17] = [
+    const ALL: [Kernel; 20] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -63,6 +67,9 @@ impl Kernel {
         Kernel::LfSplatIndex,
         Kernel::LfAccumulate,
         Kernel::LfFinish,
+        Kernel::OptResidual,
+        Kernel::OptStep,
+        Kernel::OptSqSum,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -86,6 +93,9 @@ impl Kernel {
             LfSplatIndex => (LIGHTFIELD_WGSL, "splat_index", 3, 1),
             LfAccumulate => (LIGHTFIELD_WGSL, "accumulate", 4, 1),
             LfFinish => (LIGHTFIELD_WGSL, "finish", 2, 1),
+            OptResidual => (OPTIMIZE_WGSL, "residual", 4, 1),
+            OptStep => (OPTIMIZE_WGSL, "step", 3, 2),
+            OptSqSum => (OPTIMIZE_WGSL, "sq_sum", 1, 1),
         }
     }
 }

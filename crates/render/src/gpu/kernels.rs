@@ -1,15 +1,15 @@
 //! Host side of each GPU method: the same checks as its CPU twin, uploads, dispatches and
 //! readbacks through one [`Frame`] per output slice (a handful of submissions per call).
 
-use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, WG, WG1};
+use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, WG, WG1};
 use super::GpuError;
 use crate::backend::Progress;
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, mismatch, RenderError};
-use crate::kernel::{disk_kernel, gaussian_taps};
+use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
 use crate::lightfield::{halton_disk, LightFieldParams};
 use crate::metrics::Quality;
-use crate::multifocal::{check_planes, Layers};
+use crate::multifocal::{check_planes, Layers, OptimizeParams, OptimizeReport};
 use crate::retina::{pupil_weights, LfView};
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
@@ -589,4 +589,245 @@ pub(super) fn lightfield(
         progress(out.len());
     }
     Ok((out, total))
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct OptP {
+    pw: u32,
+    ph: u32,
+    np: u32,
+    nf: u32,
+    step: f32,
+    mom: f32,
+    len: u32,
+    _pad: u32,
+}
+
+/// Adds `len` squared values of `src` into per-workgroup partials and reads them back.
+fn sq_sum(f: &mut Frame, p: &OptP, src: &BufRef, len: u64) -> Result<Readback, RenderError> {
+    let groups = len.div_ceil(WG1 as u64);
+    let gx = groups.min(32768);
+    let gy = groups.div_ceil(gx);
+    let out = f.scratch("partial sums", 4 * gx * gy)?;
+    let q = OptP {
+        len: dim(len as usize, "residual length")?,
+        ..*p
+    };
+    f.dispatch(
+        Kernel::OptSqSum,
+        &q,
+        &[src, &out],
+        [gx as u32, gy as u32, 1],
+    )?;
+    Ok(f.read(&out, 4 * gx * gy))
+}
+
+/// Optimized blending: the CPU's FISTA on the CPU's padded grid, step 1 / L with the same
+/// Gershgorin bound (computed on the host from the kernel spectra). One submission for the
+/// RMS every 10 iterations and one for the 10 iterations themselves.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn optimized_blend(
+    ctx: &GpuContext,
+    targets: &[RgbImage],
+    foci: &[Diopters],
+    planes: &[Diopters],
+    eye: &EyeModel,
+    init: Option<&Layers>,
+    params: OptimizeParams,
+    progress: Progress,
+) -> Out<(Layers, OptimizeReport)> {
+    check_planes(planes)?;
+    if targets.is_empty() || targets.len() != foci.len() {
+        return Err(mismatch(format!(
+            "{} target slices for {} focal samples",
+            targets.len(),
+            foci.len()
+        )));
+    }
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let (w, h) = (targets[0].width(), targets[0].height());
+    if w == 0 || h == 0 || targets.iter().any(|t| (t.width(), t.height()) != (w, h)) {
+        return Err(mismatch("target slices are empty or differ in size"));
+    }
+    if let Some(l) = init {
+        l.check()?;
+        if (l.width(), l.height()) != (w, h) || l.planes != planes {
+            return Err(mismatch(
+                "initial layers do not match the targets' size or the planes",
+            ));
+        }
+    }
+    if params.iterations > 100_000 {
+        return Err(invalid("iterations must be at most 100000"));
+    }
+    let eye = eye_for(eye, w)?;
+    let (np, nf) = (planes.len(), foci.len());
+    let ks: Vec<Vec<crate::kernel::Kernel>> = foci
+        .iter()
+        .map(|&q| {
+            planes
+                .iter()
+                .map(|&p| disk_kernel(eye.coc_px(p, q)))
+                .collect()
+        })
+        .collect();
+    let max_r = ks.iter().flatten().map(|k| k.radius).max().unwrap_or(0);
+    let conv = FftConv::new(w, h, max_r);
+    let (pw, ph) = (conv.pw, conv.ph);
+    let pn = pw * ph;
+    // Lipschitz bound exactly as the CPU builds it: kernel spectra in pairs, M(f) summed over
+    // the focal samples, Gershgorin over rows.
+    let tri = |a: usize, b: usize| if a <= b { a * np + b } else { b * np + a };
+    let mut m = vec![vec![0.0f32; pn]; np * np];
+    for row in &ks {
+        let mut spectra = Vec::with_capacity(np);
+        for pair in row.chunks(2) {
+            let b = pair.get(1).cloned().unwrap_or_else(|| disk_kernel(0.0));
+            let (sa, sb) = conv.kernel_spectra(&pair[0], &b);
+            spectra.push(sa);
+            if pair.len() == 2 {
+                spectra.push(sb);
+            }
+        }
+        for a in 0..np {
+            for b in a..np {
+                for (f, v) in m[tri(a, b)].iter_mut().enumerate() {
+                    *v += spectra[a][f] * spectra[b][f];
+                }
+            }
+        }
+    }
+    let lipschitz = (0..pn)
+        .map(|f| {
+            (0..np)
+                .map(|a| (0..np).map(|b| m[tri(a, b)][f].abs()).sum::<f32>())
+                .fold(0.0f32, f32::max)
+        })
+        .fold(0.0f32, f32::max)
+        .max(1e-6);
+    drop(m);
+    let mut kinfo: Vec<[u32; 4]> = Vec::with_capacity(nf * np);
+    let mut weights: Vec<f32> = Vec::new();
+    for k in ks.iter().flatten() {
+        kinfo.push([dim(weights.len(), "kernel size")?, k.radius as u32, 0, 0]);
+        weights.extend_from_slice(&k.weights);
+    }
+    let mut tpad = Vec::with_capacity(nf * 3 * pn);
+    for t in targets {
+        for c in &t.channels {
+            tpad.extend_from_slice(&conv.pad(c));
+        }
+    }
+    let mut start = Vec::with_capacity(np * 3 * pn);
+    for i in 0..np {
+        for c in 0..3 {
+            let plane = match init {
+                Some(l) => l.images[i].channels[c].clone(),
+                None => {
+                    let mean: Vec<f32> = (0..w * h)
+                        .map(|p| {
+                            targets.iter().map(|t| t.channels[c].data()[p]).sum::<f32>()
+                                / (nf * np) as f32
+                        })
+                        .collect();
+                    Plane::from_vec(w, h, mean).unwrap_or_else(|_| Plane::new(w, h, 0.0))
+                }
+            };
+            start.extend_from_slice(&conv.pad(&plane));
+        }
+    }
+    let (pwu, phu) = (dim(pw, "padded width")?, dim(ph, "padded height")?);
+    let mut p = OptP {
+        pw: pwu,
+        ph: phu,
+        np: np as u32,
+        nf: nf as u32,
+        step: 1.0 / lipschitz,
+        mom: 0.0,
+        len: 0,
+        _pad: 0,
+    };
+    let rlen = (nf * 3 * pn) as u64;
+    let samples = rlen as f64;
+    let mut total = FrameStats::default();
+    let mut f = Frame::new(ctx)?;
+    let tb = f.upload("padded targets", &tpad)?;
+    let kb = f.upload("kernel table", &kinfo)?;
+    let wb = f.upload("kernel weights", &weights)?;
+    let xb = f.upload("layers", &start)?;
+    let yb = f.scratch("layers", 4 * start.len() as u64)?;
+    f.copy(&xb, 0, &yb, 0, 4 * start.len() as u64);
+    let rb = f.scratch("residuals", 4 * rlen)?;
+    let gres = groups2(pwu, phu, nf as u32);
+    let gstep = groups2(pwu, phu, np as u32);
+    let rms_of = |v: Vec<f32>| (v.iter().map(|&x| x as f64).sum::<f64>() / samples).sqrt();
+    let mut report = OptimizeReport {
+        iterations: 0,
+        rms: Vec::new(),
+        converged: false,
+    };
+    let mut t_k = 1.0f64;
+    let mut last_rms = f64::INFINITY;
+    let mut it = 0;
+    while it < params.iterations {
+        // The RMS at y before this block's first step (the CPU samples it every 10).
+        f.dispatch(Kernel::OptResidual, &p, &[&yb, &tb, &kb, &wb, &rb], gres)?;
+        let r = sq_sum(&mut f, &p, &rb, rlen)?;
+        let (res, s) = f.finish()?;
+        total.add(&s);
+        let rms = rms_of(res.f32s(r));
+        report.rms.push((it, rms));
+        if params.tolerance > 0.0
+            && last_rms.is_finite()
+            && (last_rms - rms) <= params.tolerance * last_rms
+        {
+            report.converged = true;
+            report.iterations = it;
+            f = Frame::new(ctx)?;
+            break;
+        }
+        last_rms = rms;
+        f = Frame::new(ctx)?;
+        let end = (it + 10).min(params.iterations);
+        for k in it..end {
+            if k > it {
+                f.dispatch(Kernel::OptResidual, &p, &[&yb, &tb, &kb, &wb, &rb], gres)?;
+            }
+            let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t_k * t_k).sqrt());
+            p.mom = ((t_k - 1.0) / t_next) as f32;
+            f.dispatch(Kernel::OptStep, &p, &[&rb, &kb, &wb, &xb, &yb], gstep)?;
+            t_k = t_next;
+        }
+        let (_, s) = f.finish()?;
+        total.add(&s);
+        for k in it..end {
+            report.iterations = k + 1;
+            progress(k + 1);
+        }
+        it = end;
+        f = Frame::new(ctx)?;
+    }
+    // Final objective at the returned (projected) layers.
+    f.dispatch(Kernel::OptResidual, &p, &[&xb, &tb, &kb, &wb, &rb], gres)?;
+    let r = sq_sum(&mut f, &p, &rb, rlen)?;
+    let xr = f.read(&xb, 4 * start.len() as u64);
+    let (res, s) = f.finish()?;
+    total.add(&s);
+    report.rms.push((report.iterations, rms_of(res.f32s(r))));
+    let x = res.f32s(xr);
+    let plane = |i: usize, c: usize| conv.crop(x.get((i * 3 + c) * pn..).unwrap_or(&[]));
+    let images = (0..np)
+        .map(|i| RgbImage::from_planes(plane(i, 0), plane(i, 1), plane(i, 2)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((
+        (
+            Layers {
+                planes: planes.to_vec(),
+                images,
+            },
+            report,
+        ),
+        total,
+    ))
 }

@@ -1,6 +1,6 @@
-//! The wgpu backend. Every method of [`Backend`] is overridden here: the ones with GPU kernels
-//! run them, the others return [`RenderError::Unsupported`] naming the method, so a caller
-//! never gets a silent CPU fallback.
+//! The wgpu backend. Every method of [`Backend`] is overridden here with a GPU kernel; a
+//! method without one must return [`RenderError::Unsupported`] naming it, never fall back to
+//! the CPU default silently.
 
 mod context;
 mod kernels;
@@ -73,13 +73,6 @@ impl Gpu {
             *l = s;
         }
     }
-
-    fn unsupported(method: &'static str) -> RenderError {
-        RenderError::Unsupported {
-            backend: "gpu",
-            method,
-        }
-    }
 }
 
 impl Backend for Gpu {
@@ -113,17 +106,19 @@ impl Backend for Gpu {
 
     fn optimized_blend(
         &self,
-        _targets: &[RgbImage],
-        _foci: &[Diopters],
-        _planes: &[Diopters],
-        _eye: &EyeModel,
-        _init: Option<&Layers>,
-        _params: OptimizeParams,
-        _progress: Progress,
+        targets: &[RgbImage],
+        foci: &[Diopters],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        init: Option<&Layers>,
+        params: OptimizeParams,
+        progress: Progress,
     ) -> Result<(Layers, OptimizeReport), RenderError> {
-        Err(Self::unsupported(
-            "optimized multifocal blending (decompose --method optimized) yet",
-        ))
+        let (out, s) = kernels::optimized_blend(
+            &self.ctx, targets, foci, planes, eye, init, params, progress,
+        )?;
+        self.record(s);
+        Ok(out)
     }
 
     fn retina_multifocal(
