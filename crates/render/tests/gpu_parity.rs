@@ -267,19 +267,20 @@ fn lightfield_defocus_and_focal_stack_match_cpu() {
 #[test]
 fn optimized_blend_matches_cpu() {
     let Some(g) = gpu() else { return };
-    // A 3 degree field over 64 px: disks up to ~15 px across, as at 512 px over 20 degrees.
+    // A 4 degree field over 48 px: disks up to ~9 px across (software rasterisers take
+    // seconds per direct-convolution iteration beyond that).
     let eye = EyeModel {
-        fov_horizontal_deg: 3.0,
+        fov_horizontal_deg: 4.0,
         ..EyeModel::default()
     };
     let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
     let foci = linspace(0.1, 2.2, 6);
-    let input = random_rgbd(64, 48, 9);
+    let input = random_rgbd(48, 40, 9);
     let targets = Cpu
         .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
         .unwrap();
     let linear = Cpu.linear_blend(&input, &planes).unwrap();
-    for (init, iterations) in [(None, 30), (Some(&linear), 25)] {
+    for (init, iterations) in [(None, 20), (Some(&linear), 12)] {
         let params = OptimizeParams {
             iterations,
             tolerance: 0.0,
@@ -317,8 +318,8 @@ fn optimized_blend_matches_cpu() {
         }
     }
     let s = g.last_stats();
-    // 25 iterations: 3 RMS samples (0, 10, 20) and 3 blocks of steps, then the final RMS.
-    assert_eq!(s.submissions, 7, "{s:?}");
+    // 12 iterations: 2 RMS samples (0, 10) and 2 blocks of steps, then the final RMS.
+    assert_eq!(s.submissions, 5, "{s:?}");
 }
 
 #[test]
