@@ -52,11 +52,11 @@ impl EyeArgs {
         Ok(backend_on(name, self.adapter.as_deref())?)
     }
 
-    /// For commands with no GPU kernel yet: the CPU, or a clear error when the GPU was asked for.
-    fn cpu_only(&self, what: &str) -> Result<()> {
-        match self.backend.as_deref() {
-            None | Some("cpu") if self.adapter.is_none() => Ok(()),
-            _ => bail!("the gpu backend does not implement {what} yet: use --backend cpu"),
+    /// The backend for commands outside the render group: cpu unless asked for.
+    fn backend_or_cpu(&self) -> Result<Box<dyn Backend>> {
+        match (&self.backend, &self.adapter) {
+            (None, None) => Ok(backend_on("cpu", None)?),
+            _ => self.backend(),
         }
     }
 }
@@ -531,9 +531,7 @@ pub struct LightFieldArgs {
 }
 
 pub fn lightfield(a: LightFieldArgs) -> Result<()> {
-    use dioptra_render::views::{synthesize_light_field, RgbdView};
-    a.eye
-        .cpu_only("light-field view synthesis (dioptra lightfield)")?;
+    use dioptra_render::views::RgbdView;
     let mut n = 0;
     while a.views.join(format!("view_00_{n:02}.png")).exists() {
         n += 1;
@@ -577,9 +575,13 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
     let t = std::time::Instant::now();
     let pb = bar(a.grid * a.grid, "views")?;
-    let lf = synthesize_light_field(&inputs, a.grid, a.span, &a.eye.eye()?, |k| {
-        pb.set_position(k as u64)
-    })?;
+    let lf = a.eye.backend_or_cpu()?.synthesize_light_field(
+        &inputs,
+        a.grid,
+        a.span,
+        &a.eye.eye()?,
+        &|k| pb.set_position(k as u64),
+    )?;
     pb.finish();
     let ms = t.elapsed().as_secs_f64() * 1e3;
     ensure_dir(&a.out)?;

@@ -17,7 +17,9 @@ struct Params {
     lens_f: f32,
     top: u32,
     nlev: u32,
-    _pad: u32,
+    // Depth maps per view: 0 when every view warps the one reference depth map (defocus),
+    // w * h when each input view has its own (view synthesis, shaders/views.wgsl).
+    dstride: u32,
 }
 
 @group(0) @binding(0) var<uniform> p: Params;
@@ -71,7 +73,7 @@ fn target_of(g: vec3<u32>, d: f32, v: vec4<f32>) -> u32 {
 fn splat_depth(@builtin(global_invocation_id) g: vec3<u32>) {
     if g.x >= p.w || g.y >= p.h || g.z >= p.nv { return; }
     let n = p.w * p.h;
-    let d = sd_depth[g.y * p.w + g.x];
+    let d = sd_depth[(p.v0 + g.z) * p.dstride + g.y * p.w + g.x];
     let j = target_of(g, d, sd_views[p.v0 + g.z]);
     if j == n { return; }
     // Depths are >= 0, so their bits order like the floats; +1 keeps 0 for "empty".
@@ -88,7 +90,7 @@ fn splat_index(@builtin(global_invocation_id) g: vec3<u32>) {
     if g.x >= p.w || g.y >= p.h || g.z >= p.nv { return; }
     let n = p.w * p.h;
     let i = g.y * p.w + g.x;
-    let d = si_depth[i];
+    let d = si_depth[(p.v0 + g.z) * p.dstride + i];
     let j = target_of(g, d, si_views[p.v0 + g.z]);
     if j == n { return; }
     if si_dkey[g.z * n + j] == bitcast<u32>(d) + 1u {

@@ -9,6 +9,7 @@ use crate::lightfield::{LightFieldParams, LightFieldPrep};
 use crate::metrics::{quality, Quality};
 use crate::multifocal::{linear_blend, optimized_blend, Layers, OptimizeParams, OptimizeReport};
 use crate::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
+use crate::views::{synthesize_light_field, RgbdView};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::str::FromStr;
 
@@ -114,6 +115,19 @@ pub trait Backend: Send + Sync {
         eye: &EyeModel,
     ) -> Result<RgbImage, RenderError> {
         retina_lightfield(views, spacing, focus, eye)
+    }
+
+    /// A `grid` x `grid` light field over a `span` metres square synthesised from sparse RGB-D
+    /// views; `progress` is called with the views done.
+    fn synthesize_light_field(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        progress: Progress,
+    ) -> Result<Vec<LfView>, RenderError> {
+        synthesize_light_field(inputs, grid, span, eye, progress)
     }
 
     /// PSNR and SSIM of `a` against `b`, inside `mask` when given.

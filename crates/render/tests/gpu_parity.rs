@@ -7,6 +7,7 @@ use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
 use dioptra_render::retina::LfView;
+use dioptra_render::views::RgbdView;
 use dioptra_render::{
     Backend, Cpu, DefocusMethod, Gpu, GpuError, LightFieldParams, OptimizeParams,
 };
@@ -320,6 +321,49 @@ fn optimized_blend_matches_cpu() {
     let s = g.last_stats();
     // 12 iterations: 2 RMS samples (0, 10) and 2 blocks of steps, then the final RMS.
     assert_eq!(s.submissions, 5, "{s:?}");
+}
+
+#[test]
+fn view_synthesis_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let size = 64;
+    let cam = Camera::square(eye, size);
+    let scene = Scene::generate(Split::Test.seed(5));
+    let span = 0.01f32;
+    // Five inputs (corners and centre) of a 3 x 3 grid over 1 cm, synthesised back to 3 x 3.
+    let inputs: Vec<RgbdView> = [(0, 0), (0, 2), (1, 1), (2, 0), (2, 2)]
+        .iter()
+        .map(|&(r, c)| {
+            let position = [(c as f32 - 1.0) * span / 2.0, (r as f32 - 1.0) * span / 2.0];
+            let (color, depth) = render_pinhole(&scene, &cam, position, 1).unwrap();
+            RgbdView {
+                position,
+                rgbd: Rgbd::new(color, depth).unwrap(),
+            }
+        })
+        .collect();
+    let c = Cpu
+        .synthesize_light_field(&inputs, 3, span, &eye, &|_| {})
+        .unwrap();
+    let q = g
+        .synthesize_light_field(&inputs, 3, span, &eye, &|_| {})
+        .unwrap();
+    assert_eq!(c.len(), 9);
+    for (a, b) in c.iter().zip(&q) {
+        assert_eq!(a.position, b.position);
+        let (max, frac) = diff(&a.image, &b.image, 1e-3);
+        eprintln!(
+            "view synthesis at {:?}: max |gpu - cpu| = {max:e}, {:.4} % over 1e-3",
+            a.position,
+            frac * 100.0
+        );
+        assert!(max < 1e-3, "{max}");
+    }
+    assert_eq!(g.last_stats().submissions, 9, "one submission per view");
+    assert!(g
+        .synthesize_light_field(&inputs, 0, span, &eye, &|_| {})
+        .is_err());
 }
 
 #[test]

@@ -38,6 +38,9 @@ pub(crate) enum Kernel {
     OptResidual,
     OptStep,
     OptSqSum,
+    ViewResolve,
+    FillRows,
+    FillCols,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -47,9 +50,10 @@ const BLUR_WGSL: &str = include_str!("../../shaders/blur.wgsl");
 const METRICS_WGSL: &str = include_str!("../../shaders/metrics.wgsl");
 const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
 const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
+const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
 
 impl Kernel {
-    const ALL: [Kernel; 20] = [
+    const ALL: [Kernel; 23] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -70,6 +74,9 @@ impl Kernel {
         Kernel::OptResidual,
         Kernel::OptStep,
         Kernel::OptSqSum,
+        Kernel::ViewResolve,
+        Kernel::FillRows,
+        Kernel::FillCols,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -96,6 +103,9 @@ impl Kernel {
             OptResidual => (OPTIMIZE_WGSL, "residual", 4, 1),
             OptStep => (OPTIMIZE_WGSL, "step", 3, 2),
             OptSqSum => (OPTIMIZE_WGSL, "sq_sum", 1, 1),
+            ViewResolve => (VIEWS_WGSL, "resolve", 5, 1),
+            FillRows => (VIEWS_WGSL, "fill_rows", 1, 1),
+            FillCols => (VIEWS_WGSL, "fill_cols", 1, 1),
         }
     }
 }

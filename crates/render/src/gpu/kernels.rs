@@ -11,6 +11,7 @@ use crate::lightfield::{halton_disk, LightFieldParams};
 use crate::metrics::Quality;
 use crate::multifocal::{check_planes, Layers, OptimizeParams, OptimizeReport};
 use crate::retina::{pupil_weights, LfView};
+use crate::views::RgbdView;
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 
@@ -472,7 +473,8 @@ struct LfP {
     lens_f: f32,
     top: u32,
     nlev: u32,
-    _pad: u32,
+    /// Stride between the splat kernels' depth maps: 0 (one map) or w * h (one per view).
+    dstride: u32,
 }
 
 /// Light-field depth of field: the pyramid once per call, then one frame per focus.
@@ -556,7 +558,7 @@ pub(super) fn lightfield(
             lens_f: eye.lens_to_retina.to_meters().0,
             top: top as u32,
             nlev: nlev as u32,
-            _pad: 0,
+            dstride: 0,
         };
         let g = groups2(wu, hu, 1);
         let pre = f.scratch("prefiltered colour", 16 * n)?;
@@ -830,4 +832,133 @@ pub(super) fn optimized_blend(
         ),
         total,
     ))
+}
+
+/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
+/// then one frame per view (splat, resolve, hole filling by rows then columns).
+pub(super) fn synthesize_light_field(
+    ctx: &GpuContext,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<LfView>> {
+    if grid == 0 || grid > 64 || !(span.is_finite() && span >= 0.0) {
+        return Err(invalid(format!(
+            "grid {grid} (expected 1..=64) or span {span} m is invalid"
+        )));
+    }
+    let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
+    let (w, h) = (first.rgbd.width(), first.rgbd.height());
+    if w == 0
+        || h == 0
+        || inputs
+            .iter()
+            .any(|v| (v.rgbd.width(), v.rgbd.height()) != (w, h))
+    {
+        return Err(mismatch("input views are empty or differ in size"));
+    }
+    if !inputs
+        .iter()
+        .flat_map(|v| v.position.iter())
+        .all(|p| p.is_finite())
+    {
+        return Err(invalid("view positions must be finite"));
+    }
+    let pitch = eye_for(eye, w)?.pixel_pitch_tan();
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let ni = inputs.len();
+    let step = if grid > 1 {
+        span / (grid - 1) as f32
+    } else {
+        0.0
+    };
+    let half = (grid - 1) as f32 * 0.5;
+    let mut depths = Vec::with_capacity(ni * w * h);
+    let mut colors = Vec::with_capacity(3 * ni * w * h);
+    for v in inputs {
+        depths.extend_from_slice(v.rgbd.depth.data());
+        colors.extend_from_slice(&planar(&v.rgbd.color));
+    }
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(grid * grid);
+    let mut shared: Option<(BufRef, BufRef)> = None;
+    for k in 0..grid * grid {
+        let target = [
+            ((k % grid) as f32 - half) * step,
+            ((k / grid) as f32 - half) * step,
+        ];
+        let shifts: Vec<[f32; 4]> = inputs
+            .iter()
+            .map(|v| {
+                [
+                    -(target[0] - v.position[0]) / pitch,
+                    -(target[1] - v.position[1]) / pitch,
+                    1.0 / ((v.position[0] - target[0]).hypot(v.position[1] - target[1]) + 1e-4),
+                    0.0,
+                ]
+            })
+            .collect();
+        let mut f = Frame::new(ctx)?;
+        let (db, cb) = match &shared {
+            Some(s) => s.clone(),
+            None => {
+                let s = (
+                    f.upload("input depth maps", &depths)?,
+                    f.upload("input colour images", &colors)?,
+                );
+                shared = Some(s.clone());
+                s
+            }
+        };
+        let sb = f.upload("view shifts", &shifts)?;
+        let dkey = f.zeroed("depth keys", 4 * n * ni as u64)?;
+        let ikey = f.zeroed("index keys", 4 * n * ni as u64)?;
+        let p = LfP {
+            w: wu,
+            h: hu,
+            nv: ni as u32,
+            v0: 0,
+            focus: 0.0,
+            pupil_m: 0.0,
+            pitch,
+            spacing: 0.0,
+            lens_f: 0.0,
+            top: 0,
+            nlev: 1,
+            dstride: n as u32,
+        };
+        let gz = groups2(wu, hu, ni as u32);
+        let g = groups2(wu, hu, 1);
+        f.dispatch(Kernel::LfSplatDepth, &p, &[&db, &sb, &dkey], gz)?;
+        f.dispatch(Kernel::LfSplatIndex, &p, &[&db, &sb, &dkey, &ikey], gz)?;
+        let sp = SizeP {
+            w: wu,
+            h: hu,
+            k: ni as u32,
+            _pad: 0,
+        };
+        let px = f.scratch("synthesised pixels", 16 * n)?;
+        f.dispatch(
+            Kernel::ViewResolve,
+            &sp,
+            &[&dkey, &ikey, &db, &cb, &sb, &px],
+            g,
+        )?;
+        let rows = f.scratch("row-filled pixels", 16 * n)?;
+        f.dispatch(Kernel::FillRows, &sp, &[&px, &rows], g)?;
+        let dst = f.scratch("output image", 12 * n)?;
+        f.dispatch(Kernel::FillCols, &sp, &[&rows, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(LfView {
+            position: target,
+            image: image(&rb.f32s(r), w, h)?,
+        });
+        progress(k + 1);
+    }
+    Ok((out, total))
 }

@@ -12,6 +12,7 @@ use crate::error::RenderError;
 use crate::metrics::Quality;
 use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
+use crate::views::RgbdView;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::sync::{Arc, Mutex};
 use thiserror::Error;
@@ -152,6 +153,20 @@ impl Backend for Gpu {
         eye: &EyeModel,
     ) -> Result<RgbImage, RenderError> {
         let (out, s) = kernels::retina_lightfield(&self.ctx, views, spacing, focus, eye)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn synthesize_light_field(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        progress: Progress,
+    ) -> Result<Vec<LfView>, RenderError> {
+        let (out, s) =
+            kernels::synthesize_light_field(&self.ctx, inputs, grid, span, eye, progress)?;
         self.record(s);
         Ok(out)
     }
