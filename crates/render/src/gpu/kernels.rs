@@ -818,6 +818,14 @@ pub(super) fn optimized_blend(
     total.add(&s);
     report.rms.push((report.iterations, rms_of(res.f32s(r))));
     let x = res.f32s(xr);
+    if x.len() < np * 3 * pn {
+        return Err(GpuError::Validation(format!(
+            "readback of {} layer values, expected {}",
+            x.len(),
+            np * 3 * pn
+        ))
+        .into());
+    }
     let plane = |i: usize, c: usize| conv.crop(x.get((i * 3 + c) * pn..).unwrap_or(&[]));
     let images = (0..np)
         .map(|i| RgbImage::from_planes(plane(i, 0), plane(i, 1), plane(i, 2)))
