@@ -3,11 +3,12 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dioptra_core::{Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
+use dioptra_render::gpu::hardware_adapter_exists;
 use dioptra_render::io::{read_color, read_depth, write_color, DepthUnits};
 use dioptra_render::metrics::quality;
 use dioptra_render::multifocal::{linspace, Layers};
-use dioptra_render::retina::{retina_lightfield, LfView};
-use dioptra_render::{backend, Backend, DefocusMethod, LightFieldParams, OptimizeParams};
+use dioptra_render::retina::LfView;
+use dioptra_render::{backend_on, Backend, DefocusMethod, LightFieldParams, OptimizeParams};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
@@ -20,9 +21,12 @@ pub struct EyeArgs {
     /// Pupil diameter, millimetres.
     #[arg(long, default_value_t = 4.0)]
     pub pupil_mm: f32,
-    /// Compute backend.
-    #[arg(long, default_value = "cpu")]
-    pub backend: String,
+    /// Compute backend: cpu or gpu. Default: gpu when a hardware GPU adapter exists, else cpu.
+    #[arg(long)]
+    pub backend: Option<String>,
+    /// GPU adapter to use (part of its name, e.g. "nvidia" or "llvmpipe"); implies --backend gpu.
+    #[arg(long)]
+    pub adapter: Option<String>,
 }
 
 impl EyeArgs {
@@ -34,8 +38,26 @@ impl EyeArgs {
         };
         Ok(eye.validated()?)
     }
+    /// The backend the render commands run on (see `--backend`).
     fn backend(&self) -> Result<Box<dyn Backend>> {
-        Ok(backend(&self.backend)?)
+        let name = match (&self.backend, &self.adapter) {
+            (Some(b), _) => b.as_str(),
+            (None, Some(_)) => "gpu",
+            (None, None) if hardware_adapter_exists() => "gpu",
+            (None, None) => "cpu",
+        };
+        if name == "cpu" && self.adapter.is_some() {
+            bail!("--adapter selects a GPU adapter: it needs --backend gpu, not cpu");
+        }
+        Ok(backend_on(name, self.adapter.as_deref())?)
+    }
+
+    /// The backend for commands outside the render group: cpu unless asked for.
+    fn backend_or_cpu(&self) -> Result<Box<dyn Backend>> {
+        match (&self.backend, &self.adapter) {
+            (None, None) => Ok(backend_on("cpu", None)?),
+            _ => self.backend(),
+        }
     }
 }
 
@@ -450,7 +472,7 @@ pub fn retina(a: RetinaArgs) -> Result<()> {
         b.retina_varifocal(&read_color(path)?, Diopters(a.display), q, &eye)?
     } else if let Some(dir) = &a.lightfield {
         let (views, step) = read_light_field(dir, a.span)?;
-        retina_lightfield(&views, step, q, &eye)?
+        b.retina_lightfield(&views, step, q, &eye)?
     } else {
         bail!(
             "give one of --layers DIR (multifocal), --image FILE (varifocal) or --lightfield DIR"
@@ -546,7 +568,7 @@ pub struct LightFieldArgs {
 }
 
 pub fn lightfield(a: LightFieldArgs) -> Result<()> {
-    use dioptra_render::views::{synthesize_light_field, RgbdView};
+    use dioptra_render::views::RgbdView;
     let mut n = 0;
     while a.views.join(format!("view_00_{n:02}.png")).exists() {
         n += 1;
@@ -590,9 +612,13 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
         .collect::<Result<Vec<_>>>()?;
     let t = std::time::Instant::now();
     let pb = bar(a.grid * a.grid, "views")?;
-    let lf = synthesize_light_field(&inputs, a.grid, a.span, &a.eye.eye()?, |k| {
-        pb.set_position(k as u64)
-    })?;
+    let lf = a.eye.backend_or_cpu()?.synthesize_light_field(
+        &inputs,
+        a.grid,
+        a.span,
+        &a.eye.eye()?,
+        &|k| pb.set_position(k as u64),
+    )?;
     pb.finish();
     let ms = t.elapsed().as_secs_f64() * 1e3;
     ensure_dir(&a.out)?;

@@ -114,3 +114,84 @@ fn scene_render_metrics_round_trip() {
     assert!(!ok && text.contains("backend"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn gpu_backend_matches_cpu_through_the_binary() {
+    let dir = std::env::temp_dir().join(format!("dioptra-cli-gpu-{}", std::process::id()));
+    let d = |p: &str| dir.join(p).display().to_string();
+    let (ok, text) = dioptra(&[
+        "sim",
+        "scene",
+        "--seed",
+        "1000002",
+        "--size",
+        "48",
+        "--slices",
+        "1",
+        "--samples",
+        "4",
+        "--lf-grid",
+        "2",
+        "--out",
+        &d(""),
+    ]);
+    assert!(ok, "{text}");
+    let render = |backend: &str, out: &str| {
+        dioptra(&[
+            "render",
+            "--color",
+            &d("color.png"),
+            "--depth",
+            &d("depth.exr"),
+            "--focus",
+            "1.5",
+            "--method",
+            "lightfield",
+            "--views",
+            "16",
+            "--backend",
+            backend,
+            "--out",
+            &d(out),
+        ])
+    };
+    let (ok, text) = render("gpu", "gpu.exr");
+    if !ok && text.contains("no GPU adapter") {
+        assert!(
+            std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1"),
+            "DIOPTRA_REQUIRE_GPU=1 but: {text}"
+        );
+        eprintln!("skipped: no GPU adapter");
+        std::fs::remove_dir_all(&dir).ok();
+        return;
+    }
+    assert!(ok, "{text}");
+    let (ok, text) = render("cpu", "cpu.exr");
+    assert!(ok, "{text}");
+    let (ok, text) = dioptra(&["metrics", "--a", &d("gpu.exr"), "--b", &d("cpu.exr")]);
+    assert!(ok, "{text}");
+    let psnr: f64 = text
+        .lines()
+        .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
+        .unwrap_or(f64::INFINITY);
+    assert!(psnr > 90.0, "{text}");
+    // An adapter that does not exist is an error naming the ones that do.
+    let (ok, text) = dioptra(&[
+        "render",
+        "--color",
+        &d("color.png"),
+        "--depth",
+        &d("depth.exr"),
+        "--focus",
+        "1",
+        "--adapter",
+        "no-such-adapter-xyz",
+        "--out",
+        &d("x.png"),
+    ]);
+    assert!(
+        !ok && text.contains("no-such-adapter-xyz") && text.contains("available"),
+        "{text}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

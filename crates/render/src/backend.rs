@@ -1,12 +1,16 @@
-//! The backend seam. Callers hold a `&dyn Backend`; every method has a CPU default, so a GPU
-//! backend (wgpu, later) overrides only the methods it implements and inherits the rest.
+//! The backend seam. Callers hold a `&dyn Backend`; every method has a CPU default. The GPU
+//! backend ([`crate::gpu::Gpu`]) overrides every method, returning
+//! [`RenderError::Unsupported`] for those without a kernel yet: a new method added here must
+//! be overridden there too, or it would run on the CPU behind a `--backend gpu`.
 
 use crate::error::{invalid, RenderError};
 use crate::gather::gather;
 use crate::lightfield::{LightFieldParams, LightFieldPrep};
+use crate::metrics::{quality, Quality};
 use crate::multifocal::{linear_blend, optimized_blend, Layers, OptimizeParams, OptimizeReport};
-use crate::retina::{retina_multifocal, retina_varifocal};
-use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use crate::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
+use crate::views::{synthesize_light_field, RgbdView};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::str::FromStr;
 
 /// A defocus method for RGB-D input.
@@ -101,6 +105,40 @@ pub trait Backend: Send + Sync {
     ) -> Result<RgbImage, RenderError> {
         retina_varifocal(image, display, focus, eye)
     }
+
+    /// A light-field display seen focusing at `focus` (shift-and-add over the pupil).
+    fn retina_lightfield(
+        &self,
+        views: &[LfView],
+        spacing: f32,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<RgbImage, RenderError> {
+        retina_lightfield(views, spacing, focus, eye)
+    }
+
+    /// A `grid` x `grid` light field over a `span` metres square synthesised from sparse RGB-D
+    /// views; `progress` is called with the views done.
+    fn synthesize_light_field(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        progress: Progress,
+    ) -> Result<Vec<LfView>, RenderError> {
+        synthesize_light_field(inputs, grid, span, eye, progress)
+    }
+
+    /// PSNR and SSIM of `a` against `b`, inside `mask` when given.
+    fn quality(
+        &self,
+        a: &RgbImage,
+        b: &RgbImage,
+        mask: Option<&Plane>,
+    ) -> Result<Quality, RenderError> {
+        quality(a, b, mask)
+    }
 }
 
 /// The CPU backend (rayon): the reference every other backend is checked against.
@@ -113,14 +151,18 @@ impl Backend for Cpu {
     }
 }
 
-/// The backend named `name` (`cpu`; `wgpu` arrives with the GPU issue).
+/// The backend named `name`: `cpu`, or `gpu` (alias `wgpu`) on the first hardware adapter.
 pub fn backend(name: &str) -> Result<Box<dyn Backend>, RenderError> {
+    backend_on(name, None)
+}
+
+/// The backend named `name`; for `gpu`, on the adapter whose name contains `adapter`.
+pub fn backend_on(name: &str, adapter: Option<&str>) -> Result<Box<dyn Backend>, RenderError> {
     match name {
         "cpu" => Ok(Box::new(Cpu)),
-        "wgpu" | "gpu" => Err(RenderError::Unsupported {
-            backend: "wgpu",
-            method: "any method yet (use --backend cpu)",
-        }),
-        _ => Err(invalid(format!("unknown backend {name:?}: expected cpu"))),
+        "wgpu" | "gpu" => Ok(Box::new(crate::gpu::Gpu::new(adapter)?)),
+        _ => Err(invalid(format!(
+            "unknown backend {name:?}: expected cpu or gpu"
+        ))),
     }
 }

@@ -14,6 +14,9 @@ pub enum RenderError {
         backend: &'static str,
         method: &'static str,
     },
+    /// The GPU backend failed (no adapter, limits, device lost).
+    #[error(transparent)]
+    Gpu(#[from] crate::gpu::GpuError),
     /// A file could not be read or written.
     #[error("{path}: {cause}")]
     Io { path: String, cause: std::io::Error },

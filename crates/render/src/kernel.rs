@@ -143,7 +143,7 @@ fn fft_size(min: usize) -> usize {
     loop {
         let mut m = n;
         for f in [2, 3, 5] {
-            while m % f == 0 {
+            while m.is_multiple_of(f) {
                 m /= f;
             }
         }

@@ -7,6 +7,7 @@ mod common;
 pub mod error;
 pub mod foveate;
 pub mod gather;
+pub mod gpu;
 pub mod io;
 pub mod kernel;
 pub mod lightfield;
@@ -15,7 +16,8 @@ pub mod multifocal;
 pub mod retina;
 pub mod views;
 
-pub use backend::{backend, Backend, Cpu, DefocusMethod};
+pub use backend::{backend, backend_on, Backend, Cpu, DefocusMethod};
 pub use error::RenderError;
+pub use gpu::{Gpu, GpuError};
 pub use lightfield::LightFieldParams;
 pub use multifocal::{Layers, OptimizeParams, OptimizeReport};

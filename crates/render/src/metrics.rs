@@ -15,7 +15,7 @@ pub struct Quality {
     pub ssim: f64,
 }
 
-fn check(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<(), RenderError> {
+pub(crate) fn check(a: &RgbImage, b: &RgbImage, mask: Option<&Plane>) -> Result<(), RenderError> {
     if (a.width(), a.height()) != (b.width(), b.height()) {
         return Err(mismatch(format!(
             "images are {}x{} and {}x{}",

@@ -75,7 +75,7 @@ impl Layers {
     }
 }
 
-fn check_planes(planes: &[Diopters]) -> Result<(), RenderError> {
+pub(crate) fn check_planes(planes: &[Diopters]) -> Result<(), RenderError> {
     if planes.is_empty() || planes.len() > 16 {
         return Err(invalid(format!(
             "{} display planes: expected 1 to 16",

@@ -73,7 +73,7 @@ pub(crate) fn bilinear(p: &Plane, x: f32, y: f32) -> f32 {
 
 /// Pupil weight of each view: the area of its cell (the square of side `spacing` around it)
 /// inside the pupil disk, by 32 x 32 subsampling.
-fn pupil_weights(views: &[LfView], spacing: f32, radius: f32) -> Vec<f32> {
+pub(crate) fn pupil_weights(views: &[LfView], spacing: f32, radius: f32) -> Vec<f32> {
     const N: usize = 32;
     views
         .iter()

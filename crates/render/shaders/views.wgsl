@@ -1,0 +1,157 @@
+// A light field from sparse RGB-D views (CPU twin: src/views.rs). After the light-field
+// splat kernels (shaders/lightfield.wgsl, one depth map per input) have resolved, per input,
+// the nearest source at each target pixel: resolve blends the inputs that see the nearest
+// surface, reading each at its sub-pixel position; fill_rows / fill_cols fill the holes from
+// the farther of the nearest valid pixels along the row, then along the column.
+
+struct Params {
+    w: u32,
+    h: u32,
+    ni: u32,
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> p: Params;
+
+const SAME_SURFACE_D: f32 = 0.03;
+
+@group(0) @binding(1) var<storage, read> dkey: array<u32>;
+@group(0) @binding(2) var<storage, read> ikey: array<u32>;
+@group(0) @binding(3) var<storage, read> depths: array<f32>;
+@group(0) @binding(4) var<storage, read> colors: array<f32>;
+@group(0) @binding(5) var<storage, read> inputs: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read_write> px: array<vec4<f32>>;
+
+// The source (index + 1) input v sees at target (x, y), and whether it is an exact write.
+fn source(v: u32, x: i32, y: i32) -> vec2<u32> {
+    let b = v * p.w * p.h;
+    let j = b + u32(y) * p.w + u32(x);
+    if dkey[j] != 0u { return vec2<u32>(ikey[j], 1u); }
+    var bd = 0xffffffffu;
+    var bi = 0xffffffffu;
+    for (var ny = max(y - 1, 0); ny < min(y + 2, i32(p.h)); ny++) {
+        for (var nx = max(x - 1, 0); nx < min(x + 2, i32(p.w)); nx++) {
+            let k = b + u32(ny) * p.w + u32(nx);
+            if dkey[k] != 0u && (dkey[k] < bd || (dkey[k] == bd && ikey[k] < bi)) {
+                bd = dkey[k];
+                bi = ikey[k];
+            }
+        }
+    }
+    if bd == 0xffffffffu { return vec2<u32>(0u, 0u); }
+    return vec2<u32>(bi, 0u);
+}
+
+fn bilinear(base: u32, x: f32, y: f32) -> f32 {
+    let fx = x - 0.5;
+    let fy = y - 0.5;
+    let x0 = floor(fx);
+    let y0 = floor(fy);
+    let tx = fx - x0;
+    let ty = fy - y0;
+    let xa = u32(clamp(i32(x0), 0, i32(p.w) - 1));
+    let xb = u32(clamp(i32(x0) + 1, 0, i32(p.w) - 1));
+    let ya = u32(clamp(i32(y0), 0, i32(p.h) - 1));
+    let yb = u32(clamp(i32(y0) + 1, 0, i32(p.h) - 1));
+    let a = colors[base + ya * p.w + xa] * (1.0 - tx) + colors[base + ya * p.w + xb] * tx;
+    let b = colors[base + yb * p.w + xa] * (1.0 - tx) + colors[base + yb * p.w + xb] * tx;
+    return a * (1.0 - ty) + b * ty;
+}
+
+@compute @workgroup_size(16, 16)
+fn resolve(@builtin(global_invocation_id) g: vec3<u32>) {
+    if g.x >= p.w || g.y >= p.h { return; }
+    let n = p.w * p.h;
+    let x = i32(g.x);
+    let y = i32(g.y);
+    var nearest = -1.0;
+    for (var v = 0u; v < p.ni; v++) {
+        let s = source(v, x, y);
+        if s.x != 0u { nearest = max(nearest, depths[v * n + s.x - 1u]); }
+    }
+    var acc = vec3<f32>(0.0);
+    var wsum = 0.0;
+    let fx = f32(g.x) + 0.5;
+    let fy = f32(g.y) + 0.5;
+    for (var v = 0u; v < p.ni; v++) {
+        let s = source(v, x, y);
+        if s.x == 0u { continue; }
+        let d = depths[v * n + s.x - 1u];
+        if d < nearest - SAME_SURFACE_D { continue; } // hidden behind a nearer surface
+        let q = inputs[v];
+        // Crack fills are guesses: they count a quarter.
+        let wt = q.z * select(0.25, 1.0, s.y == 1u);
+        let sx = fx - q.x * d;
+        let sy = fy - q.y * d;
+        let b = v * 3u * n;
+        acc += wt * vec3<f32>(bilinear(b, sx, sy), bilinear(b + n, sx, sy), bilinear(b + 2u * n, sx, sy));
+        wsum += wt;
+    }
+    let i = g.y * p.w + g.x;
+    if wsum > 0.0 {
+        px[i] = vec4<f32>(acc / wsum, nearest);
+    } else {
+        px[i] = vec4<f32>(0.0, 0.0, 0.0, -1.0); // a hole (depths are >= 0)
+    }
+}
+
+@group(0) @binding(1) var<storage, read> fr_in: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read_write> fr_out: array<vec4<f32>>;
+
+@compute @workgroup_size(16, 16)
+fn fill_rows(@builtin(global_invocation_id) g: vec3<u32>) {
+    if g.x >= p.w || g.y >= p.h { return; }
+    let row = g.y * p.w;
+    let c = fr_in[row + g.x];
+    if c.w >= 0.0 { fr_out[row + g.x] = c; return; }
+    var left = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+    for (var x = i32(g.x) - 1; x >= 0; x--) {
+        let v = fr_in[row + u32(x)];
+        if v.w >= 0.0 { left = v; break; }
+    }
+    var right = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+    for (var x = g.x + 1u; x < p.w; x++) {
+        let v = fr_in[row + x];
+        if v.w >= 0.0 { right = v; break; }
+    }
+    var o = left;
+    if left.w >= 0.0 && right.w >= 0.0 {
+        if right.w < left.w { o = right; }
+    } else if right.w >= 0.0 {
+        o = right;
+    }
+    fr_out[row + g.x] = o;
+}
+
+@group(0) @binding(1) var<storage, read> fc_in: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read_write> fc_out: array<f32>;
+
+@compute @workgroup_size(16, 16)
+fn fill_cols(@builtin(global_invocation_id) g: vec3<u32>) {
+    if g.x >= p.w || g.y >= p.h { return; }
+    let n = p.w * p.h;
+    let i = g.y * p.w + g.x;
+    var o = fc_in[i];
+    if o.w < 0.0 {
+        var up = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+        for (var y = i32(g.y) - 1; y >= 0; y--) {
+            let v = fc_in[u32(y) * p.w + g.x];
+            if v.w >= 0.0 { up = v; break; }
+        }
+        var down = vec4<f32>(0.0, 0.0, 0.0, -1.0);
+        for (var y = g.y + 1u; y < p.h; y++) {
+            let v = fc_in[y * p.w + g.x];
+            if v.w >= 0.0 { down = v; break; }
+        }
+        o = up;
+        if up.w >= 0.0 && down.w >= 0.0 {
+            if down.w < up.w { o = down; }
+        } else if down.w >= 0.0 {
+            o = down;
+        }
+        if o.w < 0.0 { o = vec4<f32>(0.0); }
+    }
+    fc_out[i] = o.x;
+    fc_out[n + i] = o.y;
+    fc_out[2u * n + i] = o.z;
+}

@@ -1,0 +1,794 @@
+//! The GPU context (one per process): adapter choice, limits, pipelines built once, a buffer
+//! pool, and [`Frame`], which records a frame's uploads, dispatches and readbacks into one
+//! command buffer and one submission.
+
+use super::GpuError;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+/// Storage buffers the kernels bind at most (read-only plus read-write).
+const MAX_BINDINGS: u32 = 8;
+/// 2-D kernels run 16 x 16 workgroups (256 invocations: 8 warps or 4 wavefronts).
+pub(crate) const WG: u32 = 16;
+/// 1-D reductions run 256 invocations per workgroup.
+pub(crate) const WG1: u32 = 256;
+
+/// One compute kernel: shader file, entry point, and its bindings (a uniform at 0, then the
+/// read-only storage buffers, then the read-write ones).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(crate) enum Kernel {
+    GatherPrep,
+    MaxH,
+    MaxV,
+    Gather,
+    LinearBlend,
+    Convolve,
+    ShiftAdd,
+    BlurH,
+    BlurV,
+    PsnrSum,
+    SsimPrep,
+    SsimSum,
+    LfPrefilter,
+    LfSplatDepth,
+    LfSplatIndex,
+    LfAccumulate,
+    LfFinish,
+    OptResidual,
+    OptStep,
+    OptSqSum,
+    ViewResolve,
+    FillRows,
+    FillCols,
+}
+
+const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
+const MULTIFOCAL_WGSL: &str = include_str!("../../shaders/multifocal.wgsl");
+const RETINA_WGSL: &str = include_str!("../../shaders/retina.wgsl");
+const BLUR_WGSL: &str = include_str!("../../shaders/blur.wgsl");
+const METRICS_WGSL: &str = include_str!("../../shaders/metrics.wgsl");
+const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
+const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
+const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
+
+impl Kernel {
+    const ALL: [Kernel; 23] = [
+        Kernel::GatherPrep,
+        Kernel::MaxH,
+        Kernel::MaxV,
+        Kernel::Gather,
+        Kernel::LinearBlend,
+        Kernel::Convolve,
+        Kernel::ShiftAdd,
+        Kernel::BlurH,
+        Kernel::BlurV,
+        Kernel::PsnrSum,
+        Kernel::SsimPrep,
+        Kernel::SsimSum,
+        Kernel::LfPrefilter,
+        Kernel::LfSplatDepth,
+        Kernel::LfSplatIndex,
+        Kernel::LfAccumulate,
+        Kernel::LfFinish,
+        Kernel::OptResidual,
+        Kernel::OptStep,
+        Kernel::OptSqSum,
+        Kernel::ViewResolve,
+        Kernel::FillRows,
+        Kernel::FillCols,
+    ];
+
+    /// (shader source, entry point, read-only buffers, read-write buffers)
+    fn spec(self) -> (&'static str, &'static str, u32, u32) {
+        use Kernel::*;
+        match self {
+            GatherPrep => (GATHER_WGSL, "prep", 2, 2),
+            MaxH => (GATHER_WGSL, "max_h", 1, 1),
+            MaxV => (GATHER_WGSL, "max_v", 1, 1),
+            Gather => (GATHER_WGSL, "gather", 4, 1),
+            LinearBlend => (MULTIFOCAL_WGSL, "linear_blend", 3, 1),
+            Convolve => (RETINA_WGSL, "convolve", 3, 1),
+            ShiftAdd => (RETINA_WGSL, "shift_add", 2, 1),
+            BlurH => (BLUR_WGSL, "blur_h", 2, 1),
+            BlurV => (BLUR_WGSL, "blur_v", 2, 1),
+            PsnrSum => (METRICS_WGSL, "psnr_sum", 3, 1),
+            SsimPrep => (METRICS_WGSL, "ssim_prep", 2, 1),
+            SsimSum => (METRICS_WGSL, "ssim_sum", 2, 1),
+            LfPrefilter => (LIGHTFIELD_WGSL, "prefilter", 2, 1),
+            LfSplatDepth => (LIGHTFIELD_WGSL, "splat_depth", 2, 1),
+            LfSplatIndex => (LIGHTFIELD_WGSL, "splat_index", 3, 1),
+            LfAccumulate => (LIGHTFIELD_WGSL, "accumulate", 4, 1),
+            LfFinish => (LIGHTFIELD_WGSL, "finish", 2, 1),
+            OptResidual => (OPTIMIZE_WGSL, "residual", 4, 1),
+            OptStep => (OPTIMIZE_WGSL, "step", 3, 2),
+            OptSqSum => (OPTIMIZE_WGSL, "sq_sum", 1, 1),
+            ViewResolve => (VIEWS_WGSL, "resolve", 5, 1),
+            FillRows => (VIEWS_WGSL, "fill_rows", 1, 1),
+            FillCols => (VIEWS_WGSL, "fill_cols", 1, 1),
+        }
+    }
+}
+
+/// What a frame cost: the two numbers that decide speed on a real GPU (dispatches and bytes
+/// moved between host and device), and GPU time per pass where timestamps are supported.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct FrameStats {
+    pub submissions: u32,
+    pub dispatches: u32,
+    pub bytes_uploaded: u64,
+    pub bytes_read_back: u64,
+    /// Total GPU time of the timed passes, nanoseconds; `None` without timestamp queries.
+    pub gpu_ns: Option<f64>,
+    /// GPU time per pass label, nanoseconds (summed over passes with the same label).
+    pub passes: Vec<(&'static str, f64)>,
+}
+
+impl FrameStats {
+    pub(crate) fn add(&mut self, o: &FrameStats) {
+        self.submissions += o.submissions;
+        self.dispatches += o.dispatches;
+        self.bytes_uploaded += o.bytes_uploaded;
+        self.bytes_read_back += o.bytes_read_back;
+        self.gpu_ns = match (self.gpu_ns, o.gpu_ns) {
+            (Some(a), Some(b)) => Some(a + b),
+            (a, b) => a.or(b),
+        };
+        for &(l, t) in &o.passes {
+            match self.passes.iter_mut().find(|p| p.0 == l) {
+                Some(p) => p.1 += t,
+                None => self.passes.push((l, t)),
+            }
+        }
+    }
+}
+
+/// The adapter a context runs on.
+#[derive(Debug, Clone)]
+pub struct AdapterSummary {
+    pub name: String,
+    pub backend: String,
+    pub software: bool,
+}
+
+type PoolKey = (u64, u32);
+
+/// A pooled buffer: returned to its pool when the last handle drops.
+pub(crate) struct Buf {
+    pub(crate) buffer: wgpu::Buffer,
+    key: PoolKey,
+    pool: Arc<Mutex<HashMap<PoolKey, Vec<wgpu::Buffer>>>>,
+}
+
+impl Drop for Buf {
+    fn drop(&mut self) {
+        if let Ok(mut p) = self.pool.lock() {
+            let list = p.entry(self.key).or_default();
+            // Keep a few per size; more would only hold memory.
+            if list.len() < 8 {
+                list.push(self.buffer.clone());
+            }
+        }
+    }
+}
+
+pub(crate) type BufRef = Arc<Buf>;
+
+pub struct GpuContext {
+    pub(crate) device: wgpu::Device,
+    pub(crate) queue: wgpu::Queue,
+    pub(crate) adapter: AdapterSummary,
+    pub(crate) limits: wgpu::Limits,
+    timestamps: bool,
+    timestamp_period: f32,
+    pipelines: HashMap<Kernel, (wgpu::ComputePipeline, wgpu::BindGroupLayout)>,
+    pool: Arc<Mutex<HashMap<PoolKey, Vec<wgpu::Buffer>>>>,
+    lost: Arc<AtomicBool>,
+    errors: Arc<Mutex<Vec<String>>>,
+}
+
+/// Names of the adapters this machine offers (Vulkan, Metal, DX12), with whether each is a
+/// software rasteriser.
+pub fn list_adapters() -> Vec<AdapterSummary> {
+    let instance = instance();
+    pollster::block_on(instance.enumerate_adapters(backends()))
+        .iter()
+        .map(|a| summary(&a.get_info()))
+        .collect()
+}
+
+/// Whether a hardware (non-software) adapter exists: decides the CLI's default backend.
+pub fn hardware_adapter_exists() -> bool {
+    list_adapters().iter().any(|a| !a.software)
+}
+
+fn backends() -> wgpu::Backends {
+    wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12
+}
+
+fn instance() -> wgpu::Instance {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = backends();
+    wgpu::Instance::new(desc)
+}
+
+fn summary(info: &wgpu::AdapterInfo) -> AdapterSummary {
+    AdapterSummary {
+        name: info.name.clone(),
+        backend: format!("{:?}", info.backend),
+        software: info.device_type == wgpu::DeviceType::Cpu,
+    }
+}
+
+/// The process's context, created on first use with the adapter named then.
+static SHARED: Mutex<Option<Arc<GpuContext>>> = Mutex::new(None);
+
+impl GpuContext {
+    /// The process-wide context. `adapter` picks an adapter whose name contains it
+    /// (case-insensitive); without it the first hardware adapter, else a software one (said
+    /// on stderr). Once created, later calls get the same context whatever they ask.
+    pub fn shared(adapter: Option<&str>) -> Result<Arc<GpuContext>, GpuError> {
+        let mut slot = SHARED.lock().map_err(|_| GpuError::Poisoned)?;
+        if let Some(c) = slot.as_ref() {
+            if let Some(want) = adapter {
+                if !c.adapter.name.to_lowercase().contains(&want.to_lowercase()) {
+                    return Err(GpuError::AdapterAlreadyChosen {
+                        have: c.adapter.name.clone(),
+                        want: want.to_string(),
+                    });
+                }
+            }
+            return Ok(c.clone());
+        }
+        let c = Arc::new(GpuContext::new(adapter)?);
+        *slot = Some(c.clone());
+        Ok(c)
+    }
+
+    fn new(want: Option<&str>) -> Result<GpuContext, GpuError> {
+        let instance = instance();
+        let adapters = pollster::block_on(instance.enumerate_adapters(backends()));
+        let names: Vec<String> = adapters.iter().map(|a| a.get_info().name).collect();
+        let adapter = match want {
+            Some(w) => adapters
+                .into_iter()
+                .find(|a| a.get_info().name.to_lowercase().contains(&w.to_lowercase()))
+                .ok_or_else(|| GpuError::AdapterNotFound {
+                    want: w.to_string(),
+                    available: names.join(", "),
+                })?,
+            None => {
+                let (hw, sw): (Vec<_>, Vec<_>) = adapters
+                    .into_iter()
+                    .partition(|a| a.get_info().device_type != wgpu::DeviceType::Cpu);
+                match (hw.into_iter().next(), sw.into_iter().next()) {
+                    (Some(a), _) => a,
+                    (None, Some(a)) => {
+                        eprintln!(
+                            "dioptra: no hardware GPU adapter; using the software adapter {} (correct but slow)",
+                            a.get_info().name
+                        );
+                        a
+                    }
+                    (None, None) => return Err(GpuError::NoAdapter),
+                }
+            }
+        };
+        let info = adapter.get_info();
+        let have = adapter.limits();
+        check_limits(&have)?;
+        let timestamps = adapter.features().contains(wgpu::Features::TIMESTAMP_QUERY);
+        let required_features = if timestamps {
+            wgpu::Features::TIMESTAMP_QUERY
+        } else {
+            wgpu::Features::empty()
+        };
+        // Ask for what the adapter offers: large images need large storage bindings.
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("dioptra-render"),
+            required_features,
+            required_limits: have.clone(),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        let lost = Arc::new(AtomicBool::new(false));
+        let l2 = lost.clone();
+        device.set_device_lost_callback(move |_, _| l2.store(true, Ordering::SeqCst));
+        let errors = Arc::new(Mutex::new(Vec::new()));
+        let e2 = errors.clone();
+        // wgpu's default handler panics; record instead and fail the frame.
+        device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
+            if let Ok(mut v) = e2.lock() {
+                v.push(e.to_string());
+            }
+        }));
+        let timestamp_period = queue.get_timestamp_period();
+        let mut modules: HashMap<&'static str, wgpu::ShaderModule> = HashMap::new();
+        let mut layouts: HashMap<(u32, u32), wgpu::BindGroupLayout> = HashMap::new();
+        let mut pipelines = HashMap::new();
+        for k in Kernel::ALL {
+            let (src, entry, ro, rw) = k.spec();
+            let module = modules
+                .entry(src)
+                .or_insert_with(|| {
+                    device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                        label: None,
+                        source: wgpu::ShaderSource::Wgsl(src.into()),
+                    })
+                })
+                .clone();
+            let bgl = layouts
+                .entry((ro, rw))
+                .or_insert_with(|| bind_group_layout(&device, ro, rw))
+                .clone();
+            let pl = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: None,
+                bind_group_layouts: &[Some(&bgl)],
+                immediate_size: 0,
+            });
+            let p = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            pipelines.insert(k, (p, bgl));
+        }
+        let ctx = GpuContext {
+            device,
+            queue,
+            adapter: summary(&info),
+            limits: have,
+            timestamps,
+            timestamp_period,
+            pipelines,
+            pool: Arc::new(Mutex::new(HashMap::new())),
+            lost,
+            errors,
+        };
+        ctx.take_errors()?;
+        Ok(ctx)
+    }
+
+    pub fn adapter(&self) -> &AdapterSummary {
+        &self.adapter
+    }
+
+    pub fn has_timestamps(&self) -> bool {
+        self.timestamps
+    }
+
+    fn take_errors(&self) -> Result<(), GpuError> {
+        if self.lost.load(Ordering::SeqCst) {
+            return Err(GpuError::DeviceLost);
+        }
+        let mut e = self.errors.lock().map_err(|_| GpuError::Poisoned)?;
+        if e.is_empty() {
+            Ok(())
+        } else {
+            let msg = e.join("; ");
+            e.clear();
+            Err(GpuError::Validation(msg))
+        }
+    }
+
+    /// Checks that one buffer of `bytes` fits the device's storage-binding limit.
+    pub(crate) fn check_size(&self, what: &str, bytes: u64) -> Result<(), GpuError> {
+        let max = self.max_binding();
+        if bytes > max {
+            return Err(GpuError::TooLarge {
+                what: what.to_string(),
+                bytes,
+                max,
+            });
+        }
+        Ok(())
+    }
+
+    /// The largest buffer one binding may hold on this device.
+    pub(crate) fn max_binding(&self) -> u64 {
+        self.limits
+            .max_storage_buffer_binding_size
+            .min(self.limits.max_buffer_size)
+    }
+
+    fn acquire(&self, bytes: u64, usage: wgpu::BufferUsages) -> BufRef {
+        // Round up so nearby sizes share buffers: powers of two up to 1 MiB, then 1 MiB steps.
+        let size = bytes.max(16);
+        let size = if size <= 1 << 20 {
+            size.next_power_of_two()
+        } else {
+            size.div_ceil(1 << 20) << 20
+        };
+        let key = (size, usage.bits());
+        let reused = self
+            .pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.get_mut(&key).and_then(|v| v.pop()));
+        let buffer = reused.unwrap_or_else(|| {
+            self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: None,
+                size,
+                usage,
+                mapped_at_creation: false,
+            })
+        });
+        Arc::new(Buf {
+            buffer,
+            key,
+            pool: self.pool.clone(),
+        })
+    }
+}
+
+fn check_limits(have: &wgpu::Limits) -> Result<(), GpuError> {
+    let need = [
+        (
+            "max_compute_invocations_per_workgroup",
+            have.max_compute_invocations_per_workgroup,
+            WG * WG,
+        ),
+        (
+            "max_compute_workgroup_size_x",
+            have.max_compute_workgroup_size_x,
+            WG1,
+        ),
+        (
+            "max_compute_workgroup_size_y",
+            have.max_compute_workgroup_size_y,
+            WG,
+        ),
+        (
+            "max_storage_buffers_per_shader_stage",
+            have.max_storage_buffers_per_shader_stage,
+            MAX_BINDINGS,
+        ),
+        (
+            "max_compute_workgroup_storage_size",
+            have.max_compute_workgroup_storage_size,
+            4 * WG1,
+        ),
+    ];
+    for (what, have, need) in need {
+        if have < need {
+            return Err(GpuError::Limit { what, have, need });
+        }
+    }
+    Ok(())
+}
+
+fn bind_group_layout(device: &wgpu::Device, ro: u32, rw: u32) -> wgpu::BindGroupLayout {
+    let mut entries = vec![wgpu::BindGroupLayoutEntry {
+        binding: 0,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }];
+    for i in 0..ro + rw {
+        entries.push(wgpu::BindGroupLayoutEntry {
+            binding: 1 + i,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty: wgpu::BufferBindingType::Storage { read_only: i < ro },
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        });
+    }
+    device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: None,
+        entries: &entries,
+    })
+}
+
+/// A readback slot: the bytes arrive when the frame finishes.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Readback(usize);
+
+/// One frame: uploads (queued writes), dispatches and copies recorded into one command
+/// buffer, submitted once, then every readback mapped together.
+pub(crate) struct Frame<'c> {
+    ctx: &'c GpuContext,
+    encoder: wgpu::CommandEncoder,
+    held: Vec<BufRef>,
+    reads: Vec<(BufRef, u64)>,
+    labels: Vec<&'static str>,
+    queries: Option<wgpu::QuerySet>,
+    stats: FrameStats,
+}
+
+/// Timestamp queries per frame (two per pass); passes beyond this go untimed.
+const MAX_QUERIES: u32 = 512;
+
+impl<'c> Frame<'c> {
+    pub(crate) fn new(ctx: &'c GpuContext) -> Result<Frame<'c>, GpuError> {
+        ctx.take_errors()?;
+        let queries = ctx.timestamps.then(|| {
+            ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: None,
+                ty: wgpu::QueryType::Timestamp,
+                count: MAX_QUERIES,
+            })
+        });
+        Ok(Frame {
+            ctx,
+            encoder: ctx
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None }),
+            held: Vec::new(),
+            reads: Vec::new(),
+            labels: Vec::new(),
+            queries,
+            stats: FrameStats::default(),
+        })
+    }
+
+    const STORAGE: wgpu::BufferUsages = wgpu::BufferUsages::STORAGE
+        .union(wgpu::BufferUsages::COPY_DST)
+        .union(wgpu::BufferUsages::COPY_SRC);
+
+    /// A storage buffer holding `data`.
+    pub(crate) fn upload<T: bytemuck::Pod>(
+        &mut self,
+        what: &str,
+        data: &[T],
+    ) -> Result<BufRef, GpuError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        self.ctx.check_size(what, bytes.len() as u64)?;
+        let b = self.ctx.acquire(bytes.len() as u64, Self::STORAGE);
+        if !bytes.is_empty() {
+            self.ctx.queue.write_buffer(&b.buffer, 0, bytes);
+        }
+        self.stats.bytes_uploaded += bytes.len() as u64;
+        self.held.push(b.clone());
+        Ok(b)
+    }
+
+    /// A storage buffer of `bytes` cleared to zero on the GPU (no transfer).
+    pub(crate) fn zeroed(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
+        let b = self.scratch(what, bytes)?;
+        self.encoder.clear_buffer(&b.buffer, 0, None);
+        Ok(b)
+    }
+
+    /// A storage buffer of `bytes` with undefined contents (every element will be written).
+    pub(crate) fn scratch(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
+        self.ctx.check_size(what, bytes)?;
+        let b = self.ctx.acquire(bytes, Self::STORAGE);
+        self.held.push(b.clone());
+        Ok(b)
+    }
+
+    /// Copies `bytes` from `src` at `src_off` to `dst` at `dst_off`, on the GPU.
+    pub(crate) fn copy(
+        &mut self,
+        src: &BufRef,
+        src_off: u64,
+        dst: &BufRef,
+        dst_off: u64,
+        bytes: u64,
+    ) {
+        self.encoder
+            .copy_buffer_to_buffer(&src.buffer, src_off, &dst.buffer, dst_off, bytes);
+    }
+
+    /// Clears `b` to zero on the GPU.
+    pub(crate) fn clear(&mut self, b: &BufRef) {
+        self.encoder.clear_buffer(&b.buffer, 0, None);
+    }
+
+    /// Records `kernel` over `groups` workgroups with uniform `params` and buffers `bufs`
+    /// (read-only ones first, as the kernel's spec lists them).
+    pub(crate) fn dispatch<P: bytemuck::Pod>(
+        &mut self,
+        kernel: Kernel,
+        params: &P,
+        bufs: &[&BufRef],
+        groups: [u32; 3],
+    ) -> Result<(), GpuError> {
+        let (pipeline, bgl) = self
+            .ctx
+            .pipelines
+            .get(&kernel)
+            .ok_or(GpuError::Validation(format!("no pipeline for {kernel:?}")))?;
+        let (_, entry, ro, rw) = kernel.spec();
+        if bufs.len() != (ro + rw) as usize {
+            return Err(GpuError::Validation(format!(
+                "{entry} takes {} buffers, given {}",
+                ro + rw,
+                bufs.len()
+            )));
+        }
+        let max = self.ctx.limits.max_compute_workgroups_per_dimension;
+        if groups.iter().any(|&g| g > max) {
+            return Err(GpuError::TooLarge {
+                what: format!("{entry} dispatch of {groups:?} workgroups"),
+                bytes: groups.iter().copied().max().unwrap_or(0) as u64,
+                max: max as u64,
+            });
+        }
+        if groups.contains(&0) {
+            return Ok(());
+        }
+        let pbytes: &[u8] = bytemuck::bytes_of(params);
+        let u = self.ctx.acquire(
+            pbytes.len() as u64,
+            wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        );
+        self.ctx.queue.write_buffer(&u.buffer, 0, pbytes);
+        self.stats.bytes_uploaded += pbytes.len() as u64;
+        let mut entries = vec![wgpu::BindGroupEntry {
+            binding: 0,
+            resource: u.buffer.as_entire_binding(),
+        }];
+        for (i, b) in bufs.iter().enumerate() {
+            entries.push(wgpu::BindGroupEntry {
+                binding: 1 + i as u32,
+                resource: b.buffer.as_entire_binding(),
+            });
+        }
+        let bg = self
+            .ctx
+            .device
+            .create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: bgl,
+                entries: &entries,
+            });
+        self.held.push(u);
+        let q = 2 * self.labels.len() as u32;
+        let timestamp_writes = match &self.queries {
+            Some(qs) if q + 1 < MAX_QUERIES => {
+                self.labels.push(entry);
+                Some(wgpu::ComputePassTimestampWrites {
+                    query_set: qs,
+                    beginning_of_pass_write_index: Some(q),
+                    end_of_pass_write_index: Some(q + 1),
+                })
+            }
+            _ => None,
+        };
+        // One pass per dispatch so each can be timed; a real GPU needs the barrier anyway,
+        // since every dispatch here reads what the one before wrote.
+        let mut pass = self
+            .encoder
+            .begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(entry),
+                timestamp_writes,
+            });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &bg, &[]);
+        pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
+        drop(pass);
+        self.stats.dispatches += 1;
+        Ok(())
+    }
+
+    /// Copies the first `bytes` of `b` back to the host when the frame finishes.
+    pub(crate) fn read(&mut self, b: &BufRef, bytes: u64) -> Readback {
+        let bytes = bytes.div_ceil(4) * 4;
+        let staging = self.ctx.acquire(
+            bytes,
+            wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        );
+        if bytes > 0 {
+            self.encoder
+                .copy_buffer_to_buffer(&b.buffer, 0, &staging.buffer, 0, bytes);
+        }
+        self.reads.push((staging, bytes));
+        self.stats.bytes_read_back += bytes;
+        Readback(self.reads.len() - 1)
+    }
+
+    /// Submits the frame, waits for it, and returns every readback and the frame's stats.
+    pub(crate) fn finish(mut self) -> Result<(Readbacks, FrameStats), GpuError> {
+        let n_ts = 2 * self.labels.len() as u64;
+        let ts = match (&self.queries, n_ts) {
+            (Some(qs), n) if n > 0 => {
+                let resolve = self.ctx.acquire(
+                    n * 8,
+                    wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                );
+                self.encoder
+                    .resolve_query_set(qs, 0..n as u32, &resolve.buffer, 0);
+                let staging = self.ctx.acquire(
+                    n * 8,
+                    wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                );
+                self.encoder
+                    .copy_buffer_to_buffer(&resolve.buffer, 0, &staging.buffer, 0, n * 8);
+                self.held.push(resolve);
+                Some(staging)
+            }
+            _ => None,
+        };
+        let cmd = self.encoder.finish();
+        self.ctx.queue.submit([cmd]);
+        self.stats.submissions += 1;
+        let mut all: Vec<(&BufRef, u64)> = self.reads.iter().map(|(b, n)| (b, *n)).collect();
+        if let Some(t) = &ts {
+            all.push((t, n_ts * 8));
+        }
+        let failed = Arc::new(AtomicBool::new(false));
+        for (b, n) in &all {
+            if *n == 0 {
+                continue;
+            }
+            let f = failed.clone();
+            b.buffer.map_async(wgpu::MapMode::Read, 0..*n, move |r| {
+                if r.is_err() {
+                    f.store(true, Ordering::SeqCst);
+                }
+            });
+        }
+        self.ctx
+            .device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| match e {
+                wgpu::PollError::Timeout => GpuError::Validation("GPU wait timed out".into()),
+                _ => GpuError::DeviceLost,
+            })?;
+        self.ctx.take_errors()?;
+        if failed.load(Ordering::SeqCst) {
+            return Err(GpuError::Validation(
+                "mapping a readback buffer failed".into(),
+            ));
+        }
+        let mut out = Vec::with_capacity(self.reads.len());
+        for (b, n) in &self.reads {
+            if *n == 0 {
+                out.push(Vec::new());
+                continue;
+            }
+            let v = b
+                .buffer
+                .get_mapped_range(0..*n)
+                .map_err(|e| GpuError::Validation(e.to_string()))?
+                .to_vec();
+            b.buffer.unmap();
+            out.push(v);
+        }
+        if let Some(t) = ts {
+            let raw: Vec<u64> = {
+                let v = t
+                    .buffer
+                    .get_mapped_range(0..n_ts * 8)
+                    .map_err(|e| GpuError::Validation(e.to_string()))?;
+                bytemuck::pod_collect_to_vec::<u8, u64>(&v)
+            };
+            t.buffer.unmap();
+            let period = self.ctx.timestamp_period as f64;
+            let mut total = 0.0;
+            for (i, &l) in self.labels.iter().enumerate() {
+                let dt = raw[2 * i + 1].saturating_sub(raw[2 * i]) as f64 * period;
+                total += dt;
+                match self.stats.passes.iter_mut().find(|p| p.0 == l) {
+                    Some(p) => p.1 += dt,
+                    None => self.stats.passes.push((l, dt)),
+                }
+            }
+            self.stats.gpu_ns = Some(total);
+        }
+        Ok((Readbacks(out), self.stats))
+    }
+}
+
+/// The bytes of a finished frame's readbacks.
+pub(crate) struct Readbacks(Vec<Vec<u8>>);
+
+impl Readbacks {
+    pub(crate) fn f32s(&self, r: Readback) -> Vec<f32> {
+        self.0
+            .get(r.0)
+            .map(|v| bytemuck::pod_collect_to_vec::<u8, f32>(v))
+            .unwrap_or_default()
+    }
+}

@@ -1,0 +1,972 @@
+//! Host side of each GPU method: the same checks as its CPU twin, uploads, dispatches and
+//! readbacks through one [`Frame`] per output slice (a handful of submissions per call).
+
+use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, WG, WG1};
+use super::GpuError;
+use crate::backend::Progress;
+use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
+use crate::error::{invalid, mismatch, RenderError};
+use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
+use crate::lightfield::{halton_disk, LightFieldParams};
+use crate::metrics::Quality;
+use crate::multifocal::{check_planes, Layers, OptimizeParams, OptimizeReport};
+use crate::retina::{pupil_weights, LfView};
+use crate::views::RgbdView;
+use bytemuck::{Pod, Zeroable};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+
+type Out<T> = Result<(T, FrameStats), RenderError>;
+
+fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
+    u32::try_from(v).map_err(|_| invalid(format!("{what} {v} is too large for the GPU backend")))
+}
+
+fn groups2(w: u32, h: u32, z: u32) -> [u32; 3] {
+    [w.div_ceil(WG), h.div_ceil(WG), z]
+}
+
+/// Planar colour: R plane, then G, then B.
+fn planar(img: &RgbImage) -> Vec<f32> {
+    let mut v = Vec::with_capacity(3 * img.width() * img.height());
+    for c in &img.channels {
+        v.extend_from_slice(c.data());
+    }
+    v
+}
+
+fn image(data: &[f32], w: usize, h: usize) -> Result<RgbImage, RenderError> {
+    let n = w * h;
+    if data.len() < 3 * n {
+        return Err(GpuError::Validation(format!(
+            "readback of {} values, expected {}",
+            data.len(),
+            3 * n
+        ))
+        .into());
+    }
+    let p = |c: usize| Plane::from_vec(w, h, data[c * n..(c + 1) * n].to_vec());
+    Ok(RgbImage::from_planes(p(0)?, p(1)?, p(2)?)?)
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GatherP {
+    w: u32,
+    h: u32,
+    n_off: u32,
+    reach: u32,
+    focus: f32,
+    pupil_m: f32,
+    pitch: f32,
+    _pad: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct SizeP {
+    w: u32,
+    h: u32,
+    k: u32,
+    _pad: u32,
+}
+
+/// Gather blur, one frame per focus; colour and depth are uploaded once.
+pub(super) fn gather(
+    ctx: &GpuContext,
+    input: &Rgbd,
+    foci: &[Diopters],
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<RgbImage>> {
+    check_rgbd(input)?;
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, input.width())?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(foci.len());
+    let mut inputs: Option<(BufRef, BufRef)> = None;
+    for &q in foci {
+        let reach = (0.5 * max_coc(input, &eye, q) + 0.5).ceil().min(256.0) as isize;
+        // The CPU's tap order exactly: distance, ties in generation order (stable sort).
+        let mut offsets: Vec<[f32; 4]> = (-reach..=reach)
+            .flat_map(|dy| {
+                (-reach..=reach).map(move |dx| {
+                    [
+                        dx as f32,
+                        dy as f32,
+                        ((dx * dx + dy * dy) as f32).sqrt(),
+                        0.0,
+                    ]
+                })
+            })
+            .filter(|o| o[2] <= reach as f32 + 0.5)
+            .collect();
+        offsets.sort_by(|a, b| a[2].total_cmp(&b[2]));
+        let mut f = Frame::new(ctx)?;
+        let (color, depth) = match &inputs {
+            Some(b) => b.clone(),
+            None => {
+                let b = (
+                    f.upload("colour image", &planar(&input.color))?,
+                    f.upload("depth map", input.depth.data())?,
+                );
+                inputs = Some(b.clone());
+                b
+            }
+        };
+        let off = f.upload("gather offsets", &offsets)?;
+        let tex = f.scratch("packed texels", 16 * n)?;
+        let radius = f.scratch("radius", 4 * n)?;
+        let tmp = f.scratch("max filter", 4 * n)?;
+        let lmax = f.scratch("max filter", 4 * n)?;
+        let dst = f.scratch("output image", 12 * n)?;
+        let p = GatherP {
+            w: wu,
+            h: hu,
+            n_off: dim(offsets.len(), "offset count")?,
+            reach: reach as u32,
+            focus: q.0,
+            pupil_m: eye.pupil_diameter.to_meters().0,
+            pitch: eye.pixel_pitch_tan(),
+            _pad: 0,
+        };
+        let g = groups2(wu, hu, 1);
+        f.dispatch(Kernel::GatherPrep, &p, &[&color, &depth, &tex, &radius], g)?;
+        f.dispatch(Kernel::MaxH, &p, &[&radius, &tmp], g)?;
+        f.dispatch(Kernel::MaxV, &p, &[&tmp, &lmax], g)?;
+        f.dispatch(Kernel::Gather, &p, &[&tex, &depth, &lmax, &off, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(image(&rb.f32s(r), w, h)?);
+        progress(out.len());
+    }
+    Ok((out, total))
+}
+
+/// Linear blending in one dispatch.
+pub(super) fn linear_blend(ctx: &GpuContext, input: &Rgbd, planes: &[Diopters]) -> Out<Layers> {
+    check_planes(planes)?;
+    check_rgbd(input)?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let (n, np) = ((w * h) as u64, planes.len());
+    let mut f = Frame::new(ctx)?;
+    let color = f.upload("colour image", &planar(&input.color))?;
+    let depth = f.upload("depth map", input.depth.data())?;
+    let pl: Vec<f32> = planes.iter().map(|p| p.0).collect();
+    let pbuf = f.upload("planes", &pl)?;
+    let bytes = 12 * n * np as u64;
+    let dst = f.scratch("layer stack", bytes)?;
+    let p = SizeP {
+        w: wu,
+        h: hu,
+        k: np as u32,
+        _pad: 0,
+    };
+    f.dispatch(
+        Kernel::LinearBlend,
+        &p,
+        &[&color, &depth, &pbuf, &dst],
+        groups2(wu, hu, 1),
+    )?;
+    let r = f.read(&dst, bytes);
+    let (rb, s) = f.finish()?;
+    let data = rb.f32s(r);
+    let stride = 3 * w * h;
+    let images = (0..np)
+        .map(|l| image(data.get(l * stride..).unwrap_or(&[]), w, h))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((
+        Layers {
+            planes: planes.to_vec(),
+            images,
+        },
+        s,
+    ))
+}
+
+/// Convolves `layers` (same size) with per-focus, per-layer disk kernels and sums over the
+/// layers: `kernels[f][l]` is the diameter for focus f and layer l. Foci are batched per
+/// dispatch as far as the output buffer limit allows.
+fn convolve_sum(
+    ctx: &GpuContext,
+    layers: &[&RgbImage],
+    diameters: &[Vec<f32>],
+) -> Out<Vec<RgbImage>> {
+    let (w, h) = (layers[0].width(), layers[0].height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let nl = layers.len();
+    let mut kinfo: Vec<[u32; 4]> = Vec::new();
+    let mut weights: Vec<f32> = Vec::new();
+    for row in diameters {
+        for &d in row {
+            let k = disk_kernel(d);
+            kinfo.push([dim(weights.len(), "kernel size")?, k.radius as u32, 0, 0]);
+            weights.extend_from_slice(&k.weights);
+        }
+    }
+    let mut f = Frame::new(ctx)?;
+    let mut all = Vec::with_capacity(3 * w * h * nl);
+    for l in layers {
+        all.extend_from_slice(&planar(l));
+    }
+    let lbuf = f.upload("layer images", &all)?;
+    let kbuf = f.upload("kernel table", &kinfo)?;
+    let wbuf = f.upload("kernel weights", &weights)?;
+    let max = ctx.max_binding();
+    let per = ((max / (12 * n)) as usize).clamp(1, 1024);
+    let mut reads = Vec::new();
+    for (c, chunk) in diameters.chunks(per).enumerate() {
+        let nf = chunk.len();
+        // The chunk's kernel rows start at c * per * nl: pass them as their own table.
+        let rows: Vec<[u32; 4]> = kinfo[c * per * nl..(c * per + nf) * nl].to_vec();
+        let kb = if c == 0 && nf == diameters.len() {
+            kbuf.clone()
+        } else {
+            f.upload("kernel table", &rows)?
+        };
+        let dst = f.scratch("retinal images", 12 * n * nf as u64)?;
+        let p = SizeP {
+            w: wu,
+            h: hu,
+            k: nl as u32,
+            _pad: 0,
+        };
+        f.dispatch(
+            Kernel::Convolve,
+            &p,
+            &[&lbuf, &kb, &wbuf, &dst],
+            groups2(wu, hu, nf as u32),
+        )?;
+        reads.push((f.read(&dst, 12 * n * nf as u64), nf));
+    }
+    let (rb, s) = f.finish()?;
+    let mut out = Vec::with_capacity(diameters.len());
+    for (r, nf) in reads {
+        let data = rb.f32s(r);
+        for k in 0..nf {
+            out.push(image(data.get(k * 3 * w * h..).unwrap_or(&[]), w, h)?);
+        }
+    }
+    Ok((out, s))
+}
+
+pub(super) fn retina_varifocal(
+    ctx: &GpuContext,
+    image: &RgbImage,
+    display: Diopters,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Out<RgbImage> {
+    check_focus(display)?;
+    check_focus(focus)?;
+    if image.width() == 0 || image.height() == 0 {
+        return Err(invalid("image is empty"));
+    }
+    let eye = eye_for(eye, image.width())?;
+    let d = eye.coc_px(display, focus);
+    let (mut v, s) = convolve_sum(ctx, &[image], &[vec![d]])?;
+    let img = v
+        .pop()
+        .ok_or_else(|| GpuError::Validation("no image".into()))?;
+    Ok((img, s))
+}
+
+pub(super) fn retina_multifocal(
+    ctx: &GpuContext,
+    layers: &Layers,
+    foci: &[Diopters],
+    eye: &EyeModel,
+) -> Out<Vec<RgbImage>> {
+    if foci.is_empty() {
+        return Ok((Vec::new(), FrameStats::default()));
+    }
+    layers.check()?;
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, layers.width())?;
+    let diameters: Vec<Vec<f32>> = foci
+        .iter()
+        .map(|&q| layers.planes.iter().map(|&p| eye.coc_px(p, q)).collect())
+        .collect();
+    let imgs: Vec<&RgbImage> = layers.images.iter().collect();
+    convolve_sum(ctx, &imgs, &diameters)
+}
+
+pub(super) fn retina_lightfield(
+    ctx: &GpuContext,
+    views: &[LfView],
+    spacing: f32,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Out<RgbImage> {
+    check_focus(focus)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("the light field has no views"))?;
+    let (w, h) = (first.image.width(), first.image.height());
+    if w == 0
+        || h == 0
+        || views
+            .iter()
+            .any(|v| (v.image.width(), v.image.height()) != (w, h))
+    {
+        return Err(mismatch("light-field views are empty or differ in size"));
+    }
+    if !(spacing.is_finite() && spacing > 0.0)
+        || views
+            .iter()
+            .any(|v| !v.position.iter().all(|p| p.is_finite()))
+    {
+        return Err(invalid(format!(
+            "view spacing {spacing} m or a view position is invalid"
+        )));
+    }
+    let eye = eye_for(eye, w)?;
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let pitch = eye.pixel_pitch_tan();
+    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return Err(invalid("no light-field view lies inside the pupil"));
+    }
+    // Views outside the pupil carry no weight: they are never uploaded.
+    let used: Vec<(&LfView, [f32; 4])> = views
+        .iter()
+        .zip(&weights)
+        .filter(|(_, &wt)| wt != 0.0)
+        .map(|(v, &wt)| {
+            let sx = v.position[0] * focus.0 / pitch;
+            let sy = v.position[1] * focus.0 / pitch;
+            (v, [sx, sy, wt / total, 0.0])
+        })
+        .collect();
+    let n = (w * h) as u64;
+    let max = ctx.max_binding();
+    // Batches of at most 16 views keep uploads and compute overlapping on a real GPU.
+    let per = ((max / (12 * n)) as usize).clamp(1, 16);
+    let mut f = Frame::new(ctx)?;
+    let dst = f.zeroed("retinal image", 12 * n)?;
+    for batch in used.chunks(per) {
+        let mut data = Vec::with_capacity(batch.len() * 3 * w * h);
+        for (v, _) in batch {
+            data.extend_from_slice(&planar(&v.image));
+        }
+        let vb = f.upload("light-field views", &data)?;
+        let params: Vec<[f32; 4]> = batch.iter().map(|b| b.1).collect();
+        let pb = f.upload("view shifts", &params)?;
+        let p = SizeP {
+            w: wu,
+            h: hu,
+            k: batch.len() as u32,
+            _pad: 0,
+        };
+        f.dispatch(Kernel::ShiftAdd, &p, &[&vb, &pb, &dst], groups2(wu, hu, 1))?;
+    }
+    let r = f.read(&dst, 12 * n);
+    let (rb, s) = f.finish()?;
+    Ok((image(&rb.f32s(r), w, h)?, s))
+}
+
+/// Separable blur of `planes` planes of `src` into a fresh buffer (rows, then columns).
+fn blur(
+    f: &mut Frame,
+    src: &BufRef,
+    planes: u32,
+    w: u32,
+    h: u32,
+    taps: &[f32],
+) -> Result<BufRef, RenderError> {
+    let bytes = 4 * (w as u64) * (h as u64) * planes as u64;
+    let tb = f.upload("blur taps", taps)?;
+    let tmp = f.scratch("blur", bytes)?;
+    let dst = f.scratch("blur", bytes)?;
+    let p = SizeP {
+        w,
+        h,
+        k: taps.len() as u32,
+        _pad: 0,
+    };
+    f.dispatch(Kernel::BlurH, &p, &[src, &tb, &tmp], groups2(w, h, planes))?;
+    f.dispatch(Kernel::BlurV, &p, &[&tmp, &tb, &dst], groups2(w, h, planes))?;
+    Ok(dst)
+}
+
+/// PSNR and SSIM in one frame: per-workgroup partial sums, added on the host in f64.
+pub(super) fn quality(
+    ctx: &GpuContext,
+    a: &RgbImage,
+    b: &RgbImage,
+    mask: Option<&Plane>,
+) -> Out<Quality> {
+    crate::metrics::check(a, b, mask)?;
+    let (w, h) = (a.width(), a.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = w * h;
+    let groups = dim(n.div_ceil(WG1 as usize), "pixel count")?;
+    let ones;
+    let m = match mask {
+        Some(m) => m.data(),
+        None => {
+            ones = vec![1.0f32; n];
+            &ones[..]
+        }
+    };
+    let selected = m.iter().filter(|&&v| v > 0.5).count() * 3;
+    let mut f = Frame::new(ctx)?;
+    let ab = f.upload("image a", &planar(a))?;
+    let bb = f.upload("image b", &planar(b))?;
+    let mb = f.upload("mask", m)?;
+    let p = SizeP {
+        w: wu,
+        h: hu,
+        k: 0,
+        _pad: 0,
+    };
+    let se = f.scratch("partial sums", 4 * groups as u64)?;
+    f.dispatch(Kernel::PsnrSum, &p, &[&ab, &bb, &mb, &se], [groups, 1, 1])?;
+    let q = f.scratch("ssim terms", 4 * 15 * n as u64)?;
+    f.dispatch(Kernel::SsimPrep, &p, &[&ab, &bb, &q], groups2(wu, hu, 1))?;
+    let qb = blur(&mut f, &q, 15, wu, hu, &gaussian_taps(1.5))?;
+    let ss = f.scratch("partial sums", 4 * groups as u64)?;
+    f.dispatch(Kernel::SsimSum, &p, &[&qb, &mb, &ss], [groups, 1, 1])?;
+    let (r1, r2) = (
+        f.read(&se, 4 * groups as u64),
+        f.read(&ss, 4 * groups as u64),
+    );
+    let (rb, s) = f.finish()?;
+    let sum = |v: Vec<f32>| v.iter().map(|&x| x as f64).sum::<f64>();
+    let mse = sum(rb.f32s(r1)) / selected as f64;
+    let psnr = if mse == 0.0 {
+        f64::INFINITY
+    } else {
+        -10.0 * mse.log10()
+    };
+    Ok((
+        Quality {
+            psnr,
+            ssim: sum(rb.f32s(r2)) / selected as f64,
+        },
+        s,
+    ))
+}
+
+/// Standard deviations of the pyramid levels and the prefilter per view spacing: the CPU's
+/// constants in src/lightfield.rs (private there), repeated in shaders/lightfield.wgsl.
+const LEVEL_SIGMA: [f32; 7] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
+const PREFILTER: f32 = 0.35;
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct LfP {
+    w: u32,
+    h: u32,
+    nv: u32,
+    v0: u32,
+    focus: f32,
+    pupil_m: f32,
+    pitch: f32,
+    spacing: f32,
+    lens_f: f32,
+    top: u32,
+    nlev: u32,
+    /// Stride between the splat kernels' depth maps: 0 (one map) or w * h (one per view).
+    dstride: u32,
+}
+
+/// Light-field depth of field: the pyramid once per call, then one frame per focus.
+pub(super) fn lightfield(
+    ctx: &GpuContext,
+    input: &Rgbd,
+    foci: &[Diopters],
+    eye: &EyeModel,
+    params: LightFieldParams,
+    progress: Progress,
+) -> Out<Vec<RgbImage>> {
+    check_rgbd(input)?;
+    if !(1..=1024).contains(&params.views) {
+        return Err(invalid(format!(
+            "views = {} is invalid: expected 1 to 1024",
+            params.views
+        )));
+    }
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let eye = eye_for(eye, input.width())?;
+    let (w, h) = (input.width(), input.height());
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let pitch = eye.pixel_pitch_tan();
+    let radius = 0.5 * eye.pupil_diameter.to_meters().0;
+    let views: Vec<[f32; 4]> = halton_disk(params.views)
+        .into_iter()
+        .map(|p| {
+            let l = [p[0] * radius, p[1] * radius];
+            [-l[0] / pitch, -l[1] / pitch, l[0], l[1]]
+        })
+        .collect();
+    let spacing = 1.0 / (params.views as f32).sqrt();
+    let top = if params.mip { LEVEL_SIGMA.len() - 1 } else { 0 };
+    let level_below = |sigma: f32| {
+        let mut l = 0;
+        while l < top && LEVEL_SIGMA[l + 1] < sigma {
+            l += 1;
+        }
+        l
+    };
+    // The levels the sharpest-to-blurriest focus of this call reads, built once.
+    let nlev = foci
+        .iter()
+        .map(|&q| (level_below(PREFILTER * max_coc(input, &eye, q) * spacing) + 1).min(top) + 1)
+        .max()
+        .unwrap_or(1);
+    let max = ctx.max_binding();
+    let chunk = ((max / (4 * n)) as usize).clamp(1, params.views);
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(foci.len());
+    let mut shared: Option<(BufRef, BufRef, BufRef, BufRef)> = None;
+    for &q in foci {
+        let mut f = Frame::new(ctx)?;
+        let (color, depth, levels, vbuf) = match &shared {
+            Some(s) => s.clone(),
+            None => {
+                let color = f.upload("colour image", &planar(&input.color))?;
+                let depth = f.upload("depth map", input.depth.data())?;
+                let vbuf = f.upload("lens samples", &views)?;
+                let levels = f.scratch("Gaussian pyramid", 12 * n * nlev as u64)?;
+                f.copy(&color, 0, &levels, 0, 12 * n);
+                for (l, &sigma) in LEVEL_SIGMA.iter().enumerate().take(nlev).skip(1) {
+                    let b = blur(&mut f, &color, 3, wu, hu, &gaussian_taps(sigma))?;
+                    f.copy(&b, 0, &levels, 12 * n * l as u64, 12 * n);
+                }
+                let s = (color, depth, levels, vbuf);
+                shared = Some(s.clone());
+                s
+            }
+        };
+        let mut p = LfP {
+            w: wu,
+            h: hu,
+            nv: 0,
+            v0: 0,
+            focus: q.0,
+            pupil_m: eye.pupil_diameter.to_meters().0,
+            pitch,
+            spacing,
+            lens_f: eye.lens_to_retina.to_meters().0,
+            top: top as u32,
+            nlev: nlev as u32,
+            dstride: 0,
+        };
+        let g = groups2(wu, hu, 1);
+        let pre = f.scratch("prefiltered colour", 16 * n)?;
+        f.dispatch(Kernel::LfPrefilter, &p, &[&levels, &depth, &pre], g)?;
+        let acc = f.zeroed("accumulator", 16 * n)?;
+        let dkey = f.scratch("depth keys", 4 * n * chunk as u64)?;
+        let ikey = f.scratch("index keys", 4 * n * chunk as u64)?;
+        for v0 in (0..params.views).step_by(chunk) {
+            let nv = chunk.min(params.views - v0);
+            p.v0 = v0 as u32;
+            p.nv = nv as u32;
+            f.clear(&dkey);
+            f.clear(&ikey);
+            let gz = groups2(wu, hu, nv as u32);
+            f.dispatch(Kernel::LfSplatDepth, &p, &[&depth, &vbuf, &dkey], gz)?;
+            f.dispatch(Kernel::LfSplatIndex, &p, &[&depth, &vbuf, &dkey, &ikey], gz)?;
+            f.dispatch(
+                Kernel::LfAccumulate,
+                &p,
+                &[&dkey, &ikey, &pre, &vbuf, &acc],
+                g,
+            )?;
+        }
+        let dst = f.scratch("output image", 12 * n)?;
+        f.dispatch(Kernel::LfFinish, &p, &[&acc, &color, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(image(&rb.f32s(r), w, h)?);
+        progress(out.len());
+    }
+    Ok((out, total))
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct OptP {
+    pw: u32,
+    ph: u32,
+    np: u32,
+    nf: u32,
+    step: f32,
+    mom: f32,
+    len: u32,
+    _pad: u32,
+}
+
+/// Adds `len` squared values of `src` into per-workgroup partials and reads them back.
+fn sq_sum(f: &mut Frame, p: &OptP, src: &BufRef, len: u64) -> Result<Readback, RenderError> {
+    let groups = len.div_ceil(WG1 as u64);
+    let gx = groups.min(32768);
+    let gy = groups.div_ceil(gx);
+    let out = f.scratch("partial sums", 4 * gx * gy)?;
+    let q = OptP {
+        len: dim(len as usize, "residual length")?,
+        ..*p
+    };
+    f.dispatch(
+        Kernel::OptSqSum,
+        &q,
+        &[src, &out],
+        [gx as u32, gy as u32, 1],
+    )?;
+    Ok(f.read(&out, 4 * gx * gy))
+}
+
+/// Optimized blending: the CPU's FISTA on the CPU's padded grid, step 1 / L with the same
+/// Gershgorin bound (computed on the host from the kernel spectra). One submission for the
+/// RMS every 10 iterations and one for the 10 iterations themselves.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn optimized_blend(
+    ctx: &GpuContext,
+    targets: &[RgbImage],
+    foci: &[Diopters],
+    planes: &[Diopters],
+    eye: &EyeModel,
+    init: Option<&Layers>,
+    params: OptimizeParams,
+    progress: Progress,
+) -> Out<(Layers, OptimizeReport)> {
+    check_planes(planes)?;
+    if targets.is_empty() || targets.len() != foci.len() {
+        return Err(mismatch(format!(
+            "{} target slices for {} focal samples",
+            targets.len(),
+            foci.len()
+        )));
+    }
+    foci.iter().try_for_each(|&q| check_focus(q))?;
+    let (w, h) = (targets[0].width(), targets[0].height());
+    if w == 0 || h == 0 || targets.iter().any(|t| (t.width(), t.height()) != (w, h)) {
+        return Err(mismatch("target slices are empty or differ in size"));
+    }
+    if let Some(l) = init {
+        l.check()?;
+        if (l.width(), l.height()) != (w, h) || l.planes != planes {
+            return Err(mismatch(
+                "initial layers do not match the targets' size or the planes",
+            ));
+        }
+    }
+    if params.iterations > 100_000 {
+        return Err(invalid("iterations must be at most 100000"));
+    }
+    let eye = eye_for(eye, w)?;
+    let (np, nf) = (planes.len(), foci.len());
+    let ks: Vec<Vec<crate::kernel::Kernel>> = foci
+        .iter()
+        .map(|&q| {
+            planes
+                .iter()
+                .map(|&p| disk_kernel(eye.coc_px(p, q)))
+                .collect()
+        })
+        .collect();
+    let max_r = ks.iter().flatten().map(|k| k.radius).max().unwrap_or(0);
+    let conv = FftConv::new(w, h, max_r);
+    let (pw, ph) = (conv.pw, conv.ph);
+    let pn = pw * ph;
+    // Lipschitz bound exactly as the CPU builds it: kernel spectra in pairs, M(f) summed over
+    // the focal samples, Gershgorin over rows.
+    let tri = |a: usize, b: usize| if a <= b { a * np + b } else { b * np + a };
+    let mut m = vec![vec![0.0f32; pn]; np * np];
+    for row in &ks {
+        let mut spectra = Vec::with_capacity(np);
+        for pair in row.chunks(2) {
+            let b = pair.get(1).cloned().unwrap_or_else(|| disk_kernel(0.0));
+            let (sa, sb) = conv.kernel_spectra(&pair[0], &b);
+            spectra.push(sa);
+            if pair.len() == 2 {
+                spectra.push(sb);
+            }
+        }
+        for a in 0..np {
+            for b in a..np {
+                for (f, v) in m[tri(a, b)].iter_mut().enumerate() {
+                    *v += spectra[a][f] * spectra[b][f];
+                }
+            }
+        }
+    }
+    let lipschitz = (0..pn)
+        .map(|f| {
+            (0..np)
+                .map(|a| (0..np).map(|b| m[tri(a, b)][f].abs()).sum::<f32>())
+                .fold(0.0f32, f32::max)
+        })
+        .fold(0.0f32, f32::max)
+        .max(1e-6);
+    drop(m);
+    let mut kinfo: Vec<[u32; 4]> = Vec::with_capacity(nf * np);
+    let mut weights: Vec<f32> = Vec::new();
+    for k in ks.iter().flatten() {
+        kinfo.push([dim(weights.len(), "kernel size")?, k.radius as u32, 0, 0]);
+        weights.extend_from_slice(&k.weights);
+    }
+    let mut tpad = Vec::with_capacity(nf * 3 * pn);
+    for t in targets {
+        for c in &t.channels {
+            tpad.extend_from_slice(&conv.pad(c));
+        }
+    }
+    let mut start = Vec::with_capacity(np * 3 * pn);
+    for i in 0..np {
+        for c in 0..3 {
+            let plane = match init {
+                Some(l) => l.images[i].channels[c].clone(),
+                None => {
+                    let mean: Vec<f32> = (0..w * h)
+                        .map(|p| {
+                            targets.iter().map(|t| t.channels[c].data()[p]).sum::<f32>()
+                                / (nf * np) as f32
+                        })
+                        .collect();
+                    Plane::from_vec(w, h, mean).unwrap_or_else(|_| Plane::new(w, h, 0.0))
+                }
+            };
+            start.extend_from_slice(&conv.pad(&plane));
+        }
+    }
+    let (pwu, phu) = (dim(pw, "padded width")?, dim(ph, "padded height")?);
+    let mut p = OptP {
+        pw: pwu,
+        ph: phu,
+        np: np as u32,
+        nf: nf as u32,
+        step: 1.0 / lipschitz,
+        mom: 0.0,
+        len: 0,
+        _pad: 0,
+    };
+    let rlen = (nf * 3 * pn) as u64;
+    let samples = rlen as f64;
+    let mut total = FrameStats::default();
+    let mut f = Frame::new(ctx)?;
+    let tb = f.upload("padded targets", &tpad)?;
+    let kb = f.upload("kernel table", &kinfo)?;
+    let wb = f.upload("kernel weights", &weights)?;
+    let xb = f.upload("layers", &start)?;
+    let yb = f.scratch("layers", 4 * start.len() as u64)?;
+    f.copy(&xb, 0, &yb, 0, 4 * start.len() as u64);
+    let rb = f.scratch("residuals", 4 * rlen)?;
+    let gres = groups2(pwu, phu, nf as u32);
+    let gstep = groups2(pwu, phu, np as u32);
+    let rms_of = |v: Vec<f32>| (v.iter().map(|&x| x as f64).sum::<f64>() / samples).sqrt();
+    let mut report = OptimizeReport {
+        iterations: 0,
+        rms: Vec::new(),
+        converged: false,
+    };
+    let mut t_k = 1.0f64;
+    let mut last_rms = f64::INFINITY;
+    let mut it = 0;
+    while it < params.iterations {
+        // The RMS at y before this block's first step (the CPU samples it every 10).
+        f.dispatch(Kernel::OptResidual, &p, &[&yb, &tb, &kb, &wb, &rb], gres)?;
+        let r = sq_sum(&mut f, &p, &rb, rlen)?;
+        let (res, s) = f.finish()?;
+        total.add(&s);
+        let rms = rms_of(res.f32s(r));
+        report.rms.push((it, rms));
+        if params.tolerance > 0.0
+            && last_rms.is_finite()
+            && (last_rms - rms) <= params.tolerance * last_rms
+        {
+            report.converged = true;
+            report.iterations = it;
+            f = Frame::new(ctx)?;
+            break;
+        }
+        last_rms = rms;
+        f = Frame::new(ctx)?;
+        let end = (it + 10).min(params.iterations);
+        for k in it..end {
+            if k > it {
+                f.dispatch(Kernel::OptResidual, &p, &[&yb, &tb, &kb, &wb, &rb], gres)?;
+            }
+            let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t_k * t_k).sqrt());
+            p.mom = ((t_k - 1.0) / t_next) as f32;
+            f.dispatch(Kernel::OptStep, &p, &[&rb, &kb, &wb, &xb, &yb], gstep)?;
+            t_k = t_next;
+        }
+        let (_, s) = f.finish()?;
+        total.add(&s);
+        for k in it..end {
+            report.iterations = k + 1;
+            progress(k + 1);
+        }
+        it = end;
+        f = Frame::new(ctx)?;
+    }
+    // Final objective at the returned (projected) layers.
+    f.dispatch(Kernel::OptResidual, &p, &[&xb, &tb, &kb, &wb, &rb], gres)?;
+    let r = sq_sum(&mut f, &p, &rb, rlen)?;
+    let xr = f.read(&xb, 4 * start.len() as u64);
+    let (res, s) = f.finish()?;
+    total.add(&s);
+    report.rms.push((report.iterations, rms_of(res.f32s(r))));
+    let x = res.f32s(xr);
+    if x.len() < np * 3 * pn {
+        return Err(GpuError::Validation(format!(
+            "readback of {} layer values, expected {}",
+            x.len(),
+            np * 3 * pn
+        ))
+        .into());
+    }
+    let plane = |i: usize, c: usize| conv.crop(x.get((i * 3 + c) * pn..).unwrap_or(&[]));
+    let images = (0..np)
+        .map(|i| RgbImage::from_planes(plane(i, 0), plane(i, 1), plane(i, 2)))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok((
+        (
+            Layers {
+                planes: planes.to_vec(),
+                images,
+            },
+            report,
+        ),
+        total,
+    ))
+}
+
+/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
+/// then one frame per view (splat, resolve, hole filling by rows then columns).
+pub(super) fn synthesize_light_field(
+    ctx: &GpuContext,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<LfView>> {
+    if grid == 0 || grid > 64 || !(span.is_finite() && span >= 0.0) {
+        return Err(invalid(format!(
+            "grid {grid} (expected 1..=64) or span {span} m is invalid"
+        )));
+    }
+    let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
+    let (w, h) = (first.rgbd.width(), first.rgbd.height());
+    if w == 0
+        || h == 0
+        || inputs
+            .iter()
+            .any(|v| (v.rgbd.width(), v.rgbd.height()) != (w, h))
+    {
+        return Err(mismatch("input views are empty or differ in size"));
+    }
+    if !inputs
+        .iter()
+        .flat_map(|v| v.position.iter())
+        .all(|p| p.is_finite())
+    {
+        return Err(invalid("view positions must be finite"));
+    }
+    let pitch = eye_for(eye, w)?.pixel_pitch_tan();
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let ni = inputs.len();
+    let step = if grid > 1 {
+        span / (grid - 1) as f32
+    } else {
+        0.0
+    };
+    let half = (grid - 1) as f32 * 0.5;
+    let mut depths = Vec::with_capacity(ni * w * h);
+    let mut colors = Vec::with_capacity(3 * ni * w * h);
+    for v in inputs {
+        depths.extend_from_slice(v.rgbd.depth.data());
+        colors.extend_from_slice(&planar(&v.rgbd.color));
+    }
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(grid * grid);
+    let mut shared: Option<(BufRef, BufRef)> = None;
+    for k in 0..grid * grid {
+        let target = [
+            ((k % grid) as f32 - half) * step,
+            ((k / grid) as f32 - half) * step,
+        ];
+        let shifts: Vec<[f32; 4]> = inputs
+            .iter()
+            .map(|v| {
+                [
+                    -(target[0] - v.position[0]) / pitch,
+                    -(target[1] - v.position[1]) / pitch,
+                    1.0 / ((v.position[0] - target[0]).hypot(v.position[1] - target[1]) + 1e-4),
+                    0.0,
+                ]
+            })
+            .collect();
+        let mut f = Frame::new(ctx)?;
+        let (db, cb) = match &shared {
+            Some(s) => s.clone(),
+            None => {
+                let s = (
+                    f.upload("input depth maps", &depths)?,
+                    f.upload("input colour images", &colors)?,
+                );
+                shared = Some(s.clone());
+                s
+            }
+        };
+        let sb = f.upload("view shifts", &shifts)?;
+        let dkey = f.zeroed("depth keys", 4 * n * ni as u64)?;
+        let ikey = f.zeroed("index keys", 4 * n * ni as u64)?;
+        let p = LfP {
+            w: wu,
+            h: hu,
+            nv: ni as u32,
+            v0: 0,
+            focus: 0.0,
+            pupil_m: 0.0,
+            pitch,
+            spacing: 0.0,
+            lens_f: 0.0,
+            top: 0,
+            nlev: 1,
+            dstride: n as u32,
+        };
+        let gz = groups2(wu, hu, ni as u32);
+        let g = groups2(wu, hu, 1);
+        f.dispatch(Kernel::LfSplatDepth, &p, &[&db, &sb, &dkey], gz)?;
+        f.dispatch(Kernel::LfSplatIndex, &p, &[&db, &sb, &dkey, &ikey], gz)?;
+        let sp = SizeP {
+            w: wu,
+            h: hu,
+            k: ni as u32,
+            _pad: 0,
+        };
+        let px = f.scratch("synthesised pixels", 16 * n)?;
+        f.dispatch(
+            Kernel::ViewResolve,
+            &sp,
+            &[&dkey, &ikey, &db, &cb, &sb, &px],
+            g,
+        )?;
+        let rows = f.scratch("row-filled pixels", 16 * n)?;
+        f.dispatch(Kernel::FillRows, &sp, &[&px, &rows], g)?;
+        let dst = f.scratch("output image", 12 * n)?;
+        f.dispatch(Kernel::FillCols, &sp, &[&rows, &dst], g)?;
+        let r = f.read(&dst, 12 * n);
+        let (rb, s) = f.finish()?;
+        total.add(&s);
+        out.push(LfView {
+            position: target,
+            image: image(&rb.f32s(r), w, h)?,
+        });
+        progress(k + 1);
+    }
+    Ok((out, total))
+}

@@ -1,0 +1,184 @@
+//! The wgpu backend. Every method of [`Backend`] is overridden here with a GPU kernel; a
+//! method without one must return [`RenderError::Unsupported`] naming it, never fall back to
+//! the CPU default silently.
+
+mod context;
+mod kernels;
+
+pub use context::{hardware_adapter_exists, list_adapters, AdapterSummary, FrameStats, GpuContext};
+
+use crate::backend::{Backend, DefocusMethod, Progress};
+use crate::error::RenderError;
+use crate::metrics::Quality;
+use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
+use crate::retina::LfView;
+use crate::views::RgbdView;
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use std::sync::{Arc, Mutex};
+use thiserror::Error;
+
+/// What can go wrong on the GPU, with what to do about it.
+#[derive(Debug, Error)]
+pub enum GpuError {
+    #[error("no GPU adapter (Vulkan, Metal or DX12) found: install a GPU driver (on Debian, mesa-vulkan-drivers gives a software one) or use --backend cpu")]
+    NoAdapter,
+    #[error("no GPU adapter matches {want:?}; available: {available}")]
+    AdapterNotFound { want: String, available: String },
+    #[error("this process already runs on the GPU adapter {have:?}, not {want:?}")]
+    AdapterAlreadyChosen { have: String, want: String },
+    #[error("the GPU adapter's {what} is {have}; dioptra needs at least {need}")]
+    Limit {
+        what: &'static str,
+        have: u32,
+        need: u32,
+    },
+    #[error("{what} needs {bytes} but this GPU allows at most {max}: use a smaller image or --backend cpu")]
+    TooLarge { what: String, bytes: u64, max: u64 },
+    #[error("could not open the GPU device: {0}")]
+    Device(String),
+    #[error("the GPU device was lost (driver reset or removal): restart, or use --backend cpu")]
+    DeviceLost,
+    #[error("GPU error: {0}")]
+    Validation(String),
+    #[error("the GPU context's lock was poisoned by an earlier panic")]
+    Poisoned,
+}
+
+/// The wgpu backend on the process's [`GpuContext`].
+pub struct Gpu {
+    ctx: Arc<GpuContext>,
+    last: Mutex<FrameStats>,
+}
+
+impl Gpu {
+    /// The GPU backend on the adapter whose name contains `adapter`, or the first hardware
+    /// adapter (a software one, said on stderr, only when nothing else exists).
+    pub fn new(adapter: Option<&str>) -> Result<Gpu, GpuError> {
+        Ok(Gpu {
+            ctx: GpuContext::shared(adapter)?,
+            last: Mutex::new(FrameStats::default()),
+        })
+    }
+
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    /// Dispatches, bytes moved and GPU time of the last call (all its frames together).
+    pub fn last_stats(&self) -> FrameStats {
+        self.last.lock().map(|s| s.clone()).unwrap_or_default()
+    }
+
+    fn record(&self, s: FrameStats) {
+        if let Ok(mut l) = self.last.lock() {
+            *l = s;
+        }
+    }
+}
+
+impl Backend for Gpu {
+    fn name(&self) -> &'static str {
+        "gpu"
+    }
+
+    fn defocus(
+        &self,
+        input: &Rgbd,
+        foci: &[Diopters],
+        eye: &EyeModel,
+        method: DefocusMethod,
+        progress: Progress,
+    ) -> Result<Vec<RgbImage>, RenderError> {
+        let (out, s) = match method {
+            DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress)?,
+            DefocusMethod::LightField(p) => {
+                kernels::lightfield(&self.ctx, input, foci, eye, p, progress)?
+            }
+        };
+        self.record(s);
+        Ok(out)
+    }
+
+    fn linear_blend(&self, input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {
+        let (out, s) = kernels::linear_blend(&self.ctx, input, planes)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn optimized_blend(
+        &self,
+        targets: &[RgbImage],
+        foci: &[Diopters],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        init: Option<&Layers>,
+        params: OptimizeParams,
+        progress: Progress,
+    ) -> Result<(Layers, OptimizeReport), RenderError> {
+        let (out, s) = kernels::optimized_blend(
+            &self.ctx, targets, foci, planes, eye, init, params, progress,
+        )?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn retina_multifocal(
+        &self,
+        layers: &Layers,
+        foci: &[Diopters],
+        eye: &EyeModel,
+    ) -> Result<Vec<RgbImage>, RenderError> {
+        let (out, s) = kernels::retina_multifocal(&self.ctx, layers, foci, eye)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn retina_varifocal(
+        &self,
+        image: &RgbImage,
+        display: Diopters,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<RgbImage, RenderError> {
+        let (out, s) = kernels::retina_varifocal(&self.ctx, image, display, focus, eye)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn retina_lightfield(
+        &self,
+        views: &[LfView],
+        spacing: f32,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<RgbImage, RenderError> {
+        let (out, s) = kernels::retina_lightfield(&self.ctx, views, spacing, focus, eye)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn synthesize_light_field(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        progress: Progress,
+    ) -> Result<Vec<LfView>, RenderError> {
+        let (out, s) =
+            kernels::synthesize_light_field(&self.ctx, inputs, grid, span, eye, progress)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn quality(
+        &self,
+        a: &RgbImage,
+        b: &RgbImage,
+        mask: Option<&Plane>,
+    ) -> Result<Quality, RenderError> {
+        let (out, s) = kernels::quality(&self.ctx, a, b, mask)?;
+        self.record(s);
+        Ok(out)
+    }
+}

@@ -1,0 +1,403 @@
+//! GPU against CPU: every GPU kernel on the same random and scene inputs as its CPU twin.
+//! Without an adapter each test prints "skipped: no GPU adapter" and returns; with
+//! DIOPTRA_REQUIRE_GPU=1 (set by .ci/run) it fails instead. Images are small (64-96 px) so
+//! the suite runs in seconds on a software rasteriser.
+
+use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::metrics::disk_mask;
+use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
+use dioptra_render::retina::LfView;
+use dioptra_render::views::RgbdView;
+use dioptra_render::{
+    Backend, Cpu, DefocusMethod, Gpu, GpuError, LightFieldParams, OptimizeParams,
+};
+use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
+
+fn gpu() -> Option<Gpu> {
+    match Gpu::new(None) {
+        Ok(g) => Some(g),
+        Err(GpuError::NoAdapter) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+            eprintln!("skipped: no GPU adapter");
+            None
+        }
+        Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1) or failed to open: {e}"),
+    }
+}
+
+/// xorshift64*: a fixed-seed generator so the random inputs are the same every run.
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f32 {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        ((self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32) / (1u64 << 24) as f32
+    }
+}
+
+fn random_image(w: usize, h: usize, seed: u64) -> RgbImage {
+    let mut r = Rng(seed);
+    let d: Vec<f32> = (0..w * h * 3).map(|_| r.f()).collect();
+    RgbImage::from_interleaved(w, h, &d).unwrap()
+}
+
+/// Random colour over blocky random depth (0 to 3 D): occlusion edges everywhere.
+fn random_rgbd(w: usize, h: usize, seed: u64) -> Rgbd {
+    let mut r = Rng(seed ^ 0x9e37_79b9);
+    let blocks: Vec<f32> = (0..64).map(|_| 3.0 * r.f()).collect();
+    let d: Vec<f32> = (0..w * h)
+        .map(|i| blocks[((i % w) / 11 + 8 * ((i / w) / 9)) % 64])
+        .collect();
+    Rgbd::new(
+        random_image(w, h, seed),
+        DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap(),
+    )
+    .unwrap()
+}
+
+fn scene_rgbd(size: usize) -> Rgbd {
+    let cam = Camera::square(EyeModel::default(), size);
+    let scene = Scene::generate(Split::Test.seed(3));
+    let (c, d) = render_pinhole(&scene, &cam, [0.0, 0.0], 1).unwrap();
+    Rgbd::new(c, d).unwrap()
+}
+
+/// Largest absolute difference over pixels and channels, and the fraction above `tol`.
+fn diff(a: &RgbImage, b: &RgbImage, tol: f32) -> (f32, f64) {
+    assert_eq!((a.width(), a.height()), (b.width(), b.height()));
+    let mut max = 0.0f32;
+    let mut over = 0usize;
+    for c in 0..3 {
+        for (x, y) in a.channels[c].data().iter().zip(b.channels[c].data()) {
+            let d = (x - y).abs();
+            assert!(d.is_finite(), "non-finite value: {x} vs {y}");
+            max = max.max(d);
+            over += (d > tol) as usize;
+        }
+    }
+    (max, over as f64 / (3 * a.width() * a.height()) as f64)
+}
+
+fn inputs() -> Vec<(&'static str, Rgbd)> {
+    vec![
+        ("random 80x64", random_rgbd(80, 64, 7)),
+        ("scene 96x96", scene_rgbd(96)),
+    ]
+}
+
+/// The inputs under the default eye, and the scene under a 3 degree field.
+fn cases() -> Vec<(&'static str, Rgbd, EyeModel)> {
+    let narrow = EyeModel {
+        fov_horizontal_deg: 3.0,
+        ..EyeModel::default()
+    };
+    let mut v: Vec<_> = inputs()
+        .into_iter()
+        .map(|(n, i)| (n, i, EyeModel::default()))
+        .collect();
+    v.push(("scene 96x96, 3 degree field", scene_rgbd(96), narrow));
+    v
+}
+
+#[test]
+fn gather_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let foci = [Diopters(0.3), Diopters(1.7)];
+    // The default 20 degree field (blur of a few pixels at this size) and a 3 degree one
+    // (blur of up to ~25 pixels: long tap lists, the max filter's reach).
+    for (name, input, eye) in cases() {
+        let c = Cpu.defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {});
+        let q = g.defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {});
+        for (a, b) in c.unwrap().iter().zip(&q.unwrap()) {
+            let (max, _) = diff(a, b, 1e-3);
+            eprintln!("gather {name}: max |gpu - cpu| = {max:e}");
+            assert!(max < 1e-3, "gather {name}: {max}");
+        }
+    }
+    let s = g.last_stats();
+    assert_eq!(s.submissions, 2, "one submission per focus");
+    assert_eq!(
+        s.dispatches, 8,
+        "prep, two max passes and the gather, per focus"
+    );
+}
+
+#[test]
+fn linear_blend_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    for (name, input) in inputs() {
+        let c = Cpu.linear_blend(&input, &planes).unwrap();
+        let q = g.linear_blend(&input, &planes).unwrap();
+        assert_eq!(c.planes, q.planes);
+        for (a, b) in c.images.iter().zip(&q.images) {
+            let (max, _) = diff(a, b, 1e-3);
+            eprintln!("linear {name}: max |gpu - cpu| = {max:e}");
+            assert!(max < 1e-5, "linear {name}: {max}");
+        }
+    }
+    assert!(g
+        .linear_blend(&inputs()[0].1, &[Diopters(1.0), Diopters(0.5)])
+        .is_err());
+}
+
+#[test]
+fn retina_varifocal_and_multifocal_match_cpu() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let img = random_image(72, 64, 11);
+    for (display, focus) in [(1.0, 1.0), (2.5, 0.5), (0.2, 1.9)] {
+        let c = Cpu
+            .retina_varifocal(&img, Diopters(display), Diopters(focus), &eye)
+            .unwrap();
+        let q = g
+            .retina_varifocal(&img, Diopters(display), Diopters(focus), &eye)
+            .unwrap();
+        let (max, _) = diff(&c, &q, 1e-3);
+        eprintln!("retina varifocal {display}->{focus} D: max |gpu - cpu| = {max:e}");
+        assert!(max < 1e-3, "{max}");
+    }
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let layers = Layers {
+        planes: planes.clone(),
+        images: (0..4).map(|i| random_image(72, 64, 20 + i)).collect(),
+    };
+    let foci = linspace(0.1, 2.2, 5);
+    let c = Cpu.retina_multifocal(&layers, &foci, &eye).unwrap();
+    let q = g.retina_multifocal(&layers, &foci, &eye).unwrap();
+    assert_eq!(c.len(), q.len());
+    for (a, b) in c.iter().zip(&q) {
+        let (max, _) = diff(a, b, 1e-3);
+        eprintln!("retina multifocal: max |gpu - cpu| = {max:e}");
+        assert!(max < 1e-3, "{max}");
+    }
+    assert_eq!(g.last_stats().dispatches, 1, "every focus in one dispatch");
+    let bad = Layers {
+        planes,
+        images: vec![random_image(72, 64, 1)],
+    };
+    assert!(g.retina_multifocal(&bad, &foci, &eye).is_err());
+}
+
+#[test]
+fn retina_lightfield_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let (grid, span) = (5usize, 0.004f32);
+    let step = span / (grid - 1) as f32;
+    let views: Vec<LfView> = (0..grid * grid)
+        .map(|k| LfView {
+            position: [
+                ((k % grid) as f32 - 2.0) * step,
+                ((k / grid) as f32 - 2.0) * step,
+            ],
+            image: random_image(64, 48, 100 + k as u64),
+        })
+        .collect();
+    for q in [0.0, 0.7, 2.0] {
+        let c = Cpu
+            .retina_lightfield(&views, step, Diopters(q), &eye)
+            .unwrap();
+        let r = g
+            .retina_lightfield(&views, step, Diopters(q), &eye)
+            .unwrap();
+        let (max, _) = diff(&c, &r, 1e-3);
+        eprintln!("retina lightfield {q} D: max |gpu - cpu| = {max:e}");
+        assert!(max < 1e-3, "{max}");
+    }
+    assert!(g
+        .retina_lightfield(&views, f32::NAN, Diopters(1.0), &eye)
+        .is_err());
+}
+
+#[test]
+fn psnr_and_ssim_match_cpu() {
+    let Some(g) = gpu() else { return };
+    let a = random_image(70, 52, 5);
+    let mut b = a.clone();
+    for (i, v) in b.channels[1].data_mut().iter_mut().enumerate() {
+        *v = (*v + 0.05 * ((i % 7) as f32 - 3.0)).clamp(0.0, 1.0);
+    }
+    let fovea = disk_mask(70, 52, [30.0, 20.0], 15.0);
+    for mask in [None, Some(&fovea)] {
+        let c = Cpu.quality(&a, &b, mask).unwrap();
+        let q = g.quality(&a, &b, mask).unwrap();
+        eprintln!(
+            "quality: psnr cpu {} gpu {} (diff {:e}); ssim cpu {} gpu {} (diff {:e})",
+            c.psnr,
+            q.psnr,
+            (c.psnr - q.psnr).abs(),
+            c.ssim,
+            q.ssim,
+            (c.ssim - q.ssim).abs()
+        );
+        assert!((c.psnr - q.psnr).abs() < 1e-3, "{c:?} {q:?}");
+        assert!((c.ssim - q.ssim).abs() < 1e-5, "{c:?} {q:?}");
+    }
+    let same = g.quality(&a, &a, None).unwrap();
+    assert_eq!(same.psnr, f64::INFINITY);
+    assert!((same.ssim - 1.0).abs() < 1e-5);
+    assert!(g.quality(&a, &random_image(69, 52, 1), None).is_err());
+}
+
+#[test]
+fn lightfield_defocus_and_focal_stack_match_cpu() {
+    let Some(g) = gpu() else { return };
+    let foci = linspace(0.1, 3.1, 3);
+    for (name, input, eye) in cases() {
+        for views in [12, 36] {
+            let m = DefocusMethod::LightField(LightFieldParams { views, mip: true });
+            let c = Cpu.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+            let q = g.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+            for (k, (a, b)) in c.iter().zip(&q).enumerate() {
+                let (max, frac) = diff(a, b, 1e-3);
+                eprintln!(
+                    "lightfield {name} {views} views focus {:.2} D: max |gpu - cpu| = {max:e}, {:.4} % of values over 1e-3",
+                    foci[k].0,
+                    frac * 100.0
+                );
+                // Same keys, same order of views per pixel: only float rounding differs. A
+                // splat target computed one ulp apart can move a source by one pixel; allow
+                // that on at most 0.1 % of values.
+                assert!(frac <= 1e-3, "lightfield {name}: {frac}");
+            }
+        }
+    }
+}
+
+#[test]
+fn optimized_blend_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    // A 4 degree field over 48 px: disks up to ~9 px across (software rasterisers take
+    // seconds per direct-convolution iteration beyond that).
+    let eye = EyeModel {
+        fov_horizontal_deg: 4.0,
+        ..EyeModel::default()
+    };
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let foci = linspace(0.1, 2.2, 6);
+    let input = random_rgbd(48, 40, 9);
+    let targets = Cpu
+        .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
+        .unwrap();
+    let linear = Cpu.linear_blend(&input, &planes).unwrap();
+    for (init, iterations) in [(None, 20), (Some(&linear), 12)] {
+        let params = OptimizeParams {
+            iterations,
+            tolerance: 0.0,
+        };
+        let (cl, cr) = Cpu
+            .optimized_blend(&targets, &foci, &planes, &eye, init, params, &|_| {})
+            .unwrap();
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        let (gl, gr) = g
+            .optimized_blend(&targets, &foci, &planes, &eye, init, params, &|n| {
+                done.store(n, std::sync::atomic::Ordering::SeqCst)
+            })
+            .unwrap();
+        assert_eq!(done.into_inner(), iterations);
+        assert_eq!(cr.iterations, gr.iterations);
+        assert_eq!(cr.rms.len(), gr.rms.len());
+        for ((ci, c), (gi, q)) in cr.rms.iter().zip(&gr.rms) {
+            assert_eq!(ci, gi);
+            assert!(
+                (c - q).abs() <= 1e-3 * c.max(1e-6),
+                "rms at {ci}: {c} vs {q}"
+            );
+        }
+        // The objective must really fall, on both.
+        assert!(gr.rms.last().unwrap().1 < 0.9 * gr.rms[0].1, "{:?}", gr.rms);
+        for (a, b) in cl.images.iter().zip(&gl.images) {
+            let (max, _) = diff(a, b, 1e-3);
+            eprintln!(
+                "optimized ({iterations} iterations, init {}): max |gpu - cpu| = {max:e}",
+                if init.is_some() { "linear" } else { "mean" }
+            );
+            // FFT (CPU) against direct sums (GPU): rounding differs by ~1e-6 per product
+            // and FISTA carries it through the iterations.
+            assert!(max < 1e-3, "{max}");
+        }
+    }
+    let s = g.last_stats();
+    // 12 iterations: 2 RMS samples (0, 10) and 2 blocks of steps, then the final RMS.
+    assert_eq!(s.submissions, 5, "{s:?}");
+}
+
+#[test]
+fn view_synthesis_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let size = 64;
+    let cam = Camera::square(eye, size);
+    let scene = Scene::generate(Split::Test.seed(5));
+    let span = 0.01f32;
+    // Five inputs (corners and centre) of a 3 x 3 grid over 1 cm, synthesised back to 3 x 3.
+    let inputs: Vec<RgbdView> = [(0, 0), (0, 2), (1, 1), (2, 0), (2, 2)]
+        .iter()
+        .map(|&(r, c)| {
+            let position = [(c as f32 - 1.0) * span / 2.0, (r as f32 - 1.0) * span / 2.0];
+            let (color, depth) = render_pinhole(&scene, &cam, position, 1).unwrap();
+            RgbdView {
+                position,
+                rgbd: Rgbd::new(color, depth).unwrap(),
+            }
+        })
+        .collect();
+    let c = Cpu
+        .synthesize_light_field(&inputs, 3, span, &eye, &|_| {})
+        .unwrap();
+    let q = g
+        .synthesize_light_field(&inputs, 3, span, &eye, &|_| {})
+        .unwrap();
+    assert_eq!(c.len(), 9);
+    for (a, b) in c.iter().zip(&q) {
+        assert_eq!(a.position, b.position);
+        let (max, frac) = diff(&a.image, &b.image, 1e-3);
+        eprintln!(
+            "view synthesis at {:?}: max |gpu - cpu| = {max:e}, {:.4} % over 1e-3",
+            a.position,
+            frac * 100.0
+        );
+        assert!(max < 1e-3, "{max}");
+    }
+    assert_eq!(g.last_stats().submissions, 9, "one submission per view");
+    assert!(g
+        .synthesize_light_field(&inputs, 0, span, &eye, &|_| {})
+        .is_err());
+}
+
+#[test]
+fn bad_input_is_an_error() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let input = random_rgbd(16, 16, 3);
+    for q in [f32::NAN, -1.0] {
+        assert!(g
+            .defocus(&input, &[Diopters(q)], &eye, DefocusMethod::Gather, &|_| {})
+            .is_err());
+    }
+    let bad = LightFieldParams {
+        views: 0,
+        mip: true,
+    };
+    assert!(g
+        .defocus(
+            &input,
+            &[Diopters(1.0)],
+            &eye,
+            DefocusMethod::LightField(bad),
+            &|_| {}
+        )
+        .is_err());
+    // An adapter name that matches nothing is an error naming what exists.
+    let e = Gpu::new(Some("no-such-adapter-xyz"))
+        .err()
+        .expect("no match");
+    assert!(
+        matches!(
+            e,
+            GpuError::AdapterAlreadyChosen { .. } | GpuError::AdapterNotFound { .. }
+        ),
+        "{e}"
+    );
+}
