@@ -283,7 +283,7 @@ mod tests {
         for ch in b.channels.iter_mut() {
             for (i, v) in ch.data_mut().iter_mut().enumerate() {
                 let (x, y) = (i % 64, i / 64);
-                if (x < 8 || x >= 56) && (y < 8 || y >= 56) {
+                if !(8..56).contains(&x) && !(8..56).contains(&y) {
                     *v = 1.0 - *v;
                 }
             }
