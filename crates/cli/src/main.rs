@@ -7,6 +7,7 @@ mod lens_cmd;
 mod render_cmd;
 mod sim_cmd;
 mod sync_cmd;
+mod train;
 mod udev;
 
 use clap::{Parser, Subcommand};
@@ -50,6 +51,8 @@ enum Command {
     Lightfield(render_cmd::LightFieldArgs),
     /// Log-polar foveated sampling and inverse-distance interpolation of an image.
     Foveate(render_cmd::FoveateArgs),
+    /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
+    Train(train::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -76,6 +79,7 @@ fn main() -> std::process::ExitCode {
         Command::Metrics(args) => render_cmd::metrics(args),
         Command::Lightfield(args) => render_cmd::lightfield(args),
         Command::Foveate(args) => render_cmd::foveate(args),
+        Command::Train(args) => train::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

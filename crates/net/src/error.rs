@@ -31,6 +31,12 @@ pub enum NetError {
     Render(#[from] dioptra_render::RenderError),
     #[error(transparent)]
     Core(#[from] dioptra_core::InputError),
+    #[cfg(feature = "train")]
+    #[error("training framework: {0}")]
+    Train(#[from] candle_core::Error),
+    #[cfg(feature = "train")]
+    #[error("training data: {0}")]
+    Data(String),
 }
 
 pub(crate) fn input(msg: impl Into<String>) -> NetError {

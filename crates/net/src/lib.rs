@@ -1,13 +1,15 @@
 //! The DeepFocus-family network (Xiao et al. 2018): the architecture ([`arch`]), weights in
 //! safetensors with the architecture in their metadata ([`weights`]), the graph written once
 //! over a backend's operations ([`graph`]), CPU inference ([`cpu`]), the image-level tasks
-//! ([`tasks`]).
+//! ([`tasks`]) and, with the `train` feature, training with candle ([`train`]).
 
 pub mod arch;
 pub mod cpu;
 pub mod error;
 pub mod graph;
 pub mod tasks;
+#[cfg(feature = "train")]
+pub mod train;
 pub mod weights;
 
 pub use arch::{Arch, Task};
