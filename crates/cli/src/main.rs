@@ -10,6 +10,7 @@ mod replay;
 mod serve;
 mod sim_cmd;
 mod sync_cmd;
+mod train;
 mod udev;
 
 use clap::{Parser, Subcommand};
@@ -59,6 +60,8 @@ enum Command {
     Serve(serve::Args),
     /// Drive a scheduler from a `serve` recording (MCAP) and compare its commands.
     Replay(replay::Args),
+    /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
+    Train(train::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -88,6 +91,7 @@ fn main() -> std::process::ExitCode {
         Command::Foveate(args) => render_cmd::foveate(args),
         Command::Serve(args) => serve::run(args),
         Command::Replay(args) => replay::run(args),
+        Command::Train(args) => train::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -97,9 +97,12 @@ impl InputArgs {
 /// Defocus method options.
 #[derive(Args, Debug, Clone)]
 pub struct MethodArgs {
-    /// gather (single-image CoC blur) or lightfield (Yu et al. 2010).
+    /// gather (single-image CoC blur), lightfield (Yu et al. 2010) or network (DeepFocus C1).
     #[arg(long, default_value = "lightfield")]
     pub method: String,
+    /// Network weights for --method network (default: the shipped ones).
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
     /// Virtual lens cameras for the lightfield method.
     #[arg(long, default_value_t = 36)]
     pub views: usize,
@@ -173,13 +176,18 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let input = a.input.load()?;
     let b = a.eye.backend()?;
     let t = std::time::Instant::now();
-    let out = b.defocus(
-        &input,
-        &[Diopters(a.focus)],
-        &a.eye.eye()?,
-        a.method.method()?,
-        &|_| {},
-    )?;
+    let out = if a.method.method == "network" {
+        let net = dioptra_net::load_net(a.method.weights.as_deref(), "c1")?;
+        vec![net.defocus(&input, Diopters(a.focus), &a.eye.eye()?)?]
+    } else {
+        b.defocus(
+            &input,
+            &[Diopters(a.focus)],
+            &a.eye.eye()?,
+            a.method.method()?,
+            &|_| {},
+        )?
+    };
     let img = out
         .into_iter()
         .next()
@@ -243,9 +251,12 @@ pub struct DecomposeArgs {
     /// Display planes, diopters.
     #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
     planes: String,
-    /// linear (Akeley) or optimized (Narain).
+    /// linear (Akeley), optimized (Narain) or network (DeepFocus C4; its planes are fixed).
     #[arg(long, default_value = "optimized")]
     method: String,
+    /// Network weights for --method network (default: the shipped ones).
+    #[arg(long)]
+    weights: Option<PathBuf>,
     /// Optimized: focal samples of the target focal stack.
     #[arg(long, default_value_t = 22)]
     focal_samples: usize,
@@ -304,6 +315,16 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
     let linear = b.linear_blend(&input, &planes)?;
     let layers = match a.method.as_str() {
         "linear" => linear,
+        "network" => {
+            let l = dioptra_net::load_net(a.weights.as_deref(), "c4")?.decompose(&input)?;
+            if l.planes != planes {
+                bail!(
+                    "the network's planes are {:?}; pass --planes to match",
+                    l.planes
+                );
+            }
+            l
+        }
         "optimized" => {
             let (lo, hi) = parse_range(&a.focal_range)?;
             if a.focal_samples == 0 || a.focal_samples > 200 {
@@ -339,6 +360,7 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                         MethodArgs {
                             method: a.target_method.clone(),
                             views: a.target_views,
+                            weights: None,
                         }
                         .method()?,
                         &|n| pb.set_position(n as u64),
@@ -370,7 +392,7 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             );
             layers
         }
-        m => bail!("unknown decomposition method {m:?}: expected linear or optimized"),
+        m => bail!("unknown decomposition method {m:?}: expected linear, optimized or network"),
     };
     ensure_dir(&a.out)?;
     for (p, img) in layers.planes.iter().zip(&layers.images) {

@@ -1,0 +1,285 @@
+//! The DeepFocus-family architecture, parameterised, and the configurations C1-C5.
+//!
+//! Graph (shared by every backend and by training; layers are numbered from 0):
+//! - the input (full resolution, `in_channels`) is space-to-depth interleaved at rate `r`;
+//! - layer `i` is a 3x3 convolution with bias ("same" zero padding) and, except for the last
+//!   layer, an ELU. Its input is `h[i-1]` (or the interleaved input for `i = 0`), plus
+//!   `h[i-3]` when `i` is odd and `i >= 3`: one residual connection per two layers, as in
+//!   DeepFocus's released code;
+//! - with `concat_input`, the interleaved input is appended to the last layer's input channels
+//!   (after the features);
+//! - the last layer outputs `out_channels * r^2` channels, mapped to [0, 1] by `(tanh x + 1) / 2`,
+//!   then depth-to-space back to full resolution.
+//!
+//! Interleave channel order: interleaved channel `c * r^2 + dy * r + dx` holds channel `c` at
+//! pixel `(r*Y + dy, r*X + dx)` of the full-resolution image (PyTorch's `pixel_unshuffle`
+//! order, not TensorFlow's `(dy*r + dx)*C + c`); depth-to-space is its exact inverse.
+
+use crate::error::NetError;
+use serde::{Deserialize, Serialize};
+
+/// Input normalisation, as in DeepFocus: depth in diopters / 4, CoC in pixels / 30.
+pub const DEPTH_NORM: f32 = 4.0;
+pub const COC_NORM: f32 = 30.0;
+
+/// What a network computes, by inputs and outputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "config", rename_all = "lowercase")]
+pub enum Task {
+    /// Defocus: RGB + depth + CoC map (5 channels) -> RGB at the CoC map's focus.
+    C1,
+    /// Focal stack: RGB + depth (4) -> one RGB slice per focus in `foci` (diopters).
+    C3 { foci: Vec<f32> },
+    /// Multifocal decomposition: RGB + depth (4) -> one RGB layer per display plane;
+    /// trained through the retinal model on the focal stack at `foci`.
+    C4 { planes: Vec<f32>, foci: Vec<f32> },
+    /// Light field: `views` (5 or 9) RGB-D views (4 each) -> all `grid` x `grid` RGB views.
+    C5 { views: usize, grid: usize },
+}
+
+impl Task {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Task::C1 => "c1",
+            Task::C3 { .. } => "c3",
+            Task::C4 { .. } => "c4",
+            Task::C5 { .. } => "c5",
+        }
+    }
+    pub fn in_channels(&self) -> usize {
+        match self {
+            Task::C1 => 5,
+            Task::C3 { .. } | Task::C4 { .. } => 4,
+            Task::C5 { views, .. } => 4 * views,
+        }
+    }
+    pub fn out_channels(&self) -> usize {
+        match self {
+            Task::C1 => 3,
+            Task::C3 { foci } => 3 * foci.len(),
+            Task::C4 { planes, .. } => 3 * planes.len(),
+            Task::C5 { grid, .. } => 3 * grid * grid,
+        }
+    }
+    fn validate(&self) -> Result<(), String> {
+        let diopters = |v: &[f32], what: &str, max: usize| -> Result<(), String> {
+            if v.is_empty() || v.len() > max {
+                return Err(format!("{} {what}: expected 1 to {max}", v.len()));
+            }
+            if v.iter()
+                .any(|d| !(d.is_finite() && (0.0..100.0).contains(d)))
+                || v.windows(2).any(|w| w[0] >= w[1])
+            {
+                return Err(format!(
+                    "{what} {v:?}: expected finite, increasing diopters"
+                ));
+            }
+            Ok(())
+        };
+        match self {
+            Task::C1 => Ok(()),
+            Task::C3 { foci } => diopters(foci, "focal slices", 64),
+            Task::C4 { planes, foci } => {
+                diopters(planes, "display planes", 16)?;
+                diopters(foci, "focal samples", 64)
+            }
+            Task::C5 { views, grid } => {
+                if ![5, 9].contains(views) || !(3..=9).contains(grid) {
+                    Err(format!(
+                        "{views} input views on a {grid}x{grid} grid: expected 5 or 9 views, grid 3 to 9"
+                    ))
+                } else {
+                    Ok(())
+                }
+            }
+        }
+    }
+}
+
+/// The architecture: stored as JSON in the weights file's metadata.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Arch {
+    #[serde(flatten)]
+    pub task: Task,
+    /// Interleave rate r (1, 2 or 4).
+    pub rate: usize,
+    /// Convolution layers, the last one included (at least 2).
+    pub layers: usize,
+    /// Feature channels of the hidden layers.
+    pub channels: usize,
+    /// Concatenate the interleaved input before the last layer.
+    pub concat_input: bool,
+}
+
+impl Arch {
+    /// The small defocus net this project starts from: 8 layers x 32 channels, r = 2.
+    pub fn c1_small() -> Arch {
+        Arch {
+            task: Task::C1,
+            rate: 2,
+            layers: 8,
+            channels: 32,
+            concat_input: false,
+        }
+    }
+
+    /// Default architecture of each configuration (`c1`, `c3`, `c4`, `c5`).
+    pub fn preset(name: &str) -> Result<Arch, NetError> {
+        let stack = |lo: f32, hi: f32, n: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| lo + (hi - lo) * i as f32 / (n - 1) as f32)
+                .collect()
+        };
+        let task = match name {
+            "c1" => Task::C1,
+            // 40 slices 0.1-4.0 D in DeepFocus; 10 keep the small net small.
+            "c3" => Task::C3 {
+                foci: stack(0.1, 4.0, 10),
+            },
+            "c4" => Task::C4 {
+                planes: vec![0.2, 0.8, 1.4, 2.0],
+                foci: stack(0.1, 2.2, 22),
+            },
+            "c5" => Task::C5 { views: 5, grid: 9 },
+            _ => {
+                return Err(NetError::BadArch(format!(
+                    "unknown configuration {name:?}: expected c1, c3, c4 or c5"
+                )))
+            }
+        };
+        let arch = Arch {
+            concat_input: matches!(task, Task::C5 { .. }),
+            task,
+            ..Arch::c1_small()
+        };
+        arch.validate()?;
+        Ok(arch)
+    }
+
+    pub fn in_channels(&self) -> usize {
+        self.task.in_channels()
+    }
+    pub fn out_channels(&self) -> usize {
+        self.task.out_channels()
+    }
+
+    pub fn validate(&self) -> Result<(), NetError> {
+        let bad = |m: String| Err(NetError::BadArch(m));
+        if ![1, 2, 4].contains(&self.rate) {
+            return bad(format!("interleave rate {}: expected 1, 2 or 4", self.rate));
+        }
+        if !(2..=64).contains(&self.layers) {
+            return bad(format!("{} layers: expected 2 to 64", self.layers));
+        }
+        if !(1..=1024).contains(&self.channels) {
+            return bad(format!("{} channels: expected 1 to 1024", self.channels));
+        }
+        self.task.validate().map_err(NetError::BadArch)
+    }
+
+    /// Input channels of convolution `i` (interleaved domain).
+    pub fn conv_in(&self, i: usize) -> usize {
+        let rr = self.rate * self.rate;
+        if i == 0 {
+            self.in_channels() * rr
+        } else if i + 1 == self.layers && self.concat_input {
+            self.channels + self.in_channels() * rr
+        } else {
+            self.channels
+        }
+    }
+
+    /// Output channels of convolution `i` (interleaved domain).
+    pub fn conv_out(&self, i: usize) -> usize {
+        if i + 1 == self.layers {
+            self.out_channels() * self.rate * self.rate
+        } else {
+            self.channels
+        }
+    }
+
+    /// The earlier layer output added to layer `i`'s input, if any.
+    pub fn residual_from(&self, i: usize) -> Option<usize> {
+        (i >= 3 && i % 2 == 1).then(|| i - 3)
+    }
+
+    /// Shapes of every tensor, by name, in file order: `conv{i}.weight` [out, in, 3, 3] and
+    /// `conv{i}.bias` [out].
+    pub fn tensor_shapes(&self) -> Vec<(String, Vec<usize>)> {
+        (0..self.layers)
+            .flat_map(|i| {
+                [
+                    (
+                        format!("conv{i}.weight"),
+                        vec![self.conv_out(i), self.conv_in(i), 3, 3],
+                    ),
+                    (format!("conv{i}.bias"), vec![self.conv_out(i)]),
+                ]
+            })
+            .collect()
+    }
+
+    pub fn to_json(&self) -> String {
+        // A plain struct of numbers, strings and vectors always serialises.
+        serde_json::to_string(self).unwrap_or_default()
+    }
+
+    pub fn from_json(s: &str) -> Result<Arch, NetError> {
+        let a: Arch =
+            serde_json::from_str(s).map_err(|e| NetError::BadArch(format!("{e} in {s:?}")))?;
+        a.validate()?;
+        Ok(a)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_round_trip_keeps_every_field() {
+        for name in ["c1", "c3", "c4", "c5"] {
+            let mut a = Arch::preset(name).unwrap();
+            a.rate = 4;
+            a.layers = 5;
+            let b = Arch::from_json(&a.to_json()).unwrap();
+            assert_eq!(a, b);
+        }
+    }
+
+    #[test]
+    fn channel_counts_follow_the_configuration() {
+        let c1 = Arch::preset("c1").unwrap();
+        assert_eq!((c1.conv_in(0), c1.conv_out(7)), (20, 12));
+        let c4 = Arch::preset("c4").unwrap();
+        assert_eq!((c4.conv_in(0), c4.conv_out(7)), (16, 48));
+        let c5 = Arch::preset("c5").unwrap();
+        // 5 views x RGB-D in, concatenated before the last layer; 81 RGB views out.
+        assert_eq!(c5.conv_in(7), 32 + 80);
+        assert_eq!(c5.conv_out(7), 243 * 4);
+    }
+
+    #[test]
+    fn residuals_every_two_layers() {
+        let a = Arch::c1_small();
+        let r: Vec<_> = (0..8).map(|i| a.residual_from(i)).collect();
+        assert_eq!(r, [None, None, None, Some(0), None, Some(2), None, Some(4)]);
+    }
+
+    #[test]
+    fn invalid_architectures_are_refused() {
+        let mut a = Arch::c1_small();
+        a.rate = 3;
+        assert!(a.validate().is_err());
+        assert!(Arch::from_json(
+            r#"{"config":"c1","rate":2,"layers":1,"channels":8,"concat_input":false}"#
+        )
+        .is_err());
+        assert!(Arch::from_json(
+            r#"{"config":"c9","rate":2,"layers":4,"channels":8,"concat_input":false}"#
+        )
+        .is_err());
+        assert!(Arch::from_json(r#"{"config":"c3","foci":[1.0,0.5],"rate":2,"layers":4,"channels":8,"concat_input":false}"#).is_err());
+        assert!(Arch::preset("c2").is_err());
+    }
+}

@@ -1,0 +1,46 @@
+//! The network graph, written once over a backend's tensor operations: CPU inference, the
+//! training framework and (later) the GPU all run this same function, so they cannot drift.
+
+use crate::arch::Arch;
+
+/// The operations a backend supplies. Tensors are at interleaved resolution except the input
+/// to `space_to_depth` and the output of `depth_to_space`.
+pub trait Ops {
+    type T: Clone;
+    type E;
+    /// 3x3 "same" convolution with bias of layer `layer`, then ELU when `elu`.
+    fn conv(&self, x: &Self::T, layer: usize, elu: bool) -> Result<Self::T, Self::E>;
+    fn add(&self, a: &Self::T, b: &Self::T) -> Result<Self::T, Self::E>;
+    /// Channel concatenation, `a`'s channels first.
+    fn concat(&self, a: &Self::T, b: &Self::T) -> Result<Self::T, Self::E>;
+    /// (tanh x + 1) / 2.
+    fn tanh01(&self, x: &Self::T) -> Result<Self::T, Self::E>;
+    fn space_to_depth(&self, x: &Self::T, r: usize) -> Result<Self::T, Self::E>;
+    fn depth_to_space(&self, x: &Self::T, r: usize) -> Result<Self::T, Self::E>;
+}
+
+/// Runs the network on a full-resolution input (its size a multiple of the rate).
+pub fn forward<O: Ops>(arch: &Arch, ops: &O, input: &O::T) -> Result<O::T, O::E> {
+    let x0 = ops.space_to_depth(input, arch.rate)?;
+    let last = arch.layers - 1;
+    let mut h: Vec<O::T> = Vec::with_capacity(last);
+    let mut x = x0.clone();
+    for i in 0..arch.layers {
+        if i > 0 {
+            x = h[i - 1].clone();
+            if let Some(j) = arch.residual_from(i) {
+                x = ops.add(&x, &h[j])?;
+            }
+        }
+        if i == last {
+            if arch.concat_input {
+                x = ops.concat(&x, &x0)?;
+            }
+            let y = ops.conv(&x, i, false)?;
+            return ops.depth_to_space(&ops.tanh01(&y)?, arch.rate);
+        }
+        h.push(ops.conv(&x, i, true)?);
+    }
+    // arch.layers >= 2 is validated, so the loop always returns.
+    ops.depth_to_space(&x, arch.rate)
+}

@@ -1,0 +1,296 @@
+//! Training data from the scene simulator: training seeds only, renders cached on disk as
+//! safetensors so a resumed or repeated run does not re-render.
+
+use crate::arch::{Task, COC_NORM, DEPTH_NORM};
+use crate::error::NetError;
+use crate::weights::SplitMix;
+use dioptra_core::{DepthMap, Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
+use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// How training scenes are rendered.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DataSpec {
+    /// Square render size, pixels (the eye's field spans it).
+    pub size: usize,
+    /// Supersampling of the pinhole colour (per side).
+    pub supersample: usize,
+    /// Thin-lens rays per pixel of the targets.
+    pub samples: u32,
+    pub fov_deg: f32,
+    pub pupil_mm: f32,
+}
+
+impl Default for DataSpec {
+    fn default() -> Self {
+        DataSpec {
+            size: 256,
+            supersample: 4,
+            samples: 64,
+            fov_deg: 20.0,
+            pupil_mm: 4.0,
+        }
+    }
+}
+
+impl DataSpec {
+    pub fn eye(&self) -> Result<EyeModel, NetError> {
+        let w = u32::try_from(self.size).map_err(|_| NetError::Data("size too large".into()))?;
+        Ok(EyeModel {
+            pupil_diameter: Millimeters(self.pupil_mm),
+            fov_horizontal_deg: self.fov_deg,
+            ..EyeModel::default()
+        }
+        .with_width(w)
+        .validated()?)
+    }
+}
+
+/// One rendered training scene: the RGB-D input and thin-lens targets at `foci`.
+#[derive(Debug, Clone)]
+pub struct SceneData {
+    pub seed: u64,
+    pub rgbd: Rgbd,
+    pub foci: Vec<f32>,
+    pub stack: Vec<RgbImage>,
+}
+
+/// The foci a scene's targets are rendered at: the network's own for C3/C4; for C1, `k`
+/// foci drawn uniformly over 0.1-4.0 D from the seed.
+pub fn scene_foci(task: &Task, seed: u64, k: usize) -> Vec<f32> {
+    match task {
+        Task::C3 { foci } | Task::C4 { foci, .. } => foci.clone(),
+        _ => {
+            let mut r = SplitMix(seed ^ 0x5eed_f0c1);
+            let mut f: Vec<f32> = (0..k)
+                .map(|_| 0.1 + 3.9 * (0.5 + 0.5 * r.uniform()))
+                .collect();
+            f.sort_by(f32::total_cmp);
+            f
+        }
+    }
+}
+
+fn fnv(bytes: impl IntoIterator<Item = u8>) -> u64 {
+    bytes.into_iter().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+    })
+}
+
+fn cache_path(dir: &Path, seed: u64, foci: &[f32], spec: &DataSpec) -> PathBuf {
+    let key = fnv(foci
+        .iter()
+        .chain(&[spec.fov_deg, spec.pupil_mm])
+        .flat_map(|f| f.to_le_bytes()));
+    dir.join(format!(
+        "scene-{seed}-{}px-{}ss-{}spp-{key:016x}.safetensors",
+        spec.size, spec.supersample, spec.samples
+    ))
+}
+
+fn planes(img: &RgbImage) -> Vec<f32> {
+    img.channels
+        .iter()
+        .flat_map(|p| p.data().iter().copied())
+        .collect()
+}
+
+fn image(w: usize, h: usize, d: &[f32]) -> Result<RgbImage, NetError> {
+    let n = w * h;
+    if d.len() != 3 * n {
+        return Err(NetError::Data("cached image has the wrong size".into()));
+    }
+    let p = |k: usize| Plane::from_vec(w, h, d[k * n..(k + 1) * n].to_vec());
+    Ok(RgbImage::from_planes(p(0)?, p(1)?, p(2)?)?)
+}
+
+fn write_cache(path: &Path, s: &SceneData) -> Result<(), NetError> {
+    let (w, h) = (s.rgbd.width(), s.rgbd.height());
+    let mut t: Vec<(String, Vec<usize>, Vec<u8>)> = vec![
+        ("color".into(), vec![3, h, w], bytes(&planes(&s.rgbd.color))),
+        ("depth".into(), vec![h, w], bytes(s.rgbd.depth.data())),
+        ("foci".into(), vec![s.foci.len()], bytes(&s.foci)),
+    ];
+    for (k, img) in s.stack.iter().enumerate() {
+        t.push((format!("slice{k}"), vec![3, h, w], bytes(&planes(img))));
+    }
+    let views = t
+        .iter()
+        .map(|(n, sh, d)| TensorView::new(Dtype::F32, sh.clone(), d).map(|v| (n.clone(), v)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| NetError::Data(e.to_string()))?;
+    let meta: HashMap<String, String> = [("seed".to_string(), s.seed.to_string())].into();
+    let data =
+        safetensors::serialize(views, Some(meta)).map_err(|e| NetError::Data(e.to_string()))?;
+    let tmp = path.with_extension("tmp");
+    let io = |e: std::io::Error| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    };
+    std::fs::write(&tmp, data).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)
+}
+
+fn bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetError> {
+    let raw = std::fs::read(path).map_err(|e| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    })?;
+    let st = SafeTensors::deserialize(&raw).map_err(|e| NetError::Data(e.to_string()))?;
+    let get = |n: &str| -> Result<(Vec<usize>, Vec<f32>), NetError> {
+        let v = st
+            .tensor(n)
+            .map_err(|e| NetError::Data(format!("{n}: {e}")))?;
+        let d = v
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        Ok((v.shape().to_vec(), d))
+    };
+    let (ds, depth) = get("depth")?;
+    let [h, w] = ds[..] else {
+        return Err(NetError::Data("cached depth is not 2-D".into()));
+    };
+    let color = image(w, h, &get("color")?.1)?;
+    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, depth)?)?;
+    let stack = (0..foci.len())
+        .map(|k| image(w, h, &get(&format!("slice{k}"))?.1))
+        .collect::<Result<_, _>>()?;
+    if get("foci")?.1 != foci {
+        return Err(NetError::Data("cached foci differ".into()));
+    }
+    Ok(SceneData {
+        seed,
+        rgbd: Rgbd::new(color, depth)?,
+        foci: foci.to_vec(),
+        stack,
+    })
+}
+
+/// Renders scene `seed` (a training seed) with targets at `foci`, or reads it from `cache`.
+pub fn load_or_render(
+    cache: &Path,
+    seed: u64,
+    foci: &[f32],
+    spec: &DataSpec,
+) -> Result<SceneData, NetError> {
+    if Split::of(seed) == Split::Test {
+        return Err(NetError::Data(format!(
+            "seed {seed} is a test seed: training uses only training seeds"
+        )));
+    }
+    let path = cache_path(cache, seed, foci, spec);
+    if path.exists() {
+        // A corrupt cache entry is re-rendered rather than trusted.
+        if let Ok(s) = read_cache(&path, seed, foci) {
+            return Ok(s);
+        }
+    }
+    let cam = Camera::square(spec.eye()?, spec.size);
+    let scene = Scene::generate(seed);
+    let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], spec.supersample)?;
+    let stack = foci
+        .iter()
+        .map(|&q| render_thin_lens(&scene, &cam, Diopters(q), spec.samples))
+        .collect::<Result<Vec<_>, _>>()?;
+    let s = SceneData {
+        seed,
+        rgbd: Rgbd::new(color, depth)?,
+        foci: foci.to_vec(),
+        stack,
+    };
+    std::fs::create_dir_all(cache).map_err(|e| NetError::Io {
+        path: cache.display().to_string(),
+        source: e,
+    })?;
+    write_cache(&path, &s)?;
+    Ok(s)
+}
+
+/// A batch of random patches: NCHW inputs and targets as flat vectors.
+pub struct Batch {
+    pub input: Vec<f32>,
+    pub in_channels: usize,
+    pub target: Vec<f32>,
+    pub target_channels: usize,
+    pub n: usize,
+    pub patch: usize,
+}
+
+/// Samples `n` patches of side `patch` (a multiple of `align`) from `scenes`.
+pub fn sample_batch(
+    task: &Task,
+    scenes: &[SceneData],
+    eye: &EyeModel,
+    rng: &mut SplitMix,
+    n: usize,
+    patch: usize,
+    align: usize,
+) -> Result<Batch, NetError> {
+    let (cin, ct) = match task {
+        Task::C1 => (5, 3),
+        Task::C3 { foci } | Task::C4 { foci, .. } => (4, 3 * foci.len()),
+        Task::C5 { .. } => {
+            return Err(NetError::Data(
+                "no training data pipeline for c5 yet (light-field views)".into(),
+            ))
+        }
+    };
+    let mut input = Vec::with_capacity(n * cin * patch * patch);
+    let mut target = Vec::with_capacity(n * ct * patch * patch);
+    let pick = |r: &mut SplitMix, m: usize| (r.next_u64() % m.max(1) as u64) as usize;
+    for _ in 0..n {
+        let s = &scenes[pick(rng, scenes.len())];
+        let (w, h) = (s.rgbd.width(), s.rgbd.height());
+        if w < patch || h < patch {
+            return Err(NetError::Data(format!(
+                "patch {patch} is larger than the {w}x{h} renders"
+            )));
+        }
+        let x0 = pick(rng, (w - patch) / align + 1) * align;
+        let y0 = pick(rng, (h - patch) / align + 1) * align;
+        let crop = |p: &Plane, out: &mut Vec<f32>, f: &dyn Fn(f32) -> f32| {
+            for y in y0..y0 + patch {
+                out.extend(p.row(y)[x0..x0 + patch].iter().map(|&v| f(v)));
+            }
+        };
+        let k = pick(rng, s.foci.len());
+        for c in &s.rgbd.color.channels {
+            crop(c, &mut input, &|v| v);
+        }
+        crop(s.rgbd.depth.plane(), &mut input, &|d| d / DEPTH_NORM);
+        match task {
+            Task::C1 => {
+                let q = Diopters(s.foci[k]);
+                crop(s.rgbd.depth.plane(), &mut input, &|d| {
+                    eye.coc_px(Diopters(d), q) / COC_NORM
+                });
+                for c in &s.stack[k].channels {
+                    crop(c, &mut target, &|v| v);
+                }
+            }
+            _ => {
+                for img in &s.stack {
+                    for c in &img.channels {
+                        crop(c, &mut target, &|v| v);
+                    }
+                }
+            }
+        }
+    }
+    Ok(Batch {
+        input,
+        in_channels: cin,
+        target,
+        target_channels: ct,
+        n,
+        patch,
+    })
+}

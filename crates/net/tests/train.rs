@@ -1,0 +1,255 @@
+//! The training framework against CPU inference, and training itself on tiny problems.
+#![cfg(feature = "train")]
+
+use candle_core::{Device, Tensor};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
+use dioptra_net::train::data::DataSpec;
+use dioptra_net::train::retina::Retina;
+use dioptra_net::train::{train, CandleNet, TrainConfig, TrainEvent};
+use dioptra_net::weights::SplitMix;
+use dioptra_net::{Act, Arch, CpuNet, Task, Weights};
+use dioptra_render::Layers;
+use std::collections::HashMap;
+use std::path::Path;
+
+/// Tolerance between candle's forward pass and ours: both f32, different summation orders.
+const TOL: f32 = 1e-4;
+
+fn vector_arch() -> Arch {
+    // Odd layer count with a residual into the last layer, and the input concatenation.
+    Arch {
+        task: Task::C1,
+        rate: 2,
+        layers: 5,
+        channels: 8,
+        concat_input: true,
+    }
+}
+
+fn nchw_to_act(t: &Tensor) -> Act {
+    let (_, c, h, w) = t.dims4().unwrap();
+    let v = t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let mut data = vec![0.0; c * h * w];
+    for ci in 0..c {
+        for p in 0..h * w {
+            data[p * c + ci] = v[ci * h * w + p];
+        }
+    }
+    Act::new(h, w, c, data).unwrap()
+}
+
+fn random_input(c: usize, h: usize, w: usize, seed: u64) -> Tensor {
+    let mut r = SplitMix(seed);
+    let v: Vec<f32> = (0..c * h * w).map(|_| r.uniform()).collect();
+    Tensor::from_vec(v, (1, c, h, w), &Device::Cpu).unwrap()
+}
+
+fn max_err(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn candle_forward_matches_cpu_inference() {
+    for (arch, seed) in [(vector_arch(), 1), (Arch::preset("c4").unwrap(), 2)] {
+        let w = Weights::random(&arch, seed).unwrap();
+        // Larger weights than the init, so the tanh is exercised away from 0.5.
+        let mut w = w;
+        for c in &mut w.convs {
+            c.weight.iter_mut().for_each(|v| *v *= 3.0);
+        }
+        let net = CandleNet::from_weights(&w, &Device::Cpu).unwrap();
+        let x = random_input(arch.in_channels(), 12, 16, seed);
+        let want = nchw_to_act(&net.forward(&x).unwrap());
+        let got = CpuNet::new(w).unwrap().forward(&nchw_to_act(&x)).unwrap();
+        let spread = want.data.iter().fold(0.0f32, |m, v| m.max((v - 0.5).abs()));
+        assert!(
+            spread > 0.05,
+            "outputs all near 0.5: the test would not see errors"
+        );
+        let e = max_err(&got.data, &want.data);
+        assert!(e < TOL, "{}: max |cpu - candle| = {e}", arch.task.name());
+    }
+}
+
+fn data_dir() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data"))
+}
+
+/// Regenerates the committed vectors from candle's forward pass:
+/// `cargo test -p dioptra-net --test train -- --ignored regenerate_vectors`.
+#[test]
+#[ignore]
+fn regenerate_vectors() {
+    let mut w = Weights::random(&vector_arch(), 42).unwrap();
+    for c in &mut w.convs {
+        c.weight.iter_mut().for_each(|v| *v *= 3.0);
+    }
+    w.provenance.insert("purpose".into(), "test vectors".into());
+    let net = CandleNet::from_weights(&w, &Device::Cpu).unwrap();
+    let x = random_input(5, 10, 14, 43);
+    let y = net.forward(&x).unwrap();
+    w.save(&data_dir().join("vectors_weights.safetensors"))
+        .unwrap();
+    let t: HashMap<String, Tensor> = [("input".into(), x), ("output".into(), y)].into();
+    candle_core::safetensors::save(&t, data_dir().join("vectors_io.safetensors")).unwrap();
+}
+
+#[test]
+fn cpu_inference_matches_committed_candle_vectors() {
+    let w = Weights::load(&data_dir().join("vectors_weights.safetensors")).unwrap();
+    assert_eq!(w.arch, vector_arch());
+    let io =
+        candle_core::safetensors::load(data_dir().join("vectors_io.safetensors"), &Device::Cpu)
+            .unwrap();
+    let (x, y) = (nchw_to_act(&io["input"]), nchw_to_act(&io["output"]));
+    assert_eq!((x.h, x.w, x.c, y.c), (10, 14, 5, 3));
+    let got = CpuNet::new(w).unwrap().forward(&x).unwrap();
+    let e = max_err(&got.data, &y.data);
+    assert!(e < TOL, "max |cpu - stored candle output| = {e}");
+}
+
+#[test]
+fn differentiable_retina_matches_the_renderer() {
+    let eye = EyeModel::default().with_width(192);
+    let planes = [0.2f32, 0.8, 1.4, 2.0];
+    let foci = [0.1f32, 1.0, 2.2];
+    let mut r = SplitMix(5);
+    let imgs: Vec<RgbImage> = (0..4)
+        .map(|_| {
+            let p = |r: &mut SplitMix| {
+                Plane::from_vec(
+                    192,
+                    40,
+                    (0..192 * 40).map(|_| 0.5 + 0.5 * r.uniform()).collect(),
+                )
+                .unwrap()
+            };
+            RgbImage::from_planes(p(&mut r), p(&mut r), p(&mut r)).unwrap()
+        })
+        .collect();
+    let layers = Layers {
+        planes: planes.iter().map(|&p| Diopters(p)).collect(),
+        images: imgs.clone(),
+    };
+    let want = dioptra_render::retina::retina_multifocal(
+        &layers,
+        &foci.map(Diopters),
+        &EyeModel::default(),
+    )
+    .unwrap();
+    let ret = Retina::new(&planes, &foci, &eye, &Device::Cpu).unwrap();
+    assert!(ret.radius >= 2, "kernels too small to test anything");
+    let v: Vec<f32> = imgs
+        .iter()
+        .flat_map(|im| im.channels.iter().flat_map(|c| c.data().to_vec()))
+        .collect();
+    let x = Tensor::from_vec(v, (1, 12, 40, 192), &Device::Cpu).unwrap();
+    let got = ret
+        .apply(&x)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap();
+    let rad = ret.radius;
+    for (j, img) in want.iter().enumerate() {
+        for c in 0..3 {
+            for y in rad..40 - rad {
+                for xx in rad..192 - rad {
+                    let g = got[((3 * j + c) * 40 + y) * 192 + xx];
+                    let w = img.channels[c].data()[y * 192 + xx];
+                    assert!(
+                        (g - w).abs() < 1e-3,
+                        "focus {j} c {c} ({xx},{y}): {g} vs {w}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+fn tiny_config(task: &str, out: &Path, steps: u64) -> TrainConfig {
+    let mut arch = Arch::preset(task).unwrap();
+    arch.layers = 4;
+    arch.channels = 12;
+    let mut cfg = TrainConfig::new(arch, out.to_path_buf());
+    cfg.steps = steps;
+    cfg.batch = 4;
+    cfg.patch = 24;
+    cfg.lr = 3e-3;
+    cfg.scenes = 2;
+    cfg.foci_per_scene = 3;
+    cfg.checkpoint_every = 5;
+    cfg.data = DataSpec {
+        size: 32,
+        supersample: 1,
+        samples: 4,
+        ..DataSpec::default()
+    };
+    cfg
+}
+
+fn run(cfg: &TrainConfig) -> (Weights, Vec<f32>, Option<u64>) {
+    let mut losses = vec![];
+    let mut resumed = None;
+    let w = train(cfg, &mut |e| match e {
+        TrainEvent::Step { loss, .. } => losses.push(loss),
+        TrainEvent::Resumed { step } => resumed = Some(step),
+        _ => {}
+    })
+    .unwrap();
+    (w, losses, resumed)
+}
+
+#[test]
+fn c1_training_lowers_the_loss_and_exports_loadable_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = tiny_config("c1", dir.path(), 40);
+    let (w, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[35..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+    let back = Weights::load(&dir.path().join("c1.safetensors")).unwrap();
+    assert_eq!(back.convs, w.convs);
+    assert_eq!(back.provenance["steps"], "40");
+    assert_eq!(back.provenance["train_seeds"], "0..2");
+}
+
+#[test]
+fn c4_training_through_the_retina_lowers_the_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c4", dir.path(), 30);
+    // Fewer focal samples keep the ground truth cheap.
+    cfg.arch.task = Task::C4 {
+        planes: vec![0.2, 0.8, 1.4, 2.0],
+        foci: vec![0.1, 0.7, 1.4, 2.2],
+    };
+    let (_, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[25..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+}
+
+#[test]
+fn resumed_training_equals_uninterrupted_training() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let (straight, _, _) = run(&tiny_config("c1", a.path(), 10));
+    // "Interrupted" after 5 steps (a checkpoint), then rerun with the full count.
+    let (_, _, r0) = run(&tiny_config("c1", b.path(), 5));
+    assert_eq!(r0, None);
+    let (resumed, losses, r1) = run(&tiny_config("c1", b.path(), 10));
+    assert_eq!(r1, Some(5));
+    assert_eq!(losses.len(), 5);
+    for (x, y) in straight.convs.iter().zip(&resumed.convs) {
+        let e = max_err(&x.weight, &y.weight);
+        assert!(e < 1e-6, "resumed weights differ by {e}");
+    }
+    // A different architecture in the same directory is refused, not silently mixed.
+    let mut other = tiny_config("c1", b.path(), 12);
+    other.arch.channels = 16;
+    assert!(train(&other, &mut |_| {}).is_err());
+}
