@@ -109,7 +109,7 @@ impl DisplaySink for HeadlessSink {
             shown_ns: now.0,
         });
         if let (true, Some(dir)) = (self.png_every > 0, &self.dir) {
-            if (self.shown - 1) % u64::from(self.png_every) == 0 {
+            if (self.shown - 1).is_multiple_of(u64::from(self.png_every)) {
                 for (i, layer) in frame.layers.iter().enumerate() {
                     let name = if frame.layers.len() == 1 {
                         format!("frame_{:06}.png", frame.number)
