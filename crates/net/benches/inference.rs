@@ -35,6 +35,13 @@ fn bench(c: &mut Criterion) {
         )
         .expect("input");
         g.bench_function(name, |b| b.iter(|| net.forward(&x).expect("forward")));
+        if name == "c1_8x32_r2" {
+            // The im2col + GEMM fallback (CPUs without AVX2 + FMA), for comparison.
+            let gemm = CpuNet::with_kernel(net.weights().clone(), false).expect("net");
+            g.bench_function("c1_8x32_r2_gemm", |b| {
+                b.iter(|| gemm.forward(&x).expect("forward"))
+            });
+        }
     }
     g.finish();
 }

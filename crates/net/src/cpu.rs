@@ -1,7 +1,10 @@
-//! CPU inference: im2col into row tiles, one GEMM per tile (the `gemm` crate), tiles in
-//! parallel with rayon. Activations are HWC so a tile of rows is one contiguous slice.
+//! CPU inference. Convolutions run as a direct register-blocked kernel where the CPU has
+//! AVX2 + FMA (`direct.rs`), else as im2col into row tiles with one GEMM per tile (the `gemm`
+//! crate); rows or tiles in parallel with rayon. Activations are HWC so a row is one
+//! contiguous slice.
 
 use crate::arch::Arch;
+use crate::direct::{self, DirectWeights};
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
 use crate::weights::Weights;
@@ -131,6 +134,8 @@ struct Packed {
     cout: usize,
     wt: Vec<f32>,
     bias: Vec<f32>,
+    /// The direct kernel's packing, when this CPU runs it.
+    direct: Option<DirectWeights>,
 }
 
 /// Pixels per GEMM tile: big enough to amortise packing, small enough to stay in cache.
@@ -143,6 +148,37 @@ fn conv3x3(x: &Act, k: &Packed, elu: bool) -> Result<Act, NetError> {
             k.cin, x.c
         )));
     }
+    match &k.direct {
+        Some(d) => Ok(conv3x3_direct(x, d, elu)),
+        None => conv3x3_gemm(x, k, elu),
+    }
+}
+
+fn conv3x3_direct(x: &Act, k: &DirectWeights, elu: bool) -> Act {
+    let (h, w, cout) = (x.h, x.w, k.cout);
+    let padded = direct::pad_zero(&x.data, h, w, x.c);
+    let mut out = vec![0.0f32; h * w * cout];
+    out.par_chunks_mut(w * cout)
+        .enumerate()
+        .for_each(|(y, row)| {
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: `direct` is only set when `direct::available()`; `padded` is the
+            // (h + 2) x (w + 2) x cin border copy, y < h, and `row` is w x cout.
+            unsafe {
+                direct::conv_row(&padded, w, y, k, elu, row)
+            }
+            #[cfg(not(target_arch = "x86_64"))]
+            let _ = (y, row, elu, &padded);
+        });
+    Act {
+        h,
+        w,
+        c: cout,
+        data: out,
+    }
+}
+
+fn conv3x3_gemm(x: &Act, k: &Packed, elu: bool) -> Result<Act, NetError> {
     let (h, w, cin, cout) = (x.h, x.w, x.c, k.cout);
     let kdim = 9 * cin;
     let rows = (TILE_PIXELS / w.max(1)).max(1);
@@ -219,7 +255,14 @@ pub struct CpuNet {
 }
 
 impl CpuNet {
+    /// Packs `weights` for the fastest kernel this CPU runs.
     pub fn new(weights: Weights) -> Result<CpuNet, NetError> {
+        Self::with_kernel(weights, direct::available())
+    }
+
+    /// Packs for the direct kernel when `use_direct` (and the CPU runs it), else for GEMM.
+    pub fn with_kernel(weights: Weights, use_direct: bool) -> Result<CpuNet, NetError> {
+        let use_direct = use_direct && direct::available();
         weights.arch.validate()?;
         if weights.convs.len() != weights.arch.layers {
             return Err(NetError::BadArch(format!(
@@ -246,6 +289,8 @@ impl CpuNet {
                     cout: c.cout,
                     wt,
                     bias: c.bias.clone(),
+                    direct: use_direct
+                        .then(|| DirectWeights::pack(c.cin, c.cout, &c.weight, &c.bias)),
                 }
             })
             .collect();
@@ -380,9 +425,17 @@ mod tests {
     }
 
     #[test]
-    fn im2col_gemm_matches_direct_convolution() {
-        // Widths that do and do not fill a tile, and more rows than one tile holds.
-        for (h, w, cin, cout) in [(5, 7, 3, 4), (70, 40, 6, 5), (3, 2100, 2, 3)] {
+    fn both_kernels_match_a_naive_convolution() {
+        // Widths that do and do not fill a 6-pixel micro-tile or a GEMM tile, more rows than
+        // one GEMM tile holds, and output channels below, at and across 16-channel blocks.
+        for (h, w, cin, cout) in [
+            (5, 7, 3, 4),
+            (70, 40, 6, 5),
+            (3, 2100, 2, 3),
+            (9, 13, 32, 32),
+            (4, 11, 20, 20),
+            (6, 6, 5, 12),
+        ] {
             let x = random_act(h, w, cin, 3);
             let mut rng = SplitMix(11);
             let c = crate::weights::Conv {
@@ -395,18 +448,29 @@ mod tests {
             arch.layers = 2;
             let mut w8 = Weights::random(&arch, 0).unwrap();
             w8.convs[0] = c.clone();
-            // Build the packed form through CpuNet's own packing.
-            let net = CpuNet::new(w8).unwrap();
-            for elu in [false, true] {
-                let got = conv3x3(&x, &net.packed[0], elu).unwrap();
-                let want = naive_conv(&x, &c, elu);
-                let err = got
-                    .data
-                    .iter()
-                    .zip(&want.data)
-                    .map(|(a, b)| (a - b).abs())
-                    .fold(0.0, f32::max);
-                assert!(err < 1e-4, "{h}x{w}x{cin}->{cout}: max error {err}");
+            // Each kernel's packing through CpuNet's own code; the direct kernel only where
+            // this CPU runs it.
+            for use_direct in [false, true] {
+                let net = CpuNet::with_kernel(w8.clone(), use_direct).unwrap();
+                assert_eq!(
+                    net.packed[0].direct.is_some(),
+                    use_direct && direct::available()
+                );
+                for elu in [false, true] {
+                    let got = conv3x3(&x, &net.packed[0], elu).unwrap();
+                    let want = naive_conv(&x, &c, elu);
+                    assert_eq!((got.h, got.w, got.c), (want.h, want.w, want.c));
+                    let err = got
+                        .data
+                        .iter()
+                        .zip(&want.data)
+                        .map(|(a, b)| (a - b).abs())
+                        .fold(0.0, f32::max);
+                    assert!(
+                        err < 1e-4,
+                        "{h}x{w}x{cin}->{cout} direct={use_direct}: max error {err}"
+                    );
+                }
             }
         }
     }

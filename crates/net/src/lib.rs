@@ -5,6 +5,7 @@
 
 pub mod arch;
 pub mod cpu;
+mod direct;
 pub mod error;
 pub mod graph;
 pub mod tasks;
