@@ -65,14 +65,14 @@ impl Fault {
             Fault::Blinks => "2 spontaneous blinks per second, 150 ms each",
             Fault::LensLag => "the lens settles in 80 ms instead of the 15 ms the scheduler's lens model expects",
             Fault::DeadlineMisses => "every 4th frame takes 2 frame periods (33 ms) to render",
-            Fault::Unplug => "the lens cable is pulled at 1.0 s and plugged back at 1.6 s",
+            Fault::Unplug => "the lens cable is pulled at 0.9 s and plugged back at 1.3 s, while the viewer looks from the far surface to the near one (at 1.0 s)",
         }
     }
 }
 
 /// Unplug and replug times of [`Fault::Unplug`].
-const UNPLUG_AT: Duration = Duration::from_millis(1000);
-const REPLUG_AT: Duration = Duration::from_millis(1600);
+const UNPLUG_AT: Duration = Duration::from_millis(900);
+const REPLUG_AT: Duration = Duration::from_millis(1300);
 
 /// Two surfaces filling the field: left half at 0.5 m, right half at 2 m.
 fn split_depth() -> Arc<DepthMap> {

@@ -66,6 +66,17 @@ impl Method {
         )
     }
 
+    /// Relative cost among the settings of one method (views, iterations, pixels per
+    /// interleaved pixel), for predicting a setting's time from a cheaper one's.
+    pub fn relative_cost(&self) -> f64 {
+        match *self {
+            Method::LightField { views } => views as f64,
+            Method::Optimized { iterations } => iterations as f64,
+            Method::NetworkC1 { rate } => 1.0 / (rate * rate) as f64,
+            _ => 1.0,
+        }
+    }
+
     pub fn network(&self) -> bool {
         matches!(self, Method::NetworkC1 { .. } | Method::NetworkC4)
     }
