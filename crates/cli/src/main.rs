@@ -3,6 +3,7 @@
 
 mod demo;
 mod devices;
+mod eval;
 mod gaze_cmd;
 mod lens_cmd;
 mod render_cmd;
@@ -62,6 +63,8 @@ enum Command {
     Replay(replay::Args),
     /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
     Train(train::Args),
+    /// Speed against accuracy of every render method, and the failure-case suite: CSV, charts, report.
+    Eval(eval::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -92,6 +95,7 @@ fn main() -> std::process::ExitCode {
         Command::Serve(args) => serve::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Train(args) => train::run(args),
+        Command::Eval(args) => eval::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

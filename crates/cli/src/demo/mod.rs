@@ -5,7 +5,7 @@
 //! time it really took here. Prints a summary and writes frames and charts.
 
 mod frames;
-mod plots;
+pub(crate) mod plots;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

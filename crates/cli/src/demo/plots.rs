@@ -13,7 +13,7 @@ use plotters::style::FontStyle;
 static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
 static REGISTER: Once = Once::new();
 
-fn font() {
+pub(crate) fn font() {
     REGISTER.call_once(|| {
         // A font that fails to load only costs the charts their text.
         let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);

@@ -1,0 +1,186 @@
+//! `dioptra eval --quick` through the real binary: every method is in the CSV, every score
+//! present is finite and plausible, the failure suite and the report are written; bad flags
+//! get a clear error.
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::process::Command;
+
+fn dioptra(args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(args)
+        .output()
+        .expect("runs");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
+/// Rows of a CSV written by `dioptra eval` as column -> cell maps (cells hold no quoted commas
+/// in the columns read here; quoted notes are kept whole).
+fn read_csv(path: &Path) -> Vec<HashMap<String, String>> {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut lines = text.lines();
+    let header: Vec<String> = lines
+        .next()
+        .expect("a header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    lines
+        .map(|l| {
+            // Split on commas outside quotes.
+            let (mut cells, mut cur, mut quoted) = (Vec::new(), String::new(), false);
+            for ch in l.chars() {
+                match ch {
+                    '"' => quoted = !quoted,
+                    ',' if !quoted => cells.push(std::mem::take(&mut cur)),
+                    c => cur.push(c),
+                }
+            }
+            cells.push(cur);
+            assert_eq!(cells.len(), header.len(), "row {l:?}");
+            header.iter().cloned().zip(cells).collect()
+        })
+        .collect()
+}
+
+fn finite_in(cell: &str, lo: f64, hi: f64, what: &str) {
+    let v: f64 = cell
+        .parse()
+        .unwrap_or_else(|_| panic!("{what}: {cell:?} is not a number"));
+    assert!(
+        v.is_finite() && (lo..=hi).contains(&v),
+        "{what}: {v} not in {lo}..={hi}"
+    );
+}
+
+#[test]
+fn quick_eval_writes_every_method_and_the_failure_report() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let out = dir.path().join("eval");
+    let (ok, text) = dioptra(&["eval", "--quick", "--out", &out.display().to_string()]);
+    assert!(ok, "{text}");
+
+    let rows = read_csv(&out.join("eval.csv"));
+    for method in [
+        "gather",
+        "lightfield",
+        "network-c1",
+        "linear",
+        "optimized",
+        "network-c4",
+    ] {
+        let mine: Vec<_> = rows
+            .iter()
+            .filter(|r| r["method"] == method && r["backend"] == "cpu")
+            .collect();
+        assert!(!mine.is_empty(), "no CPU row for {method}");
+        assert!(
+            mine.iter().any(|r| !r["time_ms"].is_empty()),
+            "{method} was never timed"
+        );
+        for r in &mine {
+            if r["time_ms"].is_empty() {
+                // Only a setting predicted to overrun --budget-s goes untimed, and it says so.
+                assert!(r["note"].starts_with("skipped"), "{method}: {r:?}");
+                continue;
+            }
+            finite_in(&r["time_ms"], 0.0, 1e7, &format!("{method} time_ms"));
+            if r["psnr_db"].is_empty() {
+                // Only an untrained network may go unscored, and it must say so.
+                assert!(
+                    method.starts_with("network") && r["note"].starts_with("untrained"),
+                    "{method} has no score: {r:?}"
+                );
+            } else {
+                finite_in(&r["psnr_db"], 10.0, 100.0, &format!("{method} psnr"));
+                finite_in(&r["ssim"], 0.0, 1.0, &format!("{method} ssim"));
+            }
+        }
+    }
+    // Classical methods are scored at every focus of the quick plan.
+    let gather_foci = rows
+        .iter()
+        .filter(|r| r["method"] == "gather" && r["backend"] == "cpu" && !r["psnr_db"].is_empty())
+        .count();
+    assert_eq!(gather_foci, 3, "gather is scored at 3 foci in --quick");
+    // Optimized blending fits the ground truth better than linear blending.
+    let mean_psnr = |m: &str, s: &str| {
+        let v: Vec<f64> = rows
+            .iter()
+            .filter(|r| r["method"] == m && r["setting"] == s && r["backend"] == "cpu")
+            .map(|r| r["psnr_db"].parse::<f64>().expect("a score"))
+            .collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    assert!(
+        mean_psnr("optimized", "10 it") > mean_psnr("linear", ""),
+        "optimized {} vs linear {}",
+        mean_psnr("optimized", "10 it"),
+        mean_psnr("linear", "")
+    );
+
+    let failure = read_csv(&out.join("failure.csv"));
+    let cases: std::collections::BTreeSet<&str> =
+        failure.iter().map(|r| r["case"].as_str()).collect();
+    assert_eq!(cases.len(), 12, "{cases:?}");
+    for r in &failure {
+        assert_eq!(r["nonfinite"], "0", "{r:?}");
+        if !r["psnr_region_db"].is_empty() {
+            finite_in(&r["psnr_region_db"], 5.0, 100.0, "region psnr");
+        }
+    }
+    let lp = read_csv(&out.join("loop.csv"));
+    assert_eq!(lp.len(), 7);
+    let unplug = lp
+        .iter()
+        .find(|r| r["fault"] == "lens unplugged")
+        .expect("unplug row");
+    assert_eq!(unplug["lens_link_losses"], "1", "{unplug:?}");
+    let misses = lp
+        .iter()
+        .find(|r| r["fault"] == "renderer deadline misses")
+        .expect("misses row");
+    let baseline = lp
+        .iter()
+        .find(|r| r["fault"].starts_with("none"))
+        .expect("baseline");
+    assert!(
+        misses["deadline_misses"].parse::<u64>().unwrap()
+            > baseline["deadline_misses"].parse::<u64>().unwrap(),
+        "{misses:?} vs {baseline:?}"
+    );
+
+    let report = std::fs::read_to_string(out.join("report.md")).expect("report");
+    assert!(report.contains("## Speed against accuracy"));
+    assert!(report.contains("## Where methods fail"));
+    for chart in [
+        "speed_accuracy_128",
+        "psnr_by_focus_128",
+        "failure_region_psnr",
+        "failure_temporal",
+        "loop_focus_error",
+    ] {
+        for ext in ["png", "svg"] {
+            let p = out.join(format!("{chart}.{ext}"));
+            let len = std::fs::metadata(&p).map(|m| m.len()).unwrap_or(0);
+            assert!(len > 1000, "{} is missing or empty", p.display());
+        }
+    }
+}
+
+#[test]
+fn bad_flags_are_named() {
+    for (flag, value) in [
+        ("--sizes", "12,abc"),
+        ("--sizes", "8"),
+        ("--backend", "tpu"),
+        ("--suite", "fast"),
+        ("--runs", "0"),
+    ] {
+        let (ok, text) = dioptra(&["eval", flag, value, "--out", "/nonexistent/never"]);
+        assert!(!ok, "{flag} {value} was accepted");
+        assert!(text.contains(flag), "{flag} {value}: {text}");
+    }
+}
