@@ -4,6 +4,7 @@
 mod demo;
 mod devices;
 mod gaze_cmd;
+mod hil;
 mod lens_cmd;
 mod render_cmd;
 mod replay;
@@ -62,6 +63,9 @@ enum Command {
     Replay(replay::Args),
     /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
     Train(train::Args),
+    /// Hardware-in-the-loop latency harness: gaze to lens command, command to settled,
+    /// sub-frame timing, on the devices a rig config names (simulated ones say so).
+    Hil(hil::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -92,6 +96,7 @@ fn main() -> std::process::ExitCode {
         Command::Serve(args) => serve::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Train(args) => train::run(args),
+        Command::Hil(args) => hil::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

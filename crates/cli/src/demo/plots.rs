@@ -13,7 +13,8 @@ use plotters::style::FontStyle;
 static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
 static REGISTER: Once = Once::new();
 
-fn font() {
+/// Registers the bundled font with plotters (once); every chart calls it first.
+pub(crate) fn font() {
     REGISTER.call_once(|| {
         // A font that fails to load only costs the charts their text.
         let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
