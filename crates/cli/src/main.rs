@@ -5,6 +5,7 @@ mod demo;
 mod devices;
 mod eval;
 mod gaze_cmd;
+mod hil;
 mod lens_cmd;
 mod render_cmd;
 mod replay;
@@ -65,6 +66,9 @@ enum Command {
     Train(train::Args),
     /// Speed against accuracy of every render method, and the failure-case suite: CSV, charts, report.
     Eval(eval::Args),
+    /// Hardware-in-the-loop latency harness: gaze to lens command, command to settled,
+    /// sub-frame timing, on the devices a rig config names (simulated ones say so).
+    Hil(hil::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -96,6 +100,7 @@ fn main() -> std::process::ExitCode {
         Command::Replay(args) => replay::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Hil(args) => hil::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

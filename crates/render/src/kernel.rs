@@ -80,6 +80,13 @@ pub fn disk_kernel(diameter: f32) -> Kernel {
         }
     }
     let sum: f32 = w.iter().sum();
+    if sum.is_nan() || sum <= 0.0 {
+        // A disk too small for the coverage integral's samples (diameter below ~0.004 px)
+        // is a point: without this its weights would be 0 / 0.
+        w.iter_mut().for_each(|v| *v = 0.0);
+        w[radius * side + radius] = 1.0;
+        return Kernel { radius, weights: w };
+    }
     w.iter_mut().for_each(|v| *v /= sum);
     Kernel { radius, weights: w }
 }
@@ -366,6 +373,8 @@ mod tests {
         assert!((k.at(1, 0) - k.at(0, -1)).abs() < 1e-6);
         assert_eq!(disk_kernel(0.5).weights, vec![1.0]);
         assert_eq!(disk_kernel(f32::NAN).weights, vec![1.0]);
+        // Below the coverage integral's resolution: still a point, not 0 / 0.
+        assert_eq!(disk_kernel(0.001).weights, vec![1.0]);
         assert_eq!(disk_kernel(11.0).radius, 5);
     }
 

@@ -13,6 +13,7 @@ pub mod kernel;
 pub mod lightfield;
 pub mod metrics;
 pub mod multifocal;
+pub mod planner;
 pub mod retina;
 pub mod views;
 

@@ -1,5 +1,7 @@
 //! The demo's renderer side: an animated procedural scene, its RGB-D frames, the CPU render
-//! methods per mode, and the few frames kept for scoring against ground truth.
+//! methods per mode, and the few frames kept for scoring against ground truth. With
+//! `--method auto` (varifocal) each frame's method is chosen here, where it is rendered, by
+//! `dioptra_render::planner` from the frame's depth around the gaze point and its focus.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -7,9 +9,12 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Timestamp};
 use dioptra_loop_tests::Frames;
+use dioptra_render::lightfield::lightfield;
 use dioptra_render::multifocal::linear_blend;
+use dioptra_render::planner::{Choice, FrameStats, Planner};
 use dioptra_render::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
 use dioptra_render::views::{synthesize_light_field, RgbdView};
+use dioptra_render::LightFieldParams;
 use dioptra_render::{gather::gather, Layers};
 use dioptra_sched::depth::{window_depth, DepthWindow};
 use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
@@ -79,6 +84,9 @@ pub struct DemoFrames {
     keep_after: Vec<Timestamp>,
     kept: Vec<Kept>,
     started: Instant,
+    /// `--method auto`: plan each varifocal frame; frames per choice so far.
+    auto: bool,
+    planned: std::collections::BTreeMap<String, u64>,
 }
 
 fn centre(s: &Shape) -> [f32; 3] {
@@ -99,7 +107,7 @@ fn angles_of(p: [f32; 3]) -> Angles {
 }
 
 impl DemoFrames {
-    pub fn new(mode: Mode, seed: u64, size: usize, seconds: f64) -> Result<Self> {
+    pub fn new(mode: Mode, seed: u64, size: usize, seconds: f64, auto: bool) -> Result<Self> {
         let base = Scene::generate_with(
             seed,
             &SceneOptions {
@@ -165,6 +173,8 @@ impl DemoFrames {
             keep_after,
             kept: Vec::new(),
             started: Instant::now(),
+            auto,
+            planned: Default::default(),
         })
     }
 
@@ -202,6 +212,11 @@ impl DemoFrames {
             }
         }
         s
+    }
+
+    /// `--method auto`: how many frames the planner gave each method.
+    pub fn planned(&self) -> &std::collections::BTreeMap<String, u64> {
+        &self.planned
     }
 
     pub fn take_kept(&mut self) -> Vec<Kept> {
@@ -260,8 +275,29 @@ impl DemoFrames {
         }
     }
 
+    /// The planner's method for a varifocal frame focused at `q`, gaze from the request.
+    fn plan(&mut self, req: &FrameRequest, input: &Rgbd, q: Diopters) -> Choice {
+        let (w, h) = (input.width() as f64, input.height() as f64);
+        let gaze = req
+            .gaze
+            .and_then(|a| {
+                dioptra_sched::depth::pixel_of(
+                    a.direction(),
+                    input.width(),
+                    self.eye.fov_horizontal_deg,
+                )
+            })
+            .map_or([0.5 * w as f32, 0.5 * h as f32], |(x, y)| {
+                [(x + 0.5 * w) as f32, (y + 0.5 * h) as f32]
+            });
+        let stats = FrameStats::from_rgbd(input, gaze, q, &self.eye);
+        let plan = Planner.plan(&stats, &dioptra_render::planner::Target::default());
+        *self.planned.entry(plan.choice.to_string()).or_insert(0) += 1;
+        plan.choice
+    }
+
     fn render_output(
-        &self,
+        &mut self,
         req: &FrameRequest,
         input: &Rgbd,
         sparse: &[RgbdView],
@@ -269,7 +305,19 @@ impl DemoFrames {
         Some(match self.mode {
             Mode::Varifocal => {
                 let q = Diopters(req.focus.unwrap_or(Diopters(1.0)).0.max(0.0));
-                Output::Image(gather(input, q, &self.eye).ok()?)
+                let choice = if self.auto {
+                    self.plan(req, input, q)
+                } else {
+                    Choice::Gather
+                };
+                Output::Image(match choice {
+                    Choice::None => input.color.clone(),
+                    Choice::Gather => gather(input, q, &self.eye).ok()?,
+                    Choice::LightField { views } => {
+                        lightfield(input, q, &self.eye, LightFieldParams { views, mip: true })
+                            .ok()?
+                    }
+                })
             }
             Mode::Multifocal => Output::Layers(linear_blend(input, &self.planes).ok()?),
             Mode::LightField => {
@@ -326,11 +374,11 @@ impl Frames for DemoFrames {
     }
 
     fn render(&mut self, req: &FrameRequest) -> Duration {
-        let Some((scene, input, sparse)) = &self.current else {
+        let Some((scene, input, sparse)) = self.current.take() else {
             return Duration::ZERO;
         };
         let started = Instant::now();
-        let output = self.render_output(req, input, sparse);
+        let output = self.render_output(req, &input, &sparse);
         let took = started.elapsed();
         if let (Some(output), Some(&after)) = (output, self.keep_after.first()) {
             if req.display_time >= after {
@@ -344,6 +392,7 @@ impl Frames for DemoFrames {
                 });
             }
         }
+        self.current = Some((scene, input, sparse));
         took
     }
 }

@@ -24,6 +24,10 @@ pub struct Args {
     /// varifocal, multifocal or lightfield.
     #[arg(long, default_value = "varifocal")]
     mode: String,
+    /// Varifocal render method: gather, or auto (the planner chooses per frame: no blur,
+    /// gather, or the light-field method with as few views as the scene needs).
+    #[arg(long, default_value = "gather")]
+    method: String,
     /// Simulated seconds to run.
     #[arg(long, default_value_t = 10.0)]
     seconds: f64,
@@ -58,6 +62,15 @@ pub fn run_demo(args: Args) -> Result<()> {
             args.size
         );
     }
+    let auto = match args.method.as_str() {
+        "gather" => false,
+        "auto" if mode == Mode::Varifocal => true,
+        "auto" => bail!(
+            "--method auto plans varifocal frames only; {} mode renders with its own method (drop --method)",
+            mode.as_str()
+        ),
+        other => bail!("--method {other:?} is unknown: expected gather or auto"),
+    };
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     println!(
@@ -68,7 +81,7 @@ pub fn run_demo(args: Args) -> Result<()> {
         args.size,
         args.seed
     );
-    let mut frames = DemoFrames::new(mode, args.seed, args.size, args.seconds)?;
+    let mut frames = DemoFrames::new(mode, args.seed, args.size, args.seconds, auto)?;
     let mut opts = RigOptions::new(
         mode,
         frames.gaze_scene(),
@@ -96,6 +109,18 @@ pub fn run_demo(args: Args) -> Result<()> {
         r.simulated.as_secs_f64() / r.wall.as_secs_f64().max(1e-9)
     );
     summary(&r, mode);
+    if auto {
+        let chosen: Vec<String> = frames
+            .planned()
+            .iter()
+            .map(|(m, n)| format!("{m} {n}"))
+            .collect();
+        println!(
+            "method auto: the planner chose (frames) {} for a fovea PSNR target of {} dB",
+            chosen.join(", "),
+            dioptra_render::planner::Target::default().fovea_psnr_db
+        );
+    }
     let kept = frames.take_kept();
     score(&r, &frames, &kept, &args)?;
     plots::latency(&args.out.join("latency.png"), &r)?;

@@ -13,6 +13,7 @@ use plotters::style::FontStyle;
 static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
 static REGISTER: Once = Once::new();
 
+/// Registers the bundled font with plotters (once); every chart calls it first.
 pub(crate) fn font() {
     REGISTER.call_once(|| {
         // A font that fails to load only costs the charts their text.

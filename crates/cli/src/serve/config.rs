@@ -96,7 +96,9 @@ impl TryFrom<String> for Method {
     type Error = String;
     fn try_from(s: String) -> Result<Self, String> {
         Method::parse(&s)
-            .ok_or_else(|| format!("unknown method {s:?}: expected one of {}", methods()))
+            .ok_or_else(|| {
+                format!("unknown method {s:?}: expected one of {}, or auto (varifocal: the planner chooses per frame)", methods())
+            })
     }
 }
 
@@ -408,6 +410,11 @@ pub struct RigConfig {
     #[serde(default)]
     pub api: Api,
     pub recording: Option<Recording>,
+    /// `method = "auto"`: the render worker asks the planner (dioptra_render::planner) for
+    /// each frame's method; `method` then holds the mode's default, which the scheduler's
+    /// frame pacing uses.
+    #[serde(skip)]
+    pub auto_method: bool,
 }
 
 fn default_settle_ms() -> f64 {
@@ -450,6 +457,30 @@ fn default_scene_seed() -> u64 {
     1_000_001
 }
 
+/// `method = "auto"` becomes the mode's default method plus the auto flag; other text is
+/// returned as it is (so parse errors keep their line numbers).
+fn resolve_auto(text: &str) -> Result<(std::borrow::Cow<'_, str>, bool), ConfigError> {
+    let Ok(mut table) = text.parse::<toml::Table>() else {
+        // Not valid TOML: the strict parse below reports where.
+        return Ok((text.into(), false));
+    };
+    if table.get("method").and_then(|m| m.as_str()) != Some("auto") {
+        return Ok((text.into(), false));
+    }
+    let mode = table
+        .get("mode")
+        .and_then(|m| m.as_str())
+        .and_then(Mode::parse)
+        .unwrap_or(Mode::Varifocal);
+    let base = Method(RenderMethod::default_for(mode.sched()));
+    table.insert("method".into(), toml::Value::String(base.as_str().into()));
+    let text = toml::to_string(&table).map_err(|e| ConfigError::Parse {
+        key: "method".into(),
+        message: one_line(&e.to_string()),
+    })?;
+    Ok((text.into(), true))
+}
+
 impl RigConfig {
     /// Reads and validates a rig config file.
     pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
@@ -462,6 +493,8 @@ impl RigConfig {
 
     /// Parses and validates rig config text.
     pub fn parse(text: &str) -> Result<RigConfig, ConfigError> {
+        let (text, auto_method) = resolve_auto(text)?;
+        let text = text.as_ref();
         let de = toml::Deserializer::parse(text).map_err(|e| ConfigError::Parse {
             key: ".".into(),
             message: one_line(&e.to_string()),
@@ -476,6 +509,7 @@ impl RigConfig {
             }
             ConfigError::Parse { key, message }
         })?;
+        let cfg = RigConfig { auto_method, ..cfg };
         cfg.validate()?;
         Ok(cfg)
     }
@@ -586,6 +620,16 @@ impl RigConfig {
             return Err(invalid(
                 "devices.sync",
                 "multifocal mode needs a sync board: add [devices.sync] with driver = \"sync\" and a port",
+            ));
+        }
+        if self.auto_method && self.mode != Mode::Varifocal {
+            return Err(invalid(
+                "method",
+                format!(
+                    "auto chooses a method per frame in varifocal mode only (in {} mode the planes or views are fixed by the hardware's program); expected {}",
+                    self.mode.as_str(),
+                    Method::for_mode(self.mode)
+                ),
             ));
         }
         if !self.method.fits(self.mode) {
@@ -730,6 +774,24 @@ pub(crate) mod tests {
             .unwrap()
             + 1;
         assert!(e.to_string().contains(&format!("(line {line})")), "{e}");
+    }
+
+    #[test]
+    fn method_auto_plans_varifocal_frames_only() {
+        let cfg =
+            RigConfig::parse(&SIM_RIG.replace("method = \"gather\"", "method = \"auto\"")).unwrap();
+        assert!(cfg.auto_method);
+        // The scheduler paces frames by the mode's default method.
+        assert_eq!(cfg.method, Method(RenderMethod::Gather));
+        assert!(!RigConfig::parse(SIM_RIG).unwrap().auto_method);
+        let e = err(&SIM_RIG
+            .replace("method = \"gather\"", "method = \"auto\"")
+            .replace("mode = \"varifocal\"", "mode = \"multifocal\""));
+        assert_eq!(e.key(), "method", "{e}");
+        assert!(e.to_string().contains("varifocal mode only"), "{e}");
+        // An unknown method's message offers auto.
+        let e = err(&SIM_RIG.replace("method = \"gather\"", "method = \"fast\""));
+        assert!(e.to_string().contains("auto"), "{e}");
     }
 
     #[test]

@@ -129,6 +129,8 @@ pub struct LoopStatus {
     pub frames_shown: u64,
     pub render_errors: u64,
     pub last_render_ms: Option<f64>,
+    /// `method = "auto"`: the planner's choice for the newest frame.
+    pub planned: Option<render::Planned>,
     pub display: serde_json::Value,
     pub scheduler: serde_json::Value,
 }
@@ -158,7 +160,12 @@ impl Shared {
         json!({
             "uptime_s": now.saturating_since(self.started).as_secs_f64(),
             "mode": status.mode,
-            "method": status.method,
+            "method": if self.cfg.auto_method { json!("auto") } else { json!(status.method) },
+            "planned": status.planned.as_ref().map(|p| json!({
+                "method": p.choice,
+                "predicted_fovea_psnr_db": p.predicted_psnr_db,
+                "why": p.why,
+            })),
             "focus": {
                 "manual_d": status.manual_focus_d,
                 "commanded_d": status.commanded_focus_d,
@@ -534,7 +541,7 @@ struct Rendered {
     method: Method,
     focus: Option<Diopters>,
     requested: Timestamp,
-    result: Result<Vec<dioptra_core::RgbImage>, String>,
+    result: Result<render::RenderedFrame, String>,
     took: Duration,
 }
 
@@ -649,6 +656,8 @@ struct RenderJob {
     mode: Mode,
     method: Method,
     focus: Option<Diopters>,
+    /// Gaze point on the frame, pixels (for `method = "auto"`).
+    gaze: Option<[f32; 2]>,
     requested: Timestamp,
 }
 
@@ -747,11 +756,24 @@ impl Executor<'_> {
                         }),
                     );
                     lock(&sh.status).frames_requested += 1;
+                    let d = &sh.cfg.display;
+                    let gaze = req.gaze.and_then(|a| {
+                        let (x, y) = dioptra_sched::depth::pixel_of(
+                            a.direction(),
+                            d.width as usize,
+                            sh.cfg.eye.fov_deg,
+                        )?;
+                        Some([
+                            (x + 0.5 * f64::from(d.width)) as f32,
+                            (y + 0.5 * f64::from(d.height)) as f32,
+                        ])
+                    });
                     let job = RenderJob {
                         frame: req.frame.0,
                         mode,
                         method,
                         focus: req.focus,
+                        gaze,
                         requested: now,
                     };
                     if self.rendering {
@@ -800,7 +822,7 @@ impl Executor<'_> {
         tokio::task::spawn_blocking(move || {
             let t0 = std::time::Instant::now();
             let result = renderer
-                .render(job.mode, job.method, focus)
+                .render(job.mode, job.method, focus, job.gaze)
                 .map_err(|e| e.to_string());
             let _ = tx.blocking_send(Rendered {
                 frame: job.frame,
@@ -864,7 +886,11 @@ impl Executor<'_> {
         let sh = self.shared;
         lock(&sh.status).last_render_ms = Some(done.took.as_secs_f64() * 1e3);
         match done.result {
-            Ok(layers) => {
+            Ok(rendered) => {
+                if rendered.planned.is_some() {
+                    lock(&sh.status).planned = rendered.planned;
+                }
+                let layers = rendered.images;
                 if self.frames.len() == FRAMES_KEPT {
                     self.frames.pop_front();
                 }

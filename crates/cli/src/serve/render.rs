@@ -5,12 +5,18 @@
 //! so is the light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled
 //! by `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
 //! 5 x 5 pixels (0.25 mm pitch, 0.94 mm gap, 15 mm eye relief).
+//!
+//! With `method = "auto"` (varifocal mode) each frame's method is chosen here, where frames
+//! are rendered, by `dioptra_render::planner` from the frame's depth around the gaze point
+//! and the focus: no blur, gather, or the light-field method with as few views as the
+//! disparity needs. The scheduler (sans-IO) chooses the focus, not the method.
 
 use std::sync::{Arc, Mutex};
 
 use dioptra_core::{Diopters, EyeModel, Millimeters, RgbImage, Rgbd};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_blend};
+use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::{OptimizeParams, RenderError};
 
 use super::config::{Method, Mode, RigConfig};
@@ -26,6 +32,25 @@ pub struct Renderer {
     scene: dioptra_sim::scene::Scene,
     cam: dioptra_sim::scene::Camera,
     panel: Mutex<Option<Arc<RgbImage>>>,
+    /// `method = "auto"`: plan each varifocal frame.
+    auto: bool,
+}
+
+/// A frame's images, and the planner's choice when it chose.
+#[derive(Debug)]
+pub struct RenderedFrame {
+    pub images: Vec<RgbImage>,
+    /// `method = "auto"`: what the planner chose and why.
+    pub planned: Option<Planned>,
+}
+
+/// The planner's choice for one frame.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Planned {
+    /// `none`, `gather` or `lightfield-N`.
+    pub choice: String,
+    pub predicted_psnr_db: f64,
+    pub why: String,
 }
 
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
@@ -63,6 +88,7 @@ impl Renderer {
             scene,
             cam,
             panel: Mutex::new(None),
+            auto: cfg.auto_method,
         })
     }
 
@@ -72,8 +98,47 @@ impl Renderer {
     }
 
     /// The images of one frame: one for varifocal and light field, one per plane for
-    /// multifocal. CPU work: call it from a blocking thread.
+    /// multifocal. `gaze` is the gaze point in pixels (the image centre when unknown); with
+    /// `method = "auto"` the planner chooses a varifocal frame's method from it. CPU work:
+    /// call it from a blocking thread.
     pub fn render(
+        &self,
+        mode: Mode,
+        method: Method,
+        focus: Diopters,
+        gaze: Option<[f32; 2]>,
+    ) -> Result<RenderedFrame, RenderError> {
+        if self.auto && mode == Mode::Varifocal {
+            let (w, h) = (self.input.width() as f32, self.input.height() as f32);
+            let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
+            let stats = FrameStats::from_rgbd(&self.input, gaze, focus, &self.eye);
+            let plan = Planner.plan(&stats, &Target::default());
+            let image = match plan.choice {
+                Choice::None => self.input.color.clone(),
+                Choice::Gather => dioptra_render::gather::gather(&self.input, focus, &self.eye)?,
+                Choice::LightField { views } => dioptra_render::lightfield::lightfield(
+                    &self.input,
+                    focus,
+                    &self.eye,
+                    LightFieldParams { views, mip: true },
+                )?,
+            };
+            return Ok(RenderedFrame {
+                images: vec![image],
+                planned: Some(Planned {
+                    choice: plan.choice.to_string(),
+                    predicted_psnr_db: plan.predicted_psnr,
+                    why: plan.why,
+                }),
+            });
+        }
+        Ok(RenderedFrame {
+            images: self.render_fixed(mode, method, focus)?,
+            planned: None,
+        })
+    }
+
+    fn render_fixed(
         &self,
         mode: Mode,
         method: Method,

@@ -644,3 +644,38 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn method_auto_renders_the_planners_choice_and_shows_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = SIM_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("method = \"gather\"", "method = \"auto\"")
+        .replace(
+            "dir = \"recordings\"",
+            &format!("dir = {:?}", dir.path().join("rec").display().to_string()),
+        );
+    let cfg = RigConfig::parse(&text).unwrap();
+    assert!(cfg.auto_method);
+    let d = Daemon::start(cfg).await.unwrap();
+    let planned = eventually("a planned frame", || {
+        let s = status_of(&d);
+        (!s["planned"].is_null()).then_some(s)
+    })
+    .await;
+    assert_eq!(planned["method"], "auto", "{planned}");
+    let choice = planned["planned"]["method"].as_str().unwrap().to_string();
+    assert!(
+        choice == "none" || choice == "gather" || choice.starts_with("lightfield-"),
+        "{planned}"
+    );
+    assert!(
+        planned["planned"]["why"]
+            .as_str()
+            .unwrap()
+            .contains("fovea"),
+        "{planned}"
+    );
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}

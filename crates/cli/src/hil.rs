@@ -1,0 +1,521 @@
+//! `dioptra hil --config rig.toml`: the hardware-in-the-loop latency harness. It opens the
+//! devices a rig config names exactly as `dioptra serve` does (serve/devices.rs: the real
+//! drivers, on hardware or on the in-process simulators for `port = "sim"`), and measures:
+//!
+//! 1. gaze sample to lens command (the host path): each gaze sample goes through the daemon's
+//!    scheduler adapter (serve/engine.rs); when a lens command comes out, the time from the
+//!    sample's host receive time to the command being handed to the lens task;
+//!    then command to wire (the driver's write completing);
+//! 2. command to settled: `--trials` lens steps between a quarter and three quarters of
+//!    `optics.lens_range`, each timed from the command to the first readback within 0.05 D
+//!    (and not reporting "moving"). Readbacks come from the lens task's 10 ms poll, so these
+//!    figures are quantised to it. The dioptra sync board has no photodiode input, so there
+//!    is no optical measurement of settling; the summary says so;
+//! 3. sub-frame timing (when `devices.sync` is configured): the sequencer's sub-frame start
+//!    times (device clock) against the programmed period `1 / optics.subframe_hz`, the plane
+//!    order against the programmed schedule, and faults.
+//!
+//! It writes `summary.txt` and `summary.json` (HdrHistogram percentiles) and one PNG histogram
+//! per measurement to `--out`. With simulated devices every output says SIMULATED.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use dioptra_core::{Clock, Diopters, SequencerEvent, Timestamp};
+use hdrhistogram::Histogram;
+use plotters::prelude::*;
+use serde_json::json;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+
+use crate::serve::config::{Port, RigConfig};
+use crate::serve::devices::{spawn_devices, DeviceInput, Registry, State};
+use crate::serve::engine::{Command, Engine, Input};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// The rig config (as for `dioptra serve`).
+    #[arg(long)]
+    config: PathBuf,
+    /// Trials per measurement (lens steps; gaze-to-command samples; sub-frame intervals).
+    #[arg(long, default_value_t = 100)]
+    trials: usize,
+    /// Where to write summary.txt, summary.json and the PNG histograms.
+    #[arg(long, default_value = "hil-out")]
+    out: PathBuf,
+    /// Seconds to wait for every device to connect.
+    #[arg(long, default_value_t = 5.0)]
+    connect_timeout_s: f64,
+}
+
+/// A step's readback counts as settled within this many diopters of the command.
+const SETTLE_TOLERANCE_D: f32 = 0.05;
+/// A lens step that has not settled by then is counted as unsettled.
+const STEP_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// One measurement: its name, what it is, and its histogram (microseconds).
+struct Measure {
+    key: &'static str,
+    title: &'static str,
+    hist: Histogram<u64>,
+    /// Signed mean, µs (the histogram holds magnitudes for signed quantities).
+    signed_mean_us: Option<f64>,
+    note: String,
+}
+
+impl Measure {
+    fn new(key: &'static str, title: &'static str) -> Measure {
+        Measure {
+            key,
+            title,
+            hist: Histogram::new_with_bounds(1, 3_600_000_000, 3).expect("valid bounds"),
+            signed_mean_us: None,
+            note: String::new(),
+        }
+    }
+    fn record_us(&mut self, us: f64) {
+        let _ = self.hist.record(us.round().max(1.0) as u64);
+    }
+}
+
+fn ts_us(a: Timestamp, b: Timestamp) -> f64 {
+    (b.0 as f64 - a.0 as f64) / 1e3
+}
+
+/// Names each configured device, its config key and port, and whether it is simulated.
+fn devices_of(cfg: &RigConfig) -> Vec<(&'static str, &'static str, Port)> {
+    let d = &cfg.devices;
+    let mut v = vec![
+        ("lens", "devices.lens.port", d.lens.port.clone()),
+        ("gaze", "devices.gaze.port", d.gaze.port.clone()),
+    ];
+    if let Some(s) = &d.sync {
+        v.push(("sync", "devices.sync.port", s.port.clone()));
+    }
+    v
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if !(1..=100_000).contains(&args.trials) {
+        bail!(
+            "--trials {} is out of range: expected 1 to 100000",
+            args.trials
+        );
+    }
+    if !(args.connect_timeout_s > 0.0 && args.connect_timeout_s <= 600.0) {
+        bail!(
+            "--connect-timeout-s {} is out of range: expected more than 0 and at most 600",
+            args.connect_timeout_s
+        );
+    }
+    let cfg = RigConfig::load(&args.config)
+        .with_context(|| format!("rig config {}", args.config.display()))?;
+    let devices = devices_of(&cfg);
+    // A device path that does not exist is absent: say so before opening anything.
+    for (name, key, port) in &devices {
+        if let Port::Path(p) = port {
+            if !p.exists() {
+                bail!(
+                    "{key} = \"{}\": the {name} device is not present (no such file); connect it, \
+                     fix the path, or set {key} = \"sim\" to run the harness on a simulator",
+                    p.display()
+                );
+            }
+        }
+    }
+    let simulated: Vec<&str> = devices
+        .iter()
+        .filter(|d| d.2 == Port::Sim)
+        .map(|d| d.0)
+        .collect();
+    let all_sim = simulated.len() == devices.len();
+    let banner = if all_sim {
+        "SIMULATED: every device is a dioptra-sim simulator (port = \"sim\"); these figures \
+         measure this host and the simulators, not hardware"
+            .to_string()
+    } else if simulated.is_empty() {
+        "hardware: every device is real".to_string()
+    } else {
+        format!(
+            "PARTLY SIMULATED: {} simulated (port = \"sim\"), the rest real",
+            simulated.join(", ")
+        )
+    };
+    println!("dioptra hil: {}", args.config.display());
+    println!("{banner}");
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let measures = rt.block_on(measure(&cfg, &args, &devices))?;
+    write_outputs(&args.out, &args.config, &banner, all_sim, &measures)?;
+    println!(
+        "\nwrote {}: summary.txt, summary.json, {}",
+        args.out.display(),
+        measures
+            .iter()
+            .map(|m| format!("{}.png", m.key))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    Ok(())
+}
+
+async fn measure(
+    cfg: &RigConfig,
+    args: &Args,
+    devices: &[(&'static str, &'static str, Port)],
+) -> Result<Vec<Measure>> {
+    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+    let registry = Arc::new(Registry::default());
+    let (tx, mut rx) = mpsc::channel::<DeviceInput>(4096);
+    let cancel = CancellationToken::new();
+    let (_sims, links, tasks) = spawn_devices(cfg, &registry, clock.clone(), tx, &cancel)
+        .map_err(|e| anyhow::anyhow!("cannot start the devices: {e}"))?;
+
+    // Every device must connect.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(args.connect_timeout_s);
+    loop {
+        let snap = registry.snapshot();
+        if snap.values().all(|s| s.state == State::Ok) && snap.len() == devices.len() {
+            break;
+        }
+        if tokio::time::Instant::now() >= deadline {
+            cancel.cancel();
+            let missing: Vec<String> = devices
+                .iter()
+                .filter_map(|(name, key, port)| {
+                    let s = snap.get(*name)?;
+                    (s.state != State::Ok).then(|| {
+                        format!(
+                            "{key} = \"{port}\": the {name} device ({} driver) did not connect within {} s: {}",
+                            s.driver,
+                            args.connect_timeout_s,
+                            s.last_error.as_deref().unwrap_or("no answer")
+                        )
+                    })
+                })
+                .collect();
+            bail!("{}", missing.join("\n"));
+        }
+        tokio::select! {
+            _ = rx.recv() => {}
+            _ = tokio::time::sleep(Duration::from_millis(20)) => {}
+        }
+    }
+    println!(
+        "devices connected: {}",
+        devices
+            .iter()
+            .map(|d| format!("{} ({})", d.0, d.2))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+
+    let mut host_path = Measure::new("gaze_to_command", "gaze sample to lens command (host path)");
+    let mut to_wire = Measure::new("command_to_wire", "lens command to on the wire");
+    let mut settled = Measure::new("command_to_settled", "lens command to settled (readback)");
+    let mut subframe = Measure::new(
+        "subframe_timing_error",
+        "sub-frame start error against the programmed period",
+    );
+
+    // 1. Gaze to lens command through the scheduler, commands forwarded as the daemon does.
+    let renderer = crate::serve::render::Renderer::new(cfg)
+        .map_err(|e| anyhow::anyhow!("cannot build the scene: {e}"))?;
+    let mut engine = Engine::new(cfg, renderer.input()).map_err(anyhow::Error::msg)?;
+    let _ = engine.step(clock.now(), Input::Depth);
+    // The lens connected while the harness waited (that input was drained): say so, as the
+    // daemon's loop would have, so the scheduler does not hold its commands.
+    let _ = engine.step(clock.now(), Input::Device(DeviceInput::LensLink(true)));
+    let phase_limit = Duration::from_secs(30.max(args.trials as u64 / 4).min(300));
+    let phase_end = tokio::time::Instant::now() + phase_limit;
+    // Samples queued while the devices connected would count their wait: drop them.
+    while rx.try_recv().is_ok() {}
+    let mut sent: Vec<(u64, Timestamp)> = Vec::new();
+    let mut gaze_samples = 0u64;
+    while (host_path.hist.len() as usize) < args.trials && tokio::time::Instant::now() < phase_end {
+        let wake = engine
+            .next_wakeup()
+            .map(|t| Duration::from_nanos(t.0.saturating_sub(clock.now().0)))
+            .unwrap_or(Duration::from_millis(50))
+            .min(Duration::from_millis(50));
+        let input = tokio::select! {
+            d = rx.recv() => match d {
+                Some(d) => Input::Device(d),
+                None => bail!("the device tasks stopped"),
+            },
+            _ = tokio::time::sleep(wake) => Input::Tick,
+        };
+        let gaze = match &input {
+            Input::Device(DeviceInput::Gaze(g)) => {
+                gaze_samples += 1;
+                Some(g.host_receive_time)
+            }
+            Input::Device(DeviceInput::LensWire { id, wire_time, .. }) => {
+                if let Some(&(_, at)) = sent.iter().find(|s| s.0 == *id) {
+                    to_wire.record_us(ts_us(at, *wire_time));
+                }
+                None
+            }
+            _ => None,
+        };
+        let cmds = engine.step(clock.now(), input).unwrap_or_default();
+        for c in cmds {
+            if let Command::SetLensPower { id, power, .. } = c {
+                let _ = links.lens_commands.send(Some((id.0, power)));
+                let now = clock.now();
+                sent.push((id.0, now));
+                if let Some(received) = gaze {
+                    host_path.record_us(ts_us(received, now));
+                }
+            }
+        }
+    }
+    host_path.note = format!(
+        "{} gaze samples in; {} lens commands came out of the scheduler on a gaze sample",
+        gaze_samples,
+        host_path.hist.len()
+    );
+    println!(
+        "gaze to lens command: {} samples ({} gaze samples)",
+        host_path.hist.len(),
+        gaze_samples
+    );
+
+    // 2. Lens steps, timed to the first readback at the commanded power.
+    let r = cfg.optics.lens_range;
+    let (lo, hi) = (
+        r.min + 0.25 * (r.max - r.min),
+        r.min + 0.75 * (r.max - r.min),
+    );
+    let mut unsettled = 0usize;
+    for i in 0..args.trials {
+        let p = Diopters(if i % 2 == 0 { hi } else { lo });
+        let id = 1_000_000 + i as u64;
+        let at = clock.now();
+        let _ = links.lens_commands.send(Some((id, p)));
+        let end = tokio::time::Instant::now() + STEP_TIMEOUT;
+        let mut wired: Option<Timestamp> = None;
+        let mut done = false;
+        while tokio::time::Instant::now() < end {
+            let d = tokio::select! {
+                d = rx.recv() => d,
+                _ = tokio::time::sleep_until(end) => None,
+            };
+            match d {
+                Some(DeviceInput::LensWire {
+                    id: got, wire_time, ..
+                }) if got == id => {
+                    to_wire.record_us(ts_us(at, wire_time));
+                    wired = Some(wire_time);
+                }
+                Some(DeviceInput::LensState(s))
+                    if wired.is_some()
+                        && (s.power.0 - p.0).abs() <= SETTLE_TOLERANCE_D
+                        && s.settled != Some(false) =>
+                {
+                    settled.record_us(ts_us(at, s.host_time));
+                    done = true;
+                    break;
+                }
+                None if tokio::time::Instant::now() >= end => break,
+                _ => {}
+            }
+        }
+        if !done {
+            unsettled += 1;
+        }
+    }
+    settled.note = format!(
+        "{} steps between {lo:.2} and {hi:.2} D; settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every 10 ms (the lens task's poll), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
+        args.trials,
+        STEP_TIMEOUT.as_millis()
+    );
+    println!(
+        "lens steps: {} settled, {unsettled} not",
+        settled.hist.len()
+    );
+    to_wire.note =
+        "from the command handed to the lens task to the driver's write completing".into();
+
+    // 3. Sub-frame timing against the programmed schedule.
+    let mut measures = vec![host_path, to_wire, settled];
+    if cfg.devices.sync.is_some() {
+        let period_us = 1e6 / cfg.optics.subframe_hz;
+        let planes = cfg.optics.planes.len();
+        let _ = links.multifocal.send(true);
+        let end = tokio::time::Instant::now()
+            + Duration::from_secs(10).max(Duration::from_secs_f64(
+                3.0 * args.trials as f64 / cfg.optics.subframe_hz,
+            ));
+        let (mut last, mut out_of_order, mut faults, mut sum) =
+            (None::<(u32, u8, Timestamp)>, 0u64, 0u64, 0.0f64);
+        while (subframe.hist.len() as usize) < args.trials && tokio::time::Instant::now() < end {
+            let d = tokio::select! {
+                d = rx.recv() => d,
+                _ = tokio::time::sleep_until(end) => None,
+            };
+            match d {
+                Some(DeviceInput::Sync(SequencerEvent::SubframeStart {
+                    frame,
+                    plane_index,
+                    device_time,
+                    ..
+                })) => {
+                    if let Some((f0, p0, t0)) = last {
+                        let expected_plane = (usize::from(p0) + 1) % planes.max(1);
+                        if usize::from(plane_index) != expected_plane {
+                            out_of_order += 1;
+                        }
+                        // Consecutive sub-frames of one running sequence only.
+                        if frame >= f0 {
+                            let err = ts_us(t0, device_time) - period_us;
+                            subframe.record_us(err.abs());
+                            sum += err;
+                        }
+                    }
+                    last = Some((frame, plane_index, device_time));
+                }
+                Some(DeviceInput::Sync(SequencerEvent::Fault { .. })) => faults += 1,
+                _ => {}
+            }
+        }
+        let _ = links.multifocal.send(false);
+        let n = subframe.hist.len();
+        subframe.signed_mean_us = (n > 0).then(|| sum / n as f64);
+        subframe.note = format!(
+            "{n} intervals between sub-frame starts (sync board clock) against the programmed {period_us:.1} us ({} Hz, {planes} planes); histogram of |error|; {out_of_order} sub-frames out of the programmed plane order; {faults} faults (late settle, missed vsync)",
+            cfg.optics.subframe_hz
+        );
+        println!("sub-frames: {n} intervals, {out_of_order} out of order, {faults} faults");
+        measures.push(subframe);
+    } else {
+        println!("sub-frame timing: skipped (the config names no devices.sync)");
+    }
+    cancel.cancel();
+    let _ = tokio::time::timeout(Duration::from_secs(3), tasks.lens).await;
+    Ok(measures)
+}
+
+fn stats_json(m: &Measure) -> serde_json::Value {
+    let h = &m.hist;
+    let q = |p: f64| (!h.is_empty()).then(|| h.value_at_quantile(p));
+    json!({
+        "title": m.title,
+        "count": h.len(),
+        "min_us": (!h.is_empty()).then(|| h.min()),
+        "p50_us": q(0.5),
+        "p90_us": q(0.9),
+        "p99_us": q(0.99),
+        "max_us": (!h.is_empty()).then(|| h.max()),
+        "mean_us": (!h.is_empty()).then(|| h.mean()),
+        "signed_mean_us": m.signed_mean_us,
+        "note": m.note,
+    })
+}
+
+fn write_outputs(
+    out: &Path,
+    config: &Path,
+    banner: &str,
+    simulated: bool,
+    measures: &[Measure],
+) -> Result<()> {
+    let mut txt = format!(
+        "dioptra hil --config {}\n{banner}\n\nvalues in microseconds (HdrHistogram, 3 significant digits)\n",
+        config.display()
+    );
+    for m in measures {
+        let h = &m.hist;
+        txt.push_str(&format!("\n## {} ({})\n{}\n", m.title, m.key, m.note));
+        if h.is_empty() {
+            txt.push_str("no samples\n");
+            println!("  {}: no samples", m.title);
+            continue;
+        }
+        let line = format!(
+            "n = {}, min {}, p50 {}, p90 {}, p99 {}, max {}, mean {:.1}{}",
+            h.len(),
+            h.min(),
+            h.value_at_quantile(0.5),
+            h.value_at_quantile(0.9),
+            h.value_at_quantile(0.99),
+            h.max(),
+            h.mean(),
+            m.signed_mean_us
+                .map(|s| format!(", signed mean {s:.2}"))
+                .unwrap_or_default()
+        );
+        println!("  {}: {line} us", m.title);
+        txt.push_str(&line);
+        txt.push_str("\n       value   percentile   total count\n");
+        for v in h.iter_quantiles(1) {
+            txt.push_str(&format!(
+                "{:>12} {:>12.6} {:>13}\n",
+                v.value_iterated_to(),
+                v.quantile_iterated_to(),
+                v.count_since_last_iteration()
+            ));
+        }
+        histogram_png(&out.join(format!("{}.png", m.key)), m, simulated)?;
+    }
+    std::fs::write(out.join("summary.txt"), txt)
+        .with_context(|| format!("cannot write {}", out.join("summary.txt").display()))?;
+    let js = json!({
+        "config": config.display().to_string(),
+        "simulated": simulated,
+        "devices": banner,
+        "measurements": measures.iter().map(|m| (m.key.to_string(), stats_json(m))).collect::<serde_json::Map<_, _>>(),
+    });
+    std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&js)?)
+        .with_context(|| format!("cannot write {}", out.join("summary.json").display()))?;
+    Ok(())
+}
+
+fn histogram_png(path: &Path, m: &Measure, simulated: bool) -> Result<()> {
+    crate::demo::plots::font();
+    let h = &m.hist;
+    let top = h.value_at_quantile(0.999).max(1);
+    let nbins = 40u64;
+    let bin = (top / nbins).max(1);
+    let mut counts = vec![0u64; nbins as usize + 1];
+    for v in h.iter_recorded() {
+        let i = ((v.value_iterated_to() / bin) as usize).min(nbins as usize);
+        counts[i] += v.count_at_value();
+    }
+    let ymax = counts.iter().copied().max().unwrap_or(1).max(1);
+    let err = |e: &dyn std::fmt::Debug| anyhow::anyhow!("drawing {} failed: {e:?}", path.display());
+    let root = BitMapBackend::new(path, (800, 480)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let title = format!("{}{}", m.title, if simulated { " (SIMULATED)" } else { "" });
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(50)
+        .build_cartesian_2d(
+            0f64..((nbins + 1) * bin) as f64 / 1e3,
+            0u64..ymax + ymax / 10 + 1,
+        )
+        .map_err(|e| err(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("ms")
+        .y_desc("count")
+        .draw()
+        .map_err(|e| err(&e))?;
+    chart
+        .draw_series(counts.iter().enumerate().map(|(i, &c)| {
+            let x0 = (i as u64 * bin) as f64 / 1e3;
+            let x1 = ((i as u64 + 1) * bin) as f64 / 1e3;
+            Rectangle::new([(x0, 0), (x1, c)], BLUE.mix(0.6).filled())
+        }))
+        .map_err(|e| err(&e))?;
+    root.present().map_err(|e| err(&e))?;
+    Ok(())
+}

@@ -1,0 +1,79 @@
+//! `dioptra hil` as a user runs it: on the example sim rig it measures, writes its summaries
+//! and histograms, and says everywhere that the devices were simulated; a config naming a
+//! serial port that is not there exits non-zero naming the port and its config key.
+
+use std::path::Path;
+use std::process::Command;
+
+const RIG: &str = include_str!("../examples/rig-sim.toml");
+
+fn write_config(dir: &Path, text: &str) -> std::path::PathBuf {
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[test]
+fn hil_on_the_sim_rig_writes_outputs_that_say_simulated() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(dir.path(), RIG);
+    let out = dir.path().join("hil");
+    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["hil", "--config"])
+        .arg(&config)
+        .args(["--trials", "20", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(stdout.contains("SIMULATED"), "{stdout}");
+    let txt = std::fs::read_to_string(out.join("summary.txt")).unwrap();
+    assert!(txt.contains("SIMULATED"), "{txt}");
+    let js: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(js["simulated"], true, "{js}");
+    let m = &js["measurements"];
+    // Every lens step settled and was timed; the sim rig has a sync board, so sub-frames too.
+    assert_eq!(m["command_to_settled"]["count"], 20, "{js}");
+    assert!(
+        m["command_to_settled"]["p50_us"].as_u64().unwrap() > 0,
+        "{js}"
+    );
+    assert!(
+        m["command_to_wire"]["count"].as_u64().unwrap() >= 20,
+        "{js}"
+    );
+    assert_eq!(m["subframe_timing_error"]["count"], 20, "{js}");
+    assert!(m["gaze_to_command"]["count"].as_u64().unwrap() > 0, "{js}");
+    for png in [
+        "gaze_to_command",
+        "command_to_wire",
+        "command_to_settled",
+        "subframe_timing_error",
+    ] {
+        let bytes = std::fs::read(out.join(format!("{png}.png"))).unwrap();
+        assert!(bytes.starts_with(b"\x89PNG"), "{png}.png is not a PNG");
+    }
+}
+
+#[test]
+fn hil_with_an_absent_serial_port_names_it_and_fails() {
+    let dir = tempfile::tempdir().unwrap();
+    let absent = "/dev/ttyACM-dioptra-absent";
+    let text = RIG.replacen("port = \"sim\"", &format!("port = \"{absent}\""), 1);
+    let config = write_config(dir.path(), &text);
+    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["hil", "--config"])
+        .arg(&config)
+        .args(["--trials", "5", "--out"])
+        .arg(dir.path().join("hil"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success(), "{stderr}");
+    assert!(stderr.contains(absent), "{stderr}");
+    assert!(stderr.contains("devices.lens.port"), "{stderr}");
+    assert!(!dir.path().join("hil").join("summary.txt").exists());
+}

@@ -1,0 +1,245 @@
+//! The planner: its decision rules on built frames, and its predictions checked against
+//! measured accuracy on held-out sim test scenes (seeds 1 000 200 onwards; the calibration
+//! table was measured on 1 000 100 onwards). `cargo test -p dioptra-render --test planner --
+//! --nocapture` prints how often the plan meets its target and the cost it saves.
+
+#[path = "support/fovea_truth.rs"]
+mod fovea_truth;
+
+use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::gather::gather;
+use dioptra_render::lightfield::lightfield;
+use dioptra_render::multifocal::linear_blend;
+use dioptra_render::planner::{place_planes, Choice, FrameStats, Planner, Target};
+use dioptra_render::retina::retina_multifocal;
+use dioptra_render::LightFieldParams;
+use dioptra_sim::scene::{render_pinhole, Camera, Scene};
+use fovea_truth::{fovea_psnr, truth_crop};
+
+const SIZE: usize = 160;
+
+/// A textured frame whose depth (diopters) is `depth(x, y)`.
+fn frame(depth: impl Fn(usize, usize) -> f32) -> Rgbd {
+    let n = SIZE * SIZE;
+    let tex: Vec<f32> = (0..n * 3)
+        .map(|i| (((i / 3) % SIZE / 3 + (i / 3) / SIZE / 3) % 2) as f32 * 0.6 + 0.2)
+        .collect();
+    let d: Vec<f32> = (0..n).map(|i| depth(i % SIZE, i / SIZE)).collect();
+    Rgbd::new(
+        RgbImage::from_interleaved(SIZE, SIZE, &tex).unwrap(),
+        DepthMap::from_diopters(Plane::from_vec(SIZE, SIZE, d).unwrap()).unwrap(),
+    )
+    .unwrap()
+}
+
+fn centre() -> [f32; 2] {
+    [SIZE as f32 * 0.5, SIZE as f32 * 0.5]
+}
+
+fn stats(f: &Rgbd, focus: f32) -> FrameStats {
+    FrameStats::from_rgbd(f, centre(), Diopters(focus), &EyeModel::default())
+}
+
+#[test]
+fn flat_scene_in_focus_needs_no_blur() {
+    let f = frame(|_, _| 1.0);
+    let p = Planner.plan(&stats(&f, 1.0), &Target::default());
+    assert_eq!(p.choice, Choice::None, "{}", p.why);
+    assert!(p.meets_target, "{}", p.why);
+    // The same flat scene far out of focus is not passed through.
+    let p = Planner.plan(&stats(&f, 3.0), &Target::default());
+    assert_ne!(p.choice, Choice::None, "{}", p.why);
+}
+
+#[test]
+fn content_outside_the_fovea_does_not_count() {
+    // Far content well away from the gaze, whose blur cannot reach the fovea.
+    let f = frame(|x, _| if x < 20 { 3.5 } else { 1.0 });
+    let s = stats(&f, 1.0);
+    assert!(s.region_disparity_px < 0.01, "{s:?}");
+    assert_eq!(Planner.plan(&s, &Target::default()).choice, Choice::None);
+}
+
+#[test]
+fn small_disparity_costs_less_than_large() {
+    // An occlusion edge through the gaze point: near half at `near` D, far half at 0.5 D,
+    // focused on the far half.
+    let edge = |near: f32| frame(move |x, _| if x < SIZE / 2 { near } else { 0.5 });
+    let small = Planner.plan(&stats(&edge(0.65), 0.5), &Target::default());
+    let large = Planner.plan(&stats(&edge(3.5), 0.5), &Target::default());
+    assert!(
+        small.predicted_cost_ms < large.predicted_cost_ms,
+        "small: {}; large: {}",
+        small.why,
+        large.why
+    );
+    if let (Choice::LightField { views: a }, Choice::LightField { views: b }) =
+        (small.choice, large.choice)
+    {
+        assert!(
+            a < b,
+            "{a} views for a small disparity, {b} for a large one"
+        );
+    }
+}
+
+#[test]
+fn narrow_depth_span_gets_fewer_planes_at_the_content() {
+    let target = Target::default();
+    let range = (Diopters(0.0), Diopters(3.0));
+    let narrow = frame(|x, y| 0.6 + 0.2 * ((x + y) as f32 / (2 * SIZE) as f32));
+    let wide = frame(|x, y| 0.2 + 3.0 * ((x * 7 + y * 13) % SIZE) as f32 / SIZE as f32);
+    let n = Planner.plan_planes(&stats(&narrow, 0.7), &target, range, 4);
+    let w = Planner.plan_planes(&stats(&wide, 0.7), &target, range, 4);
+    assert!(n.planes.len() < 4, "{}", n.why);
+    assert!(n.planes.len() < w.planes.len(), "{} / {}", n.why, w.why);
+    assert!(
+        n.planes.iter().all(|p| (0.55..=0.85).contains(&p.0)),
+        "{}",
+        n.why
+    );
+    // Wide content is clamped into the lens range.
+    assert!(
+        w.planes.iter().all(|p| (0.0..=3.0).contains(&p.0)),
+        "{}",
+        w.why
+    );
+    assert!(w.planes.windows(2).all(|p| p[0].0 < p[1].0), "{}", w.why);
+}
+
+#[test]
+fn planes_go_where_the_mass_is() {
+    let f = frame(|x, _| if x < SIZE / 3 { 0.5 } else { 2.0 });
+    let planes = place_planes(&stats(&f, 1.0), 2, (Diopters(0.0), Diopters(4.0)));
+    assert_eq!(planes.len(), 2);
+    assert!((planes[0].0 - 0.5).abs() < 0.05, "{planes:?}");
+    assert!((planes[1].0 - 2.0).abs() < 0.05, "{planes:?}");
+}
+
+#[test]
+fn foveation_is_sparser_for_a_lower_periphery_target() {
+    let at = |db| {
+        Planner
+            .foveation(&Target {
+                periphery_psnr_db: Some(db),
+                ..Target::default()
+            })
+            .unwrap()
+    };
+    assert!(
+        at(18.0).scale > at(26.0).scale,
+        "{:?} / {:?}",
+        at(18.0),
+        at(26.0)
+    );
+    assert!(Planner.foveation(&Target::default()).is_none());
+}
+
+fn run(input: &Rgbd, choice: Choice, q: Diopters, eye: &EyeModel) -> RgbImage {
+    match choice {
+        Choice::None => input.color.clone(),
+        Choice::Gather => gather(input, q, eye).unwrap(),
+        Choice::LightField { views } => {
+            lightfield(input, q, eye, LightFieldParams { views, mip: true }).unwrap()
+        }
+    }
+}
+
+/// Held-out scenes: the plan's measured fovea PSNR against its target, and its cost against
+/// always using the most expensive setting (light field, 48 views).
+#[test]
+fn plans_meet_their_target_on_held_out_scenes() {
+    let eye = EyeModel::default().with_width(SIZE as u32);
+    let cam = Camera::square(eye, SIZE);
+    let target = Target::default();
+    let (mut cases, mut met, mut mf_cases, mut mf_met) = (0, 0, 0, 0);
+    // Frames the plan predicted to meet the target, those of them that did, and frames where
+    // always using lightfield-48 met it.
+    let (mut promised, mut kept, mut best_met) = (0, 0, 0);
+    let (mut cost_plan, mut cost_max, mut mf_cost, mut mf_cost_max) = (0.0, 0.0, 0.0, 0.0);
+    let (mut t_plan, mut t_max) = (0.0, 0.0);
+    let mut chosen = std::collections::BTreeMap::new();
+    for seed in 1_000_200..1_000_206u64 {
+        let scene = Scene::generate(seed);
+        let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 6).unwrap();
+        let input = Rgbd::new(color, depth).unwrap();
+        let gazed = input.depth.at(SIZE / 2, SIZE / 2).unwrap();
+        for q in [gazed, Diopters(0.5), Diopters(2.5)] {
+            let truth = truth_crop(&scene, &eye, SIZE, q, 512).unwrap();
+            let st = FrameStats::from_rgbd(&input, centre(), q, &eye);
+            let plan = Planner.plan(&st, &target);
+            let t = std::time::Instant::now();
+            let img = run(&input, plan.choice, q, &eye);
+            t_plan += t.elapsed().as_secs_f64();
+            let t = std::time::Instant::now();
+            let best = run(&input, Choice::MOST_EXPENSIVE, q, &eye);
+            t_max += t.elapsed().as_secs_f64();
+            let (p, pb) = (
+                fovea_psnr(&img, &truth, SIZE),
+                fovea_psnr(&best, &truth, SIZE),
+            );
+            eprintln!(
+                "seed {seed} focus {:.2} D: {} predicted {:.1} measured {p:.2} dB (lightfield-48 {pb:.2} dB); {}",
+                q.0, plan.choice, plan.predicted_psnr, plan.why
+            );
+            cases += 1;
+            met += usize::from(p >= target.fovea_psnr_db);
+            best_met += usize::from(pb >= target.fovea_psnr_db);
+            if plan.meets_target {
+                promised += 1;
+                kept += usize::from(p >= target.fovea_psnr_db);
+            }
+            *chosen.entry(plan.choice.to_string()).or_insert(0) += 1;
+            cost_plan += plan.predicted_cost_ms;
+            cost_max += Planner.predict_cost_ms(&st, Choice::MOST_EXPENSIVE);
+            if q == gazed {
+                // Multifocal: the planner's planes (at most 4 within 0-4 D) against 4 default.
+                let pp = Planner.plan_planes(&st, &target, (Diopters(0.0), Diopters(4.0)), 4);
+                let layers = linear_blend(&input, &pp.planes).unwrap();
+                let seen = retina_multifocal(&layers, &[q], &eye).unwrap().remove(0);
+                let pm = fovea_psnr(&seen, &truth, SIZE);
+                eprintln!(
+                    "  multifocal: {} planes, predicted {:.1} measured {pm:.2} dB; {}",
+                    pp.planes.len(),
+                    pp.predicted_psnr,
+                    pp.why
+                );
+                mf_cases += 1;
+                mf_met += usize::from(pm >= target.fovea_psnr_db);
+                mf_cost += pp.planes.len() as f64;
+                mf_cost_max += 4.0;
+            }
+        }
+    }
+    let rate = kept as f64 / promised.max(1) as f64;
+    let saved = 1.0 - cost_plan / cost_max;
+    eprintln!(
+        "planner: predicted to meet {:.1} dB in the fovea on {promised}/{cases} frames and met it on {kept} of those ({:.0} %); met it on {met}/{cases} frames in all (always lightfield-48: {best_met}/{cases}); chose {chosen:?}; predicted cost {cost_plan:.1} ms vs {cost_max:.1} ms always lightfield-48 (saves {:.0} %); measured CPU time here {:.2} s vs {:.2} s (saves {:.0} %)",
+        target.fovea_psnr_db,
+        100.0 * rate,
+        100.0 * saved,
+        t_plan,
+        t_max,
+        100.0 * (1.0 - t_plan / t_max)
+    );
+    eprintln!(
+        "multifocal: met the target on {mf_met}/{mf_cases} frames with {mf_cost} planes in all vs {mf_cost_max} always 4 (saves {:.0} %)",
+        100.0 * (1.0 - mf_cost / mf_cost_max)
+    );
+    // The stated fraction: 60 %. Measured when this test was written: 12 of 18 frames
+    // (67 %), all planned as lightfield-12, against 17 of 18 for always lightfield-48. The
+    // table's 10th percentiles would promise about 90 %; that they do not is the model's
+    // weakness: the fovea PSNR of a given disparity spreads with the scene's texture more
+    // than the 8 calibration scenes show, and the table's bins are flattened by the wall-only
+    // frames' floor (see planner::calibration). Frames the plan says no method reaches are
+    // reported above, not counted here.
+    assert!(
+        promised >= cases / 3,
+        "the plan promised the target on only {promised}/{cases} frames"
+    );
+    assert!(
+        rate >= 0.6,
+        "met the target on {kept} of the {promised} frames the plan promised"
+    );
+    assert!(saved > 0.0, "no cost saved: {cost_plan} vs {cost_max} ms");
+}
