@@ -6,6 +6,7 @@
 pub mod arch;
 pub mod cpu;
 pub mod error;
+pub mod gpu;
 pub mod graph;
 pub mod tasks;
 #[cfg(feature = "train")]
