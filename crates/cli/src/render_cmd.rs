@@ -3,7 +3,8 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dioptra_core::{Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
-use dioptra_render::gpu::hardware_adapter_exists;
+use dioptra_net::gpu::load_gpu_net;
+use dioptra_render::gpu::list_adapters;
 use dioptra_render::io::{read_color, read_depth, write_color, DepthUnits};
 use dioptra_render::metrics::quality;
 use dioptra_render::multifocal::{linspace, Layers};
@@ -40,16 +41,7 @@ impl EyeArgs {
     }
     /// The backend the render commands run on (see `--backend`).
     fn backend(&self) -> Result<Box<dyn Backend>> {
-        let name = match (&self.backend, &self.adapter) {
-            (Some(b), _) => b.as_str(),
-            (None, Some(_)) => "gpu",
-            (None, None) if hardware_adapter_exists() => "gpu",
-            (None, None) => "cpu",
-        };
-        if name == "cpu" && self.adapter.is_some() {
-            bail!("--adapter selects a GPU adapter: it needs --backend gpu, not cpu");
-        }
-        Ok(backend_on(name, self.adapter.as_deref())?)
+        choose_backend(self.backend.as_deref(), self.adapter.as_deref())
     }
 
     /// The backend for commands outside the render group: cpu unless asked for.
@@ -59,6 +51,33 @@ impl EyeArgs {
             _ => self.backend(),
         }
     }
+}
+
+/// `--backend NAME` / `--adapter NAME`: without either, gpu when a hardware adapter exists,
+/// else cpu (said on stderr when only a software adapter is there).
+fn choose_backend(backend: Option<&str>, adapter: Option<&str>) -> Result<Box<dyn Backend>> {
+    let name = match (backend, adapter) {
+        (Some(b), _) => b,
+        (None, Some(_)) => "gpu",
+        (None, None) => {
+            let adapters = list_adapters();
+            if adapters.iter().any(|a| !a.software) {
+                "gpu"
+            } else {
+                if let Some(sw) = adapters.first() {
+                    eprintln!(
+                        "dioptra: only a software GPU adapter ({}); rendering on the CPU (--backend gpu uses it anyway)",
+                        sw.name
+                    );
+                }
+                "cpu"
+            }
+        }
+    };
+    if name == "cpu" && adapter.is_some() {
+        bail!("--adapter selects a GPU adapter: it needs --backend gpu, not cpu");
+    }
+    Ok(backend_on(name, adapter)?)
 }
 
 /// An RGB-D input.
@@ -177,8 +196,14 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let b = a.eye.backend()?;
     let t = std::time::Instant::now();
     let out = if a.method.method == "network" {
-        let net = dioptra_net::load_net(a.method.weights.as_deref(), "c1")?;
-        vec![net.defocus(&input, Diopters(a.focus), &a.eye.eye()?)?]
+        let (weights, eye) = (a.method.weights.as_deref(), a.eye.eye()?);
+        if b.name() == "gpu" {
+            let net = load_gpu_net(weights, "c1", a.eye.adapter.as_deref())?;
+            vec![net.defocus(&input, Diopters(a.focus), &eye)?]
+        } else {
+            let net = dioptra_net::load_net(weights, "c1")?;
+            vec![net.defocus(&input, Diopters(a.focus), &eye)?]
+        }
     } else {
         b.defocus(
             &input,
@@ -316,7 +341,12 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
     let layers = match a.method.as_str() {
         "linear" => linear,
         "network" => {
-            let l = dioptra_net::load_net(a.weights.as_deref(), "c4")?.decompose(&input)?;
+            let l = if b.name() == "gpu" {
+                load_gpu_net(a.weights.as_deref(), "c4", a.eye.adapter.as_deref())?
+                    .decompose(&input)?
+            } else {
+                dioptra_net::load_net(a.weights.as_deref(), "c4")?.decompose(&input)?
+            };
             if l.planes != planes {
                 bail!(
                     "the network's planes are {:?}; pass --planes to match",
@@ -690,10 +720,16 @@ pub struct FoveateArgs {
     /// default: what sampling and interpolation lose).
     #[arg(long)]
     reference: Option<PathBuf>,
+    /// Compute backend: cpu or gpu. Default: gpu when a hardware GPU adapter exists, else cpu.
+    #[arg(long)]
+    backend: Option<String>,
+    /// GPU adapter to use (part of its name); implies --backend gpu.
+    #[arg(long)]
+    adapter: Option<String>,
 }
 
 pub fn foveate(a: FoveateArgs) -> Result<()> {
-    use dioptra_render::foveate::{interpolate, log_polar_mask, LogPolar};
+    use dioptra_render::foveate::LogPolar;
     let img = read_color(&a.color)?;
     let (w, h) = (img.width(), img.height());
     let centre = gaze_point(&a.gaze, w, h)?;
@@ -704,17 +740,21 @@ pub fn foveate(a: FoveateArgs) -> Result<()> {
         r_offset: a.r_offset,
         theta_offset: a.theta_offset,
     };
-    let (mask, fraction) = log_polar_mask(w, h, &p)?;
-    let out = interpolate(&img, &mask)?;
+    let b = choose_backend(a.backend.as_deref(), a.adapter.as_deref())?;
+    let t = std::time::Instant::now();
+    let fov = b.foveate(&img, &p)?;
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let (out, mask, fraction) = (fov.image, fov.mask, fov.fraction);
     write_color(&a.out, &out)?;
     if let Some(m) = &a.mask_out {
         let mp = mask.clone();
         write_color(m, &RgbImage::from_planes(mp.clone(), mp.clone(), mp)?)?;
     }
     println!(
-        "sampled {:.2} % of pixels; wrote {}",
+        "sampled {:.2} % of pixels; wrote {} ({ms:.0} ms on the {} backend)",
         fraction * 100.0,
-        a.out.display()
+        a.out.display(),
+        b.name()
     );
     let reference = match &a.reference {
         Some(r) => read_color(r)?,

@@ -195,3 +195,116 @@ fn gpu_backend_matches_cpu_through_the_binary() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn network_and_foveate_run_on_the_gpu_through_the_binary() {
+    let dir = std::env::temp_dir().join(format!("dioptra-cli-gpu-net-{}", std::process::id()));
+    let d = |p: &str| dir.join(p).display().to_string();
+    let (ok, text) = dioptra(&[
+        "sim",
+        "scene",
+        "--seed",
+        "1000003",
+        "--size",
+        "40",
+        "--slices",
+        "1",
+        "--samples",
+        "4",
+        "--lf-grid",
+        "2",
+        "--out",
+        &d(""),
+    ]);
+    assert!(ok, "{text}");
+    // Random C1 and C4 weights: the shipped ones may not exist in this tree.
+    for (name, arch) in [
+        ("c1", dioptra_net::Arch::c1_small()),
+        ("c4", dioptra_net::Arch::preset("c4").unwrap()),
+    ] {
+        let w = dioptra_net::Weights::random(&arch, 5).unwrap();
+        std::fs::write(
+            dir.join(format!("{name}.safetensors")),
+            w.to_bytes().unwrap(),
+        )
+        .unwrap();
+    }
+    let net = |backend: &str, out: &str| {
+        dioptra(&[
+            "render",
+            "--color",
+            &d("color.png"),
+            "--depth",
+            &d("depth.exr"),
+            "--focus",
+            "1.0",
+            "--method",
+            "network",
+            "--weights",
+            &d("c1.safetensors"),
+            "--backend",
+            backend,
+            "--out",
+            &d(out),
+        ])
+    };
+    let (ok, text) = net("gpu", "gpu.exr");
+    if !ok && text.contains("no GPU adapter") {
+        assert!(
+            std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1"),
+            "DIOPTRA_REQUIRE_GPU=1 but: {text}"
+        );
+        eprintln!("skipped: no GPU adapter");
+        std::fs::remove_dir_all(&dir).ok();
+        return;
+    }
+    assert!(ok, "{text}");
+    let (ok, text) = net("cpu", "cpu.exr");
+    assert!(ok, "{text}");
+    let psnr = |a: &str, b: &str| -> f64 {
+        let (ok, text) = dioptra(&["metrics", "--a", &d(a), "--b", &d(b)]);
+        assert!(ok, "{text}");
+        text.lines()
+            .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
+            .unwrap_or(f64::INFINITY)
+    };
+    assert!(psnr("gpu.exr", "cpu.exr") > 60.0);
+    for backend in ["gpu", "cpu"] {
+        let (ok, text) = dioptra(&[
+            "decompose",
+            "--color",
+            &d("color.png"),
+            "--depth",
+            &d("depth.exr"),
+            "--method",
+            "network",
+            "--weights",
+            &d("c4.safetensors"),
+            "--backend",
+            backend,
+            "--out",
+            &d(&format!("layers_{backend}")),
+        ]);
+        assert!(ok, "{text}");
+    }
+    assert!(psnr("layers_gpu/layer_0.80D.exr", "layers_cpu/layer_0.80D.exr") > 60.0);
+    for backend in ["gpu", "cpu"] {
+        let (ok, text) = dioptra(&[
+            "foveate",
+            "--color",
+            &d("color.png"),
+            "--scale",
+            "2",
+            "--backend",
+            backend,
+            "--out",
+            &d(&format!("fov_{backend}.exr")),
+        ]);
+        assert!(
+            ok && text.contains(&format!("on the {backend} backend")),
+            "{text}"
+        );
+    }
+    assert!(psnr("fov_gpu.exr", "fov_cpu.exr") > 60.0);
+    std::fs::remove_dir_all(&dir).ok();
+}

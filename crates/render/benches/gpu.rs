@@ -1,16 +1,19 @@
 //! The GPU backend at 512 x 512 RGB-D (the sim test scene of `--bench methods`): criterion's
 //! wall time per frame includes uploads and readbacks; beside it, printed once per method, the
 //! GPU time from timestamp queries (where the adapter has them), dispatches, submissions and
-//! bytes moved per frame. Without an adapter it says so and measures nothing.
+//! bytes moved per frame. At the end a table of every per-frame method: GPU wall time, GPU
+//! time, dispatches, submissions and bytes moved, and the CPU backend's wall time on the same
+//! input. Without an adapter it says so and measures nothing.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use dioptra_core::{Diopters, EyeModel, Rgbd};
+use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_render::foveate::LogPolar;
 use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::retina::LfView;
-use dioptra_render::{Backend, DefocusMethod, Gpu, LightFieldParams};
+use dioptra_render::{Backend, Cpu, DefocusMethod, Gpu, Layers, LightFieldParams};
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
 use std::hint::black_box;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 fn input() -> Rgbd {
     let cam = Camera::square(EyeModel::default(), 512);
@@ -167,7 +170,117 @@ fn benches(c: &mut Criterion) {
         gpu.quality(black_box(&input.color), &other, None)
             .expect("quality");
     });
+    let fov = LogPolar::centred(512, 512, 2.0);
+    run("foveate_s2", &mut || {
+        gpu.foveate(black_box(&input.color), &fov).expect("foveate");
+    });
     g.finish();
+    table(&gpu, &input, &other, &layers, &views, &fov);
+}
+
+/// Median wall time of `n` calls after one warm-up, milliseconds.
+fn median_ms(n: usize, f: &mut dyn FnMut()) -> f64 {
+    f();
+    let mut t: Vec<f64> = (0..n)
+        .map(|_| {
+            let s = Instant::now();
+            f();
+            s.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t[n / 2]
+}
+
+/// The report table: per method, GPU wall time (uploads and readbacks included), GPU time
+/// from timestamp queries, dispatches, submissions and bytes moved per frame, and the CPU
+/// backend's wall time on the same input (median of 3 each).
+fn table(
+    gpu: &Gpu,
+    input: &Rgbd,
+    other: &RgbImage,
+    layers: &Layers,
+    views: &[LfView],
+    fov: &LogPolar,
+) {
+    let eye = EyeModel::default();
+    let q = [Diopters(1.0)];
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let lf = DefocusMethod::LightField(LightFieldParams {
+        views: 36,
+        mip: true,
+    });
+    type Call<'a> = Box<dyn Fn(&dyn Backend) + 'a>;
+    let methods: Vec<(&str, Call)> = vec![
+        (
+            "gather",
+            Box::new(|b: &dyn Backend| {
+                b.defocus(input, &q, &eye, DefocusMethod::Gather, &|_| {})
+                    .expect("gather");
+            }),
+        ),
+        (
+            "lightfield_36",
+            Box::new(|b: &dyn Backend| {
+                b.defocus(input, &q, &eye, lf, &|_| {}).expect("lightfield");
+            }),
+        ),
+        (
+            "linear_blend_4",
+            Box::new(|b: &dyn Backend| {
+                b.linear_blend(input, &planes).expect("linear");
+            }),
+        ),
+        (
+            "retina_multifocal_per_focus",
+            Box::new(|b: &dyn Backend| {
+                b.retina_multifocal(layers, &q, &eye).expect("retina");
+            }),
+        ),
+        (
+            "retina_varifocal",
+            Box::new(|b: &dyn Backend| {
+                b.retina_varifocal(&input.color, Diopters(2.0), Diopters(1.0), &eye)
+                    .expect("retina");
+            }),
+        ),
+        (
+            "retina_lightfield_5x5",
+            Box::new(|b: &dyn Backend| {
+                b.retina_lightfield(views, 0.001, Diopters(1.0), &eye)
+                    .expect("retina lf");
+            }),
+        ),
+        (
+            "psnr_ssim",
+            Box::new(|b: &dyn Backend| {
+                b.quality(&input.color, other, None).expect("quality");
+            }),
+        ),
+        (
+            "foveate_s2",
+            Box::new(|b: &dyn Backend| {
+                b.foveate(&input.color, fov).expect("foveate");
+            }),
+        ),
+    ];
+    eprintln!();
+    eprintln!("| method (512x512) | GPU wall ms | GPU time ms (timestamps) | dispatches | submissions | MB up | MB down | CPU wall ms |");
+    eprintln!("|---|---|---|---|---|---|---|---|");
+    for (name, call) in &methods {
+        let g = median_ms(3, &mut || call(gpu));
+        let s = gpu.last_stats();
+        let c = median_ms(3, &mut || call(&Cpu));
+        eprintln!(
+            "| {name} | {g:.1} | {} | {} | {} | {:.2} | {:.2} | {c:.1} |",
+            s.gpu_ns
+                .map_or("n/a".to_string(), |ns| format!("{:.1}", ns * 1e-6)),
+            s.dispatches,
+            s.submissions,
+            s.bytes_uploaded as f64 / 1e6,
+            s.bytes_read_back as f64 / 1e6,
+        );
+    }
 }
 
 criterion_group!(gpu_benches, benches);

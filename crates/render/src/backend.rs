@@ -4,6 +4,7 @@
 //! be overridden there too, or it would run on the CPU behind a `--backend gpu`.
 
 use crate::error::{invalid, RenderError};
+use crate::foveate::{interpolate, log_polar_mask, LogPolar};
 use crate::gather::gather;
 use crate::lightfield::{LightFieldParams, LightFieldPrep};
 use crate::metrics::{quality, Quality};
@@ -31,6 +32,16 @@ impl FromStr for DefocusMethod {
             ))),
         }
     }
+}
+
+/// A foveated image: log-polar samples kept, the rest interpolated.
+#[derive(Debug, Clone)]
+pub struct Foveated {
+    pub image: RgbImage,
+    /// 1 where a sample was kept, 0 where the pixel was interpolated.
+    pub mask: Plane,
+    /// Fraction of pixels sampled.
+    pub fraction: f64,
 }
 
 /// Progress callback: called with the number of units (slices, iterations) done.
@@ -128,6 +139,22 @@ pub trait Backend: Send + Sync {
         progress: Progress,
     ) -> Result<Vec<LfView>, RenderError> {
         synthesize_light_field(inputs, grid, span, eye, progress)
+    }
+
+    /// Log-polar sampling of `img` (Thumuluri & Sharma eq. 3-8) and inverse-distance
+    /// interpolation of every other pixel from its four nearest samples (eq. 9).
+    fn foveate(&self, img: &RgbImage, p: &LogPolar) -> Result<Foveated, RenderError> {
+        let (mask, fraction) = log_polar_mask(img.width(), img.height(), p)?;
+        Ok(Foveated {
+            image: interpolate(img, &mask)?,
+            mask,
+            fraction,
+        })
+    }
+
+    /// The interpolation step of [`Backend::foveate`] with a given mask (1 = sampled).
+    fn foveate_interpolate(&self, img: &RgbImage, mask: &Plane) -> Result<RgbImage, RenderError> {
+        interpolate(img, mask)
     }
 
     /// PSNR and SSIM of `a` against `b`, inside `mask` when given.

@@ -17,7 +17,7 @@ pub mod planner;
 pub mod retina;
 pub mod views;
 
-pub use backend::{backend, backend_on, Backend, Cpu, DefocusMethod};
+pub use backend::{backend, backend_on, Backend, Cpu, DefocusMethod, Foveated};
 pub use error::RenderError;
 pub use gpu::{Gpu, GpuError};
 pub use lightfield::LightFieldParams;

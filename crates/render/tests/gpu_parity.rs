@@ -4,6 +4,7 @@
 //! the suite runs in seconds on a software rasteriser.
 
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::foveate::{log_polar_mask, LogPolar};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
 use dioptra_render::retina::LfView;
@@ -400,4 +401,115 @@ fn bad_input_is_an_error() {
         ),
         "{e}"
     );
+}
+
+/// Log-polar masks of a `w` x `h` image: centred at S = 2 and 4, off-centre with K and
+/// per-view offsets, and a sparse random mask (many equidistant samples: the tie rule).
+fn foveation_masks(w: usize, h: usize) -> Vec<(&'static str, Plane)> {
+    let lp = |p: &LogPolar| log_polar_mask(w, h, p).unwrap().0;
+    let mut r = Rng(99);
+    let random: Vec<f32> = (0..w * h)
+        .map(|_| if r.f() < 0.02 { 1.0 } else { 0.0 })
+        .collect();
+    vec![
+        ("S=2 centred", lp(&LogPolar::centred(w, h, 2.0))),
+        ("S=4 centred", lp(&LogPolar::centred(w, h, 4.0))),
+        (
+            "S=3 gaze (10,40), K=1.5, offsets",
+            lp(&LogPolar {
+                centre: [10.0, 40.0],
+                scale: 3.0,
+                kernel: 1.5,
+                r_offset: 1.2,
+                theta_offset: 0.4,
+            }),
+        ),
+        ("2 % random", Plane::from_vec(w, h, random).unwrap()),
+    ]
+}
+
+#[test]
+fn foveated_interpolation_matches_cpu_on_the_same_mask() {
+    let Some(g) = gpu() else { return };
+    let (w, h) = (72, 56);
+    let img = random_image(w, h, 21);
+    for (name, mask) in foveation_masks(w, h) {
+        let c = Cpu.foveate_interpolate(&img, &mask).unwrap();
+        let q = g.foveate_interpolate(&img, &mask).unwrap();
+        // Same four samples (same visiting order, same tie rule, exact integer distances);
+        // only the 1 / d weights' rounding differs.
+        let (max, _) = diff(&c, &q, 1e-4);
+        eprintln!("foveate interpolation {name}: max |gpu - cpu| = {max:e}");
+        assert!(max < 1e-4, "foveate interpolation {name}: {max}");
+    }
+    let s = g.last_stats();
+    assert_eq!(
+        (s.submissions, s.dispatches),
+        (1, 2),
+        "cells and interpolation in one submission"
+    );
+    assert!(g.foveate_interpolate(&img, &Plane::new(w, h, 0.0)).is_err());
+    assert!(g
+        .foveate_interpolate(&img, &Plane::new(w + 1, h, 1.0))
+        .is_err());
+}
+
+#[test]
+fn foveated_sampling_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let (w, h) = (80, 64);
+    let img = scene_rgbd(96).color;
+    let img = RgbImage::from_planes(
+        crop(&img.channels[0], w, h),
+        crop(&img.channels[1], w, h),
+        crop(&img.channels[2], w, h),
+    )
+    .unwrap();
+    for p in [
+        LogPolar::centred(w, h, 2.0),
+        LogPolar {
+            centre: [60.0, 12.5],
+            scale: 4.0,
+            kernel: 1.3,
+            r_offset: 1.1,
+            theta_offset: 0.25,
+        },
+    ] {
+        let c = Cpu.foveate(&img, &p).unwrap();
+        let q = g.foveate(&img, &p).unwrap();
+        // The host computes the transcendental tables exactly as the CPU does; the GPU only
+        // does centre + rho * cos (which it may fuse into one FMA: a 1-ulp difference that
+        // moves a sample only if it lies within 1 ulp of a pixel edge).
+        let moved = c
+            .mask
+            .data()
+            .iter()
+            .zip(q.mask.data())
+            .filter(|(a, b)| a != b)
+            .count();
+        eprintln!(
+            "foveate {p:?}: {moved} mask pixels differ; sampled {:.3} % (cpu {:.3} %)",
+            q.fraction * 100.0,
+            c.fraction * 100.0
+        );
+        assert!(moved <= 2, "{moved} mask pixels differ");
+        // The image is the interpolation of the GPU's own mask.
+        let want = Cpu.foveate_interpolate(&img, &q.mask).unwrap();
+        let (max, _) = diff(&want, &q.image, 1e-4);
+        assert!(max < 1e-4, "foveate {p:?}: {max}");
+    }
+    let s = g.last_stats();
+    assert_eq!((s.submissions, s.dispatches), (1, 3));
+    let bad = LogPolar {
+        scale: 0.0,
+        ..LogPolar::centred(w, h, 2.0)
+    };
+    assert!(g.foveate(&img, &bad).is_err());
+}
+
+fn crop(p: &Plane, w: usize, h: usize) -> Plane {
+    let d: Vec<f32> = (0..w * h)
+        .map(|i| p.data()[(i / w) * p.width() + i % w])
+        .collect();
+    Plane::from_vec(w, h, d).unwrap()
 }

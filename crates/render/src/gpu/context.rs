@@ -41,6 +41,9 @@ pub(crate) enum Kernel {
     ViewResolve,
     FillRows,
     FillCols,
+    FovMask,
+    FovCells,
+    FovInterp,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -51,9 +54,10 @@ const METRICS_WGSL: &str = include_str!("../../shaders/metrics.wgsl");
 const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
 const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
+const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 
 impl Kernel {
-    const ALL: [Kernel; 23] = [
+    const ALL: [Kernel; 26] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -77,6 +81,9 @@ impl Kernel {
         Kernel::ViewResolve,
         Kernel::FillRows,
         Kernel::FillCols,
+        Kernel::FovMask,
+        Kernel::FovCells,
+        Kernel::FovInterp,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -106,6 +113,9 @@ impl Kernel {
             ViewResolve => (VIEWS_WGSL, "resolve", 5, 1),
             FillRows => (VIEWS_WGSL, "fill_rows", 1, 1),
             FillCols => (VIEWS_WGSL, "fill_cols", 1, 1),
+            FovMask => (FOVEATE_WGSL, "mask", 2, 1),
+            FovCells => (FOVEATE_WGSL, "cells", 1, 2),
+            FovInterp => (FOVEATE_WGSL, "interp", 4, 1),
         }
     }
 }
@@ -152,9 +162,22 @@ pub struct AdapterSummary {
 }
 
 type PoolKey = (u64, u32);
+type ShaderPipelines =
+    HashMap<(usize, &'static str), (wgpu::ComputePipeline, wgpu::BindGroupLayout)>;
+
+/// A compute kernel in another crate's WGSL (the network's, for one): the bindings follow
+/// the same convention as this crate's kernels, a uniform at binding 0, then `read_only`
+/// storage buffers, then `read_write` ones.
+#[derive(Debug, Clone, Copy)]
+pub struct ShaderKernel {
+    pub source: &'static str,
+    pub entry: &'static str,
+    pub read_only: u32,
+    pub read_write: u32,
+}
 
 /// A pooled buffer: returned to its pool when the last handle drops.
-pub(crate) struct Buf {
+pub struct Buf {
     pub(crate) buffer: wgpu::Buffer,
     key: PoolKey,
     pool: Arc<Mutex<HashMap<PoolKey, Vec<wgpu::Buffer>>>>,
@@ -172,7 +195,8 @@ impl Drop for Buf {
     }
 }
 
-pub(crate) type BufRef = Arc<Buf>;
+/// A GPU buffer handle (pooled; reused once every handle is dropped).
+pub type BufRef = Arc<Buf>;
 
 pub struct GpuContext {
     pub(crate) device: wgpu::Device,
@@ -183,6 +207,8 @@ pub struct GpuContext {
     timestamp_period: f32,
     pipelines: HashMap<Kernel, (wgpu::ComputePipeline, wgpu::BindGroupLayout)>,
     pool: Arc<Mutex<HashMap<PoolKey, Vec<wgpu::Buffer>>>>,
+    /// Pipelines of other crates' shaders, by (source address, entry point).
+    shader_pipelines: Mutex<ShaderPipelines>,
     lost: Arc<AtomicBool>,
     errors: Arc<Mutex<Vec<String>>>,
 }
@@ -345,6 +371,7 @@ impl GpuContext {
             timestamp_period,
             pipelines,
             pool: Arc::new(Mutex::new(HashMap::new())),
+            shader_pipelines: Mutex::new(HashMap::new()),
             lost,
             errors,
         };
@@ -358,6 +385,67 @@ impl GpuContext {
 
     pub fn has_timestamps(&self) -> bool {
         self.timestamps
+    }
+
+    /// A storage buffer holding `data` that lives as long as its handle, outside any frame
+    /// (weights uploaded once). The copy is queued and lands before the next submission.
+    pub fn upload_resident(&self, what: &str, data: &[f32]) -> Result<BufRef, GpuError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        self.check_size(what, bytes.len() as u64)?;
+        let b = self.acquire(bytes.len() as u64, Frame::STORAGE);
+        if !bytes.is_empty() {
+            self.queue.write_buffer(&b.buffer, 0, bytes);
+        }
+        Ok(b)
+    }
+
+    /// The pipeline of `k`, built on first use (its shader module compiled then).
+    fn shader_pipeline(
+        &self,
+        k: &ShaderKernel,
+    ) -> Result<(wgpu::ComputePipeline, wgpu::BindGroupLayout), GpuError> {
+        if k.read_only + k.read_write > MAX_BINDINGS {
+            return Err(GpuError::Validation(format!(
+                "{} binds {} storage buffers; at most {MAX_BINDINGS}",
+                k.entry,
+                k.read_only + k.read_write
+            )));
+        }
+        let key = (k.source.as_ptr() as usize, k.entry);
+        let mut map = self
+            .shader_pipelines
+            .lock()
+            .map_err(|_| GpuError::Poisoned)?;
+        if let Some(p) = map.get(&key) {
+            return Ok(p.clone());
+        }
+        let module = self
+            .device
+            .create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(k.entry),
+                source: wgpu::ShaderSource::Wgsl(k.source.into()),
+            });
+        let bgl = bind_group_layout(&self.device, k.read_only, k.read_write);
+        let pl = self
+            .device
+            .create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: None,
+                bind_group_layouts: &[Some(&bgl)],
+                immediate_size: 0,
+            });
+        let p = self
+            .device
+            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(k.entry),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some(k.entry),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+        self.take_errors()?;
+        map.insert(key, (p.clone(), bgl.clone()));
+        Ok((p, bgl))
     }
 
     fn take_errors(&self) -> Result<(), GpuError> {
@@ -491,11 +579,11 @@ fn bind_group_layout(device: &wgpu::Device, ro: u32, rw: u32) -> wgpu::BindGroup
 
 /// A readback slot: the bytes arrive when the frame finishes.
 #[derive(Debug, Clone, Copy)]
-pub(crate) struct Readback(usize);
+pub struct Readback(usize);
 
 /// One frame: uploads (queued writes), dispatches and copies recorded into one command
 /// buffer, submitted once, then every readback mapped together.
-pub(crate) struct Frame<'c> {
+pub struct Frame<'c> {
     ctx: &'c GpuContext,
     encoder: wgpu::CommandEncoder,
     held: Vec<BufRef>,
@@ -509,7 +597,7 @@ pub(crate) struct Frame<'c> {
 const MAX_QUERIES: u32 = 512;
 
 impl<'c> Frame<'c> {
-    pub(crate) fn new(ctx: &'c GpuContext) -> Result<Frame<'c>, GpuError> {
+    pub fn new(ctx: &'c GpuContext) -> Result<Frame<'c>, GpuError> {
         ctx.take_errors()?;
         let queries = ctx.timestamps.then(|| {
             ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
@@ -536,11 +624,7 @@ impl<'c> Frame<'c> {
         .union(wgpu::BufferUsages::COPY_SRC);
 
     /// A storage buffer holding `data`.
-    pub(crate) fn upload<T: bytemuck::Pod>(
-        &mut self,
-        what: &str,
-        data: &[T],
-    ) -> Result<BufRef, GpuError> {
+    pub fn upload<T: bytemuck::Pod>(&mut self, what: &str, data: &[T]) -> Result<BufRef, GpuError> {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         self.ctx.check_size(what, bytes.len() as u64)?;
         let b = self.ctx.acquire(bytes.len() as u64, Self::STORAGE);
@@ -553,14 +637,14 @@ impl<'c> Frame<'c> {
     }
 
     /// A storage buffer of `bytes` cleared to zero on the GPU (no transfer).
-    pub(crate) fn zeroed(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
+    pub fn zeroed(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
         let b = self.scratch(what, bytes)?;
         self.encoder.clear_buffer(&b.buffer, 0, None);
         Ok(b)
     }
 
     /// A storage buffer of `bytes` with undefined contents (every element will be written).
-    pub(crate) fn scratch(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
+    pub fn scratch(&mut self, what: &str, bytes: u64) -> Result<BufRef, GpuError> {
         self.ctx.check_size(what, bytes)?;
         let b = self.ctx.acquire(bytes, Self::STORAGE);
         self.held.push(b.clone());
@@ -568,20 +652,13 @@ impl<'c> Frame<'c> {
     }
 
     /// Copies `bytes` from `src` at `src_off` to `dst` at `dst_off`, on the GPU.
-    pub(crate) fn copy(
-        &mut self,
-        src: &BufRef,
-        src_off: u64,
-        dst: &BufRef,
-        dst_off: u64,
-        bytes: u64,
-    ) {
+    pub fn copy(&mut self, src: &BufRef, src_off: u64, dst: &BufRef, dst_off: u64, bytes: u64) {
         self.encoder
             .copy_buffer_to_buffer(&src.buffer, src_off, &dst.buffer, dst_off, bytes);
     }
 
     /// Clears `b` to zero on the GPU.
-    pub(crate) fn clear(&mut self, b: &BufRef) {
+    pub fn clear(&mut self, b: &BufRef) {
         self.encoder.clear_buffer(&b.buffer, 0, None);
     }
 
@@ -598,12 +675,56 @@ impl<'c> Frame<'c> {
             .ctx
             .pipelines
             .get(&kernel)
+            .cloned()
             .ok_or(GpuError::Validation(format!("no pipeline for {kernel:?}")))?;
         let (_, entry, ro, rw) = kernel.spec();
-        if bufs.len() != (ro + rw) as usize {
+        self.record(
+            &pipeline,
+            &bgl,
+            entry,
+            ro + rw,
+            bytemuck::bytes_of(params),
+            bufs,
+            groups,
+        )
+    }
+
+    /// Records a kernel of another crate's shader (see [`ShaderKernel`]): its pipeline is
+    /// built on first use and kept in the context.
+    pub fn dispatch_shader<P: bytemuck::Pod>(
+        &mut self,
+        kernel: &ShaderKernel,
+        params: &P,
+        bufs: &[&BufRef],
+        groups: [u32; 3],
+    ) -> Result<(), GpuError> {
+        let (pipeline, bgl) = self.ctx.shader_pipeline(kernel)?;
+        self.record(
+            &pipeline,
+            &bgl,
+            kernel.entry,
+            kernel.read_only + kernel.read_write,
+            bytemuck::bytes_of(params),
+            bufs,
+            groups,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn record(
+        &mut self,
+        pipeline: &wgpu::ComputePipeline,
+        bgl: &wgpu::BindGroupLayout,
+        entry: &'static str,
+        nbufs: u32,
+        pbytes: &[u8],
+        bufs: &[&BufRef],
+        groups: [u32; 3],
+    ) -> Result<(), GpuError> {
+        if bufs.len() != nbufs as usize {
             return Err(GpuError::Validation(format!(
                 "{entry} takes {} buffers, given {}",
-                ro + rw,
+                nbufs,
                 bufs.len()
             )));
         }
@@ -618,7 +739,6 @@ impl<'c> Frame<'c> {
         if groups.contains(&0) {
             return Ok(());
         }
-        let pbytes: &[u8] = bytemuck::bytes_of(params);
         let u = self.ctx.acquire(
             pbytes.len() as u64,
             wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
@@ -673,7 +793,7 @@ impl<'c> Frame<'c> {
     }
 
     /// Copies the first `bytes` of `b` back to the host when the frame finishes.
-    pub(crate) fn read(&mut self, b: &BufRef, bytes: u64) -> Readback {
+    pub fn read(&mut self, b: &BufRef, bytes: u64) -> Readback {
         let bytes = bytes.div_ceil(4) * 4;
         let staging = self.ctx.acquire(
             bytes,
@@ -689,7 +809,7 @@ impl<'c> Frame<'c> {
     }
 
     /// Submits the frame, waits for it, and returns every readback and the frame's stats.
-    pub(crate) fn finish(mut self) -> Result<(Readbacks, FrameStats), GpuError> {
+    pub fn finish(mut self) -> Result<(Readbacks, FrameStats), GpuError> {
         let n_ts = 2 * self.labels.len() as u64;
         let ts = match (&self.queries, n_ts) {
             (Some(qs), n) if n > 0 => {
@@ -782,10 +902,17 @@ impl<'c> Frame<'c> {
 }
 
 /// The bytes of a finished frame's readbacks.
-pub(crate) struct Readbacks(Vec<Vec<u8>>);
+pub struct Readbacks(Vec<Vec<u8>>);
 
 impl Readbacks {
-    pub(crate) fn f32s(&self, r: Readback) -> Vec<f32> {
+    pub fn u32s(&self, r: Readback) -> Vec<u32> {
+        self.0
+            .get(r.0)
+            .map(|v| bytemuck::pod_collect_to_vec::<u8, u32>(v))
+            .unwrap_or_default()
+    }
+
+    pub fn f32s(&self, r: Readback) -> Vec<f32> {
         self.0
             .get(r.0)
             .map(|v| bytemuck::pod_collect_to_vec::<u8, f32>(v))

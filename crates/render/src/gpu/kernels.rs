@@ -3,9 +3,11 @@
 
 use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, WG, WG1};
 use super::GpuError;
+use crate::backend::Foveated;
 use crate::backend::Progress;
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, mismatch, RenderError};
+use crate::foveate::LogPolar;
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
 use crate::lightfield::{halton_disk, LightFieldParams};
 use crate::metrics::Quality;
@@ -969,4 +971,184 @@ pub(super) fn synthesize_light_field(
         progress(k + 1);
     }
     Ok((out, total))
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct FovP {
+    w: u32,
+    h: u32,
+    rings: u32,
+    angles: u32,
+    cx: f32,
+    cy: f32,
+    gw: u32,
+    gh: u32,
+}
+
+/// Pixels per side of the interpolation search's cells (the CPU's `CELL`).
+const FOV_CELL: u32 = 8;
+
+/// The log-polar tables: rho per ring and (cos, sin) per angle, computed in f32 exactly as
+/// the CPU's mask does (so the GPU's reduced-precision transcendentals never move a sample),
+/// after the CPU's parameter checks.
+fn log_polar_tables(
+    w: usize,
+    h: usize,
+    p: &LogPolar,
+) -> Result<(Vec<f32>, Vec<[f32; 2]>), RenderError> {
+    if w == 0 || h == 0 {
+        return Err(invalid("mask size is empty"));
+    }
+    let finite = [
+        p.centre[0],
+        p.centre[1],
+        p.scale,
+        p.kernel,
+        p.r_offset,
+        p.theta_offset,
+    ]
+    .iter()
+    .all(|v| v.is_finite());
+    if !finite || p.scale < 0.05 || p.kernel <= 0.0 || p.r_offset <= 0.0 {
+        return Err(invalid(format!(
+            "log-polar parameters {p:?} are invalid: need finite values, S >= 0.05, K > 0, r' > 0"
+        )));
+    }
+    let corners = [
+        [0.0, 0.0],
+        [w as f32, 0.0],
+        [0.0, h as f32],
+        [w as f32, h as f32],
+    ];
+    let l = corners
+        .iter()
+        .map(|c| (c[0] - p.centre[0]).hypot(c[1] - p.centre[1]))
+        .fold(1.0f32, f32::max);
+    let rr = (w as f32 / p.scale).round().clamp(1.0, 1e5) as usize;
+    let rho = (0..rr)
+        .map(|r| p.r_offset * ((r as f32).powf(1.0 / p.kernel) * l.ln() / rr as f32).exp())
+        .collect();
+    let dir = (0..rr)
+        .map(|t| {
+            let a = std::f32::consts::TAU * t as f32 / rr as f32 + p.theta_offset;
+            [a.cos(), a.sin()]
+        })
+        .collect();
+    Ok((rho, dir))
+}
+
+/// Where a foveation frame's sampling mask comes from.
+enum MaskFrom<'a> {
+    LogPolar(&'a LogPolar),
+    Given(&'a Plane),
+}
+
+/// One frame: (mask), cell lists, interpolation; returns the image and the mask (1 = sampled).
+fn foveate_frame(ctx: &GpuContext, img: &RgbImage, from: MaskFrom) -> Out<(RgbImage, Vec<u32>)> {
+    let (w, h) = (img.width(), img.height());
+    if w == 0 || h == 0 {
+        return Err(invalid("image is empty"));
+    }
+    if w > 1 << 15 || h > 1 << 15 {
+        return Err(invalid(format!(
+            "{w}x{h} is too large for GPU foveation (at most 32768 per side)"
+        )));
+    }
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let n = (w * h) as u64;
+    let (gw, gh) = (wu.div_ceil(FOV_CELL), hu.div_ceil(FOV_CELL));
+    let mut p = FovP {
+        w: wu,
+        h: hu,
+        rings: 0,
+        angles: 0,
+        cx: 0.0,
+        cy: 0.0,
+        gw,
+        gh,
+    };
+    let mut f = Frame::new(ctx)?;
+    let image_buf = f.upload("colour image", &planar(img))?;
+    let mask = match from {
+        MaskFrom::LogPolar(lp) => {
+            let (rho, dir) = log_polar_tables(w, h, lp)?;
+            p.rings = dim(rho.len(), "rings")?;
+            p.angles = dim(dir.len(), "angles")?;
+            p.cx = lp.centre[0];
+            p.cy = lp.centre[1];
+            let rb = f.upload("log-polar radii", &rho)?;
+            let db = f.upload("log-polar directions", &dir)?;
+            let m = f.zeroed("sampling mask", 4 * n)?;
+            f.dispatch(
+                Kernel::FovMask,
+                &p,
+                &[&rb, &db, &m],
+                groups2(p.angles, p.rings, 1),
+            )?;
+            m
+        }
+        MaskFrom::Given(m) => {
+            if (m.width(), m.height()) != (w, h) {
+                return Err(mismatch(format!(
+                    "mask is {}x{} but the image is {w}x{h}",
+                    m.width(),
+                    m.height()
+                )));
+            }
+            let bits: Vec<u32> = m.data().iter().map(|&v| (v > 0.5) as u32).collect();
+            if !bits.contains(&1) {
+                return Err(invalid("the mask samples no pixel"));
+            }
+            f.upload("sampling mask", &bits)?
+        }
+    };
+    let ncell = (gw * gh) as u64;
+    let counts = f.scratch("cell counts", 4 * ncell)?;
+    let entries = f.scratch("cell samples", 4 * 64 * ncell)?;
+    f.dispatch(
+        Kernel::FovCells,
+        &p,
+        &[&mask, &counts, &entries],
+        [gw, gh, 1],
+    )?;
+    let dst = f.scratch("output image", 12 * n)?;
+    f.dispatch(
+        Kernel::FovInterp,
+        &p,
+        &[&image_buf, &mask, &counts, &entries, &dst],
+        groups2(wu, hu, 1),
+    )?;
+    let ro = f.read(&dst, 12 * n);
+    let rm = f.read(&mask, 4 * n);
+    let (rb, s) = f.finish()?;
+    let bits = rb.u32s(rm);
+    if !bits.contains(&1) {
+        // The CPU's interpolation refuses an empty mask too.
+        return Err(invalid("the mask samples no pixel"));
+    }
+    Ok(((image(&rb.f32s(ro), w, h)?, bits), s))
+}
+
+/// Log-polar sampling and interpolation in one frame: the interpolated image, the mask and
+/// the fraction of pixels sampled.
+pub(super) fn foveate(ctx: &GpuContext, img: &RgbImage, p: &LogPolar) -> Out<Foveated> {
+    let (w, h) = (img.width(), img.height());
+    let ((out, bits), s) = foveate_frame(ctx, img, MaskFrom::LogPolar(p))?;
+    let sampled = bits.iter().filter(|&&b| b != 0).count();
+    let mask = Plane::from_vec(w, h, bits.iter().map(|&b| b as f32).collect())?;
+    Ok((
+        Foveated {
+            image: out,
+            mask,
+            fraction: sampled as f64 / (w * h) as f64,
+        },
+        s,
+    ))
+}
+
+/// Inverse-distance interpolation of the pixels `mask` leaves out.
+pub(super) fn interpolate(ctx: &GpuContext, img: &RgbImage, mask: &Plane) -> Out<RgbImage> {
+    let ((out, _), s) = foveate_frame(ctx, img, MaskFrom::Given(mask))?;
+    Ok((out, s))
 }

@@ -5,10 +5,14 @@
 mod context;
 mod kernels;
 
-pub use context::{hardware_adapter_exists, list_adapters, AdapterSummary, FrameStats, GpuContext};
+pub use context::{
+    hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
+    GpuContext, Readback, Readbacks, ShaderKernel,
+};
 
-use crate::backend::{Backend, DefocusMethod, Progress};
+use crate::backend::{Backend, DefocusMethod, Foveated, Progress};
 use crate::error::RenderError;
+use crate::foveate::LogPolar;
 use crate::metrics::Quality;
 use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
@@ -167,6 +171,18 @@ impl Backend for Gpu {
     ) -> Result<Vec<LfView>, RenderError> {
         let (out, s) =
             kernels::synthesize_light_field(&self.ctx, inputs, grid, span, eye, progress)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn foveate(&self, img: &RgbImage, p: &LogPolar) -> Result<Foveated, RenderError> {
+        let (out, s) = kernels::foveate(&self.ctx, img, p)?;
+        self.record(s);
+        Ok(out)
+    }
+
+    fn foveate_interpolate(&self, img: &RgbImage, mask: &Plane) -> Result<RgbImage, RenderError> {
+        let (out, s) = kernels::interpolate(&self.ctx, img, mask)?;
         self.record(s);
         Ok(out)
     }

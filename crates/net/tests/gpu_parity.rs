@@ -1,0 +1,189 @@
+//! GPU against CPU inference: the C1 architecture at interleave rates 1, 2 and 4 and the C4
+//! architecture, random weights (biases too) and random inputs, compared per value. Without
+//! an adapter each test prints "skipped: no GPU adapter" and returns; with
+//! DIOPTRA_REQUIRE_GPU=1 (set by .ci/run) it fails instead. Sizes are small (lavapipe) and
+//! not multiples of the rate, so padding and cropping are exercised.
+
+use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_net::gpu::GpuNet;
+use dioptra_net::weights::SplitMix;
+use dioptra_net::{Act, Arch, CpuNet, Weights};
+use dioptra_render::GpuError;
+
+fn gpu_ok() -> bool {
+    match dioptra_render::gpu::GpuContext::shared(None) {
+        Ok(_) => true,
+        Err(GpuError::NoAdapter) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+            eprintln!("skipped: no GPU adapter");
+            false
+        }
+        Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1) or failed to open: {e}"),
+    }
+}
+
+/// Random weights with random biases (Weights::random leaves them at zero).
+fn weights(arch: &Arch, seed: u64) -> Weights {
+    let mut w = Weights::random(arch, seed).unwrap();
+    let mut r = SplitMix(seed ^ 0xb1a5);
+    for c in &mut w.convs {
+        for b in &mut c.bias {
+            *b = 0.1 * r.uniform();
+        }
+    }
+    w
+}
+
+fn random_act(h: usize, w: usize, c: usize, seed: u64) -> Act {
+    let mut r = SplitMix(seed);
+    Act::new(h, w, c, (0..h * w * c).map(|_| r.uniform()).collect()).unwrap()
+}
+
+fn max_diff(a: &Act, b: &Act) -> f32 {
+    assert_eq!((a.h, a.w, a.c), (b.h, b.w, b.c));
+    a.data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| {
+            assert!(y.is_finite(), "non-finite GPU value");
+            (x - y).abs()
+        })
+        .fold(0.0, f32::max)
+}
+
+#[test]
+fn c1_at_every_rate_and_c4_match_cpu() {
+    if !gpu_ok() {
+        return;
+    }
+    let c4 = Arch::preset("c4").unwrap();
+    let cases = [
+        (
+            "c1 r=1",
+            Arch {
+                rate: 1,
+                ..Arch::c1_small()
+            },
+            21,
+            18,
+        ),
+        ("c1 r=2", Arch::c1_small(), 37, 30),
+        (
+            "c1 r=4",
+            Arch {
+                rate: 4,
+                ..Arch::c1_small()
+            },
+            45,
+            38,
+        ),
+        ("c4 r=2", c4, 33, 26),
+    ];
+    for (i, (name, arch, w, h)) in cases.into_iter().enumerate() {
+        let wts = weights(&arch, 10 + i as u64);
+        let cpu = CpuNet::new(wts.clone()).unwrap();
+        let gpu = GpuNet::new(wts, None).unwrap();
+        // Inputs in [-1, 1): wider than real images, so the ELU and tanh both see both signs.
+        let x = random_act(h, w, arch.in_channels(), 100 + i as u64);
+        let want = cpu.forward(&x).unwrap();
+        let got = gpu.forward(&x).unwrap();
+        let err = max_diff(&want, &got);
+        // Same graph and operations; only the summation order of each 3x3xC dot product
+        // differs (GEMM on the CPU, 8-channel chunks on the GPU): f32 rounding, ~1e-6.
+        eprintln!("{name} {w}x{h}: max |gpu - cpu| = {err:e}");
+        assert!(err < 1e-3, "{name}: {err}");
+        let s = gpu.last_stats();
+        eprintln!(
+            "{name}: {} dispatches, {} submissions, {} B up, {} B down",
+            s.dispatches, s.submissions, s.bytes_uploaded, s.bytes_read_back
+        );
+        assert_eq!(s.submissions, 1, "one submission per forward pass");
+        // Interleave, 8 convolutions, 3 residual adds, tanh, de-interleave.
+        assert_eq!(s.dispatches, 14, "{name}");
+        // One readback: the output only.
+        let out_bytes = 4
+            * (h.div_ceil(arch.rate) * arch.rate)
+            * (w.div_ceil(arch.rate) * arch.rate)
+            * arch.out_channels();
+        assert_eq!(s.bytes_read_back, out_bytes as u64, "{name}");
+    }
+}
+
+#[test]
+fn concatenated_input_matches_cpu() {
+    if !gpu_ok() {
+        return;
+    }
+    // C5's wiring (the interleaved input concatenated before the last layer), kept small.
+    let arch = Arch {
+        layers: 4,
+        channels: 8,
+        ..Arch::preset("c5").unwrap()
+    };
+    let wts = weights(&arch, 7);
+    let cpu = CpuNet::new(wts.clone()).unwrap();
+    let gpu = GpuNet::new(wts, None).unwrap();
+    let x = random_act(10, 14, arch.in_channels(), 8);
+    let err = max_diff(&cpu.forward(&x).unwrap(), &gpu.forward(&x).unwrap());
+    eprintln!("c5-like 14x10: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "{err}");
+}
+
+fn rgbd(w: usize, h: usize, seed: u64) -> Rgbd {
+    let mut r = SplitMix(seed);
+    let c: Vec<f32> = (0..w * h * 3).map(|_| 0.5 + 0.5 * r.uniform()).collect();
+    let d: Vec<f32> = (0..w * h).map(|_| 1.5 + 1.5 * r.uniform()).collect();
+    Rgbd::new(
+        RgbImage::from_interleaved(w, h, &c).unwrap(),
+        DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn defocus_and_decompose_match_cpu_and_refuse_bad_input() {
+    if !gpu_ok() {
+        return;
+    }
+    let input = rgbd(30, 22, 3);
+    let eye = EyeModel::default();
+    let c1 = weights(&Arch::c1_small(), 1);
+    let (cpu, gpu) = (
+        CpuNet::new(c1.clone()).unwrap(),
+        GpuNet::new(c1, None).unwrap(),
+    );
+    let a = cpu.defocus(&input, Diopters(1.0), &eye).unwrap();
+    let b = gpu.defocus(&input, Diopters(1.0), &eye).unwrap();
+    for c in 0..3 {
+        let err = a.channels[c]
+            .data()
+            .iter()
+            .zip(b.channels[c].data())
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        assert!(err < 1e-3, "defocus channel {c}: {err}");
+    }
+    assert!(gpu.decompose(&input).is_err(), "a C1 net cannot decompose");
+    assert!(
+        gpu.forward(&random_act(8, 8, 4, 1)).is_err(),
+        "C1 takes 5 channels"
+    );
+    let c4 = weights(&Arch::preset("c4").unwrap(), 2);
+    let (cpu, gpu) = (
+        CpuNet::new(c4.clone()).unwrap(),
+        GpuNet::new(c4, None).unwrap(),
+    );
+    let a = cpu.decompose(&input).unwrap();
+    let b = gpu.decompose(&input).unwrap();
+    assert_eq!(a.planes, b.planes);
+    for (la, lb) in a.images.iter().zip(&b.images) {
+        for c in 0..3 {
+            let err = la.channels[c]
+                .data()
+                .iter()
+                .zip(lb.channels[c].data())
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f32::max);
+            assert!(err < 1e-3, "decompose: {err}");
+        }
+    }
+}
