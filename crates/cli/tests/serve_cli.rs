@@ -155,3 +155,82 @@ fn serve_refuses_a_bad_config_naming_the_key() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot read the rig config"), "{err}");
 }
+
+/// `dioptra serve` with the example rig edited by `edit`, run to exit (it must fail to start).
+fn serve_fails(
+    dir: &Path,
+    edit: impl Fn(String) -> String,
+    env: &[(&str, Option<&str>)],
+) -> String {
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, edit(RIG.replace("127.0.0.1:7420", "127.0.0.1:0"))).unwrap();
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_dioptra"));
+    cmd.args(["serve", "--config"]).arg(&path);
+    for (k, v) in env {
+        match v {
+            Some(v) => cmd.env(k, v),
+            None => cmd.env_remove(k),
+        };
+    }
+    let out = cmd.output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "serve started: {err}");
+    assert!(!err.contains("panicked"), "{err}");
+    err
+}
+
+fn window_rig(text: String) -> String {
+    text.replace(
+        "kind = \"headless\"",
+        "kind = \"window\"\nmonitor = \"HDMI-1\"",
+    )
+}
+
+#[test]
+fn the_window_sink_without_a_display_fails_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let no_display = [
+        ("DISPLAY", None),
+        ("WAYLAND_DISPLAY", None),
+        ("WAYLAND_SOCKET", None),
+    ];
+    let err = serve_fails(dir.path(), window_rig, &no_display);
+    assert!(
+        err.contains(
+            "no display: set DISPLAY/WAYLAND_DISPLAY or use [display] kind = \"headless\""
+        ),
+        "{err}"
+    );
+    // A display named but not there: winit's own failure, said as an error, not a panic.
+    let gone = [
+        ("DISPLAY", Some(":87")),
+        ("WAYLAND_DISPLAY", None),
+        ("WAYLAND_SOCKET", None),
+    ];
+    let err = serve_fails(dir.path(), window_rig, &gone);
+    assert!(err.contains("cannot open the display"), "{err}");
+    assert!(err.contains("kind = \"headless\""), "{err}");
+}
+
+#[test]
+fn the_network_method_without_weights_names_the_missing_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    let err = serve_fails(
+        dir.path(),
+        |t| {
+            t.replace("method = \"gather\"", "method = \"network\"")
+                + &format!(
+                    "\n[render]\nweights = {:?}\n",
+                    weights.display().to_string()
+                )
+        },
+        &[],
+    );
+    let file = weights.join("c1.safetensors");
+    assert!(
+        err.contains(&format!("{} does not exist", file.display())),
+        "{err}"
+    );
+    assert!(err.contains("render.weights"), "{err}");
+}

@@ -207,7 +207,8 @@ async fn set_method(
         )
         .at("method")
     })?;
-    if let Some(why) = method.unavailable() {
+    let mode = super::devices::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    if let Some(why) = method.unavailable(mode) {
         return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at("method"));
     }
     s.control(Control::Method(method)).await?;

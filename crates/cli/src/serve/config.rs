@@ -109,8 +109,8 @@ impl From<Method> for String {
 }
 
 /// The methods the daemon renders.
-pub const RENDERED: &str =
-    "gather or lightfield-defocus (varifocal), linear or optimized (multifocal), views (light field)";
+pub const RENDERED: &str = "gather, lightfield-defocus or network (varifocal), linear, optimized \
+     or network (multifocal), views (light field)";
 
 /// Every method's name, for messages.
 pub fn methods() -> String {
@@ -132,11 +132,12 @@ impl Method {
     pub fn fits(self, mode: Mode) -> bool {
         self.0.suits(mode.sched())
     }
-    /// Why the daemon cannot render with this method, if it cannot.
-    pub fn unavailable(self) -> Option<String> {
-        match self.0 {
-            RenderMethod::Network => Some(format!(
-                "{} is not rendered by `dioptra serve` yet; use {}",
+    /// Why the daemon cannot render with this method in `mode`, if it cannot (the network's
+    /// weights are checked when the daemon starts: [`super::render::Renderer::new`]).
+    pub fn unavailable(self, mode: Mode) -> Option<String> {
+        match (self.0, mode) {
+            (RenderMethod::Network, Mode::Lightfield) => Some(format!(
+                "{} in lightfield mode (C5 views) is not rendered by `dioptra serve`; use {}",
                 self.as_str(),
                 RENDERED
             )),
@@ -318,13 +319,18 @@ impl Default for Eye {
 pub enum SinkKind {
     /// Frame timing (and optionally PNGs) recorded, nothing shown: tests, CI.
     Headless,
+    /// A borderless fullscreen window on `display.monitor`, vsync (rigs).
+    Window,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Display {
-    #[serde(default = "default_sink")]
-    pub sink: SinkKind,
+    /// `headless` or `window` (`sink` is the older name of this key).
+    #[serde(default = "default_sink", alias = "sink")]
+    pub kind: SinkKind,
+    /// The window's monitor: a name such as "HDMI-1" or an index; default the primary.
+    pub monitor: Option<super::window::MonitorChoice>,
     #[serde(default = "default_size")]
     pub width: u32,
     #[serde(default = "default_size")]
@@ -345,7 +351,8 @@ pub struct Display {
 impl Default for Display {
     fn default() -> Self {
         Display {
-            sink: default_sink(),
+            kind: default_sink(),
+            monitor: None,
             width: default_size(),
             height: default_size(),
             frame_hz: default_frame_hz(),
@@ -415,6 +422,27 @@ pub struct RigConfig {
     /// frame pacing uses.
     #[serde(skip)]
     pub auto_method: bool,
+    #[serde(default)]
+    pub render: Render,
+}
+
+/// Render settings.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Render {
+    /// Directory of the network's weights for `method = "network"`: `c1.safetensors`
+    /// (varifocal) and `c4.safetensors` (multifocal). Default: the shipped crates/net/weights.
+    pub weights: Option<PathBuf>,
+}
+
+impl Render {
+    /// The weights file of network configuration `config` (`c1`, `c4`).
+    pub fn weights_file(&self, config: &str) -> PathBuf {
+        match &self.weights {
+            Some(dir) => dir.join(format!("{config}.safetensors")),
+            None => dioptra_net::shipped_weights(config),
+        }
+    }
 }
 
 fn default_settle_ms() -> f64 {
@@ -643,7 +671,7 @@ impl RigConfig {
                 ),
             ));
         }
-        if let Some(why) = self.method.unavailable() {
+        if let Some(why) = self.method.unavailable(self.mode) {
             return Err(invalid("method", why));
         }
         let e = &self.eye;
@@ -666,6 +694,12 @@ impl RigConfig {
         }
         if !(d.frame_hz.is_finite() && (1.0..=1000.0).contains(&d.frame_hz)) {
             return Err(invalid("display.frame_hz", "expected 1 to 1000 Hz"));
+        }
+        if d.monitor.is_some() && d.kind != SinkKind::Window {
+            return Err(invalid(
+                "display.monitor",
+                "a monitor is chosen only for the window: set display.kind = \"window\" or remove it",
+            ));
         }
         if d.png_every > 0 && d.png_dir.is_none() {
             return Err(invalid(
@@ -861,6 +895,42 @@ pub(crate) mod tests {
     fn toml_syntax_errors_say_where() {
         let e = err("mode = varifocal");
         assert!(e.to_string().contains("line 1"), "{e}");
+    }
+
+    #[test]
+    fn the_display_kind_and_monitor_parse() {
+        use super::super::window::MonitorChoice;
+        let win = |extra: &str| {
+            RigConfig::parse(&SIM_RIG.replace(
+                "kind = \"headless\"",
+                &format!("kind = \"window\"\n{extra}"),
+            ))
+        };
+        let c = win("monitor = \"HDMI-1\"").unwrap();
+        assert_eq!(c.display.kind, SinkKind::Window);
+        assert_eq!(
+            c.display.monitor,
+            Some(MonitorChoice::Name("HDMI-1".into()))
+        );
+        let c = win("monitor = 1").unwrap();
+        assert_eq!(c.display.monitor, Some(MonitorChoice::Index(1)));
+        assert_eq!(win("").unwrap().display.monitor, None);
+        let e = win("monitor = 1.5").unwrap_err();
+        assert_eq!(e.key(), "display.monitor", "{e}");
+        assert!(e.to_string().contains("a monitor name such as"), "{e}");
+        let e = err(&SIM_RIG.replace("kind = \"headless\"", "kind = \"screen\""));
+        assert_eq!(e.key(), "display.kind", "{e}");
+        assert!(
+            e.to_string().contains("expected `headless` or `window`"),
+            "{e}"
+        );
+        // A monitor without the window is a mistake worth naming.
+        let e = err(&SIM_RIG.replace("kind = \"headless\"", "kind = \"headless\"\nmonitor = 0"));
+        assert_eq!(e.key(), "display.monitor", "{e}");
+        // The older key name still reads.
+        let c =
+            RigConfig::parse(&SIM_RIG.replace("kind = \"headless\"", "sink = \"window\"")).unwrap();
+        assert_eq!(c.display.kind, SinkKind::Window);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! Display output behind [`DisplaySink`]. [`HeadlessSink`] records each frame's timing (and
-//! writes every Nth frame as PNG) for tests and CI. A fullscreen window sink (winit with a wgpu
-//! surface, vsync, on a chosen monitor) implements the same trait once the GPU context lands.
+//! writes every Nth frame as PNG) for tests and CI; the rig's fullscreen window
+//! ([`super::window::WindowSink`]: winit with a wgpu surface, vsync, on a chosen monitor)
+//! implements the same trait.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
@@ -22,6 +23,8 @@ pub enum DisplayError {
         path: PathBuf,
         detail: String,
     },
+    #[error("the display window: {0}")]
+    Window(String),
 }
 
 /// A rendered frame: one image (varifocal, light field) or one per focal plane (multifocal).
@@ -30,7 +33,8 @@ pub struct Frame {
     pub number: u64,
     /// The focus it was rendered for.
     pub focus: Diopters,
-    pub layers: Vec<RgbImage>,
+    /// Shared, so a sink can hand the frame to another thread without copying the images.
+    pub layers: std::sync::Arc<Vec<RgbImage>>,
 }
 
 /// When a frame was shown.
@@ -183,7 +187,7 @@ mod tests {
             let f = Frame {
                 number: n,
                 focus: Diopters(1.0),
-                layers: vec![RgbImage::new(8, 8, [0.5, 0.25, 0.0])],
+                layers: vec![RgbImage::new(8, 8, [0.5, 0.25, 0.0])].into(),
             };
             let t = s.present(&f, Timestamp(n * 1000)).unwrap();
             assert_eq!(t, Timestamp(n * 1000));

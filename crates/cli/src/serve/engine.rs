@@ -55,6 +55,8 @@ pub fn reason_name(r: dioptra_sched::FocusReason) -> String {
 pub struct Engine {
     sched: Scheduler,
     depth: Arc<DepthMap>,
+    /// Modes the network cannot render in, and why (its weights did not load).
+    network_missing: Vec<(Mode, String)>,
 }
 
 impl std::fmt::Debug for Engine {
@@ -107,7 +109,24 @@ impl Engine {
         Ok(Engine {
             sched,
             depth: Arc::new(scene.depth.clone()),
+            network_missing: Vec::new(),
         })
+    }
+
+    /// Tells the engine in which modes the network cannot render (from
+    /// [`super::render::Renderer::network_missing`]), so that the API refuses to switch to it.
+    pub fn set_network_missing(&mut self, missing: Vec<(Mode, String)>) {
+        self.network_missing = missing;
+    }
+
+    fn network_missing(&self, mode: Mode, method: Method) -> Option<String> {
+        if method.0 != RenderMethod::Network {
+            return None;
+        }
+        self.network_missing
+            .iter()
+            .find(|(m, _)| *m == mode)
+            .map(|(_, why)| why.clone())
     }
 
     pub fn mode(&self) -> Mode {
@@ -151,6 +170,12 @@ impl Engine {
                             Method::for_mode(self.mode())
                         ));
                     }
+                    if let Some(why) = m
+                        .unavailable(self.mode())
+                        .or_else(|| self.network_missing(self.mode(), m))
+                    {
+                        return Err(why);
+                    }
                     Event::SetMethod(m.0)
                 }
                 Control::Mode(m) => {
@@ -159,7 +184,10 @@ impl Engine {
                     } else {
                         Method(RenderMethod::default_for(m.sched()))
                     };
-                    if let Some(why) = method.unavailable() {
+                    if let Some(why) = method
+                        .unavailable(m)
+                        .or_else(|| self.network_missing(m, method))
+                    {
                         return Err(format!(
                             "{} mode would render with {}, and {why}",
                             m.as_str(),

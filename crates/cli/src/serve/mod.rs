@@ -6,6 +6,11 @@
 //! ([`api`]). Everything stops through one [`CancellationToken`] (Ctrl-C or `POST
 //! /shutdown`): the lens task parks the lens at `devices.lens.park_power`, the sync task stops
 //! the sequence, and the recording is finished, before [`Daemon::wait`] returns.
+//!
+//! Threads: with the headless sink the tokio runtime runs on the main thread. With
+//! `display.kind = "window"` the main thread belongs to winit's event loop
+//! ([`window::run_on_main_thread`]) and the runtime runs on a thread of its own; closing the
+//! window cancels the daemon as Ctrl-C does.
 
 pub mod api;
 pub mod config;
@@ -14,6 +19,7 @@ pub mod display;
 pub mod engine;
 pub mod recording;
 pub mod render;
+pub mod window;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -47,21 +53,52 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let cfg = RigConfig::load(&args.config)
         .with_context(|| format!("in the rig config {}", args.config.display()))?;
+    let stop = CancellationToken::new();
+    match cfg.display.kind {
+        config::SinkKind::Headless => serve_blocking(cfg, None, stop),
+        // The window's event loop takes this (the main) thread; the daemon runs on another.
+        config::SinkKind::Window => {
+            let choice = cfg.display.monitor.clone();
+            window::run_on_main_thread(choice, stop.clone(), move |ready| {
+                serve_blocking(cfg, Some(ready), stop)
+            })
+        }
+    }
+}
+
+/// Runs the daemon on a tokio runtime until Ctrl-C, `POST /shutdown` or `stop`.
+fn serve_blocking(
+    cfg: RigConfig,
+    window: Option<window::WindowReady>,
+    stop: CancellationToken,
+) -> Result<()> {
+    let sink: Option<Box<dyn DisplaySink>> = match window {
+        Some(w) => Some(Box::new(
+            window::WindowSink::new(w.window, w.monitor)
+                .context("cannot draw to the display window")?,
+        )),
+        None => None,
+    };
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?
         .block_on(async {
-            let daemon = Daemon::start(cfg).await?;
+            let daemon = Daemon::start_with(cfg, None, sink).await?;
             match daemon.listening() {
                 Listening::Tcp(a) => eprintln!("dioptra serve: API on http://{a}"),
                 Listening::Unix(p) => eprintln!("dioptra serve: API on unix:{}", p.display()),
             }
+            let status = daemon.shared().status_json();
+            eprintln!("dioptra serve: display {}", status["display"]["sink"]);
             let cancel = daemon.cancel_token();
             tokio::spawn(async move {
-                if tokio::signal::ctrl_c().await.is_ok() {
-                    eprintln!("dioptra serve: stopping (Ctrl-C)");
-                    cancel.cancel();
+                tokio::select! {
+                    r = tokio::signal::ctrl_c() => if r.is_ok() {
+                        eprintln!("dioptra serve: stopping (Ctrl-C)");
+                    },
+                    _ = stop.cancelled() => eprintln!("dioptra serve: stopping (window closed)"),
                 }
+                cancel.cancel();
             });
             let shared = daemon.shared().clone();
             let report = daemon.wait().await;
@@ -355,13 +392,23 @@ impl ShutdownReport {
 }
 
 impl Daemon {
-    /// Starts every task; the API is listening when this returns.
+    /// Starts every task with tokio's clock and the headless sink; the API is listening when
+    /// this returns.
+    #[cfg(test)]
     pub async fn start(cfg: RigConfig) -> Result<Daemon> {
-        let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
-        Self::start_with_clock(cfg, clock).await
+        Self::start_with(cfg, None, None).await
     }
 
-    pub async fn start_with_clock(cfg: RigConfig, clock: Arc<dyn Clock>) -> Result<Daemon> {
+    /// Starts every task with `clock` (default tokio's) and `sink` (default the one
+    /// `display.kind` names; the window sink has to be given, made from the window the main
+    /// thread opened). The API is listening when this returns.
+    pub async fn start_with(
+        cfg: RigConfig,
+        clock: Option<Arc<dyn Clock>>,
+        sink: Option<Box<dyn DisplaySink>>,
+    ) -> Result<Daemon> {
+        let clock: Arc<dyn Clock> =
+            clock.unwrap_or_else(|| Arc::new(dioptra_sim::tokio_clock::TokioClock::new()));
         cfg.validate()?;
         let listen = cfg.listen()?;
         let cancel = CancellationToken::new();
@@ -375,14 +422,26 @@ impl Daemon {
                 .context("the scene renderer's thread failed")?
                 .context("cannot render the scene the display shows")?
         };
-        let engine = Engine::new(&cfg, renderer.input())
+        let mut engine = Engine::new(&cfg, renderer.input())
             .map_err(anyhow::Error::msg)
             .context("cannot start the scheduler")?;
-        let sink: Box<dyn DisplaySink> = match cfg.display.sink {
-            config::SinkKind::Headless => Box::new(HeadlessSink::new(
+        let network_missing = renderer.network_missing();
+        if cfg.method.0 == dioptra_sched::RenderMethod::Network {
+            if let Some((_, why)) = network_missing.iter().find(|(m, _)| *m == cfg.mode) {
+                anyhow::bail!("method = \"network\" in {} mode: {why}", cfg.mode.as_str());
+            }
+        }
+        engine.set_network_missing(network_missing);
+        let sink: Box<dyn DisplaySink> = match (sink, cfg.display.kind) {
+            (Some(s), _) => s,
+            (None, config::SinkKind::Headless) => Box::new(HeadlessSink::new(
                 cfg.display.png_every,
                 cfg.display.png_dir.clone(),
             )?),
+            (None, config::SinkKind::Window) => anyhow::bail!(
+                "display.kind = \"window\": the window is opened by `dioptra serve` on the main \
+                 thread and its sink handed to the daemon"
+            ),
         };
         let shared = Arc::new(Shared {
             registry: registry.clone(),
@@ -896,10 +955,10 @@ impl Executor<'_> {
                 }
                 self.frames.push_back(Frame {
                     number: done.frame,
+                    layers: Arc::new(layers),
                     focus: done
                         .focus
                         .unwrap_or(Diopters(sh.cfg.devices.lens.park_power)),
-                    layers,
                 });
             }
             Err(e) => {

@@ -10,10 +10,16 @@
 //! are rendered, by `dioptra_render::planner` from the frame's depth around the gaze point
 //! and the focus: no blur, gather, or the light-field method with as few views as the
 //! disparity needs. The scheduler (sans-IO) chooses the focus, not the method.
+//!
+//! `method = "network"` renders with the DeepFocus-family network on the CPU: C1 (defocus at
+//! the frame's focus) in varifocal mode, C4 (layers for the rig's planes) in multifocal mode,
+//! from `render.weights` (default the shipped weights). Both are loaded at start; the
+//! configured mode's must load (else the daemon does not start, naming the file), the other's
+//! absence only refuses a switch to it.
 
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{Diopters, EyeModel, Millimeters, RgbImage, Rgbd};
+use dioptra_core::{Diopters, EyeModel, InputError, Millimeters, RgbImage, Rgbd};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_blend};
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
@@ -34,6 +40,8 @@ pub struct Renderer {
     panel: Mutex<Option<Arc<RgbImage>>>,
     /// `method = "auto"`: plan each varifocal frame.
     auto: bool,
+    /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
+    nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
 }
 
 /// A frame's images, and the planner's choice when it chose.
@@ -80,6 +88,10 @@ impl Renderer {
         let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
         let (color, depth) = dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
         let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
+        let nets = vec![
+            (Mode::Varifocal, load_net(cfg, "c1")),
+            (Mode::Multifocal, load_net(cfg, "c4")),
+        ];
         Ok(Renderer {
             input: Rgbd::new(color, depth)?,
             eye,
@@ -89,7 +101,27 @@ impl Renderer {
             cam,
             panel: Mutex::new(None),
             auto: cfg.auto_method,
+            nets,
         })
+    }
+
+    /// The modes the network cannot render in, and why.
+    pub fn network_missing(&self) -> Vec<(Mode, String)> {
+        self.nets
+            .iter()
+            .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
+            .collect()
+    }
+
+    fn net(&self, mode: Mode) -> Result<&dioptra_net::CpuNet, RenderError> {
+        match self.nets.iter().find(|(m, _)| *m == mode) {
+            Some((_, Ok(n))) => Ok(n),
+            Some((_, Err(why))) => Err(RenderError::Input(InputError::InvalidValue(why.clone()))),
+            None => Err(RenderError::Unsupported {
+                backend: "daemon CPU",
+                method: "network (lightfield)",
+            }),
+        }
     }
 
     /// The scene's RGB-D (its depth is what the scheduler looks up at the gaze point).
@@ -146,11 +178,11 @@ impl Renderer {
     ) -> Result<Vec<RgbImage>, RenderError> {
         match (mode, method.0) {
             (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
-            (_, RenderMethod::Network) => Err(RenderError::Unsupported {
-                backend: "daemon CPU",
-                method: method.as_str(),
-            }),
             (Mode::Multifocal, _) => Ok(self.layers(method)?.as_ref().clone()),
+            (_, RenderMethod::Network) => Ok(vec![self
+                .net(mode)?
+                .defocus(&self.input, focus, &self.eye)
+                .map_err(net_error)?]),
             (_, RenderMethod::LightFieldDefocus) => {
                 Ok(vec![dioptra_render::lightfield::lightfield(
                     &self.input,
@@ -204,8 +236,13 @@ impl Renderer {
         if let Some((_, l)) = lock(&self.layers).iter().find(|(m, _)| *m == method) {
             return Ok(l.clone());
         }
-        let linear = linear_blend(&self.input, &self.planes)?;
-        let images = if method.0 == RenderMethod::Optimized {
+        let images = if method.0 == RenderMethod::Network {
+            self.net(Mode::Multifocal)?
+                .decompose(&self.input)
+                .map_err(net_error)?
+                .images
+        } else if method.0 == RenderMethod::Optimized {
+            let linear = linear_blend(&self.input, &self.planes)?;
             let foci = default_focal_samples();
             let targets = foci
                 .iter()
@@ -227,10 +264,49 @@ impl Renderer {
             .0
             .images
         } else {
-            linear.images
+            linear_blend(&self.input, &self.planes)?.images
         };
         let images = Arc::new(images);
         lock(&self.layers).push((method, images.clone()));
         Ok(images)
     }
+}
+
+fn net_error(e: dioptra_net::NetError) -> RenderError {
+    RenderError::Input(InputError::InvalidValue(format!("network: {e}")))
+}
+
+/// Loads the network of `config` (`c1`, `c4`) from `render.weights`, checking that a C4
+/// network's planes are the rig's `optics.planes`.
+fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, String> {
+    let path = cfg.render.weights_file(config);
+    let what = match config {
+        "c1" => "varifocal mode's network (C1)",
+        _ => "multifocal mode's network (C4)",
+    };
+    if !path.exists() {
+        return Err(format!(
+            "render.weights: the {what} weights file {} does not exist; train it with \
+             `dioptra train --config {config}` and set render.weights to the directory holding \
+             {config}.safetensors",
+            path.display()
+        ));
+    }
+    let net = dioptra_net::load_net(Some(&path), config)
+        .map_err(|e| format!("render.weights: {}: {e}", path.display()))?;
+    if let dioptra_net::Task::C4 { planes, .. } = &net.arch().task {
+        let same = planes.len() == cfg.optics.planes.len()
+            && planes
+                .iter()
+                .zip(&cfg.optics.planes)
+                .all(|(a, b)| (a - b).abs() < 1e-4);
+        if !same {
+            return Err(format!(
+                "render.weights: {} makes layers for planes {planes:?} D, and optics.planes is {:?} D",
+                path.display(),
+                cfg.optics.planes
+            ));
+        }
+    }
+    Ok(Arc::new(net))
 }

@@ -24,7 +24,12 @@ fn sim_config(dir: &Path, record: bool) -> RigConfig {
             "dir = \"recordings\"",
             &format!("dir = {:?}", dir.join("rec").display().to_string()),
         )
-        .replace("start = false", &format!("start = {record}"));
+        .replace("start = false", &format!("start = {record}"))
+        // No network weights, whether or not the shipped ones exist.
+        + &format!(
+            "\n[render]\nweights = {:?}\n",
+            dir.join("no-weights").display().to_string()
+        );
     RigConfig::parse(&text).unwrap()
 }
 
@@ -163,9 +168,9 @@ async fn the_api_rejects_malformed_requests_with_clear_errors() {
             "POST",
             "/method",
             "{\"method\": \"network\"}",
-            StatusCode::UNPROCESSABLE_ENTITY,
-            Some("method"),
-            "not rendered by `dioptra serve` yet",
+            StatusCode::CONFLICT,
+            None,
+            "c1.safetensors does not exist",
         ),
         (
             "POST",
@@ -638,7 +643,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
         .then_some(())
     })
     .await;
-    // The network is not rendered by the daemon: refused, with why.
+    // The network does not render light fields (C5) in the daemon: refused, with why.
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     d.cancel_token().cancel();
@@ -676,6 +681,142 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
             .contains("fovea"),
         "{planned}"
     );
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+/// Random (untrained) C1 and C4 weights in `dir`, as `render.weights` expects them.
+fn random_weights(dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    for (config, seed) in [("c1", 11), ("c4", 12)] {
+        let arch = dioptra_net::Arch::preset(config).unwrap();
+        dioptra_net::Weights::random(&arch, seed)
+            .unwrap()
+            .save(&dir.join(format!("{config}.safetensors")))
+            .unwrap();
+    }
+}
+
+fn network_config(dir: &Path, weights: &Path) -> RigConfig {
+    let mut cfg = sim_config(dir, false);
+    cfg.method = super::config::Method(dioptra_sched::RenderMethod::Network);
+    cfg.render.weights = Some(weights.to_path_buf());
+    cfg
+}
+
+/// What the daemon shows with `method = "network"` is the network's output: C1 at the
+/// frame's focus (varifocal), C4's layers (multifocal).
+#[test]
+fn the_network_renders_what_the_net_computes() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    let cfg = network_config(dir.path(), &weights);
+    let r = super::render::Renderer::new(&cfg).unwrap();
+    assert!(r.network_missing().is_empty());
+    let c1 = dioptra_net::load_net(Some(&weights.join("c1.safetensors")), "c1").unwrap();
+    let eye = dioptra_core::EyeModel {
+        pupil_diameter: dioptra_core::Millimeters(cfg.eye.pupil_mm),
+        fov_horizontal_deg: cfg.eye.fov_deg,
+        width_px: cfg.display.width,
+        ..Default::default()
+    };
+    let focus = dioptra_core::Diopters(1.5);
+    let shown = r
+        .render(super::config::Mode::Varifocal, cfg.method, focus, None)
+        .unwrap()
+        .images;
+    assert_eq!(shown, vec![c1.defocus(r.input(), focus, &eye).unwrap()]);
+    // The focus reaches the net: another focus, another image.
+    let other = r
+        .render(
+            super::config::Mode::Varifocal,
+            cfg.method,
+            dioptra_core::Diopters(0.1),
+            None,
+        )
+        .unwrap()
+        .images;
+    assert_ne!(shown, other);
+    let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
+    let layers = r
+        .render(super::config::Mode::Multifocal, cfg.method, focus, None)
+        .unwrap()
+        .images;
+    assert_eq!(layers, c4.decompose(r.input()).unwrap().images);
+    assert_eq!(layers.len(), cfg.optics.planes.len());
+}
+
+#[test]
+fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    let mut cfg = network_config(dir.path(), &weights);
+    cfg.optics.planes = vec![0.5, 1.5];
+    let r = super::render::Renderer::new(&cfg).unwrap();
+    let missing = r.network_missing();
+    assert_eq!(missing.len(), 1, "{missing:?}");
+    assert_eq!(missing[0].0, super::config::Mode::Multifocal);
+    assert!(
+        missing[0].1.contains("planes [0.2, 0.8, 1.4, 2.0] D")
+            && missing[0].1.contains("optics.planes is [0.5, 1.5] D"),
+        "{}",
+        missing[0].1
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    // Only C1: varifocal runs, multifocal is refused with the missing file named.
+    std::fs::remove_file(weights.join("c4.safetensors")).unwrap();
+    let d = Daemon::start(network_config(dir.path(), &weights))
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    eventually("network frames", || {
+        let v = sh.status_json();
+        (v["counts"]["frames_shown"].as_u64() >= Some(5)).then_some(())
+    })
+    .await;
+    let v = sh.status_json();
+    assert_eq!(v["method"], json!("network"));
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"multifocal\"}").await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    let msg = v.to_string();
+    assert!(msg.contains("c4.safetensors does not exist"), "{msg}");
+    assert_eq!(sh.status_json()["mode"], json!("varifocal"));
+    // Gather and back to the network, which the API accepts in varifocal mode.
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"gather\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    let mut cfg = network_config(dir.path(), &weights);
+    cfg.mode = super::config::Mode::Multifocal;
+    let d = Daemon::start(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    eventually("C4 layered frames", || {
+        let v = sh.status_json();
+        (v["scheduler"]["counters"]["frames_presented"].as_u64() > Some(4)).then_some(())
+    })
+    .await;
+    let v = sh.status_json();
+    assert_eq!(v["method"], json!("network"));
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }

@@ -1,0 +1,1067 @@
+//! The rig's display output: a borderless fullscreen window on a chosen monitor (winit), drawn
+//! with wgpu through a surface presented with vsync (`PresentMode::Fifo`).
+//!
+//! Threads. winit wants its event loop on the main thread (macOS requires it, and winit refuses
+//! another thread elsewhere unless told otherwise), so with `[display] kind = "window"`
+//! `dioptra serve` runs [`run_on_main_thread`]: the main thread opens the display, creates the
+//! window and then only handles window events, while the daemon (its tokio runtime and every
+//! task) runs on a thread of its own. Presenting blocks until a swapchain image is free (Fifo
+//! paces to the monitor's refresh), so [`WindowSink`] never draws on the loop's thread either:
+//! it hands each frame to a presenter thread, which owns the GPU objects. The newest frame
+//! wins: a frame handed over while the previous one still waits for vsync replaces it (counted
+//! in `GET /status` as `replaced`).
+//!
+//! GPU objects are made once: the pipeline, sampler, frame texture (remade only if the frame
+//! size changes) and a staging buffer for the packed pixels. Frames are linear light; they are
+//! packed as 8-bit sRGB into an `Rgba8UnormSrgb` texture (sampling decodes to linear), and the
+//! surface is viewed through an sRGB format, so the hardware encodes on write: what the
+//! monitor gets is the sRGB encoding of the frame, as in the PNGs the headless sink writes.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Instant;
+
+use dioptra_core::image::linear_to_srgb;
+use dioptra_core::{RgbImage, Timestamp};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use super::display::{DisplayError, DisplaySink, Frame};
+
+/// Which monitor the window goes on: its name as the system gives it (e.g. `"HDMI-1"`), or
+/// its index in the system's list.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    untagged,
+    expecting = "a monitor name such as \"HDMI-1\" or an index such as 0"
+)]
+pub enum MonitorChoice {
+    Index(usize),
+    Name(String),
+}
+
+impl std::fmt::Display for MonitorChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MonitorChoice::Index(i) => write!(f, "{i}"),
+            MonitorChoice::Name(n) => write!(f, "{n:?}"),
+        }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum WindowError {
+    #[error(
+        "no display: set DISPLAY/WAYLAND_DISPLAY or use [display] kind = \"headless\" in the rig config"
+    )]
+    NoDisplay,
+    #[error("cannot open the display ({detail}); check DISPLAY/WAYLAND_DISPLAY or use [display] kind = \"headless\"")]
+    Open { detail: String },
+    #[error("display.monitor: {0}")]
+    Monitor(String),
+    #[error("cannot create the window: {0}")]
+    Create(String),
+    #[error("the window's GPU surface: {0}")]
+    Gpu(String),
+}
+
+/// Whether a display server is named in the environment. winit would say the same in its own
+/// words; this names the rig config's alternative.
+pub fn check_display_env(
+    wayland_display: Option<&str>,
+    wayland_socket: Option<&str>,
+    x11_display: Option<&str>,
+) -> Result<(), WindowError> {
+    let set = |v: Option<&str>| v.is_some_and(|s| !s.is_empty());
+    if set(wayland_display) || set(wayland_socket) || set(x11_display) {
+        Ok(())
+    } else {
+        Err(WindowError::NoDisplay)
+    }
+}
+
+fn env_display_check() -> Result<(), WindowError> {
+    let var = |k| std::env::var(k).ok();
+    check_display_env(
+        var("WAYLAND_DISPLAY").as_deref(),
+        var("WAYLAND_SOCKET").as_deref(),
+        var("DISPLAY").as_deref(),
+    )
+}
+
+/// A monitor as the system lists it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct MonitorInfo {
+    pub name: Option<String>,
+    pub size: (u32, u32),
+    pub position: (i32, i32),
+}
+
+impl std::fmt::Display for MonitorInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{:?} {}x{} at ({}, {})",
+            self.name.as_deref().unwrap_or("(unnamed)"),
+            self.size.0,
+            self.size.1,
+            self.position.0,
+            self.position.1
+        )
+    }
+}
+
+/// Picks the monitor for `choice` (exact name, then the name ignoring case, or index); with no
+/// choice, the primary monitor, else the first. The error lists what is there.
+pub fn choose_monitor(
+    monitors: &[MonitorInfo],
+    choice: Option<&MonitorChoice>,
+    primary: Option<usize>,
+) -> Result<usize, String> {
+    let list = || {
+        if monitors.is_empty() {
+            "the system lists no monitors".to_string()
+        } else {
+            let all: Vec<String> = monitors
+                .iter()
+                .enumerate()
+                .map(|(i, m)| format!("{i}: {m}"))
+                .collect();
+            format!("available: {}", all.join(", "))
+        }
+    };
+    match choice {
+        None if monitors.is_empty() => Err(list()),
+        None => Ok(primary.filter(|&p| p < monitors.len()).unwrap_or(0)),
+        Some(MonitorChoice::Index(i)) if *i < monitors.len() => Ok(*i),
+        Some(MonitorChoice::Index(i)) => Err(format!("there is no monitor {i}; {}", list())),
+        Some(MonitorChoice::Name(n)) => {
+            let by = |eq: &dyn Fn(&str) -> bool| {
+                monitors
+                    .iter()
+                    .position(|m| m.name.as_deref().is_some_and(eq))
+            };
+            by(&|m| m == n)
+                .or_else(|| by(&|m| m.eq_ignore_ascii_case(n)))
+                .ok_or_else(|| format!("no monitor named {n:?}; {}", list()))
+        }
+    }
+}
+
+/// Packs a linear-light frame as 8-bit sRGB RGBA rows (alpha 255) into `out`, for an
+/// `Rgba8UnormSrgb` texture. Values outside 0..1 are clamped, NaN is black.
+pub fn pack_rgba8_srgb(image: &RgbImage, out: &mut Vec<u8>) {
+    let [r, g, b] = &image.channels;
+    out.clear();
+    out.reserve(r.data().len() * 4);
+    let enc = |v: f32| (linear_to_srgb(v) * 255.0).round() as u8;
+    for ((&r, &g), &b) in r.data().iter().zip(g.data()).zip(b.data()) {
+        out.extend_from_slice(&[enc(r), enc(g), enc(b), 255]);
+    }
+}
+
+/// The largest rectangle of the frame's aspect that fits the surface, centred:
+/// `[x, y, width, height]` in surface pixels (the blit's viewport).
+pub fn letterbox(frame: (u32, u32), surface: (u32, u32)) -> [f32; 4] {
+    let (fw, fh) = (frame.0.max(1) as f32, frame.1.max(1) as f32);
+    let (sw, sh) = (surface.0 as f32, surface.1 as f32);
+    let scale = (sw / fw).min(sh / fh);
+    let (w, h) = ((fw * scale).round(), (fh * scale).round());
+    [((sw - w) / 2.0).floor(), ((sh - h) / 2.0).floor(), w, h]
+}
+
+/// The surface's configured format and the format its views are made in: an sRGB format
+/// either way, so the blit's linear output is encoded. `None` when the surface offers neither
+/// an sRGB format nor one with an sRGB twin.
+pub fn surface_formats(
+    offered: &[wgpu::TextureFormat],
+) -> Option<(wgpu::TextureFormat, wgpu::TextureFormat)> {
+    if let Some(&f) = offered.iter().find(|f| f.is_srgb()) {
+        return Some((f, f));
+    }
+    offered
+        .iter()
+        .find(|f| f.add_srgb_suffix().is_srgb())
+        .map(|&f| (f, f.add_srgb_suffix()))
+}
+
+/// A frame for the presenter: which image of which frame.
+struct Job {
+    frame: Frame,
+    layer: usize,
+}
+
+/// What the presenter thread reports.
+#[derive(Default)]
+struct PresenterStats {
+    presented: AtomicU64,
+    replaced: AtomicU64,
+    /// Wall-clock interval between the last two presents, ns.
+    last_interval_ns: AtomicU64,
+    error: Mutex<Option<String>>,
+}
+
+/// The mailbox between the sink and the presenter thread.
+struct Mailbox {
+    job: Mutex<(Option<Job>, bool)>,
+    ready: Condvar,
+}
+
+/// Shows frames in the window; see the module doc for the threads.
+pub struct WindowSink {
+    mailbox: Arc<Mailbox>,
+    stats: Arc<PresenterStats>,
+    shown: u64,
+    describe: String,
+    presenter: Option<std::thread::JoinHandle<()>>,
+}
+
+impl std::fmt::Debug for WindowSink {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe)
+    }
+}
+
+impl WindowSink {
+    /// Sets up the GPU surface of `window` and starts the presenter thread.
+    pub fn new(
+        window: Arc<winit::window::Window>,
+        monitor: String,
+    ) -> Result<WindowSink, WindowError> {
+        let blitter = Blitter::new(window)?;
+        let describe = format!(
+            "window on {monitor} ({}, {:?}, {}x{})",
+            blitter.adapter, blitter.config.format, blitter.config.width, blitter.config.height
+        );
+        let mailbox = Arc::new(Mailbox {
+            job: Mutex::new((None, false)),
+            ready: Condvar::new(),
+        });
+        let stats = Arc::new(PresenterStats::default());
+        let (mb, st) = (mailbox.clone(), stats.clone());
+        let presenter = std::thread::Builder::new()
+            .name("dioptra-present".into())
+            .spawn(move || presenter(blitter, &mb, &st))
+            .map_err(|e| WindowError::Gpu(format!("cannot start the presenter thread: {e}")))?;
+        Ok(WindowSink {
+            mailbox,
+            stats,
+            shown: 0,
+            describe,
+            presenter: Some(presenter),
+        })
+    }
+
+    fn hand_over(&mut self, frame: &Frame, layer: usize) -> Result<(), DisplayError> {
+        if let Some(e) = super::devices::lock(&self.stats.error).clone() {
+            return Err(DisplayError::Window(e));
+        }
+        let mut slot = super::devices::lock(&self.mailbox.job);
+        if slot
+            .0
+            .replace(Job {
+                frame: frame.clone(),
+                layer,
+            })
+            .is_some()
+        {
+            self.stats.replaced.fetch_add(1, Ordering::Relaxed);
+        }
+        self.mailbox.ready.notify_one();
+        Ok(())
+    }
+}
+
+impl Drop for WindowSink {
+    fn drop(&mut self) {
+        super::devices::lock(&self.mailbox.job).1 = true;
+        self.mailbox.ready.notify_one();
+        if let Some(t) = self.presenter.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+impl DisplaySink for WindowSink {
+    /// Hands the frame to the presenter; it is on screen at the first vsync after it is drawn.
+    /// Returns `now`: the actual present pace is in [`DisplaySink::status`].
+    fn present(&mut self, frame: &Frame, now: Timestamp) -> Result<Timestamp, DisplayError> {
+        self.hand_over(frame, 0)?;
+        self.shown += 1;
+        Ok(now)
+    }
+    fn present_layer(
+        &mut self,
+        frame: &Frame,
+        layer: usize,
+        start: Timestamp,
+    ) -> Result<Timestamp, DisplayError> {
+        self.hand_over(frame, layer)?;
+        if layer == 0 {
+            self.shown += 1;
+        }
+        Ok(start)
+    }
+    fn shown(&self) -> u64 {
+        self.shown
+    }
+    fn describe(&self) -> String {
+        self.describe.clone()
+    }
+    fn status(&self) -> serde_json::Value {
+        let s = &self.stats;
+        let interval = s.last_interval_ns.load(Ordering::Relaxed);
+        serde_json::json!({
+            "sink": self.describe,
+            "shown": self.shown,
+            "presented": s.presented.load(Ordering::Relaxed),
+            "replaced": s.replaced.load(Ordering::Relaxed),
+            "last_present_interval_ms": (interval > 0).then(|| interval as f64 / 1e6),
+            "error": super::devices::lock(&s.error).clone(),
+        })
+    }
+}
+
+/// The presenter thread: draws the newest job until the sink is dropped.
+fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
+    let mut last: Option<Instant> = None;
+    loop {
+        let job = {
+            let mut slot = super::devices::lock(&mailbox.job);
+            loop {
+                if slot.1 {
+                    return;
+                }
+                if let Some(j) = slot.0.take() {
+                    break j;
+                }
+                slot = mailbox
+                    .ready
+                    .wait(slot)
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+            }
+        };
+        let Some(image) = job.frame.layers.get(job.layer) else {
+            continue;
+        };
+        match blitter.draw(image) {
+            Ok(true) => {
+                let now = Instant::now();
+                if let Some(l) = last {
+                    let ns = u64::try_from((now - l).as_nanos()).unwrap_or(u64::MAX);
+                    stats.last_interval_ns.store(ns, Ordering::Relaxed);
+                }
+                last = Some(now);
+                stats.presented.fetch_add(1, Ordering::Relaxed);
+            }
+            // Skipped (occluded, timed out, reconfigured): the next frame tries again.
+            Ok(false) => {}
+            Err(e) => {
+                *super::devices::lock(&stats.error) = Some(e.to_string());
+                return;
+            }
+        }
+    }
+}
+
+/// The blit: pipeline, sampler, frame texture (remade only when the frame size changes) and
+/// staging bytes, made once; draws into any view of `target_format`.
+pub struct Blit {
+    pipeline: wgpu::RenderPipeline,
+    layout: wgpu::BindGroupLayout,
+    sampler: wgpu::Sampler,
+    /// The frame texture, its size and its bind group.
+    texture: Option<(wgpu::Texture, (u32, u32), wgpu::BindGroup)>,
+    staging: Vec<u8>,
+}
+
+const FRAME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
+
+impl Blit {
+    pub fn new(device: &wgpu::Device, target_format: wgpu::TextureFormat) -> Blit {
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("blit"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../../shaders/blit.wgsl").into()),
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("blit"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                    count: None,
+                },
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("blit"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("blit"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: wgpu::PrimitiveState::default(),
+            depth_stencil: None,
+            multisample: wgpu::MultisampleState::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs_main"),
+                compilation_options: Default::default(),
+                targets: &[Some(target_format.into())],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        // Nearest: a frame shown at the monitor's own size is copied pixel for pixel.
+        let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
+            label: Some("blit"),
+            ..Default::default()
+        });
+        Blit {
+            pipeline,
+            layout,
+            sampler,
+            texture: None,
+            staging: Vec::new(),
+        }
+    }
+
+    /// Packs and uploads `image` into the frame texture.
+    pub fn upload(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, image: &RgbImage) {
+        let size = (image.width() as u32, image.height() as u32);
+        if self.texture.as_ref().is_none_or(|t| t.1 != size) {
+            self.texture = Some(self.frame_texture(device, size));
+        }
+        let Some((texture, _, _)) = &self.texture else {
+            return;
+        };
+        pack_rgba8_srgb(image, &mut self.staging);
+        queue.write_texture(
+            texture.as_image_copy(),
+            &self.staging,
+            wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(size.0 * 4),
+                rows_per_image: Some(size.1),
+            },
+            wgpu::Extent3d {
+                width: size.0,
+                height: size.1,
+                depth_or_array_layers: 1,
+            },
+        );
+    }
+
+    /// Draws the uploaded frame, letterboxed, into `target` (cleared to black).
+    pub fn encode(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        target_size: (u32, u32),
+    ) {
+        let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("blit"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: target,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            ..Default::default()
+        });
+        let Some((_, size, bind_group)) = &self.texture else {
+            return;
+        };
+        let [x, y, w, h] = letterbox(*size, target_size);
+        pass.set_viewport(x, y, w, h, 0.0, 1.0);
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, bind_group, &[]);
+        pass.draw(0..3, 0..1);
+    }
+
+    fn frame_texture(
+        &self,
+        device: &wgpu::Device,
+        size: (u32, u32),
+    ) -> (wgpu::Texture, (u32, u32), wgpu::BindGroup) {
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("frame"),
+            size: wgpu::Extent3d {
+                width: size.0,
+                height: size.1,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: FRAME_FORMAT,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let view = texture.create_view(&Default::default());
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(&view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+            ],
+        });
+        (texture, size, bind_group)
+    }
+}
+
+/// The window's GPU side: surface, device and the blit.
+struct Blitter {
+    window: Arc<winit::window::Window>,
+    surface: wgpu::Surface<'static>,
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    config: wgpu::SurfaceConfiguration,
+    view_format: wgpu::TextureFormat,
+    blit: Blit,
+    adapter: String,
+}
+
+impl Blitter {
+    fn new(window: Arc<winit::window::Window>) -> Result<Blitter, WindowError> {
+        let gpu = |e: &dyn std::fmt::Display| WindowError::Gpu(e.to_string());
+        let mut desc =
+            wgpu::InstanceDescriptor::new_with_display_handle(Box::new(window.clone())).with_env();
+        desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+        let instance = wgpu::Instance::new(desc);
+        let surface = instance
+            .create_surface(window.clone())
+            .map_err(|e| gpu(&e))?;
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: Some(&surface),
+            force_fallback_adapter: false,
+            apply_limit_buckets: false,
+        }))
+        .map_err(|e| gpu(&format!("no GPU adapter can draw to the window: {e}")))?;
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("dioptra-window"),
+            ..Default::default()
+        }))
+        .map_err(|e| gpu(&e))?;
+        let caps = surface.get_capabilities(&adapter);
+        let (format, view_format) = surface_formats(&caps.formats).ok_or_else(|| {
+            gpu(&format!(
+                "the surface offers no sRGB format (offers {:?})",
+                caps.formats
+            ))
+        })?;
+        if !caps.present_modes.contains(&wgpu::PresentMode::Fifo) {
+            return Err(gpu(&"the surface does not offer vsync (Fifo)"));
+        }
+        let size = window.inner_size();
+        let (w, h) = (size.width.max(1), size.height.max(1));
+        let config = wgpu::SurfaceConfiguration {
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
+            format,
+            width: w,
+            height: h,
+            present_mode: wgpu::PresentMode::Fifo,
+            desired_maximum_frame_latency: 1,
+            view_formats: if view_format == format {
+                vec![]
+            } else {
+                vec![view_format]
+            },
+            ..surface
+                .get_default_config(&adapter, w, h)
+                .ok_or_else(|| gpu(&"the surface is not supported by the adapter"))?
+        };
+        surface.configure(&device, &config);
+        let blit = Blit::new(&device, view_format);
+        let info = adapter.get_info();
+        Ok(Blitter {
+            window,
+            surface,
+            device,
+            queue,
+            config,
+            view_format,
+            blit,
+            adapter: format!("{} ({:?})", info.name, info.backend),
+        })
+    }
+
+    /// Uploads `image` and presents it; blocks until a swapchain image is free (vsync).
+    /// `Ok(false)`: skipped this time (window occluded, surface reconfigured).
+    fn draw(&mut self, image: &RgbImage) -> Result<bool, WindowError> {
+        self.blit.upload(&self.device, &self.queue, image);
+        let win = self.window.inner_size();
+        if (win.width, win.height) != (self.config.width, self.config.height)
+            && win.width > 0
+            && win.height > 0
+        {
+            self.config.width = win.width;
+            self.config.height = win.height;
+            self.surface.configure(&self.device, &self.config);
+        }
+        let target = match self.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => {
+                return Ok(false)
+            }
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                self.surface.configure(&self.device, &self.config);
+                return Ok(false);
+            }
+            wgpu::CurrentSurfaceTexture::Validation => {
+                return Err(WindowError::Gpu(
+                    "acquiring the next surface image failed validation".into(),
+                ))
+            }
+        };
+        let view = target.texture.create_view(&wgpu::TextureViewDescriptor {
+            format: Some(self.view_format),
+            ..Default::default()
+        });
+        let mut enc = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("blit"),
+            });
+        self.blit
+            .encode(&mut enc, &view, (self.config.width, self.config.height));
+        self.queue.submit([enc.finish()]);
+        self.window.pre_present_notify();
+        self.queue.present(target);
+        Ok(true)
+    }
+}
+
+/// What the main thread hands the daemon's thread: the window and the name of its monitor.
+pub struct WindowReady {
+    pub window: Arc<winit::window::Window>,
+    pub monitor: String,
+}
+
+/// A message to the main thread's event loop.
+#[derive(Debug)]
+enum UserEvent {
+    /// The daemon's thread has finished.
+    DaemonDone,
+}
+
+/// Opens the display and a borderless fullscreen window on the chosen monitor on this (the
+/// main) thread, runs `daemon` on a thread of its own with the window, and handles window
+/// events here until it returns. Closing the window (or Escape in it) triggers `stop`, which
+/// the daemon treats like Ctrl-C. Returns the daemon's result.
+pub fn run_on_main_thread<F>(
+    choice: Option<MonitorChoice>,
+    stop: tokio_util::sync::CancellationToken,
+    daemon: F,
+) -> anyhow::Result<()>
+where
+    F: FnOnce(WindowReady) -> anyhow::Result<()> + Send + 'static,
+{
+    env_display_check()?;
+    let event_loop = winit::event_loop::EventLoop::<UserEvent>::with_user_event()
+        .build()
+        .map_err(|e| WindowError::Open {
+            detail: e.to_string(),
+        })?;
+    let mut app = App {
+        choice,
+        stop,
+        daemon: Some(Box::new(daemon)),
+        proxy: event_loop.create_proxy(),
+        thread: None,
+        window: None,
+        error: None,
+        daemon_done: Arc::new(AtomicBool::new(false)),
+    };
+    event_loop
+        .run_app(&mut app)
+        .map_err(|e| anyhow::anyhow!("the window's event loop failed: {e}"))?;
+    app.stop.cancel();
+    let result = match app.thread.take() {
+        Some(t) => t
+            .join()
+            .unwrap_or_else(|_| Err(anyhow::anyhow!("the daemon's thread panicked"))),
+        None => Ok(()),
+    };
+    match app.error.take() {
+        Some(e) => Err(e.into()),
+        None => result,
+    }
+}
+
+type DaemonFn = Box<dyn FnOnce(WindowReady) -> anyhow::Result<()> + Send>;
+
+struct App {
+    choice: Option<MonitorChoice>,
+    stop: tokio_util::sync::CancellationToken,
+    daemon: Option<DaemonFn>,
+    proxy: winit::event_loop::EventLoopProxy<UserEvent>,
+    thread: Option<std::thread::JoinHandle<anyhow::Result<()>>>,
+    window: Option<Arc<winit::window::Window>>,
+    error: Option<WindowError>,
+    daemon_done: Arc<AtomicBool>,
+}
+
+impl App {
+    fn open(
+        &mut self,
+        event_loop: &winit::event_loop::ActiveEventLoop,
+    ) -> Result<(Arc<winit::window::Window>, String), WindowError> {
+        let monitors: Vec<winit::monitor::MonitorHandle> =
+            event_loop.available_monitors().collect();
+        let infos: Vec<MonitorInfo> = monitors
+            .iter()
+            .map(|m| MonitorInfo {
+                name: m.name(),
+                size: (m.size().width, m.size().height),
+                position: (m.position().x, m.position().y),
+            })
+            .collect();
+        let primary = event_loop
+            .primary_monitor()
+            .and_then(|p| monitors.iter().position(|m| *m == p));
+        let i =
+            choose_monitor(&infos, self.choice.as_ref(), primary).map_err(WindowError::Monitor)?;
+        let attrs = winit::window::Window::default_attributes()
+            .with_title("dioptra")
+            .with_decorations(false)
+            .with_fullscreen(Some(winit::window::Fullscreen::Borderless(Some(
+                monitors[i].clone(),
+            ))));
+        let window = event_loop
+            .create_window(attrs)
+            .map_err(|e| WindowError::Create(e.to_string()))?;
+        window.set_cursor_visible(false);
+        Ok((Arc::new(window), format!("monitor {i}: {}", infos[i])))
+    }
+}
+
+impl winit::application::ApplicationHandler<UserEvent> for App {
+    fn resumed(&mut self, event_loop: &winit::event_loop::ActiveEventLoop) {
+        let Some(daemon) = self.daemon.take() else {
+            return;
+        };
+        match self.open(event_loop) {
+            Ok((window, monitor)) => {
+                self.window = Some(window.clone());
+                let (proxy, done) = (self.proxy.clone(), self.daemon_done.clone());
+                let spawned = std::thread::Builder::new()
+                    .name("dioptra-daemon".into())
+                    .spawn(move || {
+                        let r = daemon(WindowReady { window, monitor });
+                        done.store(true, Ordering::SeqCst);
+                        let _ = proxy.send_event(UserEvent::DaemonDone);
+                        r
+                    });
+                match spawned {
+                    Ok(t) => self.thread = Some(t),
+                    Err(e) => {
+                        self.error = Some(WindowError::Create(format!(
+                            "cannot start the daemon's thread: {e}"
+                        )));
+                        event_loop.exit();
+                    }
+                }
+            }
+            Err(e) => {
+                self.error = Some(e);
+                event_loop.exit();
+            }
+        }
+    }
+
+    fn user_event(&mut self, event_loop: &winit::event_loop::ActiveEventLoop, e: UserEvent) {
+        match e {
+            UserEvent::DaemonDone => event_loop.exit(),
+        }
+    }
+
+    fn window_event(
+        &mut self,
+        event_loop: &winit::event_loop::ActiveEventLoop,
+        _id: winit::window::WindowId,
+        event: winit::event::WindowEvent,
+    ) {
+        use winit::event::WindowEvent;
+        use winit::keyboard::{Key, NamedKey};
+        match event {
+            WindowEvent::CloseRequested => self.stop.cancel(),
+            WindowEvent::KeyboardInput { event, .. }
+                if event.logical_key == Key::Named(NamedKey::Escape) =>
+            {
+                self.stop.cancel()
+            }
+            _ => {}
+        }
+        if self.daemon_done.load(Ordering::SeqCst) {
+            event_loop.exit();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn mon(name: &str, x: i32) -> MonitorInfo {
+        MonitorInfo {
+            name: Some(name.into()),
+            size: (1920, 1080),
+            position: (x, 0),
+        }
+    }
+
+    #[test]
+    fn no_display_in_the_environment_is_a_clear_error() {
+        let e = check_display_env(None, None, None).unwrap_err();
+        let s = e.to_string();
+        assert!(s.contains("no display: set DISPLAY/WAYLAND_DISPLAY"), "{s}");
+        assert!(s.contains("kind = \"headless\""), "{s}");
+        // Empty counts as unset, as winit treats it.
+        assert!(check_display_env(Some(""), None, Some("")).is_err());
+        assert!(check_display_env(None, None, Some(":0")).is_ok());
+        assert!(check_display_env(Some("wayland-0"), None, None).is_ok());
+        assert!(check_display_env(None, Some("3"), None).is_ok());
+    }
+
+    #[test]
+    fn monitors_are_chosen_by_name_index_or_primary() {
+        let ms = [mon("HDMI-1", 0), mon("DP-2", 1920), mon("eDP-1", 3840)];
+        let name = |n: &str| Some(MonitorChoice::Name(n.into()));
+        assert_eq!(choose_monitor(&ms, name("DP-2").as_ref(), None), Ok(1));
+        assert_eq!(choose_monitor(&ms, name("hdmi-1").as_ref(), None), Ok(0));
+        assert_eq!(
+            choose_monitor(&ms, Some(&MonitorChoice::Index(2)), None),
+            Ok(2)
+        );
+        assert_eq!(choose_monitor(&ms, None, Some(2)), Ok(2));
+        assert_eq!(choose_monitor(&ms, None, None), Ok(0));
+        // A primary index the list does not have falls back to the first.
+        assert_eq!(choose_monitor(&ms, None, Some(7)), Ok(0));
+    }
+
+    #[test]
+    fn an_unknown_monitor_lists_the_available_ones() {
+        let ms = [mon("HDMI-1", 0), mon("DP-2", 1920)];
+        let e = choose_monitor(&ms, Some(&MonitorChoice::Name("DP-9".into())), None).unwrap_err();
+        assert!(e.contains("no monitor named \"DP-9\""), "{e}");
+        assert!(
+            e.contains("0: \"HDMI-1\" 1920x1080 at (0, 0)")
+                && e.contains("1: \"DP-2\" 1920x1080 at (1920, 0)"),
+            "{e}"
+        );
+        let e = choose_monitor(&ms, Some(&MonitorChoice::Index(5)), None).unwrap_err();
+        assert!(
+            e.contains("there is no monitor 5") && e.contains("DP-2"),
+            "{e}"
+        );
+        let e = choose_monitor(&[], None, None).unwrap_err();
+        assert!(e.contains("no monitors"), "{e}");
+    }
+
+    #[test]
+    fn frames_pack_as_srgb_rgba_rows() {
+        // 2 x 2: row 0 = black, white; row 1 = linear 0.5 grey, out-of-range and NaN.
+        let img = RgbImage::from_interleaved(
+            2,
+            2,
+            &[
+                0.0,
+                0.0,
+                0.0,
+                1.0,
+                1.0,
+                1.0, //
+                0.5,
+                0.5,
+                0.5,
+                -1.0,
+                7.0,
+                f32::NAN,
+            ],
+        )
+        .unwrap();
+        let mut out = vec![1, 2, 3];
+        pack_rgba8_srgb(&img, &mut out);
+        assert_eq!(
+            out,
+            [
+                0, 0, 0, 255, 255, 255, 255, 255, //
+                188, 188, 188, 255, 0, 255, 0, 255,
+            ]
+        );
+    }
+
+    #[test]
+    fn letterbox_keeps_the_frame_aspect_centred() {
+        // Square frame on a 16:9 surface: pillarboxed.
+        assert_eq!(
+            letterbox((96, 96), (1920, 1080)),
+            [420.0, 0.0, 1080.0, 1080.0]
+        );
+        // Same aspect: fills.
+        assert_eq!(
+            letterbox((960, 540), (1920, 1080)),
+            [0.0, 0.0, 1920.0, 1080.0]
+        );
+        // Wide frame on a square surface: letterboxed.
+        assert_eq!(letterbox((200, 100), (100, 100)), [0.0, 25.0, 100.0, 50.0]);
+    }
+
+    #[test]
+    fn the_surface_is_written_through_an_srgb_format() {
+        use wgpu::TextureFormat as F;
+        assert_eq!(
+            surface_formats(&[F::Bgra8Unorm, F::Bgra8UnormSrgb]),
+            Some((F::Bgra8UnormSrgb, F::Bgra8UnormSrgb))
+        );
+        assert_eq!(
+            surface_formats(&[F::Bgra8Unorm]),
+            Some((F::Bgra8Unorm, F::Bgra8UnormSrgb))
+        );
+        assert_eq!(surface_formats(&[F::Rgba16Float]), None);
+    }
+
+    /// A headless device (lavapipe here), or `None` (test skipped) when there is no adapter
+    /// and DIOPTRA_REQUIRE_GPU is not 1, as in dioptra-render's GPU tests.
+    fn headless_device() -> Option<(wgpu::Device, wgpu::Queue)> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+        let instance = wgpu::Instance::new(desc);
+        let adapter = match pollster::block_on(
+            instance.request_adapter(&wgpu::RequestAdapterOptions::default()),
+        ) {
+            Ok(a) => a,
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                return None;
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        };
+        Some(pollster::block_on(adapter.request_device(&Default::default())).unwrap())
+    }
+
+    /// The blit (shader, texture packing, sRGB target) without a window: a frame drawn into an
+    /// sRGB texture of twice its size reads back as the frame's sRGB bytes, pixel-doubled, with
+    /// black bars where the aspect differs.
+    #[test]
+    fn the_blit_draws_the_frame_srgb_encoded_and_letterboxed() {
+        let Some((device, queue)) = headless_device() else {
+            return;
+        };
+        let format = wgpu::TextureFormat::Rgba8UnormSrgb;
+        let mut blit = Blit::new(&device, format);
+        // A 4 x 2 frame of distinct linear values on a 64 x 64 target: scale 16, bars of 16 rows.
+        let vals: Vec<f32> = (0..24).map(|i| i as f32 / 23.0).collect();
+        let img = RgbImage::from_interleaved(4, 2, &vals).unwrap();
+        let (tw, th) = (64u32, 64u32);
+        let target = device.create_texture(&wgpu::TextureDescriptor {
+            label: None,
+            size: wgpu::Extent3d {
+                width: tw,
+                height: th,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let readback = device.create_buffer(&wgpu::BufferDescriptor {
+            label: None,
+            size: u64::from(tw * th * 4),
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        // Twice, to check the texture made once is reused and rewritten.
+        for round in 0..2 {
+            let img = if round == 0 {
+                RgbImage::new(4, 2, [1.0, 0.0, 0.0])
+            } else {
+                img.clone()
+            };
+            blit.upload(&device, &queue, &img);
+            let mut enc = device.create_command_encoder(&Default::default());
+            blit.encode(&mut enc, &target.create_view(&Default::default()), (tw, th));
+            enc.copy_texture_to_buffer(
+                target.as_image_copy(),
+                wgpu::TexelCopyBufferInfo {
+                    buffer: &readback,
+                    layout: wgpu::TexelCopyBufferLayout {
+                        offset: 0,
+                        bytes_per_row: Some(tw * 4),
+                        rows_per_image: Some(th),
+                    },
+                },
+                wgpu::Extent3d {
+                    width: tw,
+                    height: th,
+                    depth_or_array_layers: 1,
+                },
+            );
+            queue.submit([enc.finish()]);
+        }
+        assert!(blit.texture.is_some());
+        readback
+            .slice(..)
+            .map_async(wgpu::MapMode::Read, |r| r.unwrap());
+        device.poll(wgpu::PollType::wait_indefinitely()).unwrap();
+        let got = readback.slice(..).get_mapped_range().unwrap().to_vec();
+        let mut packed = Vec::new();
+        pack_rgba8_srgb(&img, &mut packed);
+        // Scale 16: the frame fills rows 16..48; rows above and below are black.
+        let px =
+            |x: u32, y: u32| &got[((y * tw + x) * 4) as usize..((y * tw + x) * 4 + 4) as usize];
+        for y in 0..th {
+            for x in 0..tw {
+                let want: [u8; 4] = if (16..48).contains(&y) {
+                    let (fx, fy) = (x / 16, (y - 16) / 16);
+                    let i = ((fy * 4 + fx) * 4) as usize;
+                    packed[i..i + 4].try_into().unwrap()
+                } else {
+                    [0, 0, 0, 255]
+                };
+                let have = px(x, y);
+                // Decode and re-encode through the GPU may differ by one step.
+                for c in 0..4 {
+                    assert!(
+                        have[c].abs_diff(want[c]) <= 1,
+                        "pixel ({x}, {y}): {have:?}, want {want:?}"
+                    );
+                }
+            }
+        }
+    }
+}
