@@ -163,6 +163,18 @@ impl Arch {
         self.task.out_channels()
     }
 
+    /// Refuses to run this network as configuration `name` when it is another one.
+    pub fn expect_task(&self, name: &str) -> Result<(), NetError> {
+        let have = self.task.name();
+        if have != name {
+            return Err(NetError::WrongConfig {
+                expected: have.into(),
+                asked: name.into(),
+            });
+        }
+        Ok(())
+    }
+
     pub fn validate(&self) -> Result<(), NetError> {
         let bad = |m: String| Err(NetError::BadArch(m));
         if ![1, 2, 4].contains(&self.rate) {

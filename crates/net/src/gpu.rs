@@ -227,17 +227,6 @@ impl GpuNet {
         Ok(Act::new(y.h, y.w, y.c, data)?.crop(x.h, x.w))
     }
 
-    fn expect(&self, name: &str) -> Result<(), NetError> {
-        let have = self.arch().task.name();
-        if have != name {
-            return Err(NetError::WrongConfig {
-                expected: have.into(),
-                asked: name.into(),
-            });
-        }
-        Ok(())
-    }
-
     /// C1: what the eye focused at `focus` sees of `rgbd` (as [`crate::CpuNet::defocus`]).
     pub fn defocus(
         &self,
@@ -245,14 +234,14 @@ impl GpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<RgbImage, NetError> {
-        self.expect("c1")?;
+        self.arch().expect_task("c1")?;
         rgb_at(&self.forward(&defocus_input(rgbd, focus, eye)?)?, 0)
     }
 
     /// C4: multifocal layers for the network's display planes (as
     /// [`crate::CpuNet::decompose`]).
     pub fn decompose(&self, rgbd: &Rgbd) -> Result<Layers, NetError> {
-        self.expect("c4")?;
+        self.arch().expect_task("c4")?;
         let Task::C4 { planes, .. } = &self.arch().task else {
             return Err(input("not a multifocal network"));
         };

@@ -70,17 +70,6 @@ pub fn rgb_at(a: &Act, k: usize) -> Result<RgbImage, NetError> {
 }
 
 impl CpuNet {
-    fn expect(&self, name: &str) -> Result<(), NetError> {
-        let have = self.arch().task.name();
-        if have != name {
-            return Err(NetError::WrongConfig {
-                expected: have.into(),
-                asked: name.into(),
-            });
-        }
-        Ok(())
-    }
-
     /// C1: what the eye focused at `focus` sees of `rgbd`.
     pub fn defocus(
         &self,
@@ -88,13 +77,13 @@ impl CpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<RgbImage, NetError> {
-        self.expect("c1")?;
+        self.arch().expect_task("c1")?;
         rgb_at(&self.forward(&defocus_input(rgbd, focus, eye)?)?, 0)
     }
 
     /// C3: the focal stack at the network's foci.
     pub fn focal_stack(&self, rgbd: &Rgbd) -> Result<(Vec<Diopters>, Vec<RgbImage>), NetError> {
-        self.expect("c3")?;
+        self.arch().expect_task("c3")?;
         let Task::C3 { foci } = &self.arch().task else {
             return Err(input("not a focal-stack network"));
         };
@@ -107,7 +96,7 @@ impl CpuNet {
 
     /// C4: multifocal layers for the network's display planes.
     pub fn decompose(&self, rgbd: &Rgbd) -> Result<Layers, NetError> {
-        self.expect("c4")?;
+        self.arch().expect_task("c4")?;
         let Task::C4 { planes, .. } = &self.arch().task else {
             return Err(input("not a multifocal network"));
         };
