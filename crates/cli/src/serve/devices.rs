@@ -632,8 +632,27 @@ fn serial(path: &std::path::Path) -> Result<dioptra_transport::serial::SerialLin
 
 fn unsupported_port(what: &str, port: &Port) -> DeviceError {
     DeviceError::Link(LinkError::Unavailable(format!(
-        "the {what} cannot be reached at {port}: give its device path (e.g. /dev/ttyACM0) or \"sim\""
+        "the {what} cannot be reached at {port}: give its device path (e.g. /dev/ttyACM0), its USB VID:PID or \"sim\""
     )))
+}
+
+/// The serial link at a device's port: a path, or the one USB serial port with that VID:PID
+/// (looked up in sysfs at every attempt, so a replugged device that moved is found again).
+fn serial_at(
+    what: &str,
+    port: &Port,
+) -> Result<dioptra_transport::serial::SerialLink, DeviceError> {
+    let path = match port {
+        Port::Path(p) => p.clone(),
+        Port::VidPid(v, p) => {
+            dioptra_transport::discovery::serial_port_by_id(std::path::Path::new("/sys"), *v, *p)
+                .map_err(|e| {
+                    DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
+                })?
+        }
+        Port::Sim => return Err(unsupported_port(what, port)),
+    };
+    Ok(serial(&path)?)
 }
 
 /// Starts every device task of `cfg`. Returns the sim handles, the channels and the tasks.
@@ -732,10 +751,7 @@ pub fn spawn_devices(
                 move || {
                     let (port, clock) = (port.clone(), clock.clone());
                     async move {
-                        let Port::Path(p) = &port else {
-                            return Err(unsupported_port("Lens Driver 4", &port));
-                        };
-                        let link = serial(p)?;
+                        let link = serial_at("Lens Driver 4", &port)?;
                         Optotune::connect(link, OptotuneConfig::new(limits), clock).await
                     }
                 },
@@ -753,10 +769,7 @@ pub fn spawn_devices(
                 move || {
                     let (port, clock) = (port.clone(), clock.clone());
                     async move {
-                        let Port::Path(p) = &port else {
-                            return Err(unsupported_port("lens controller", &port));
-                        };
-                        let link = serial(p)?;
+                        let link = serial_at("lens controller", &port)?;
                         LensController::connect(link, ControllerConfig::new(limits), clock).await
                     }
                 },
@@ -921,10 +934,8 @@ pub fn spawn_devices(
                     move || {
                         let (port, clock) = (port.clone(), clock.clone());
                         async move {
-                            let Port::Path(p) = &port else {
-                                return Err(unsupported_port("sync board", &port));
-                            };
-                            dioptra_sync::board::SyncBoard::connect(serial(p)?, clock).await
+                            let link = serial_at("sync board", &port)?;
+                            dioptra_sync::board::SyncBoard::connect(link, clock).await
                         }
                     },
                     sync_dev,
@@ -949,6 +960,15 @@ pub fn spawn_devices(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_serial_device_by_vid_pid_that_is_absent_is_a_link_error_naming_it() {
+        // No machine has feed:beef; without sysfs the error still names the port.
+        let e = serial_at("lens controller", &Port::VidPid(0xfeed, 0xbeef)).unwrap_err();
+        assert!(matches!(e, DeviceError::Link(_)), "{e:?}");
+        let text = e.to_string();
+        assert!(text.contains("lens controller at feed:beef"), "{text}");
+    }
 
     #[test]
     fn backoff_doubles_to_its_cap_and_resets() {

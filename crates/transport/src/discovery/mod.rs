@@ -14,6 +14,8 @@ use std::path::Path;
 
 mod sysfs;
 
+pub use sysfs::serial_port_by_id;
+
 pub use sysfs::serial_ports;
 
 /// How a driver talks to a device.

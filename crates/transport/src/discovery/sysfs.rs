@@ -49,6 +49,29 @@ pub fn serial_ports(sys_root: &Path) -> Result<Vec<FoundDevice>, String> {
     Ok(found)
 }
 
+/// The one USB serial port under `sys_root` with this VID:PID, for configs that name a device
+/// by identity rather than by a `/dev` path that can change between boots. Err says why not:
+/// nothing listed, none plugged in, or several (then the path must be given).
+pub fn serial_port_by_id(sys_root: &Path, vid: u16, pid: u16) -> Result<PathBuf, String> {
+    let ports = serial_ports(sys_root)?;
+    let mut hits: Vec<_> = ports
+        .into_iter()
+        .filter(|d| d.vid == Some(vid) && d.pid == Some(pid))
+        .map(|d| d.location)
+        .collect();
+    hits.sort();
+    match hits.len() {
+        0 => Err(format!(
+            "no USB serial device {vid:04x}:{pid:04x} is plugged in (`dioptra devices` lists what is)"
+        )),
+        1 => Ok(PathBuf::from(hits.remove(0))),
+        _ => Err(format!(
+            "several USB serial devices are {vid:04x}:{pid:04x} ({}): give the device path instead",
+            hits.join(", ")
+        )),
+    }
+}
+
 fn usb_device_above(device: &Path, root: &Path) -> Option<PathBuf> {
     device
         .ancestors()
@@ -191,6 +214,32 @@ mod tests {
         )
         .unwrap();
         assert_eq!(serial_ports(&root).unwrap(), vec![]);
+    }
+
+    #[test]
+    fn a_port_is_found_by_vid_pid_only_when_exactly_one_matches() {
+        let sys = FakeSys::new();
+        let usb1 = "devices/usb1/1-2";
+        sys.usb_device(usb1, &[("idVendor", "03eb"), ("idProduct", "2018")]);
+        sys.tty("ttyACM0", Some(&format!("{usb1}/1-2:1.0")));
+        let usb2 = "devices/usb1/1-3";
+        sys.usb_device(usb2, &[("idVendor", "1209"), ("idProduct", "d10a")]);
+        sys.tty("ttyACM1", Some(&format!("{usb2}/1-3:1.0")));
+        assert_eq!(
+            serial_port_by_id(sys.root(), 0x03eb, 0x2018).unwrap(),
+            PathBuf::from("/dev/ttyACM0")
+        );
+        let none = serial_port_by_id(sys.root(), 0x03eb, 0x2019).unwrap_err();
+        assert!(none.contains("no USB serial device 03eb:2019"), "{none}");
+        // A second lens driver of the same model: ambiguous, so the path is asked for.
+        let usb3 = "devices/usb1/1-4";
+        sys.usb_device(usb3, &[("idVendor", "03eb"), ("idProduct", "2018")]);
+        sys.tty("ttyACM2", Some(&format!("{usb3}/1-4:1.0")));
+        let two = serial_port_by_id(sys.root(), 0x03eb, 0x2018).unwrap_err();
+        assert!(
+            two.contains("/dev/ttyACM0, /dev/ttyACM2") && two.contains("device path"),
+            "{two}"
+        );
     }
 
     #[test]
