@@ -125,9 +125,10 @@ pub enum Command {
         display_time: Timestamp,
         repeat: bool,
     },
-    /// Multifocal: show layer `layer` of `frame` in the sub-frame that started at `start`
-    /// (sync-hardware frame `sync_frame`). `repeat` when `frame` was shown in the previous
-    /// cycle too (its successor missed its deadline).
+    /// Multifocal: show layer `layer` of `frame` in the sub-frame that starts at `start`
+    /// (sync-hardware frame `sync_frame`). Sent one sub-frame ahead, at the previous
+    /// sub-frame's event, so the layer is on the panel when its sub-frame starts. `repeat`
+    /// when `frame` was shown in the previous cycle too (its successor missed its deadline).
     PresentLayer {
         frame: FrameId,
         layer: u8,
@@ -904,17 +905,35 @@ impl Scheduler {
         if self.cfg.mode != Mode::Multifocal || self.shutting_down {
             return;
         }
-        if plane == 0 {
-            let slot = FrameId(u64::from(frame));
-            self.cycle = self.choose_frame(start, slot, start);
-            // Layers for the next cycle, unless the renderer is still busy.
+        // Each event readies the *next* sub-frame: a layer must be on the panel before its
+        // sub-frame starts, so waiting for that sub-frame's own event would show it late. The
+        // next cycle's frame is therefore chosen at the last sub-frame's event.
+        let Some(schedule) = self.cfg.planes.as_ref() else {
+            return;
+        };
+        let (n, sub, period) = (
+            schedule.planes().len(),
+            schedule.subframe_period(),
+            schedule.frame_period(),
+        );
+        if usize::from(plane) >= n {
+            // Not a plane of this schedule: a confused board; show nothing for it.
+            self.counters.ignored_events += 1;
+            return;
+        }
+        let next_plane = (usize::from(plane) + 1) % n;
+        let next_frame = if next_plane == 0 {
+            frame.wrapping_add(1)
+        } else {
+            frame
+        };
+        let next_start = start + sub;
+        if next_plane == 0 {
+            let slot = FrameId(u64::from(next_frame));
+            self.cycle = self.choose_frame(start, slot, next_start);
+            // Layers for the cycle after, unless the renderer is still busy.
             if self.in_flight.is_none() {
-                let period = self
-                    .cfg
-                    .planes
-                    .as_ref()
-                    .map_or(self.cfg.display.frame_period, |p| p.frame_period());
-                self.request(FrameId(u64::from(frame) + 1), start + period, out);
+                self.request(FrameId(slot.0 + 1), next_start + period, out);
             } else {
                 self.counters.renders_skipped += 1;
             }
@@ -922,9 +941,9 @@ impl Scheduler {
         if let Some((f, repeat)) = self.cycle {
             out.push(Command::PresentLayer {
                 frame: f,
-                layer: plane,
-                sync_frame: frame,
-                start,
+                layer: next_plane as u8,
+                sync_frame: next_frame,
+                start: next_start,
                 repeat,
             });
         }
