@@ -130,7 +130,10 @@ impl Adam {
             let Some(g) = grads.get(var.as_tensor()) else {
                 continue;
             };
-            self.m[i] = ((&self.m[i] * self.beta1)? + (g * (1.0 - self.beta1))?)?;
+            // Gradients carry this step's graph; moments built from them would chain every
+            // step's graph to the next and keep them all alive (24 GB after 300 C1 steps).
+            let g = g.detach();
+            self.m[i] = ((&self.m[i] * self.beta1)? + (&g * (1.0 - self.beta1))?)?;
             self.v[i] = ((&self.v[i] * self.beta2)? + (g.sqr()? * (1.0 - self.beta2))?)?;
             let mhat = (&self.m[i] / c1)?;
             let vhat = (&self.v[i] / c2)?;
