@@ -28,11 +28,12 @@
 //!   power (with the time the model assumes it applies, and an id to report the wire time
 //!   against); render a frame ([`FrameRequest`]: in varifocal mode its focus is the lens power
 //!   predicted at the frame's display time, so rendered blur matches optical focus); present a
-//!   frame at a vsync, or layer i of a frame in multifocal sub-frame i; stop the sequencer.
+//!   frame at a vsync, or layer i of a frame in multifocal sub-frame i (sent at sub-frame
+//!   i - 1's event, so it is on the panel when sub-frame i starts); stop the sequencer.
 //!   Both enums are `#[non_exhaustive]`: match them with a `_` arm.
 //! - **One render in flight.** A frame slot whose time comes while the renderer is busy is
-//!   skipped. At each vsync (multifocal: each plane cycle's first sub-frame) the newest frame
-//!   finished by then is shown; showing the same frame again is a *miss*.
+//!   skipped. At each vsync (multifocal: the last sub-frame event of the cycle before) the
+//!   newest frame finished by then is shown; showing the same frame again is a *miss*.
 //! - **Accessors**: [`Scheduler::status`] (mode, eye phase, focus, link, counters),
 //!   [`Scheduler::latency`] (an HdrHistogram per [`Stage`], µs),
 //!   [`Scheduler::predicted_lens_power`], [`Scheduler::next_wakeup`].
