@@ -128,20 +128,55 @@ unsafe fn tile<const P: usize>(
         }
         let n = (cout - blk * CO_BLOCK).min(CO_BLOCK);
         for (p, a) in acc.iter().enumerate() {
-            let mut lanes = [0.0f32; CO_BLOCK];
-            _mm256_storeu_ps(lanes.as_mut_ptr(), a[0]);
-            _mm256_storeu_ps(lanes.as_mut_ptr().add(8), a[1]);
-            if elu {
-                for v in &mut lanes {
-                    if *v < 0.0 {
-                        *v = v.exp_m1();
-                    }
-                }
-            }
+            let (v0, v1) = if elu {
+                (elu8(a[0]), elu8(a[1]))
+            } else {
+                (a[0], a[1])
+            };
             let dst = (x0 + p) * cout + blk * CO_BLOCK;
-            row[dst..dst + n].copy_from_slice(&lanes[..n]);
+            if n == CO_BLOCK {
+                let out = row[dst..dst + CO_BLOCK].as_mut_ptr();
+                _mm256_storeu_ps(out, v0);
+                _mm256_storeu_ps(out.add(8), v1);
+            } else {
+                let mut lanes = [0.0f32; CO_BLOCK];
+                _mm256_storeu_ps(lanes.as_mut_ptr(), v0);
+                _mm256_storeu_ps(lanes.as_mut_ptr().add(8), v1);
+                row[dst..dst + n].copy_from_slice(&lanes[..n]);
+            }
         }
     }
+}
+
+/// ELU on 8 lanes: `x` where `x >= 0`, `exp(x) - 1` below. The exponential is range-reduced
+/// (`x = n ln 2 + r`, `|r| <= ln 2 / 2`) and its degree-6 Taylor polynomial in `r` (truncation
+/// below 2e-7 relative) scaled by `2^n`; an absolute error near 1e-7, where scalar `exp_m1`
+/// per value cost a fifth of the network's time.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn elu8(v: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
+    use std::arch::x86_64::*;
+    // Below -87 exp(x) - 1 is -1 in f32 anyway; the clamp keeps 2^n a normal number.
+    let x = _mm256_max_ps(v, _mm256_set1_ps(-87.0));
+    let n = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(_mm256_mul_ps(
+        x,
+        _mm256_set1_ps(std::f32::consts::LOG2_E),
+    ));
+    // ln 2 in two parts, so n * ln2_hi is exact.
+    let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(0.693_145_75), x);
+    let r = _mm256_fnmadd_ps(n, _mm256_set1_ps(1.428_606_8e-6), r);
+    let mut p = _mm256_set1_ps(1.0 / 720.0);
+    for c in [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0] {
+        p = _mm256_fmadd_ps(p, r, _mm256_set1_ps(c));
+    }
+    let two_n = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(
+        _mm256_cvtps_epi32(n),
+        _mm256_set1_epi32(127),
+    )));
+    let em1 = _mm256_sub_ps(_mm256_mul_ps(p, two_n), _mm256_set1_ps(1.0));
+    let negative = _mm256_cmp_ps::<_CMP_LT_OQ>(v, _mm256_setzero_ps());
+    _mm256_blendv_ps(v, em1, negative)
 }
 
 /// The input with a one-pixel zero border, `(h + 2) x (w + 2) x c`.
@@ -152,4 +187,36 @@ pub fn pad_zero(data: &[f32], h: usize, w: usize, c: usize) -> Vec<f32> {
         out[((y + 1) * pw + 1) * c..][..w * c].copy_from_slice(&data[y * w * c..][..w * c]);
     }
     out
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn vector_elu_matches_exp_m1() {
+        if !available() {
+            eprintln!("skipped: this CPU has no AVX2 + FMA");
+            return;
+        }
+        let mut xs: Vec<f32> = (0..20_000).map(|i| -20.0 + i as f32 * 0.0011).collect();
+        xs.extend([-1e3, -100.0, -87.5, -87.0, -1e-8, -0.0, 0.0, 1e-8, 3.0, 1e6]);
+        let mut worst = 0.0f32;
+        for chunk in xs.chunks(8) {
+            let mut lanes = [0.0f32; 8];
+            lanes[..chunk.len()].copy_from_slice(chunk);
+            let mut out = [0.0f32; 8];
+            // SAFETY: AVX2 + FMA checked above; both arrays hold 8 values.
+            unsafe {
+                use std::arch::x86_64::*;
+                _mm256_storeu_ps(out.as_mut_ptr(), elu8(_mm256_loadu_ps(lanes.as_ptr())));
+            }
+            for (&x, &y) in lanes.iter().zip(&out) {
+                let want = if x < 0.0 { x.exp_m1() } else { x };
+                worst = worst.max((y - want).abs());
+                assert!((y - want).abs() <= 3e-7, "elu({x}) = {y}, want {want}");
+            }
+        }
+        eprintln!("max |elu8 - exp_m1| = {worst:e}");
+    }
 }
