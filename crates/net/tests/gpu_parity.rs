@@ -187,3 +187,40 @@ fn defocus_and_decompose_match_cpu_and_refuse_bad_input() {
         }
     }
 }
+
+#[test]
+fn shipped_weights_run_on_the_gpu_like_on_the_cpu() {
+    if !gpu_ok() {
+        return;
+    }
+    // Through the loading code the CLI uses for --backend gpu, on a 40x34 RGB-D input.
+    let input = rgbd(40, 34, 5);
+    let eye = EyeModel::default();
+    let cpu = dioptra_net::load_net(None, "c1").unwrap();
+    let gpu = dioptra_net::gpu::load_gpu_net(None, "c1", None).unwrap();
+    let a = cpu.defocus(&input, Diopters(2.0), &eye).unwrap();
+    let b = gpu.defocus(&input, Diopters(2.0), &eye).unwrap();
+    let err = (0..3)
+        .flat_map(|c| a.channels[c].data().iter().zip(b.channels[c].data()))
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("shipped c1: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "shipped c1: {err}");
+    let cpu = dioptra_net::load_net(None, "c4").unwrap();
+    let gpu = dioptra_net::gpu::load_gpu_net(None, "c4", None).unwrap();
+    let (a, b) = (
+        cpu.decompose(&input).unwrap(),
+        gpu.decompose(&input).unwrap(),
+    );
+    let err = a
+        .images
+        .iter()
+        .zip(&b.images)
+        .flat_map(|(la, lb)| {
+            (0..3).flat_map(move |c| la.channels[c].data().iter().zip(lb.channels[c].data()))
+        })
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("shipped c4: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "shipped c4: {err}");
+}
