@@ -23,7 +23,14 @@ fn vector_arch() -> Arch {
         layers: 5,
         channels: 8,
         concat_input: true,
+        unet_channels: 0,
     }
+}
+
+fn small_fv_arch() -> Arch {
+    let mut a = Arch::preset("fv").unwrap();
+    (a.layers, a.channels, a.unet_channels) = (5, 8, 6);
+    a
 }
 
 fn nchw_to_act(t: &Tensor) -> Act {
@@ -54,7 +61,11 @@ fn max_err(a: &[f32], b: &[f32]) -> f32 {
 
 #[test]
 fn candle_forward_matches_cpu_inference() {
-    for (arch, seed) in [(vector_arch(), 1), (Arch::preset("c4").unwrap(), 2)] {
+    for (arch, seed) in [
+        (vector_arch(), 1),
+        (Arch::preset("c4").unwrap(), 2),
+        (small_fv_arch(), 3),
+    ] {
         let w = Weights::random(&arch, seed).unwrap();
         // Larger weights than the init, so the tanh is exercised away from 0.5.
         let mut w = w;
@@ -62,8 +73,15 @@ fn candle_forward_matches_cpu_inference() {
             c.weight.iter_mut().for_each(|v| *v *= 3.0);
         }
         let net = CandleNet::from_weights(&w, &Device::Cpu).unwrap();
-        let x = random_input(arch.in_channels(), 12, 16, seed);
+        // Candle's input must be a multiple of the size multiple (8 with the U-Net).
+        let (h, wd) = if arch.unet_channels > 0 {
+            (16, 24)
+        } else {
+            (12, 16)
+        };
+        let x = random_input(arch.in_channels(), h, wd, seed);
         let want = nchw_to_act(&net.forward(&x).unwrap());
+        assert_eq!((want.c, want.h, want.w), (arch.out_channels(), h, wd));
         let got = CpuNet::new(w).unwrap().forward(&nchw_to_act(&x)).unwrap();
         let spread = want.data.iter().fold(0.0f32, |m, v| m.max((v - 0.5).abs()));
         assert!(
@@ -252,6 +270,21 @@ fn resumed_training_equals_uninterrupted_training() {
     let mut other = tiny_config("c1", b.path(), 12);
     other.arch.channels = 16;
     assert!(train(&other, &mut |_| {}).is_err());
+}
+
+#[test]
+fn fv_unet_changes_the_output_and_odd_sizes_are_padded() {
+    let arch = small_fv_arch();
+    let w = Weights::random(&arch, 4).unwrap();
+    let x = nchw_to_act(&random_input(arch.in_channels(), 13, 19, 5));
+    let y = CpuNet::new(w.clone()).unwrap().forward(&x).unwrap();
+    assert_eq!((y.h, y.w, y.c), (13, 19, 27));
+    // Zeroing the U-Net's last convolution changes the output: the branch is wired in.
+    let mut cut = w.clone();
+    let last = cut.convs.last_mut().unwrap();
+    last.weight.iter_mut().for_each(|v| *v = 0.0);
+    let z = CpuNet::new(cut).unwrap().forward(&x).unwrap();
+    assert!(max_err(&y.data, &z.data) > 1e-4);
 }
 
 #[test]

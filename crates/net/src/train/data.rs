@@ -237,10 +237,11 @@ pub fn sample_batch(
     let (cin, ct) = match task {
         Task::C1 => (5, 3),
         Task::C3 { foci } | Task::C4 { foci, .. } => (4, 3 * foci.len()),
-        Task::C5 { .. } => {
-            return Err(NetError::Data(
-                "no training data pipeline for c5 yet (light-field views)".into(),
-            ))
+        Task::C5 { .. } | Task::Fv { .. } => {
+            return Err(NetError::Data(format!(
+                "no training data pipeline for {} yet (light-field views)",
+                task.name()
+            )))
         }
     };
     let mut input = Vec::with_capacity(n * cin * patch * patch);
