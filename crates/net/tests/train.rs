@@ -253,6 +253,43 @@ fn c4_training_through_the_retina_lowers_the_loss() {
 }
 
 #[test]
+fn fv_training_over_several_sampling_rates_lowers_the_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("fv", dir.path(), 40);
+    cfg.arch.unet_channels = 4;
+    let (w, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[35..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+    let back = Weights::load(&dir.path().join("fv.safetensors")).unwrap();
+    assert_eq!(back.convs, w.convs);
+    assert!(back.provenance["data"].contains("foveated"));
+    // One view-grid cache file per training scene.
+    let cached = std::fs::read_dir(dir.path().join("cache")).unwrap().count();
+    assert_eq!(cached, 2);
+}
+
+#[test]
+fn c5_training_on_view_grids_lowers_the_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c5", dir.path(), 30);
+    cfg.arch.task = Task::C5 { views: 5, grid: 3 };
+    let (_, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[25..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+}
+
+#[test]
+fn fv_patches_must_fit_the_unet() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("fv", dir.path(), 1);
+    cfg.patch = 20; // a multiple of the rate but not of 8
+    let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("multiple of 8"), "{e}");
+}
+
+#[test]
 fn resumed_training_equals_uninterrupted_training() {
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let (straight, _, _) = run(&tiny_config("c1", a.path(), 10));
