@@ -5,13 +5,14 @@ use anyhow::{bail, Context, Result};
 use clap::Args as ClapArgs;
 use dioptra_net::train::data::DataSpec;
 use dioptra_net::train::{train, TrainConfig, TrainEvent};
-use dioptra_net::Arch;
+use dioptra_net::{Arch, Task};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
 #[derive(ClapArgs, Debug)]
 pub struct Args {
-    /// Configuration: c1 (defocus), c3 (focal stack), c4 (multifocal).
+    /// Configuration: c1 (defocus), c3 (focal stack), c4 (multifocal), c5 (light field from
+    /// RGB-D views), fv (foveated view synthesis).
     #[arg(long)]
     config: String,
     /// Total steps; rerunning with a larger count resumes and continues.
@@ -53,18 +54,38 @@ pub struct Args {
     /// Render cache (default OUT/cache).
     #[arg(long)]
     cache: Option<PathBuf>,
+    /// C5/FV: side of the view grid (odd, 3 to 9; default 9 for c5, 3 for fv).
+    #[arg(long)]
+    grid: Option<usize>,
+    /// C5/FV: input views, 5 (corners + centre) or 9 (+ edge midpoints).
+    #[arg(long)]
+    views: Option<usize>,
+    /// FV: channels of the U-Net's first level.
+    #[arg(long)]
+    unet_channels: Option<usize>,
+    /// Supersampling (per side) of the pinhole colour.
+    #[arg(long, default_value_t = 4)]
+    supersample: usize,
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let mut arch = Arch::preset(&a.config).with_context(|| {
-        if a.config == "c5" || a.config == "fv" {
-            format!("training for {} is not available yet", a.config)
-        } else {
-            "choose --config c1, c3 or c4".to_string()
+    let mut arch = Arch::preset(&a.config)
+        .with_context(|| "--config: choose c1, c3, c4, c5 or fv".to_string())?;
+    match &mut arch.task {
+        Task::C5 { views, grid } | Task::Fv { views, grid } => {
+            *grid = a.grid.unwrap_or(*grid);
+            *views = a.views.unwrap_or(*views);
         }
-    })?;
-    if a.config == "c5" {
-        bail!("c5 has an architecture and CPU inference but no training data pipeline yet");
+        _ if a.grid.is_some() || a.views.is_some() => {
+            bail!("--grid and --views apply to c5 and fv only")
+        }
+        _ => {}
+    }
+    if let Some(u) = a.unet_channels {
+        if !matches!(arch.task, Task::Fv { .. }) {
+            bail!("--unet-channels applies to fv only");
+        }
+        arch.unet_channels = u;
     }
     arch.channels = a.channels;
     arch.layers = a.layers;
@@ -81,6 +102,7 @@ pub fn run(a: Args) -> Result<()> {
     cfg.data = DataSpec {
         size: a.size,
         samples: a.samples,
+        supersample: a.supersample,
         ..DataSpec::default()
     };
     if let Some(c) = a.cache {

@@ -11,6 +11,13 @@
 //! - the last layer outputs `out_channels * r^2` channels, mapped to [0, 1] by `(tanh x + 1) / 2`,
 //!   then depth-to-space back to full resolution.
 //!
+//! - FV only (Thumuluri & Sharma 2020, sec. 4.3): a small U-Net runs in parallel on the same
+//!   interleaved input and its output is added to the last layer's before the `tanh`:
+//!   two 3x3 convolutions at the interleaved resolution (`u` channels), 2x2 average pool, two at
+//!   1/2 (`2u`), 2x2 average pool, one at 1/4 (`2u`), nearest upsampling and concatenation with
+//!   the skip at each level (one convolution each), and a last convolution to the output
+//!   channels. Its convolutions follow the chain's in the weights, named `unet{j}`.
+//!
 //! Interleave channel order: interleaved channel `c * r^2 + dy * r + dx` holds channel `c` at
 //! pixel `(r*Y + dy, r*X + dx)` of the full-resolution image (PyTorch's `pixel_unshuffle`
 //! order, not TensorFlow's `(dy*r + dx)*C + c`); depth-to-space is its exact inverse.
@@ -35,7 +42,14 @@ pub enum Task {
     C4 { planes: Vec<f32>, foci: Vec<f32> },
     /// Light field: `views` (5 or 9) RGB-D views (4 each) -> all `grid` x `grid` RGB views.
     C5 { views: usize, grid: usize },
+    /// Foveated view synthesis (Thumuluri & Sharma 2020): per input view (`views`, 5 or 9 of
+    /// the grid) its log-polar sampling mask, sampled depth / 4 and interpolated RGB (5 each)
+    /// -> all `grid` x `grid` RGB views.
+    Fv { views: usize, grid: usize },
 }
+
+/// Convolutions of the FV U-Net (see the module docs).
+pub const UNET_CONVS: usize = 7;
 
 impl Task {
     pub fn name(&self) -> &'static str {
@@ -44,6 +58,7 @@ impl Task {
             Task::C3 { .. } => "c3",
             Task::C4 { .. } => "c4",
             Task::C5 { .. } => "c5",
+            Task::Fv { .. } => "fv",
         }
     }
     pub fn in_channels(&self) -> usize {
@@ -51,6 +66,7 @@ impl Task {
             Task::C1 => 5,
             Task::C3 { .. } | Task::C4 { .. } => 4,
             Task::C5 { views, .. } => 4 * views,
+            Task::Fv { views, .. } => 5 * views,
         }
     }
     pub fn out_channels(&self) -> usize {
@@ -58,9 +74,26 @@ impl Task {
             Task::C1 => 3,
             Task::C3 { foci } => 3 * foci.len(),
             Task::C4 { planes, .. } => 3 * planes.len(),
-            Task::C5 { grid, .. } => 3 * grid * grid,
+            Task::C5 { grid, .. } | Task::Fv { grid, .. } => 3 * grid * grid,
         }
     }
+    /// Grid indices (row-major, `row * grid + col`) of the input views of C5 and FV: the four
+    /// corners and the centre (5), plus the edge midpoints (9), as in DeepFocus's light-field
+    /// configurations. Empty for the other tasks.
+    pub fn input_views(&self) -> Vec<usize> {
+        let (Task::C5 { views, grid } | Task::Fv { views, grid }) = self else {
+            return Vec::new();
+        };
+        let (g, m) = (*grid, grid / 2);
+        let mut rc = vec![(0, 0), (0, g - 1), (m, m), (g - 1, 0), (g - 1, g - 1)];
+        if *views == 9 {
+            rc.extend([(0, m), (m, 0), (m, g - 1), (g - 1, m)]);
+        }
+        let mut v: Vec<usize> = rc.iter().map(|(r, c)| r * g + c).collect();
+        v.sort_unstable();
+        v
+    }
+
     fn validate(&self) -> Result<(), String> {
         let diopters = |v: &[f32], what: &str, max: usize| -> Result<(), String> {
             if v.is_empty() || v.len() > max {
@@ -83,10 +116,10 @@ impl Task {
                 diopters(planes, "display planes", 16)?;
                 diopters(foci, "focal samples", 64)
             }
-            Task::C5 { views, grid } => {
-                if ![5, 9].contains(views) || !(3..=9).contains(grid) {
+            Task::C5 { views, grid } | Task::Fv { views, grid } => {
+                if ![5, 9].contains(views) || !(3..=9).contains(grid) || grid % 2 == 0 {
                     Err(format!(
-                        "{views} input views on a {grid}x{grid} grid: expected 5 or 9 views, grid 3 to 9"
+                        "{views} input views on a {grid}x{grid} grid: expected 5 or 9 views, an odd grid 3 to 9"
                     ))
                 } else {
                     Ok(())
@@ -109,6 +142,14 @@ pub struct Arch {
     pub channels: usize,
     /// Concatenate the interleaved input before the last layer.
     pub concat_input: bool,
+    /// Channels of the parallel U-Net's first level (FV only; 0 = no U-Net). Absent from the
+    /// JSON when 0, so C1-C5 files are unchanged.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub unet_channels: usize,
+}
+
+fn is_zero(v: &usize) -> bool {
+    *v == 0
 }
 
 impl Arch {
@@ -120,10 +161,11 @@ impl Arch {
             layers: 8,
             channels: 32,
             concat_input: false,
+            unet_channels: 0,
         }
     }
 
-    /// Default architecture of each configuration (`c1`, `c3`, `c4`, `c5`).
+    /// Default architecture of each configuration (`c1`, `c3`, `c4`, `c5`, `fv`).
     pub fn preset(name: &str) -> Result<Arch, NetError> {
         let stack = |lo: f32, hi: f32, n: usize| -> Vec<f32> {
             (0..n)
@@ -141,14 +183,21 @@ impl Arch {
                 foci: stack(0.1, 2.2, 22),
             },
             "c5" => Task::C5 { views: 5, grid: 9 },
+            // The four corners and the centre of a 3x3 grid: the paper's 9 inputs of a 9x9
+            // grid cost 81 renders per training scene; 5 of 9 keeps the same task (synthesise
+            // the views between foveated inputs) at a size this machine trains in minutes.
+            "fv" => Task::Fv { views: 5, grid: 3 },
             _ => {
                 return Err(NetError::BadArch(format!(
-                    "unknown configuration {name:?}: expected c1, c3, c4 or c5"
+                    "unknown configuration {name:?}: expected c1, c3, c4, c5 or fv"
                 )))
             }
         };
+        let fv = matches!(task, Task::Fv { .. });
         let arch = Arch {
-            concat_input: matches!(task, Task::C5 { .. }),
+            // The light-field nets (and FV's long skip, sec. 4.3.2) see the input at the end.
+            concat_input: matches!(task, Task::C5 { .. } | Task::Fv { .. }),
+            unet_channels: if fv { 16 } else { 0 },
             task,
             ..Arch::c1_small()
         };
@@ -186,13 +235,66 @@ impl Arch {
         if !(1..=1024).contains(&self.channels) {
             return bad(format!("{} channels: expected 1 to 1024", self.channels));
         }
+        let fv = matches!(self.task, Task::Fv { .. });
+        if fv != (self.unet_channels > 0) || self.unet_channels > 512 {
+            return bad(format!(
+                "{} U-Net channels for {}: FV needs 1 to 512, the other configurations 0",
+                self.unet_channels,
+                self.task.name()
+            ));
+        }
         self.task.validate().map_err(NetError::BadArch)
+    }
+
+    /// Every convolution: the chain's `layers`, then the U-Net's.
+    pub fn conv_count(&self) -> usize {
+        self.layers
+            + if self.unet_channels > 0 {
+                UNET_CONVS
+            } else {
+                0
+            }
+    }
+
+    /// The weights' name stem of convolution `i`: `conv{i}` in the chain, `unet{j}` after.
+    pub fn conv_name(&self, i: usize) -> String {
+        if i < self.layers {
+            format!("conv{i}")
+        } else {
+            format!("unet{}", i - self.layers)
+        }
+    }
+
+    /// What the full-resolution input's size must divide by: the rate, times 4 for the
+    /// U-Net's two poolings.
+    pub fn size_multiple(&self) -> usize {
+        self.rate * if self.unet_channels > 0 { 4 } else { 1 }
+    }
+
+    /// Input and output channels of U-Net convolution `j` (interleaved domain).
+    fn unet_io(&self, j: usize) -> (usize, usize) {
+        let (u, x0) = (
+            self.unet_channels,
+            self.in_channels() * self.rate * self.rate,
+        );
+        match j {
+            0 => (x0, u),
+            1 => (u, u),
+            2 => (u, 2 * u),
+            3 => (2 * u, 2 * u),
+            // Upsampled bottleneck + level-1 skip, then upsampled + level-0 skip.
+            4 => (4 * u, 2 * u),
+            5 => (2 * u + u, u),
+            _ => (u, self.out_channels() * self.rate * self.rate),
+        }
     }
 
     /// Input channels of convolution `i` (interleaved domain).
     pub fn conv_in(&self, i: usize) -> usize {
         let rr = self.rate * self.rate;
-        if i == 0 {
+        if i >= self.layers {
+            self.unet_io(i - self.layers).0
+        } else if i == 0 {
             self.in_channels() * rr
         } else if i + 1 == self.layers && self.concat_input {
             self.channels + self.in_channels() * rr
@@ -203,7 +305,9 @@ impl Arch {
 
     /// Output channels of convolution `i` (interleaved domain).
     pub fn conv_out(&self, i: usize) -> usize {
-        if i + 1 == self.layers {
+        if i >= self.layers {
+            self.unet_io(i - self.layers).1
+        } else if i + 1 == self.layers {
             self.out_channels() * self.rate * self.rate
         } else {
             self.channels
@@ -216,16 +320,17 @@ impl Arch {
     }
 
     /// Shapes of every tensor, by name, in file order: `conv{i}.weight` [out, in, 3, 3] and
-    /// `conv{i}.bias` [out].
+    /// `conv{i}.bias` [out] (`unet{j}.*` for the U-Net's).
     pub fn tensor_shapes(&self) -> Vec<(String, Vec<usize>)> {
-        (0..self.layers)
+        (0..self.conv_count())
             .flat_map(|i| {
+                let n = self.conv_name(i);
                 [
                     (
-                        format!("conv{i}.weight"),
+                        format!("{n}.weight"),
                         vec![self.conv_out(i), self.conv_in(i), 3, 3],
                     ),
-                    (format!("conv{i}.bias"), vec![self.conv_out(i)]),
+                    (format!("{n}.bias"), vec![self.conv_out(i)]),
                 ]
             })
             .collect()
@@ -250,7 +355,7 @@ mod tests {
 
     #[test]
     fn json_round_trip_keeps_every_field() {
-        for name in ["c1", "c3", "c4", "c5"] {
+        for name in ["c1", "c3", "c4", "c5", "fv"] {
             let mut a = Arch::preset(name).unwrap();
             a.rate = 4;
             a.layers = 5;
@@ -269,6 +374,33 @@ mod tests {
         // 5 views x RGB-D in, concatenated before the last layer; 81 RGB views out.
         assert_eq!(c5.conv_in(7), 32 + 80);
         assert_eq!(c5.conv_out(7), 243 * 4);
+    }
+
+    #[test]
+    fn fv_has_a_unet_beside_the_chain() {
+        let fv = Arch::preset("fv").unwrap();
+        // 5 views x (mask, depth, RGB), interleaved at r = 2.
+        assert_eq!((fv.in_channels(), fv.conv_in(0)), (25, 100));
+        assert_eq!(fv.conv_count(), 8 + UNET_CONVS);
+        assert_eq!(fv.conv_name(8), "unet0");
+        assert_eq!((fv.conv_in(8), fv.conv_out(8)), (100, 16));
+        assert_eq!((fv.conv_in(12), fv.conv_in(13)), (64, 48));
+        // Both branches end in the same output channels, so they can be summed.
+        assert_eq!(fv.conv_out(14), fv.conv_out(7));
+        assert_eq!(fv.conv_out(14), 27 * 4);
+        assert_eq!(fv.size_multiple(), 8);
+        assert_eq!(fv.task.input_views(), vec![0, 2, 4, 6, 8]);
+        let nine = Task::Fv { views: 9, grid: 9 }.input_views();
+        assert_eq!(nine, vec![0, 4, 8, 36, 40, 44, 72, 76, 80]);
+        // C1-C5 JSON carries no U-Net key; FV without a U-Net (or C1 with one) is refused.
+        assert!(!Arch::c1_small().to_json().contains("unet"));
+        let mut bad = fv.clone();
+        bad.unet_channels = 0;
+        assert!(bad.validate().is_err());
+        let mut bad = Arch::c1_small();
+        bad.unet_channels = 8;
+        assert!(bad.validate().is_err());
+        assert!(Arch::from_json(r#"{"config":"fv","views":5,"grid":4,"rate":2,"layers":4,"channels":8,"concat_input":true,"unet_channels":8}"#).is_err());
     }
 
     #[test]

@@ -264,11 +264,11 @@ impl CpuNet {
     pub fn with_kernel(weights: Weights, use_direct: bool) -> Result<CpuNet, NetError> {
         let use_direct = use_direct && direct::available();
         weights.arch.validate()?;
-        if weights.convs.len() != weights.arch.layers {
+        if weights.convs.len() != weights.arch.conv_count() {
             return Err(NetError::BadArch(format!(
-                "{} convolutions for {} layers",
+                "{} convolutions for an architecture of {}",
                 weights.convs.len(),
-                weights.arch.layers
+                weights.arch.conv_count()
             )));
         }
         let packed = weights
@@ -305,7 +305,7 @@ impl CpuNet {
     }
 
     /// Runs the network on a full-resolution HWC input of `in_channels`; any size (padded to
-    /// the interleave rate internally, cropped back).
+    /// [`Arch::size_multiple`] internally, cropped back).
     pub fn forward(&self, x: &Act) -> Result<Act, NetError> {
         let arch = self.arch();
         if x.c != arch.in_channels() || x.h == 0 || x.w == 0 {
@@ -318,7 +318,7 @@ impl CpuNet {
                 x.c
             )));
         }
-        let padded = x.pad_to_multiple(arch.rate);
+        let padded = x.pad_to_multiple(arch.size_multiple());
         let y = forward(arch, self, &padded)?;
         Ok(y.crop(x.h, x.w))
     }
@@ -362,6 +362,45 @@ impl Ops for CpuNet {
     fn depth_to_space(&self, x: &Act, r: usize) -> Result<Act, NetError> {
         depth_to_space(x, r)
     }
+    fn avg_pool2(&self, x: &Act) -> Result<Act, NetError> {
+        avg_pool2(x)
+    }
+    fn upsample2(&self, x: &Act) -> Result<Act, NetError> {
+        upsample2(x)
+    }
+}
+
+/// 2x2 average pooling, stride 2.
+pub fn avg_pool2(x: &Act) -> Result<Act, NetError> {
+    if x.h % 2 != 0 || x.w % 2 != 0 {
+        return Err(input(format!("{}x{} cannot be pooled by 2", x.w, x.h)));
+    }
+    let (h, w, c) = (x.h / 2, x.w / 2, x.c);
+    let mut out = vec![0.0; h * w * c];
+    out.par_chunks_mut(w * c).enumerate().for_each(|(y, row)| {
+        for xx in 0..w {
+            let o = &mut row[xx * c..][..c];
+            for (dy, dx) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                let src = &x.data[((2 * y + dy) * x.w + 2 * xx + dx) * c..][..c];
+                for (a, &v) in o.iter_mut().zip(src) {
+                    *a += 0.25 * v;
+                }
+            }
+        }
+    });
+    Act::new(h, w, c, out)
+}
+
+/// Nearest-neighbour 2x upsampling.
+pub fn upsample2(x: &Act) -> Result<Act, NetError> {
+    let (w, c) = (x.w * 2, x.c);
+    let mut out = vec![0.0; x.data.len() * 4];
+    out.par_chunks_mut(w * c).enumerate().for_each(|(y, row)| {
+        for xx in 0..w {
+            row[xx * c..][..c].copy_from_slice(&x.data[((y / 2) * x.w + xx / 2) * c..][..c]);
+        }
+    });
+    Act::new(x.h * 2, w, c, out)
 }
 
 #[cfg(test)]
@@ -473,6 +512,17 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn pooling_averages_and_upsampling_repeats() {
+        let x = Act::new(2, 4, 1, vec![1.0, 3.0, 5.0, 7.0, 3.0, 5.0, 7.0, 9.0]).unwrap();
+        assert_eq!(avg_pool2(&x).unwrap().data, vec![3.0, 7.0]);
+        let u = upsample2(&Act::new(1, 2, 2, vec![1.0, 2.0, 3.0, 4.0]).unwrap()).unwrap();
+        assert_eq!((u.h, u.w, u.c), (2, 4, 2));
+        assert_eq!(&u.data[..8], &[1.0, 2.0, 1.0, 2.0, 3.0, 4.0, 3.0, 4.0]);
+        assert_eq!(&u.data[8..], &u.data[..8]);
+        assert!(avg_pool2(&random_act(3, 4, 1, 0)).is_err());
     }
 
     #[test]

@@ -122,6 +122,7 @@ pub fn load_gpu_net(
 impl GpuNet {
     /// Uploads `weights` once to the process's GPU context.
     pub fn new(weights: Weights, adapter: Option<&str>) -> Result<GpuNet, NetError> {
+        refuse_unet(&weights.arch)?;
         let ctx = GpuContext::shared(adapter).map_err(gpu_err)?;
         GpuNet::on(ctx, weights)
     }
@@ -129,7 +130,8 @@ impl GpuNet {
     /// As [`GpuNet::new`], on a given context.
     pub fn on(ctx: Arc<GpuContext>, weights: Weights) -> Result<GpuNet, NetError> {
         weights.arch.validate()?;
-        if weights.convs.len() != weights.arch.layers {
+        refuse_unet(&weights.arch)?;
+        if weights.convs.len() != weights.arch.conv_count() {
             return Err(NetError::BadArch(format!(
                 "{} convolutions for {} layers",
                 weights.convs.len(),
@@ -297,6 +299,17 @@ impl Pass<'_> {
     }
 }
 
+/// The GPU shaders have no pooling or upsampling yet, so FV's U-Net runs on the CPU only.
+fn refuse_unet(arch: &Arch) -> Result<(), NetError> {
+    if arch.unet_channels > 0 {
+        return Err(NetError::Input(format!(
+            "GPU inference does not run the {} network's U-Net (no pooling/upsampling shaders yet): use CPU inference",
+            arch.task.name()
+        )));
+    }
+    Ok(())
+}
+
 fn chw(t: &GpuTensor, what: &str) -> Result<(), NetError> {
     if t.hwc {
         return Err(input(format!(
@@ -425,5 +438,29 @@ impl Ops for Pass<'_> {
         ];
         self.dispatch(&DEPTH_TO_SPACE, p, &[&x.buf, &y.buf], groups)?;
         Ok(y)
+    }
+
+    // Unreachable: nets with a U-Net are refused when the GpuNet is made.
+    fn avg_pool2(&self, _: &GpuTensor) -> Result<GpuTensor, NetError> {
+        Err(input("GPU inference has no average pooling"))
+    }
+    fn upsample2(&self, _: &GpuTensor) -> Result<GpuTensor, NetError> {
+        Err(input("GPU inference has no upsampling"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fv_is_refused_with_a_clear_error() {
+        let mut a = Arch::preset("fv").unwrap();
+        (a.layers, a.channels, a.unet_channels) = (2, 4, 2);
+        let e = match GpuNet::new(Weights::random(&a, 0).unwrap(), None) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("GPU inference accepted an FV network"),
+        };
+        assert!(e.contains("fv") && e.contains("CPU"), "{e}");
     }
 }

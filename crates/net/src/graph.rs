@@ -17,9 +17,25 @@ pub trait Ops {
     fn tanh01(&self, x: &Self::T) -> Result<Self::T, Self::E>;
     fn space_to_depth(&self, x: &Self::T, r: usize) -> Result<Self::T, Self::E>;
     fn depth_to_space(&self, x: &Self::T, r: usize) -> Result<Self::T, Self::E>;
+    /// 2x2 average pooling, stride 2 (the U-Net's downsampling; sizes are even).
+    fn avg_pool2(&self, x: &Self::T) -> Result<Self::T, Self::E>;
+    /// Nearest-neighbour 2x upsampling (the U-Net's).
+    fn upsample2(&self, x: &Self::T) -> Result<Self::T, Self::E>;
 }
 
-/// Runs the network on a full-resolution input (its size a multiple of the rate).
+/// The FV U-Net on the interleaved input `x0`: its pre-`tanh` output, added to the chain's.
+fn unet<O: Ops>(arch: &Arch, ops: &O, x0: &O::T) -> Result<O::T, O::E> {
+    let k = arch.layers;
+    let e0 = ops.conv(&ops.conv(x0, k, true)?, k + 1, true)?;
+    let e1 = ops.conv(&ops.avg_pool2(&e0)?, k + 2, true)?;
+    let bottom = ops.conv(&ops.avg_pool2(&e1)?, k + 3, true)?;
+    let d1 = ops.conv(&ops.concat(&ops.upsample2(&bottom)?, &e1)?, k + 4, true)?;
+    let d0 = ops.conv(&ops.concat(&ops.upsample2(&d1)?, &e0)?, k + 5, true)?;
+    ops.conv(&d0, k + 6, false)
+}
+
+/// Runs the network on a full-resolution input (its size a multiple of
+/// [`Arch::size_multiple`]).
 pub fn forward<O: Ops>(arch: &Arch, ops: &O, input: &O::T) -> Result<O::T, O::E> {
     let x0 = ops.space_to_depth(input, arch.rate)?;
     let last = arch.layers - 1;
@@ -36,7 +52,10 @@ pub fn forward<O: Ops>(arch: &Arch, ops: &O, input: &O::T) -> Result<O::T, O::E>
             if arch.concat_input {
                 x = ops.concat(&x, &x0)?;
             }
-            let y = ops.conv(&x, i, false)?;
+            let mut y = ops.conv(&x, i, false)?;
+            if arch.unet_channels > 0 {
+                y = ops.add(&y, &unet(arch, ops, &x0)?)?;
+            }
             return ops.depth_to_space(&ops.tanh01(&y)?, arch.rate);
         }
         h.push(ops.conv(&x, i, true)?);

@@ -7,6 +7,7 @@ pub mod arch;
 pub mod cpu;
 mod direct;
 pub mod error;
+pub mod fv;
 pub mod gpu;
 pub mod graph;
 pub mod tasks;

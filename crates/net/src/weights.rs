@@ -54,11 +54,12 @@ impl Weights {
     pub fn random(arch: &Arch, seed: u64) -> Result<Weights, NetError> {
         arch.validate()?;
         let mut rng = SplitMix(seed);
-        let convs = (0..arch.layers)
+        let convs = (0..arch.conv_count())
             .map(|i| {
                 let (cin, cout) = (arch.conv_in(i), arch.conv_out(i));
                 let mut bound = (6.0 / (9 * cin) as f32).sqrt();
-                if i + 1 == arch.layers {
+                // Each branch's last convolution (the chain's and the U-Net's).
+                if i + 1 == arch.layers || i + 1 == arch.conv_count() {
                     bound *= 0.1;
                 }
                 Conv {
@@ -83,7 +84,7 @@ impl Weights {
         mut tensors: HashMap<String, (Vec<usize>, Vec<f32>)>,
     ) -> Result<Weights, NetError> {
         arch.validate()?;
-        let mut convs = Vec::with_capacity(arch.layers);
+        let mut convs = Vec::with_capacity(arch.conv_count());
         let mut take = |name: &str, shape: &[usize]| -> Result<Vec<f32>, NetError> {
             let (found, data) = tensors.remove(name).ok_or_else(|| NetError::Tensor {
                 name: name.into(),
@@ -104,10 +105,11 @@ impl Weights {
             }
             Ok(data)
         };
-        for i in 0..arch.layers {
+        for i in 0..arch.conv_count() {
             let (cin, cout) = (arch.conv_in(i), arch.conv_out(i));
-            let weight = take(&format!("conv{i}.weight"), &[cout, cin, 3, 3])?;
-            let bias = take(&format!("conv{i}.bias"), &[cout])?;
+            let n = arch.conv_name(i);
+            let weight = take(&format!("{n}.weight"), &[cout, cin, 3, 3])?;
+            let bias = take(&format!("{n}.bias"), &[cout])?;
             convs.push(Conv {
                 cin,
                 cout,
@@ -138,13 +140,10 @@ impl Weights {
             .iter()
             .enumerate()
             .flat_map(|(i, c)| {
+                let n = self.arch.conv_name(i);
                 [
-                    (
-                        format!("conv{i}.weight"),
-                        vec![c.cout, c.cin, 3, 3],
-                        &c.weight,
-                    ),
-                    (format!("conv{i}.bias"), vec![c.cout], &c.bias),
+                    (format!("{n}.weight"), vec![c.cout, c.cin, 3, 3], &c.weight),
+                    (format!("{n}.bias"), vec![c.cout], &c.bias),
                 ]
             })
             .map(|(n, s, d)| (n, s, d.iter().flat_map(|v| v.to_le_bytes()).collect()))
@@ -312,6 +311,34 @@ mod tests {
             Weights::from_bytes(&bad_arch).unwrap_err(),
             NetError::BadArch(_)
         ));
+    }
+
+    #[test]
+    fn fv_unet_weights_round_trip_and_are_checked() {
+        let mut a = Arch::preset("fv").unwrap();
+        (a.layers, a.channels, a.unet_channels) = (4, 6, 4);
+        let w = Weights::random(&a, 3).unwrap();
+        assert_eq!(w.convs.len(), 4 + crate::arch::UNET_CONVS);
+        let bytes = w.to_bytes().unwrap();
+        assert_eq!(Weights::from_bytes(&bytes).unwrap(), w);
+        // A U-Net width that disagrees with the tensors names the first U-Net tensor.
+        let mut lie = w.clone();
+        lie.arch.unet_channels = 5;
+        let e = Weights::from_bytes(&lie.to_bytes().unwrap()).unwrap_err();
+        assert!(
+            matches!(&e, NetError::Shape { name, .. } if name == "unet0.weight"),
+            "{e}"
+        );
+        // The U-Net's last convolution missing.
+        let mut short = w.clone();
+        short.convs.pop();
+        let e = Weights::from_bytes(&short.to_bytes().unwrap()).unwrap_err();
+        assert!(e.to_string().contains("unet6.weight"), "{e}");
+        // C1 weights read as FV (the arch key swapped) fail on the first input layer.
+        let mut c1 = small();
+        c1.arch = a.clone();
+        assert!(Weights::from_bytes(&c1.to_bytes().unwrap()).is_err());
+        assert!(Weights::from_bytes(&bytes[..bytes.len() - 3]).is_err());
     }
 
     #[test]

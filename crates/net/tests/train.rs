@@ -23,7 +23,14 @@ fn vector_arch() -> Arch {
         layers: 5,
         channels: 8,
         concat_input: true,
+        unet_channels: 0,
     }
+}
+
+fn small_fv_arch() -> Arch {
+    let mut a = Arch::preset("fv").unwrap();
+    (a.layers, a.channels, a.unet_channels) = (5, 8, 6);
+    a
 }
 
 fn nchw_to_act(t: &Tensor) -> Act {
@@ -54,7 +61,11 @@ fn max_err(a: &[f32], b: &[f32]) -> f32 {
 
 #[test]
 fn candle_forward_matches_cpu_inference() {
-    for (arch, seed) in [(vector_arch(), 1), (Arch::preset("c4").unwrap(), 2)] {
+    for (arch, seed) in [
+        (vector_arch(), 1),
+        (Arch::preset("c4").unwrap(), 2),
+        (small_fv_arch(), 3),
+    ] {
         let w = Weights::random(&arch, seed).unwrap();
         // Larger weights than the init, so the tanh is exercised away from 0.5.
         let mut w = w;
@@ -62,8 +73,15 @@ fn candle_forward_matches_cpu_inference() {
             c.weight.iter_mut().for_each(|v| *v *= 3.0);
         }
         let net = CandleNet::from_weights(&w, &Device::Cpu).unwrap();
-        let x = random_input(arch.in_channels(), 12, 16, seed);
+        // Candle's input must be a multiple of the size multiple (8 with the U-Net).
+        let (h, wd) = if arch.unet_channels > 0 {
+            (16, 24)
+        } else {
+            (12, 16)
+        };
+        let x = random_input(arch.in_channels(), h, wd, seed);
         let want = nchw_to_act(&net.forward(&x).unwrap());
+        assert_eq!((want.c, want.h, want.w), (arch.out_channels(), h, wd));
         let got = CpuNet::new(w).unwrap().forward(&nchw_to_act(&x)).unwrap();
         let spread = want.data.iter().fold(0.0f32, |m, v| m.max((v - 0.5).abs()));
         assert!(
@@ -235,6 +253,43 @@ fn c4_training_through_the_retina_lowers_the_loss() {
 }
 
 #[test]
+fn fv_training_over_several_sampling_rates_lowers_the_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("fv", dir.path(), 40);
+    cfg.arch.unet_channels = 4;
+    let (w, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[35..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+    let back = Weights::load(&dir.path().join("fv.safetensors")).unwrap();
+    assert_eq!(back.convs, w.convs);
+    assert!(back.provenance["data"].contains("foveated"));
+    // One view-grid cache file per training scene.
+    let cached = std::fs::read_dir(dir.path().join("cache")).unwrap().count();
+    assert_eq!(cached, 2);
+}
+
+#[test]
+fn c5_training_on_view_grids_lowers_the_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c5", dir.path(), 30);
+    cfg.arch.task = Task::C5 { views: 5, grid: 3 };
+    let (_, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[25..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.1, "loss went from {first} to {last}");
+}
+
+#[test]
+fn fv_patches_must_fit_the_unet() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("fv", dir.path(), 1);
+    cfg.patch = 20; // a multiple of the rate but not of 8
+    let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("multiple of 8"), "{e}");
+}
+
+#[test]
 fn resumed_training_equals_uninterrupted_training() {
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     let (straight, _, _) = run(&tiny_config("c1", a.path(), 10));
@@ -252,6 +307,21 @@ fn resumed_training_equals_uninterrupted_training() {
     let mut other = tiny_config("c1", b.path(), 12);
     other.arch.channels = 16;
     assert!(train(&other, &mut |_| {}).is_err());
+}
+
+#[test]
+fn fv_unet_changes_the_output_and_odd_sizes_are_padded() {
+    let arch = small_fv_arch();
+    let w = Weights::random(&arch, 4).unwrap();
+    let x = nchw_to_act(&random_input(arch.in_channels(), 13, 19, 5));
+    let y = CpuNet::new(w.clone()).unwrap().forward(&x).unwrap();
+    assert_eq!((y.h, y.w, y.c), (13, 19, 27));
+    // Zeroing the U-Net's last convolution changes the output: the branch is wired in.
+    let mut cut = w.clone();
+    let last = cut.convs.last_mut().unwrap();
+    last.weight.iter_mut().for_each(|v| *v = 0.0);
+    let z = CpuNet::new(cut).unwrap().forward(&x).unwrap();
+    assert!(max_err(&y.data, &z.data) > 1e-4);
 }
 
 #[test]

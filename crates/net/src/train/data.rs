@@ -1,8 +1,14 @@
 //! Training data from the scene simulator: training seeds only, renders cached on disk as
 //! safetensors so a resumed or repeated run does not re-render.
+//!
+//! C5 and FV train on view grids: pinhole RGB-D renders from `grid` x `grid` lens-plane
+//! positions spanning the pupil (the views the eye integrates; 2 mm apart on the default 3x3
+//! grid over a 4 mm pupil, about 3 px of disparity at 4 D on 128 px, close to the paper's
+//! 2.5 px between adjacent views). FV's inputs are foveated per sample (see [`sample_batch`]).
 
 use crate::arch::{Task, COC_NORM, DEPTH_NORM};
 use crate::error::NetError;
+use crate::fv::{foveate_view, grid_positions, push_view_pixel, view_mask, FoveatedView};
 use crate::weights::SplitMix;
 use dioptra_core::{DepthMap, Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
@@ -55,6 +61,8 @@ pub struct SceneData {
     pub rgbd: Rgbd,
     pub foci: Vec<f32>,
     pub stack: Vec<RgbImage>,
+    /// C5 and FV: every view of the grid, row-major (`rgbd` is the centre view).
+    pub views: Vec<Rgbd>,
 }
 
 /// The foci a scene's targets are rendered at: the network's own for C3/C4; for C1, `k`
@@ -171,6 +179,7 @@ fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetErro
         rgbd: Rgbd::new(color, depth)?,
         foci: foci.to_vec(),
         stack,
+        views: Vec::new(),
     })
 }
 
@@ -205,6 +214,7 @@ pub fn load_or_render(
         rgbd: Rgbd::new(color, depth)?,
         foci: foci.to_vec(),
         stack,
+        views: Vec::new(),
     };
     std::fs::create_dir_all(cache).map_err(|e| NetError::Io {
         path: cache.display().to_string(),
@@ -212,6 +222,134 @@ pub fn load_or_render(
     })?;
     write_cache(&path, &s)?;
     Ok(s)
+}
+
+/// The grid views of scene `seed` (a training seed) for a `grid` x `grid` grid over the
+/// pupil, rendered or read from `cache`, as a [`SceneData`] whose `rgbd` is the centre view.
+pub fn load_or_render_views(
+    cache: &Path,
+    seed: u64,
+    grid: usize,
+    spec: &DataSpec,
+) -> Result<SceneData, NetError> {
+    if Split::of(seed) == Split::Test {
+        return Err(NetError::Data(format!(
+            "seed {seed} is a test seed: training uses only training seeds"
+        )));
+    }
+    let positions = grid_positions(grid, spec.pupil_mm * 1e-3);
+    let key = fnv(positions
+        .iter()
+        .flatten()
+        .chain(&[spec.fov_deg])
+        .flat_map(|f| f.to_le_bytes()));
+    let path = cache.join(format!(
+        "views-{seed}-{grid}x{grid}-{}px-{}ss-{key:016x}.safetensors",
+        spec.size, spec.supersample
+    ));
+    let views = match read_views(&path, positions.len()) {
+        // A missing or corrupt cache entry is re-rendered.
+        Ok(v) => v,
+        Err(_) => {
+            let cam = Camera::square(spec.eye()?, spec.size);
+            let scene = Scene::generate(seed);
+            let views = positions
+                .iter()
+                .map(|&p| {
+                    let (c, d) = render_pinhole(&scene, &cam, p, spec.supersample)?;
+                    Ok(Rgbd::new(c, d)?)
+                })
+                .collect::<Result<Vec<_>, NetError>>()?;
+            std::fs::create_dir_all(cache).map_err(|e| NetError::Io {
+                path: cache.display().to_string(),
+                source: e,
+            })?;
+            write_views(&path, seed, &views)?;
+            views
+        }
+    };
+    Ok(SceneData {
+        seed,
+        rgbd: views[views.len() / 2].clone(),
+        foci: Vec::new(),
+        stack: Vec::new(),
+        views,
+    })
+}
+
+fn write_views(path: &Path, seed: u64, views: &[Rgbd]) -> Result<(), NetError> {
+    let mut t: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
+    for (k, v) in views.iter().enumerate() {
+        let (w, h) = (v.width(), v.height());
+        t.push((format!("color{k}"), vec![3, h, w], bytes(&planes(&v.color))));
+        t.push((format!("depth{k}"), vec![h, w], bytes(v.depth.data())));
+    }
+    let tv = t
+        .iter()
+        .map(|(n, sh, d)| TensorView::new(Dtype::F32, sh.clone(), d).map(|v| (n.clone(), v)))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| NetError::Data(e.to_string()))?;
+    let meta: HashMap<String, String> = [("seed".to_string(), seed.to_string())].into();
+    let data = safetensors::serialize(tv, Some(meta)).map_err(|e| NetError::Data(e.to_string()))?;
+    let tmp = path.with_extension("tmp");
+    let io = |e: std::io::Error| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    };
+    std::fs::write(&tmp, data).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)
+}
+
+fn read_views(path: &Path, n: usize) -> Result<Vec<Rgbd>, NetError> {
+    let raw = std::fs::read(path).map_err(|e| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    })?;
+    let st = SafeTensors::deserialize(&raw).map_err(|e| NetError::Data(e.to_string()))?;
+    let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>), NetError> {
+        let v = st
+            .tensor(name)
+            .map_err(|e| NetError::Data(format!("{name}: {e}")))?;
+        let d = v
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        Ok((v.shape().to_vec(), d))
+    };
+    (0..n)
+        .map(|k| {
+            let (ds, depth) = get(&format!("depth{k}"))?;
+            let [h, w] = ds[..] else {
+                return Err(NetError::Data("cached depth is not 2-D".into()));
+            };
+            let color = image(w, h, &get(&format!("color{k}"))?.1)?;
+            let depth = DepthMap::from_diopters(Plane::from_vec(w, h, depth)?)?;
+            Ok(Rgbd::new(color, depth)?)
+        })
+        .collect()
+}
+
+/// FV's sampling rates, as in the paper's training (sec. 5): log-buffer scale S = 4 for 40 %
+/// of the samples, S = 2 for 40 % and every pixel (S = 0) for the rest.
+pub fn fv_training_scale(rng: &mut SplitMix) -> Option<f32> {
+    match rng.next_u64() % 10 {
+        0..=3 => Some(4.0),
+        4..=7 => Some(2.0),
+        _ => None,
+    }
+}
+
+/// The nine predetermined gaze positions of FV's training (sec. 5): a 3 x 3 grid at 1/4,
+/// 1/2 and 3/4 of the image.
+pub fn fv_gazes(width: usize, height: usize) -> Vec<[f32; 2]> {
+    let f = [0.25f32, 0.5, 0.75];
+    f.iter()
+        .flat_map(|&y| {
+            f.iter()
+                .map(move |&x| [x * width as f32, y * height as f32])
+        })
+        .collect()
 }
 
 /// A batch of random patches: NCHW inputs and targets as flat vectors.
@@ -237,10 +375,8 @@ pub fn sample_batch(
     let (cin, ct) = match task {
         Task::C1 => (5, 3),
         Task::C3 { foci } | Task::C4 { foci, .. } => (4, 3 * foci.len()),
-        Task::C5 { .. } => {
-            return Err(NetError::Data(
-                "no training data pipeline for c5 yet (light-field views)".into(),
-            ))
+        Task::C5 { .. } | Task::Fv { .. } => {
+            return sample_light_field_batch(task, scenes, rng, n, patch, align)
         }
     };
     let mut input = Vec::with_capacity(n * cin * patch * patch);
@@ -282,6 +418,93 @@ pub fn sample_batch(
                         crop(c, &mut target, &|v| v);
                     }
                 }
+            }
+        }
+    }
+    Ok(Batch {
+        input,
+        in_channels: cin,
+        target,
+        target_channels: ct,
+        n,
+        patch,
+    })
+}
+
+/// C5 and FV batches: the input views (C5: RGB-D; FV: foveated at a rate and gaze drawn per
+/// sample, every view with its own mask) -> every grid view.
+fn sample_light_field_batch(
+    task: &Task,
+    scenes: &[SceneData],
+    rng: &mut SplitMix,
+    n: usize,
+    patch: usize,
+    align: usize,
+) -> Result<Batch, NetError> {
+    let inputs = task.input_views();
+    let fv = matches!(task, Task::Fv { .. });
+    let (cin, ct) = (task.in_channels(), task.out_channels());
+    let mut input = Vec::with_capacity(n * cin * patch * patch);
+    let mut target = Vec::with_capacity(n * ct * patch * patch);
+    let pick = |r: &mut SplitMix, m: usize| (r.next_u64() % m.max(1) as u64) as usize;
+    for _ in 0..n {
+        let s = &scenes[pick(rng, scenes.len())];
+        if s.views.len() * 3 != ct {
+            return Err(NetError::Data(format!(
+                "scene {} has {} views, the {} network predicts {}",
+                s.seed,
+                s.views.len(),
+                task.name(),
+                ct / 3
+            )));
+        }
+        let (w, h) = (s.rgbd.width(), s.rgbd.height());
+        if w < patch || h < patch {
+            return Err(NetError::Data(format!(
+                "patch {patch} is larger than the {w}x{h} renders"
+            )));
+        }
+        let x0 = pick(rng, (w - patch) / align + 1) * align;
+        let y0 = pick(rng, (h - patch) / align + 1) * align;
+        let pixels =
+            || (y0..y0 + patch).flat_map(move |y| (x0..x0 + patch).map(move |x| y * w + x));
+        if fv {
+            let gazes = fv_gazes(w, h);
+            let gaze = gazes[pick(rng, gazes.len())];
+            let scale = fv_training_scale(rng);
+            let views = inputs
+                .iter()
+                .enumerate()
+                .map(|(k, &v)| {
+                    let m = scale.map(|sc| view_mask(gaze, w, sc, k));
+                    foveate_view(&s.views[v], m.as_ref())
+                })
+                .collect::<Result<Vec<FoveatedView>, NetError>>()?;
+            // NCHW: channel-major, 5 channels per view.
+            for v in &views {
+                let mut px = Vec::with_capacity(5);
+                let mut planes: [Vec<f32>; 5] = Default::default();
+                for i in pixels() {
+                    px.clear();
+                    push_view_pixel(v, i, &mut px);
+                    for (p, &x) in planes.iter_mut().zip(&px) {
+                        p.push(x);
+                    }
+                }
+                planes.iter().for_each(|p| input.extend_from_slice(p));
+            }
+        } else {
+            for &v in &inputs {
+                let view = &s.views[v];
+                for c in &view.color.channels {
+                    input.extend(pixels().map(|i| c.data()[i]));
+                }
+                input.extend(pixels().map(|i| view.depth.data()[i] / DEPTH_NORM));
+            }
+        }
+        for view in &s.views {
+            for c in &view.color.channels {
+                target.extend(pixels().map(|i| c.data()[i]));
             }
         }
     }

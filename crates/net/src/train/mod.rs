@@ -30,7 +30,9 @@ impl LossKind {
     pub fn for_task(task: &crate::Task) -> LossKind {
         match task {
             crate::Task::C1 | crate::Task::C3 { .. } => LossKind::LogL1,
-            crate::Task::C4 { .. } | crate::Task::C5 { .. } => LossKind::LogL2,
+            crate::Task::C4 { .. } | crate::Task::C5 { .. } | crate::Task::Fv { .. } => {
+                LossKind::LogL2
+            }
         }
     }
 }

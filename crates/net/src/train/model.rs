@@ -32,7 +32,8 @@ impl CandleNet {
     pub fn to_weights(&self) -> std::result::Result<Weights, crate::NetError> {
         let mut t = HashMap::new();
         for (i, (w, b)) in self.convs.iter().enumerate() {
-            for (name, v) in [(format!("conv{i}.weight"), w), (format!("conv{i}.bias"), b)] {
+            let n = self.arch.conv_name(i);
+            for (name, v) in [(format!("{n}.weight"), w), (format!("{n}.bias"), b)] {
                 let data = v.as_tensor().flatten_all()?.to_vec1::<f32>()?;
                 t.insert(name, (v.as_tensor().dims().to_vec(), data));
             }
@@ -47,7 +48,8 @@ impl CandleNet {
             .collect()
     }
 
-    /// Full-resolution NCHW input (H, W multiples of the rate) to NCHW output in [0, 1].
+    /// Full-resolution NCHW input (H, W multiples of [`Arch::size_multiple`]) to NCHW output
+    /// in [0, 1].
     pub fn forward(&self, x: &Tensor) -> Result<Tensor> {
         forward(&self.arch, self, x)
     }
@@ -81,6 +83,13 @@ impl Ops for CandleNet {
         x.reshape((b, c, h / r, r, w / r, r))?
             .permute((0, 1, 3, 5, 2, 4))?
             .reshape((b, c * r * r, h / r, w / r))
+    }
+    fn avg_pool2(&self, x: &Tensor) -> Result<Tensor> {
+        x.avg_pool2d(2)
+    }
+    fn upsample2(&self, x: &Tensor) -> Result<Tensor> {
+        let (_, _, h, w) = x.dims4()?;
+        x.upsample_nearest2d(2 * h, 2 * w)
     }
     fn depth_to_space(&self, x: &Tensor, r: usize) -> Result<Tensor> {
         let (b, crr, h, w) = x.dims4()?;

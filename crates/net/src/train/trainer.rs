@@ -1,6 +1,8 @@
 //! The training loop: data, Adam, checkpoints every N steps, resume, export.
 
-use super::data::{load_or_render, sample_batch, scene_foci, DataSpec, SceneData};
+use super::data::{
+    load_or_render, load_or_render_views, sample_batch, scene_foci, DataSpec, SceneData,
+};
 use super::model::{Adam, CandleNet};
 use super::retina::Retina;
 use super::{loss, LossKind};
@@ -126,8 +128,15 @@ pub fn load_scenes(
     (0..cfg.scenes)
         .map(|i| {
             let seed = cfg.first_seed + i;
-            let foci = scene_foci(&cfg.arch.task, seed, cfg.foci_per_scene);
-            let s = load_or_render(&cfg.cache, seed, &foci, &cfg.data);
+            let s = match &cfg.arch.task {
+                Task::C5 { grid, .. } | Task::Fv { grid, .. } => {
+                    load_or_render_views(&cfg.cache, seed, *grid, &cfg.data)
+                }
+                task => {
+                    let foci = scene_foci(task, seed, cfg.foci_per_scene);
+                    load_or_render(&cfg.cache, seed, &foci, &cfg.data)
+                }
+            };
             on(TrainEvent::Data {
                 done: i + 1,
                 total: cfg.scenes,
@@ -161,10 +170,12 @@ fn batch_loss(
 /// Trains (or resumes training in `cfg.out`) and exports `<config>.safetensors` there.
 pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weights, NetError> {
     cfg.arch.validate()?;
-    if cfg.patch == 0 || cfg.patch % cfg.arch.rate != 0 || cfg.batch == 0 || cfg.scenes == 0 {
+    let align = cfg.arch.size_multiple();
+    if cfg.patch == 0 || cfg.patch % align != 0 || cfg.batch == 0 || cfg.scenes == 0 {
         return Err(NetError::Input(format!(
-            "patch {} must be a positive multiple of the rate {}, batch and scenes positive",
-            cfg.patch, cfg.arch.rate
+            "patch {} must be a positive multiple of {align} (the rate{}), batch and scenes positive",
+            cfg.patch,
+            if align > cfg.arch.rate { " x 4 for the U-Net" } else { "" }
         )));
     }
     std::fs::create_dir_all(&cfg.out).map_err(io(&cfg.out))?;
@@ -235,7 +246,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             &mut rng,
             cfg.batch,
             cfg.patch,
-            cfg.arch.rate,
+            align,
         )?;
         let l = batch_loss(&net, retina.as_ref(), &b, &dev)?;
         let lv = l.to_scalar::<f32>()?;
@@ -259,13 +270,22 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         "train_seeds".into(),
         format!("{}..{}", cfg.first_seed, cfg.first_seed + cfg.scenes),
     );
-    p.insert(
-        "data".into(),
-        format!(
+    let data = match &cfg.arch.task {
+        Task::C5 { grid, .. } | Task::Fv { grid, .. } => format!(
+            "{}px pinhole views on a {grid}x{grid} grid over the {} mm pupil, {}x{} supersampled, fov {} deg{}",
+            cfg.data.size, cfg.data.pupil_mm, cfg.data.supersample, cfg.data.supersample, cfg.data.fov_deg,
+            if matches!(cfg.arch.task, Task::Fv { .. }) {
+                "; inputs foveated per sample at S = 4 (40 %), S = 2 (40 %) or every pixel (20 %), gaze one of 9"
+            } else {
+                ""
+            }
+        ),
+        _ => format!(
             "{}px renders, pinhole colour {}x{} supersampled, thin-lens targets {} rays/px, fov {} deg, pupil {} mm, {} foci per scene",
             cfg.data.size, cfg.data.supersample, cfg.data.supersample, cfg.data.samples, cfg.data.fov_deg, cfg.data.pupil_mm, cfg.foci_per_scene
         ),
-    );
+    };
+    p.insert("data".into(), data);
     p.insert(
         "optimiser".into(),
         format!(
