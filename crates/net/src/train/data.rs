@@ -145,23 +145,31 @@ fn bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
-fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetError> {
-    let raw = std::fs::read(path).map_err(|e| NetError::Io {
+/// A cache file's bytes.
+fn read_raw(path: &Path) -> Result<Vec<u8>, NetError> {
+    std::fs::read(path).map_err(|e| NetError::Io {
         path: path.display().to_string(),
         source: e,
-    })?;
-    let st = SafeTensors::deserialize(&raw).map_err(|e| NetError::Data(e.to_string()))?;
-    let get = |n: &str| -> Result<(Vec<usize>, Vec<f32>), NetError> {
-        let v = st
-            .tensor(n)
-            .map_err(|e| NetError::Data(format!("{n}: {e}")))?;
-        let d = v
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        Ok((v.shape().to_vec(), d))
-    };
+    })
+}
+
+/// One f32 tensor of a cached safetensors file: (shape, values).
+fn tensor_f32(raw: &[u8], name: &str) -> Result<(Vec<usize>, Vec<f32>), NetError> {
+    let st = SafeTensors::deserialize(raw).map_err(|e| NetError::Data(e.to_string()))?;
+    let v = st
+        .tensor(name)
+        .map_err(|e| NetError::Data(format!("{name}: {e}")))?;
+    let d = v
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    Ok((v.shape().to_vec(), d))
+}
+
+fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetError> {
+    let raw = read_raw(path)?;
+    let get = |name: &str| tensor_f32(&raw, name);
     let (ds, depth) = get("depth")?;
     let [h, w] = ds[..] else {
         return Err(NetError::Data("cached depth is not 2-D".into()));
@@ -301,22 +309,8 @@ fn write_views(path: &Path, seed: u64, views: &[Rgbd]) -> Result<(), NetError> {
 }
 
 fn read_views(path: &Path, n: usize) -> Result<Vec<Rgbd>, NetError> {
-    let raw = std::fs::read(path).map_err(|e| NetError::Io {
-        path: path.display().to_string(),
-        source: e,
-    })?;
-    let st = SafeTensors::deserialize(&raw).map_err(|e| NetError::Data(e.to_string()))?;
-    let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>), NetError> {
-        let v = st
-            .tensor(name)
-            .map_err(|e| NetError::Data(format!("{name}: {e}")))?;
-        let d = v
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
-        Ok((v.shape().to_vec(), d))
-    };
+    let raw = read_raw(path)?;
+    let get = |name: &str| tensor_f32(&raw, name);
     (0..n)
         .map(|k| {
             let (ds, depth) = get(&format!("depth{k}"))?;
