@@ -356,6 +356,25 @@ pub struct Batch {
     pub patch: usize,
 }
 
+/// A random patch origin on the `align` grid (x drawn first, then y: batches depend on it).
+fn patch_origin(
+    rng: &mut SplitMix,
+    w: usize,
+    h: usize,
+    patch: usize,
+    align: usize,
+) -> Result<(usize, usize), NetError> {
+    if w < patch || h < patch {
+        return Err(NetError::Data(format!(
+            "patch {patch} is larger than the {w}x{h} renders"
+        )));
+    }
+    let mut pick = |m: usize| (rng.next_u64() % m.max(1) as u64) as usize;
+    let x0 = pick((w - patch) / align + 1) * align;
+    let y0 = pick((h - patch) / align + 1) * align;
+    Ok((x0, y0))
+}
+
 /// Samples `n` patches of side `patch` (a multiple of `align`) from `scenes`.
 pub fn sample_batch(
     task: &Task,
@@ -379,13 +398,7 @@ pub fn sample_batch(
     for _ in 0..n {
         let s = &scenes[pick(rng, scenes.len())];
         let (w, h) = (s.rgbd.width(), s.rgbd.height());
-        if w < patch || h < patch {
-            return Err(NetError::Data(format!(
-                "patch {patch} is larger than the {w}x{h} renders"
-            )));
-        }
-        let x0 = pick(rng, (w - patch) / align + 1) * align;
-        let y0 = pick(rng, (h - patch) / align + 1) * align;
+        let (x0, y0) = patch_origin(rng, w, h, patch, align)?;
         let crop = |p: &Plane, out: &mut Vec<f32>, f: &dyn Fn(f32) -> f32| {
             for y in y0..y0 + patch {
                 out.extend(p.row(y)[x0..x0 + patch].iter().map(|&v| f(v)));
@@ -453,13 +466,7 @@ fn sample_light_field_batch(
             )));
         }
         let (w, h) = (s.rgbd.width(), s.rgbd.height());
-        if w < patch || h < patch {
-            return Err(NetError::Data(format!(
-                "patch {patch} is larger than the {w}x{h} renders"
-            )));
-        }
-        let x0 = pick(rng, (w - patch) / align + 1) * align;
-        let y0 = pick(rng, (h - patch) / align + 1) * align;
+        let (x0, y0) = patch_origin(rng, w, h, patch, align)?;
         let pixels =
             || (y0..y0 + patch).flat_map(move |y| (x0..x0 + patch).map(move |x| y * w + x));
         if fv {
