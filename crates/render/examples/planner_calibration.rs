@@ -1,21 +1,24 @@
 //! Measures the planner's calibration table (crates/render/src/planner.rs, `calibration`).
 //!
-//! cargo run -p dioptra-render --example planner_calibration -- [size] [scenes] [samples]
-//! (defaults 160 8 512). On sim test scenes 1 000 100 onwards (every other one with 6 objects
-//! instead of 24; the planner's tests use other seeds), gaze at the centre, foci 0.1, 0.5, 1,
+//! cargo run --release -p dioptra-render --example planner_calibration -- [size] [scenes]
+//! [samples] (defaults 160 64 512; at most 100 scenes, so the planner tests' seeds from
+//! 1 000 200 stay held out). On sim test scenes 1 000 100 onwards (every other one with 6
+//! objects instead of 24), gaze at the centre, foci 0.1, 0.5, 1,
 //! 2, 3.5 D, the gazed depth and 0.15 D beyond it, and the scene's wall alone focused 0 to
 //! 0.7 D from it: the fovea
 //! PSNR of no blur, gather and the light-field method (12-48 views) against the thin-lens
 //! ground truth with each frame's blur figure; linear multifocal blending into the planner's
 //! planes (1-4) and the default four; the CPU time of each; periphery-1 PSNR of log-polar
-//! foveation by scale. Prints the table as Rust constants.
+//! foveation by scale. Prints the table as Rust constants, and every measurement as a
+//! `sample,method,blur px,region gradient,PSNR dB` line on stderr.
 
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use dioptra_render::foveate::{interpolate, log_polar_mask, LogPolar};
 use dioptra_render::lightfield::lightfield;
 use dioptra_render::metrics::{psnr, FovealRegion};
 use dioptra_render::multifocal::{linear_blend, DEFAULT_PLANES};
-use dioptra_render::planner::{calibration::BIN_EDGES_PX, place_planes, FrameStats, LF_VIEWS};
+use dioptra_render::planner::calibration::{texture_db, BIN_EDGES_PX, IN_FOCUS_COC_PX};
+use dioptra_render::planner::{place_planes, FrameStats, LF_VIEWS};
 use dioptra_render::retina::retina_multifocal;
 use dioptra_render::{gather::gather, LightFieldParams};
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, SceneOptions};
@@ -28,11 +31,14 @@ fn bin(px: f32) -> usize {
 }
 
 /// Fewest measurements a bin needs to count as measured.
-const MIN_SAMPLES: usize = 3;
+const MIN_SAMPLES: usize = 8;
+/// The percentile of a bin's texture-normalised PSNRs its entry takes.
+const PERCENTILE: f64 = 0.2;
 
-/// 10th percentile per bin. A bin with fewer than [`MIN_SAMPLES`] takes the next measured
-/// bin's value to its right (larger blur: conservative), or beyond the last measured bin that
-/// value less 3 dB per bin; then the table is made non-increasing.
+/// [`PERCENTILE`] per bin of the samples' texture-normalised PSNR. A bin with fewer than
+/// [`MIN_SAMPLES`] takes the next measured bin's value to its right (larger blur:
+/// conservative), or beyond the last measured bin that value less 3 dB per bin; then the
+/// table is made non-increasing.
 fn table(samples: &[(f32, f64)]) -> [f64; NB] {
     let mut out = [f64::NAN; NB];
     for (b, o) in out.iter_mut().enumerate() {
@@ -45,7 +51,7 @@ fn table(samples: &[(f32, f64)]) -> [f64; NB] {
             continue;
         }
         v.sort_by(f64::total_cmp);
-        *o = v[(v.len() - 1) / 10];
+        *o = v[((v.len() - 1) as f64 * PERCENTILE) as usize];
     }
     for i in 0..NB {
         if out[i].is_nan() {
@@ -110,13 +116,28 @@ fn planes_blur_px(st: &FrameStats, planes: &[Diopters]) -> f32 {
     st.eye.coc_px(Diopters(worst), Diopters(0.0))
 }
 
+/// One measurement as a CSV line on stderr: method, blur figure (px), region gradient,
+/// fovea PSNR (dB).
+fn sample_line(method: &str, blur: f32, st: &FrameStats, psnr: f64) {
+    eprintln!(
+        "sample,{method},{blur:.3},{:.6},{psnr:.3}",
+        st.region_gradient
+    );
+}
+
+/// A measurement as the tables hold it: blur figure, PSNR at the reference texture.
+fn normalised(method: &str, blur: f32, st: &FrameStats, psnr: f64) -> (f32, f64) {
+    sample_line(method, blur, st, psnr);
+    (blur, psnr + texture_db(st.region_gradient))
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<usize> = std::env::args()
         .skip(1)
         .filter_map(|a| a.parse().ok())
         .collect();
     let size = *args.first().unwrap_or(&160);
-    let scenes = *args.get(1).unwrap_or(&8) as u64;
+    let scenes = (*args.get(1).unwrap_or(&64)).min(100) as u64;
     let samples = *args.get(2).unwrap_or(&512) as u32;
     let eye = EyeModel::default().with_width(size as u32);
     let cam = Camera::square(eye, size);
@@ -124,6 +145,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let s = size as f32;
     let gazes = [[0.5 * s, 0.5 * s], [0.3 * s, 0.35 * s], [0.7 * s, 0.65 * s]];
     let mut none = Vec::new();
+    // Pass-through's raw PSNRs, for the in-focus entry.
+    let mut none_raw: Vec<(f32, f64)> = Vec::new();
     let mut gath = Vec::new();
     let mut lf: Vec<Vec<(f32, f64)>> = vec![Vec::new(); LF_VIEWS.len()];
     let mut lin = Vec::new();
@@ -176,20 +199,32 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let t = Instant::now();
             let passed = input.color.clone();
             t_none.push(t.elapsed().as_secs_f64() * 1e3 / mp);
-            none.push((st.region_coc_px, fovea_psnr(&passed, &truth, size)));
+            let p = fovea_psnr(&passed, &truth, size);
+            none_raw.push((st.region_coc_px, p));
+            none.push(normalised("none", st.region_coc_px, &st, p));
             let t = Instant::now();
             let g_img = gather(&input, q, &eye)?;
             let r = f64::from(0.5 * st.frame_coc_px);
             t_gather.push((r * r, t.elapsed().as_secs_f64() * 1e3 / mp));
-            gath.push((st.region_disparity_px, fovea_psnr(&g_img, &truth, size)));
+            gath.push(normalised(
+                "gather",
+                st.region_disparity_px,
+                &st,
+                fovea_psnr(&g_img, &truth, size),
+            ));
             for (k, &views) in LF_VIEWS.iter().enumerate() {
                 let t = Instant::now();
                 let img = lightfield(&input, q, &eye, LightFieldParams { views, mip: true })?;
                 t_lf.push((views as f64, t.elapsed().as_secs_f64() * 1e3 / mp));
-                lf[k].push((st.region_disparity_px, fovea_psnr(&img, &truth, size)));
+                lf[k].push(normalised(
+                    &format!("lf{views}"),
+                    st.region_disparity_px,
+                    &st,
+                    fovea_psnr(&img, &truth, size),
+                ));
             }
             eprintln!(
-                "scene {seed} focus {q}: CoC {:.2} px, disparity {:.2} px; none {:.2}, gather {:.2}, lf-48 {:.2} dB",
+                "scene {seed} focus {q}: CoC {:.2} px, disparity {:.2} px; at the reference texture none {:.2}, gather {:.2}, lf-48 {:.2} dB",
                 st.region_coc_px,
                 st.region_disparity_px,
                 none.last().map_or(0.0, |v| v.1),
@@ -209,7 +244,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                     let seen = retina_multifocal(&layers, &[q], &eye)?.remove(0);
                     let px = planes_blur_px(&st, &planes);
                     let p = fovea_psnr(&seen, &truth, size);
-                    eprintln!("linear planes {planes:?} at {q}: {px:.2} px, {p:.2} dB");
+                    // Linear blending is tabled raw (see planner::calibration::PSNR_LINEAR).
+                    sample_line("linear", px, &st, p);
                     lin.push((px, p));
                 }
             }
@@ -230,15 +266,27 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let q = Diopters(d_wall + dq);
             let truth = truth_crop(&wall, &eye, size, q, samples)?;
             let st = FrameStats::from_rgbd(&input, g, q, &eye);
-            none.push((st.region_coc_px, fovea_psnr(&input.color, &truth, size)));
+            let p = fovea_psnr(&input.color, &truth, size);
+            none_raw.push((st.region_coc_px, p));
+            none.push(normalised("none", st.region_coc_px, &st, p));
             let img = gather(&input, q, &eye)?;
-            gath.push((st.region_disparity_px, fovea_psnr(&img, &truth, size)));
+            gath.push(normalised(
+                "gather",
+                st.region_disparity_px,
+                &st,
+                fovea_psnr(&img, &truth, size),
+            ));
             for (k, &views) in LF_VIEWS.iter().enumerate() {
                 let img = lightfield(&input, q, &eye, LightFieldParams { views, mip: true })?;
-                lf[k].push((st.region_disparity_px, fovea_psnr(&img, &truth, size)));
+                lf[k].push(normalised(
+                    &format!("lf{views}"),
+                    st.region_disparity_px,
+                    &st,
+                    fovea_psnr(&img, &truth, size),
+                ));
             }
             eprintln!(
-                "scene {seed} wall only, focus {q}: CoC {:.2} px; none {:.2}, gather {:.2} dB",
+                "scene {seed} wall only, focus {q}: CoC {:.2} px; at the reference texture none {:.2}, gather {:.2} dB",
                 st.region_coc_px,
                 none.last().map_or(0.0, |v| v.1),
                 gath.last().map_or(0.0, |v| v.1)
@@ -252,6 +300,19 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     println!("// measured: {size} px, {scenes} scenes from seed 1000100, {samples} rays/px ground truth, {:.0} s", t0.elapsed().as_secs_f64());
     show("PSNR_NONE", &none);
+    let mut in_focus: Vec<f64> = none_raw
+        .iter()
+        .filter(|s| s.0 < IN_FOCUS_COC_PX)
+        .map(|s| s.1)
+        .collect();
+    in_focus.sort_by(f64::total_cmp);
+    if let Some(&v) = in_focus.get(((in_focus.len().max(1) - 1) as f64 * PERCENTILE) as usize) {
+        println!(
+            "// {} frames with a CoC under {IN_FOCUS_COC_PX} px\npub const PSNR_NONE_IN_FOCUS: f64 = {:.1};",
+            in_focus.len(),
+            v
+        );
+    }
     show("PSNR_GATHER", &gath);
     for (k, v) in lf.iter().enumerate() {
         show(&format!("PSNR_LIGHTFIELD_{}", LF_VIEWS[k]), v);

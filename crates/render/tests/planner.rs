@@ -18,11 +18,20 @@ use fovea_truth::{fovea_psnr, truth_crop};
 
 const SIZE: usize = 160;
 
-/// A textured frame whose depth (diopters) is `depth(x, y)`.
+/// A textured frame whose depth (diopters) is `depth(x, y)`: a checker of 3 px squares and
+/// contrast 0.1, whose region gradient (about 0.007) is near the sim test scenes' median
+/// (0.006), so the planner's texture scaling treats it as a typical scene.
 fn frame(depth: impl Fn(usize, usize) -> f32) -> Rgbd {
+    frame_with_contrast(0.1, depth)
+}
+
+fn frame_with_contrast(contrast: f32, depth: impl Fn(usize, usize) -> f32) -> Rgbd {
     let n = SIZE * SIZE;
     let tex: Vec<f32> = (0..n * 3)
-        .map(|i| (((i / 3) % SIZE / 3 + (i / 3) / SIZE / 3) % 2) as f32 * 0.6 + 0.2)
+        .map(|i| {
+            (((i / 3) % SIZE / 3 + (i / 3) / SIZE / 3) % 2) as f32 * contrast
+                + 0.5 * (1.0 - contrast)
+        })
         .collect();
     let d: Vec<f32> = (0..n).map(|i| depth(i % SIZE, i / SIZE)).collect();
     Rgbd::new(
@@ -49,6 +58,25 @@ fn flat_scene_in_focus_needs_no_blur() {
     // The same flat scene far out of focus is not passed through.
     let p = Planner.plan(&stats(&f, 3.0), &Target::default());
     assert_ne!(p.choice, Choice::None, "{}", p.why);
+}
+
+#[test]
+fn texture_lowers_the_prediction_but_not_in_focus() {
+    let edge = |x: usize, _| if x < SIZE / 2 { 2.0 } else { 0.5 };
+    let (mild, harsh) = (frame(edge), frame_with_contrast(0.6, edge));
+    let (sm, sh) = (stats(&mild, 0.5), stats(&harsh, 0.5));
+    assert!(
+        sh.region_gradient > 10.0 * sm.region_gradient,
+        "{sm:?} / {sh:?}"
+    );
+    for c in Choice::all() {
+        let (pm, ph) = (Planner.predict_psnr(&sm, c), Planner.predict_psnr(&sh, c));
+        assert!(ph < pm - 5.0, "{c}: {ph:.1} dB harsh vs {pm:.1} dB mild");
+    }
+    // A flat harsh texture in focus: passing it through is right whatever its texture.
+    let flat = frame_with_contrast(0.6, |_, _| 1.0);
+    let p = Planner.plan(&stats(&flat, 1.0), &Target::default());
+    assert_eq!(p.choice, Choice::None, "{}", p.why);
 }
 
 #[test]
@@ -226,20 +254,24 @@ fn plans_meet_their_target_on_held_out_scenes() {
         "multifocal: met the target on {mf_met}/{mf_cases} frames with {mf_cost} planes in all vs {mf_cost_max} always 4 (saves {:.0} %)",
         100.0 * (1.0 - mf_cost / mf_cost_max)
     );
-    // The stated fraction: 60 %. Measured when this test was written: 12 of 18 frames
-    // (67 %), all planned as lightfield-12, against 17 of 18 for always lightfield-48. The
-    // table's 10th percentiles would promise about 90 %; that they do not is the model's
-    // weakness: the fovea PSNR of a given disparity spreads with the scene's texture more
-    // than the 8 calibration scenes show, and the table's bins are flattened by the wall-only
-    // frames' floor (see planner::calibration). Frames the plan says no method reaches are
-    // reported above, not counted here.
+    // The stated fraction: 80 % of the promises kept (split by scene, the calibration
+    // data kept 95 %), and the target met on all but one of the frames where always using
+    // lightfield-48 meets it. Measured when this test was written: promised on 12 of 18
+    // frames and kept on all 12; met on 17 of 18 (always lightfield-48: 17); chose none 7,
+    // gather 5 and lightfield-48 6 (the fallback when nothing is predicted to reach the
+    // target); predicted cost 60 % below always lightfield-48. Before the tables were
+    // scaled by texture the plan kept 12 of 18 promises, all of them lightfield-12.
     assert!(
         promised >= cases / 3,
         "the plan promised the target on only {promised}/{cases} frames"
     );
     assert!(
-        rate >= 0.6,
+        rate >= 0.8,
         "met the target on {kept} of the {promised} frames the plan promised"
+    );
+    assert!(
+        met + 1 >= best_met,
+        "the plan met the target on {met} frames, always lightfield-48 on {best_met}"
     );
     assert!(saved > 0.0, "no cost saved: {cost_plan} vs {cost_max} ms");
 }
