@@ -170,7 +170,7 @@ pub fn run(
                     continue;
                 }
             }
-            let net = choice.as_ref().map(|c| c.net.as_ref());
+            let net = choice.as_ref().map(|c| methods::NetOn::Cpu(c.net.as_ref()));
             // Optimized blending fits a ground-truth stack, which only frame 0 has.
             let frames = if matches!(m, Method::Optimized { .. }) {
                 1

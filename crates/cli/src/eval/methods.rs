@@ -3,6 +3,7 @@
 
 use anyhow::{anyhow, Result};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_net::gpu::GpuNet;
 use dioptra_net::{Arch, CpuNet, Weights};
 use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::{Backend, DefocusMethod, Layers, LightFieldParams, OptimizeParams};
@@ -170,6 +171,28 @@ impl Nets {
     }
 }
 
+/// A network on the backend that runs it: the same weights on the CPU or the GPU.
+#[derive(Clone, Copy)]
+pub enum NetOn<'a> {
+    Cpu(&'a CpuNet),
+    Gpu(&'a GpuNet),
+}
+
+impl NetOn<'_> {
+    fn defocus(self, input: &Rgbd, q: Diopters, eye: &EyeModel) -> Result<RgbImage> {
+        Ok(match self {
+            NetOn::Cpu(n) => n.defocus(input, q, eye)?,
+            NetOn::Gpu(n) => n.defocus(input, q, eye)?,
+        })
+    }
+    fn decompose(self, input: &Rgbd) -> Result<Layers> {
+        Ok(match self {
+            NetOn::Cpu(n) => n.decompose(input)?,
+            NetOn::Gpu(n) => n.decompose(input)?,
+        })
+    }
+}
+
 /// The display planes of the multifocal methods (DeepFocus's 0.2, 0.8, 1.4, 2.0 D).
 pub fn planes() -> Vec<Diopters> {
     DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect()
@@ -179,7 +202,7 @@ pub fn planes() -> Vec<Diopters> {
 pub fn defocus(
     backend: &dyn Backend,
     m: Method,
-    net: Option<&CpuNet>,
+    net: Option<NetOn>,
     input: &Rgbd,
     q: Diopters,
     eye: &EyeModel,
@@ -191,7 +214,7 @@ pub fn defocus(
         }
         Method::NetworkC1 { .. } => {
             let net = net.ok_or_else(|| anyhow!("network-c1 needs a net"))?;
-            return Ok(net.defocus(input, q, eye)?);
+            return net.defocus(input, q, eye);
         }
         _ => return Err(anyhow!("{} is not a varifocal method", m.name())),
     };
@@ -213,7 +236,7 @@ pub struct MultifocalTargets<'a> {
 pub fn decompose(
     backend: &dyn Backend,
     m: Method,
-    net: Option<&CpuNet>,
+    net: Option<NetOn>,
     input: &Rgbd,
     targets: &MultifocalTargets,
     eye: &EyeModel,
@@ -237,7 +260,7 @@ pub fn decompose(
             .0),
         Method::NetworkC4 => {
             let net = net.ok_or_else(|| anyhow!("network-c4 needs a net"))?;
-            Ok(net.decompose(input)?)
+            net.decompose(input)
         }
         _ => Err(anyhow!("{} is not a multifocal method", m.name())),
     }

@@ -154,7 +154,8 @@ fn settings(a: &Args) -> Result<Settings> {
     } else {
         let mut m = vec![Method::Gather];
         m.extend([12, 24, 36, 48, 64].map(|views| Method::LightField { views }));
-        m.extend([1, 2, 4].map(|rate| Method::NetworkC1 { rate }));
+        // Cheapest first: a setting's time predicts the next one's (see --budget-s).
+        m.extend([4, 2, 1].map(|rate| Method::NetworkC1 { rate }));
         m.push(Method::Linear);
         m.extend([1, 10, 100].map(|iterations| Method::Optimized { iterations }));
         m.push(Method::NetworkC4);
@@ -435,7 +436,7 @@ fn speed_report(
          methods by the retinal image of their layers at {} foci from 0.1 to 2.2 D against the \
          ground-truth focal stack (optimized blending fits that same stack, as in the accuracy \
          tests, and starts from linear blending, whose time is not included). PSNR and SSIM are on \
-         sRGB-encoded images. Untrained networks are timed only (no shipped weights: no score).\n",
+         sRGB-encoded images. Networks are scored with the shipped weights (crates/net/weights); a setting with none (another interleave rate) runs the same architecture with random weights and is timed only. On the GPU backend the networks run the same weights through dioptra-net's wgpu inference.\n",
         (0..plan.scenes).map(|s| dioptra_sim::scene::Split::Test.seed(s as u64).to_string()).collect::<Vec<_>>().join(", "),
         plan.sizes,
         plan.truth_samples,

@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_net::gpu::GpuNet;
 use dioptra_render::metrics::quality;
 use dioptra_render::{Backend, Cpu};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
@@ -251,20 +252,34 @@ pub fn run(
                             continue;
                         }
                     }
-                    if m.network() && backend.name() != "cpu" {
-                        rows.push(SpeedRow {
-                            note: "no GPU inference: dioptra-net runs on the CPU".into(),
-                            ..base
-                        });
-                        bar.inc(units);
-                        continue;
-                    }
                     let choice = if m.network() {
                         Some(nets.choose(m)?)
                     } else {
                         None
                     };
-                    let net = choice.as_ref().map(|c| c.net.as_ref());
+                    // The same weights uploaded to the GPU (once per setting, size and scene:
+                    // a few hundred kB).
+                    let gpu_net = match &choice {
+                        Some(c) if backend.name() != "cpu" => {
+                            match GpuNet::new(c.net.weights().clone(), None) {
+                                Ok(n) => Some(n),
+                                Err(e) => {
+                                    rows.push(SpeedRow {
+                                        note: format!("failed: no GPU network: {e}"),
+                                        ..base
+                                    });
+                                    bar.inc(units);
+                                    continue;
+                                }
+                            }
+                        }
+                        _ => None,
+                    };
+                    let net = match (&gpu_net, &choice) {
+                        (Some(g), _) => Some(methods::NetOn::Gpu(g)),
+                        (None, Some(c)) => Some(methods::NetOn::Cpu(c.net.as_ref())),
+                        (None, None) => None,
+                    };
                     let trained = choice.as_ref().is_none_or(|c| c.trained);
                     let note = choice.as_ref().map(|c| c.note.clone()).unwrap_or_default();
                     if m.multifocal() {
