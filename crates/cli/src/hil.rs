@@ -13,7 +13,8 @@
 //!    is no optical measurement of settling; the summary says so;
 //! 3. sub-frame timing (when `devices.sync` is configured): the sequencer's sub-frame start
 //!    times (device clock) against the programmed period `1 / optics.subframe_hz`, the plane
-//!    order against the programmed schedule, and faults.
+//!    order against the programmed schedule, and faults. Skipped for a DLPC350, which reports
+//!    no sub-frame times of its own.
 //!
 //! It writes `summary.txt` and `summary.json` (HdrHistogram percentiles) and one PNG histogram
 //! per measurement to `--out`. With simulated devices every output says SIMULATED.
@@ -30,7 +31,7 @@ use serde_json::json;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
-use crate::serve::config::{Port, RigConfig};
+use crate::serve::config::{Port, RigConfig, SyncDriver};
 use crate::serve::devices::{spawn_devices, DeviceInput, Registry, State};
 use crate::serve::engine::{Command, Engine, Input};
 
@@ -345,7 +346,15 @@ async fn measure(
 
     // 3. Sub-frame timing against the programmed schedule.
     let mut measures = vec![host_path, to_wire, settled];
-    if cfg.devices.sync.is_some() {
+    let sync_driver = cfg.devices.sync.as_ref().map(|s| s.driver);
+    if sync_driver == Some(SyncDriver::Dlpc350) {
+        // Its driver predicts sub-frame starts from the programmed sequence (the controller
+        // reports none), so comparing them with that program would measure nothing.
+        println!(
+            "sub-frame timing: skipped (the DLPC350 reports no sub-frame times: its driver \
+             predicts them from the programmed sequence, so there is nothing to compare)"
+        );
+    } else if sync_driver.is_some() {
         let period_us = 1e6 / cfg.optics.subframe_hz;
         let planes = cfg.optics.planes.len();
         let _ = links.multifocal.send(true);

@@ -1,6 +1,7 @@
 //! `dioptra hil` as a user runs it: on the example sim rig it measures, writes its summaries
 //! and histograms, and says everywhere that the devices were simulated; a config naming a
-//! serial port that is not there exits non-zero naming the port and its config key.
+//! serial port that is not there exits non-zero naming the port and its config key; with a
+//! DLPC350, which reports no sub-frame times, it skips that measurement and says why.
 
 use std::path::Path;
 use std::process::Command;
@@ -76,4 +77,37 @@ fn hil_with_an_absent_serial_port_names_it_and_fails() {
     assert!(stderr.contains(absent), "{stderr}");
     assert!(stderr.contains("devices.lens.port"), "{stderr}");
     assert!(!dir.path().join("hil").join("summary.txt").exists());
+}
+
+#[test]
+fn hil_with_a_dlpc350_says_it_cannot_time_sub_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = RIG.replace("driver = \"sync\"", "driver = \"dlpc350\"");
+    assert_ne!(rig, RIG);
+    let config = write_config(dir.path(), &rig);
+    let out = dir.path().join("hil");
+    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["hil", "--config"])
+        .arg(&config)
+        .args(["--trials", "3", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(
+        stdout.contains("sub-frame timing: skipped (the DLPC350 reports no sub-frame times"),
+        "{stdout}"
+    );
+    let js: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert!(
+        js["measurements"].get("subframe_timing_error").is_none(),
+        "{js}"
+    );
+    assert_eq!(js["measurements"]["command_to_settled"]["count"], 3, "{js}");
 }

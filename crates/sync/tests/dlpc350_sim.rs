@@ -133,7 +133,7 @@ async fn impossible_schedules_are_refused_before_anything_is_sent() {
     for schedule in [
         four_planes(4166, 100),  // dark gap under 230 us
         four_planes(5000, 1000), // 4 x 5 ms overruns the 60 Hz frame
-        four_planes(2000, 0),    // 6-bit patterns need 2.5 ms
+        four_planes(200, 0),     // even 1-bit patterns need 235 us
     ] {
         let e = d.program(&schedule).await.unwrap_err();
         assert!(matches!(e, DeviceError::Invalid(_)), "{e:?}");
@@ -142,6 +142,19 @@ async fn impossible_schedules_are_refused_before_anything_is_sent() {
     let e = d.start().await.unwrap_err();
     assert!(matches!(e, DeviceError::Invalid(m) if m.contains("program")));
     assert!(sim.log().is_empty());
+}
+
+/// A sub-frame too short for 6-bit patterns (2.5 ms) runs at the deepest depth it allows, and
+/// the controller validates it.
+#[tokio::test(start_paused = true)]
+async fn a_short_sub_frame_trades_grey_levels_for_rate() {
+    let (mut d, sim) = rig();
+    d.program(&four_planes(2000, 0)).await.unwrap();
+    let lut: Vec<_> = sim.lut().into_iter().map(Option::unwrap).collect();
+    assert_eq!(lut.len(), 4);
+    assert!(lut.iter().all(|e| e.bit_depth == 5), "{lut:?}");
+    d.start().await.unwrap();
+    assert!(sim.running());
 }
 
 #[tokio::test(start_paused = true)]

@@ -225,6 +225,8 @@ pub enum GazeDriver {
 pub enum SyncDriver {
     /// The dioptra sync board.
     Sync,
+    /// A TI DLPC350 (LightCrafter 4500) in pattern mode on its video port, over USB HID.
+    Dlpc350,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -260,6 +262,22 @@ pub struct GazeDevice {
 pub struct SyncDevice {
     pub driver: SyncDriver,
     pub port: Port,
+    /// DLPC350 only: frame rate of the video the projector receives, Hz; each VSYNC starts
+    /// one pass over the planes (default 60).
+    pub video_hz: Option<f64>,
+}
+
+impl SyncDevice {
+    /// The DLPC350's video rate when none is configured, Hz.
+    pub const DEFAULT_VIDEO_HZ: f64 = 60.0;
+
+    /// The DLPC350 driver's configuration (the video rate; the rest at the driver's defaults).
+    pub fn dlpc350_config(&self) -> dioptra_sync::dlpc350::Dlpc350Config {
+        dioptra_sync::dlpc350::Dlpc350Config {
+            vsync_hz: self.video_hz.unwrap_or(Self::DEFAULT_VIDEO_HZ),
+            ..Default::default()
+        }
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -510,6 +528,63 @@ fn resolve_auto(text: &str) -> Result<(std::borrow::Cow<'_, str>, bool), ConfigE
 }
 
 impl RigConfig {
+    /// The multifocal schedule the sync hardware runs: `optics.planes` at `optics.subframe_hz`,
+    /// dark for the first quarter of each sub-frame while the lens settles.
+    pub fn plane_schedule(&self) -> Result<dioptra_core::PlaneSchedule, ConfigError> {
+        let o = &self.optics;
+        dioptra_core::PlaneSchedule::new(
+            o.planes
+                .iter()
+                .copied()
+                .map(dioptra_core::Diopters)
+                .collect(),
+            std::time::Duration::from_secs_f64(1.0 / o.subframe_hz),
+            std::time::Duration::from_secs_f64(0.25 / o.subframe_hz),
+        )
+        .map_err(|e| invalid("optics.planes", e.to_string()))
+    }
+
+    /// The sync device's own settings, and whether it can run the configured schedule.
+    fn check_sync(&self, s: &SyncDevice) -> Result<(), ConfigError> {
+        match s.driver {
+            SyncDriver::Sync => {
+                if s.video_hz.is_some() {
+                    return Err(invalid(
+                        "devices.sync.video_hz",
+                        "only the dlpc350 driver takes a video rate (the sync board follows the display's own vsync)",
+                    ));
+                }
+            }
+            SyncDriver::Dlpc350 => {
+                let hz = s.video_hz.unwrap_or(SyncDevice::DEFAULT_VIDEO_HZ);
+                if !(hz.is_finite() && (1.0..=240.0).contains(&hz)) {
+                    return Err(invalid(
+                        "devices.sync.video_hz",
+                        format!("expected the projector's video rate, 1 to 240 Hz (got {hz})"),
+                    ));
+                }
+                // The driver checks the controller's rules before sending anything; check
+                // them here too, so a rig that cannot run says so at start with its keys.
+                let schedule = self.plane_schedule()?;
+                dioptra_sync::dlpc350::PatternSequence::for_schedule(
+                    &schedule,
+                    &s.dlpc350_config(),
+                )
+                .map_err(|e| {
+                    invalid(
+                        "optics.subframe_hz",
+                        format!(
+                            "the DLPC350 cannot run {} planes at {} Hz with {hz} Hz video: {e}",
+                            self.optics.planes.len(),
+                            self.optics.subframe_hz
+                        ),
+                    )
+                })?;
+            }
+        }
+        Ok(())
+    }
+
     /// Reads and validates a rig config file.
     pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
@@ -647,8 +722,11 @@ impl RigConfig {
         if self.mode == Mode::Multifocal && self.devices.sync.is_none() {
             return Err(invalid(
                 "devices.sync",
-                "multifocal mode needs a sync board: add [devices.sync] with driver = \"sync\" and a port",
+                "multifocal mode needs sync hardware: add [devices.sync] with driver = \"sync\" (the dioptra sync board) or \"dlpc350\", and a port",
             ));
+        }
+        if let Some(s) = &self.devices.sync {
+            self.check_sync(s)?;
         }
         if self.auto_method && self.mode != Mode::Varifocal {
             return Err(invalid(
@@ -786,6 +864,40 @@ pub(crate) mod tests {
         ));
         assert_eq!(e.key(), "optics.lens_range");
         assert!(e.to_string().contains("min must be below max"), "{e}");
+    }
+
+    #[test]
+    fn dlpc350_settings_are_checked_against_the_schedule() {
+        let dlp = SIM_RIG.replace("driver = \"sync\"", "driver = \"dlpc350\"");
+        assert_ne!(dlp, SIM_RIG);
+        let cfg = RigConfig::parse(&dlp).unwrap();
+        let s = cfg.devices.sync.as_ref().unwrap();
+        assert_eq!(s.driver, SyncDriver::Dlpc350);
+        assert_eq!(s.dlpc350_config().vsync_hz, SyncDevice::DEFAULT_VIDEO_HZ);
+        // 4 planes at 240 Hz fill one 60 Hz video frame, not a 120 Hz one.
+        let fast = dlp.replace("# video_hz = 60.0", "video_hz = 120.0");
+        assert_ne!(fast, dlp);
+        let e = err(&fast);
+        assert_eq!(e.key(), "optics.subframe_hz", "{e}");
+        assert!(e.to_string().contains("do not fit"), "{e}");
+        // 2 planes at 240 Hz fill one 120 Hz video frame.
+        let ok = fast.replace("planes = [0.2, 0.8, 1.4, 2.0]", "planes = [0.5, 1.5]");
+        assert_ne!(ok, fast);
+        assert_eq!(
+            RigConfig::parse(&ok)
+                .unwrap()
+                .devices
+                .sync
+                .unwrap()
+                .video_hz,
+            Some(120.0)
+        );
+        let e = err(&fast.replace("video_hz = 120.0", "video_hz = 0.0"));
+        assert_eq!(e.key(), "devices.sync.video_hz", "{e}");
+        // The sync board follows the display's vsync: a video rate there is a mistake.
+        let e = err(&fast.replace("driver = \"dlpc350\"", "driver = \"sync\""));
+        assert_eq!(e.key(), "devices.sync.video_hz", "{e}");
+        assert!(e.to_string().contains("only the dlpc350 driver"), "{e}");
     }
 
     #[test]

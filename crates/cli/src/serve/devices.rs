@@ -27,7 +27,7 @@ use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-use super::config::{GazeDriver, LensDriver, Port, RigConfig};
+use super::config::{GazeDriver, LensDriver, Port, RigConfig, SyncDriver};
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     // Every critical section leaves the data consistent, so a poisoned lock is still usable.
@@ -636,6 +636,15 @@ fn unsupported_port(what: &str, port: &Port) -> DeviceError {
     )))
 }
 
+/// The HID link at a device's port: a hidraw path, or the first HID interface with that VID:PID.
+fn hid_at(what: &str, port: &Port) -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
+    Ok(match port {
+        Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, None)?,
+        Port::Path(p) => dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?,
+        Port::Sim => return Err(unsupported_port(what, port)),
+    })
+}
+
 /// The serial link at a device's port: a path, or the one USB serial port with that VID:PID
 /// (looked up in sysfs at every attempt, so a replugged device that moved is found again).
 fn serial_at(
@@ -838,18 +847,7 @@ pub fn spawn_devices(
         (driver, port) => {
             let (driver, port) = (*driver, port.clone());
             let clock = clock.clone();
-            let open =
-                move |port: &Port| -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
-                    Ok(match port {
-                        Port::VidPid(v, p) => {
-                            dioptra_transport::hid::HidapiLink::open(*v, *p, None)?
-                        }
-                        Port::Path(p) => {
-                            dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?
-                        }
-                        Port::Sim => return Err(unsupported_port("eye tracker", port)),
-                    })
-                };
+            let open = |port: &Port| hid_at("eye tracker", port);
             match driver {
                 GazeDriver::DioptraTracker => others.push(tokio::spawn(gaze_task(
                     move || {
@@ -888,15 +886,17 @@ pub fn spawn_devices(
     }
 
     if let Some(s) = &cfg.devices.sync {
-        let sync_dev = registry.add("sync", "sync", &s.port);
-        let schedule = PlaneSchedule::new(
-            cfg.optics.planes.iter().copied().map(Diopters).collect(),
-            Duration::from_secs_f64(1.0 / cfg.optics.subframe_hz),
-            Duration::from_secs_f64(0.25 / cfg.optics.subframe_hz),
-        )
-        .map_err(|e| DeviceError::Invalid(format!("optics.planes: {e}")))?;
-        match &s.port {
-            Port::Sim => {
+        let driver_name = match s.driver {
+            SyncDriver::Sync => "sync",
+            SyncDriver::Dlpc350 => "dlpc350",
+        };
+        let sync_dev = registry.add("sync", driver_name, &s.port);
+        let schedule = cfg
+            .plane_schedule()
+            .map_err(|e| DeviceError::Invalid(e.to_string()))?;
+        let clock = clock.clone();
+        let task = match (s.driver, &s.port) {
+            (SyncDriver::Sync, Port::Sim) => {
                 let dev = Arc::new(Mutex::new(dioptra_sim::sync_board::SyncBoardSim::new(
                     dioptra_sim::sync_board::SyncBoardSimConfig {
                         lens: lens_model_cfg(cfg),
@@ -911,8 +911,7 @@ pub fn spawn_devices(
                     plug,
                     clock.clone(),
                 )));
-                let clock = clock.clone();
-                others.push(tokio::spawn(sync_task(
+                tokio::spawn(sync_task(
                     move || {
                         let (opener, clock) = (opener.clone(), clock.clone());
                         async move {
@@ -925,12 +924,11 @@ pub fn spawn_devices(
                     mf_rx,
                     out.clone(),
                     cancel.clone(),
-                )));
+                ))
             }
-            port => {
+            (SyncDriver::Sync, port) => {
                 let port = port.clone();
-                let clock = clock.clone();
-                others.push(tokio::spawn(sync_task(
+                tokio::spawn(sync_task(
                     move || {
                         let (port, clock) = (port.clone(), clock.clone());
                         async move {
@@ -943,9 +941,55 @@ pub fn spawn_devices(
                     mf_rx,
                     out.clone(),
                     cancel.clone(),
-                )));
+                ))
             }
-        }
+            (SyncDriver::Dlpc350, Port::Sim) => {
+                let driver_cfg = s.dlpc350_config();
+                let plug = SimPlug::new();
+                sims.sync = Some(plug.clone());
+                tokio::spawn(sync_task(
+                    move || {
+                        let (plug, clock) = (plug.clone(), clock.clone());
+                        async move {
+                            plug.check("DLPC350")?;
+                            let (link, projector) =
+                                dioptra_sim::dlpc350::new(dioptra_sim::dlpc350::Dlpc350SimConfig {
+                                    vsync_hz: driver_cfg.vsync_hz,
+                                    ..Default::default()
+                                });
+                            plug.set_current(move || projector.unplug("unplugged"));
+                            Ok(dioptra_sync::dlpc350::Dlpc350::new(link, clock, driver_cfg))
+                        }
+                    },
+                    sync_dev,
+                    schedule,
+                    mf_rx,
+                    out.clone(),
+                    cancel.clone(),
+                ))
+            }
+            (SyncDriver::Dlpc350, port) => {
+                let driver_cfg = s.dlpc350_config();
+                let port = port.clone();
+                tokio::spawn(sync_task(
+                    move || {
+                        let link = hid_at("DLPC350", &port);
+                        let clock = clock.clone();
+                        async move {
+                            Ok(dioptra_sync::dlpc350::Dlpc350::new(
+                                link?, clock, driver_cfg,
+                            ))
+                        }
+                    },
+                    sync_dev,
+                    schedule,
+                    mf_rx,
+                    out.clone(),
+                    cancel.clone(),
+                ))
+            }
+        };
+        others.push(task);
     }
     Ok((
         sims,
@@ -991,6 +1035,71 @@ mod tests {
             code: 2,
             detail: "no".into()
         }));
+    }
+
+    /// `driver = "dlpc350"` on the simulator: multifocal mode programs and starts the
+    /// projector's pattern sequence, its sub-frames arrive in plane order, and after its cable
+    /// is pulled and plugged back the sequence is reprogrammed and runs again.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
+        let text = super::super::config::tests::SIM_RIG
+            .replace("driver = \"sync\"", "driver = \"dlpc350\"");
+        let cfg = RigConfig::parse(&text).unwrap();
+        let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let registry = Arc::new(Registry::default());
+        let (out, mut inputs) = mpsc::channel(4096);
+        let cancel = CancellationToken::new();
+        let (sims, links, tasks) = spawn_devices(&cfg, &registry, clock, out, &cancel).unwrap();
+        let planes = cfg.optics.planes.len() as u8;
+        // The next `n` sub-frame starts (other devices' inputs skipped), within 5 s.
+        async fn subframes(inputs: &mut mpsc::Receiver<DeviceInput>, n: usize) -> Vec<u8> {
+            let mut got = Vec::new();
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+            while got.len() < n {
+                match tokio::time::timeout_at(deadline, inputs.recv()).await {
+                    Ok(Some(DeviceInput::Sync(SequencerEvent::SubframeStart {
+                        plane_index,
+                        ..
+                    }))) => got.push(plane_index),
+                    Ok(Some(_)) => {}
+                    Ok(None) | Err(_) => break,
+                }
+            }
+            got
+        }
+        links.multifocal.send_replace(true);
+        let first = subframes(&mut inputs, 8).await;
+        assert_eq!(first.len(), 8, "sub-frames before the unplug: {first:?}");
+        for w in first.windows(2) {
+            assert_eq!(w[1], (w[0] + 1) % planes, "out of plane order: {first:?}");
+        }
+        let plug = sims.sync.clone().expect("the simulated DLPC350's plug");
+        plug.unplug();
+        // Lost is brief between retries; the failure count stays.
+        tokio::time::timeout(Duration::from_secs(5), async {
+            while registry.snapshot()["sync"].failures == 0 {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        })
+        .await
+        .expect("the unplugged DLPC350 was never reported lost");
+        plug.replug();
+        // Drop what came before the loss, then the sequence must run again.
+        while inputs.try_recv().is_ok() {}
+        let after = subframes(&mut inputs, 8).await;
+        assert_eq!(after.len(), 8, "sub-frames after the replug: {after:?}");
+        let sync = registry.snapshot()["sync"].clone();
+        assert_eq!(
+            (sync.driver.as_str(), sync.state),
+            ("dlpc350", State::Ok),
+            "{sync:?}"
+        );
+        assert!(sync.connects >= 2, "{sync:?}");
+        cancel.cancel();
+        for t in tasks.others {
+            t.await.unwrap();
+        }
+        tasks.lens.await.unwrap();
     }
 
     /// Commands sent at every phase of the state poll, to the simulated Lens Driver 4 with 1 ms

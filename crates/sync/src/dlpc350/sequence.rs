@@ -83,10 +83,17 @@ impl PatternSequence {
             .ok()
             .filter(|f| cfg.vsync_hz.is_finite() && !f.is_zero())
             .ok_or_else(|| invalid(format!("video rate {} Hz is not usable", cfg.vsync_hz)))?;
-        // Deepest bit depth that still fits every plane into one 24-bit frame.
-        let bit_depth = (1..=8u8)
+        // Deepest bit depth that fits every plane into one 24-bit frame and whose shortest
+        // exposure the sub-frame allows: fewer grey levels rather than no multifocal mode.
+        // When none does, the shallowest is kept, so `check` names the shortest exposure there is.
+        let exposure_us = period_us.saturating_sub(settle_us);
+        let fitting = (1..=8u8)
             .rev()
-            .find(|d| usize::from(patterns_per_image(*d)) >= n)
+            .filter(|d| usize::from(patterns_per_image(*d)) >= n);
+        let bit_depth = fitting
+            .clone()
+            .find(|d| min_exposure_us(*d).is_some_and(|min| exposure_us >= min))
+            .or_else(|| fitting.clone().min())
             .ok_or_else(|| invalid(format!("{n} planes do not fit one 24-bit video frame")))?;
         let entries = (0..n)
             .map(|i| LutEntry {
@@ -108,7 +115,7 @@ impl PatternSequence {
             .collect();
         let seq = PatternSequence {
             exposure: SetExposure {
-                exposure_us: period_us.saturating_sub(settle_us),
+                exposure_us,
                 period_us,
             },
             config: SetPatternConfig {
@@ -226,11 +233,14 @@ mod tests {
             PatternSequence::for_schedule(&schedule(n, 2000, 0), &cfg)
                 .map(|s| s.entries[0].bit_depth)
         };
-        // Three planes get 8 bits, whose 8333 us minimum exposure a 2 ms period cannot give.
-        assert!(depth(3).is_err());
+        // Three planes fit at 8 bits, but a 2 ms exposure allows 5 at most (6 needs 2500 us).
+        assert_eq!(depth(3).unwrap(), 5);
         assert_eq!(depth(5).unwrap(), 4);
         assert_eq!(depth(16).unwrap(), 1);
         assert_eq!(depth(12).unwrap(), 2);
+        // A 4 ms exposure is too short for 7 bits (4500 us) but allows 6.
+        let three = PatternSequence::for_schedule(&schedule(3, 4000, 0), &cfg).unwrap();
+        assert!(three.entries.iter().all(|e| e.bit_depth == 6));
     }
 
     #[test]
@@ -243,7 +253,7 @@ mod tests {
         };
         assert!(e(4, 4166, 100).contains("230 us"));
         assert!(e(4, 5000, 0).contains("video frame"));
-        assert!(e(3, 4000, 0).contains("8-bit"));
+        assert!(e(3, 200, 0).contains("1-bit"));
         assert!(e(16, 1000, 900).contains("1-bit"));
     }
 }
