@@ -14,26 +14,34 @@ fn write_config(dir: &Path, text: &str) -> std::path::PathBuf {
     path
 }
 
+/// `dioptra hil --config <config> --trials <trials> --out <out>`.
+fn hil(config: &Path, trials: u32, out: &Path) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["hil", "--config"])
+        .arg(config)
+        .args(["--trials", &trials.to_string(), "--out"])
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+fn summary_json(out: &Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap()
+}
+
 #[test]
 fn hil_on_the_sim_rig_writes_outputs_that_say_simulated() {
     let dir = tempfile::tempdir().unwrap();
     let config = write_config(dir.path(), RIG);
     let out = dir.path().join("hil");
-    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["hil", "--config"])
-        .arg(&config)
-        .args(["--trials", "20", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let run = hil(&config, 20, &out);
     let stdout = String::from_utf8_lossy(&run.stdout);
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
     assert!(stdout.contains("SIMULATED"), "{stdout}");
     let txt = std::fs::read_to_string(out.join("summary.txt")).unwrap();
     assert!(txt.contains("SIMULATED"), "{txt}");
-    let js: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let js = summary_json(&out);
     assert_eq!(js["simulated"], true, "{js}");
     let m = &js["measurements"];
     // Every lens step settled and was timed; the sim rig has a sync board, so sub-frames too.
@@ -65,13 +73,7 @@ fn hil_with_an_absent_serial_port_names_it_and_fails() {
     let absent = "/dev/ttyACM-dioptra-absent";
     let text = RIG.replacen("port = \"sim\"", &format!("port = \"{absent}\""), 1);
     let config = write_config(dir.path(), &text);
-    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["hil", "--config"])
-        .arg(&config)
-        .args(["--trials", "5", "--out"])
-        .arg(dir.path().join("hil"))
-        .output()
-        .unwrap();
+    let run = hil(&config, 5, &dir.path().join("hil"));
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success(), "{stderr}");
     assert!(stderr.contains(absent), "{stderr}");
@@ -86,13 +88,7 @@ fn hil_with_a_dlpc350_says_it_cannot_time_sub_frames() {
     assert_ne!(rig, RIG);
     let config = write_config(dir.path(), &rig);
     let out = dir.path().join("hil");
-    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["hil", "--config"])
-        .arg(&config)
-        .args(["--trials", "3", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
+    let run = hil(&config, 3, &out);
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(
         run.status.success(),
@@ -103,8 +99,7 @@ fn hil_with_a_dlpc350_says_it_cannot_time_sub_frames() {
         stdout.contains("sub-frame timing: skipped (the DLPC350 reports no sub-frame times"),
         "{stdout}"
     );
-    let js: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    let js = summary_json(&out);
     assert!(
         js["measurements"].get("subframe_timing_error").is_none(),
         "{js}"
