@@ -55,8 +55,11 @@ pub struct Field {
     /// HID unit code (0 = none) and unit exponent (-8..=7).
     pub unit: u32,
     pub unit_exponent: i8,
-    /// Usages of the enclosing collections, outermost first.
+    /// Usages of the enclosing collections, outermost first (0 for a usage-less one).
     pub collections: Vec<Usage>,
+    /// Main item flag bit 0. Microsoft's eye-tracker descriptors mark real data Constant
+    /// (`Input (Cnst,Var,Abs)`), so this is kept for display, never used to drop a field.
+    pub constant: bool,
 }
 
 impl Field {
@@ -385,7 +388,10 @@ fn add_main(
     out.report_bits[idx].2 = end;
     let constant = flags & 1 != 0;
     let variable = flags & 2 != 0;
-    if constant || !variable || usages.is_empty() || g.report_size == 0 {
+    // Padding is a main item without usages, whatever its flags: Linux's hid-core
+    // (hid_add_field) does the same. Constant fields with usages carry data: Microsoft's
+    // GazeHid and DMF VirtualEyeGaze descriptors declare the gaze point that way.
+    if !variable || usages.is_empty() || g.report_size == 0 {
         return Ok(()); // padding, or an array (selectors: not needed by these drivers)
     }
     // Usage i labels element i; the last usage labels all remaining elements.
@@ -414,6 +420,7 @@ fn add_main(
             unit: g.unit,
             unit_exponent: g.unit_exponent,
             collections: collections.to_vec(),
+            constant,
         });
     }
     Ok(())
@@ -472,6 +479,26 @@ mod tests {
         assert_eq!(m.read(&report), Some(17));
         assert_eq!(ts.read(&report), Some(1 << 40));
         assert_eq!(z.read(&report[..16]), None);
+    }
+
+    #[test]
+    fn constant_fields_with_usages_are_data_and_without_are_padding() {
+        #[rustfmt::skip]
+        let d = [
+            0x05, 0x12, 0x85, 0x10, 0x75, 0x08, 0x95, 0x01,
+            0x81, 0x03,                               // usage-less Constant: padding
+            0x09, 0x21, 0x81, 0x03,                   // Position X, Constant: data
+            0x09, 0x22, 0x81, 0x02,                   // Position Y, Data
+        ];
+        let r = parse(&d).unwrap();
+        let usages: Vec<_> = r
+            .fields
+            .iter()
+            .map(|f| (f.usage.id(), f.constant))
+            .collect();
+        assert_eq!(usages, vec![(0x21, true), (0x22, false)]);
+        assert_eq!(r.fields[0].bit_offset, 8);
+        assert_eq!(r.report_len(ReportKind::Input, 0x10), Some(1 + 3));
     }
 
     #[test]

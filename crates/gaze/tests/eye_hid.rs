@@ -1,5 +1,7 @@
-//! The page 0x12 driver against the simulated tracker, over the in-memory HID link, and
-//! the layout finder on a hand-written descriptor with a different field layout.
+//! The page 0x12 driver against the simulated tracker (both of its layouts), over the
+//! in-memory HID link; the layout finder on Microsoft's two reference descriptors
+//! (`tests/data`, sources in its README) and on a hand-written descriptor with a different
+//! field layout.
 
 use std::sync::Arc;
 
@@ -10,7 +12,7 @@ use dioptra_gaze::eye_hid::protocol::{
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::hid_descriptor::{self, ReportKind};
 use dioptra_sched::processing::Angles;
-use dioptra_sim::gaze::hid_tracker::{self, HidTrackerSetup};
+use dioptra_sim::gaze::hid_tracker::{self, HidTrackerSetup, SimLayout};
 use dioptra_sim::gaze::{Faults, GazeGenerator, GeneratorConfig, Scene};
 use dioptra_sim::tokio_clock::TokioClock;
 
@@ -52,7 +54,7 @@ async fn streams_gaze_that_matches_the_generator() {
         info.capabilities.optimum_tracking_distance_um,
         Some(600_000.0)
     );
-    assert_eq!(info.capabilities.tracker_quality, Some(2));
+    assert_eq!(info.capabilities.tracker_quality, Some(1));
     assert_eq!(tracker.rate_hz(), 500.0);
 
     // The generator is deterministic: a twin gives the truth for every sample sent.
@@ -317,4 +319,180 @@ async fn the_wrong_device_fails_at_connect_with_the_reason() {
         matches!(&e, DeviceError::Protocol(m) if m.contains("Timestamp")),
         "{e:?}"
     );
+}
+
+const GAZEHID: &[u8] = include_bytes!("data/gazehid_report_descriptor.bin");
+const DMF: &[u8] = include_bytes!("data/dmf_virtual_eye_gaze_report_descriptor.bin");
+
+/// A Tracking Data report as the sources' packed structs lay it out (GazeHid `inc/Tracker.h`
+/// `GAZE_REPORT`, DMF `GAZE_DATA`): id 0x10, u64 timestamp, i32 gaze x/y, then 4 x 3 i32
+/// (left eye, right eye, head position, head direction). Built from the structs, not from
+/// the descriptor, so it checks the parser's offsets.
+fn reference_gaze_report(timestamp: u64, values: [i32; 14]) -> Vec<u8> {
+    let mut r = vec![0x10];
+    r.extend(timestamp.to_le_bytes());
+    for v in values {
+        r.extend(v.to_le_bytes());
+    }
+    r
+}
+
+/// `declares_head`: DMF declares Head Position and Head Direction; GazeHid pads them.
+fn check_reference_layout(descriptor: &[u8], declares_head: bool) {
+    use dioptra_gaze::eye_hid::protocol::usage;
+    let d = hid_descriptor::parse(descriptor).unwrap();
+    let l = TrackerLayout::locate(&d).unwrap();
+    let t = &l.tracking;
+    assert_eq!((t.report_id, t.len), (0x10, 65));
+    assert_eq!(
+        (t.timestamp.field.bit_offset, t.timestamp.field.total_bits()),
+        (0, 64)
+    );
+    // cm with exponent -4 is 1 µm per count; s with exponent -6 is 1 µs.
+    assert_eq!((t.gaze_point[0].scale, t.timestamp.scale), (1.0, 1.0));
+    let offsets = |g: &Option<[dioptra_gaze::eye_hid::protocol::Located; 3]>| {
+        g.as_ref().map(|g| g.each_ref().map(|l| l.field.bit_offset))
+    };
+    assert_eq!(offsets(&t.left_eye), Some([128, 160, 192]));
+    assert_eq!(offsets(&t.right_eye), Some([224, 256, 288]));
+    if declares_head {
+        assert_eq!(offsets(&t.head_position), Some([320, 352, 384]));
+        // DMF's Head Direction keeps the cm unit of the positions: ignored, with a note.
+        assert!(l.notes[0].contains("Head Direction"), "{:?}", l.notes);
+    } else {
+        assert_eq!(t.head_position, None);
+    }
+    assert_eq!(t.head_direction, None);
+    assert_eq!(l.notes.len(), usize::from(declares_head), "{:?}", l.notes);
+    assert_eq!(
+        (l.capabilities.report_id, l.capabilities.len),
+        (0x11, 1 + 1 + 20)
+    );
+    assert!(l.capabilities.has(usage::OPTIMUM_TRACKING_DISTANCE));
+    let config = l.configuration.as_ref().unwrap();
+    assert_eq!((config.report_id, config.len), (0x12, 1 + 18));
+    assert_eq!((l.status.report_id, l.status.len), (0x13, 4));
+    assert_eq!(l.control_report(ModeRequest(3)), vec![0x14, 3]);
+
+    let r = reference_gaze_report(
+        123_456_789,
+        [
+            150_000, 90_000, // gaze point, µm from the top-left corner
+            118_000, 95_000, 600_000, // left eye
+            182_000, 95_000, 601_000, // right eye
+            150_000, 95_000, 600_500, // head position
+            0, 1_500_000, 0, // head direction
+        ],
+    );
+    let g = t.parse(&r).unwrap();
+    assert_eq!(g.timestamp_us, 123_456_789);
+    assert_eq!(g.gaze_point_um, Some([150_000.0, 90_000.0]));
+    assert_eq!(g.left_eye_um, Some([118_000.0, 95_000.0, 600_000.0]));
+    assert_eq!(g.right_eye_um, Some([182_000.0, 95_000.0, 601_000.0]));
+    // Feature reports as the sources' structs lay them out.
+    let mut caps = vec![0x11, 1];
+    for v in [50_000u32, 65_000, 90_000, 527_000, 296_000] {
+        caps.extend(v.to_le_bytes());
+    }
+    let c = l.parse_capabilities(&caps).unwrap();
+    assert_eq!(c.tracker_quality, Some(1));
+    assert_eq!(c.optimum_tracking_distance_um, Some(65_000.0));
+    assert_eq!(c.max_screen_height_um, Some(296_000.0));
+    let mut conf = vec![0x12, 0x4d, 0x53, 1, 0, 7, 0, 0, 0, 0x22, 0x07];
+    conf.extend(527_000u32.to_le_bytes());
+    conf.extend(296_000u32.to_le_bytes());
+    let conf = l.parse_configuration(&conf).unwrap().unwrap();
+    assert_eq!(conf.calibrated_screen_width_um, Some(527_000.0));
+    let st = l.parse_status(&[0x13, 1, 100, 0]).unwrap();
+    assert_eq!(
+        (st.config_status, st.sampling_frequency_hz),
+        (ConfigStatus::Ready, Some(100.0))
+    );
+}
+
+#[test]
+fn microsoft_gazehid_reference_descriptor_is_located_and_read() {
+    check_reference_layout(GAZEHID, false);
+}
+
+#[test]
+fn microsoft_dmf_reference_descriptor_is_located_and_read() {
+    check_reference_layout(DMF, true);
+}
+
+/// The report collections' usages are a hint, not a requirement: the same descriptor with
+/// every usage before a Logical collection removed still locates.
+#[test]
+fn usage_less_logical_collections_are_located_by_usage() {
+    let mut d = Vec::new();
+    let mut i = 0;
+    while i < GAZEHID.len() {
+        if GAZEHID[i..].starts_with(&[0x09]) && GAZEHID.get(i + 2..i + 4) == Some(&[0xa1, 0x02]) {
+            i += 2; // drop "Usage (Tracking Data | Capabilities | ...)"
+            continue;
+        }
+        d.push(GAZEHID[i]);
+        i += 1;
+    }
+    assert_eq!(d.len(), GAZEHID.len() - 2 * 6);
+    let parsed = hid_descriptor::parse(&d).unwrap();
+    let l = TrackerLayout::locate(&parsed).unwrap();
+    assert_eq!(
+        (
+            l.tracking.report_id,
+            l.capabilities.report_id,
+            l.status.report_id,
+            l.control.report_id
+        ),
+        (0x10, 0x11, 0x13, 0x14)
+    );
+    assert!(l.tracking.left_eye.is_some());
+}
+
+#[test]
+fn every_missing_requirement_is_named() {
+    // Only the Tracking Data collection of the GazeHid descriptor: no feature reports.
+    let end = GAZEHID
+        .windows(4)
+        .position(|w| w == [0x09, 0x11, 0xa1, 0x02])
+        .unwrap();
+    let mut d = GAZEHID[..end].to_vec();
+    d.push(0xc0);
+    let errors = TrackerLayout::locate_all(&hid_descriptor::parse(&d).unwrap()).unwrap_err();
+    let text: Vec<String> = errors.iter().map(ToString::to_string).collect();
+    assert_eq!(errors.len(), 3, "{text:?}");
+    for what in ["Capabilities", "Configuration Status", "Mode Request"] {
+        assert!(text.iter().any(|t| t.contains(what)), "{text:?}");
+    }
+}
+
+/// The simulator's second layout (16-bit fields in 0.1 mm, report ids 1-5) drives the same
+/// gaze as the reference layout.
+#[tokio::test(start_paused = true)]
+async fn the_compact_simulated_layout_streams_the_same_gaze() {
+    let mut trackers = Vec::new();
+    for layout in [SimLayout::Reference, SimLayout::Compact] {
+        let (t, sim) = connect(HidTrackerSetup {
+            layout,
+            ..HidTrackerSetup::default()
+        })
+        .await;
+        let t = t.unwrap();
+        assert_eq!(t.layout().tracking.report_id, layout.report_ids()[0]);
+        trackers.push((t, sim));
+    }
+    assert_eq!(trackers[1].0.layout().tracking.len, 1 + 8 + 14 * 2);
+    for _ in 0..50 {
+        let a = trackers[0].0.next_tracking().await.unwrap();
+        let b = trackers[1].0.next_tracking().await.unwrap();
+        assert_eq!(a.data.timestamp_us, b.data.timestamp_us);
+        let (ga, gb) = (a.data.gaze_point_um.unwrap(), b.data.gaze_point_um.unwrap());
+        // 0.1 mm steps against 1 µm steps.
+        assert!((ga[0] - gb[0]).abs() <= 50.0 && (ga[1] - gb[1]).abs() <= 50.0);
+        let (ha, hb) = (
+            a.data.head_direction_deg.unwrap(),
+            b.data.head_direction_deg.unwrap(),
+        );
+        assert!((ha[1] - 1.5).abs() < 1e-9 && (hb[1] - 1.5).abs() < 1e-9);
+    }
 }

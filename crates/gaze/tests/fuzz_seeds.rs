@@ -40,4 +40,38 @@ fn seeds_parse() {
         (st.config_status, st.sampling_frequency_hz),
         (ConfigStatus::Ready, Some(500.0))
     );
+
+    let data = seed("page12_compact_tracking");
+    let (descriptor, report) = split(&data);
+    assert_eq!(
+        descriptor,
+        dioptra_sim::gaze::hid_tracker::COMPACT_DESCRIPTOR
+    );
+    let layout = TrackerLayout::locate(&hid_descriptor::parse(descriptor).unwrap()).unwrap();
+    let t = layout.tracking.parse(report).unwrap();
+    assert_eq!(t.left_eye_um, Some([268_000.0, 170_000.0, 600_000.0]));
+
+    // Microsoft's reference descriptors (tests/data) with reports built from their structs.
+    for (name, descriptor) in [
+        ("gazehid_tracking", "gazehid_report_descriptor.bin"),
+        ("dmf_tracking", "dmf_virtual_eye_gaze_report_descriptor.bin"),
+    ] {
+        let data = seed(name);
+        let (d, report) = split(&data);
+        assert_eq!(d, reference(descriptor), "{name}");
+        let layout = TrackerLayout::locate(&hid_descriptor::parse(d).unwrap()).unwrap();
+        let t = layout.tracking.parse(report).unwrap();
+        assert_eq!(t.timestamp_us, 123_456_789, "{name}");
+        assert_eq!(t.gaze_point_um, Some([300_000.0, 170_000.0]), "{name}");
+    }
+    let data = seed("dmf_capabilities");
+    let (d, report) = split(&data);
+    let layout = TrackerLayout::locate(&hid_descriptor::parse(d).unwrap()).unwrap();
+    let c = layout.parse_capabilities(report).unwrap();
+    assert_eq!(c.optimum_tracking_distance_um, Some(65_000.0));
+}
+
+fn reference(name: &str) -> Vec<u8> {
+    let path = format!("{}/tests/data/{name}", env!("CARGO_MANIFEST_DIR"));
+    std::fs::read(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }

@@ -1,6 +1,7 @@
 //! Arbitrary bytes through the HID descriptor parser, the page 0x12 layout finder and
 //! report parsers, and the dioptra tracker's report decoder. Nothing may panic; every field
-//! a parsed descriptor declares must read (or refuse) any report; a located layout's own
+//! a parsed descriptor declares must read (or refuse) any report; `locate` and `locate_all`
+//! must agree; every located field must read (or refuse) any report; a located layout's own
 //! Control report must parse as its own.
 //!
 //! Input: `[descriptor length u16 LE][descriptor][report]`. Seeds: `corpus/hid_reports`.
@@ -34,9 +35,18 @@ fuzz_target!(|data: &[u8]| {
     for f in &d.fields {
         let _ = f.read(report);
     }
+    let all = TrackerLayout::locate_all(&d);
+    if let Err(errors) = &all {
+        assert!(!errors.is_empty(), "a failed layout names what it lacks");
+    }
     let Ok(layout) = TrackerLayout::locate(&d) else {
+        assert!(all.is_err());
         return;
     };
+    assert!(all.is_ok());
+    for l in layout.fields() {
+        let _ = l.get(report);
+    }
     let _ = layout.tracking.parse(report);
     let _ = layout.parse_capabilities(report);
     let _ = layout.parse_configuration(report);

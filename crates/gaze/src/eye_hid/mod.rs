@@ -118,6 +118,9 @@ impl<H: HidLink> HidEyeTracker<H> {
         let name = link.describe();
         let descriptor = read_descriptor(&mut link).await?;
         let layout = TrackerLayout::locate(&descriptor).map_err(|e| protocol_error(&name, e))?;
+        for note in &layout.notes {
+            tracing::warn!("{name}: {note}");
+        }
         let perr = |e: ReportError| protocol_error(&name, e);
 
         let mut buf = vec![0u8; layout.capabilities.len];

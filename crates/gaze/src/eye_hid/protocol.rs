@@ -44,6 +44,50 @@ pub mod usage {
     pub const MODE_REQUEST: Usage = u(0x400);
 }
 
+/// HUTRR74's name for a page 0x12 usage ("" for one it does not define).
+pub fn usage_name(u: Usage) -> &'static str {
+    if u.page() != 0x12 {
+        return "";
+    }
+    match u.id() {
+        0x01 => "Eye Tracker",
+        0x02 => "Head Tracker",
+        0x10 => "Tracking Data",
+        0x11 => "Capabilities",
+        0x12 => "Configuration",
+        0x13 => "Status",
+        0x14 => "Control",
+        0x20 => "Timestamp",
+        0x21 => "Position X",
+        0x22 => "Position Y",
+        0x23 => "Position Z",
+        0x24 => "Gaze Point",
+        0x25 => "Left Eye Position",
+        0x26 => "Right Eye Position",
+        0x27 => "Head Position",
+        0x28 => "Head Direction",
+        0x29 => "Rotation about X",
+        0x2a => "Rotation about Y",
+        0x2b => "Rotation about Z",
+        0x100 => "Tracker Quality",
+        0x101 => "Minimum Tracking Distance",
+        0x102 => "Optimum Tracking Distance",
+        0x103 => "Maximum Tracking Distance",
+        0x104 => "Maximum Screen Plane Width",
+        0x105 => "Maximum Screen Plane Height",
+        0x200 => "Display Manufacturer ID",
+        0x201 => "Display Product ID",
+        0x202 => "Display Serial Number",
+        0x203 => "Display Manufacturer Date",
+        0x204 => "Calibrated Screen Width",
+        0x205 => "Calibrated Screen Height",
+        0x300 => "Sampling Frequency",
+        0x301 => "Configuration Status",
+        0x400 => "Mode Request",
+        _ => "",
+    }
+}
+
 /// The descriptor lacks something the driver needs, or uses it in a way we cannot read.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum LayoutError {
@@ -56,10 +100,10 @@ pub enum LayoutError {
     #[error("{what} is split over reports {a} and {b}; it must be in one report")]
     SplitReport { what: &'static str, a: u8, b: u8 },
     #[error("{what} field is {bits} bits wide; at most 64 are supported")]
-    TooWide { what: &'static str, bits: u32 },
+    TooWide { what: String, bits: u32 },
     #[error("{what} field has HID unit {unit:#x}, which is not a {expected}")]
     UnsupportedUnit {
-        what: &'static str,
+        what: String,
         unit: u32,
         expected: &'static str,
     },
@@ -89,22 +133,24 @@ enum Quantity {
 /// A located field with the factor that takes its raw value to the page's unit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Located {
+    /// What the driver reads it as, e.g. "Left Eye Position Z".
+    pub name: String,
     pub field: Field,
     /// Multiplies the raw value into µm, µs, degrees, or leaves it (plain numbers).
     pub scale: f64,
 }
 
 impl Located {
-    fn new(field: &Field, what: &'static str, q: Quantity) -> Result<Located, LayoutError> {
+    fn new(field: &Field, name: String, q: Quantity) -> Result<Located, LayoutError> {
         if field.total_bits() > 64 {
             return Err(LayoutError::TooWide {
-                what,
+                what: name,
                 bits: field.total_bits(),
             });
         }
         let exp = 10f64.powi(i32::from(field.unit_exponent));
         let bad = |expected| LayoutError::UnsupportedUnit {
-            what,
+            what: name.clone(),
             unit: field.unit,
             expected,
         };
@@ -122,6 +168,7 @@ impl Located {
             (Quantity::Plain, _) => exp,
         };
         Ok(Located {
+            name,
             field: field.clone(),
             scale,
         })
@@ -133,55 +180,80 @@ impl Located {
     }
 }
 
-fn find(
-    d: &ReportDescriptor,
+/// The field with `usage` in a report of `kind` (of report `id`, when given) that lies inside
+/// every collection of `within`. One also inside the collection carrying the report's usage
+/// (`hint`) is preferred, but not required: descriptors with usage-less logical collections
+/// are read too, so the hint only breaks ties.
+fn pick<'a>(
+    d: &'a ReportDescriptor,
     kind: ReportKind,
-    report: Usage,
+    id: Option<u8>,
     usage: Usage,
-    within: Option<Usage>,
-) -> Option<&Field> {
-    // Prefer the report's own collection; fall back to any report of that kind.
-    let mut path = vec![report];
-    path.extend(within);
-    d.find(kind, usage, &path)
-        .or_else(|| d.find(kind, usage, within.as_slice()))
+    within: &[Usage],
+    hint: Usage,
+) -> Option<&'a Field> {
+    let matches = |f: &&Field| {
+        f.kind == kind
+            && f.usage == usage
+            && id.is_none_or(|i| f.report_id == i)
+            && within.iter().all(|c| f.in_collection(*c))
+    };
+    d.fields
+        .iter()
+        .filter(matches)
+        .find(|f| f.in_collection(hint))
+        .or_else(|| d.fields.iter().find(matches))
 }
 
-fn required(
-    d: &ReportDescriptor,
+/// `pick` within report `id`; a match only in another report is [`LayoutError::SplitReport`].
+fn pick_in<'a>(
+    d: &'a ReportDescriptor,
     kind: ReportKind,
-    report: Usage,
+    id: u8,
     usage: Usage,
-    within: Option<Usage>,
+    within: &[Usage],
+    hint: Usage,
     what: &'static str,
-    q: Quantity,
-) -> Result<Located, LayoutError> {
-    let f =
-        find(d, kind, report, usage, within).ok_or(LayoutError::Missing { what, usage, kind })?;
-    Located::new(f, what, q)
+) -> Result<Option<&'a Field>, LayoutError> {
+    if let Some(f) = pick(d, kind, Some(id), usage, within, hint) {
+        return Ok(Some(f));
+    }
+    match pick(d, kind, None, usage, within, hint) {
+        Some(f) => Err(LayoutError::SplitReport {
+            what,
+            a: id,
+            b: f.report_id,
+        }),
+        None => Ok(None),
+    }
 }
 
+/// An optional X/Y/Z group of the Tracking Data report: `None` when absent; dropped with a
+/// note when its units cannot be read (DMF's VirtualEyeGaze declares Head Direction in cm).
 fn xyz(
     d: &ReportDescriptor,
-    report: Usage,
+    id: u8,
     within: Usage,
     what: &'static str,
     usages: [Usage; 3],
     q: Quantity,
+    notes: &mut Vec<String>,
 ) -> Result<Option<[Located; 3]>, LayoutError> {
-    let in_collection = |u| d.find(ReportKind::Input, u, &[report, within]);
-    let (Some(x), Some(y), Some(z)) = (
-        in_collection(usages[0]),
-        in_collection(usages[1]),
-        in_collection(usages[2]),
-    ) else {
-        return Ok(None);
-    };
-    Ok(Some([
-        Located::new(x, what, q)?,
-        Located::new(y, what, q)?,
-        Located::new(z, what, q)?,
-    ]))
+    let td = usage::TRACKING_DATA;
+    let mut found = Vec::with_capacity(3);
+    for (axis, u) in ["X", "Y", "Z"].iter().zip(usages) {
+        let Some(f) = pick_in(d, ReportKind::Input, id, u, &[within], td, what)? else {
+            return Ok(None);
+        };
+        match Located::new(f, format!("{what} {axis}"), q) {
+            Ok(l) => found.push(l),
+            Err(e) => {
+                notes.push(format!("{what} ignored: {e}"));
+                return Ok(None);
+            }
+        }
+    }
+    Ok(found.try_into().ok())
 }
 
 /// Where every field of the Tracking Data input report is.
@@ -343,38 +415,45 @@ pub struct FeatureLayout {
 }
 
 impl FeatureLayout {
+    /// Finds the report: the one holding a `wanted` usage inside the collection carrying
+    /// `report`, else the one holding an `anchor` (usages only this report has) anywhere.
+    /// Then reads every wanted usage from that report, preferring the collection.
     fn locate(
         d: &ReportDescriptor,
         report: Usage,
-        wanted: &[(Usage, Quantity)],
+        anchors: &[(Usage, Quantity)],
+        extra: &[(Usage, Quantity)],
         what: &'static str,
     ) -> Result<Option<FeatureLayout>, LayoutError> {
-        let mut fields = Vec::new();
-        let mut id = None;
-        for &(u, q) in wanted {
-            let Some(f) = d.find(ReportKind::Feature, u, &[report]) else {
-                continue;
-            };
-            match id {
-                None => id = Some(f.report_id),
-                Some(a) if a != f.report_id => {
-                    return Err(LayoutError::SplitReport {
-                        what,
-                        a,
-                        b: f.report_id,
-                    })
-                }
-                Some(_) => {}
-            }
-            fields.push((u, Located::new(f, what, q)?));
-        }
+        let kind = ReportKind::Feature;
+        let wanted = || anchors.iter().chain(extra);
+        let id = wanted()
+            .find_map(|&(u, _)| d.find(kind, u, &[report]))
+            .or_else(|| anchors.iter().find_map(|&(u, _)| d.find(kind, u, &[])))
+            .map(|f| f.report_id);
         let Some(report_id) = id else { return Ok(None) };
-        let len = d.report_len(ReportKind::Feature, report_id).unwrap_or(1);
+        let mut fields = Vec::new();
+        for (i, &(u, q)) in wanted().enumerate() {
+            let f = if i < anchors.len() {
+                pick_in(d, kind, report_id, u, &[], report, what)?
+            } else {
+                pick(d, kind, Some(report_id), u, &[], report)
+            };
+            if let Some(f) = f {
+                fields.push((u, Located::new(f, usage_name(u).to_string(), q)?));
+            }
+        }
+        let len = d.report_len(kind, report_id).unwrap_or(1);
         Ok(Some(FeatureLayout {
             report_id,
             len,
             fields,
         }))
+    }
+
+    /// The located fields, in the order the driver looks for them.
+    pub fn fields(&self) -> impl Iterator<Item = &Located> {
+        self.fields.iter().map(|(_, l)| l)
     }
 
     fn check(&self, report: &[u8]) -> Result<(), ReportError> {
@@ -412,71 +491,71 @@ pub struct TrackerLayout {
     pub configuration: Option<FeatureLayout>,
     pub status: FeatureLayout,
     pub control: FeatureLayout,
+    /// Optional fields present but not used, and why.
+    pub notes: Vec<String>,
 }
 
 impl TrackerLayout {
     /// Locates the reports. Required: Tracking Data with Timestamp and Gaze Point,
-    /// Capabilities, Status with Configuration Status, Control with Mode Request.
+    /// Capabilities, Status with Configuration Status, Control with Mode Request. The first
+    /// thing missing is the error; [`TrackerLayout::locate_all`] names all of them.
     pub fn locate(d: &ReportDescriptor) -> Result<TrackerLayout, LayoutError> {
+        Self::locate_all(d).map_err(|mut e| e.swap_remove(0))
+    }
+
+    /// Like [`TrackerLayout::locate`], with every problem found (never an empty list).
+    pub fn locate_all(d: &ReportDescriptor) -> Result<TrackerLayout, Vec<LayoutError>> {
         use usage::*;
         use Quantity::*;
         let td = TRACKING_DATA;
         let input = ReportKind::Input;
-        let timestamp = required(d, input, td, TIMESTAMP, None, "Timestamp", Time)?;
-        let gx = required(
-            d,
-            input,
-            td,
-            POSITION_X,
-            Some(GAZE_POINT),
-            "Gaze Point X",
-            Length,
-        )?;
-        let gy = required(
-            d,
-            input,
-            td,
-            POSITION_Y,
-            Some(GAZE_POINT),
-            "Gaze Point Y",
-            Length,
-        )?;
-        let pos = [POSITION_X, POSITION_Y, POSITION_Z];
-        let rot = [ROTATION_X, ROTATION_Y, ROTATION_Z];
-        let tracking = TrackingLayout {
-            report_id: timestamp.field.report_id,
-            len: d.report_len(input, timestamp.field.report_id).unwrap_or(1),
-            left_eye: xyz(d, td, LEFT_EYE_POSITION, "Left Eye Position", pos, Length)?,
-            right_eye: xyz(d, td, RIGHT_EYE_POSITION, "Right Eye Position", pos, Length)?,
-            head_position: xyz(d, td, HEAD_POSITION, "Head Position", pos, Length)?,
-            head_direction: xyz(d, td, HEAD_DIRECTION, "Head Direction", rot, Angle)?,
-            gaze_point: [gx, gy],
-            timestamp,
+        let mut errors = Vec::new();
+        let mut notes = Vec::new();
+        let missing = |what, usage, kind| LayoutError::Missing { what, usage, kind };
+
+        let tracking = (|| -> Result<TrackingLayout, LayoutError> {
+            let ts = pick(d, input, None, TIMESTAMP, &[], td).ok_or(missing(
+                "Timestamp",
+                TIMESTAMP,
+                input,
+            ))?;
+            let timestamp = Located::new(ts, "Timestamp".into(), Time)?;
+            let id = ts.report_id;
+            let gaze = |u, name: &'static str| -> Result<Located, LayoutError> {
+                let f = pick_in(d, input, id, u, &[GAZE_POINT], td, "Tracking Data")?
+                    .ok_or(missing(name, u, input))?;
+                Located::new(f, name.into(), Length)
+            };
+            let gaze_point = [
+                gaze(POSITION_X, "Gaze Point X")?,
+                gaze(POSITION_Y, "Gaze Point Y")?,
+            ];
+            let pos = [POSITION_X, POSITION_Y, POSITION_Z];
+            let rot = [ROTATION_X, ROTATION_Y, ROTATION_Z];
+            let mut group =
+                |within, what, usages, q| xyz(d, id, within, what, usages, q, &mut notes);
+            Ok(TrackingLayout {
+                report_id: id,
+                len: d.report_len(input, id).unwrap_or(1),
+                left_eye: group(LEFT_EYE_POSITION, "Left Eye Position", pos, Length)?,
+                right_eye: group(RIGHT_EYE_POSITION, "Right Eye Position", pos, Length)?,
+                head_position: group(HEAD_POSITION, "Head Position", pos, Length)?,
+                head_direction: group(HEAD_DIRECTION, "Head Direction", rot, Angle)?,
+                gaze_point,
+                timestamp,
+            })
+        })()
+        .map_err(|e| errors.push(e))
+        .ok();
+
+        let feature = ReportKind::Feature;
+        let mut report = |r, anchors: &[(Usage, Quantity)], extra: &[(Usage, Quantity)], what| {
+            FeatureLayout::locate(d, r, anchors, extra, what)
+                .map_err(|e| errors.push(e))
+                .ok()
+                .flatten()
         };
-        let id = tracking.report_id;
-        let all = [&tracking.gaze_point[..]]
-            .into_iter()
-            .chain(tracking.left_eye.as_ref().map(|v| &v[..]))
-            .chain(tracking.right_eye.as_ref().map(|v| &v[..]))
-            .chain(tracking.head_position.as_ref().map(|v| &v[..]))
-            .chain(tracking.head_direction.as_ref().map(|v| &v[..]))
-            .flatten();
-        for l in all {
-            if l.field.report_id != id {
-                return Err(LayoutError::SplitReport {
-                    what: "Tracking Data",
-                    a: id,
-                    b: l.field.report_id,
-                });
-            }
-        }
-        let missing = |what, usage| LayoutError::Missing {
-            what,
-            usage,
-            kind: ReportKind::Feature,
-        };
-        let capabilities = FeatureLayout::locate(
-            d,
+        let capabilities = report(
             CAPABILITIES,
             &[
                 (TRACKER_QUALITY, Plain),
@@ -485,37 +564,84 @@ impl TrackerLayout {
                 (MAXIMUM_TRACKING_DISTANCE, Length),
                 (MAXIMUM_SCREEN_PLANE_WIDTH, Length),
                 (MAXIMUM_SCREEN_PLANE_HEIGHT, Length),
-                (SAMPLING_FREQUENCY, Plain),
             ],
+            &[(SAMPLING_FREQUENCY, Plain)],
             "Capabilities",
-        )?
-        .ok_or(missing("Capabilities report", CAPABILITIES))?;
-        let configuration = FeatureLayout::locate(
-            d,
+        );
+        let configuration = report(
             CONFIGURATION,
             &[
                 (CALIBRATED_SCREEN_WIDTH, Length),
                 (CALIBRATED_SCREEN_HEIGHT, Length),
             ],
+            &[],
             "Configuration",
-        )?;
-        let status = FeatureLayout::locate(
-            d,
+        );
+        let status = report(
             STATUS,
-            &[(CONFIGURATION_STATUS, Plain), (SAMPLING_FREQUENCY, Plain)],
+            &[(CONFIGURATION_STATUS, Plain)],
+            &[(SAMPLING_FREQUENCY, Plain)],
             "Status",
-        )?
-        .filter(|s| s.has(CONFIGURATION_STATUS))
-        .ok_or(missing("Configuration Status", CONFIGURATION_STATUS))?;
-        let control = FeatureLayout::locate(d, CONTROL, &[(MODE_REQUEST, Plain)], "Control")?
-            .ok_or(missing("Mode Request", MODE_REQUEST))?;
-        Ok(TrackerLayout {
-            tracking,
-            capabilities,
-            configuration,
-            status,
-            control,
-        })
+        )
+        .filter(|s| s.has(CONFIGURATION_STATUS));
+        let control = report(CONTROL, &[(MODE_REQUEST, Plain)], &[], "Control");
+        if capabilities.is_none() {
+            errors.push(missing("Capabilities report", CAPABILITIES, feature));
+        }
+        if status.is_none() {
+            errors.push(missing(
+                "Configuration Status",
+                CONFIGURATION_STATUS,
+                feature,
+            ));
+        }
+        if control.is_none() {
+            errors.push(missing("Mode Request", MODE_REQUEST, feature));
+        }
+        match (tracking, capabilities, status, control) {
+            (Some(tracking), Some(capabilities), Some(status), Some(control))
+                if errors.is_empty() =>
+            {
+                Ok(TrackerLayout {
+                    tracking,
+                    capabilities,
+                    configuration,
+                    status,
+                    control,
+                    notes,
+                })
+            }
+            _ => Err(errors),
+        }
+    }
+
+    /// Every field the driver reads, with the report it is in.
+    pub fn fields(&self) -> Vec<&Located> {
+        let t = &self.tracking;
+        let mut v: Vec<&Located> = vec![&t.timestamp, &t.gaze_point[0], &t.gaze_point[1]];
+        for g in [
+            &t.left_eye,
+            &t.right_eye,
+            &t.head_position,
+            &t.head_direction,
+        ]
+        .into_iter()
+        .flatten()
+        {
+            v.extend(g.iter());
+        }
+        for f in [
+            Some(&self.capabilities),
+            self.configuration.as_ref(),
+            Some(&self.status),
+            Some(&self.control),
+        ]
+        .into_iter()
+        .flatten()
+        {
+            v.extend(f.fields());
+        }
+        v
     }
 
     pub fn parse_capabilities(&self, r: &[u8]) -> Result<Capabilities, ReportError> {
