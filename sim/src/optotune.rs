@@ -1,15 +1,22 @@
 //! Simulated Optotune Lens Driver 4: the device side of its serial protocol, over the shared
 //! [`LensModel`]. It stands in for the device, not for dioptra's driver, so it is written
-//! from the protocol description (hardware.md, Optotune's manual and the open clients) and
-//! not from the driver's code, and it accepts what other clients send: `V` with or without a
-//! trailing zero byte, `PrTA` with or without its four zero bytes.
+//! from the protocol description (Optotune's manual and its "Lens Driver V4 Communication
+//! Protocol" sheet, hardware.md, the open clients) and not from the driver's code, and it
+//! accepts what other clients send: `V` with or without a trailing zero byte, `PrTA` with or
+//! without its four zero bytes.
+//!
+//! As the device: it powers up without temperature limits and refuses focal-power mode until
+//! it has them (status bit 2); the `Start` handshake resets the output current; replies echo
+//! the command without its r/w letter (`MSA` for `MwSA`, `CMA` for `CrMA`); `E` codes are the
+//! sheet's; status bits are the sheet's (bit 5, temperature outside the product
+//! specification, is not modelled: the specification is not in the sources).
 //!
 //! [`OptotuneSim`] is sans-IO (bytes in, bytes out, time passed in); [`serve`] runs it on a
 //! [`ByteLink`] (a pty master, an in-memory link).
 
 use std::time::Duration;
 
-use dioptra_core::{Diopters, PowerRange, Timestamp};
+use dioptra_core::{Diopters, Timestamp};
 
 use crate::lens_model::{DriveMode, LensModel, LensModelConfig};
 use crate::serve::ByteDevice;
@@ -17,23 +24,30 @@ use crate::serve::ByteDevice;
 /// CRC-16/ARC (reflected 0xA001, init 0, no final XOR), as the Lens Driver 4 computes it.
 const CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_ARC);
 
-/// `E` reply codes. The manual does not list codes; these are the simulator's.
+/// `E` reply codes, per Optotune's protocol sheet ("02-Error Commands").
 pub mod error_code {
-    /// No command starts with these bytes.
-    pub const UNKNOWN_COMMAND: u8 = 1;
-    /// An argument is out of the accepted range.
-    pub const BAD_ARGUMENT: u8 = 2;
-    /// The command needs another mode (`Aw` needs current mode, `PwDA` focal-power mode).
-    pub const WRONG_MODE: u8 = 3;
-    /// A real command the simulator does not model (signal-generator and analog modes).
-    pub const NOT_SIMULATED: u8 = 4;
+    /// CRC failed. A command with a bad CRC gets `N\r\n` instead (the sheet); unused here.
+    pub const CRC_FAILED: u8 = 1;
+    /// Not available in this firmware type (here: focal-power commands without
+    /// [`super::OptotuneSimConfig::focal_power_control`]).
+    pub const NOT_AVAILABLE_IN_FIRMWARE_TYPE: u8 = 2;
+    pub const NOT_RECOGNISED: u8 = 3;
+    /// The lens is not compatible with the firmware (focal-power commands).
+    pub const LENS_INCOMPATIBLE: u8 = 4;
 }
 
-/// Status bits the simulator sets in its `Sr` reply (the driver's `protocol::Status`).
+/// Status bits of the `Sr` word (byte #1 is the low byte; `PwTA`, `PrTA` and `MwCA` replies
+/// carry byte #1), per Optotune's protocol sheet.
 pub mod status_bit {
-    pub const FOCAL_POWER_CLAMPED_HIGH: u32 = 1 << 0;
-    pub const FOCAL_POWER_CLAMPED_LOW: u32 = 1 << 1;
-    pub const TEMPERATURE_OUT_OF_LIMITS: u32 = 1 << 2;
+    pub const NOT_ALL_HARDWARE: u32 = 1 << 0;
+    pub const NO_EEPROM: u32 = 1 << 1;
+    pub const NO_TEMPERATURE_LIMITS: u32 = 1 << 2;
+    pub const CANNOT_REACH_FOCAL_POWER: u32 = 1 << 3;
+    pub const FOCAL_POWER_INVERSION: u32 = 1 << 4;
+    pub const TEMPERATURE_OUTSIDE_SPEC: u32 = 1 << 5;
+    pub const FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE: u32 = 1 << 6;
+    pub const TEMPERATURE_OUTSIDE_LIMITS: u32 = 1 << 7;
+    pub const LENS_INCOMPATIBLE: u32 = 1 << 8;
 }
 
 /// The simulated unit.
@@ -48,10 +62,18 @@ pub struct OptotuneSimConfig {
     pub part_number: [u8; 3],
     pub serial_number: [u8; 8],
     pub device_id: [u8; 8],
-    /// Temperature limits at power-up, (lower, upper) °C.
-    pub temperature_limits_c: (f32, f32),
+    /// Temperature limits at power-up, (lower, upper) °C. The device has none until a
+    /// client sends `PwTA`.
+    pub temperature_limits_c: Option<(f32, f32)>,
     /// Quiet time after which an incomplete command is dropped and answered `N`.
     pub idle_gap: Duration,
+    /// The firmware type has focal-power control (otherwise its commands answer `E2`).
+    pub focal_power_control: bool,
+    /// Faults: not all hardware present (bit 0), no or faulty lens EEPROM (bit 1), a lens
+    /// the firmware does not support (byte #2 bit 0; focal-power commands answer `E4`).
+    pub hardware_complete: bool,
+    pub eeprom_ok: bool,
+    pub lens_compatible: bool,
 }
 
 impl Default for OptotuneSimConfig {
@@ -64,15 +86,23 @@ impl Default for OptotuneSimConfig {
             part_number: *b"LD4",
             serial_number: *b"SIM00001",
             device_id: *b"EL103000",
-            temperature_limits_c: (20.0, 40.0),
+            temperature_limits_c: None,
             idle_gap: Duration::from_millis(20),
+            focal_power_control: true,
+            hardware_complete: true,
+            eeprom_ok: true,
+            lens_compatible: true,
         }
     }
 }
 
 /// Mode numbers of `MMA`.
 const MODE_CURRENT: u8 = 1;
+const MODE_SINUSOIDAL: u8 = 2;
+const MODE_TRIANGULAR: u8 = 3;
+const MODE_RECTANGULAR: u8 = 4;
 const MODE_FOCAL_POWER: u8 = 5;
+const MODE_ANALOG: u8 = 6;
 
 /// Command letters and the argument lengths accepted after them (CRC not counted).
 const COMMANDS: &[(&[u8], &[usize])] = &[
@@ -118,8 +148,12 @@ pub struct OptotuneSim {
     /// Software current limits, raw (× 4095 / max).
     upper_raw: i16,
     lower_raw: i16,
-    temperature_limits_c: (f32, f32),
-    status: u32,
+    temperature_limits_c: Option<(f32, f32)>,
+    /// The focal power last set with `PwDA`, kept in any mode (the sheet: outside focal-power
+    /// mode "it will be changed internally however this value will not be used").
+    focal_power_target: Option<f32>,
+    /// The last focal-power target could not be reached (status bit 3).
+    unreachable: bool,
     /// Model time.
     now: Timestamp,
     handshakes: u64,
@@ -139,7 +173,8 @@ impl OptotuneSim {
             max_current_centi_ma: max,
             upper_raw: 4095,
             lower_raw: 0,
-            status: 0,
+            focal_power_target: None,
+            unreachable: false,
             now: Timestamp::ZERO,
             handshakes: 0,
         }
@@ -196,6 +231,12 @@ impl OptotuneSim {
         let rx = &self.rx;
         if rx.starts_with(HANDSHAKE) {
             self.handshakes += 1;
+            // The handshake "will reset the current to zero" (pyopto, after the manual):
+            // modelled as a reset of the drive, the focal-power target included.
+            self.mode = MODE_CURRENT;
+            self.lens.set_current_ma(0.0);
+            self.focal_power_target = None;
+            self.unreachable = false;
             out.extend_from_slice(b"Ready\r\n");
             return Some(HANDSHAKE.len());
         }
@@ -207,7 +248,7 @@ impl OptotuneSim {
                 return None;
             }
             // Unknown: answer once and skip to a byte that can start a command.
-            reply(out, &[b'E', error_code::UNKNOWN_COMMAND]);
+            reply(out, &[b'E', error_code::NOT_RECOGNISED]);
             let skip = 1 + rx[1..].iter().take_while(|b| !can_start(**b)).count();
             return Some(skip);
         };
@@ -280,29 +321,67 @@ impl OptotuneSim {
 
     /// Focal powers that can be held at every temperature within the limits and within the
     /// current window: static power falls with temperature, so the top comes from the upper
-    /// temperature limit and the bottom from the lower one.
-    pub fn holdable_range(&self) -> PowerRange {
+    /// temperature limit and the bottom from the lower one. `None` without limits; an
+    /// inverted range (min above max) when the limits are too wide for the current window.
+    pub fn holdable_range(&self) -> Option<(f32, f32)> {
+        let (t_lo, t_hi) = self.temperature_limits_c?;
         let now = self.lens.power_range();
         let cfg = self.lens.config();
         let span_ma = cfg.max_current_ma.max(1e-3);
         let (lo_ma, hi_ma) = self.current_window_ma();
         let at = |ma: f32| now.min.0 + (now.max.0 - now.min.0) * ma / span_ma;
         let t = self.lens.temperature_c();
-        let (t_lo, t_hi) = self.temperature_limits_c;
         let max = at(hi_ma) - cfg.drift_d_per_c * (t_hi - t);
         let min = at(lo_ma) - cfg.drift_d_per_c * (t_lo - t);
-        PowerRange {
-            min: Diopters(min.min(max)),
-            max: Diopters(max),
-        }
+        Some((min, max))
     }
 
+    /// Status word (byte #1 low, byte #2 above it) for the present state.
+    pub fn status_word(&self) -> u32 {
+        use status_bit::*;
+        let mut s = 0;
+        if !self.cfg.hardware_complete {
+            s |= NOT_ALL_HARDWARE;
+        }
+        if !self.cfg.eeprom_ok {
+            s |= NO_EEPROM;
+        }
+        if !self.cfg.lens_compatible {
+            s |= LENS_INCOMPATIBLE;
+        }
+        let t = self.lens.temperature_c();
+        match (self.temperature_limits_c, self.holdable_range()) {
+            (Some((lo, hi)), Some((min, max))) => {
+                if min > max {
+                    s |= FOCAL_POWER_INVERSION;
+                }
+                if t < lo || t > hi {
+                    s |= TEMPERATURE_OUTSIDE_LIMITS;
+                }
+                if let (MODE_FOCAL_POWER, DriveMode::FocalPower(d)) = (self.mode, self.lens.mode())
+                {
+                    if d < min || d > max {
+                        s |= FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE;
+                    }
+                }
+            }
+            _ => s |= NO_TEMPERATURE_LIMITS,
+        }
+        if self.mode == MODE_FOCAL_POWER && self.unreachable {
+            s |= CANNOT_REACH_FOCAL_POWER;
+        }
+        s
+    }
+
+    /// `echo` + status byte #1 + max + min focal power (zeros without a range).
     fn range_reply(&self, echo: &[u8], out: &mut Vec<u8>) {
-        let r = self.holdable_range();
+        let (min, max) = self.holdable_range().map_or((0, 0), |(min, max)| {
+            (self.scale_power(min), self.scale_power(max))
+        });
         let mut p = echo.to_vec();
-        p.push(0);
-        p.extend_from_slice(&self.scale_power(r.max.0).to_be_bytes());
-        p.extend_from_slice(&self.scale_power(r.min.0).to_be_bytes());
+        p.push(self.status_word() as u8);
+        p.extend_from_slice(&max.to_be_bytes());
+        p.extend_from_slice(&min.to_be_bytes());
         reply(out, &p);
     }
 
@@ -313,18 +392,30 @@ impl OptotuneSim {
         let (lo_ma, hi_ma) = self.current_window_ma();
         let at = |ma: f32| now.min.0 + (now.max.0 - now.min.0) * ma / span_ma;
         let target = d.clamp(at(lo_ma), at(hi_ma));
-        self.status &=
-            !(status_bit::FOCAL_POWER_CLAMPED_HIGH | status_bit::FOCAL_POWER_CLAMPED_LOW);
-        if d > target {
-            self.status |= status_bit::FOCAL_POWER_CLAMPED_HIGH;
-        } else if d < target {
-            self.status |= status_bit::FOCAL_POWER_CLAMPED_LOW;
-        }
+        self.unreachable = target != d;
         self.lens.set_focal_power(Diopters(target));
+    }
+
+    /// Why focal-power commands are refused outright, if they are: `E2` or `E4`.
+    fn focal_power_refusal(&self) -> Option<u8> {
+        if !self.cfg.focal_power_control {
+            Some(error_code::NOT_AVAILABLE_IN_FIRMWARE_TYPE)
+        } else if !self.cfg.lens_compatible {
+            Some(error_code::LENS_INCOMPATIBLE)
+        } else {
+            None
+        }
     }
 
     fn execute(&mut self, letters: &[u8], args: &[u8], out: &mut Vec<u8>) {
         let arg16 = |i: usize| i16::from_be_bytes([args[i], args[i + 1]]);
+        let focal_power_command =
+            matches!(letters, b"PwTA" | b"PrTA" | b"MwCA" | b"PwDA" | b"PrDA");
+        if focal_power_command {
+            if let Some(code) = self.focal_power_refusal() {
+                return reply(out, &[b'E', code]);
+            }
+        }
         match letters {
             b"H" => reply(out, &[b'H', self.cfg.firmware_type]),
             b"F" => reply(out, &[b'F', self.cfg.firmware_branch]),
@@ -338,23 +429,22 @@ impl OptotuneSim {
             }
             b"X" => reply(out, &[&b"X"[..], &self.cfg.serial_number].concat()),
             b"IR" => reply(out, &[&b"IR"[..], &self.cfg.device_id].concat()),
+            // Echoes drop the r/w letter: CMA, CUA, CLA (the sheet).
             b"CrMA" => reply(
                 out,
-                &[&b"CrM"[..], &self.max_current_centi_ma.to_be_bytes()].concat(),
+                &[&b"CMA"[..], &self.max_current_centi_ma.to_be_bytes()].concat(),
             ),
             b"CwMA" => {
-                let v = arg16(0);
-                // The Lens Driver 4 cannot source more than its hardware maximum.
+                // The sheet gives no refusal; the driver cannot source more than its hardware.
                 let hw = (self.lens.config().max_current_ma * 100.0).round() as i16;
-                if v <= 0 || v > hw {
-                    return reply(out, &[b'E', error_code::BAD_ARGUMENT]);
-                }
+                let v = arg16(0).clamp(1, hw.max(1));
                 self.max_current_centi_ma = v;
-                reply(out, &[&b"CwM"[..], &v.to_be_bytes()].concat());
+                reply(out, &[&b"CMA"[..], &v.to_be_bytes()].concat());
             }
-            b"CrUA" => reply(out, &[&b"CrU"[..], &self.upper_raw.to_be_bytes()].concat()),
-            b"CrLA" => reply(out, &[&b"CrL"[..], &self.lower_raw.to_be_bytes()].concat()),
+            b"CrUA" => reply(out, &[&b"CUA"[..], &self.upper_raw.to_be_bytes()].concat()),
+            b"CrLA" => reply(out, &[&b"CLA"[..], &self.lower_raw.to_be_bytes()].concat()),
             b"CwUA" | b"CwLA" => {
+                // "Encoded values can only be within the range -4095 to 4095."
                 let v = arg16(0).clamp(-4095, 4095);
                 if letters[2] == b'U' {
                     self.upper_raw = v;
@@ -362,13 +452,20 @@ impl OptotuneSim {
                     self.lower_raw = v;
                 }
                 self.reapply();
-                reply(out, &[&letters[..3], &v.to_be_bytes()].concat());
+                reply(
+                    out,
+                    &[&[b'C', letters[2], b'A'][..], &v.to_be_bytes()].concat(),
+                );
             }
             b"Aw" => {
-                if self.mode != MODE_CURRENT {
-                    return reply(out, &[b'E', error_code::WRONG_MODE]);
+                // In focal-power mode the control loop owns the current; the sheet documents
+                // no refusal, so the command is taken and has no lasting effect.
+                if self.mode == MODE_FOCAL_POWER {
+                    return;
                 }
-                let raw = arg16(0).clamp(self.lower_raw, self.upper_raw.max(self.lower_raw));
+                let raw = arg16(0)
+                    .clamp(-4095, 4095)
+                    .clamp(self.lower_raw, self.upper_raw.max(self.lower_raw));
                 let ma = self.raw_to_ma(raw);
                 self.lens.set_current_ma(ma);
             }
@@ -383,16 +480,16 @@ impl OptotuneSim {
             b"PwTA" => {
                 let hi = f32::from(arg16(0)) / 16.0;
                 let lo = f32::from(arg16(2)) / 16.0;
-                if lo > hi {
-                    let mut p = b"PT".to_vec();
-                    p.push(1);
-                    p.extend_from_slice(&[0; 4]);
-                    return reply(out, &p);
+                // The sheet: "The temperature must be between 120 and -120 degrees celsius."
+                // An impossible pair is not taken: the old limits (or none) stay.
+                if lo < hi && lo >= -120.0 && hi <= 120.0 {
+                    self.temperature_limits_c = Some((lo, hi));
+                    self.reapply();
                 }
-                self.temperature_limits_c = (lo, hi);
-                self.reapply();
                 self.range_reply(b"PT", out);
             }
+            // The sheet gives PrTA the PwTA reply: PT + status + max + min focal power. (pyopto
+            // and uedatatsu read the two temperatures there instead; see the driver.)
             b"PrTA" => self.range_reply(b"PT", out),
             b"MwDA" => {
                 if self.mode != MODE_CURRENT {
@@ -401,41 +498,53 @@ impl OptotuneSim {
                     self.lens.set_current_ma(ma);
                     self.mode = MODE_CURRENT;
                 }
-                reply(out, b"MwD");
+                reply(out, b"MDA");
             }
             b"MwCA" => {
-                if self.mode != MODE_FOCAL_POWER {
-                    // Hold the power the lens is at now.
-                    let p = self.lens.target_power().0;
+                // "This command requires temperature limits to be set" and "can only be
+                // entered if there is a valid EEPROM": otherwise the status byte says why and
+                // the mode stays.
+                let refused = self.temperature_limits_c.is_none() || !self.cfg.eeprom_ok;
+                if !refused && self.mode != MODE_FOCAL_POWER {
+                    let p = self
+                        .focal_power_target
+                        .unwrap_or(self.lens.target_power().0);
                     self.mode = MODE_FOCAL_POWER;
                     self.apply_focal_power(p);
                 }
-                self.range_reply(b"MwC", out);
+                self.range_reply(b"MCA", out);
             }
-            b"MwSA" | b"MwTA" | b"MwQA" | b"MwAA" => reply(out, &[b'E', error_code::NOT_SIMULATED]),
+            b"MwSA" | b"MwTA" | b"MwQA" | b"MwAA" => {
+                // Signal-generator and analog modes: the mode and its echo, no waveform (the
+                // lens holds its current).
+                let ma = self.lens.current_ma();
+                self.lens.set_current_ma(ma);
+                self.mode = match letters[2] {
+                    b'S' => MODE_SINUSOIDAL,
+                    b'T' => MODE_TRIANGULAR,
+                    b'Q' => MODE_RECTANGULAR,
+                    _ => MODE_ANALOG,
+                };
+                reply(out, &[b'M', letters[2], b'A']);
+            }
             b"MMA" => reply(out, &[b'M', b'M', b'A', self.mode]),
             b"PwDA" => {
-                if self.mode != MODE_FOCAL_POWER {
-                    return reply(out, &[b'E', error_code::WRONG_MODE]);
-                }
                 let d = self.unscale_power(arg16(0));
-                self.apply_focal_power(d);
+                self.focal_power_target = Some(d);
+                if self.mode == MODE_FOCAL_POWER {
+                    self.apply_focal_power(d);
+                }
             }
             b"PrDA" => {
                 let raw = self.scale_power(self.lens.power().0);
                 reply(out, &[&b"PD"[..], &raw.to_be_bytes()].concat());
             }
-            b"Sr" => {
-                let t = self.lens.temperature_c();
-                let (lo, hi) = self.temperature_limits_c;
-                let mut s = self.status & !status_bit::TEMPERATURE_OUT_OF_LIMITS;
-                if t < lo || t > hi {
-                    s |= status_bit::TEMPERATURE_OUT_OF_LIMITS;
-                }
-                reply(out, &[&b"S"[..], &s.to_be_bytes()].concat());
-            }
+            b"Sr" => reply(
+                out,
+                &[&b"S"[..], &self.status_word().to_be_bytes()].concat(),
+            ),
             // COMMANDS and this match list the same letters.
-            _ => reply(out, &[b'E', error_code::UNKNOWN_COMMAND]),
+            _ => reply(out, &[b'E', error_code::NOT_RECOGNISED]),
         }
     }
 
@@ -517,27 +626,102 @@ mod tests {
         );
         assert_eq!(payload(&ask(&mut sim, &cmd(b"V\0"))).len(), 7);
         assert_eq!(payload(&ask(&mut sim, &cmd(b"X"))), b"XSIM00001");
+        // The sheet's echo for CrMA is CMA.
         assert_eq!(
             payload(&ask(&mut sim, &cmd(b"CrMA\0\0"))),
-            &[b'C', b'r', b'M', 0x72, 0x64]
+            &[b'C', b'M', b'A', 0x72, 0x64]
         );
     }
 
     #[test]
-    fn bad_crc_unknown_and_wrong_mode() {
+    fn echoes_drop_the_read_write_letter_as_the_sheet_gives_them() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        let echo = |sim: &mut OptotuneSim, body: &[u8], n: usize| {
+            payload(&ask(sim, &cmd(body)))[..n].to_vec()
+        };
+        assert_eq!(echo(&mut sim, b"CwUA\x0f\xff", 3), b"CUA");
+        assert_eq!(echo(&mut sim, b"CrLA\0\0", 3), b"CLA");
+        assert_eq!(echo(&mut sim, b"MwSA", 3), b"MSA");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x02");
+        assert_eq!(echo(&mut sim, b"MwTA", 3), b"MTA");
+        assert_eq!(echo(&mut sim, b"MwQA", 3), b"MQA");
+        assert_eq!(echo(&mut sim, b"MwAA", 3), b"MAA");
+        assert_eq!(echo(&mut sim, b"MwDA", 3), b"MDA");
+        assert_eq!(echo(&mut sim, b"PwTA\x02\x80\x01\x40", 2), b"PT");
+        assert_eq!(echo(&mut sim, b"MwCA", 3), b"MCA");
+        assert_eq!(echo(&mut sim, b"PrDA\0\0\0\0", 2), b"PD");
+        assert_eq!(echo(&mut sim, b"TCA", 3), b"TCA");
+        assert_eq!(echo(&mut sim, b"Ar\0\0", 1), b"A");
+    }
+
+    #[test]
+    fn focal_power_mode_needs_temperature_limits_first() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        // Power-up: no limits. MwCA answers with status bit 2 and zero range, and the mode
+        // stays current mode.
+        let r = payload(&ask(&mut sim, &cmd(b"MwCA"))).to_vec();
+        assert_eq!(&r, &[b'M', b'C', b'A', 0x04, 0, 0, 0, 0]);
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x01");
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"Sr"))),
+            &[b'S', 0, 0, 0, status_bit::NO_TEMPERATURE_LIMITS as u8]
+        );
+        // Limits 20..40 °C, then focal-power mode works.
+        let r = payload(&ask(&mut sim, &cmd(b"PwTA\x02\x80\x01\x40"))).to_vec();
+        assert_eq!(r[2], 0, "{r:?}");
+        let r = payload(&ask(&mut sim, &cmd(b"MwCA"))).to_vec();
+        // Holding the zero-current -2 D is outside what 20 °C allows (-1.9 D): bit 6, a
+        // warning; no error bits.
+        assert_eq!(r[3], status_bit::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE as u8, "{r:?}");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x05");
+        // Limits too wide for the current window (upper current limit raw 512 = 36.6 mA): the
+        // holdable range inverts (bit 4).
+        ask(&mut sim, &cmd(b"CwUA\x02\x00"));
+        let r = payload(&ask(&mut sim, &cmd(b"PwTA\x07\x80\xfe\x20"))).to_vec(); // 120, -30 °C
+        assert_eq!(
+            r[2] & status_bit::FOCAL_POWER_INVERSION as u8,
+            0x10,
+            "{r:?}"
+        );
+    }
+
+    #[test]
+    fn faults_show_in_the_status_word_and_refuse_as_the_sheet_says() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig {
+            lens_compatible: false,
+            eeprom_ok: false,
+            temperature_limits_c: Some((20.0, 40.0)),
+            ..OptotuneSimConfig::default()
+        });
+        let s = payload(&ask(&mut sim, &cmd(b"Sr"))).to_vec();
+        assert_eq!(s, vec![b'S', 0, 0, 0x01, 0x02]);
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"MwCA"))),
+            &[b'E', error_code::LENS_INCOMPATIBLE]
+        );
+        let mut sim = OptotuneSim::new(OptotuneSimConfig {
+            focal_power_control: false,
+            ..OptotuneSimConfig::default()
+        });
+        assert_eq!(
+            payload(&ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0"))),
+            &[b'E', error_code::NOT_AVAILABLE_IN_FIRMWARE_TYPE]
+        );
+    }
+
+    #[test]
+    fn bad_crc_unknown_commands_and_incomplete_ones() {
         let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
         let mut bad = cmd(b"MMA");
         bad[3] ^= 1;
         assert_eq!(ask(&mut sim, &bad), b"N\r\n");
         assert_eq!(
             payload(&ask(&mut sim, b"zzz")),
-            &[b'E', error_code::UNKNOWN_COMMAND]
+            &[b'E', error_code::NOT_RECOGNISED]
         );
-        // PwDA in current mode: refused, and no silent success.
-        assert_eq!(
-            payload(&ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0"))),
-            &[b'E', error_code::WRONG_MODE]
-        );
+        // PwDA in current mode is kept, not refused, and does not move the lens.
+        assert!(ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0")).is_empty());
+        assert_eq!(sim.lens().mode(), DriveMode::Current(0.0));
         // Incomplete command: nothing until the idle gap, then N.
         assert!(ask(&mut sim, b"MM").is_empty());
         let mut out = Vec::new();
@@ -547,16 +731,24 @@ mod tests {
     }
 
     #[test]
-    fn focal_power_mode_moves_the_lens_and_set_commands_are_silent() {
+    fn focal_power_mode_moves_the_lens_and_start_resets_the_current() {
         let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        ask(&mut sim, &cmd(b"PwTA\x02\x80\x01\x40"));
         let r = ask(&mut sim, &cmd(b"MwCA"));
         assert_eq!(payload(&r).len(), 8);
         assert!(ask(&mut sim, &cmd(b"PwDA\x05\x14\0\0")).is_empty()); // 1.5 D, type A
         sim.advance_to(Timestamp::from_millis(100));
-        let p = payload(&ask(&mut sim, &cmd(b"PrDA\0\0\0\0"))).to_vec();
-        let d = f32::from(i16::from_be_bytes([p[2], p[3]])) / 200.0 - 5.0;
-        assert!((d - 1.5).abs() < 0.01, "{d}");
+        let power = |sim: &mut OptotuneSim| {
+            let p = payload(&ask(sim, &cmd(b"PrDA\0\0\0\0"))).to_vec();
+            f32::from(i16::from_be_bytes([p[2], p[3]])) / 200.0 - 5.0
+        };
+        assert!((power(&mut sim) - 1.5).abs() < 0.01);
         assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x05");
+        // A new session's handshake: zero current, current mode; the lens relaxes.
+        assert_eq!(ask(&mut sim, b"Start"), b"Ready\r\n");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x01");
+        sim.advance_to(Timestamp::from_millis(200));
+        assert!((power(&mut sim) + 2.0).abs() < 0.01);
     }
 
     #[test]

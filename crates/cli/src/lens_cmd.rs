@@ -200,17 +200,16 @@ async fn optotune_info<L: ByteLink>(d: &mut Optotune<L>) -> Result<()> {
     Ok(())
 }
 
+/// The status word's set bits in the device's words, errors marked (they stop focal-power
+/// control).
 fn describe_status(s: Status) -> String {
-    let mut names = Vec::new();
-    if s.0 & Status::FOCAL_POWER_CLAMPED_HIGH != 0 {
-        names.push("focal power clamped high");
-    }
-    if s.0 & Status::FOCAL_POWER_CLAMPED_LOW != 0 {
-        names.push("focal power clamped low");
-    }
-    if s.0 & Status::TEMPERATURE_OUT_OF_LIMITS != 0 {
-        names.push("temperature outside limits");
-    }
+    let mut names: Vec<String> = s
+        .errors()
+        .names()
+        .into_iter()
+        .map(|n| format!("error: {n}"))
+        .collect();
+    names.extend(s.warnings().names());
     if names.is_empty() {
         String::new()
     } else {
@@ -300,6 +299,16 @@ fn line(s: &LensState) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn status_words_are_described_in_the_devices_words() {
+        assert_eq!(describe_status(Status(0)), "");
+        let s = Status(Status::NO_TEMPERATURE_LIMITS | Status::TEMPERATURE_OUTSIDE_LIMITS);
+        assert_eq!(
+            describe_status(s),
+            " (error: no temperature limits received, temperature outside the user's limits)"
+        );
+    }
 
     #[test]
     fn sweep_ranges_parse() {

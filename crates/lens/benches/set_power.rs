@@ -47,7 +47,13 @@ fn print_wire_times() {
     wire_line("TCA temperature", p::GetTemperature);
     wire_line("MwCA focal-power mode", p::SetFocalPowerMode);
     wire_line("MMA mode", p::GetMode);
-    wire_line("PrTA temperature limits", p::GetTemperatureLimits);
+    wire_line(
+        "PwTA temperature limits",
+        p::SetTemperatureLimits {
+            upper_c: 40.0,
+            lower_c: 20.0,
+        },
+    );
     wire_line("H firmware type", p::GetFirmwareType);
     wire_line("V firmware version", p::GetFirmwareVersion);
     wire_line("IR device id", p::GetDeviceId);

@@ -81,6 +81,192 @@ async fn handshake_identifies_the_device_and_enters_focal_power_mode() {
     let written = ctl.lock().unwrap().written.clone();
     assert!(written.starts_with(b"Start"));
     assert_eq!(count(&written, b"MwCA"), 1);
+    // The default temperature limits (upper 40 °C = 0x0280, lower 20 °C = 0x0140) went out
+    // before focal-power mode, which the device refuses without them; no PrTA.
+    let limits_at = position(&written, b"PwTA\x02\x80\x01\x40").unwrap();
+    assert!(limits_at < position(&written, b"MwCA").unwrap());
+    assert_eq!(count(&written, b"PrTA"), 0);
+    assert_eq!(d.fault(), None);
+}
+
+fn position(haystack: &[u8], needle: &[u8]) -> Option<usize> {
+    haystack.windows(needle.len()).position(|w| w == needle)
+}
+
+/// Without `PwTA` the simulated device stays in current mode, as the real one does: a client
+/// that skips the limits (as the driver did) gets status bit 2 back and no focal-power mode.
+#[tokio::test(start_paused = true)]
+async fn the_device_refuses_focal_power_mode_without_temperature_limits() {
+    let mut host = spawn_sim(OptotuneSimConfig::default());
+    let frame = |body: &[u8]| {
+        let mut v = body.to_vec();
+        v.extend_from_slice(&protocol::crc16(body).to_le_bytes());
+        v
+    };
+    host.write_all(b"Start").await.unwrap();
+    let mut ready = [0u8; 7];
+    host.read_exact(&mut ready, Duration::from_secs(1))
+        .await
+        .unwrap();
+    host.write_all(&frame(b"MwCA")).await.unwrap();
+    let mut r = [0u8; 12];
+    host.read_exact(&mut r, Duration::from_secs(1))
+        .await
+        .unwrap();
+    let range =
+        protocol::decode::<protocol::SetFocalPowerMode>(&r, &protocol::Scaling::default()).unwrap();
+    assert!(range
+        .status
+        .contains(protocol::Status::NO_TEMPERATURE_LIMITS));
+    host.write_all(&frame(b"MMA")).await.unwrap();
+    let mut r = [0u8; 8];
+    host.read_exact(&mut r, Duration::from_secs(1))
+        .await
+        .unwrap();
+    assert_eq!(r[3], 1, "still current mode: {r:?}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn configured_temperature_limits_are_what_is_sent() {
+    let host = spawn_sim(OptotuneSimConfig::default());
+    let ctl = Arc::new(Mutex::new(TapCtl::default()));
+    let tap = Tap {
+        inner: host,
+        ctl: ctl.clone(),
+    };
+    let cool = cfg().with_temperature_limits_c(15.0, 30.0);
+    Optotune::connect(tap, cool, Arc::new(TokioClock::new()))
+        .await
+        .unwrap();
+    // 30 °C = 480 = 0x01E0 (upper first), 15 °C = 240 = 0x00F0.
+    assert_eq!(
+        count(&ctl.lock().unwrap().written, b"PwTA\x01\xe0\x00\xf0"),
+        1
+    );
+    // Limits the device cannot take are refused before anything is sent.
+    let host = spawn_sim(OptotuneSimConfig::default());
+    let e = Optotune::connect(
+        host,
+        cfg().with_temperature_limits_c(40.0, 20.0),
+        Arc::new(TokioClock::new()),
+    )
+    .await
+    .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Invalid(m) if m.contains("temperature limits")),
+        "{e:?}"
+    );
+}
+
+/// Status error bits at connect are refusals in the device's words, told apart from a broken
+/// link.
+#[tokio::test(start_paused = true)]
+async fn status_errors_at_connect_are_refusals_naming_the_bits() {
+    for (sim, words, code) in [
+        (
+            OptotuneSimConfig {
+                eeprom_ok: false,
+                ..OptotuneSimConfig::default()
+            },
+            "no or faulty lens EEPROM",
+            protocol::Status::NO_EEPROM,
+        ),
+        (
+            OptotuneSimConfig {
+                hardware_complete: false,
+                ..OptotuneSimConfig::default()
+            },
+            "not all hardware available",
+            protocol::Status::NOT_ALL_HARDWARE,
+        ),
+    ] {
+        let e = Optotune::connect(spawn_sim(sim), cfg(), Arc::new(TokioClock::new()))
+            .await
+            .unwrap_err();
+        match &e {
+            DeviceError::Refused { code: c, detail } => {
+                assert!(detail.contains(words), "{detail}");
+                assert!(u32::from(*c) & code != 0, "{c:#x}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(!e.needs_reconnect());
+    }
+    // An incompatible lens: MwCA answers E4.
+    let sim = OptotuneSimConfig {
+        lens_compatible: false,
+        ..OptotuneSimConfig::default()
+    };
+    let e = Optotune::connect(spawn_sim(sim), cfg(), Arc::new(TokioClock::new()))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { code: 4, detail } if detail.contains("E4") && detail.contains("not compatible")),
+        "{e:?}"
+    );
+    // Limits too wide for a 0..50 mA current window: the range inverts (bit 4): refused,
+    // naming the inversion.
+    let e = Optotune::connect(
+        spawn_sim(OptotuneSimConfig::default()),
+        narrow_current().with_temperature_limits_c(-30.0, 120.0),
+        Arc::new(TokioClock::new()),
+    )
+    .await
+    .unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { detail, .. } if detail.contains("inversion")),
+        "{e:?}"
+    );
+}
+
+/// Rig current limits 0..50 mA: the holdable range is narrow (about -1.9..-0.8 D at 20..40 °C).
+fn narrow_current() -> OptotuneConfig {
+    OptotuneConfig::new(
+        LensLimits::new(PowerRange::new(Diopters(-3.0), Diopters(5.0)).unwrap())
+            .with_current_ma(0.0, 50.0),
+    )
+}
+
+/// An error bit seen in a later status read stops focal-power control until one without it.
+#[tokio::test(start_paused = true)]
+async fn a_status_error_stops_focal_power_control_until_it_clears() {
+    let host = spawn_sim(OptotuneSimConfig::default());
+    let ctl = Arc::new(Mutex::new(TapCtl::default()));
+    let tap = Tap {
+        inner: host,
+        ctl: ctl.clone(),
+    };
+    let mut d = Optotune::connect(tap, narrow_current(), Arc::new(TokioClock::new()))
+        .await
+        .unwrap();
+    // Another client widens the limits until the range inverts.
+    d.request(&protocol::SetTemperatureLimits {
+        upper_c: 120.0,
+        lower_c: -30.0,
+    })
+    .await
+    .unwrap();
+    let s = d.status().await.unwrap();
+    assert!(s.contains(protocol::Status::FOCAL_POWER_INVERSION), "{s:?}");
+    assert_eq!(
+        d.fault(),
+        Some(protocol::Status(protocol::Status::FOCAL_POWER_INVERSION))
+    );
+    let before = ctl.lock().unwrap().written.len();
+    let e = d.set_power(Diopters(1.0)).await.unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { detail, .. } if detail.contains("focal-power control stopped")),
+        "{e:?}"
+    );
+    assert_eq!(
+        ctl.lock().unwrap().written.len(),
+        before,
+        "nothing was sent"
+    );
+    // The configured limits again: the range is back and so is control.
+    d.refresh_range().await.unwrap();
+    assert_eq!(d.status().await.unwrap().errors(), protocol::Status(0));
+    d.set_power(Diopters(1.0)).await.unwrap();
 }
 
 #[tokio::test(start_paused = true)]
@@ -163,8 +349,7 @@ async fn every_command_round_trips() {
         })
         .await
         .unwrap();
-    assert_eq!(r.error, 0);
-    assert_eq!(d.request(&protocol::GetTemperatureLimits).await.unwrap(), r);
+    assert_eq!(r.status, protocol::Status(0));
     // Upper current limit 200 mA caps the range: -2 + 0.03 * 200 = 4 D, less drift to 30 °C.
     assert!((r.max_d - 3.9).abs() < 0.02, "{r:?}");
     let t = d.temperature_c().await.unwrap();
@@ -192,15 +377,18 @@ async fn every_command_round_trips() {
         .unwrap();
     tokio::time::sleep(Duration::from_millis(100)).await;
     assert!((d.request(&protocol::GetFocalPower).await.unwrap() - 2.0).abs() < 0.01);
-    // 5 D is beyond what the 200 mA limit reaches: the device clamps and says so.
+    // 5 D is beyond what the 200 mA limit reaches: the device clamps and says so (bit 3, a
+    // warning: control goes on).
     d.request(&protocol::SetFocalPower { diopters: 5.0 })
         .await
         .unwrap();
     let s = d.status().await.unwrap();
-    assert_eq!(
-        s.0 & protocol::Status::FOCAL_POWER_CLAMPED_HIGH,
-        protocol::Status::FOCAL_POWER_CLAMPED_HIGH
+    assert!(
+        s.contains(protocol::Status::CANNOT_REACH_FOCAL_POWER),
+        "{s:?}"
     );
+    assert_eq!(s.errors(), protocol::Status(0));
+    assert_eq!(d.fault(), None);
 }
 
 #[tokio::test(start_paused = true)]
@@ -340,10 +528,16 @@ async fn unplug_mid_command_then_reconnect_on_the_next_call() {
     assert!(e.needs_reconnect(), "{e:?}");
     assert!(!d.is_connected());
 
-    // The next call reopens, handshakes again and works.
-    d.set_power(Diopters(1.0)).await.unwrap();
+    // The next call reopens and handshakes again, which resets the output current: the
+    // driver re-sends the last commanded power before the call reports anything.
+    let s = d.state().await.unwrap();
     assert_eq!(d.reconnects(), 1);
     assert_eq!(*opens.lock().unwrap(), 2);
+    assert!(s.power.0 < 0.0, "{s:?}");
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    let s = d.state().await.unwrap();
+    assert!((s.power.0 - 2.0).abs() < 0.01, "{s:?}");
+    d.set_power(Diopters(1.0)).await.unwrap();
     tokio::time::sleep(Duration::from_millis(100)).await;
     assert!((d.state().await.unwrap().power.0 - 1.0).abs() < 0.01);
 }
@@ -402,13 +596,15 @@ mod pty {
         tokio::time::sleep(Duration::from_millis(150)).await;
         let s = d.state().await.unwrap();
         assert!((s.power.0 - 1.5).abs() <= 0.01, "{s:?}");
-        // A second client after the first closes (unplug and replug of the port).
+        // A second client after the first closes: its handshake resets the output current,
+        // so the lens relaxes to its zero-current power (-2 D on the simulated lens).
         drop(d);
         let link = SerialLink::open(&path, SerialSettings::baud(115_200)).unwrap();
         let mut d = Optotune::connect(link, cfg(), Arc::new(TokioClock::new()))
             .await
             .unwrap();
-        assert!((d.state().await.unwrap().power.0 - 1.5).abs() <= 0.01);
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        assert!((d.state().await.unwrap().power.0 + 2.0).abs() <= 0.01);
     }
 
     /// The exact bytes the `opto`-family Python clients send, with the reply sizes their
@@ -454,6 +650,25 @@ mod pty {
         let mut r = [0u8; 7];
         port.read_exact(&mut r, wait).await.unwrap();
         assert_eq!(i16::from_be_bytes([r[1], r[2]]), 0x0576);
+        // pyopto's mode(): 'Mw' + code + 'A', then it checks the echo's second byte is the
+        // code (the echo is MSA for MwSA); an `E` reply makes it raise.
+        for code in [b'S', b'T', b'Q', b'D', b'C'] {
+            port.write_all(&with_crc(&[b'M', b'w', code, b'A']))
+                .await
+                .unwrap();
+            let n = if code == b'C' { 8 } else { 3 };
+            let mut r = vec![0u8; n + 4];
+            port.read_exact(&mut r, wait).await.unwrap();
+            assert_eq!((r[0], r[1], r[2]), (b'M', code, b'A'), "{r:?}");
+        }
+        // An unknown command: E3 ("command not recognised").
+        port.write_all(&with_crc(b"Qq")).await.unwrap();
+        let mut r = [0u8; 6];
+        port.read_exact(&mut r, wait).await.unwrap();
+        assert_eq!(
+            protocol::check_frame(&r),
+            Err(protocol::ProtocolError::CommandError { code: 3 })
+        );
     }
 }
 
@@ -500,24 +715,27 @@ async fn handshake_skips_stale_replies_from_a_previous_client() {
 
 #[tokio::test(start_paused = true)]
 async fn the_range_follows_the_temperature_limits() {
-    let (mut d, _, _) = driver().await;
-    assert_eq!(d.power_range().max.0, 5.0);
+    let connect = |limits: (f32, f32)| async move {
+        Optotune::connect(
+            spawn_sim(OptotuneSimConfig::default()),
+            cfg().with_temperature_limits_c(limits.0, limits.1),
+            Arc::new(TokioClock::new()),
+        )
+        .await
+        .unwrap()
+    };
     // Compensating up to 80 °C costs 0.02 D/°C × 55 °C of the top of the device's range
     // (6.785 -> 5.685 D): still above the rig's 5 D.
-    d.request(&protocol::SetTemperatureLimits {
-        upper_c: 80.0,
-        lower_c: 20.0,
-    })
-    .await
-    .unwrap();
-    assert_eq!(d.refresh_range().await.unwrap().max.0, 5.0);
-    // Up to 120 °C: 6.785 - 0.02 × 95 = 4.885 D, now the binding limit.
-    d.request(&protocol::SetTemperatureLimits {
-        upper_c: 120.0,
-        lower_c: 20.0,
-    })
-    .await
-    .unwrap();
+    let d = connect((20.0, 80.0)).await;
+    assert_eq!(d.power_range().max.0, 5.0);
+    // Up to 120 °C: 6.785 - 0.02 × 95 = 4.885 D, now the binding limit; taken from the PwTA
+    // reply.
+    let mut d = connect((20.0, 120.0)).await;
+    assert!(
+        (d.power_range().max.0 - 4.885).abs() < 0.01,
+        "{:?}",
+        d.power_range()
+    );
     let r = d.refresh_range().await.unwrap();
     assert!((r.max.0 - 4.885).abs() < 0.01, "{r:?}");
 }

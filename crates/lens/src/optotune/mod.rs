@@ -2,10 +2,14 @@
 //! port, a pty to `dioptra sim optotune`, or an in-memory link to the simulator.
 //!
 //! On connect the driver handshakes, reads the firmware type (which sets the focal-power
-//! encoding) and maximum current, programs the rig's current and temperature limits, and
-//! puts the lens in focal-power mode so that the device's own temperature compensation works.
-//! After a link error the next call reopens the link through the [`Opener`], if one was
-//! given, and does all of that again.
+//! encoding) and maximum current, programs the rig's current limits and the temperature
+//! limits (`PwTA`; the device refuses focal-power mode without them), puts the lens in
+//! focal-power mode so that the device's own temperature compensation works, and checks the
+//! status word. Status error bits (see [`Status::ERRORS`]) stop focal-power control with the
+//! device's own words. After a link error the next call reopens the link through the
+//! [`Opener`], if one was given, does all of that again and re-sends the last commanded
+//! power: the `Start` handshake resets the output current (pyopto's handshake docstring,
+//! after the manual; LidkeLab's "run handshake to reset device").
 
 pub mod protocol;
 
@@ -27,14 +31,19 @@ pub const BAUD: u32 = 115_200;
 /// Default wait for a reply. The device answers within a few ms; 200 ms covers USB scheduling.
 pub const DEFAULT_REPLY_TIMEOUT: Duration = Duration::from_millis(200);
 
+/// Temperature limits sent at connect unless configured: kishorerathinavel's varifocal display
+/// uses 20-40 °C; LidkeLab 15-30 °C, the Spesyvtsev client 20-45 °C. A wider span covers a
+/// warmer lens but narrows the focal-power range the device can hold.
+pub const DEFAULT_TEMPERATURE_LIMITS_C: (f32, f32) = (20.0, 40.0);
+
 /// How the driver runs one lens.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct OptotuneConfig {
     pub limits: LensLimits,
     pub reply_timeout: Duration,
-    /// (lower, upper) °C programmed with `PwTA`: the span focal-power mode compensates over.
-    /// `None` keeps the device's setting.
-    pub temperature_limits_c: Option<(f32, f32)>,
+    /// (lower, upper) °C sent with `PwTA` at every (re)connect: the span focal-power mode
+    /// compensates over. Within -120..120 °C, lower below upper.
+    pub temperature_limits_c: (f32, f32),
 }
 
 impl OptotuneConfig {
@@ -42,8 +51,13 @@ impl OptotuneConfig {
         OptotuneConfig {
             limits,
             reply_timeout: DEFAULT_REPLY_TIMEOUT,
-            temperature_limits_c: None,
+            temperature_limits_c: DEFAULT_TEMPERATURE_LIMITS_C,
         }
+    }
+    /// The rig's `(lower, upper)` temperature limits, °C.
+    pub fn with_temperature_limits_c(mut self, lower: f32, upper: f32) -> Self {
+        self.temperature_limits_c = (lower, upper);
+        self
     }
 }
 
@@ -71,6 +85,10 @@ pub struct Optotune<L: ByteLink> {
     /// The rig's limits narrowed to the device's range.
     range: PowerRange,
     mode: Mode,
+    /// The last focal power sent, re-sent after a reconnect.
+    last_power: Option<Diopters>,
+    /// Status error bits last seen; focal-power control stays stopped while set.
+    fault: Option<Status>,
     buf: Vec<u8>,
     stray_crc_errors: u64,
     reconnects: u64,
@@ -122,6 +140,8 @@ impl<L: ByteLink> Optotune<L> {
             info: None,
             scaling: Scaling::default(),
             mode: Mode::Other(0),
+            last_power: None,
+            fault: None,
             buf: Vec::with_capacity(protocol::MAX_COMMAND_LEN),
             stray_crc_errors: 0,
             reconnects: 0,
@@ -162,15 +182,33 @@ impl<L: ByteLink> Optotune<L> {
         self.request(&protocol::GetTemperature).await
     }
 
-    /// Firmware status bits.
+    /// Firmware status bits. Error bits stop focal-power control until a status read or a
+    /// reconnect without them; warnings are logged.
     pub async fn status(&mut self) -> Result<Status, DeviceError> {
-        self.request(&protocol::GetStatus).await
+        let s = self.request(&protocol::GetStatus).await?;
+        self.note_status(s);
+        Ok(s)
     }
 
-    /// Re-reads the focal-power range the device can hold (it moves with the temperature
-    /// limits) and narrows the driving range to it.
+    /// The status error bits that stopped focal-power control, if any.
+    pub fn fault(&self) -> Option<Status> {
+        self.fault
+    }
+
+    /// Records `s`'s error bits (or their absence) and logs its warnings.
+    fn note_status(&mut self, s: Status) {
+        self.fault = Some(s.errors()).filter(|e| e.0 != 0);
+        if s.warnings().0 != 0 {
+            tracing::warn!("Lens Driver 4 status: {}", s.warnings().names().join(", "));
+        }
+    }
+
+    /// Sends the configured temperature limits again and narrows the driving range to the
+    /// focal-power range the device reports for them (its `PwTA` reply).
     pub async fn refresh_range(&mut self) -> Result<PowerRange, DeviceError> {
-        let r = self.request(&protocol::GetTemperatureLimits).await?;
+        self.ensure_link().await?;
+        let r = self.send_temperature_limits().await;
+        let r = self.note(r)?;
         self.adopt_range(r)?;
         Ok(self.range)
     }
@@ -185,8 +223,9 @@ impl<L: ByteLink> Optotune<L> {
 
     /// Switches to focal-power mode and returns the reachable range the device reports.
     pub async fn use_focal_power_mode(&mut self) -> Result<PowerRange, DeviceError> {
-        let r = self.request(&protocol::SetFocalPowerMode).await?;
-        self.mode = Mode::FocalPower;
+        self.ensure_link().await?;
+        let r = self.enter_focal_power_mode().await;
+        let r = self.note(r)?;
         self.adopt_range(r)
     }
 
@@ -244,18 +283,18 @@ impl<L: ByteLink> Optotune<L> {
             })
             .await?;
         }
-        if let Some((lo, hi)) = self.cfg.temperature_limits_c {
-            self.exchange(&protocol::SetTemperatureLimits {
-                upper_c: hi,
-                lower_c: lo,
-            })
-            .await?;
+        // Every open client sends the limits before focal-power mode (LidkeLab: they "need to
+        // be set in order to be able to switch to focal power controlled mode"); their reply
+        // carries the range, which spares the disputed `PrTA`.
+        let mut range = self.send_temperature_limits().await?;
+        if self.exchange(&protocol::GetMode).await?.0 != Mode::FocalPower {
+            range = self.enter_focal_power_mode().await?;
         }
-        let range = match self.exchange(&protocol::GetMode).await?.0 {
-            Mode::FocalPower => self.exchange(&protocol::GetTemperatureLimits).await?.0,
-            _ => self.exchange(&protocol::SetFocalPowerMode).await?.0,
-        };
         self.mode = Mode::FocalPower;
+        // The full word: byte #2 holds the lens-incompatible bit, which no range reply carries.
+        let status = self.exchange(&protocol::GetStatus).await?.0;
+        self.note_status(status);
+        check_status(status, "at connect")?;
         let device_range = self.adopt_range(range)?;
         self.info = Some(OptotuneInfo {
             firmware_type,
@@ -266,6 +305,37 @@ impl<L: ByteLink> Optotune<L> {
             device_range,
         });
         Ok(())
+    }
+
+    /// `PwTA` with the configured limits; a status byte with error bits is a refusal.
+    async fn send_temperature_limits(&mut self) -> Result<protocol::FocalPowerRange, DeviceError> {
+        let (lower_c, upper_c) = self.cfg.temperature_limits_c;
+        let (r, _) = self
+            .exchange(&protocol::SetTemperatureLimits { upper_c, lower_c })
+            .await?;
+        self.note_status(r.status);
+        check_status(r.status, "after setting the temperature limits (PwTA)")?;
+        Ok(r)
+    }
+
+    /// `MwCA`, its status byte checked, then `MMA` to confirm the device switched.
+    async fn enter_focal_power_mode(&mut self) -> Result<protocol::FocalPowerRange, DeviceError> {
+        let (r, _) = self.exchange(&protocol::SetFocalPowerMode).await?;
+        self.note_status(r.status);
+        check_status(r.status, "when entering focal-power mode (MwCA)")?;
+        let mode = self.exchange(&protocol::GetMode).await?.0;
+        if mode != Mode::FocalPower {
+            return Err(DeviceError::Refused {
+                code: u16::from(mode.number()),
+                detail: format!(
+                    "the Lens Driver 4 stayed in mode {} after MwCA instead of focal-power \
+                     mode (5)",
+                    mode.number()
+                ),
+            });
+        }
+        self.mode = Mode::FocalPower;
+        Ok(r)
     }
 
     /// Narrows the rig's range to what the device reports; returns the device's range.
@@ -329,7 +399,16 @@ impl<L: ByteLink> Optotune<L> {
         tracing::info!(link = %link.describe(), "Lens Driver 4 reconnected");
         self.link = Some(link);
         self.reconnects += 1;
-        self.open_session().await
+        self.open_session().await?;
+        // The handshake reset the output current: put the lens back where it was commanded
+        // before anyone reads it as ok.
+        if let Some(p) = self.last_power {
+            let r = self
+                .exchange(&protocol::SetFocalPower { diopters: p.0 })
+                .await;
+            self.note(r)?;
+        }
+        Ok(())
     }
 
     /// Drops the link after an error that needs a reconnect.
@@ -413,11 +492,34 @@ fn not_connected() -> DeviceError {
     ))
 }
 
+/// Status error bits as a refusal naming them.
+fn check_status(s: Status, when: &str) -> Result<(), DeviceError> {
+    let e = s.errors();
+    if e.0 == 0 {
+        return Ok(());
+    }
+    Err(DeviceError::Refused {
+        code: u16::try_from(e.0).unwrap_or(u16::MAX),
+        detail: format!(
+            "the Lens Driver 4 reports {} {when}; focal-power control stopped{}",
+            e.names().join(", "),
+            if e.contains(Status::NO_TEMPERATURE_LIMITS) {
+                " (check devices.lens.temperature_limits_c)"
+            } else {
+                ""
+            }
+        ),
+    })
+}
+
 fn protocol_error(e: ProtocolError) -> DeviceError {
     match e {
         ProtocolError::CommandError { code } => DeviceError::Refused {
             code: u16::from(code),
-            detail: "the Lens Driver 4 answered E (command error)".into(),
+            detail: format!(
+                "the Lens Driver 4 answered E{code}: {}",
+                protocol::error_code::meaning(code)
+            ),
         },
         ProtocolError::DeviceSawBadCrc => DeviceError::Protocol(
             "the Lens Driver 4 received a corrupted command (it answered N); check the cable"
@@ -436,6 +538,9 @@ impl<L: ByteLink> VarifocalLens for Optotune<L> {
     async fn set_power(&mut self, power: Diopters) -> Result<Timestamp, DeviceError> {
         self.ensure_link().await?;
         let power = self.cfg.limits.check_power(power, self.range)?;
+        if let Some(f) = self.fault {
+            check_status(f, "in its last status")?;
+        }
         if self.mode != Mode::FocalPower {
             return Err(DeviceError::Invalid(
                 "set_power needs focal-power mode; call use_focal_power_mode first".into(),
@@ -444,7 +549,9 @@ impl<L: ByteLink> VarifocalLens for Optotune<L> {
         let r = self
             .exchange(&protocol::SetFocalPower { diopters: power.0 })
             .await;
-        self.note(r).map(|(_, t)| t)
+        let t = self.note(r).map(|(_, t)| t)?;
+        self.last_power = Some(power);
+        Ok(t)
     }
 
     async fn state(&mut self) -> Result<LensState, DeviceError> {

@@ -6,10 +6,13 @@
 //! then `\r\n`. Payloads are binary and may themselves contain `\r\n`, so replies are framed
 //! by the length each command's reply has ([`Command::REPLY_LEN`]), never by line.
 //!
-//! Sources: Optotune's "Lens Driver 4" manual (command layouts, focal-power encoding) and the
-//! open clients `opto` / elhananby/optotune-lens (Python, reply struct formats), funalab/LensDriver
-//! (C) and elhananby/lens_driver (Rust). Where they disagree the choice is noted at the command;
-//! across all commands:
+//! Sources: Optotune's "Lens Driver 4" manual (command layouts, focal-power encoding) and its
+//! "Lens Driver V4 Communication Protocol incl. example.xlsx" (reply prefixes, status and error
+//! codes; as committed in OrganicIrradiation/Optotune-ETL-control-in-matlab, d9cb635), and the
+//! open clients `opto` / elhananby/optotune-lens (Python, reply struct formats), ha0k/pyopto,
+//! LidkeLab/matlab-instrument-control (`@MIC_OptotuneLens`), weldlabucsb/optotune-code,
+//! uedatatsu/OptotuneLensDriver4i_Controller, funalab/LensDriver (C) and elhananby/lens_driver
+//! (Rust). Where they disagree the choice is noted at the command; across all commands:
 //! - Reply sizes: the Python clients read the echoed command letters (`H` -> `>xs`, `MwDA` ->
 //!   `>xxx`); elhananby/lens_driver reads payloads without them and expects no `MwDA` reply.
 //!   This follows the Python clients: they agree with each other and with the manual's
@@ -32,10 +35,29 @@ pub const READY: &[u8] = b"Ready\r\n";
 pub const CRC_ERROR_REPLY: &[u8] = b"N\r\n";
 /// Bytes after a payload: CRC (2) and `\r\n` (2).
 pub const TRAILER_LEN: usize = 4;
-/// Payload of a command-error reply: `E` and one error byte. The manual only says that a
-/// reply starting with `E` is an error and open clients check only that byte; dioptra's
-/// simulator sends `E` + code, and the driver frames it so.
+/// Payload of a command-error reply: `E` and one error byte (`E<error id><CRC>\r\n` in
+/// Optotune's protocol sheet; codes in [`error_code`]).
 pub const ERROR_PAYLOAD_LEN: usize = 2;
+
+/// The error byte of an `E` reply. Optotune's protocol sheet ("02-Error Commands") and
+/// uedatatsu's and the Spesyvtsev MATLAB clients agree on these four.
+pub mod error_code {
+    pub const CRC_FAILED: u8 = 1;
+    pub const NOT_AVAILABLE_IN_FIRMWARE_TYPE: u8 = 2;
+    pub const NOT_RECOGNISED: u8 = 3;
+    pub const LENS_INCOMPATIBLE: u8 = 4;
+
+    /// The code's meaning in words.
+    pub fn meaning(code: u8) -> &'static str {
+        match code {
+            CRC_FAILED => "CRC failed",
+            NOT_AVAILABLE_IN_FIRMWARE_TYPE => "command not available in this firmware type",
+            NOT_RECOGNISED => "command not recognised",
+            LENS_INCOMPATIBLE => "lens not compatible with the firmware",
+            _ => "unknown error code",
+        }
+    }
+}
 /// Longest command on the wire (`IR` + 8 bytes + CRC).
 pub const MAX_COMMAND_LEN: usize = 12;
 
@@ -58,7 +80,7 @@ pub fn crc16(bytes: &[u8]) -> u16 {
 pub enum ProtocolError {
     #[error("the device reported a CRC error in the command it received (N)")]
     DeviceSawBadCrc,
-    #[error("the device refused the command (E, code {code})")]
+    #[error("the device refused the command (E{code}: {})", error_code::meaning(*code))]
     CommandError { code: u8 },
     #[error("reply CRC mismatch: computed {computed:#06x}, received {received:#06x}")]
     BadCrc { computed: u16, received: u16 },
@@ -434,26 +456,37 @@ impl Command for GetTemperature {
     }
 }
 
-/// The focal-power range the device can hold over its temperature limits, with its error byte.
+/// The focal-power range the device can hold over its temperature limits, with the status
+/// byte that comes with it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct FocalPowerRange {
-    /// 0 when the device accepted the request.
-    pub error: u8,
+    /// Status byte #1 (the sheet's "error byte"): the low byte of [`Status`], same bits.
+    pub status: Status,
     pub min_d: f32,
     pub max_d: f32,
 }
 
-/// Error byte, max power, min power, from `at` on.
+/// Status byte, max power, min power, from `at` on.
 fn parse_range(p: &[u8], at: usize, s: &Scaling) -> FocalPowerRange {
     FocalPowerRange {
-        error: p[at],
+        status: Status(u32::from(p[at])),
         max_d: s.power_from_raw(be_i16(p, at + 1)),
         min_d: s.power_from_raw(be_i16(p, at + 3)),
     }
 }
 
+/// Temperature limits the device takes: -120..120 °C (Optotune's sheet; uedatatsu checks the
+/// same), lower below upper.
+pub const TEMPERATURE_LIMIT_RANGE_C: (f32, f32) = (-120.0, 120.0);
+
 /// `PwTA` + i16 (upper °C × 16) + i16 (lower °C × 16): sets the temperature limits focal-power
-/// mode compensates over; reply `>xxBhh` error, max, min focal power.
+/// mode compensates over; reply `PT` + status byte + max + min focal power (`>xxBhh`: the
+/// sheet, LidkeLab and kishorerathinavel agree). The device needs these before it enters
+/// focal-power mode (status bit 2 until then).
+///
+/// `PrTA` (read them back) is deliberately not a command here: the sheet gives it the same
+/// reply as `PwTA`, while pyopto and uedatatsu read `PT` + upper and lower temperature in its
+/// place. The driver takes the range from the `PwTA` and `MwCA` replies instead.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SetTemperatureLimits {
     pub upper_c: f32,
@@ -463,6 +496,14 @@ impl Command for SetTemperatureLimits {
     type Response = FocalPowerRange;
     const REPLY_LEN: usize = 7;
     fn write_body(&self, _: &Scaling, out: &mut Vec<u8>) -> Result<(), ProtocolError> {
+        let (lo, hi) = TEMPERATURE_LIMIT_RANGE_C;
+        let ok = |t: f32| (lo..=hi).contains(&t);
+        if !(ok(self.lower_c) && ok(self.upper_c) && self.lower_c < self.upper_c) {
+            return Err(ProtocolError::Unencodable {
+                what: "temperature limits (lower must be below upper, both within -120..120 °C)",
+                value: self.lower_c,
+            });
+        }
         let hi = to_i16("temperature", self.upper_c * TEMPERATURE_SCALE)?;
         let lo = to_i16("temperature", self.lower_c * TEMPERATURE_SCALE)?;
         out.extend_from_slice(b"PwTA");
@@ -475,34 +516,35 @@ impl Command for SetTemperatureLimits {
     }
 }
 
-/// `PrTA` + 4 zero bytes: reads back the range for the present temperature limits (same reply
-/// as `PwTA`). hardware.md writes plain `PrTA`; the `opto`-family clients send 4 zero bytes as
-/// the manual's read commands do, which is what this sends (the simulator accepts both).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct GetTemperatureLimits;
-impl Command for GetTemperatureLimits {
-    type Response = FocalPowerRange;
-    const REPLY_LEN: usize = 7;
-    fixed_body!(b"PrTA\0\0\0\0");
-    fn parse(p: &[u8], s: &Scaling) -> Result<FocalPowerRange, ProtocolError> {
-        Ok(parse_range(p, 2, s))
+/// Mode replies echo the command without its `w`: `MDA` for `MwDA`, `MCA` for `MwCA`
+/// (Optotune's sheet; pyopto and the Spesyvtsev MATLAB client check this echo too).
+fn check_mode_echo(p: &[u8], echo: &[u8; 3]) -> Result<(), ProtocolError> {
+    if p.get(..3) == Some(echo) {
+        Ok(())
+    } else {
+        Err(ProtocolError::InvalidField(format!(
+            "mode reply starts {:?}, expected {:?}",
+            String::from_utf8_lossy(p.get(..3).unwrap_or(p)),
+            String::from_utf8_lossy(echo)
+        )))
     }
 }
 
-/// `MwDA`: current mode, reply `>xxx`.
+/// `MwDA`: current mode, reply `MDA` (`>xxx`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SetCurrentMode;
 impl Command for SetCurrentMode {
     type Response = ();
     const REPLY_LEN: usize = 3;
     fixed_body!(b"MwDA");
-    fn parse(_: &[u8], _: &Scaling) -> Result<(), ProtocolError> {
-        Ok(())
+    fn parse(p: &[u8], _: &Scaling) -> Result<(), ProtocolError> {
+        check_mode_echo(p, b"MDA")
     }
 }
 
-/// `MwCA`: focal-power (closed-loop, temperature-compensated) mode, reply `>xxxBhh` error,
-/// max, min focal power.
+/// `MwCA`: focal-power (closed-loop, temperature-compensated) mode, reply `MCA` + status
+/// byte + max + min focal power (`>xxxBhh`). The sheet: "This command requires temperature
+/// limits to be set" and a valid lens EEPROM.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SetFocalPowerMode;
 impl Command for SetFocalPowerMode {
@@ -510,6 +552,7 @@ impl Command for SetFocalPowerMode {
     const REPLY_LEN: usize = 8;
     fixed_body!(b"MwCA");
     fn parse(p: &[u8], s: &Scaling) -> Result<FocalPowerRange, ProtocolError> {
+        check_mode_echo(p, b"MCA")?;
         Ok(parse_range(p, 3, s))
     }
 }
@@ -596,19 +639,101 @@ impl Command for GetFocalPower {
     }
 }
 
-/// Status bits from `Sr`. No public client decodes them (`opto` returns the bytes after the
-/// echoed `S`); dioptra reads `S` + a big-endian u32 and reports the bits raw, naming only
-/// the ones its simulator sets.
+/// The `Sr` status word: `S` + status bytes #4, #3, #2, #1, read as a big-endian u32, so
+/// byte #1 is the low byte. The `PwTA` and `MwCA` replies carry byte #1 alone ("commands
+/// that return status bytes (previously known as error byte)").
+///
+/// Bits per Optotune's protocol sheet ("Status Byte Definitions"), LidkeLab's
+/// `MIC_OptotuneLens.displayError` and weldlabucsb's `OptotuneComm.getStatus`, which agree.
+/// uedatatsu's `GetStatus` tests 0x20 for both bits 5 and 6 and calls 0x40 the user range: a
+/// slip against the three others, not followed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Status(pub u32);
 
 impl Status {
-    /// Focal power was limited to the top of the reachable range.
-    pub const FOCAL_POWER_CLAMPED_HIGH: u32 = 1 << 0;
-    /// Focal power was limited to the bottom of the reachable range.
-    pub const FOCAL_POWER_CLAMPED_LOW: u32 = 1 << 1;
-    /// The lens temperature is outside the limits set with `PwTA`.
-    pub const TEMPERATURE_OUT_OF_LIMITS: u32 = 1 << 2;
+    /// Byte #1 bit 0: not all hardware available.
+    pub const NOT_ALL_HARDWARE: u32 = 1 << 0;
+    /// Bit 1: no or faulty lens EEPROM (focal-power mode needs its calibration).
+    pub const NO_EEPROM: u32 = 1 << 1;
+    /// Bit 2: no temperature limits received (needed for focal-power mode).
+    pub const NO_TEMPERATURE_LIMITS: u32 = 1 << 2;
+    /// Bit 3: cannot reach the lens focal power (focal-power mode).
+    pub const CANNOT_REACH_FOCAL_POWER: u32 = 1 << 3;
+    /// Bit 4: focal-power inversion (over the user's temperature limits).
+    pub const FOCAL_POWER_INVERSION: u32 = 1 << 4;
+    /// Bit 5: temperature outside the product specification.
+    pub const TEMPERATURE_OUTSIDE_SPEC: u32 = 1 << 5;
+    /// Bit 6: focal power outside the range guaranteed over the user's temperature limits.
+    pub const FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE: u32 = 1 << 6;
+    /// Bit 7: temperature outside the user's limits.
+    pub const TEMPERATURE_OUTSIDE_LIMITS: u32 = 1 << 7;
+    /// Byte #2 bit 0: the lens is not compatible with the firmware.
+    pub const LENS_INCOMPATIBLE: u32 = 1 << 8;
+
+    /// Bits that make focal-power control impossible or meaningless.
+    pub const ERRORS: u32 = Self::NOT_ALL_HARDWARE
+        | Self::NO_EEPROM
+        | Self::NO_TEMPERATURE_LIMITS
+        | Self::FOCAL_POWER_INVERSION
+        | Self::LENS_INCOMPATIBLE;
+
+    const NAMES: [(u32, &'static str); 9] = [
+        (Self::NOT_ALL_HARDWARE, "not all hardware available"),
+        (Self::NO_EEPROM, "no or faulty lens EEPROM"),
+        (
+            Self::NO_TEMPERATURE_LIMITS,
+            "no temperature limits received",
+        ),
+        (
+            Self::CANNOT_REACH_FOCAL_POWER,
+            "cannot reach the focal power",
+        ),
+        (
+            Self::FOCAL_POWER_INVERSION,
+            "focal-power inversion over the temperature limits",
+        ),
+        (
+            Self::TEMPERATURE_OUTSIDE_SPEC,
+            "temperature outside the product specification",
+        ),
+        (
+            Self::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE,
+            "focal power outside the range guaranteed over the temperature limits",
+        ),
+        (
+            Self::TEMPERATURE_OUTSIDE_LIMITS,
+            "temperature outside the user's limits",
+        ),
+        (
+            Self::LENS_INCOMPATIBLE,
+            "lens not compatible with the firmware",
+        ),
+    ];
+
+    /// Only the error bits.
+    pub fn errors(self) -> Status {
+        Status(self.0 & Self::ERRORS)
+    }
+    /// Only the warning bits (named, not errors).
+    pub fn warnings(self) -> Status {
+        Status(self.0 & !Self::ERRORS & 0x1ff)
+    }
+    pub fn contains(self, bits: u32) -> bool {
+        self.0 & bits == bits
+    }
+    /// The set bits in words, in bit order; unnamed bits as hex.
+    pub fn names(self) -> Vec<String> {
+        let mut v: Vec<String> = Self::NAMES
+            .iter()
+            .filter(|(b, _)| self.0 & b != 0)
+            .map(|(_, n)| (*n).to_string())
+            .collect();
+        let unnamed = self.0 & !0x1ff;
+        if unnamed != 0 {
+            v.push(format!("undocumented bits {unnamed:#x}"));
+        }
+        v
+    }
 }
 
 /// `Sr`: firmware status, reply `S` + 4 status bytes.
@@ -733,6 +858,134 @@ mod tests {
         assert_eq!(wire(&GetDeviceId, &s).len(), MAX_COMMAND_LEN);
     }
 
+    /// Example commands from Optotune's "Lens Driver V4 Communication Protocol incl.
+    /// example.xlsx" (sheets "Communication Protocol", "Example for 0 & 3 diopters"; the copy
+    /// in OrganicIrradiation/Optotune-ETL-control-in-matlab, commit d9cb635), byte for byte.
+    #[test]
+    fn golden_vectors_from_optotunes_protocol_sheet() {
+        let s = Scaling::default();
+        let hex = |v: &[u8]| {
+            v.iter()
+                .map(|b| format!("{b:02X}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        let cases: Vec<(Vec<u8>, &str)> = vec![
+            (wire(&GetFirmwareType, &s), "48 00 36"),
+            (wire(&GetFirmwareVersion, &s), "56 80 3E"),
+            (wire(&GetSerialNumber, &s), "58 01 FA"),
+            (
+                wire(&GetDeviceId, &s),
+                "49 52 00 00 00 00 00 00 00 00 37 98",
+            ),
+            (wire(&GetMaxCurrent, &s), "43 72 4D 41 00 00 71 80"),
+            (wire(&GetCurrent, &s), "41 72 00 00 B4 27"),
+            (wire(&GetTemperature, &s), "54 43 41 B0 D0"),
+            (wire(&GetStatus, &s), "53 72 BC D5"),
+            (wire(&SetCurrentMode, &s), "4D 77 44 41 54 46"),
+            (wire(&SetFocalPowerMode, &s), "4D 77 43 41 56 76"),
+            (wire(&GetFocalPower, &s), "50 72 44 41 00 00 00 00 64 70"),
+            // "Set Upper Limit to 292mA": raw 4095 at the default 292.84 mA maximum.
+            (
+                wire(
+                    &SetCurrentLimit {
+                        which: CurrentLimit::Upper,
+                        ma: DEFAULT_MAX_CURRENT_MA,
+                    },
+                    &s,
+                ),
+                "43 77 55 41 0F FF FE 90",
+            ),
+            // "focal power Limit Set to 20-45 °C Range": upper first.
+            (
+                wire(
+                    &SetTemperatureLimits {
+                        upper_c: 45.0,
+                        lower_c: 20.0,
+                    },
+                    &s,
+                ),
+                "50 77 54 41 02 D0 01 40 33 C1",
+            ),
+            // The 0 & 3 diopter example: limits 20..35 °C, then 0 D and 3 D (type A encoding).
+            (
+                wire(
+                    &SetTemperatureLimits {
+                        upper_c: 35.0,
+                        lower_c: 20.0,
+                    },
+                    &s,
+                ),
+                "50 77 54 41 02 30 01 40 32 37",
+            ),
+            (
+                wire(&SetFocalPower { diopters: 0.0 }, &s),
+                "50 77 44 41 03 E8 00 00 B1 00",
+            ),
+            (
+                wire(&SetFocalPower { diopters: 3.0 }, &s),
+                "50 77 44 41 06 40 00 00 30 2C",
+            ),
+            (
+                wire(&SetFocalPower { diopters: 1.0 }, &s),
+                "50 77 44 41 04 B0 00 00 31 A7",
+            ),
+        ];
+        for (got, want) in cases {
+            assert_eq!(hex(&got), want);
+        }
+        // Replies in the sheet's layouts: PT<status><max><min>, MCA<status><max><min>, E<id>.
+        let r =
+            decode::<SetTemperatureLimits>(&reply(&[b'P', b'T', 0, 0x06, 0x40, 0x02, 0x58]), &s)
+                .unwrap();
+        assert_eq!((r.status, r.min_d, r.max_d), (Status(0), -2.0, 3.0));
+        let r =
+            decode::<SetFocalPowerMode>(&reply(&[b'M', b'C', b'A', 0x04, 0, 0, 0, 0]), &s).unwrap();
+        assert!(r.status.contains(Status::NO_TEMPERATURE_LIMITS));
+        assert_eq!(
+            decode::<GetStatus>(&reply(&[b'E', error_code::LENS_INCOMPATIBLE]), &s),
+            Err(ProtocolError::CommandError { code: 4 })
+        );
+    }
+
+    #[test]
+    fn status_bits_follow_the_protocol_sheet() {
+        // S + bytes #4 #3 #2 #1: byte #2 bit 0 (lens incompatible), byte #1 0x84 (bit 7
+        // temperature outside the user's limits, bit 2 no limits received).
+        let st =
+            decode::<GetStatus>(&reply(&[b'S', 0, 0, 0x01, 0x84]), &Scaling::default()).unwrap();
+        assert_eq!(st.0, 0x184);
+        assert!(st.contains(Status::LENS_INCOMPATIBLE | Status::NO_TEMPERATURE_LIMITS));
+        assert_eq!(st.errors(), Status(0x104));
+        assert_eq!(st.warnings(), Status(Status::TEMPERATURE_OUTSIDE_LIMITS));
+        assert_eq!(
+            st.names(),
+            vec![
+                "no temperature limits received",
+                "temperature outside the user's limits",
+                "lens not compatible with the firmware"
+            ]
+        );
+        assert_eq!(Status(1 << 12).names(), vec!["undocumented bits 0x1000"]);
+        // Out-of-range limits are refused before anything is sent.
+        let mut out = Vec::new();
+        for (lo, hi) in [
+            (40.0, 20.0),
+            (20.0, 130.0),
+            (-121.0, 20.0),
+            (f32::NAN, 20.0),
+        ] {
+            let c = SetTemperatureLimits {
+                upper_c: hi,
+                lower_c: lo,
+            };
+            assert!(
+                encode(&c, &Scaling::default(), &mut out).is_err(),
+                "{lo}..{hi}"
+            );
+        }
+    }
+
     #[test]
     fn golden_set_current_100_ma() {
         // raw = 100 * 4095 / 292.84 = 1398.37 -> 1398 = 0x0576. Body 41 77 05 76 ("Aw" ..):
@@ -755,18 +1008,24 @@ mod tests {
             decode::<GetTemperature>(&reply(&[b'T', b'C', b'A', 0x02, 0x38]), &s),
             Ok(35.5)
         );
-        // MwCA: error 0, max (5+3)*200 = 1600 = 0x0640, min (5-2)*200 = 600 = 0x0258.
+        // MwCA: status 0, max (5+3)*200 = 1600 = 0x0640, min (5-2)*200 = 600 = 0x0258.
         let r =
-            decode::<SetFocalPowerMode>(&reply(&[b'M', b'w', b'C', 0, 0x06, 0x40, 0x02, 0x58]), &s)
+            decode::<SetFocalPowerMode>(&reply(&[b'M', b'C', b'A', 0, 0x06, 0x40, 0x02, 0x58]), &s)
                 .unwrap();
         assert_eq!(
             r,
             FocalPowerRange {
-                error: 0,
+                status: Status(0),
                 min_d: -2.0,
                 max_d: 3.0
             }
         );
+        // An echo that is not MCA: the reply is out of step, not a range.
+        assert!(matches!(
+            decode::<SetFocalPowerMode>(&reply(&[b'M', b'w', b'C', 0, 6, 0x40, 2, 0x58]), &s),
+            Err(ProtocolError::InvalidField(_))
+        ));
+        assert_eq!(decode::<SetCurrentMode>(&reply(b"MDA"), &s), Ok(()));
         assert_eq!(
             decode::<GetMode>(&reply(b"MMA\x05"), &s),
             Ok(Mode::FocalPower)
@@ -789,6 +1048,9 @@ mod tests {
             decode::<GetMode>(&reply(&[b'E', 3]), &s),
             Err(ProtocolError::CommandError { code: 3 })
         );
+        assert!(ProtocolError::CommandError { code: 2 }
+            .to_string()
+            .contains("not available in this firmware type"));
         let mut bad = reply(b"MMA\x05");
         bad[4] ^= 0xFF;
         assert!(matches!(
