@@ -1,5 +1,6 @@
 //! The DLPC350 driver against the simulated controller on the in-memory HID link, on tokio's
-//! paused clock.
+//! paused clock. The simulator decodes the bytes on its own (sim/src/dlpc350.rs), so these
+//! tests check the driver's layouts; hand-assembled reports check what other clients send.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -9,7 +10,7 @@ use dioptra_core::{
 };
 use dioptra_sim::dlpc350::{self as sim, Dlpc350SimConfig};
 use dioptra_sim::tokio_clock::TokioClock;
-use dioptra_sync::dlpc350::protocol::{PatternDisplay, SequenceAction, SetExposure, TriggerType};
+use dioptra_sync::dlpc350::protocol::{PatternDisplay, SequenceAction, SetExposure};
 use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config, FAULT_SEQUENCER_STOPPED};
 use dioptra_transport::hid::memory::MemoryHidLink;
 use dioptra_transport::HidLink;
@@ -45,7 +46,12 @@ async fn programs_a_four_plane_sequence_in_order_and_runs_it() {
     let expected: Vec<(bool, u16)> = vec![
         (true, 0x0205),
         (false, 0x1A24), // stop
+        (true, 0x1A24),  // read back: stopped
+        (false, 0x0200), // power: normal
+        (true, 0x1A0A),  // hardware status
+        (true, 0x1A1B),  // display mode: video
         (false, 0x1A1B), // pattern display mode
+        (true, 0x1A1B),  // 100 ms later: pattern
         (false, 0x1A22), // video-port source
         (false, 0x1A31), // pattern config
         (false, 0x1A23), // VSYNC trigger
@@ -66,24 +72,57 @@ async fn programs_a_four_plane_sequence_in_order_and_runs_it() {
     ];
     assert_eq!(codes, expected);
     let log = sim.log();
+    let payload = |code: u16, read: bool| {
+        log.iter()
+            .find(|l| l.code == code && l.read == read)
+            .unwrap()
+            .payload
+            .clone()
+    };
+    // Byte vectors, from the programmer's guide layouts (the same TI's dlpc350_api.cpp and
+    // pycrafter4500 build): pattern config = entries - 1, repeat, TRIG_OUT_2 every - 1,
+    // images - 1; exposure and period as u32 LE; LUT entries 3 bytes each: trigger | pattern
+    // << 2, depth | LEDs << 4, invert | black << 1 | swap << 2 | trig-out-prev << 3.
+    assert_eq!(payload(0x1A31, false), vec![3, 1, 3, 0]);
     assert_eq!(
-        log[4].payload,
-        vec![3, 1, 3, 0],
-        "4 entries, repeat, TRIG_OUT_2 every 4"
+        payload(0x1A29, false),
+        vec![0x5e, 0x0c, 0, 0, 0x46, 0x10, 0, 0],
+        "3166 us exposure, 4166 us period"
     );
+    assert_eq!(payload(0x0200, false), vec![0], "normal power");
+    assert_eq!(payload(0x1A1B, false), vec![1], "pattern display mode");
     assert_eq!(
-        log[6].payload,
-        [3166u32.to_le_bytes(), 4166u32.to_le_bytes()].concat()
+        payload(0x1A34, false),
+        vec![0x01, 0x76, 0x06, 0x07, 0x76, 0x02, 0x0b, 0x76, 0x02, 0x0f, 0x76, 0x02],
+        "pattern 0 on VSYNC with a buffer swap, 1-3 continuing; 6 bits, RGB; black fill"
     );
     let lut: Vec<_> = sim.lut().into_iter().map(Option::unwrap).collect();
     assert_eq!(lut.len(), 4);
     assert!(lut.iter().all(|e| e.bit_depth == 6 && e.leds == 0b111));
-    assert_eq!(lut[0].trigger, TriggerType::ExternalPositive);
+    assert_eq!(lut[0].trigger, sim::Trigger::ExternalPositive);
     assert!(lut[0].buffer_swap);
+    // 1000 us of settle time is dark time: black-filled, as TI's SDK fills it.
+    assert!(lut.iter().all(|e| e.insert_black));
 
     let mut patterns = sim.subscribe();
+    let before = sim.log().len();
     d.start().await.unwrap();
     assert!(sim.running());
+    // The first Start after leaving video mode is lost: the driver saw the sequencer stopped
+    // in the main status and started again.
+    let start: Vec<(bool, u16)> = sim.log()[before..]
+        .iter()
+        .map(|l| (l.read, l.code))
+        .collect();
+    assert_eq!(
+        start,
+        vec![
+            (false, 0x1A24),
+            (true, 0x1A0C),
+            (false, 0x1A24),
+            (true, 0x1A0C)
+        ]
+    );
     let mut host_times = Vec::new();
     for k in 0..8u32 {
         match d.next_event().await.unwrap() {
@@ -284,7 +323,8 @@ async fn a_sequencer_that_stops_on_its_own_is_a_fault() {
 #[tokio::test(start_paused = true)]
 async fn long_luts_travel_in_several_reports_both_ways() {
     use dioptra_sync::dlpc350::protocol::{
-        LutEntry, Mailbox, MailboxControl, SetMailboxAddress, SetPatternConfig, WriteMailbox,
+        LutEntry, Mailbox, MailboxControl, SetMailboxAddress, SetPatternConfig, TriggerType,
+        WriteMailbox,
     };
     let (mut d, sim) = rig();
     // 40 one-bit entries: 120 bytes, two reports out and two back.
@@ -314,8 +354,12 @@ async fn long_luts_travel_in_several_reports_both_ways() {
     d.execute(&SetMailboxAddress(0)).await.unwrap();
     d.execute(&WriteMailbox(entries.clone())).await.unwrap();
     d.execute(&MailboxControl(Mailbox::Closed)).await.unwrap();
-    assert_eq!(sim.lut().into_iter().flatten().collect::<Vec<_>>(), entries);
-    assert_eq!(d.read_lut().await.unwrap(), entries);
+    let in_sim: Vec<_> = sim.lut().into_iter().flatten().collect();
+    assert_eq!(in_sim.len(), 40);
+    // The controller answers with its whole table (128 entries); what was written comes first.
+    let back = d.read_lut().await.unwrap();
+    assert_eq!(back.len(), 128);
+    assert_eq!(back[..40], entries[..]);
     // Past entry 127, or with no mailbox open: nack, nothing written.
     d.execute(&MailboxControl(Mailbox::PatternLut))
         .await
@@ -332,4 +376,163 @@ async fn long_luts_travel_in_several_reports_both_ways() {
         matches!(e, DeviceError::Refused { code: 0x1A34, .. }),
         "{e:?}"
     );
+}
+
+fn rig_with(cfg: Dlpc350SimConfig) -> (Dlpc350<MemoryHidLink>, sim::Dlpc350Sim) {
+    let (link, sim) = sim::new(cfg);
+    let driver = Dlpc350::new(link, Arc::new(TokioClock::new()), Dlpc350Config::default());
+    (driver, sim)
+}
+
+/// TI's validation bit 3: an exposure shorter than the period without black fill fails. The
+/// driver's LUT passes it (see the first test); entries without the flag do not.
+#[tokio::test(start_paused = true)]
+async fn dark_time_without_black_fill_fails_validation() {
+    use dioptra_sync::dlpc350::protocol::{
+        LutEntry, Mailbox, MailboxControl, SetMailboxAddress, SetPatternConfig, TriggerType,
+        WriteMailbox,
+    };
+    let (mut d, _sim) = rig();
+    d.execute(&SetExposure {
+        exposure_us: 3166,
+        period_us: 4166,
+    })
+    .await
+    .unwrap();
+    d.execute(&SetPatternConfig {
+        lut_entries: 2,
+        repeat: true,
+        trig_out2_every: 2,
+        images: 1,
+    })
+    .await
+    .unwrap();
+    let entry = |pattern| LutEntry {
+        trigger: TriggerType::Continue,
+        pattern,
+        bit_depth: 6,
+        leds: 0b111,
+        invert: false,
+        insert_black: false,
+        buffer_swap: false,
+        trig_out_prev: false,
+    };
+    d.execute(&MailboxControl(Mailbox::PatternLut))
+        .await
+        .unwrap();
+    d.execute(&SetMailboxAddress(0)).await.unwrap();
+    d.execute(&WriteMailbox(vec![entry(0), entry(1)]))
+        .await
+        .unwrap();
+    d.execute(&MailboxControl(Mailbox::Closed)).await.unwrap();
+    let e = d.validate().await.unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { code: 0x1A1A, detail } if detail.contains("black vector")),
+        "{e:?}"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_controller_in_standby_is_woken_before_programming() {
+    let (mut d, sim) = rig_with(Dlpc350SimConfig {
+        standby: true,
+        ..Dlpc350SimConfig::default()
+    });
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+    d.start().await.unwrap();
+    assert!(sim.running());
+    // Another client puts it in standby between sessions; reprogramming wakes it again.
+    d.stop().await.unwrap();
+    sim.set_standby(true);
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+}
+
+#[tokio::test(start_paused = true)]
+async fn an_incompatible_controller_or_dmd_is_a_refusal() {
+    let (mut d, sim) = rig_with(Dlpc350SimConfig {
+        hardware_status: 0x03,
+        ..Dlpc350SimConfig::default()
+    });
+    let e = d.program(&four_planes(4166, 1000)).await.unwrap_err();
+    assert!(
+        matches!(&e, DeviceError::Refused { code: 0x1A0A, detail } if detail.contains("incompatible")),
+        "{e:?}"
+    );
+    // Nothing was configured.
+    assert!(!sim.log().iter().any(|l| !l.read && l.code == 0x1A34));
+}
+
+/// Stop takes effect at the end of the pattern on show; the driver reads the state back
+/// before it configures anything, so an immediate reprogram is not refused.
+#[tokio::test(start_paused = true)]
+async fn stop_is_confirmed_before_reprogramming() {
+    let (mut d, sim) = rig();
+    d.program(&four_planes(4166, 1000)).await.unwrap();
+    d.start().await.unwrap();
+    tokio::time::sleep(Duration::from_micros(1500)).await;
+    d.stop().await.unwrap();
+    assert!(!sim.running());
+    let reads = sim
+        .log()
+        .iter()
+        .filter(|l| l.read && l.code == 0x1A24)
+        .count();
+    assert!(reads >= 2, "{:#?}", sim.log());
+    d.program(&four_planes(5000, 1000)).await.unwrap_err(); // 4 x 5 ms > 16.7 ms: refused by us
+    d.program(&four_planes(4000, 1000)).await.unwrap();
+    assert!(sim.log().iter().all(|l| !l.nack || l.code == 0x0205));
+}
+
+/// The reads other clients send (TI's GUI, pycrafter4500, Francesco Valla's dlpc350 library),
+/// as hand-assembled reports: flags 0xC0, sequence, length 2 (LE), CMD3, CMD2.
+#[tokio::test(start_paused = true)]
+async fn the_simulator_answers_the_reads_other_clients_send() {
+    let (mut link, _sim) = sim::new(Dlpc350SimConfig::default());
+    // (CMD2, CMD3, reply data length)
+    let reads: &[(u8, u8, usize)] = &[
+        (0x1A, 0x0C, 1),  // main status
+        (0x1A, 0x0A, 1),  // hardware status
+        (0x1A, 0x0B, 1),  // system status
+        (0x02, 0x05, 16), // version
+        (0x1A, 0xFF, 32), // firmware tag
+        (0x0B, 0x01, 3),  // LED currents
+        (0x1A, 0x0E, 1),  // gamma
+        (0x1A, 0x1B, 1),  // display mode
+        (0x1A, 0x24, 1),  // pattern display state
+        (0x02, 0x00, 1),  // power mode
+    ];
+    for (seq, &(cmd2, cmd3, n)) in reads.iter().enumerate() {
+        let mut report = [0u8; 65];
+        report[1..7].copy_from_slice(&[0xc0, seq as u8, 2, 0, cmd3, cmd2]);
+        link.write_output_report(&report).await.unwrap();
+        let mut buf = [0u8; 65];
+        let got = link
+            .read_input_report(&mut buf, Duration::from_secs(1))
+            .await
+            .unwrap();
+        assert!(got >= 5, "{cmd2:02x}{cmd3:02x}");
+        // Report id 0, flags echoed without the nack bit, sequence, length.
+        assert_eq!(
+            &buf[..5],
+            &[0, 0xc0, seq as u8, n as u8, 0],
+            "{cmd2:02x}{cmd3:02x}: {:?}",
+            &buf[..8]
+        );
+    }
+    // pycrafter4500's gamma write (bit 7 on), then main status shows gamma enabled (bit 3).
+    let mut report = [0u8; 65];
+    report[1..8].copy_from_slice(&[0x40, 20, 3, 0, 0x0e, 0x1a, 0x80]);
+    link.write_output_report(&report).await.unwrap();
+    let mut buf = [0u8; 65];
+    link.read_input_report(&mut buf, Duration::from_secs(1))
+        .await
+        .unwrap();
+    assert_eq!(&buf[1..5], &[0x40, 20, 0, 0]);
+    report[1..7].copy_from_slice(&[0xc0, 21, 2, 0, 0x0c, 0x1a]);
+    report[7] = 0;
+    link.write_output_report(&report).await.unwrap();
+    link.read_input_report(&mut buf, Duration::from_secs(1))
+        .await
+        .unwrap();
+    assert_eq!(buf[5] & 0x08, 0x08, "{:?}", &buf[..6]);
 }

@@ -4,6 +4,15 @@
 //! (see [`sequence`]). It reports nothing while running, so [`PlaneSequencer::next_event`]
 //! yields the sub-frame starts the programmed timing predicts (without lens power), checks
 //! the sequencer is still running once per frame, and reports a fault when it stopped.
+//!
+//! State changes are confirmed as TI's own code confirms them: after Stop the pattern
+//! display state is read back (and Stop re-sent) until it says stopped (TI's LightCrafter
+//! GUI and the clients derived from it); before programming the power mode is set to normal
+//! and the hardware status checked (TI's SDK, `LCr4500::CreateSendStartSequenceLut`); after
+//! SetDisplayMode the driver waits 100 ms and reads the mode back, up to 5 more times 100 ms
+//! apart (TI's GUI, `SetDLPC350InPatternMode`); after Start it reads the main status and
+//! starts once more if the sequencer is not running (pycrafter4500: "idk why you need a
+//! second start coming out of video mode").
 
 pub mod protocol;
 pub mod sequence;
@@ -19,11 +28,12 @@ use dioptra_transport::HidLink;
 use tokio::time::Instant;
 
 use protocol::{
-    Assembler, Command, Direction, DisplayMode, GetHardwareStatus, GetMainStatus, GetSystemStatus,
-    GetValidation, GetVersion, HardwareStatus, LutEntry, Mailbox, MailboxControl, MainStatus,
-    Packet, PatternDisplay, PatternSource, ReadMailbox, SequenceAction, SetDisplayMode,
-    SetMailboxAddress, SetPatternSource, SetTriggerMode, StartValidation, SystemStatus,
-    TriggerMode, ValidationStatus, Version, WriteMailbox, REPORT_LEN,
+    Assembler, Command, Direction, DisplayMode, GetDisplayMode, GetHardwareStatus, GetMainStatus,
+    GetPatternDisplay, GetSystemStatus, GetValidation, GetVersion, HardwareStatus, LutEntry,
+    Mailbox, MailboxControl, MainStatus, Packet, PatternDisplay, PatternSource, ReadMailbox,
+    SequenceAction, SetDisplayMode, SetMailboxAddress, SetPatternSource, SetPowerMode,
+    SetTriggerMode, StartValidation, SystemStatus, TriggerMode, ValidationStatus, Version,
+    WriteMailbox, REPORT_LEN,
 };
 pub use sequence::{Dlpc350Config, PatternSequence};
 
@@ -34,6 +44,12 @@ const VALIDATION_POLLS: u32 = 100;
 const VALIDATION_POLL_INTERVAL: Duration = Duration::from_millis(5);
 /// [`SequencerFault::Other`] code: the pattern sequencer stopped on its own.
 pub const FAULT_SEQUENCER_STOPPED: u16 = 0x1A0C;
+/// Wait before reading a state change back, and between further reads (TI's GUI: 100 ms).
+pub const STATE_POLL_INTERVAL: Duration = Duration::from_millis(100);
+/// Further reads after the first (TI's GUI: `MAX_NUM_RETRIES` 5).
+const STATE_RETRIES: u32 = 5;
+/// After Start, before the main status is read (TI's SDK: 10 ms).
+const START_SETTLE: Duration = Duration::from_millis(10);
 
 /// The three status bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -201,14 +217,65 @@ impl<H: HidLink> Dlpc350<H> {
         Ok(entries)
     }
 
-    /// Programs `seq` in the order TI documents (stop, mode, source, config, trigger, period,
-    /// trigger outputs, LUT through the mailbox, validate), reads the LUT back, and leaves
-    /// the sequence stopped. Checks the sequence first: an impossible one sends nothing.
+    /// Stops the sequence and reads the state back until the controller says stopped,
+    /// re-sending Stop each time it does not.
+    async fn stop_confirmed(&mut self) -> Result<(), DeviceError> {
+        self.execute(&PatternDisplay(SequenceAction::Stop)).await?;
+        for retry in 0..=STATE_RETRIES {
+            if self.execute(&GetPatternDisplay).await? == SequenceAction::Stop {
+                return Ok(());
+            }
+            if retry < STATE_RETRIES {
+                tokio::time::sleep(STATE_POLL_INTERVAL).await;
+                self.execute(&PatternDisplay(SequenceAction::Stop)).await?;
+            }
+        }
+        Err(DeviceError::Refused {
+            code: PatternDisplay::CODE,
+            detail: "the DLPC350 still shows its pattern sequence after Stop".into(),
+        })
+    }
+
+    /// Pattern display mode, confirmed by reading it back after TI's wait.
+    async fn pattern_mode_confirmed(&mut self) -> Result<(), DeviceError> {
+        if self.execute(&GetDisplayMode).await? == DisplayMode::Pattern {
+            return Ok(());
+        }
+        self.execute(&SetDisplayMode(DisplayMode::Pattern)).await?;
+        for _ in 0..=STATE_RETRIES {
+            tokio::time::sleep(STATE_POLL_INTERVAL).await;
+            if self.execute(&GetDisplayMode).await? == DisplayMode::Pattern {
+                return Ok(());
+            }
+        }
+        Err(DeviceError::Refused {
+            code: SetDisplayMode::CODE,
+            detail: "the DLPC350 did not switch to pattern display mode".into(),
+        })
+    }
+
+    /// Programs `seq` in the order TI documents (stop, power, mode, source, config, trigger,
+    /// period, trigger outputs, LUT through the mailbox, validate), reads the LUT back, and
+    /// leaves the sequence stopped. Checks the sequence first: an impossible one sends nothing.
     pub async fn program_sequence(&mut self, seq: &PatternSequence) -> Result<(), DeviceError> {
         seq.check()?;
         self.run = None;
-        self.execute(&PatternDisplay(SequenceAction::Stop)).await?;
-        self.execute(&SetDisplayMode(DisplayMode::Pattern)).await?;
+        self.stop_confirmed().await?;
+        // "Standby mode must be disabled prior to sending any new data."
+        self.execute(&SetPowerMode { standby: false }).await?;
+        let hw = self.execute(&GetHardwareStatus).await?;
+        let fatal = hw.fatal_problems();
+        if !fatal.is_empty() {
+            return Err(DeviceError::Refused {
+                code: GetHardwareStatus::CODE,
+                detail: format!(
+                    "DLPC350 hardware status {:#04x}: {}",
+                    hw.0,
+                    fatal.join("; ")
+                ),
+            });
+        }
+        self.pattern_mode_confirmed().await?;
         self.execute(&SetPatternSource(PatternSource::VideoPort))
             .await?;
         self.execute(&seq.config).await?;
@@ -221,7 +288,8 @@ impl<H: HidLink> Dlpc350<H> {
         self.execute(&WriteMailbox(seq.entries.clone())).await?;
         self.execute(&MailboxControl(Mailbox::Closed)).await?;
         let back = self.read_lut().await?;
-        if back != seq.entries {
+        // The controller may return more than was written; what was written comes first.
+        if back.get(..seq.entries.len()) != Some(&seq.entries[..]) {
             return Err(DeviceError::Protocol(format!(
                 "DLPC350 LUT read back differs from what was written: {back:?}"
             )));
@@ -263,21 +331,31 @@ impl<H: HidLink> PlaneSequencer for Dlpc350<H> {
         let planes = schedule.planes().len() as u64;
         let period = schedule.subframe_period();
         let frame = seq.frame_period;
-        self.execute(&PatternDisplay(SequenceAction::Start)).await?;
-        self.run = Some(Run {
-            host_start: self.clock.now(),
-            start: Instant::now(),
-            next: 0,
-            planes,
-            period,
-            frame,
-        });
-        Ok(())
+        for _ in 0..2 {
+            let (host_start, start) = (self.clock.now(), Instant::now());
+            self.execute(&PatternDisplay(SequenceAction::Start)).await?;
+            tokio::time::sleep(START_SETTLE).await;
+            if self.execute(&GetMainStatus).await?.sequencer_running() {
+                self.run = Some(Run {
+                    host_start,
+                    start,
+                    next: 0,
+                    planes,
+                    period,
+                    frame,
+                });
+                return Ok(());
+            }
+        }
+        Err(DeviceError::Refused {
+            code: PatternDisplay::CODE,
+            detail: "the DLPC350 acknowledged Start twice but its sequencer is not running".into(),
+        })
     }
 
     async fn stop(&mut self) -> Result<(), DeviceError> {
         self.run = None;
-        self.execute(&PatternDisplay(SequenceAction::Stop)).await
+        self.stop_confirmed().await
     }
 
     async fn next_event(&mut self) -> Result<SequencerEvent, DeviceError> {

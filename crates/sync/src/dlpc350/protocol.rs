@@ -391,10 +391,66 @@ status_read!(
     GetValidation, 0x1A1A, "LUT validation status", ValidationStatus
 );
 
+/// A read command without payload whose reply's first byte is one of an enum's values.
+macro_rules! enum_read {
+    ($(#[$m:meta])* $cmd:ident, $code:literal, $name:literal, $ty:ident) => {
+        $(#[$m])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+        pub struct $cmd;
+        impl Command for $cmd {
+            const CODE: u16 = $code;
+            const NAME: &'static str = $name;
+            const READ: bool = true;
+            type Reply = $ty;
+            fn encode(&self) -> Vec<u8> {
+                Vec::new()
+            }
+            fn decode(payload: &[u8]) -> Result<Self, ProtocolError> {
+                exact::<0>($code, $name, payload).map(|_| $cmd)
+            }
+            fn encode_reply(r: &$ty) -> Vec<u8> {
+                vec![*r as u8]
+            }
+            fn decode_reply(data: &[u8]) -> Result<$ty, ProtocolError> {
+                let b = *data.first().ok_or_else(|| field($name, "empty reply"))?;
+                $ty::from_byte(b).ok_or_else(|| field($name, format!("value {b} is not defined")))
+            }
+        }
+    };
+}
+
+enum_read!(
+    /// 0x1A1B read: the display mode. TI's `DLPC350_GetMode` reads any non-zero byte as
+    /// pattern mode; this reads 0 and 1 and refuses the rest.
+    GetDisplayMode, 0x1A1B, "display mode read", DisplayMode
+);
+enum_read!(
+    /// 0x1A24 read: whether the pattern sequence is stopped, paused or running (TI's
+    /// `DLPC350_GetPatternDisplay`).
+    GetPatternDisplay, 0x1A24, "pattern display read", SequenceAction
+);
+
 impl HardwareStatus {
+    /// Bit 1: incompatible controller or DMD (hardware.md; DLPC900 clients name the same bit so,
+    /// and two DLPC350 C++ wrappers leave it "reserved", so a set bit is never normal).
+    pub const INCOMPATIBLE: u8 = 0x02;
     /// Bit 0 set means initialisation succeeded.
     pub fn init_ok(self) -> bool {
         self.0 & 0x01 != 0
+    }
+    pub fn incompatible(self) -> bool {
+        self.0 & Self::INCOMPATIBLE != 0
+    }
+    /// What stops the controller from being programmed at all, in words.
+    pub fn fatal_problems(self) -> Vec<&'static str> {
+        let mut v = Vec::new();
+        if !self.init_ok() {
+            v.push("internal initialisation failed");
+        }
+        if self.incompatible() {
+            v.push("incompatible controller or DMD (or wrong firmware)");
+        }
+        v
     }
     pub fn drc_error(self) -> bool {
         self.0 & 0x04 != 0
@@ -436,7 +492,11 @@ impl ValidationStatus {
     pub const EXPOSURE_OR_PERIOD_INVALID: u8 = 0x01;
     pub const PATTERN_NUMBER_INVALID: u8 = 0x02;
     pub const TRIG_OUT1_WARNING: u8 = 0x04;
-    pub const POST_VECTOR_WARNING: u8 = 0x08;
+    /// Bit 3. TI's SDK (lcr4500.cpp): "black vector missing when exposure less than frame
+    /// period"; TI's API (dlpc350_api.cpp): "post vector was not inserted prior to external
+    /// triggered vector". Both hold: its fill rule (insert black in both cases) is what
+    /// [`super::sequence`] follows.
+    pub const BLACK_VECTOR_MISSING: u8 = 0x08;
     pub const DARK_GAP_TOO_SHORT: u8 = 0x10;
     pub const BUSY: u8 = 0x80;
     /// Still validating: poll again.
@@ -462,8 +522,9 @@ impl ValidationStatus {
                 "TRIG_OUT1 continuous or overlapping black sectors",
             ),
             (
-                Self::POST_VECTOR_WARNING,
-                "post vector missing before an externally triggered pattern",
+                Self::BLACK_VECTOR_MISSING,
+                "black vector missing when exposure is less than the period, or before an \
+                 externally triggered pattern",
             ),
             (
                 Self::DARK_GAP_TOO_SHORT,
@@ -822,8 +883,13 @@ impl Command for ReadMailbox {
     fn encode_reply(r: &Vec<LutEntry>) -> Vec<u8> {
         lut_to_bytes(r)
     }
+    /// Every whole entry the controller sends, up to [`MAX_LUT_ENTRIES`]: the reply may run
+    /// past the entries in use (TI's `DLPC350_GetPatLut` reads the first `numEntries * 3`
+    /// bytes and ignores the rest), so the caller compares the prefix it wrote.
     fn decode_reply(data: &[u8]) -> Result<Vec<LutEntry>, ProtocolError> {
-        lut_from_bytes(Self::NAME, data)
+        let whole = data.len() / 3 * 3;
+        let entries = &data[..whole.min(3 * MAX_LUT_ENTRIES)];
+        lut_from_bytes(Self::NAME, entries)
     }
 }
 

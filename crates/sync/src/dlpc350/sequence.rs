@@ -4,7 +4,10 @@
 //! splits it into one pattern per focal plane (plane `i` is pattern number `i` at the deepest
 //! bit depth that fits all planes in 24 bits), shows them at the sub-frame period after each
 //! VSYNC, pulses TRIG_OUT_1 at every pattern (lens steps) and TRIG_OUT_2 at the first pattern
-//! of each frame (lens sweep starts). The settle allowance is dark time after each exposure.
+//! of each frame (lens sweep starts). The settle allowance is dark time after each exposure,
+//! filled with black as TI's SDK fills it (`LCr4500::CreateSendStartSequenceLut`: insert black
+//! when the exposure is shorter than the period, and on the entry before an externally
+//! triggered one), or the controller's validation fails bit 3.
 
 use std::time::Duration;
 
@@ -95,6 +98,7 @@ impl PatternSequence {
             .find(|d| min_exposure_us(*d).is_some_and(|min| exposure_us >= min))
             .or_else(|| fitting.clone().min())
             .ok_or_else(|| invalid(format!("{n} planes do not fit one 24-bit video frame")))?;
+        let black_fill = exposure_us < period_us;
         let entries = (0..n)
             .map(|i| LutEntry {
                 // The first pattern waits for VSYNC and takes the new frame's buffer
@@ -108,7 +112,9 @@ impl PatternSequence {
                 bit_depth,
                 leds: cfg.leds & 0x07,
                 invert: false,
-                insert_black: false,
+                // Entry 0 waits for VSYNC, so the last entry (before it, as the sequence
+                // repeats) clears the DMD after its exposure too.
+                insert_black: black_fill || i + 1 == n,
                 buffer_swap: i == 0,
                 trig_out_prev: false,
             })
@@ -221,6 +227,13 @@ mod tests {
         assert!(s.entries[1..]
             .iter()
             .all(|e| e.trigger == TriggerType::Continue));
+        // 1000 us of settle time is dark: black fill on every entry (TI's SDK rule).
+        assert!(s.entries.iter().all(|e| e.insert_black));
+        // Exposure equal to the period: black only before the VSYNC-triggered first entry.
+        let s = PatternSequence::for_schedule(&schedule(4, 4000, 0), &Dlpc350Config::default())
+            .unwrap();
+        let black: Vec<bool> = s.entries.iter().map(|e| e.insert_black).collect();
+        assert_eq!(black, vec![false, false, false, true]);
     }
 
     #[test]
