@@ -672,7 +672,11 @@ mod tests {
         let r = payload(&ask(&mut sim, &cmd(b"MwCA"))).to_vec();
         // Holding the zero-current -2 D is outside what 20 °C allows (-1.9 D): bit 6, a
         // warning; no error bits.
-        assert_eq!(r[3], status_bit::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE as u8, "{r:?}");
+        assert_eq!(
+            r[3],
+            status_bit::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE as u8,
+            "{r:?}"
+        );
         assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x05");
         // Limits too wide for the current window (upper current limit raw 512 = 36.6 mA): the
         // holdable range inverts (bit 4).

@@ -1,6 +1,8 @@
 //! `dioptra gaze --device SPEC info|stream`: run an eye-tracker driver, on hardware or
 //! in-process against a simulated tracker, and print its samples with the processor's
-//! reading of them (phase, fused vergence).
+//! reading of them (phase, fused vergence). `dioptra gaze inspect --descriptor FILE |
+//! --device SPEC`: what the usage page 0x12 driver finds in a report descriptor, and whether
+//! it can drive the device (exit 0) or what it lacks (exit 1).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -26,7 +28,7 @@ pub struct Args {
     /// sim-hid:SCENARIO (simulated usage page 0x12 tracker), hid:VID:PID or hid:/dev/hidrawN.
     /// Scenarios: saccades, fixation, pursuit, vergence, blinks.
     #[arg(long)]
-    device: String,
+    device: Option<String>,
     /// Sample rate of a simulated tracker, Hz.
     #[arg(long, default_value_t = 500.0)]
     rate: f64,
@@ -44,6 +46,18 @@ pub struct Args {
 enum Action {
     /// What the tracker reports about itself.
     Info,
+    /// The report ids and fields the usage page 0x12 driver finds in a report descriptor
+    /// (usage, offset, size, unit, scale) and whether it can drive the device. Exit 1, with
+    /// what is missing, when it cannot. Reads no reports, so the device can stay in use.
+    Inspect {
+        /// Raw descriptor bytes, e.g. a copy of
+        /// /sys/class/hidraw/hidrawN/device/report_descriptor.
+        #[arg(long, conflicts_with = "device")]
+        descriptor: Option<PathBuf>,
+        /// hid:/dev/hidrawN (read from sysfs), hid:VID:PID, or sim-hid (the simulator's).
+        #[arg(long)]
+        device: Option<String>,
+    },
     /// Print samples as they arrive (real time), one line each, after a header line.
     Stream {
         /// Stop after this many samples.
@@ -92,9 +106,23 @@ fn sim_source(what: &str, args: &Args) -> Result<Box<dyn SampleSource>> {
 }
 
 async fn run_async(args: Args) -> Result<()> {
+    if let Action::Inspect { descriptor, device } = &args.action {
+        let (bytes, what) = match (descriptor, device.as_ref().or(args.device.as_ref())) {
+            (Some(path), _) => (
+                std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?,
+                path.display().to_string(),
+            ),
+            (None, Some(spec)) => (descriptor_of(spec).await?, spec.clone()),
+            (None, None) => bail!("inspect needs --descriptor FILE or --device hid:/dev/hidrawN"),
+        };
+        return inspect(&bytes, &what);
+    }
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let (kind, rest) = args
+    let device = args
         .device
+        .as_deref()
+        .context("--device SPEC is required (sim:SCENARIO, sim-hid:SCENARIO or hid:VID:PID)")?;
+    let (kind, rest) = device
         .split_once(':')
         .context("--device must be sim:SCENARIO, sim-hid:SCENARIO or hid:VID:PID")?;
     match kind {
@@ -186,6 +214,7 @@ async fn act<G: GazeSource>(mut g: G, action: &Action, info: String, noise_deg: 
             println!("first sample: {}", line(&s, None));
             Ok(())
         }
+        Action::Inspect { .. } => bail!("inspect reads a descriptor, not samples"),
         Action::Stream {
             count,
             seconds,
@@ -199,6 +228,108 @@ async fn act<G: GazeSource>(mut g: G, action: &Action, info: String, noise_deg: 
                 csv: csv.clone(),
             };
             stream(&mut g, noise_deg, opts).await
+        }
+    }
+}
+
+/// The report descriptor of `spec`: sysfs for a hidraw node (no permission on the node
+/// needed), the device itself for VID:PID, the simulator's for `sim-hid`.
+async fn descriptor_of(spec: &str) -> Result<Vec<u8>> {
+    let (kind, rest) = spec.split_once(':').unwrap_or((spec, ""));
+    match kind {
+        "sim-hid" => Ok(sim_hid::DESCRIPTOR.to_vec()),
+        "hid" => {
+            if let Some((vid, pid)) = parse_vid_pid(rest) {
+                let mut link = HidapiLink::open(vid, pid, None)?;
+                return Ok(link.report_descriptor().await?);
+            }
+            let node = std::path::Path::new(rest)
+                .file_name()
+                .and_then(|n| n.to_str())
+                .filter(|n| n.starts_with("hidraw"))
+                .with_context(|| format!("{rest:?} is not a /dev/hidrawN path"))?;
+            let sys = format!("/sys/class/hidraw/{node}/device/report_descriptor");
+            std::fs::read(&sys).with_context(|| format!("cannot read {sys}"))
+        }
+        other => bail!("inspect reads hid:/dev/hidrawN, hid:VID:PID or sim-hid, not {other:?}"),
+    }
+}
+
+/// Prints what the page 0x12 driver finds in `bytes`; an error (exit 1) names what it lacks.
+fn inspect(bytes: &[u8], what: &str) -> Result<()> {
+    use dioptra_gaze::eye_hid::protocol::{usage_name, TrackerLayout};
+    use dioptra_gaze::hid_descriptor::{self, ReportKind};
+    println!("descriptor {what}: {} bytes", bytes.len());
+    let d = hid_descriptor::parse(bytes).context("the report descriptor does not parse")?;
+    let pages: Vec<String> = d.applications.iter().map(|u| u.to_string()).collect();
+    println!("application collections: {}", pages.join(", "));
+    println!("reports (id, kind, bytes with the id byte):");
+    for &(kind, id, bits) in &d.report_bits {
+        let kind = match kind {
+            ReportKind::Input => "input",
+            ReportKind::Output => "output",
+            ReportKind::Feature => "feature",
+        };
+        println!("  {id:#04x} {kind:7} {}", 1 + bits.div_ceil(8));
+    }
+    match TrackerLayout::locate_all(&d) {
+        Ok(layout) => {
+            println!(
+                "fields the driver reads (offset and size in bits, after the report id):\n  {:<28} {:<11} {:>6} {:>6} {:>5} {:>7} {:>4}  {:<16} flags",
+                "name", "usage", "report", "offset", "bits", "unit", "exp", "scale"
+            );
+            for l in layout.fields() {
+                let f = &l.field;
+                let usage = format!("{:#06x}", f.usage.id());
+                println!(
+                    "  {:<28} {:<11} {:>#6x} {:>6} {:>5} {:>#7x} {:>4}  {:<16} {}",
+                    l.name,
+                    usage,
+                    f.report_id,
+                    f.bit_offset,
+                    f.total_bits(),
+                    f.unit,
+                    f.unit_exponent,
+                    format!("{} {}", l.scale, l.page_unit).trim_end(),
+                    if f.constant { "constant" } else { "data" }
+                );
+            }
+            for note in &layout.notes {
+                println!("note: {note}");
+            }
+            let t = &layout.tracking;
+            let optional = [
+                ("Left Eye Position", t.left_eye.is_some()),
+                ("Right Eye Position", t.right_eye.is_some()),
+                ("Head Position", t.head_position.is_some()),
+                ("Head Direction", t.head_direction.is_some()),
+                ("Configuration report", layout.configuration.is_some()),
+            ];
+            let absent: Vec<&str> = optional.iter().filter(|o| !o.1).map(|o| o.0).collect();
+            if !absent.is_empty() {
+                println!("optional, not used: {}", absent.join(", "));
+            }
+            println!("dioptra can drive this device (driver hid, usage page 0x12)");
+            Ok(())
+        }
+        Err(errors) => {
+            println!("dioptra cannot drive this device; it lacks:");
+            for e in &errors {
+                println!("  - {e}");
+            }
+            let names: Vec<&str> = d
+                .fields
+                .iter()
+                .map(|f| usage_name(f.usage))
+                .filter(|n| !n.is_empty())
+                .collect();
+            if !names.is_empty() {
+                println!("page 0x12 usages it has: {}", names.join(", "));
+            }
+            bail!(
+                "{what} cannot be driven as a usage page 0x12 eye tracker: {}",
+                errors[0]
+            )
         }
     }
 }
@@ -325,7 +456,7 @@ mod tests {
 
     fn args(device: &str, action: Action) -> Args {
         Args {
-            device: device.into(),
+            device: Some(device.into()),
             rate: 1000.0,
             noise_deg: 0.03,
             seed: 1,

@@ -138,6 +138,8 @@ pub struct Located {
     pub field: Field,
     /// Multiplies the raw value into µm, µs, degrees, or leaves it (plain numbers).
     pub scale: f64,
+    /// The unit `scale` leads to: "µm", "µs", "deg" or "" (plain numbers).
+    pub page_unit: &'static str,
 }
 
 impl Located {
@@ -167,10 +169,17 @@ impl Located {
             (Quantity::Angle, _) => return Err(bad("rotation")),
             (Quantity::Plain, _) => exp,
         };
+        let page_unit = match q {
+            Quantity::Length => "µm",
+            Quantity::Time => "µs",
+            Quantity::Angle => "deg",
+            Quantity::Plain => "",
+        };
         Ok(Located {
             name,
             field: field.clone(),
             scale,
+            page_unit,
         })
     }
 

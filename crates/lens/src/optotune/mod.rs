@@ -186,7 +186,7 @@ impl<L: ByteLink> Optotune<L> {
     /// reconnect without them; warnings are logged.
     pub async fn status(&mut self) -> Result<Status, DeviceError> {
         let s = self.request(&protocol::GetStatus).await?;
-        self.note_status(s);
+        self.note_status(s, true);
         Ok(s)
     }
 
@@ -195,9 +195,15 @@ impl<L: ByteLink> Optotune<L> {
         self.fault
     }
 
-    /// Records `s`'s error bits (or their absence) and logs its warnings.
-    fn note_status(&mut self, s: Status) {
-        self.fault = Some(s.errors()).filter(|e| e.0 != 0);
+    /// Records `s`'s error bits (or their absence) and logs its warnings. A status byte from a
+    /// `PwTA`/`MwCA` reply (`full_word` false) says nothing about the bits above byte #1.
+    fn note_status(&mut self, s: Status, full_word: bool) {
+        let kept = if full_word {
+            0
+        } else {
+            self.fault.map_or(0, |f| f.0 & !0xff)
+        };
+        self.fault = Some(Status(s.errors().0 | kept)).filter(|e| e.0 != 0);
         if s.warnings().0 != 0 {
             tracing::warn!("Lens Driver 4 status: {}", s.warnings().names().join(", "));
         }
@@ -293,7 +299,7 @@ impl<L: ByteLink> Optotune<L> {
         self.mode = Mode::FocalPower;
         // The full word: byte #2 holds the lens-incompatible bit, which no range reply carries.
         let status = self.exchange(&protocol::GetStatus).await?.0;
-        self.note_status(status);
+        self.note_status(status, true);
         check_status(status, "at connect")?;
         let device_range = self.adopt_range(range)?;
         self.info = Some(OptotuneInfo {
@@ -313,7 +319,7 @@ impl<L: ByteLink> Optotune<L> {
         let (r, _) = self
             .exchange(&protocol::SetTemperatureLimits { upper_c, lower_c })
             .await?;
-        self.note_status(r.status);
+        self.note_status(r.status, false);
         check_status(r.status, "after setting the temperature limits (PwTA)")?;
         Ok(r)
     }
@@ -321,7 +327,7 @@ impl<L: ByteLink> Optotune<L> {
     /// `MwCA`, its status byte checked, then `MMA` to confirm the device switched.
     async fn enter_focal_power_mode(&mut self) -> Result<protocol::FocalPowerRange, DeviceError> {
         let (r, _) = self.exchange(&protocol::SetFocalPowerMode).await?;
-        self.note_status(r.status);
+        self.note_status(r.status, false);
         check_status(r.status, "when entering focal-power mode (MwCA)")?;
         let mode = self.exchange(&protocol::GetMode).await?.0;
         if mode != Mode::FocalPower {
