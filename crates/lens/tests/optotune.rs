@@ -487,6 +487,25 @@ async fn garbage_from_the_device_is_drained_and_reported() {
     assert!(d.temperature_c().await.is_ok());
 }
 
+/// A state read dropped after its command went out (as the rig's lens task drops one when a
+/// new command arrives): its reply, still in flight, is let through and dropped, not read as
+/// the next command's reply.
+#[tokio::test(start_paused = true)]
+async fn a_dropped_read_does_not_misframe_the_next_reply() {
+    let (mut d, _, faults) = driver().await;
+    faults.set_latency(Duration::from_millis(5));
+    for _ in 0..3 {
+        let cut = tokio::time::timeout(Duration::from_millis(1), d.state()).await;
+        assert!(cut.is_err(), "the read was cut short");
+        let t = d.temperature_c().await.unwrap();
+        assert!((t - 25.0).abs() < 1.0, "{t}");
+        d.set_power(Diopters(1.0)).await.unwrap();
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    assert!((d.state().await.unwrap().power.0 - 1.0).abs() < 0.01);
+    assert_eq!(d.reconnects(), 0);
+}
+
 #[tokio::test(start_paused = true)]
 async fn timeout_is_typed_and_leaves_the_link_usable() {
     let (mut d, ctl, _) = driver().await;

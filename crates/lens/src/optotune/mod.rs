@@ -89,6 +89,8 @@ pub struct Optotune<L: ByteLink> {
     last_power: Option<Diopters>,
     /// Status error bits last seen; focal-power control stays stopped while set.
     fault: Option<Status>,
+    /// Reply payload length of an exchange dropped while waiting for its reply.
+    unread_reply: Option<usize>,
     buf: Vec<u8>,
     stray_crc_errors: u64,
     reconnects: u64,
@@ -142,6 +144,7 @@ impl<L: ByteLink> Optotune<L> {
             mode: Mode::Other(0),
             last_power: None,
             fault: None,
+            unread_reply: None,
             buf: Vec::with_capacity(protocol::MAX_COMMAND_LEN),
             stray_crc_errors: 0,
             reconnects: 0,
@@ -436,6 +439,16 @@ impl<L: ByteLink> Optotune<L> {
         let timeout = self.cfg.reply_timeout;
         let scaling = self.scaling;
         let link = self.link.as_mut().ok_or_else(not_connected)?;
+        // A caller dropped the last exchange after its command went out (a state read cut
+        // short by a new command): its reply may still be on the way. Let it arrive and drop
+        // it, or it would be read as this command's reply.
+        if let Some(expected) = self.unread_reply.take() {
+            let mut stale = [0u8; MAX_FRAME_LEN];
+            match read_frame(link, &mut stale, expected, timeout).await {
+                Err(e) if e.needs_reconnect() => return Err(e),
+                _ => {}
+            }
+        }
         self.stray_crc_errors += drain(link).await?;
         protocol::encode(cmd, &scaling, &mut self.buf)
             .map_err(|e| DeviceError::Invalid(e.to_string()))?;
@@ -444,31 +457,50 @@ impl<L: ByteLink> Optotune<L> {
         if C::REPLY_LEN == 0 {
             return Ok((C::parse(&[], &scaling).map_err(protocol_error)?, sent));
         }
-        // Longest reply: IR's 10-byte payload + CRC + CRLF.
-        let mut frame = [0u8; 16];
-        let deadline = Instant::now() + timeout;
-        let left = || deadline.saturating_duration_since(Instant::now());
-        let timed_out = |e: LinkError| match e {
-            LinkError::Timeout { .. } => LinkError::Timeout {
-                ms: u64::try_from(timeout.as_millis()).unwrap_or(u64::MAX),
-            }
-            .into(),
-            other => DeviceError::from(other),
-        };
-        link.read_exact(&mut frame[..1], left())
-            .await
-            .map_err(timed_out)?;
-        let len = match frame[0] {
-            b'N' => protocol::CRC_ERROR_REPLY.len(),
-            b'E' => protocol::ERROR_PAYLOAD_LEN + protocol::TRAILER_LEN,
-            _ => C::REPLY_LEN + protocol::TRAILER_LEN,
-        };
-        link.read_exact(&mut frame[1..len], left())
-            .await
-            .map_err(timed_out)?;
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        // Cleared only once the read ends, whatever its outcome: still set means dropped.
+        self.unread_reply = Some(C::REPLY_LEN);
+        let read = read_frame(link, &mut frame, C::REPLY_LEN, timeout).await;
+        self.unread_reply = None;
+        let len = read?;
         let r = protocol::decode::<C>(&frame[..len], &scaling).map_err(protocol_error)?;
         Ok((r, self.clock.now()))
     }
+}
+
+/// Longest reply frame: IR's 10-byte payload + CRC + CRLF.
+const MAX_FRAME_LEN: usize = 16;
+
+/// Reads one reply frame of a command whose payload is `reply_len` bytes (`N\r\n` and `E`
+/// frames have their own lengths) within `timeout`; returns its length.
+async fn read_frame<L: ByteLink>(
+    link: &mut L,
+    frame: &mut [u8; MAX_FRAME_LEN],
+    reply_len: usize,
+    timeout: Duration,
+) -> Result<usize, DeviceError> {
+    let deadline = Instant::now() + timeout;
+    let left = || deadline.saturating_duration_since(Instant::now());
+    let timed_out = |e: LinkError| match e {
+        LinkError::Timeout { .. } => LinkError::Timeout {
+            ms: u64::try_from(timeout.as_millis()).unwrap_or(u64::MAX),
+        }
+        .into(),
+        other => DeviceError::from(other),
+    };
+    link.read_exact(&mut frame[..1], left())
+        .await
+        .map_err(timed_out)?;
+    let len = match frame[0] {
+        b'N' => protocol::CRC_ERROR_REPLY.len(),
+        b'E' => protocol::ERROR_PAYLOAD_LEN + protocol::TRAILER_LEN,
+        _ => reply_len + protocol::TRAILER_LEN,
+    }
+    .min(MAX_FRAME_LEN);
+    link.read_exact(&mut frame[1..len], left())
+        .await
+        .map_err(timed_out)?;
+    Ok(len)
 }
 
 /// Reads and drops whatever already arrived; returns how many `N\r\n` it held.
