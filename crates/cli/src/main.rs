@@ -1,3 +1,7 @@
+// Without the `simulated` feature the demo and the loop suite are left out, and with them
+// some helpers they share with other commands.
+#![cfg_attr(not(feature = "simulated"), allow(dead_code, unused_imports))]
+
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
 //! add a variant to [`Command`] and a module beside this file.
 

@@ -15,12 +15,13 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{Diopters, Timestamp};
 use serde::Serialize;
 
-use crate::serve::config::{Method, Mode, RigConfig};
-use crate::serve::devices::DeviceInput;
-use crate::serve::engine::{Command, Engine, Input};
-use crate::serve::recording::{self, ControlRec, Rec, Recorded};
-use crate::serve::render::Renderer;
-use crate::serve::Control;
+use dioptra_rig::config::{Method, Mode, RigConfig};
+use dioptra_rig::devices::DeviceInput;
+use dioptra_rig::engine::{Command, Engine, Input};
+use dioptra_rig::recording::{self, ControlRec, Rec, Recorded};
+use dioptra_rig::render::Renderer;
+use dioptra_rig::scene::SceneRenderer;
+use dioptra_rig::Control;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -96,7 +97,7 @@ impl Cmd {
                 t_ns: t.0,
                 id: id.0,
                 power_d: power.0,
-                reason: crate::serve::engine::reason_name(reason),
+                reason: dioptra_rig::engine::reason_name(reason),
             },
             Command::RenderFrame(req) => Cmd::Render {
                 t_ns: t.0,
@@ -235,13 +236,18 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
     cfg.method = Method::parse(&start.method)
         .with_context(|| format!("unknown method {:?} in the recording", start.method))?;
-    let renderer = Renderer::new(&cfg).context("cannot render the recorded rig's scene")?;
-    let mut engine = Engine::new(&cfg, renderer.input())
+    let renderer = SceneRenderer::new(&cfg).context("cannot render the recorded rig's scene")?;
+    // The scene is static: the depth the daemon gave at its start is the one every /depth
+    // message stands for.
+    let depth = renderer
+        .depth(*t0)
+        .context("the recorded rig's scene has no depth")?;
+    let mut engine = Engine::new(&cfg)
         .map_err(anyhow::Error::msg)
         .context("cannot start the scheduler")?;
     if !start.from_start {
         // The daemon gave the scene's depth at its start, before this recording began.
-        let _ = engine.step(*t0, Input::Depth);
+        let _ = engine.step(*t0, Input::Depth(depth.clone()));
     }
     if let Some(d) = start.manual_focus_d {
         // Set before the recording began: its commands are not in the file.
@@ -258,12 +264,13 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
             continue;
         }
         let input = match m {
-            Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into())),
+            Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into(), std::time::Instant::now())),
             Rec::LensState(s) => Input::Device(DeviceInput::LensState(s.into())),
             Rec::LensWire(w) => Input::Device(DeviceInput::LensWire {
                 id: w.id,
                 requested: Diopters(w.requested_d),
                 wire_time: Timestamp(w.wire_ns),
+                host_path: None,
             }),
             Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(l.up)),
             Rec::Sync(e) => Input::Device(DeviceInput::Sync(e.into())),
@@ -273,7 +280,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
                     .with_context(|| format!("unknown method {:?} in /frame", f.method))?,
                 render_time: Duration::from_nanos(f.render_ns),
             },
-            Rec::Depth(_) => Input::Depth,
+            Rec::Depth(_) => Input::Depth(depth.clone()),
             Rec::Tick(_) => Input::Tick,
             Rec::Shutdown(_) => Input::Shutdown,
             Rec::Control(c) => Input::Control(match c {

@@ -30,8 +30,10 @@ use serde::Deserialize;
 use serde_json::json;
 use tokio::sync::broadcast;
 
-use super::config::{methods, Method, Mode};
-use super::{Control, Shared};
+use dioptra_rig::config::{methods, Method, Mode};
+use dioptra_rig::{Control, ControlError, RigState};
+
+type Shared = RigState;
 
 /// A 4xx/5xx answer with a JSON body.
 #[derive(Debug)]
@@ -49,12 +51,20 @@ impl ApiError {
             key: None,
         }
     }
-    pub fn message(&self) -> &str {
-        &self.error
-    }
     fn at(mut self, key: &str) -> Self {
         self.key = Some(key.to_string());
         self
+    }
+}
+
+impl From<ControlError> for ApiError {
+    fn from(e: ControlError) -> Self {
+        let status = match &e {
+            ControlError::Conflict(_) => StatusCode::CONFLICT,
+            ControlError::ShuttingDown => StatusCode::SERVICE_UNAVAILABLE,
+            ControlError::Failed { .. } => StatusCode::INTERNAL_SERVER_ERROR,
+        };
+        ApiError::new(status, e.to_string())
     }
 }
 
@@ -207,7 +217,7 @@ async fn set_method(
         )
         .at("method")
     })?;
-    let mode = super::devices::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let mode = dioptra_core::lock(&s.status).mode.unwrap_or(s.cfg.mode);
     if let Some(why) = method.unavailable(mode) {
         return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at("method"));
     }
@@ -264,11 +274,12 @@ async fn sim_plug(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let sims = s.sims.get();
     let plug = sims.and_then(|sims| match device.as_str() {
-        "lens" => sims.lens.as_ref().map(|(_, p)| p),
+        "lens" => sims.lens.as_ref(),
         "gaze" => sims.gaze.as_ref(),
         "sync" => sims.sync.as_ref(),
         _ => None,
     });
+    let plug = plug.map(|slot| &slot.plug);
     let Some(plug) = plug else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,

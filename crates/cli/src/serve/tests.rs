@@ -11,9 +11,10 @@ use http_body_util::BodyExt;
 use serde_json::{json, Value};
 use tower::ServiceExt;
 
-use super::config::tests::SIM_RIG;
-use super::config::RigConfig;
-use super::devices::State;
+use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_RIG as SIM_RIG};
+use dioptra_rig::devices::State;
+use dioptra_rig::render::Renderer as _;
+
 use super::{api, Daemon, Listening};
 
 /// The example sim rig on an ephemeral port, recording into `dir` (from the start if `record`).
@@ -70,7 +71,9 @@ fn status_of(d: &Daemon) -> Value {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_api_rejects_malformed_requests_with_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let app = api::router(d.shared().clone());
 
     // (method, path, body, status, key, words in the error)
@@ -291,12 +294,23 @@ fn parse_http(out: &[u8]) -> (u16, Value) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let Listening::Tcp(addr) = d.listening().clone() else {
         panic!("not TCP")
     };
     assert!(addr.ip().is_loopback() && addr.port() != 0);
-    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+    let lens_sim = d
+        .shared()
+        .sims
+        .get()
+        .unwrap()
+        .lens
+        .clone()
+        .unwrap()
+        .lens
+        .unwrap();
 
     // The stream carries gaze samples from the simulated tracker.
     let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/stream"))
@@ -383,8 +397,19 @@ where
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
-    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+    let d = Daemon::start_config(sim_config(dir.path(), true))
+        .await
+        .unwrap();
+    let lens_sim = d
+        .shared()
+        .sims
+        .get()
+        .unwrap()
+        .lens
+        .clone()
+        .unwrap()
+        .lens
+        .unwrap();
     let sh = d.shared().clone();
     // Run until gaze has moved the lens and frames have been shown.
     eventually("gaze-driven lens commands and frames", || {
@@ -413,7 +438,7 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     // The recording is complete (summary and footer written) and holds the run.
     let stats = report.recording.unwrap().unwrap();
     assert_eq!(stats.path, rec_path);
-    let back = super::recording::read(&rec_path).unwrap();
+    let back = dioptra_rig::recording::read(&rec_path).unwrap();
     assert!(back.complete);
     assert_eq!(back.messages.len() as u64, stats.messages);
     let count = |topic: &str| {
@@ -438,7 +463,9 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
     eventually("the lens to connect", || {
@@ -493,8 +520,8 @@ async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
     let missing = dir.path().join("ttyACM-missing");
-    cfg.devices.lens.port = super::config::Port::Path(missing.clone());
-    let d = Daemon::start(cfg).await.unwrap();
+    cfg.devices.lens.port = dioptra_rig::config::Port::Path(missing.clone());
+    let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let lens = eventually("a failed lens connect", || {
         let s = sh.registry.snapshot()["lens"].clone();
@@ -525,7 +552,7 @@ async fn the_api_on_a_unix_socket_is_private() {
         "listen = \"127.0.0.1:7420\"",
         &format!("unix = {:?}", sock.display().to_string()),
     );
-    let d = Daemon::start(RigConfig::parse(&text).unwrap())
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
         .await
         .unwrap();
     let mode = std::fs::metadata(&sock).unwrap().permissions().mode() & 0o777;
@@ -547,17 +574,21 @@ async fn the_api_on_a_unix_socket_is_private() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_recorded_run_replays_to_the_same_commands() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), true))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     eventually("a few gaze-driven lens commands", || {
         (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
     })
     .await;
     // An API command is part of the run too.
-    sh.control(super::Control::ManualFocus(Some(2.0)))
+    sh.control(dioptra_rig::Control::ManualFocus(Some(2.0)))
         .await
         .unwrap();
-    sh.control(super::Control::ManualFocus(None)).await.unwrap();
+    sh.control(dioptra_rig::Control::ManualFocus(None))
+        .await
+        .unwrap();
     eventually("frames", || {
         (sh.status_json()["counts"]["frames_shown"].as_u64() >= Some(5)).then_some(())
     })
@@ -589,7 +620,9 @@ async fn a_recorded_run_replays_to_the_same_commands() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
     eventually("the sync board to connect", || {
@@ -662,7 +695,7 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
         );
     let cfg = RigConfig::parse(&text).unwrap();
     assert!(cfg.auto_method);
-    let d = Daemon::start(cfg).await.unwrap();
+    let d = Daemon::start_config(cfg).await.unwrap();
     let planned = eventually("a planned frame", || {
         let s = status_of(&d);
         (!s["planned"].is_null()).then_some(s)
@@ -699,7 +732,7 @@ fn random_weights(dir: &Path) {
 
 fn network_config(dir: &Path, weights: &Path) -> RigConfig {
     let mut cfg = sim_config(dir, false);
-    cfg.method = super::config::Method(dioptra_sched::RenderMethod::Network);
+    cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Network);
     cfg.render.weights = Some(weights.to_path_buf());
     cfg
 }
@@ -712,7 +745,7 @@ fn the_network_renders_what_the_net_computes() {
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let cfg = network_config(dir.path(), &weights);
-    let r = super::render::Renderer::new(&cfg).unwrap();
+    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
     assert!(r.network_missing().is_empty());
     let c1 = dioptra_net::load_net(Some(&weights.join("c1.safetensors")), "c1").unwrap();
     let eye = dioptra_core::EyeModel {
@@ -723,14 +756,19 @@ fn the_network_renders_what_the_net_computes() {
     };
     let focus = dioptra_core::Diopters(1.5);
     let shown = r
-        .render(super::config::Mode::Varifocal, cfg.method, focus, None)
+        .render_frame(
+            dioptra_rig::config::Mode::Varifocal,
+            cfg.method,
+            focus,
+            None,
+        )
         .unwrap()
         .images;
     assert_eq!(shown, vec![c1.defocus(r.input(), focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
-        .render(
-            super::config::Mode::Varifocal,
+        .render_frame(
+            dioptra_rig::config::Mode::Varifocal,
             cfg.method,
             dioptra_core::Diopters(0.1),
             None,
@@ -740,7 +778,12 @@ fn the_network_renders_what_the_net_computes() {
     assert_ne!(shown, other);
     let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
     let layers = r
-        .render(super::config::Mode::Multifocal, cfg.method, focus, None)
+        .render_frame(
+            dioptra_rig::config::Mode::Multifocal,
+            cfg.method,
+            focus,
+            None,
+        )
         .unwrap()
         .images;
     assert_eq!(layers, c4.decompose(r.input()).unwrap().images);
@@ -754,10 +797,10 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
     cfg.optics.planes = vec![0.5, 1.5];
-    let r = super::render::Renderer::new(&cfg).unwrap();
+    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
     let missing = r.network_missing();
     assert_eq!(missing.len(), 1, "{missing:?}");
-    assert_eq!(missing[0].0, super::config::Mode::Multifocal);
+    assert_eq!(missing[0].0, dioptra_rig::config::Mode::Multifocal);
     assert!(
         missing[0].1.contains("planes [0.2, 0.8, 1.4, 2.0] D")
             && missing[0].1.contains("optics.planes is [0.5, 1.5] D"),
@@ -773,7 +816,7 @@ async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights(
     random_weights(&weights);
     // Only C1: varifocal runs, multifocal is refused with the missing file named.
     std::fs::remove_file(weights.join("c4.safetensors")).unwrap();
-    let d = Daemon::start(network_config(dir.path(), &weights))
+    let d = Daemon::start_config(network_config(dir.path(), &weights))
         .await
         .unwrap();
     let sh = d.shared().clone();
@@ -806,8 +849,8 @@ async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
-    cfg.mode = super::config::Mode::Multifocal;
-    let d = Daemon::start(cfg).await.unwrap();
+    cfg.mode = dioptra_rig::config::Mode::Multifocal;
+    let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     eventually("C4 layered frames", || {
         let v = sh.status_json();

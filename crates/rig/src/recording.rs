@@ -313,6 +313,10 @@ pub struct StartRec {
     pub manual_focus_d: Option<f32>,
     /// Whether the recording began with the daemon (a replay then starts from the same state).
     pub from_start: bool,
+    /// The device tasks' settings ([`crate::devices::DeviceSettings`]); absent in older
+    /// recordings.
+    #[serde(default)]
+    pub device_tasks: serde_json::Value,
 }
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
@@ -632,6 +636,7 @@ mod tests {
                     method: "gather".into(),
                     manual_focus_d: None,
                     from_start: true,
+                    device_tasks: serde_json::Value::Null,
                 }),
             ),
             (Timestamp(1), Rec::Gaze(GazeRec::from(&gaze(1_000)))),
