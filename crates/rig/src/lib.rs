@@ -354,7 +354,6 @@ impl ShutdownReport {
                 park_power,
                 reported_power: Some(r),
                 error: None,
-                ..
             }) => s += &format!("lens parked at {park_power} D (reports {r:.3} D)"),
             Some(ParkReport { error: Some(e), .. }) => s += &format!("lens: {e}"),
             _ => s += "lens: no report",

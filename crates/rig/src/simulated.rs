@@ -172,12 +172,6 @@ impl SimRun {
                 phase: end.status.phase,
             });
         }
-        // The scheduler's park went out as the loop stopped: its wire time is in the report.
-        if let Some((id, t)) = report.park.as_ref().and_then(|p| p.last_command_wired) {
-            if let Some(c) = log.lens_commands.iter_mut().rev().find(|c| c.id.0 == id) {
-                c.wire.get_or_insert(t);
-            }
-        }
         if let Some(t) = state.sims.get().and_then(|s| s.gaze_truth.as_ref()) {
             log.truth = std::mem::take(&mut *lock(t));
         }

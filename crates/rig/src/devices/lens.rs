@@ -21,10 +21,6 @@ pub struct ParkReport {
     /// Power the lens reported after parking, when it answered.
     pub reported_power: Option<f32>,
     pub error: Option<String>,
-    /// The loop's last lens command (the scheduler's own park), sent as the rig stopped: its
-    /// command id and when it went on the wire.
-    #[serde(skip)]
-    pub last_command_wired: Option<(u64, dioptra_core::Timestamp)>,
 }
 
 /// Serves the lens until `stop`, then parks it at `park`.
@@ -62,7 +58,6 @@ where
                 park_power: park.0,
                 reported_power: None,
                 error: Some("the lens was not connected at shutdown, so it was not parked".into()),
-                last_command_wired: None,
             };
         };
         let mut health = LinkHealth::new(&policy);
@@ -181,19 +176,14 @@ async fn shut_down<D: VarifocalLens>(
     park: Diopters,
     timeout: Duration,
 ) -> ParkReport {
-    let mut wired = None;
     if commands.has_changed().unwrap_or(false) {
         let pending = *commands.borrow_and_update();
         if let Some(order) = pending {
-            if let Ok(t) = send(lens, order, out).await {
-                wired = Some((order.id, t));
-            }
+            // Reported like any command: the loop still reads inputs while devices stop.
+            let _ = send(lens, order, out).await;
         }
     }
-    ParkReport {
-        last_command_wired: wired,
-        ..park_lens(lens, park, timeout).await
-    }
+    park_lens(lens, park, timeout).await
 }
 
 /// Commands `park` and waits (up to `timeout`) until the lens reports it.
@@ -206,7 +196,6 @@ async fn park_lens<D: VarifocalLens>(
         park_power: park.0,
         reported_power: None,
         error: None,
-        last_command_wired: None,
     };
     if let Err(e) = lens.set_power(park).await {
         report.error = Some(format!("parking the lens failed: {e}"));

@@ -52,22 +52,59 @@ fn a_gone_link_is_lost_at_once_a_refusal_never_and_timeouts_after_a_run() {
     }
 }
 
+/// The device tasks of the example rig with `edit` applied to its config text, on the
+/// simulators.
+struct Started {
+    sims: SimDevices,
+    links: DeviceLinks,
+    tasks: DeviceTasks,
+    registry: Arc<Registry>,
+    inputs: mpsc::Receiver<DeviceInput>,
+    stop: CancellationToken,
+    cfg: Arc<RigConfig>,
+}
+
+fn start(edit: impl Fn(&str) -> String) -> Started {
+    let text = edit(SIM_RIG);
+    assert_ne!(text, SIM_RIG, "the edit changed nothing");
+    let cfg = Arc::new(RigConfig::parse(&text).unwrap());
+    let spec = SimSpec::from_config(&cfg).unwrap();
+    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+    let registry = Arc::new(Registry::default());
+    let (out, inputs) = mpsc::channel(4096);
+    let stop = CancellationToken::new();
+    let settings = DeviceSettings::from_config(&cfg);
+    let (sims, links, tasks) =
+        spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
+    Started {
+        sims,
+        links,
+        tasks,
+        registry,
+        inputs,
+        stop,
+        cfg,
+    }
+}
+
+impl Started {
+    async fn stop(self) {
+        self.stop.cancel();
+        for t in self.tasks.others {
+            t.await.unwrap();
+        }
+        self.tasks.lens.await.unwrap();
+    }
+}
+
 /// `driver = "dlpc350"` on the simulator: multifocal mode programs and starts the projector's
 /// pattern sequence, its sub-frames arrive in plane order, and after its cable is pulled and
 /// plugged back the sequence is reprogrammed and runs again.
 #[tokio::test(start_paused = true)]
 async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
-    let text = SIM_RIG.replace("driver = \"sync\"", "driver = \"dlpc350\"");
-    let cfg = Arc::new(RigConfig::parse(&text).unwrap());
-    let spec = SimSpec::from_config(&cfg).unwrap();
-    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
-    let registry = Arc::new(Registry::default());
-    let (out, mut inputs) = mpsc::channel(4096);
-    let stop = CancellationToken::new();
-    let settings = DeviceSettings::from_config(&cfg);
-    let (sims, links, tasks) =
-        spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
-    let planes = cfg.optics.planes.len() as u8;
+    let mut rig = start(|t| t.replace("driver = \"sync\"", "driver = \"dlpc350\""));
+    let planes = rig.cfg.optics.planes.len() as u8;
+    let (inputs, registry) = (&mut rig.inputs, rig.registry.clone());
     // The next `n` sub-frame starts (other devices' inputs skipped), within 5 s.
     async fn subframes(inputs: &mut mpsc::Receiver<DeviceInput>, n: usize) -> Vec<u8> {
         let mut got = Vec::new();
@@ -83,13 +120,14 @@ async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
         }
         got
     }
-    links.multifocal.send_replace(true);
-    let first = subframes(&mut inputs, 8).await;
+    rig.links.multifocal.send_replace(true);
+    let first = subframes(inputs, 8).await;
     assert_eq!(first.len(), 8, "sub-frames before the unplug: {first:?}");
     for w in first.windows(2) {
         assert_eq!(w[1], (w[0] + 1) % planes, "out of plane order: {first:?}");
     }
-    let plug = sims
+    let plug = rig
+        .sims
         .sync
         .clone()
         .expect("the simulated DLPC350's plug")
@@ -106,7 +144,7 @@ async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
     plug.replug();
     // Drop what came before the loss, then the sequence must run again.
     while inputs.try_recv().is_ok() {}
-    let after = subframes(&mut inputs, 8).await;
+    let after = subframes(inputs, 8).await;
     assert_eq!(after.len(), 8, "sub-frames after the replug: {after:?}");
     let sync = registry.snapshot()["sync"].clone();
     assert_eq!(
@@ -115,31 +153,17 @@ async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
         "{sync:?}"
     );
     assert!(sync.connects >= 2, "{sync:?}");
-    stop.cancel();
-    for t in tasks.others {
-        t.await.unwrap();
-    }
-    tasks.lens.await.unwrap();
+    rig.stop().await;
 }
 
 /// The simulated HID usage page 0x12 tracker, reached through the drivers' table, streams gaze.
 #[tokio::test(start_paused = true)]
 async fn the_hid_tracker_driver_runs_on_its_simulator() {
-    let text = SIM_RIG.replace("driver = \"dioptra-tracker\"", "driver = \"hid\"");
-    assert_ne!(text, SIM_RIG);
-    let cfg = Arc::new(RigConfig::parse(&text).unwrap());
-    let spec = SimSpec::from_config(&cfg).unwrap();
-    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
-    let registry = Arc::new(Registry::default());
-    let (out, mut inputs) = mpsc::channel(4096);
-    let stop = CancellationToken::new();
-    let settings = DeviceSettings::from_config(&cfg);
-    let (_sims, _links, tasks) =
-        spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
+    let mut rig = start(|t| t.replace("driver = \"dioptra-tracker\"", "driver = \"hid\""));
     let mut gaze = 0;
     tokio::time::timeout(Duration::from_secs(2), async {
         while gaze < 50 {
-            if let Some(DeviceInput::Gaze(s, _)) = inputs.recv().await {
+            if let Some(DeviceInput::Gaze(s, _)) = rig.inputs.recv().await {
                 assert!(s.left.valid || s.right.valid || s.host_time.0 > 0);
                 gaze += 1;
             }
@@ -147,12 +171,8 @@ async fn the_hid_tracker_driver_runs_on_its_simulator() {
     })
     .await
     .expect("no gaze from the simulated HID tracker");
-    assert_eq!(registry.snapshot()["gaze"].driver, "hid");
-    stop.cancel();
-    for t in tasks.others {
-        t.await.unwrap();
-    }
-    tasks.lens.await.unwrap();
+    assert_eq!(rig.registry.snapshot()["gaze"].driver, "hid");
+    rig.stop().await;
 }
 
 /// Commands sent at every phase of the state poll, to the simulated Lens Driver 4 with 1 ms
