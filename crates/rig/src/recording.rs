@@ -417,7 +417,8 @@ pub struct Recorder {
     path: PathBuf,
     tx: mpsc::Sender<(u64, Rec)>,
     dropped: Arc<AtomicU64>,
-    thread: tokio::task::JoinHandle<Result<u64, RecordingError>>,
+    /// The writer thread's result: messages written.
+    thread: tokio::sync::oneshot::Receiver<Result<u64, RecordingError>>,
 }
 
 impl std::fmt::Debug for Recorder {
@@ -429,7 +430,7 @@ impl std::fmt::Debug for Recorder {
 }
 
 impl Recorder {
-    /// Creates the file and starts its writer thread. Needs a tokio runtime.
+    /// Creates the file and starts its writer thread.
     pub fn start(path: &Path) -> Result<Recorder, RecordingError> {
         let file = File::create(path).map_err(|source| RecordingError::Create {
             path: path.to_path_buf(),
@@ -457,7 +458,10 @@ impl Recorder {
         }
         let (tx, mut rx) = mpsc::channel::<(u64, Rec)>(QUEUE);
         let p = path.to_path_buf();
-        let thread = tokio::task::spawn_blocking(move || {
+        let (done, thread) = tokio::sync::oneshot::channel();
+        // A thread of its own, not tokio's blocking pool: a blocking task that lives as long as
+        // the recording would stop a paused (simulated) clock from advancing.
+        let mut write = move || {
             let werr = |e: String| RecordingError::Write {
                 path: p.clone(),
                 detail: e,
@@ -494,7 +498,16 @@ impl Recorder {
             }
             finished?;
             Ok(u64::from(seq))
-        });
+        };
+        std::thread::Builder::new()
+            .name("dioptra-recorder".into())
+            .spawn(move || {
+                let _ = done.send(write());
+            })
+            .map_err(|source| RecordingError::Create {
+                path: path.to_path_buf(),
+                source,
+            })?;
         tracing::info!(path = %path.display(), "recording");
         Ok(Recorder {
             path: path.to_path_buf(),

@@ -1,6 +1,7 @@
 //! The daemon on simulated devices: API (in-process and over real sockets), shutdown,
-//! device loss and recovery, recording and replay. Real time with short polls; no test
-//! asserts how long anything took.
+//! device loss and recovery, recording and replay. On tokio's paused clock (simulated time,
+//! which moves only when every task waits), so a loaded machine cannot change what a test sees;
+//! no test asserts how long anything took.
 
 use std::path::Path;
 use std::time::Duration;
@@ -68,7 +69,7 @@ fn status_of(d: &Daemon) -> Value {
     d.shared().status_json()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_api_rejects_malformed_requests_with_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), false))
@@ -291,7 +292,7 @@ fn parse_http(out: &[u8]) -> (u16, Value) {
     (status, serde_json::from_str(&body).unwrap_or(Value::Null))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), false))
@@ -394,7 +395,7 @@ where
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), true))
@@ -460,7 +461,7 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), false))
@@ -515,7 +516,7 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     assert!(report.ok(), "{report:?}");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
@@ -542,7 +543,7 @@ async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     assert!(report.problems()[0].contains("not connected"), "{report:?}");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_api_on_a_unix_socket_is_private() {
     use std::os::unix::fs::PermissionsExt;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -571,7 +572,7 @@ async fn the_api_on_a_unix_socket_is_private() {
     assert!(!sock.exists(), "the socket is removed on shutdown");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_recorded_run_replays_to_the_same_commands() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), true))
@@ -617,7 +618,7 @@ async fn a_recorded_run_replays_to_the_same_commands() {
     assert_eq!(r.recorded, r.replayed);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     let dir = tempfile::tempdir().unwrap();
     let d = Daemon::start_config(sim_config(dir.path(), false))
@@ -683,7 +684,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     assert!(d.wait().await.ok());
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn method_auto_renders_the_planners_choice_and_shows_it() {
     let dir = tempfile::tempdir().unwrap();
     let text = SIM_RIG
@@ -809,7 +810,7 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights() {
     let dir = tempfile::tempdir().unwrap();
     let weights = dir.path().join("weights");
@@ -843,7 +844,7 @@ async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights(
     assert!(d.wait().await.ok());
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let dir = tempfile::tempdir().unwrap();
     let weights = dir.path().join("weights");
