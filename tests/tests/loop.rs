@@ -2,12 +2,15 @@
 //! `dioptra serve` runs it: the scheduler with the real lens, eye-tracker and sync-board
 //! drivers against their simulators, the daemon's device tasks and loop.
 
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
 use dioptra_rig::config::{Mode, RigConfig, EXAMPLE_SIM_RIG};
+use dioptra_rig::recording::Rec;
 use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
+use dioptra_rig::{Rig, RigSetup};
 use dioptra_sched::{Command, FocusReason, LinkStatus};
 use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
 use dioptra_sim::gaze::Scene;
@@ -455,4 +458,58 @@ async fn shutdown_parks_the_lens() {
     // Frames stop with shutdown.
     let shutdown_at = last.t;
     assert!(r.log.frames_requested.iter().all(|f| f.0 <= shutdown_at));
+}
+
+/// The rig `dioptra serve` starts from a config (`Rig::start` of `RigSetup::new`, the API
+/// aside) and the simulated rig the demo, eval and these tests run from the same config record
+/// the same topics and the same device-task settings.
+#[tokio::test(start_paused = true)]
+async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let recording_to = |sub: &str| {
+        let d = dir.path().join(sub).display().to_string();
+        config(Mode::Varifocal, move |t| {
+            t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
+                .replace("start = false", "start = true")
+        })
+    };
+    let served = Rig::start(RigSetup::new(recording_to("serve")))
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    served.state().cancel.cancel();
+    let served = served.wait().await;
+    let simulated = SimRun::new(recording_to("sim"), Duration::from_millis(500))
+        .unwrap()
+        .run(
+            Arc::new(ScriptedRenderer::new(split_depth(), 4, |_| {
+                Duration::from_millis(4)
+            })),
+            None,
+        )
+        .await
+        .unwrap()
+        .report;
+    let read = |r: &dioptra_rig::ShutdownReport| {
+        let path = &r.recording.as_ref().unwrap().as_ref().unwrap().path;
+        let rec = dioptra_rig::recording::read(path).unwrap();
+        assert!(rec.complete);
+        let topics: BTreeSet<&'static str> = rec.messages.iter().map(|(_, m)| m.topic()).collect();
+        let start = rec
+            .messages
+            .iter()
+            .find_map(|(_, m)| match m {
+                Rec::Start(s) => Some(s.clone()),
+                _ => None,
+            })
+            .unwrap();
+        (topics, start)
+    };
+    let (served_topics, served_start) = read(&served);
+    let (sim_topics, sim_start) = read(&simulated);
+    assert_eq!(served_topics, sim_topics);
+    assert!(served_topics.contains("/lens/command") && served_topics.contains("/gaze"));
+    assert!(!served_start.device_tasks.is_null());
+    assert_eq!(served_start.device_tasks, sim_start.device_tasks);
+    assert!(served.ok() && simulated.ok(), "{served:?} {simulated:?}");
 }
