@@ -160,8 +160,25 @@ pub struct ReplayReport {
 }
 
 impl ReplayReport {
+    /// Same commands in the same order. A file cut off mid-write may lack the commands of its
+    /// last inputs (they were in the lost chunk): replayed commands beyond the recorded ones
+    /// then count as the cut, not a difference.
     pub fn identical(&self) -> bool {
-        self.first_difference.is_none()
+        match &self.first_difference {
+            None => true,
+            Some((None, Some(_))) => !self.complete,
+            Some(_) => false,
+        }
+    }
+
+    pub fn verdict(&self) -> Verdict {
+        if !self.from_start {
+            Verdict::CannotCompare
+        } else if self.identical() {
+            Verdict::Identical
+        } else {
+            Verdict::Differs
+        }
     }
 }
 
@@ -172,13 +189,33 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         print_summary(&report);
     }
-    if report.from_start && !report.identical() {
-        bail!(
-            "the replayed scheduler differs from the recording after {} matching commands",
-            report.matching_prefix
-        );
+    match report.verdict() {
+        Verdict::Identical => Ok(()),
+        Verdict::Differs => Err(crate::Exit::new(
+            1,
+            format!(
+                "the replayed scheduler differs from the recording after {} matching commands",
+                report.matching_prefix
+            ),
+        )
+        .into()),
+        Verdict::CannotCompare => Err(crate::Exit::new(
+            2,
+            "the recording began mid-run: the scheduler's state before it is not in the file, \
+             so the replay (from a fresh scheduler) cannot be compared command by command; \
+             record from daemon start (recording.start = true) to compare",
+        )
+        .into()),
     }
-    Ok(())
+}
+
+/// What a replay shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    Identical,
+    Differs,
+    /// A recording started mid-run: nothing to compare against.
+    CannotCompare,
 }
 
 fn print_summary(r: &ReplayReport) {
@@ -210,8 +247,22 @@ fn print_summary(r: &ReplayReport) {
         r.replayed.len(),
         lens(&r.replayed),
     );
+    if !r.from_start {
+        println!(
+            "not compared: the recording began mid-run, so a fresh scheduler cannot reproduce \
+             its commands ({} replayed commands are in --json)",
+            r.replayed.len()
+        );
+        return;
+    }
     match &r.first_difference {
         None => println!("replay identical to the recording"),
+        Some((None, Some(_))) if !r.complete => println!(
+            "replay identical to the recording up to its cut ({} matching commands; the \
+             replay's last {} fell in the lost part)",
+            r.matching_prefix,
+            r.replayed.len() - r.matching_prefix
+        ),
         Some((a, b)) => println!(
             "first difference after {} matching commands: recorded {a:?}, replayed {b:?}",
             r.matching_prefix

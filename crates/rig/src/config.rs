@@ -420,6 +420,11 @@ pub struct Api {
     pub unix: Option<PathBuf>,
     #[serde(default)]
     pub allow_remote: bool,
+    /// A bearer token every request must carry (`Authorization: Bearer ...`); required with
+    /// `allow_remote = true`. Prefer `token_file`, which keeps it out of the config.
+    pub token: Option<String>,
+    /// A file holding the token (surrounding whitespace ignored); instead of `token`.
+    pub token_file: Option<PathBuf>,
 }
 
 impl Default for Api {
@@ -428,6 +433,8 @@ impl Default for Api {
             listen: Some(DEFAULT_LISTEN.into()),
             unix: None,
             allow_remote: false,
+            token: None,
+            token_file: None,
         }
     }
 }
@@ -833,6 +840,7 @@ impl RigConfig {
             ));
         }
         self.listen()?;
+        self.api_token()?;
         Ok(())
     }
 
@@ -859,14 +867,61 @@ impl RigConfig {
                     return Err(invalid(
                         "api.listen",
                         format!(
-                            "{addr} is reachable from other machines and the API has no authentication; \
-                             use 127.0.0.1 or set api.allow_remote = true if you mean it"
+                            "{addr} is reachable from other machines; use 127.0.0.1, or set \
+                             api.allow_remote = true and an api.token_file if you mean it"
+                        ),
+                    ));
+                }
+                if !addr.ip().is_loopback() && a.token.is_none() && a.token_file.is_none() {
+                    return Err(invalid(
+                        "api.token_file",
+                        format!(
+                            "{addr} is reachable from other machines: the API needs a token \
+                             (api.token_file, or api.token) that every request must carry"
                         ),
                     ));
                 }
                 Ok(Listen::Tcp(addr))
             }
         }
+    }
+
+    /// The API's bearer token, read from `api.token_file` or taken from `api.token`.
+    pub fn api_token(&self) -> Result<Option<String>, ConfigError> {
+        let a = &self.api;
+        let token = match (&a.token, &a.token_file) {
+            (Some(_), Some(_)) => {
+                return Err(invalid(
+                    "api.token",
+                    "give either token or token_file, not both",
+                ))
+            }
+            (Some(t), None) => t.trim().to_string(),
+            (None, Some(p)) => std::fs::read_to_string(p)
+                .map_err(|e| {
+                    invalid(
+                        "api.token_file",
+                        format!("cannot read {}: {e}", p.display()),
+                    )
+                })?
+                .trim()
+                .to_string(),
+            (None, None) => return Ok(None),
+        };
+        // Short tokens can be guessed; a header value cannot hold control characters.
+        if token.len() < 16 || !token.bytes().all(|b| b.is_ascii_graphic()) {
+            let key = if a.token.is_some() {
+                "api.token"
+            } else {
+                "api.token_file"
+            };
+            return Err(invalid(
+                key,
+                "the token must be at least 16 printable ASCII characters without spaces \
+                 (e.g. the output of `openssl rand -hex 16`)",
+            ));
+        }
+        Ok(Some(token))
     }
 }
 
@@ -1044,8 +1099,18 @@ pub(crate) mod tests {
         let e = err(&text);
         assert_eq!(e.key(), "api.listen");
         assert!(e.to_string().contains("allow_remote"), "{e}");
-        let ok = RigConfig::parse(&text.replace("[api]", "[api]\nallow_remote = true")).unwrap();
+        // Reachable from other machines: only with a token.
+        let remote = text.replace("[api]", "[api]\nallow_remote = true");
+        assert_eq!(err(&remote).key(), "api.token_file");
+        let with_token = remote.replace("[api]", "[api]\ntoken = \"0123456789abcdef0123\"");
+        let ok = RigConfig::parse(&with_token).unwrap();
         assert!(matches!(ok.listen().unwrap(), Listen::Tcp(a) if !a.ip().is_loopback()));
+        assert_eq!(
+            ok.api_token().unwrap().as_deref(),
+            Some("0123456789abcdef0123")
+        );
+        let e = err(&remote.replace("[api]", "[api]\ntoken = \"short\""));
+        assert_eq!(e.key(), "api.token");
         let e = err(&SIM_RIG.replace("127.0.0.1:7420", "localhost"));
         assert!(e.to_string().contains("IP:PORT"), "{e}");
     }

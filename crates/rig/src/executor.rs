@@ -45,9 +45,20 @@ struct Rendered {
     /// The focus the scheduler asked for (`None`: it gave none).
     focus: Option<Diopters>,
     requested: Timestamp,
-    result: Result<crate::render::RenderOutput, String>,
+    result: Result<crate::render::RenderOutput, RenderFailure>,
     took: Duration,
 }
+
+/// Why a frame did not render, and what is shown instead.
+struct RenderFailure {
+    kind: &'static str,
+    message: String,
+    /// The renderer's unblurred frame ([`Renderer::unblurred`]).
+    unblurred: Option<Vec<dioptra_core::RgbImage>>,
+}
+
+/// A kind of render error (method and kind) is logged at most once per this long.
+const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
 
 /// Finished frames kept for the scheduler to present (it shows the newest ready one).
 const FRAMES_KEPT: usize = 4;
@@ -91,6 +102,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         pending: None,
         hooks,
         new_depth: None,
+        error_log: std::collections::HashMap::new(),
     };
     ex.sync_status(&engine);
     let now = clock.now();
@@ -219,6 +231,8 @@ struct Executor<'a> {
     hooks: Vec<Box<dyn LoopHook>>,
     /// The content's depth when it changed at a frame request, for the scheduler.
     new_depth: Option<Arc<dioptra_core::DepthMap>>,
+    /// Per (method, error kind): when it was last logged, and how many since.
+    error_log: std::collections::HashMap<(String, &'static str), (Timestamp, u64)>,
 }
 
 impl Executor<'_> {
@@ -366,6 +380,7 @@ impl Executor<'_> {
                             .focus
                             .unwrap_or(Diopters(sh.cfg.devices.lens.park_power)),
                         gaze,
+                        auto: sh.auto_method.load(std::sync::atomic::Ordering::Relaxed),
                         display_time: req.display_time,
                     };
                     if self.rendering {
@@ -417,9 +432,15 @@ impl Executor<'_> {
         );
         tokio::spawn(async move {
             let started = clock.now();
+            let job_kept = job.clone();
+            let worker = renderer.clone();
             let r = tokio::task::spawn_blocking(move || {
                 let t0 = Instant::now();
-                let result = renderer.render(&job).map_err(|e| e.to_string());
+                let result = worker.render(&job).map_err(|e| RenderFailure {
+                    kind: crate::render::error_kind(&e),
+                    message: e.to_string(),
+                    unblurred: worker.unblurred(&job),
+                });
                 let took = match &result {
                     Ok(out) => out.cost.unwrap_or_else(|| t0.elapsed()),
                     Err(_) => t0.elapsed(),
@@ -427,13 +448,17 @@ impl Executor<'_> {
                 (job, result, took)
             })
             .await;
-            let (job, result, took) = match r {
-                Ok(v) => v,
-                Err(e) => {
-                    tracing::error!(error = %e, "the render thread failed");
-                    return;
-                }
-            };
+            // A renderer that panics fails its frame like any error: the loop must hear back,
+            // or it would wait for this frame forever.
+            let (job, result, took) = r.unwrap_or_else(|e| {
+                let unblurred = renderer.unblurred(&job_kept);
+                let failure = RenderFailure {
+                    kind: "panic",
+                    message: format!("the render thread failed: {e}"),
+                    unblurred,
+                };
+                (job_kept, Err(failure), Duration::ZERO)
+            });
             let finish = started + took;
             tokio::time::sleep(finish.saturating_since(clock.now())).await;
             let _ = tx
@@ -492,6 +517,72 @@ impl Executor<'_> {
         st.display = self.sink.status();
     }
 
+    /// Counts a failed render, logs it (once per kind and [`RENDER_ERROR_LOG_EVERY`]) and keeps
+    /// the unblurred frame in its place. The scheduler is told the frame finished all the
+    /// same: its slot is free again, and the display goes on.
+    fn render_failed(&mut self, now: Timestamp, job: &RenderJob, failure: RenderFailure) {
+        let method = job.method.as_str().to_string();
+        {
+            let mut st = lock(&self.state.status);
+            st.render_errors += 1;
+            *st.render_errors_by_method
+                .entry(method.clone())
+                .or_default() += 1;
+            st.last_render_error = Some(crate::RenderErrorNote {
+                frame: job.frame,
+                method: method.clone(),
+                kind: failure.kind,
+                error: failure.message.clone(),
+                focus_d: job.focus.0,
+            });
+        }
+        let key = (method.clone(), failure.kind);
+        let entry = self.error_log.entry(key);
+        let log = match entry {
+            std::collections::hash_map::Entry::Vacant(v) => {
+                v.insert((now, 0));
+                Some(0)
+            }
+            std::collections::hash_map::Entry::Occupied(mut o) => {
+                let (last, since) = o.get_mut();
+                if now.saturating_since(*last) >= RENDER_ERROR_LOG_EVERY {
+                    let n = *since;
+                    *last = now;
+                    *since = 0;
+                    Some(n)
+                } else {
+                    *since += 1;
+                    None
+                }
+            }
+        };
+        if let Some(more) = log {
+            tracing::warn!(
+                frame = job.frame,
+                method = %method,
+                focus_d = job.focus.0,
+                suppressed_since_last = more,
+                error = %failure.message,
+                "render failed; showing the unblurred frame (more of this kind are logged at most every 10 s)"
+            );
+        }
+        if let Some(images) = failure.unblurred {
+            lock(&self.state.status).fallback_frames += 1;
+            self.keep_frame(job, images);
+        }
+    }
+
+    fn keep_frame(&mut self, job: &RenderJob, images: Vec<dioptra_core::RgbImage>) {
+        if self.frames.len() == FRAMES_KEPT {
+            self.frames.pop_front();
+        }
+        self.frames.push_back(Frame {
+            number: job.frame,
+            layers: Arc::new(images),
+            focus: job.focus,
+        });
+    }
+
     /// A render came back: keeps its frame and returns the scheduler's input for it.
     fn finished(&mut self, done: Rendered, now: Timestamp) -> Input {
         self.rendering = false;
@@ -508,21 +599,9 @@ impl Executor<'_> {
                 if rendered.planned.is_some() {
                     lock(&sh.status).planned = rendered.planned;
                 }
-                if self.frames.len() == FRAMES_KEPT {
-                    self.frames.pop_front();
-                }
-                self.frames.push_back(Frame {
-                    number: done.job.frame,
-                    layers: Arc::new(rendered.images),
-                    focus: done.job.focus,
-                });
+                self.keep_frame(&done.job, rendered.images);
             }
-            Err(e) => {
-                // The scheduler is told all the same: the slot is free again, and the frame,
-                // never stored, is never shown.
-                tracing::warn!(frame = done.job.frame, error = %e, "render failed");
-                lock(&sh.status).render_errors += 1;
-            }
+            Err(failure) => self.render_failed(now, &done.job, failure),
         }
         let render_ns = u64::try_from(done.took.as_nanos()).unwrap_or(u64::MAX);
         sh.record(

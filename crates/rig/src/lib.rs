@@ -135,11 +135,27 @@ pub struct LoopStatus {
     pub frames_requested: u64,
     pub frames_shown: u64,
     pub render_errors: u64,
+    /// Render errors per method (`gather`, `network`, ...).
+    pub render_errors_by_method: std::collections::BTreeMap<String, u64>,
+    /// The newest render error.
+    pub last_render_error: Option<RenderErrorNote>,
+    /// Frames shown unblurred because their render failed.
+    pub fallback_frames: u64,
     pub last_render_ms: Option<f64>,
     /// `method = "auto"`: the planner's choice for the newest frame.
     pub planned: Option<render::Planned>,
     pub display: serde_json::Value,
     pub scheduler: serde_json::Value,
+}
+
+/// The newest render error, as `/status` shows it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RenderErrorNote {
+    pub frame: u64,
+    pub method: String,
+    pub kind: &'static str,
+    pub error: String,
+    pub focus_d: f32,
 }
 
 /// State shared by the loop, the API and the device tasks.
@@ -152,6 +168,16 @@ pub struct RigState {
     pub stream: broadcast::Sender<Arc<str>>,
     pub recording: Mutex<Option<Recorder>>,
     pub cancel: CancellationToken,
+    /// The wall-clock time (UTC, ns since the Unix epoch) of the host timeline's zero, read
+    /// at start; `None` on a simulated clock. Host time `t` happened at `wall_zero_ns + t`.
+    pub wall_zero_ns: Option<u64>,
+    /// What the host timeline counts.
+    pub clock_source: &'static str,
+    /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
+    pub auto_method: std::sync::atomic::AtomicBool,
+    /// Fires when the lens task has parked the lens (or given up) and ended: after this,
+    /// exiting the process leaves the lens safe.
+    pub lens_parked: CancellationToken,
     pub clock: Arc<dyn Clock>,
     /// The simulated devices (none on a hardware rig); set once the devices start.
     pub sims: OnceLock<SimDevices>,
@@ -168,8 +194,13 @@ impl RigState {
             .map(|r| r.path().display().to_string());
         json!({
             "uptime_s": now.saturating_since(self.started).as_secs_f64(),
+            "host_ns": now.0,
             "mode": status.mode,
-            "method": if self.cfg.auto_method { json!("auto") } else { json!(status.method) },
+            "method": if self.auto_method.load(std::sync::atomic::Ordering::Relaxed) {
+                json!("auto")
+            } else {
+                json!(status.method)
+            },
             "planned": status.planned.as_ref().map(|p| json!({
                 "method": p.choice,
                 "predicted_fovea_psnr_db": p.predicted_psnr_db,
@@ -181,6 +212,10 @@ impl RigState {
                 "lens_d": status.lens_power_d,
                 "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
             },
+            "clock": {
+                "source": self.clock_source,
+                "wall_zero_ns": self.wall_zero_ns,
+            },
             "devices": self.registry.snapshot(),
             "device_tasks": self.settings,
             "counts": {
@@ -190,6 +225,11 @@ impl RigState {
                 "frames_requested": status.frames_requested,
                 "frames_shown": status.frames_shown,
                 "render_errors": status.render_errors,
+                "fallback_frames": status.fallback_frames,
+            },
+            "render_errors": {
+                "by_method": status.render_errors_by_method,
+                "last": status.last_render_error,
             },
             "last_render_ms": status.last_render_ms,
             "display": status.display,
@@ -226,9 +266,19 @@ impl RigState {
     }
 
     /// Sends a `/stream` message, made only when someone listens.
+    /// Sends a `/stream` message, stamped with the host time and (on a real clock) the
+    /// wall-clock time it was sent.
     pub(crate) fn publish(&self, msg: impl FnOnce() -> serde_json::Value) {
         if self.stream.receiver_count() > 0 {
-            let _ = self.stream.send(Arc::from(msg().to_string()));
+            let mut m = msg();
+            if let Some(o) = m.as_object_mut() {
+                o.insert("host_ns".into(), json!(self.clock.now().0));
+                o.insert(
+                    "wall_ns".into(),
+                    json!(self.wall_zero_ns.is_some().then(wall_ns)),
+                );
+            }
+            let _ = self.stream.send(Arc::from(m.to_string()));
         }
     }
 
@@ -274,6 +324,8 @@ impl RigState {
                 manual_focus_d: st.manual_focus_d,
                 from_start,
                 device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
+                wall_zero_ns: self.wall_zero_ns,
+                clock: self.clock_source.into(),
             }),
         );
         *slot = Some(r);
@@ -307,6 +359,8 @@ pub struct RigSetup {
     /// Default: [`engine::sched_config`] of the config.
     pub scheduler: Option<SchedulerConfig>,
     pub hooks: Vec<Box<dyn LoopHook>>,
+    /// The clock is simulated (a paused runtime): its times have no wall-clock anchor.
+    pub simulated_time: bool,
 }
 
 impl RigSetup {
@@ -319,8 +373,17 @@ impl RigSetup {
             sim: None,
             scheduler: None,
             hooks: Vec::new(),
+            simulated_time: false,
         }
     }
+}
+
+/// Nanoseconds since the Unix epoch (UTC) now.
+fn wall_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+        .unwrap_or(0)
 }
 
 /// How the rig stopped.
@@ -377,7 +440,7 @@ impl ShutdownReport {
 /// A running rig.
 pub struct Rig {
     state: Arc<RigState>,
-    lens: tokio::task::JoinHandle<ParkReport>,
+    lens: tokio::task::JoinHandle<Result<ParkReport, tokio::task::JoinError>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     looper: tokio::task::JoinHandle<()>,
     devices_stop: CancellationToken,
@@ -398,6 +461,7 @@ impl Rig {
             sim,
             scheduler,
             hooks,
+            simulated_time,
         } = setup;
         cfg.validate()?;
         let cfg = Arc::new(cfg);
@@ -456,6 +520,14 @@ impl Rig {
             stream,
             recording: Mutex::new(None),
             cancel: CancellationToken::new(),
+            lens_parked: CancellationToken::new(),
+            auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
+            wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
+            clock_source: if simulated_time {
+                "simulated time (tokio's paused clock), from the run's start"
+            } else {
+                "the host's monotonic clock (CLOCK_MONOTONIC, through tokio), from daemon start"
+            },
             clock: clock.clone(),
             controls: controls_tx,
             started: clock.now(),
@@ -488,9 +560,15 @@ impl Rig {
             hooks,
             devices_stop: devices_stop.clone(),
         }));
+        let (lens_task, parked) = (dtasks.lens, state.lens_parked.clone());
+        let lens = tokio::spawn(async move {
+            let r = lens_task.await;
+            parked.cancel();
+            r
+        });
         Ok(Rig {
             state,
-            lens: dtasks.lens,
+            lens,
             tasks: dtasks.others,
             looper,
             devices_stop,
@@ -519,7 +597,7 @@ impl Rig {
         }
         // Normally the loop did this after its shutdown step.
         devices_stop.cancel();
-        let park = match lens.await {
+        let park = match lens.await.and_then(|r| r) {
             Ok(p) => Some(p),
             Err(e) => {
                 task_errors.push(format!("the lens task failed: {e}"));

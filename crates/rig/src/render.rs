@@ -19,6 +19,8 @@ pub struct RenderJob {
     pub focus: Diopters,
     /// Gaze point on the frame, pixels (for `method = "auto"`).
     pub gaze: Option<[f32; 2]>,
+    /// `method = "auto"`: the planner chooses this (varifocal) frame's method.
+    pub auto: bool,
     /// When the scheduler will show it.
     pub display_time: Timestamp,
 }
@@ -57,5 +59,22 @@ pub trait Renderer: Send + Sync + 'static {
     /// switch to them).
     fn network_missing(&self) -> Vec<(Mode, String)> {
         Vec::new()
+    }
+    /// What is shown when `render` fails, so the display never freezes: the content without
+    /// blur (in multifocal mode spread evenly over the planes, which add up to it). `None`:
+    /// nothing (the previous frame stays up).
+    fn unblurred(&self, _job: &RenderJob) -> Option<Vec<RgbImage>> {
+        None
+    }
+}
+
+/// The kind of a render error, for counting and rate-limited logging.
+pub fn error_kind(e: &RenderError) -> &'static str {
+    match e {
+        RenderError::Input(_) => "input",
+        RenderError::Unsupported { .. } => "unsupported",
+        RenderError::Gpu(_) => "gpu",
+        RenderError::Io { .. } => "io",
+        RenderError::Format { .. } => "format",
     }
 }

@@ -43,8 +43,6 @@ pub struct SceneRenderer {
     scene: dioptra_sim::scene::Scene,
     cam: dioptra_sim::scene::Camera,
     panel: Mutex<Option<Arc<RgbImage>>>,
-    /// `method = "auto"`: plan each varifocal frame.
-    auto: bool,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
     nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
 }
@@ -91,7 +89,6 @@ impl SceneRenderer {
             scene,
             cam,
             panel: Mutex::new(None),
-            auto: cfg.auto_method,
             nets,
         })
     }
@@ -114,16 +111,17 @@ impl SceneRenderer {
 
     /// The images of one frame: one for varifocal and light field, one per plane for
     /// multifocal. `gaze` is the gaze point in pixels (the image centre when unknown); with
-    /// `method = "auto"` the planner chooses a varifocal frame's method from it. CPU work:
-    /// call it from a blocking thread.
+    /// `auto` (`method = "auto"`) the planner chooses a varifocal frame's method from it. CPU
+    /// work: call it from a blocking thread.
     pub fn render_frame(
         &self,
         mode: Mode,
         method: Method,
         focus: Diopters,
         gaze: Option<[f32; 2]>,
+        auto: bool,
     ) -> Result<RenderOutput, RenderError> {
-        if self.auto && mode == Mode::Varifocal {
+        if auto && mode == Mode::Varifocal {
             let (w, h) = (self.input.width() as f32, self.input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
             let stats = FrameStats::from_rgbd(&self.input, gaze, focus, &self.eye);
@@ -263,7 +261,24 @@ impl Renderer for SceneRenderer {
         (!self.depth_given.swap(true, Ordering::AcqRel)).then(|| self.depth.clone())
     }
     fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
-        self.render_frame(job.mode, job.method, job.focus, job.gaze)
+        self.render_frame(job.mode, job.method, job.focus, job.gaze, job.auto)
+    }
+    fn unblurred(&self, job: &RenderJob) -> Option<Vec<RgbImage>> {
+        let color = &self.input.color;
+        Some(match job.mode {
+            Mode::Multifocal => {
+                let n = self.planes.len().max(1);
+                let share = 1.0 / n as f32;
+                let planes = color.channels.each_ref().map(|p| {
+                    let d = p.data().iter().map(|v| v * share).collect();
+                    dioptra_core::Plane::from_vec(p.width(), p.height(), d)
+                });
+                let [r, g, b] = planes;
+                let layer = RgbImage::from_planes(r.ok()?, g.ok()?, b.ok()?).ok()?;
+                vec![layer; n]
+            }
+            _ => vec![color.clone()],
+        })
     }
     fn network_missing(&self) -> Vec<(Mode, String)> {
         self.nets

@@ -125,6 +125,7 @@ impl SimRun {
             last_gaze_truth: 0,
         };
         let mut setup = RigSetup::new(self.cfg);
+        setup.simulated_time = true;
         setup.clock = Some(clock.clone());
         setup.renderer = Some(renderer);
         setup.sink = sink;

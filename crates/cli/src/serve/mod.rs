@@ -12,6 +12,7 @@
 //! ([`window::run_on_main_thread`]) and the runtime runs on a thread of its own.
 
 pub mod api;
+pub mod guard;
 pub mod window;
 
 use std::net::SocketAddr;
@@ -80,16 +81,8 @@ fn serve_blocking(
         }
         let status = daemon.shared().status_json();
         eprintln!("dioptra serve: display {}", status["display"]["sink"]);
-        let cancel = daemon.cancel_token();
-        tokio::spawn(async move {
-            tokio::select! {
-                r = tokio::signal::ctrl_c() => if r.is_ok() {
-                    eprintln!("dioptra serve: stopping (Ctrl-C)");
-                },
-                _ = stop.cancelled() => eprintln!("dioptra serve: stopping (window closed)"),
-            }
-            cancel.cancel();
-        });
+        let signals = Signals::new().context("cannot listen for SIGTERM, SIGINT and SIGHUP")?;
+        tokio::spawn(on_signals(signals, daemon.shared().clone(), stop));
         let shared = daemon.shared().clone();
         let report = daemon.wait().await;
         let v = shared.status_json();
@@ -110,6 +103,59 @@ fn serve_blocking(
             )
         }
     })
+}
+
+/// SIGTERM (systemd, `kill`), SIGINT (Ctrl-C) and SIGHUP (the terminal closed).
+struct Signals {
+    term: tokio::signal::unix::Signal,
+    int: tokio::signal::unix::Signal,
+    hup: tokio::signal::unix::Signal,
+}
+
+impl Signals {
+    fn new() -> std::io::Result<Signals> {
+        use tokio::signal::unix::{signal, SignalKind};
+        Ok(Signals {
+            term: signal(SignalKind::terminate())?,
+            int: signal(SignalKind::interrupt())?,
+            hup: signal(SignalKind::hangup())?,
+        })
+    }
+
+    async fn next(&mut self) -> &'static str {
+        tokio::select! {
+            _ = self.term.recv() => "SIGTERM",
+            _ = self.int.recv() => "SIGINT",
+            _ = self.hup.recv() => "SIGHUP",
+        }
+    }
+}
+
+/// The first signal (or the window closing) stops the daemon as `POST /shutdown` does. A
+/// second one during the shutdown exits as soon as the lens is parked, without waiting for
+/// the rest (the recording keeps what its closed chunks hold).
+async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: CancellationToken) {
+    let cancel = shared.cancel.clone();
+    tokio::select! {
+        name = signals.next() => {
+            eprintln!("dioptra serve: stopping ({name}): parking the lens, finishing files; a second signal exits once the lens is parked");
+        }
+        _ = window_closed.cancelled() => eprintln!("dioptra serve: stopping (window closed)"),
+        _ = cancel.cancelled() => {}
+    }
+    cancel.cancel();
+    let name = signals.next().await;
+    eprintln!("dioptra serve: {name} during shutdown: exiting once the lens is parked");
+    let limit = shared.settings.park_timeout + Duration::from_secs(1);
+    let parked = tokio::time::timeout(limit, shared.lens_parked.cancelled())
+        .await
+        .is_ok();
+    if parked {
+        eprintln!("dioptra serve: lens parked; exiting without finishing the shutdown");
+    } else {
+        eprintln!("dioptra serve: the lens did not park within {limit:?}; exiting");
+    }
+    std::process::exit(130);
 }
 
 /// Where the API ended up listening.
@@ -137,9 +183,9 @@ impl Daemon {
     /// Starts the rig of `setup` and the API; the API is listening when this returns.
     pub async fn start(setup: RigSetup) -> Result<Daemon> {
         let listen = setup.cfg.listen()?;
+        let token = setup.cfg.api_token()?;
         let rig = Rig::start(setup).await?;
         let shared = rig.state().clone();
-        let app = api::router(shared.clone());
         let c = shared.cancel.clone();
         let bound = match listen {
             Listen::Tcp(addr) => tokio::net::TcpListener::bind(addr)
@@ -147,25 +193,12 @@ impl Daemon {
                 .with_context(|| {
                     format!("cannot listen on {addr} (api.listen); is another daemon running?")
                 })
-                .and_then(|l| {
-                    let addr = l.local_addr()?;
-                    let server = tokio::spawn(async move {
-                        axum::serve(l, app)
-                            .with_graceful_shutdown(async move { c.cancelled().await })
-                            .await
-                    });
-                    Ok((Listening::Tcp(addr), server))
-                }),
-            Listen::Unix(path) => bind_unix(&path).map(|l| {
-                let server = tokio::spawn(async move {
-                    axum::serve(l, app)
-                        .with_graceful_shutdown(async move { c.cancelled().await })
-                        .await
-                });
-                (Listening::Unix(path), server)
-            }),
+                .and_then(|l| Ok((Listening::Tcp(l.local_addr()?), ApiListener::Tcp(l)))),
+            Listen::Unix(path) => {
+                bind_unix(&path).map(|l| (Listening::Unix(path), ApiListener::Unix(l)))
+            }
         };
-        let (listening, server) = match bound {
+        let (listening, listener) = match bound {
             Ok(b) => b,
             Err(e) => {
                 // The rig is running: stop it (and park the lens) before saying why.
@@ -174,6 +207,15 @@ impl Daemon {
                 return Err(e);
             }
         };
+        let rules = Arc::new(guard::Rules::new(&listening, token));
+        let app = api::router(shared.clone())
+            .layer(axum::middleware::from_fn_with_state(rules, guard::check));
+        let server = tokio::spawn(async move {
+            match listener {
+                ApiListener::Tcp(l) => serve_api(l, app, c).await,
+                ApiListener::Unix(l) => serve_api(l, app, c).await,
+            }
+        });
         Ok(Daemon {
             rig,
             listening,
@@ -187,6 +229,7 @@ impl Daemon {
     pub fn shared(&self) -> &Arc<RigState> {
         self.rig.state()
     }
+    #[cfg(test)]
     pub fn cancel_token(&self) -> CancellationToken {
         self.rig.state().cancel.clone()
     }
@@ -217,6 +260,49 @@ impl Daemon {
         }
         report
     }
+}
+
+enum ApiListener {
+    Tcp(tokio::net::TcpListener),
+    Unix(tokio::net::UnixListener),
+}
+
+/// Serves the API until `cancel`: HTTP/1 with WebSocket upgrades, headers bounded in time
+/// (which also closes idle connections) and size. Open connections finish their request and
+/// close; WebSocket streams end on the same token.
+async fn serve_api<L: axum::serve::Listener>(
+    mut listener: L,
+    app: axum::Router,
+    cancel: CancellationToken,
+) -> Result<(), std::io::Error> {
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(hyper_util::rt::TokioTimer::new())
+        .header_read_timeout(guard::HEADER_TIMEOUT)
+        .max_buf_size(64 * 1024);
+    let mut connections = tokio::task::JoinSet::new();
+    loop {
+        let io = tokio::select! {
+            _ = cancel.cancelled() => break,
+            (io, _) = listener.accept() => io,
+        };
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let conn = http
+            .serve_connection(hyper_util::rt::TokioIo::new(io), service)
+            .with_upgrades();
+        let cancel = cancel.clone();
+        connections.spawn(async move {
+            let mut conn = std::pin::pin!(conn);
+            tokio::select! {
+                _ = conn.as_mut() => return,
+                _ = cancel.cancelled() => {}
+            }
+            conn.as_mut().graceful_shutdown();
+            let _ = conn.await;
+        });
+        while connections.try_join_next().is_some() {}
+    }
+    while connections.join_next().await.is_some() {}
+    Ok(())
 }
 
 /// Binds a Unix socket readable and writable by its owner only.

@@ -166,7 +166,7 @@ async fn the_api_rejects_malformed_requests_with_clear_errors() {
             "{\"method\": \"magic\"}",
             StatusCode::UNPROCESSABLE_ENTITY,
             Some("method"),
-            "expected one of gather",
+            "expected auto or one of gather",
         ),
         (
             "POST",
@@ -321,6 +321,8 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     while kinds.len() < 2 {
         let text = next_text(&mut ws).await;
         let v: Value = serde_json::from_str(&text).unwrap();
+        // Every message carries the host time and the wall-clock time it was sent.
+        assert!(v["host_ns"].is_u64() && v["wall_ns"].is_u64(), "{v}");
         kinds.insert(v["type"].as_str().unwrap().to_string());
         kinds.retain(|k| k == "gaze" || k == "frame");
     }
@@ -370,6 +372,227 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     );
     // The port is closed.
     assert!(tokio::net::TcpStream::connect(addr).await.is_err());
+}
+
+/// Writes `req` as it is, then reads until the server closes: (status, JSON body or null).
+async fn raw(addr: std::net::SocketAddr, req: &str) -> (u16, Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut out = Vec::new();
+    // A 101 keeps the socket open: the head is enough.
+    let _ = tokio::time::timeout(Duration::from_secs(20), s.read_to_end(&mut out)).await;
+    let text = String::from_utf8_lossy(&out);
+    let status: u16 = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP response: {text:?}"));
+    if status == 101 {
+        return (101, Value::Null);
+    }
+    parse_http(&out)
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_web_page_cannot_drive_the_api() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    let port = addr.port();
+    let post = |path: &str, headers: &str, body: &str| {
+        format!(
+            "POST {path} HTTP/1.1\r\n{headers}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        )
+    };
+    let focus = "{\"diopters\": 2}";
+    // fetch(url, {mode: "no-cors", method: "POST", body}) from a page on another site.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/focus",
+            &format!("Host: {addr}\r\nOrigin: http://evil.example\r\nContent-Type: text/plain;charset=UTF-8\r\n"),
+            focus,
+        ),
+    )
+    .await;
+    assert_eq!(code, 403, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("web pages"), "{v}");
+    // The same body without an Origin (a non-browser sending text/plain): 415.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/focus",
+            &format!("Host: {addr}\r\nContent-Type: text/plain\r\n"),
+            focus,
+        ),
+    )
+    .await;
+    assert_eq!(code, 415, "{v}");
+    // A form post to a rebinding DNS name that resolves to 127.0.0.1.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/shutdown",
+            &format!(
+                "Host: evil.example:{port}\r\nContent-Type: application/x-www-form-urlencoded\r\n"
+            ),
+            "a=1",
+        ),
+    )
+    .await;
+    assert_eq!(code, 403, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("Host"), "{v}");
+    // A bodiless POST (a simple request) is refused too.
+    let (code, v) = raw(
+        addr,
+        &post("/shutdown", &format!("Host: localhost:{port}\r\n"), ""),
+    )
+    .await;
+    assert_eq!(code, 415, "{v}");
+    // WebSocket upgrades from a page (a foreign or "null" Origin) are refused; a script's
+    // upgrade, with no Origin or the API's own, is accepted.
+    let upgrade = |origin: &str| {
+        format!(
+            "GET /stream HTTP/1.1\r\nHost: {addr}\r\n{origin}Connection: Upgrade\r\nUpgrade: websocket\r\n\
+             Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+        )
+    };
+    for origin in ["Origin: http://evil.example\r\n", "Origin: null\r\n"] {
+        let (code, v) = raw(addr, &upgrade(origin)).await;
+        assert_eq!(code, 403, "{origin}: {v}");
+    }
+    for origin in [
+        "".to_string(),
+        format!("Origin: http://localhost:{port}\r\n"),
+    ] {
+        let (code, _) = raw(addr, &upgrade(&origin)).await;
+        assert_eq!(code, 101, "{origin}");
+    }
+    // Nothing above reached the rig.
+    let v = status_of(&d);
+    assert!(v["focus"]["manual_d"].is_null(), "{v}");
+    assert!(!d.cancel_token().is_cancelled());
+    // A script's request goes through.
+    let (code, v) = http(addr, "POST", "/focus", focus).await;
+    assert_eq!(code, 200, "{v}");
+
+    // Oversized requests get JSON errors like every other refusal.
+    let long = format!(
+        "GET /status?{} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n",
+        "a".repeat(5000)
+    );
+    let (code, v) = raw(addr, &long).await;
+    assert_eq!(code, 414, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+    let big_header = format!(
+        "GET /status HTTP/1.1\r\nHost: {addr}\r\nX-Big: {}\r\nConnection: close\r\n\r\n",
+        "a".repeat(20_000)
+    );
+    let (code, v) = raw(addr, &big_header).await;
+    assert_eq!(code, 431, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+    // (Headers only: a server that refuses a body unread resets the socket.)
+    let big_body = format!(
+        "POST /focus HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: 100000\r\nConnection: close\r\n\r\n"
+    );
+    let (code, v) = raw(addr, &big_body).await;
+    assert_eq!(code, 413, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
+async fn slow_and_idle_clients_are_timed_out() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    // Half a header section, then nothing: closed.
+    let mut slow = tokio::net::TcpStream::connect(addr).await.unwrap();
+    slow.write_all(format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n").as_bytes())
+        .await
+        .unwrap();
+    let start = tokio::time::Instant::now();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), slow.read_to_end(&mut out))
+        .await
+        .expect("a slow header kept its connection for 60 s")
+        .unwrap();
+    assert!(start.elapsed() >= super::guard::HEADER_TIMEOUT);
+    // A keep-alive connection that goes idle after one request: closed.
+    let mut idle = tokio::net::TcpStream::connect(addr).await.unwrap();
+    idle.write_all(format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), idle.read_to_end(&mut out))
+        .await
+        .expect("an idle connection stayed open for 60 s")
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out).starts_with("HTTP/1.1 200"));
+    // A body that stops arriving: 408, as JSON.
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(
+        format!(
+            "POST /focus HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+             Content-Length: 40\r\nConnection: close\r\n\r\n{{\"diop"
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), s.read_to_end(&mut out))
+        .await
+        .expect("a stalled body kept its connection for 60 s")
+        .unwrap();
+    let (code, v) = parse_http(&out);
+    assert_eq!(code, 408, "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
+async fn with_a_token_every_request_carries_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = "5f0c3a9e1b7d4c2a8e6f";
+    let token_file = dir.path().join("token");
+    std::fs::write(&token_file, format!("{token}\n")).unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.api.token_file = Some(token_file);
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    let get = |auth: &str| {
+        format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n{auth}Connection: close\r\n\r\n")
+    };
+    let (code, v) = raw(addr, &get("")).await;
+    assert_eq!(code, 401, "{v}");
+    let (code, _) = raw(
+        addr,
+        &get("Authorization: Bearer wrong-token-wrong-token\r\n"),
+    )
+    .await;
+    assert_eq!(code, 401);
+    let (code, v) = raw(addr, &get(&format!("Authorization: Bearer {token}\r\n"))).await;
+    assert_eq!(code, 200, "{v}");
+    assert_eq!(v["mode"], json!("varifocal"));
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
 }
 
 /// The next text message of a WebSocket, within 20 s.
@@ -616,6 +839,31 @@ async fn a_recorded_run_replays_to_the_same_commands() {
         r.matching_prefix
     );
     assert_eq!(r.recorded, r.replayed);
+    assert_eq!(r.verdict(), crate::replay::Verdict::Identical);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_recording_started_mid_run_is_not_compared() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    eventually("a few lens commands", || {
+        (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
+    })
+    .await;
+    sh.start_recording(false).unwrap();
+    eventually("frames", || {
+        (sh.status_json()["counts"]["frames_shown"].as_u64() >= Some(10)).then_some(())
+    })
+    .await;
+    let stats = sh.stop_recording().await.unwrap();
+    let r = crate::replay::replay_file(&stats.path).unwrap();
+    assert!(!r.from_start);
+    assert_eq!(r.verdict(), crate::replay::Verdict::CannotCompare);
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
 }
 
 #[tokio::test(start_paused = true)]
@@ -715,6 +963,27 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
             .contains("fovea"),
         "{planned}"
     );
+    // Off and on again through the API, as the README documents it.
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"gather\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let v = status_of(&d);
+    assert_eq!(v["method"], json!("gather"), "{v}");
+    assert!(v["planned"].is_null(), "{v}");
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
+    assert_eq!((s, &v["method"]), (StatusCode::OK, &json!("auto")), "{v}");
+    eventually("a planned frame after auto", || {
+        (!status_of(&d)["planned"].is_null()).then_some(())
+    })
+    .await;
+    assert_eq!(status_of(&d)["method"], json!("auto"));
+    // Multifocal frames are the hardware's planes: no planner, and a switch turns it off.
+    let (s, _) = call(&app, "POST", "/mode", "{\"mode\": \"multifocal\"}").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(status_of(&d)["method"], json!("linear"));
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert_eq!(v["key"], json!("method"));
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
@@ -762,6 +1031,7 @@ fn the_network_renders_what_the_net_computes() {
             cfg.method,
             focus,
             None,
+            false,
         )
         .unwrap()
         .images;
@@ -773,6 +1043,7 @@ fn the_network_renders_what_the_net_computes() {
             cfg.method,
             dioptra_core::Diopters(0.1),
             None,
+            false,
         )
         .unwrap()
         .images;
@@ -784,6 +1055,7 @@ fn the_network_renders_what_the_net_computes() {
             cfg.method,
             focus,
             None,
+            false,
         )
         .unwrap()
         .images;
@@ -861,6 +1133,138 @@ async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let v = sh.status_json();
     assert_eq!(v["method"], json!("network"));
     assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+/// Waits until `frames_shown` has grown by `n` (simulated time), returning the status.
+async fn after_frames(d: &Daemon, n: u64) -> Value {
+    let start = status_of(d)["counts"]["frames_shown"].as_u64().unwrap();
+    eventually("frames to be shown", || {
+        let v = status_of(d);
+        (v["counts"]["frames_shown"].as_u64().unwrap() >= start + n).then_some(v)
+    })
+    .await
+}
+
+#[tokio::test(start_paused = true)]
+async fn focus_at_and_beyond_optical_infinity_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let app = api::router(d.shared().clone());
+    after_frames(&d, 3).await;
+    for method in ["gather", "lightfield-defocus"] {
+        let (s, v) = call(
+            &app,
+            "POST",
+            "/method",
+            &format!("{{\"method\": \"{method}\"}}"),
+        )
+        .await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+        // The example rig's lens reaches -1 D: 0 D and below are everyday values.
+        for focus in [0.0, -1.0, -0.25] {
+            let (s, v) = call(
+                &app,
+                "POST",
+                "/focus",
+                &format!("{{\"diopters\": {focus}}}"),
+            )
+            .await;
+            assert_eq!(s, StatusCode::OK, "{v}");
+            let v = after_frames(&d, 5).await;
+            assert_eq!(
+                v["counts"]["render_errors"],
+                json!(0),
+                "{method} at {focus} D: {v}"
+            );
+        }
+    }
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+/// The scene, but every render at a focus below 1 D fails, and the first at 2 D or more
+/// panics.
+struct FailingBelow1D(
+    dioptra_rig::scene::SceneRenderer,
+    std::sync::atomic::AtomicBool,
+);
+
+impl dioptra_rig::render::Renderer for FailingBelow1D {
+    fn depth(
+        &self,
+        now: dioptra_core::Timestamp,
+    ) -> Option<std::sync::Arc<dioptra_core::DepthMap>> {
+        self.0.depth(now)
+    }
+    fn render(
+        &self,
+        job: &dioptra_rig::render::RenderJob,
+    ) -> Result<dioptra_rig::render::RenderOutput, dioptra_render::RenderError> {
+        if job.focus.0 >= 2.0 && !self.1.swap(true, std::sync::atomic::Ordering::SeqCst) {
+            panic!("a renderer bug");
+        }
+        if job.focus.0 < 1.0 {
+            return Err(dioptra_render::RenderError::Unsupported {
+                backend: "test",
+                method: "focus below 1 D",
+            });
+        }
+        self.0.render(job)
+    }
+    fn unblurred(
+        &self,
+        job: &dioptra_rig::render::RenderJob,
+    ) -> Option<Vec<dioptra_core::RgbImage>> {
+        self.0.unblurred(job)
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = sim_config(dir.path(), false);
+    let scene = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let mut setup = dioptra_rig::RigSetup::new(cfg);
+    setup.renderer = Some(std::sync::Arc::new(FailingBelow1D(
+        scene,
+        Default::default(),
+    )));
+    let d = Daemon::start(setup).await.unwrap();
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 0.5}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    // Frames keep coming: the failed ones are shown unblurred.
+    let v = after_frames(&d, 20).await;
+    let errors = v["counts"]["render_errors"].as_u64().unwrap();
+    assert!(errors >= 10, "{v}");
+    assert_eq!(
+        v["render_errors"]["by_method"]["gather"].as_u64(),
+        Some(errors),
+        "{v}"
+    );
+    assert!(
+        v["counts"]["fallback_frames"].as_u64().unwrap() >= errors,
+        "{v}"
+    );
+    let last = &v["render_errors"]["last"];
+    assert_eq!(last["method"], json!("gather"), "{v}");
+    assert_eq!(last["kind"], json!("unsupported"), "{v}");
+    assert!(
+        last["error"].as_str().unwrap().contains("focus below 1 D"),
+        "{v}"
+    );
+    // Back in range: one render panics, then frames render again and the count stops.
+    let (s, _) = call(&app, "POST", "/focus", "{\"diopters\": 2}").await;
+    assert_eq!(s, StatusCode::OK);
+    let v = after_frames(&d, 5).await;
+    assert_eq!(v["render_errors"]["last"]["kind"], json!("panic"), "{v}");
+    let before = v["counts"]["render_errors"].as_u64().unwrap();
+    let v = after_frames(&d, 10).await;
+    assert_eq!(v["counts"]["render_errors"].as_u64(), Some(before), "{v}");
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
