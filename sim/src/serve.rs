@@ -18,6 +18,23 @@ pub trait ByteDevice {
     fn idle(&mut self, _out: &mut Vec<u8>) {}
 }
 
+/// A simulator shared between the task serving it and whoever inspects it (a test reading its
+/// ground truth, the daemon's status): every call locks it.
+impl<D: ByteDevice> ByteDevice for std::sync::Arc<std::sync::Mutex<D>> {
+    fn wait(&self, now: Timestamp) -> Duration {
+        dioptra_core::lock(self).wait(now)
+    }
+    fn advance_to(&mut self, now: Timestamp, out: &mut Vec<u8>) {
+        dioptra_core::lock(self).advance_to(now, out)
+    }
+    fn receive(&mut self, bytes: &[u8], out: &mut Vec<u8>) {
+        dioptra_core::lock(self).receive(bytes, out)
+    }
+    fn idle(&mut self, out: &mut Vec<u8>) {
+        dioptra_core::lock(self).idle(out)
+    }
+}
+
 /// Serves `sim` on `link` until the link fails (a pty master waits for clients instead).
 /// The device follows `clock`: wall time for a pty served to another process, tokio's
 /// (pausable) clock in tests.

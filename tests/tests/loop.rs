@@ -1,12 +1,17 @@
-//! The whole loop on simulated devices and tokio's paused clock: the scheduler with the real
-//! lens, eye-tracker and sync-board drivers against their simulators.
+//! The whole loop on simulated devices and tokio's paused clock, run by dioptra-rig as
+//! `dioptra serve` runs it: the scheduler with the real lens, eye-tracker and sync-board
+//! drivers against their simulators, the daemon's device tasks and loop.
 
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
-use dioptra_loop_tests::{run, Action, Frames, RigOptions, Run};
-use dioptra_sched::{Command, FocusReason, FrameRequest, LinkStatus, Mode};
+use dioptra_rig::config::{Mode, RigConfig, EXAMPLE_SIM_RIG};
+use dioptra_rig::recording::Rec;
+use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
+use dioptra_rig::{Rig, RigSetup};
+use dioptra_sched::{Command, FocusReason, LinkStatus};
 use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
 use dioptra_sim::gaze::Scene;
 
@@ -23,30 +28,6 @@ fn split_depth() -> Arc<DepthMap> {
         }
     }
     Arc::new(DepthMap::from_diopters(p).unwrap())
-}
-
-/// A renderer that takes a fixed simulated time and shows the split scene.
-struct Fixed {
-    depth: Option<Arc<DepthMap>>,
-    render: Duration,
-}
-
-impl Fixed {
-    fn new(render: Duration) -> Self {
-        Fixed {
-            depth: Some(split_depth()),
-            render,
-        }
-    }
-}
-
-impl Frames for Fixed {
-    fn depth(&mut self, _t: Timestamp) -> Option<Arc<DepthMap>> {
-        self.depth.take()
-    }
-    fn render(&mut self, _req: &FrameRequest) -> Duration {
-        self.render
-    }
 }
 
 fn target(yaw: f64, diopters: f32) -> Target {
@@ -69,15 +50,31 @@ fn near_far(ms: u32) -> Scene {
     }
 }
 
-fn options(mode: Mode, scene: Scene, seconds: f64) -> RigOptions {
-    let mut o = RigOptions::new(mode, scene, Duration::from_secs_f64(seconds));
+/// The example rig in `mode` with its tracker at 500 Hz, `edit` applied to its config text.
+fn config(mode: Mode, edit: impl Fn(String) -> String) -> RigConfig {
+    let method = dioptra_sched::RenderMethod::default_for(mode.sched()).as_str();
+    let text = EXAMPLE_SIM_RIG
+        .replace(
+            "mode = \"varifocal\"",
+            &format!("mode = \"{}\"", mode.as_str()),
+        )
+        .replace("method = \"gather\"", &format!("method = \"{method}\""))
+        .replace("sim_rate_hz = 250.0", "sim_rate_hz = 500.0");
+    RigConfig::parse(&edit(text)).unwrap()
+}
+
+fn options(mode: Mode, scene: Scene, seconds: f64) -> SimRun {
+    let mut o = SimRun::new(config(mode, |t| t), Duration::from_secs_f64(seconds)).unwrap();
+    o.spec.gaze_scene = scene;
     // Blinks only where a test scripts them.
-    o.gaze.blink_rate_hz = 0.0;
+    o.spec.gaze.blink_rate_hz = 0.0;
     o
 }
 
-async fn go(opts: RigOptions, render: Duration) -> Run {
-    run(opts, &mut Fixed::new(render)).await.unwrap()
+async fn go(opts: SimRun, render: Duration) -> Run {
+    let planes = opts.cfg.optics.planes.len();
+    let renderer = ScriptedRenderer::new(split_depth(), planes, move |_| render);
+    opts.run(Arc::new(renderer), None).await.unwrap()
 }
 
 /// True saccades as (start, landing) times, µs, with the depth of the target landed on.
@@ -105,9 +102,9 @@ fn us(t: Timestamp) -> u64 {
 #[tokio::test(start_paused = true)]
 async fn a_saccade_between_near_and_far_moves_the_lens_by_landing_and_it_settles_in_time() {
     let opts = options(Mode::Varifocal, near_far(500), 3.2);
-    let settle = opts.lens.lens.settle_time;
-    let period_us = (1e6 / opts.gaze.rate_hz) as u64;
-    let max_delivery_us = opts.gaze_latency_us.0 + opts.gaze_latency_us.1;
+    let settle = opts.spec.lens.settle_time;
+    let period_us = (1e6 / opts.spec.gaze.rate_hz) as u64;
+    let max_delivery_us = opts.spec.gaze_latency_us.0 + opts.spec.gaze_latency_us.1;
     let r = go(opts, Duration::from_millis(4)).await;
     let sacc = saccades(&r);
     assert!(sacc.len() >= 5, "{sacc:?}");
@@ -168,7 +165,7 @@ async fn a_saccade_between_near_and_far_moves_the_lens_by_landing_and_it_settles
         // And it had settled by (or within a settle time of) the eye landing.
         assert!(settled_at <= land + 1000 * settle.as_millis() as u64);
     }
-    let st = r.scheduler.status();
+    let st = r.status;
     assert_eq!(st.counters.saccades as usize, sacc.len());
     assert!(r.log.gaze_errors.is_empty(), "{:?}", r.log.gaze_errors);
 }
@@ -196,7 +193,7 @@ async fn a_blink_holds_focus() {
         .map(|s| s.time_us)
         .collect();
     assert!(blinks.len() > 200, "{} blink samples", blinks.len());
-    assert!(r.scheduler.status().counters.blinks >= 3);
+    assert!(r.status.counters.blinks >= 3);
     // One command at the first fixation, and none for the blinks or after them (park aside).
     let gaze_cmds: Vec<_> = r
         .log
@@ -238,7 +235,7 @@ async fn edge_fixation(policy: impl FnOnce(&mut dioptra_sched::SchedulerConfig))
         }],
     };
     let mut opts = options(Mode::Varifocal, scene, 5.0);
-    opts.gaze.noise_deg = 0.1;
+    opts.spec.gaze.noise_deg = 0.1;
     opts.probe = None;
     policy(&mut opts.sched);
     go(opts, Duration::from_millis(4)).await
@@ -285,7 +282,7 @@ async fn multifocal(render: Duration) -> (u64, u64, Run) {
     let mut opts = options(Mode::Multifocal, scene, 1000.0 / 60.0 + 0.05);
     opts.probe = None;
     let r = go(opts, render).await;
-    let c = r.scheduler.status().counters;
+    let c = r.status.counters;
     (c.misses, c.frames_presented, r)
 }
 
@@ -364,16 +361,37 @@ async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
     ];
     let r = go(opts, Duration::from_millis(4)).await;
     let links: Vec<LinkStatus> = r.log.link_events.iter().map(|l| l.1).collect();
-    assert_eq!(links, [LinkStatus::Lost, LinkStatus::Connected]);
-    assert_eq!(r.lens.opened(), 2);
-    let (lost_at, back_at) = (r.log.link_events[0].0, r.log.link_events[1].0);
+    assert_eq!(
+        links,
+        [
+            LinkStatus::Connected,
+            LinkStatus::Lost,
+            LinkStatus::Connected
+        ]
+    );
+    assert_eq!(r.lens_opened, 2);
+    let (lost_at, back_at) = (r.log.link_events[1].0, r.log.link_events[2].0);
+    // Found lost at the first exchange after the pull: a command or the next read-back.
+    let poll = r.state.settings.lens_poll;
     assert!(
-        us(lost_at) >= 1_300_000 && us(lost_at) < 1_310_000,
+        us(lost_at) >= 1_300_000 && lost_at.saturating_since(Timestamp(1_300_000_000)) <= poll,
         "{lost_at}"
     );
+    // Back at the daemon's first reconnect attempt after the replug (its backoff), plus the
+    // connect handshake.
+    let replug = Timestamp(1_900_000_000);
+    let attempt = r
+        .state
+        .settings
+        .link
+        .attempts_after_loss(16)
+        .into_iter()
+        .map(|d| lost_at + d)
+        .find(|&t| t >= replug)
+        .unwrap();
     assert!(
-        us(back_at) >= 1_900_000 && us(back_at) < 2_000_000,
-        "{back_at}"
+        back_at >= attempt && back_at.saturating_since(attempt) < Duration::from_millis(20),
+        "back at {back_at}, the attempt after the replug at {attempt}"
     );
     // Gaze kept flowing while the lens was away.
     let during = r
@@ -383,7 +401,7 @@ async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
         .filter(|s| s.time_us > us(lost_at) && s.time_us < us(back_at))
         .count();
     assert!(during > 250, "{during}");
-    assert_eq!(r.scheduler.status().counters.lens_link_losses, 1);
+    assert_eq!(r.status.counters.lens_link_losses, 1);
     // After reconnecting, the lens follows the gaze again: at each probe well inside a
     // fixation after the replug, the real lens is at the depth looked at.
     let mut checked = 0;
@@ -419,8 +437,15 @@ async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
 
 #[tokio::test(start_paused = true)]
 async fn shutdown_parks_the_lens() {
-    let mut opts = options(Mode::Varifocal, near_far(300), 1.0);
-    opts.sched.park_power = Diopters(0.25);
+    let mut opts = SimRun::new(
+        config(Mode::Varifocal, |t| {
+            t.replace("park_power = 0.5", "park_power = 0.25")
+        }),
+        Duration::from_secs(1),
+    )
+    .unwrap();
+    opts.spec.gaze_scene = near_far(300);
+    opts.spec.gaze.blink_rate_hz = 0.0;
     let r = go(opts, Duration::from_millis(4)).await;
     let last = r.log.lens_commands.last().unwrap();
     assert_eq!(last.reason, FocusReason::Park);
@@ -429,8 +454,62 @@ async fn shutdown_parks_the_lens() {
     let end = r.log.probes.last().unwrap();
     assert!((end.lens_target.unwrap().0 - 0.25).abs() < 1e-4, "{end:?}");
     assert!((end.lens_power.unwrap().0 - 0.25).abs() < 0.01, "{end:?}");
-    assert!(r.scheduler.status().shutting_down);
+    assert!(r.status.shutting_down);
     // Frames stop with shutdown.
     let shutdown_at = last.t;
     assert!(r.log.frames_requested.iter().all(|f| f.0 <= shutdown_at));
+}
+
+/// The rig `dioptra serve` starts from a config (`Rig::start` of `RigSetup::new`, the API
+/// aside) and the simulated rig the demo, eval and these tests run from the same config record
+/// the same topics and the same device-task settings.
+#[tokio::test(start_paused = true)]
+async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
+    let dir = tempfile::tempdir().unwrap();
+    let recording_to = |sub: &str| {
+        let d = dir.path().join(sub).display().to_string();
+        config(Mode::Varifocal, move |t| {
+            t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
+                .replace("start = false", "start = true")
+        })
+    };
+    let served = Rig::start(RigSetup::new(recording_to("serve")))
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    served.state().cancel.cancel();
+    let served = served.wait().await;
+    let simulated = SimRun::new(recording_to("sim"), Duration::from_millis(500))
+        .unwrap()
+        .run(
+            Arc::new(ScriptedRenderer::new(split_depth(), 4, |_| {
+                Duration::from_millis(4)
+            })),
+            None,
+        )
+        .await
+        .unwrap()
+        .report;
+    let read = |r: &dioptra_rig::ShutdownReport| {
+        let path = &r.recording.as_ref().unwrap().as_ref().unwrap().path;
+        let rec = dioptra_rig::recording::read(path).unwrap();
+        assert!(rec.complete);
+        let topics: BTreeSet<&'static str> = rec.messages.iter().map(|(_, m)| m.topic()).collect();
+        let start = rec
+            .messages
+            .iter()
+            .find_map(|(_, m)| match m {
+                Rec::Start(s) => Some(s.clone()),
+                _ => None,
+            })
+            .unwrap();
+        (topics, start)
+    };
+    let (served_topics, served_start) = read(&served);
+    let (sim_topics, sim_start) = read(&simulated);
+    assert_eq!(served_topics, sim_topics);
+    assert!(served_topics.contains("/lens/command") && served_topics.contains("/gaze"));
+    assert!(!served_start.device_tasks.is_null());
+    assert_eq!(served_start.device_tasks, sim_start.device_tasks);
+    assert!(served.ok() && simulated.ok(), "{served:?} {simulated:?}");
 }

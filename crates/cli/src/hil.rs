@@ -1,39 +1,42 @@
-//! `dioptra hil --config rig.toml`: the hardware-in-the-loop latency harness. It opens the
-//! devices a rig config names exactly as `dioptra serve` does (serve/devices.rs: the real
-//! drivers, on hardware or on the in-process simulators for `port = "sim"`), and measures:
+//! `dioptra hil --config rig.toml`: the hardware-in-the-loop latency harness. It runs the rig
+//! a config describes on the rig runtime `dioptra serve` runs (dioptra-rig: the same device
+//! tasks, loop, scheduler and runtime; the real drivers, on hardware or on the in-process
+//! simulators for `port = "sim"`), watches it through a loop hook, and measures:
 //!
-//! 1. gaze sample to lens command (the host path): each gaze sample goes through the daemon's
-//!    scheduler adapter (serve/engine.rs); when a lens command comes out, the time from the
-//!    sample's host receive time to the command being handed to the lens task;
-//!    then command to wire (the driver's write completing);
+//! 1. gaze sample to lens command written (the host path): for every lens command a gaze
+//!    sample caused, the wall time from the gaze task receiving the sample from its driver to
+//!    the lens driver having written the command; and command to wire (the loop handing the
+//!    command to the lens task to the driver's write completing);
 //! 2. command to settled: `--trials` lens steps between a quarter and three quarters of
-//!    `optics.lens_range`, each timed from the command to the first readback within 0.05 D
-//!    (and not reporting "moving"). Readbacks come from the lens task's 10 ms poll, so these
-//!    figures are quantised to it. The dioptra sync board has no photodiode input, so there
-//!    is no optical measurement of settling; the summary says so;
-//! 3. sub-frame timing (when `devices.sync` is configured): the sequencer's sub-frame start
-//!    times (device clock) against the programmed period `1 / optics.subframe_hz`, the plane
-//!    order against the programmed schedule, and faults. Skipped for a DLPC350, which reports
-//!    no sub-frame times of its own.
+//!    `optics.lens_range`, commanded as manual focus through the loop, each timed from the
+//!    command to the first readback within 0.05 D (and not reporting "moving"). Readbacks
+//!    come every `devices.lens.poll_ms`, so these figures are quantised to it. The dioptra
+//!    sync board has no photodiode input, so there is no optical measurement of settling;
+//!    the summary says so;
+//! 3. sub-frame timing (when `devices.sync` is configured): the rig is switched to multifocal
+//!    mode and the sequencer's sub-frame start times (device clock) are compared with the
+//!    programmed period `1 / optics.subframe_hz`, the plane order with the programmed
+//!    schedule, and faults counted. Skipped for a DLPC350, which reports no sub-frame times
+//!    of its own.
 //!
 //! It writes `summary.txt` and `summary.json` (HdrHistogram percentiles) and one PNG histogram
 //! per measurement to `--out`. With simulated devices every output says SIMULATED.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use dioptra_core::{Clock, Diopters, SequencerEvent, Timestamp};
+use dioptra_core::{SequencerEvent, Timestamp};
 use hdrhistogram::Histogram;
 use plotters::prelude::*;
 use serde_json::json;
 use tokio::sync::mpsc;
-use tokio_util::sync::CancellationToken;
 
-use crate::serve::config::{Port, RigConfig, SyncDriver};
-use crate::serve::devices::{spawn_devices, DeviceInput, Registry, State};
-use crate::serve::engine::{Command, Engine, Input};
+use dioptra_rig::config::{Mode, Port, RigConfig, SyncDriver};
+use dioptra_rig::devices::{DeviceInput, State};
+use dioptra_rig::engine::Command;
+use dioptra_rig::executor::LoopHook;
+use dioptra_rig::{Control, Rig, RigSetup};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -148,10 +151,8 @@ pub fn run(args: Args) -> Result<()> {
     println!("{banner}");
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()?;
+    // The runtime `dioptra serve` runs the rig on.
+    let rt = crate::serve::runtime()?;
     let measures = rt.block_on(measure(&cfg, &args, &devices))?;
     write_outputs(&args.out, &args.config, &banner, all_sim, &measures)?;
     println!(
@@ -166,17 +167,40 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
+/// What the hook forwards from the rig's loop to the harness.
+enum Seen {
+    Input(DeviceInput),
+    /// The loop handed lens command `id` to the lens task at this time.
+    LensCommand(u64, Timestamp),
+}
+
+/// Forwards what the loop sees to the harness, which measures outside the loop's task.
+struct Forward(mpsc::UnboundedSender<Seen>);
+
+impl LoopHook for Forward {
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput) {
+        let _ = self.0.send(Seen::Input(input.clone()));
+    }
+    fn command(&mut self, now: Timestamp, cmd: &Command) {
+        if let Command::SetLensPower { id, .. } = cmd {
+            let _ = self.0.send(Seen::LensCommand(id.0, now));
+        }
+    }
+}
+
 async fn measure(
     cfg: &RigConfig,
     args: &Args,
     devices: &[(&'static str, &'static str, Port)],
 ) -> Result<Vec<Measure>> {
-    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
-    let registry = Arc::new(Registry::default());
-    let (tx, mut rx) = mpsc::channel::<DeviceInput>(4096);
-    let cancel = CancellationToken::new();
-    let (_sims, links, tasks) = spawn_devices(cfg, &registry, clock.clone(), tx, &cancel)
-        .map_err(|e| anyhow::anyhow!("cannot start the devices: {e}"))?;
+    let (tx, mut rx) = mpsc::unbounded_channel::<Seen>();
+    let mut setup = RigSetup::new(cfg.clone());
+    setup.hooks.push(Box::new(Forward(tx)));
+    let rig = Rig::start(setup)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot start the rig: {e}"))?;
+    let state = rig.state().clone();
+    let registry = state.registry.clone();
 
     // Every device must connect.
     let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(args.connect_timeout_s);
@@ -186,7 +210,8 @@ async fn measure(
             break;
         }
         if tokio::time::Instant::now() >= deadline {
-            cancel.cancel();
+            state.cancel.cancel();
+            let _ = rig.wait().await;
             let missing: Vec<String> = devices
                 .iter()
                 .filter_map(|(name, key, port)| {
@@ -203,10 +228,7 @@ async fn measure(
                 .collect();
             bail!("{}", missing.join("\n"));
         }
-        tokio::select! {
-            _ = rx.recv() => {}
-            _ = tokio::time::sleep(Duration::from_millis(20)) => {}
-        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
     }
     println!(
         "devices connected: {}",
@@ -217,7 +239,10 @@ async fn measure(
             .join(", ")
     );
 
-    let mut host_path = Measure::new("gaze_to_command", "gaze sample to lens command (host path)");
+    let mut host_path = Measure::new(
+        "gaze_to_command",
+        "gaze sample received to lens command written (host path)",
+    );
     let mut to_wire = Measure::new("command_to_wire", "lens command to on the wire");
     let mut settled = Measure::new("command_to_settled", "lens command to settled (readback)");
     let mut subframe = Measure::new(
@@ -225,70 +250,45 @@ async fn measure(
         "sub-frame start error against the programmed period",
     );
 
-    // 1. Gaze to lens command through the scheduler, commands forwarded as the daemon does.
-    let renderer = crate::serve::render::Renderer::new(cfg)
-        .map_err(|e| anyhow::anyhow!("cannot build the scene: {e}"))?;
-    let mut engine = Engine::new(cfg, renderer.input()).map_err(anyhow::Error::msg)?;
-    let _ = engine.step(clock.now(), Input::Depth);
-    // The lens connected while the harness waited (that input was drained): say so, as the
-    // daemon's loop would have, so the scheduler does not hold its commands.
-    let _ = engine.step(clock.now(), Input::Device(DeviceInput::LensLink(true)));
+    // 1. Gaze to lens command written: the rig follows gaze as `dioptra serve` does.
     let phase_limit = Duration::from_secs(30.max(args.trials as u64 / 4).min(300));
     let phase_end = tokio::time::Instant::now() + phase_limit;
-    // Samples queued while the devices connected would count their wait: drop them.
+    // What arrived while the devices connected would count its wait: drop it.
     while rx.try_recv().is_ok() {}
-    let mut sent: Vec<(u64, Timestamp)> = Vec::new();
+    let mut handed: Vec<(u64, Timestamp)> = Vec::new();
     let mut gaze_samples = 0u64;
+    let mut gaze_commands = 0u64;
     while (host_path.hist.len() as usize) < args.trials && tokio::time::Instant::now() < phase_end {
-        let wake = engine
-            .next_wakeup()
-            .map(|t| Duration::from_nanos(t.0.saturating_sub(clock.now().0)))
-            .unwrap_or(Duration::from_millis(50))
-            .min(Duration::from_millis(50));
-        let input = tokio::select! {
-            d = rx.recv() => match d {
-                Some(d) => Input::Device(d),
-                None => bail!("the device tasks stopped"),
-            },
-            _ = tokio::time::sleep(wake) => Input::Tick,
+        let seen = tokio::select! {
+            s = rx.recv() => s,
+            _ = tokio::time::sleep_until(phase_end) => None,
         };
-        let gaze = match &input {
-            Input::Device(DeviceInput::Gaze(g)) => {
-                gaze_samples += 1;
-                Some(g.host_receive_time)
-            }
-            Input::Device(DeviceInput::LensWire { id, wire_time, .. }) => {
-                if let Some(&(_, at)) = sent.iter().find(|s| s.0 == *id) {
-                    to_wire.record_us(ts_us(at, *wire_time));
+        match seen {
+            Some(Seen::Input(DeviceInput::Gaze(..))) => gaze_samples += 1,
+            Some(Seen::LensCommand(id, at)) => handed.push((id, at)),
+            Some(Seen::Input(DeviceInput::LensWire {
+                id,
+                wire_time,
+                host_path: path,
+                ..
+            })) => {
+                if let Some(&(_, at)) = handed.iter().rev().find(|h| h.0 == id) {
+                    to_wire.record_us(ts_us(at, wire_time));
                 }
-                None
-            }
-            _ => None,
-        };
-        let cmds = engine.step(clock.now(), input).unwrap_or_default();
-        for c in cmds {
-            if let Command::SetLensPower { id, power, .. } = c {
-                let _ = links.lens_commands.send(Some((id.0, power)));
-                let now = clock.now();
-                sent.push((id.0, now));
-                if let Some(received) = gaze {
-                    host_path.record_us(ts_us(received, now));
+                if let Some(p) = path {
+                    gaze_commands += 1;
+                    host_path.record_us(p.as_secs_f64() * 1e6);
                 }
             }
+            _ => {}
         }
     }
     host_path.note = format!(
-        "{} gaze samples in; {} lens commands came out of the scheduler on a gaze sample",
-        gaze_samples,
-        host_path.hist.len()
+        "{gaze_samples} gaze samples in; {gaze_commands} lens commands caused by a gaze sample, each timed (wall clock) from the gaze task receiving the sample from its driver to the lens driver having written the command, through the rig's loop and scheduler as `dioptra serve` runs them"
     );
-    println!(
-        "gaze to lens command: {} samples ({} gaze samples)",
-        host_path.hist.len(),
-        gaze_samples
-    );
+    println!("gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples)");
 
-    // 2. Lens steps, timed to the first readback at the commanded power.
+    // 2. Lens steps through manual focus, timed to the first readback at the commanded power.
     let r = cfg.optics.lens_range;
     let (lo, hi) = (
         r.min + 0.25 * (r.max - r.min),
@@ -296,31 +296,39 @@ async fn measure(
     );
     let mut unsettled = 0usize;
     for i in 0..args.trials {
-        let p = Diopters(if i % 2 == 0 { hi } else { lo });
-        let id = 1_000_000 + i as u64;
-        let at = clock.now();
-        let _ = links.lens_commands.send(Some((id, p)));
+        let p = if i % 2 == 0 { hi } else { lo };
+        while rx.try_recv().is_ok() {}
+        state
+            .control(Control::ManualFocus(Some(p)))
+            .await
+            .map_err(|e| anyhow::anyhow!("manual focus {p} D was refused: {e}"))?;
         let end = tokio::time::Instant::now() + STEP_TIMEOUT;
-        let mut wired: Option<Timestamp> = None;
+        let mut command: Option<(u64, Timestamp)> = None;
+        let mut wired = false;
         let mut done = false;
         while tokio::time::Instant::now() < end {
-            let d = tokio::select! {
-                d = rx.recv() => d,
+            let seen = tokio::select! {
+                s = rx.recv() => s,
                 _ = tokio::time::sleep_until(end) => None,
             };
-            match d {
-                Some(DeviceInput::LensWire {
-                    id: got, wire_time, ..
-                }) if got == id => {
-                    to_wire.record_us(ts_us(at, wire_time));
-                    wired = Some(wire_time);
+            match seen {
+                Some(Seen::LensCommand(id, at)) => command = Some((id, at)),
+                Some(Seen::Input(DeviceInput::LensWire { id, wire_time, .. }))
+                    if command.is_some_and(|c| c.0 == id) =>
+                {
+                    if let Some((_, at)) = command {
+                        to_wire.record_us(ts_us(at, wire_time));
+                    }
+                    wired = true;
                 }
-                Some(DeviceInput::LensState(s))
-                    if wired.is_some()
-                        && (s.power.0 - p.0).abs() <= SETTLE_TOLERANCE_D
+                Some(Seen::Input(DeviceInput::LensState(s)))
+                    if wired
+                        && (s.power.0 - p).abs() <= SETTLE_TOLERANCE_D
                         && s.settled != Some(false) =>
                 {
-                    settled.record_us(ts_us(at, s.host_time));
+                    if let Some((_, at)) = command {
+                        settled.record_us(ts_us(at, s.host_time));
+                    }
                     done = true;
                     break;
                 }
@@ -332,9 +340,11 @@ async fn measure(
             unsettled += 1;
         }
     }
+    let _ = state.control(Control::ManualFocus(None)).await;
     settled.note = format!(
-        "{} steps between {lo:.2} and {hi:.2} D; settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every 10 ms (the lens task's poll), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
+        "{} steps between {lo:.2} and {hi:.2} D (manual focus through the rig's loop); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
         args.trials,
+        state.settings.lens_poll.as_millis(),
         STEP_TIMEOUT.as_millis()
     );
     println!(
@@ -342,9 +352,10 @@ async fn measure(
         settled.hist.len()
     );
     to_wire.note =
-        "from the command handed to the lens task to the driver's write completing".into();
+        "from the loop handing the command to the lens task to the driver's write completing"
+            .into();
 
-    // 3. Sub-frame timing against the programmed schedule.
+    // 3. Sub-frame timing against the programmed schedule, in multifocal mode.
     let mut measures = vec![host_path, to_wire, settled];
     let sync_driver = cfg.devices.sync.as_ref().map(|s| s.driver);
     if sync_driver == Some(SyncDriver::Dlpc350) {
@@ -357,7 +368,11 @@ async fn measure(
     } else if sync_driver.is_some() {
         let period_us = 1e6 / cfg.optics.subframe_hz;
         let planes = cfg.optics.planes.len();
-        let _ = links.multifocal.send(true);
+        let before = dioptra_core::lock(&state.status).mode.unwrap_or(cfg.mode);
+        state
+            .control(Control::Mode(Mode::Multifocal))
+            .await
+            .map_err(|e| anyhow::anyhow!("cannot switch to multifocal mode: {e}"))?;
         let end = tokio::time::Instant::now()
             + Duration::from_secs(10).max(Duration::from_secs_f64(
                 3.0 * args.trials as f64 / cfg.optics.subframe_hz,
@@ -365,17 +380,17 @@ async fn measure(
         let (mut last, mut out_of_order, mut faults, mut sum) =
             (None::<(u32, u8, Timestamp)>, 0u64, 0u64, 0.0f64);
         while (subframe.hist.len() as usize) < args.trials && tokio::time::Instant::now() < end {
-            let d = tokio::select! {
-                d = rx.recv() => d,
+            let seen = tokio::select! {
+                s = rx.recv() => s,
                 _ = tokio::time::sleep_until(end) => None,
             };
-            match d {
-                Some(DeviceInput::Sync(SequencerEvent::SubframeStart {
+            match seen {
+                Some(Seen::Input(DeviceInput::Sync(SequencerEvent::SubframeStart {
                     frame,
                     plane_index,
                     device_time,
                     ..
-                })) => {
+                }))) => {
                     if let Some((f0, p0, t0)) = last {
                         let expected_plane = (usize::from(p0) + 1) % planes.max(1);
                         if usize::from(plane_index) != expected_plane {
@@ -390,11 +405,11 @@ async fn measure(
                     }
                     last = Some((frame, plane_index, device_time));
                 }
-                Some(DeviceInput::Sync(SequencerEvent::Fault { .. })) => faults += 1,
+                Some(Seen::Input(DeviceInput::Sync(SequencerEvent::Fault { .. }))) => faults += 1,
                 _ => {}
             }
         }
-        let _ = links.multifocal.send(false);
+        let _ = state.control(Control::Mode(before)).await;
         let n = subframe.hist.len();
         subframe.signed_mean_us = (n > 0).then(|| sum / n as f64);
         subframe.note = format!(
@@ -406,8 +421,14 @@ async fn measure(
     } else {
         println!("sub-frame timing: skipped (the config names no devices.sync)");
     }
-    cancel.cancel();
-    let _ = tokio::time::timeout(Duration::from_secs(3), tasks.lens).await;
+    state.cancel.cancel();
+    let report = rig.wait().await;
+    if !report.ok() {
+        println!(
+            "the rig did not stop cleanly: {}",
+            report.problems().join("; ")
+        );
+    }
     Ok(measures)
 }
 

@@ -1,3 +1,7 @@
+// Without the `simulated` feature the demo and the loop suite are left out, and with them
+// some helpers they share with other commands.
+#![cfg_attr(not(feature = "simulated"), allow(dead_code, unused_imports))]
+
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
 //! add a variant to [`Command`] and a module beside this file.
 
@@ -7,6 +11,7 @@ mod eval;
 mod gaze_cmd;
 mod hil;
 mod lens_cmd;
+mod recording_cmd;
 mod render_cmd;
 mod replay;
 mod serve;
@@ -62,6 +67,8 @@ enum Command {
     Serve(serve::Args),
     /// Drive a scheduler from a `serve` recording (MCAP) and compare its commands.
     Replay(replay::Args),
+    /// Recordings: `recover` rewrites a cut-off one (the daemon killed) into a complete file.
+    Recording(recording_cmd::Args),
     /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
     Train(train::Args),
     /// Speed against accuracy of every render method, and the failure-case suite: CSV, charts, report.
@@ -79,8 +86,45 @@ fn block_on<T>(work: impl std::future::Future<Output = anyhow::Result<T>>) -> an
         .block_on(work)
 }
 
+/// An error that ends the command with its own exit code (1 is every other error's).
+#[derive(Debug)]
+pub struct Exit {
+    pub code: u8,
+    pub message: String,
+}
+
+impl Exit {
+    pub fn new(code: u8, message: impl Into<String>) -> Exit {
+        Exit {
+            code,
+            message: message.into(),
+        }
+    }
+}
+
+impl std::fmt::Display for Exit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.message)
+    }
+}
+
+impl std::error::Error for Exit {}
+
+/// A closed pipe on stdout (`dioptra replay --json | head`) ends the command quietly, as it
+/// does other Unix tools, instead of a panic in `println!`. Not for commands that drive a rig
+/// (serve, hil): they must park the lens whatever happens to their output.
+fn quiet_broken_pipes() {
+    // SAFETY: setting a signal's disposition to its default, before any thread is started.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if !matches!(cli.command, Command::Serve(_) | Command::Hil(_)) {
+        quiet_broken_pipes();
+    }
     let result = match cli.command {
         Command::Demo(args) => demo::run_demo(args),
         Command::Devices(args) => devices::run(args),
@@ -98,6 +142,7 @@ fn main() -> std::process::ExitCode {
         Command::Foveate(args) => render_cmd::foveate(args),
         Command::Serve(args) => serve::run(args),
         Command::Replay(args) => replay::run(args),
+        Command::Recording(args) => recording_cmd::run(args),
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Hil(args) => hil::run(args),
@@ -106,7 +151,10 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            std::process::ExitCode::FAILURE
+            match e.downcast_ref::<Exit>() {
+                Some(exit) => std::process::ExitCode::from(exit.code),
+                None => std::process::ExitCode::FAILURE,
+            }
         }
     }
 }

@@ -15,12 +15,13 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{Diopters, Timestamp};
 use serde::Serialize;
 
-use crate::serve::config::{Method, Mode, RigConfig};
-use crate::serve::devices::DeviceInput;
-use crate::serve::engine::{Command, Engine, Input};
-use crate::serve::recording::{self, ControlRec, Rec, Recorded};
-use crate::serve::render::Renderer;
-use crate::serve::Control;
+use dioptra_rig::config::{Method, Mode, RigConfig};
+use dioptra_rig::devices::DeviceInput;
+use dioptra_rig::engine::{Command, Engine, Input};
+use dioptra_rig::recording::{self, ControlRec, Rec, Recorded};
+use dioptra_rig::render::Renderer;
+use dioptra_rig::scene::SceneRenderer;
+use dioptra_rig::Control;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -96,7 +97,7 @@ impl Cmd {
                 t_ns: t.0,
                 id: id.0,
                 power_d: power.0,
-                reason: crate::serve::engine::reason_name(reason),
+                reason: dioptra_rig::engine::reason_name(reason),
             },
             Command::RenderFrame(req) => Cmd::Render {
                 t_ns: t.0,
@@ -159,8 +160,25 @@ pub struct ReplayReport {
 }
 
 impl ReplayReport {
+    /// Same commands in the same order. A file cut off mid-write may lack the commands of its
+    /// last inputs (they were in the lost chunk): replayed commands beyond the recorded ones
+    /// then count as the cut, not a difference.
     pub fn identical(&self) -> bool {
-        self.first_difference.is_none()
+        match &self.first_difference {
+            None => true,
+            Some((None, Some(_))) => !self.complete,
+            Some(_) => false,
+        }
+    }
+
+    pub fn verdict(&self) -> Verdict {
+        if !self.from_start {
+            Verdict::CannotCompare
+        } else if self.identical() {
+            Verdict::Identical
+        } else {
+            Verdict::Differs
+        }
     }
 }
 
@@ -171,13 +189,33 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         print_summary(&report);
     }
-    if report.from_start && !report.identical() {
-        bail!(
-            "the replayed scheduler differs from the recording after {} matching commands",
-            report.matching_prefix
-        );
+    match report.verdict() {
+        Verdict::Identical => Ok(()),
+        Verdict::Differs => Err(crate::Exit::new(
+            1,
+            format!(
+                "the replayed scheduler differs from the recording after {} matching commands",
+                report.matching_prefix
+            ),
+        )
+        .into()),
+        Verdict::CannotCompare => Err(crate::Exit::new(
+            2,
+            "the recording began mid-run: the scheduler's state before it is not in the file, \
+             so the replay (from a fresh scheduler) cannot be compared command by command; \
+             record from daemon start (recording.start = true) to compare",
+        )
+        .into()),
     }
-    Ok(())
+}
+
+/// What a replay shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    Identical,
+    Differs,
+    /// A recording started mid-run: nothing to compare against.
+    CannotCompare,
 }
 
 fn print_summary(r: &ReplayReport) {
@@ -209,8 +247,22 @@ fn print_summary(r: &ReplayReport) {
         r.replayed.len(),
         lens(&r.replayed),
     );
+    if !r.from_start {
+        println!(
+            "not compared: the recording began mid-run, so a fresh scheduler cannot reproduce \
+             its commands ({} replayed commands are in --json)",
+            r.replayed.len()
+        );
+        return;
+    }
     match &r.first_difference {
         None => println!("replay identical to the recording"),
+        Some((None, Some(_))) if !r.complete => println!(
+            "replay identical to the recording up to its cut ({} matching commands; the \
+             replay's last {} fell in the lost part)",
+            r.matching_prefix,
+            r.replayed.len() - r.matching_prefix
+        ),
         Some((a, b)) => println!(
             "first difference after {} matching commands: recorded {a:?}, replayed {b:?}",
             r.matching_prefix
@@ -235,13 +287,18 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
     cfg.method = Method::parse(&start.method)
         .with_context(|| format!("unknown method {:?} in the recording", start.method))?;
-    let renderer = Renderer::new(&cfg).context("cannot render the recorded rig's scene")?;
-    let mut engine = Engine::new(&cfg, renderer.input())
+    let renderer = SceneRenderer::new(&cfg).context("cannot render the recorded rig's scene")?;
+    // The scene is static: the depth the daemon gave at its start is the one every /depth
+    // message stands for.
+    let depth = renderer
+        .depth(*t0)
+        .context("the recorded rig's scene has no depth")?;
+    let mut engine = Engine::new(&cfg)
         .map_err(anyhow::Error::msg)
         .context("cannot start the scheduler")?;
     if !start.from_start {
         // The daemon gave the scene's depth at its start, before this recording began.
-        let _ = engine.step(*t0, Input::Depth);
+        let _ = engine.step(*t0, Input::Depth(depth.clone()));
     }
     if let Some(d) = start.manual_focus_d {
         // Set before the recording began: its commands are not in the file.
@@ -258,12 +315,13 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
             continue;
         }
         let input = match m {
-            Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into())),
+            Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into(), std::time::Instant::now())),
             Rec::LensState(s) => Input::Device(DeviceInput::LensState(s.into())),
             Rec::LensWire(w) => Input::Device(DeviceInput::LensWire {
                 id: w.id,
                 requested: Diopters(w.requested_d),
                 wire_time: Timestamp(w.wire_ns),
+                host_path: None,
             }),
             Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(l.up)),
             Rec::Sync(e) => Input::Device(DeviceInput::Sync(e.into())),
@@ -273,7 +331,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
                     .with_context(|| format!("unknown method {:?} in /frame", f.method))?,
                 render_time: Duration::from_nanos(f.render_ns),
             },
-            Rec::Depth(_) => Input::Depth,
+            Rec::Depth(_) => Input::Depth(depth.clone()),
             Rec::Tick(_) => Input::Tick,
             Rec::Shutdown(_) => Input::Shutdown,
             Rec::Control(c) => Input::Control(match c {

@@ -38,7 +38,8 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, String)
     s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
     write!(
         s,
-        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     )
     .unwrap();
@@ -77,6 +78,21 @@ fn serve_answers_the_api_and_stops_through_it_then_replay_matches() {
     let (code, body) = http(addr, "GET", "/status", "");
     assert_eq!(code, 200, "{body}");
     assert!(body.contains("\"mode\":\"varifocal\""), "{body}");
+    // Host time t happened at wall_zero_ns + t: the anchor puts "now" at about now.
+    let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+    let zero = v["clock"]["wall_zero_ns"]
+        .as_u64()
+        .expect("no wall-clock anchor");
+    let host_now = v["host_ns"].as_u64().unwrap();
+    let wall_now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_nanos() as u64;
+    let off = (zero + host_now).abs_diff(wall_now);
+    assert!(
+        off < 5_000_000_000,
+        "the anchor is {off} ns off the wall clock"
+    );
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 1.25}");
     assert_eq!(code, 200, "{body}");
     // The lens follows: the simulated lens's own state reaches 1.25 D.
@@ -233,4 +249,123 @@ fn the_network_method_without_weights_names_the_missing_file() {
         "{err}"
     );
     assert!(err.contains("render.weights"), "{err}");
+}
+
+/// Starts `dioptra serve` on `config`: the daemon, its stderr after the first line, and the
+/// API's address from that line.
+fn start(config: &Path) -> (Daemon, BufReader<std::process::ChildStderr>, SocketAddr) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["serve", "--config"])
+        .arg(config)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stderr = BufReader::new(child.stderr.take().unwrap());
+    let mut line = String::new();
+    stderr.read_line(&mut line).unwrap();
+    let addr: SocketAddr = line
+        .trim()
+        .strip_prefix("dioptra serve: API on http://")
+        .unwrap_or_else(|| panic!("first line {line:?}"))
+        .parse()
+        .unwrap();
+    (Daemon(child), stderr, addr)
+}
+
+/// Polls `/status` until the lens is `ok`.
+fn wait_for_lens(addr: SocketAddr) {
+    for _ in 0..2000 {
+        let (_, body) = http(addr, "GET", "/status", "");
+        if body.contains("\"lens\":{") && body.contains("\"state\":\"ok\"") {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    panic!("the lens never came up");
+}
+
+#[test]
+fn sigterm_sigint_and_sighup_park_the_lens_and_finish_the_recording() {
+    for (name, signal) in [
+        ("SIGTERM", libc::SIGTERM),
+        ("SIGINT", libc::SIGINT),
+        ("SIGHUP", libc::SIGHUP),
+    ] {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut daemon, mut stderr, addr) = start(&write_config(dir.path(), true));
+        wait_for_lens(addr);
+        let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 2.5}");
+        assert_eq!(code, 200, "{body}");
+        // SAFETY: kill(2) on our own child's pid.
+        let pid = daemon.0.id() as libc::pid_t;
+        assert_eq!(unsafe { libc::kill(pid, signal) }, 0);
+        let mut rest = String::new();
+        stderr.read_to_string(&mut rest).unwrap();
+        let status = daemon.0.wait().unwrap();
+        assert!(status.success(), "{name}: {status}: {rest}");
+        assert!(
+            rest.contains(&format!("stopping ({name})")),
+            "{name}: {rest}"
+        );
+        assert!(rest.contains("lens parked at 0.5 D"), "{name}: {rest}");
+        let recording = rest
+            .split("recording ")
+            .nth(1)
+            .and_then(|r| r.split(" finished").next())
+            .unwrap_or_else(|| panic!("{name}: no recording in {rest:?}"));
+        // A finished file: it has its summary.
+        let bytes = std::fs::read(recording).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap();
+        assert!(summary.is_some_and(|s| s.stats.is_some_and(|st| st.message_count > 0)));
+    }
+}
+
+#[test]
+fn a_recording_killed_with_sigkill_is_recovered() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut daemon, _stderr, addr) = start(&write_config(dir.path(), true));
+    wait_for_lens(addr);
+    // Wait until some closed chunks are on disk (the daemon closes one every second of data).
+    let rec_dir = dir.path().join("rec");
+    let file = (0..6000)
+        .find_map(|_| {
+            std::thread::sleep(Duration::from_millis(10));
+            let f = std::fs::read_dir(&rec_dir).ok()?.flatten().next()?.path();
+            (std::fs::metadata(&f).ok()?.len() > 200_000).then_some(f)
+        })
+        .expect("the recording never grew past 200 kB");
+    daemon.0.kill().unwrap();
+    daemon.0.wait().unwrap();
+    let out = dir.path().join("fixed.mcap");
+    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["recording", "recover"])
+        .arg(&file)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(text.contains("cut off"), "{text}");
+    let bytes = std::fs::read(&out).unwrap();
+    let summary = mcap::Summary::read(&bytes).unwrap().expect("no summary");
+    let n = summary.stats.unwrap().message_count;
+    assert!(n > 100, "{n} messages recovered");
+    // And replay reads it.
+    let replay = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .arg("replay")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&replay.stdout);
+    assert!(
+        text.contains("/lens/command"),
+        "{text}{}",
+        String::from_utf8_lossy(&replay.stderr)
+    );
 }

@@ -22,9 +22,15 @@ pub enum LinkError {
 }
 
 impl LinkError {
-    /// True when reopening the link is the right recovery.
+    /// True when the link is lost and reopening it is the right recovery: the device went
+    /// away, the OS failed the I/O, or the link cannot be used at all. A timeout is not a
+    /// loss by itself (a busy device answers late); callers that keep a link decide after how
+    /// many timeouts in a row to treat it as lost.
     pub fn needs_reconnect(&self) -> bool {
-        matches!(self, LinkError::Disconnected(_) | LinkError::Io(_))
+        matches!(
+            self,
+            LinkError::Disconnected(_) | LinkError::Io(_) | LinkError::Unavailable(_)
+        )
     }
 }
 

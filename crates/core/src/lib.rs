@@ -7,6 +7,7 @@ pub mod error;
 pub mod image;
 pub mod optics;
 pub mod sampling;
+pub mod sync;
 pub mod time;
 pub mod units;
 
@@ -18,5 +19,6 @@ pub use device::{
 pub use error::{DeviceError, InputError, LinkError};
 pub use image::{DepthMap, Plane, RgbImage, Rgbd};
 pub use optics::EyeModel;
+pub use sync::lock;
 pub use time::{Clock, SimClock, SystemClock, Timestamp};
 pub use units::{Diopters, Meters, Millimeters, PowerRange};

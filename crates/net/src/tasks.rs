@@ -8,11 +8,12 @@ use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use dioptra_render::Layers;
 
 fn check_focus(q: Diopters) -> Result<(), NetError> {
-    if q.0.is_finite() && (0.0..1000.0).contains(&q.0) {
+    // As the renderer's: below 0 D the eye focuses beyond optical infinity.
+    if q.0.is_finite() && q.0.abs() < 1000.0 {
         Ok(())
     } else {
         Err(input(format!(
-            "focus {q} is invalid: expected finite and 0 <= q < 1000 D"
+            "focus {q} is invalid: expected finite and -1000 < q < 1000 D"
         )))
     }
 }

@@ -10,12 +10,26 @@ pub(crate) fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, RenderEr
     Ok(eye.with_width(w).validated()?)
 }
 
+/// An eye's focus. 0 D is optical infinity; below it the eye focuses beyond infinity (a
+/// relaxed hyperopic eye, or a lens set to a negative power), and the circle of confusion
+/// still follows from |depth - focus|.
 pub(crate) fn check_focus(q: Diopters) -> Result<(), RenderError> {
+    if q.0.is_finite() && q.0.abs() < 1000.0 {
+        Ok(())
+    } else {
+        Err(invalid(format!(
+            "focus {q} is invalid: expected finite and -1000 < q < 1000 D"
+        )))
+    }
+}
+
+/// A display plane's distance: optical infinity (0 D) or nearer.
+pub(crate) fn check_plane(q: Diopters) -> Result<(), RenderError> {
     if q.0.is_finite() && q.0 >= 0.0 && q.0 < 1000.0 {
         Ok(())
     } else {
         Err(invalid(format!(
-            "focus {q} is invalid: expected finite and 0 <= q < 1000 D"
+            "display plane {q} is invalid: expected finite and 0 <= q < 1000 D"
         )))
     }
 }

@@ -150,19 +150,28 @@ pub(crate) fn resolve(exact: &[u64], wide: &[u64], j: usize) -> Option<usize> {
     key_source(if exact[j] != 0 { exact[j] } else { wide[j] })
 }
 
+/// Checks the light-field method's inputs (both backends).
+pub(crate) fn check_lightfield_inputs(
+    input: &Rgbd,
+    params: &LightFieldParams,
+) -> Result<(), RenderError> {
+    check_rgbd(input)?;
+    if !(1..=1024).contains(&params.views) {
+        return Err(invalid(format!(
+            "views = {} is invalid: expected 1 to 1024",
+            params.views
+        )));
+    }
+    Ok(())
+}
+
 impl<'a> LightFieldPrep<'a> {
     pub fn new(
         input: &'a Rgbd,
         eye: &EyeModel,
         params: LightFieldParams,
     ) -> Result<Self, RenderError> {
-        check_rgbd(input)?;
-        if !(1..=1024).contains(&params.views) {
-            return Err(invalid(format!(
-                "views = {} is invalid: expected 1 to 1024",
-                params.views
-            )));
-        }
+        check_lightfield_inputs(input, &params)?;
         let eye = eye_for(eye, input.width())?;
         let nlev = if params.mip { LEVEL_SIGMA.len() } else { 1 };
         let levels = (0..nlev).map(|_| OnceLock::new()).collect();

@@ -12,7 +12,7 @@
 //! FISTA (accelerated projected gradient) with step 1 / L, L a Gershgorin bound on the
 //! largest eigenvalue of M over all frequencies.
 
-use crate::common::{check_focus, eye_for};
+use crate::common::{check_focus, check_plane, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::kernel::{disk_kernel, FftConv, Spectrum};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
@@ -83,7 +83,7 @@ pub(crate) fn check_planes(planes: &[Diopters]) -> Result<(), RenderError> {
         )));
     }
     for &p in planes {
-        check_focus(p)?;
+        check_plane(p)?;
     }
     if planes.windows(2).any(|w| w[0].0 >= w[1].0) {
         return Err(invalid(
@@ -200,17 +200,14 @@ fn plane_spectra(
     out
 }
 
-/// Optimized blending of `targets` (slice j seen focusing at `foci[j]`) onto `planes`,
-/// starting from `init` (e.g. [`linear_blend`]) or from the targets' mean split evenly.
-pub fn optimized_blend(
+/// Checks optimized blending's inputs (both backends); returns the targets' size.
+pub(crate) fn check_optimize_inputs(
     targets: &[RgbImage],
     foci: &[Diopters],
     planes: &[Diopters],
-    eye: &EyeModel,
     init: Option<&Layers>,
-    params: OptimizeParams,
-    mut progress: impl FnMut(usize),
-) -> Result<(Layers, OptimizeReport), RenderError> {
+    params: &OptimizeParams,
+) -> Result<(usize, usize), RenderError> {
     check_planes(planes)?;
     if targets.is_empty() || targets.len() != foci.len() {
         return Err(mismatch(format!(
@@ -235,6 +232,21 @@ pub fn optimized_blend(
     if params.iterations > 100_000 {
         return Err(invalid("iterations must be at most 100000"));
     }
+    Ok((w, h))
+}
+
+/// Optimized blending of `targets` (slice j seen focusing at `foci[j]`) onto `planes`,
+/// starting from `init` (e.g. [`linear_blend`]) or from the targets' mean split evenly.
+pub fn optimized_blend(
+    targets: &[RgbImage],
+    foci: &[Diopters],
+    planes: &[Diopters],
+    eye: &EyeModel,
+    init: Option<&Layers>,
+    params: OptimizeParams,
+    mut progress: impl FnMut(usize),
+) -> Result<(Layers, OptimizeReport), RenderError> {
+    let (w, h) = check_optimize_inputs(targets, foci, planes, init, &params)?;
     let eye = eye_for(eye, w)?;
     let np = planes.len();
     let conv = FftConv::new(w, h, max_radius(&eye, planes, foci));

@@ -1,12 +1,82 @@
 //! What the eye sees focusing at q through a varifocal display, a multifocal layer stack,
 //! or a light-field display.
 
-use crate::common::{check_focus, eye_for};
+use crate::common::{check_focus, check_plane, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::kernel::{disk_kernel, FftConv};
 use crate::multifocal::{Layers, MultifocalRetina};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
 use rayon::prelude::*;
+
+/// Checks a varifocal display's inputs (both backends); returns the eye at the image's width.
+pub(crate) fn check_varifocal_inputs(
+    image: &RgbImage,
+    display: Diopters,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<EyeModel, RenderError> {
+    check_plane(display)?;
+    check_focus(focus)?;
+    if image.width() == 0 || image.height() == 0 {
+        return Err(invalid("image is empty"));
+    }
+    eye_for(eye, image.width())
+}
+
+/// A light field's inputs, checked: the views' size, the eye at that width, and each view's
+/// share of the pupil.
+pub(crate) struct LightFieldInputs {
+    pub w: usize,
+    pub h: usize,
+    pub eye: EyeModel,
+    pub weights: Vec<f32>,
+    /// The weights' sum (positive).
+    pub total: f32,
+}
+
+/// Checks a light-field display's inputs (both backends).
+pub(crate) fn check_lightfield_inputs(
+    views: &[LfView],
+    spacing: f32,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<LightFieldInputs, RenderError> {
+    check_focus(focus)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("the light field has no views"))?;
+    let (w, h) = (first.image.width(), first.image.height());
+    if w == 0
+        || h == 0
+        || views
+            .iter()
+            .any(|v| (v.image.width(), v.image.height()) != (w, h))
+    {
+        return Err(mismatch("light-field views are empty or differ in size"));
+    }
+    if !(spacing.is_finite() && spacing > 0.0)
+        || views
+            .iter()
+            .any(|v| !v.position.iter().all(|p| p.is_finite()))
+    {
+        return Err(invalid(format!(
+            "view spacing {spacing} m or a view position is invalid"
+        )));
+    }
+    let eye = eye_for(eye, w)?;
+    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
+    let total: f32 = weights.iter().sum();
+    if total <= 0.0 {
+        return Err(invalid("no light-field view lies inside the pupil"));
+    }
+    Ok(LightFieldInputs {
+        w,
+        h,
+        eye,
+        weights,
+        total,
+    })
+}
 
 /// A varifocal display showing `image` at `display` diopters, seen focusing at `focus`:
 /// the image convolved with the disk PSF of diameter coc(display, focus).
@@ -16,12 +86,7 @@ pub fn retina_varifocal(
     focus: Diopters,
     eye: &EyeModel,
 ) -> Result<RgbImage, RenderError> {
-    check_focus(display)?;
-    check_focus(focus)?;
-    if image.width() == 0 || image.height() == 0 {
-        return Err(invalid("image is empty"));
-    }
-    let eye = eye_for(eye, image.width())?;
+    let eye = check_varifocal_inputs(image, display, focus, eye)?;
     let k = disk_kernel(eye.coc_px(display, focus));
     if k.radius == 0 {
         return Ok(image.clone());
@@ -102,35 +167,14 @@ pub fn retina_lightfield(
     focus: Diopters,
     eye: &EyeModel,
 ) -> Result<RgbImage, RenderError> {
-    check_focus(focus)?;
-    let first = views
-        .first()
-        .ok_or_else(|| invalid("the light field has no views"))?;
-    let (w, h) = (first.image.width(), first.image.height());
-    if w == 0
-        || h == 0
-        || views
-            .iter()
-            .any(|v| (v.image.width(), v.image.height()) != (w, h))
-    {
-        return Err(mismatch("light-field views are empty or differ in size"));
-    }
-    if !(spacing.is_finite() && spacing > 0.0)
-        || views
-            .iter()
-            .any(|v| !v.position.iter().all(|p| p.is_finite()))
-    {
-        return Err(invalid(format!(
-            "view spacing {spacing} m or a view position is invalid"
-        )));
-    }
-    let eye = eye_for(eye, w)?;
+    let LightFieldInputs {
+        w,
+        h,
+        eye,
+        weights,
+        total,
+    } = check_lightfield_inputs(views, spacing, focus, eye)?;
     let pitch = eye.pixel_pitch_tan();
-    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
-    let total: f32 = weights.iter().sum();
-    if total <= 0.0 {
-        return Err(invalid("no light-field view lies inside the pupil"));
-    }
     let mut planes = [0, 1, 2].map(|_| vec![0.0f32; w * h]);
     for (v, &wt) in views.iter().zip(&weights) {
         if wt == 0.0 {

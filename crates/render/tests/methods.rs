@@ -134,7 +134,7 @@ fn backend_seam_and_bad_input() {
     assert!(backend("nope").is_err());
     let input = Rgbd::new(texture(8, 8), flat_depth(8, 8, 1.0)).unwrap();
     let eye = EyeModel::default();
-    for q in [f32::NAN, -1.0, f32::INFINITY] {
+    for q in [f32::NAN, -2000.0, f32::INFINITY] {
         assert!(cpu
             .defocus(&input, &[Diopters(q)], &eye, DefocusMethod::Gather, &|_| {})
             .is_err());
@@ -171,4 +171,49 @@ fn backend_seam_and_bad_input() {
         .unwrap();
     assert_eq!(stack.len(), 3);
     assert_eq!(done.load(std::sync::atomic::Ordering::Relaxed), 3);
+}
+
+#[test]
+fn focus_at_and_beyond_infinity_blurs_by_the_same_formula() {
+    // A plane at 1 D seen focused at -1 D is as far out of focus (2 D) as one focused at
+    // 3 D: the same CoC, the same image. 0 D (optical infinity) blurs it by 1 D.
+    let (w, h) = (64, 48);
+    // A 3 degree field: 1 D of defocus blurs over about 5 pixels.
+    let eye = EyeModel {
+        fov_horizontal_deg: 3.0,
+        ..EyeModel::default()
+    };
+    let input = Rgbd::new(texture(w, h), flat_depth(w, h, 1.0)).unwrap();
+    let params = LightFieldParams {
+        views: 24,
+        mip: true,
+    };
+    for (beyond, near) in [(-1.0, 3.0), (0.0, 2.0)] {
+        let g = gather(&input, Diopters(beyond), &eye).unwrap();
+        assert_eq!(
+            g,
+            gather(&input, Diopters(near), &eye).unwrap(),
+            "gather at {beyond} D"
+        );
+        let truth = retina_varifocal(&input.color, Diopters(1.0), Diopters(beyond), &eye).unwrap();
+        let truth_near =
+            retina_varifocal(&input.color, Diopters(1.0), Diopters(near), &eye).unwrap();
+        assert!(psnr(&truth, &truth_near, None).unwrap() > 60.0);
+        assert!(psnr(&g, &truth, None).unwrap() > 30.0);
+        // The light field samples the pupil mirrored: as accurate, not bit-identical.
+        let l = lightfield(&input, Diopters(beyond), &eye, params).unwrap();
+        let l_near = lightfield(&input, Diopters(near), &eye, params).unwrap();
+        let (pb, pn) = (
+            psnr(&l, &truth, None).unwrap(),
+            psnr(&l_near, &truth, None).unwrap(),
+        );
+        assert!(
+            pb > 35.0 && pn > 35.0,
+            "light field at {beyond} D: {pb} vs {pn} dB"
+        );
+        // Blurred: not the input.
+        assert!(psnr(&g, &input.color, None).unwrap() < 30.0);
+    }
+    // Display planes stay at optical infinity or nearer.
+    assert!(retina_varifocal(&input.color, Diopters(-0.5), Diopters(1.0), &eye).is_err());
 }

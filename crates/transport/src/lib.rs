@@ -18,6 +18,7 @@
 //! [`discovery`] lists the serial ports, USB devices and HID devices present and matches them
 //! against the drivers' tables of known devices.
 
+pub mod any;
 mod blocking;
 pub mod discovery;
 mod fdio;
@@ -29,6 +30,7 @@ pub mod pty;
 pub mod serial;
 pub mod usb;
 
+pub use any::{AnyByteLink, AnyHidLink};
 pub use dioptra_core::LinkError;
 pub use hid::HidLink;
 pub use link::ByteLink;

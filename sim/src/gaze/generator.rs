@@ -449,16 +449,16 @@ impl GazeGenerator {
 
     fn report(&mut self, now_us: f64, blinking: bool) -> BinocularSample {
         let (y, p) = (self.gaze.0.to_radians(), self.gaze.1.to_radians());
-        let dir = [p.cos() * y.sin(), p.sin(), p.cos() * y.cos()];
+        let dir = glam::DVec3::new(p.cos() * y.sin(), p.sin(), p.cos() * y.cos());
         let dist = 1000.0 / self.diopters.max(1e-3);
-        let point = [dir[0] * dist, dir[1] * dist, dir[2] * dist];
+        // The fixated point, and each eye's ray to it (the eyes sit on the x axis).
+        let point = dir * dist;
         let half = self.cfg.ipd_mm / 2.0;
         let eye = |x: f64, rng: &mut Rng| {
-            let d = [point[0] - x, point[1], point[2]];
+            let d = point - glam::DVec3::new(x, 0.0, 0.0);
             // Perturb the eye's angles by the tracker noise.
-            let yaw = d[0].atan2(d[2]) + self.cfg.noise_deg.to_radians() * rng.normal();
-            let pitch =
-                d[1].atan2(d[0].hypot(d[2])) + self.cfg.noise_deg.to_radians() * rng.normal();
+            let yaw = d.x.atan2(d.z) + self.cfg.noise_deg.to_radians() * rng.normal();
+            let pitch = d.y.atan2(d.x.hypot(d.z)) + self.cfg.noise_deg.to_radians() * rng.normal();
             let valid = !blinking && rng.uniform() >= self.cfg.dropout_probability;
             EyeSample {
                 origin_mm: [x as f32, 0.0, 0.0],

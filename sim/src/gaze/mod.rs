@@ -7,7 +7,7 @@ pub mod dioptra_tracker;
 pub mod generator;
 pub mod hid_tracker;
 
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use dioptra_protocol::BinocularSample;
@@ -37,10 +37,7 @@ pub(crate) struct Streaming<S> {
     pub sent: u64,
 }
 
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    // No invariant spans a panic point, so a poisoned lock is still consistent.
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
+pub(crate) use dioptra_core::lock;
 
 /// A running simulated tracker: its device handle and sample task. Dropping it unplugs
 /// the device.

@@ -1,60 +1,33 @@
 //! Ray-primitive intersection and procedural textures for the scene simulator.
 //! Camera space: x right, y down, z forward (metres); the eye's lens is the z = 0 plane.
 
+use glam::{Mat3, Vec3};
+
+/// A point or direction as the scene's public types hold it.
 pub type V3 = [f32; 3];
 
-pub fn dot(a: V3, b: V3) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn add_scaled(a: V3, b: V3, s: f32) -> V3 {
-    [a[0] + b[0] * s, a[1] + b[1] * s, a[2] + b[2] * s]
-}
-fn normalize(a: V3) -> V3 {
-    let n = dot(a, a).sqrt().max(1e-20);
-    [a[0] / n, a[1] / n, a[2] / n]
+/// The unit vector along `a` (zero stays zero).
+fn normalize(a: Vec3) -> Vec3 {
+    a / a.length().max(1e-20)
 }
 
-/// A rotation as its three rows (local = R * world).
+/// A rotation (local = R * world).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Rot(pub [V3; 3]);
+pub struct Rot(Mat3);
 
 impl Rot {
-    pub const IDENTITY: Rot = Rot([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
+    pub const IDENTITY: Rot = Rot(Mat3::IDENTITY);
 
     /// Rotation by Euler angles (radians) about x, then y, then z.
     pub fn euler(ax: f32, ay: f32, az: f32) -> Rot {
-        let (sx, cx) = ax.sin_cos();
-        let (sy, cy) = ay.sin_cos();
-        let (sz, cz) = az.sin_cos();
-        let rx = [[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]];
-        let ry = [[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]];
-        let rz = [[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]];
-        Rot(mat_mul(rz, mat_mul(ry, rx)))
+        Rot(Mat3::from_rotation_z(az) * (Mat3::from_rotation_y(ay) * Mat3::from_rotation_x(ax)))
     }
-    fn apply(&self, v: V3) -> V3 {
-        [dot(self.0[0], v), dot(self.0[1], v), dot(self.0[2], v)]
+    fn apply(&self, v: Vec3) -> Vec3 {
+        self.0 * v
     }
-    fn apply_transpose(&self, v: V3) -> V3 {
-        let m = &self.0;
-        [
-            m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
-            m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
-            m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
-        ]
+    fn apply_transpose(&self, v: Vec3) -> Vec3 {
+        self.0.transpose() * v
     }
-}
-
-fn mat_mul(a: [V3; 3], b: [V3; 3]) -> [V3; 3] {
-    let mut m = [[0.0; 3]; 3];
-    for (i, row) in m.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            *v = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-        }
-    }
-    m
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -82,9 +55,10 @@ pub struct Hit {
 impl Shape {
     /// Nearest intersection with `t > t_min` of the ray `o + t d`.
     pub fn intersect(&self, o: V3, d: V3, t_min: f32) -> Option<Hit> {
+        let (o, d) = (Vec3::from(o), Vec3::from(d));
         match *self {
             Shape::Box { center, half, rot } => {
-                let lo = rot.apply(sub(o, center));
+                let lo = rot.apply(o - Vec3::from(center));
                 let ld = rot.apply(d);
                 let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
                 let (mut axis0, mut axis1) = (0usize, 0usize);
@@ -120,22 +94,22 @@ impl Shape {
                 } else {
                     return None;
                 };
-                let p = add_scaled(lo, ld, t);
+                let p = lo + ld * t;
                 let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-                let mut n = [0.0; 3];
+                let mut n = Vec3::ZERO;
                 n[axis] = if p[axis] > 0.0 { 1.0 } else { -1.0 };
                 Some(Hit {
                     t,
                     // Offsetting by the face axis keeps textures on adjacent faces unrelated.
                     uv: [p[u] + axis as f32 * 3.1, p[v] - axis as f32 * 1.7],
-                    normal: rot.apply_transpose(n),
+                    normal: rot.apply_transpose(n).to_array(),
                 })
             }
             Shape::Sphere { center, radius } => {
-                let oc = sub(o, center);
-                let a = dot(d, d);
-                let b = dot(oc, d);
-                let c = dot(oc, oc) - radius * radius;
+                let oc = o - Vec3::from(center);
+                let a = d.dot(d);
+                let b = oc.dot(d);
+                let c = oc.dot(oc) - radius * radius;
                 let disc = b * b - a * c;
                 if disc < 0.0 {
                     return None;
@@ -144,14 +118,14 @@ impl Shape {
                 let t = [(-b - s) / a, (-b + s) / a]
                     .into_iter()
                     .find(|&t| t > t_min)?;
-                let n = normalize(add_scaled(oc, d, t));
+                let n = normalize(oc + d * t);
                 // Arc-length surface coordinates, so texture scale is metres as for boxes.
                 let u = n[0].atan2(-n[2]) * radius;
                 let v = n[1].clamp(-1.0, 1.0).asin() * radius;
                 Some(Hit {
                     t,
                     uv: [u, v],
-                    normal: n,
+                    normal: n.to_array(),
                 })
             }
         }

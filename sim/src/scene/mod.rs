@@ -260,7 +260,9 @@ impl Scene {
             let wall_t = self.wall_depth - o[2];
             match best {
                 Some((h, obj)) if h.t < wall_t => {
-                    let ndl = geom::dot(h.normal, [-0.36, -0.6, -0.72]).abs();
+                    let ndl = glam::Vec3::from(h.normal)
+                        .dot(glam::Vec3::new(-0.36, -0.6, -0.72))
+                        .abs();
                     let shade = 0.55 + 0.45 * ndl;
                     let c = obj.texture.eval(h.uv);
                     let a = obj.alpha.clamp(0.0, 1.0);

@@ -1,25 +1,29 @@
-//! The demo's renderer side: an animated procedural scene, its RGB-D frames, the CPU render
-//! methods per mode, and the few frames kept for scoring against ground truth. With
-//! `--method auto` (varifocal) each frame's method is chosen here, where it is rendered, by
-//! `dioptra_render::planner` from the frame's depth around the gaze point and its focus.
+//! The demo's renderer: an animated procedural scene, its RGB-D frames, the CPU render
+//! methods per mode, and the few frames kept for scoring against ground truth. It is the rig
+//! runtime's [`Renderer`]: the rig asks it for the content's depth when a frame is requested,
+//! and renders on its worker thread. With `--method auto` (varifocal) each frame's method is
+//! chosen here, where it is rendered, by `dioptra_render::planner` from the frame's depth
+//! around the gaze point and its focus.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Timestamp};
-use dioptra_loop_tests::Frames;
+use dioptra_core::{lock, DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Timestamp};
 use dioptra_render::lightfield::lightfield;
 use dioptra_render::multifocal::linear_blend;
 use dioptra_render::planner::{Choice, FrameStats, Planner};
 use dioptra_render::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
 use dioptra_render::views::{synthesize_light_field, RgbdView};
 use dioptra_render::LightFieldParams;
+use dioptra_render::RenderError;
 use dioptra_render::{gather::gather, Layers};
+use dioptra_rig::config::Mode as RigMode;
+use dioptra_rig::render::{RenderJob, RenderOutput, Renderer};
 use dioptra_sched::depth::{window_depth, DepthWindow};
 use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
 use dioptra_sched::processing::Angles;
-use dioptra_sched::{FrameRequest, Mode, SchedulerConfig};
+use dioptra_sched::Mode;
 use dioptra_sim::gaze::generator::{Segment, Target};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, SceneOptions, Shape};
 
@@ -66,6 +70,14 @@ struct Mover {
     phase: f32,
 }
 
+/// The scene as it is at one instant: its RGB-D, and the sparse views light-field mode
+/// synthesises from.
+struct Content {
+    scene: Scene,
+    rgbd: Rgbd,
+    sparse: Vec<RgbdView>,
+}
+
 pub struct DemoFrames {
     mode: Mode,
     base: Scene,
@@ -78,14 +90,21 @@ pub struct DemoFrames {
     planes: Vec<Diopters>,
     targets: Vec<Target>,
     seconds: f64,
+    started: Instant,
+    /// `--method auto`: plan each varifocal frame.
+    auto: bool,
+    /// What changes as the run goes: the loop and the render thread both reach it.
+    state: Mutex<DemoState>,
+}
+
+#[derive(Default)]
+struct DemoState {
     printed_second: u64,
-    current: Option<(Scene, Rgbd, Vec<RgbdView>)>,
+    current: Option<Arc<Content>>,
     current_at: Option<Timestamp>,
     keep_after: Vec<Timestamp>,
     kept: Vec<Kept>,
-    started: Instant,
-    /// `--method auto`: plan each varifocal frame; frames per choice so far.
-    auto: bool,
+    /// `--method auto`: frames per choice so far.
     planned: std::collections::BTreeMap<String, u64>,
 }
 
@@ -107,7 +126,17 @@ fn angles_of(p: [f32; 3]) -> Angles {
 }
 
 impl DemoFrames {
-    pub fn new(mode: Mode, seed: u64, size: usize, seconds: f64, auto: bool) -> Result<Self> {
+    /// The demo scene of `seed` at `size` pixels, seen through `eye` (the rig config's), with
+    /// the rig's multifocal `planes`.
+    pub fn new(
+        mode: Mode,
+        seed: u64,
+        size: usize,
+        seconds: f64,
+        auto: bool,
+        eye: EyeModel,
+        planes: Vec<Diopters>,
+    ) -> Result<Self> {
         let base = Scene::generate_with(
             seed,
             &SceneOptions {
@@ -116,7 +145,6 @@ impl DemoFrames {
                 semi_transparent: false,
             },
         );
-        let eye = EyeModel::default();
         let cam = Camera::square(eye, size);
         let lf_cam = Camera::square(eye, (size / 2).max(16));
         let (_, depth) =
@@ -149,10 +177,6 @@ impl DemoFrames {
                 }
             })
             .collect();
-        let planes = SchedulerConfig::new(Mode::Multifocal)
-            .planes
-            .map(|p| p.planes().to_vec())
-            .unwrap_or_default();
         let keep_after = [0.3, 0.55, 0.8]
             .iter()
             .map(|f| Timestamp::ZERO + Duration::from_secs_f64(seconds * f))
@@ -167,23 +191,17 @@ impl DemoFrames {
             planes,
             targets,
             seconds,
-            printed_second: 0,
-            current: None,
-            current_at: None,
-            keep_after,
-            kept: Vec::new(),
             started: Instant::now(),
             auto,
-            planned: Default::default(),
+            state: Mutex::new(DemoState {
+                keep_after,
+                ..Default::default()
+            }),
         })
     }
 
     pub fn mode(&self) -> Mode {
         self.mode
-    }
-
-    pub fn eye(&self) -> EyeModel {
-        self.eye
     }
 
     /// The viewer's script: fixate each target in turn, with a blink now and then.
@@ -215,12 +233,12 @@ impl DemoFrames {
     }
 
     /// `--method auto`: how many frames the planner gave each method.
-    pub fn planned(&self) -> &std::collections::BTreeMap<String, u64> {
-        &self.planned
+    pub fn planned(&self) -> std::collections::BTreeMap<String, u64> {
+        lock(&self.state).planned.clone()
     }
 
-    pub fn take_kept(&mut self) -> Vec<Kept> {
-        std::mem::take(&mut self.kept)
+    pub fn take_kept(&self) -> Vec<Kept> {
+        std::mem::take(&mut lock(&self.state).kept)
     }
 
     /// What the eye focused at `accommodation` sees of a kept frame, with the lens (varifocal)
@@ -275,38 +293,25 @@ impl DemoFrames {
         }
     }
 
-    /// The planner's method for a varifocal frame focused at `q`, gaze from the request.
-    fn plan(&mut self, req: &FrameRequest, input: &Rgbd, q: Diopters) -> Choice {
-        let (w, h) = (input.width() as f64, input.height() as f64);
-        let gaze = req
-            .gaze
-            .and_then(|a| {
-                dioptra_sched::depth::pixel_of(
-                    a.direction(),
-                    input.width(),
-                    self.eye.fov_horizontal_deg,
-                )
-            })
-            .map_or([0.5 * w as f32, 0.5 * h as f32], |(x, y)| {
-                [(x + 0.5 * w) as f32, (y + 0.5 * h) as f32]
-            });
+    /// The planner's method for a varifocal frame focused at `q`, at the job's gaze point.
+    fn plan(&self, job: &RenderJob, input: &Rgbd, q: Diopters) -> Choice {
+        let (w, h) = (input.width() as f32, input.height() as f32);
+        let gaze = job.gaze.unwrap_or([0.5 * w, 0.5 * h]);
         let stats = FrameStats::from_rgbd(input, gaze, q, &self.eye);
         let plan = Planner.plan(&stats, &dioptra_render::planner::Target::default());
-        *self.planned.entry(plan.choice.to_string()).or_insert(0) += 1;
+        *lock(&self.state)
+            .planned
+            .entry(plan.choice.to_string())
+            .or_insert(0) += 1;
         plan.choice
     }
 
-    fn render_output(
-        &mut self,
-        req: &FrameRequest,
-        input: &Rgbd,
-        sparse: &[RgbdView],
-    ) -> Option<Output> {
+    fn render_output(&self, job: &RenderJob, input: &Rgbd, sparse: &[RgbdView]) -> Option<Output> {
         Some(match self.mode {
             Mode::Varifocal => {
-                let q = Diopters(req.focus.unwrap_or(Diopters(1.0)).0.max(0.0));
+                let q = Diopters(job.focus.0.max(0.0));
                 let choice = if self.auto {
-                    self.plan(req, input, q)
+                    self.plan(job, input, q)
                 } else {
                     Choice::Gather
                 };
@@ -337,27 +342,12 @@ impl DemoFrames {
     }
 }
 
-impl Frames for DemoFrames {
-    fn depth(&mut self, t: Timestamp) -> Option<Arc<DepthMap>> {
-        let second = t.as_secs_f64() as u64;
-        if second > self.printed_second {
-            self.printed_second = second;
-            println!(
-                "  {second:>3} / {:.0} s simulated ({:.1} s wall)",
-                self.seconds,
-                self.started.elapsed().as_secs_f64()
-            );
-        }
-        if self
-            .current_at
-            .is_some_and(|c| t.saturating_since(c) < SCENE_UPDATE)
-        {
-            return None;
-        }
-        self.current_at = Some(t);
+impl DemoFrames {
+    /// The scene at `t` rendered as the renderer's input.
+    fn content_at(&self, t: Timestamp) -> Option<Content> {
         let scene = self.scene_at(t);
         let (color, depth) = render_pinhole(&scene, &self.cam, [0.0, 0.0], 1).ok()?;
-        let rgbd = Rgbd::new(color, depth.clone()).ok()?;
+        let rgbd = Rgbd::new(color, depth).ok()?;
         let mut sparse = Vec::new();
         if self.mode == Mode::LightField {
             let h = LF_SPAN_M * 0.5;
@@ -369,32 +359,86 @@ impl Frames for DemoFrames {
                 });
             }
         }
-        self.current = Some((scene, rgbd, sparse));
-        Some(Arc::new(depth))
+        Some(Content {
+            scene,
+            rgbd,
+            sparse,
+        })
+    }
+}
+
+impl Renderer for DemoFrames {
+    fn depth(&self, t: Timestamp) -> Option<Arc<DepthMap>> {
+        {
+            let mut st = lock(&self.state);
+            let second = t.as_secs_f64() as u64;
+            if second > st.printed_second {
+                st.printed_second = second;
+                println!(
+                    "  {second:>3} / {:.0} s simulated ({:.1} s wall)",
+                    self.seconds,
+                    self.started.elapsed().as_secs_f64()
+                );
+            }
+            if st
+                .current_at
+                .is_some_and(|c| t.saturating_since(c) < SCENE_UPDATE)
+            {
+                return None;
+            }
+            st.current_at = Some(t);
+        }
+        let content = self.content_at(t)?;
+        let depth = Arc::new(content.rgbd.depth.clone());
+        lock(&self.state).current = Some(Arc::new(content));
+        Some(depth)
     }
 
-    fn render(&mut self, req: &FrameRequest) -> Duration {
-        let Some((scene, input, sparse)) = self.current.take() else {
-            return Duration::ZERO;
-        };
+    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
+        let content = lock(&self.state).current.clone().ok_or_else(|| {
+            RenderError::Input(dioptra_core::InputError::InvalidValue(
+                "the demo scene was not rendered yet".into(),
+            ))
+        })?;
         let started = Instant::now();
-        let output = self.render_output(req, &input, &sparse);
+        let output = self
+            .render_output(job, &content.rgbd, &content.sparse)
+            .ok_or_else(|| {
+                RenderError::Input(dioptra_core::InputError::InvalidValue(
+                    "the demo frame did not render".into(),
+                ))
+            })?;
         let took = started.elapsed();
-        if let (Some(output), Some(&after)) = (output, self.keep_after.first()) {
-            if req.display_time >= after {
-                self.keep_after.remove(0);
-                self.kept.push(Kept {
-                    frame: req.frame.0,
-                    display_time: req.display_time,
-                    scene: scene.clone(),
-                    input: input.clone(),
+        let images = match &output {
+            Output::Image(img) => vec![img.clone()],
+            Output::Layers(l) => l.images.clone(),
+            Output::LightField { panel, .. } => vec![panel.clone()],
+        };
+        let mut st = lock(&self.state);
+        if let Some(&after) = st.keep_after.first() {
+            if job.display_time >= after {
+                st.keep_after.remove(0);
+                st.kept.push(Kept {
+                    frame: job.frame,
+                    display_time: job.display_time,
+                    scene: content.scene.clone(),
+                    input: content.rgbd.clone(),
                     output,
                 });
             }
         }
-        self.current = Some((scene, input, sparse));
-        took
+        Ok(RenderOutput {
+            images,
+            planned: None,
+            // The render itself: the copies for the sink and the kept frames are the demo's.
+            cost: Some(took),
+        })
     }
+}
+
+/// The rig config's mode for a scheduler mode.
+pub fn rig_mode(mode: Mode) -> RigMode {
+    RigMode::from_sched(mode)
 }
 
 /// Up to four gaze targets on uniform surfaces at different depths.

@@ -1,271 +1,59 @@
-//! `dioptra demo`: the whole loop in one process. A simulated lens controller, eye tracker and
-//! sync board, driven by the real drivers over in-memory links; an animated procedural scene;
-//! the CPU renderer; the scheduler between them. Runs in simulated time (tokio's paused
-//! clock): as fast as this machine computes it, with each frame's render taking the simulated
-//! time it really took here. Prints a summary and writes frames and charts.
+//! `dioptra demo`: the whole loop in one process, on the rig runtime `dioptra serve` runs
+//! (dioptra-rig): the example rig of simulated devices (`crates/cli/examples/rig-sim.toml`: a
+//! Lens Driver 4, an eye tracker and a sync board, each driven by its real driver over an
+//! in-memory link), an animated procedural scene, the CPU renderer, and the scheduler between
+//! them. Runs in simulated time (tokio's paused clock): as fast as this machine computes it,
+//! with each frame's render taking the simulated time it really took here. Prints a summary
+//! and writes frames and charts.
 
+#[cfg(feature = "simulated")]
 mod frames;
 pub(crate) mod plots;
+#[cfg(feature = "simulated")]
+mod run;
 
-use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
-use dioptra_core::{Diopters, RgbImage, Timestamp};
-use dioptra_loop_tests::{percentile, run, RigOptions, Run};
-use dioptra_render::metrics;
-use dioptra_sched::{Mode, Stage};
-use hdrhistogram::Histogram;
-
-use frames::{DemoFrames, Kept};
+use anyhow::Result;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// varifocal, multifocal or lightfield.
     #[arg(long, default_value = "varifocal")]
-    mode: String,
+    pub(crate) mode: String,
     /// Varifocal render method: gather, or auto (the planner chooses per frame: no blur,
     /// gather, or the light-field method with as few views as the scene needs).
     #[arg(long, default_value = "gather")]
-    method: String,
+    pub(crate) method: String,
     /// Simulated seconds to run.
     #[arg(long, default_value_t = 10.0)]
-    seconds: f64,
+    pub(crate) seconds: f64,
     /// Where to write frames and charts.
     #[arg(long, default_value = "demo-out")]
-    out: PathBuf,
+    pub(crate) out: PathBuf,
     /// Image size, pixels (square, over the eye model's 20 degree field).
     #[arg(long, default_value_t = 256)]
-    size: usize,
+    pub(crate) size: usize,
     /// Procedural scene seed (test seeds are 1000000-1999999).
     #[arg(long, default_value_t = 1_000_007)]
-    seed: u64,
+    pub(crate) seed: u64,
     /// Rays per pixel of the thin-lens ground truth the shown frames are scored against.
     #[arg(long, default_value_t = 48)]
-    truth_samples: u32,
+    pub(crate) truth_samples: u32,
     /// Frames scored against ground truth (each costs a thin-lens render).
     #[arg(long, default_value_t = 3)]
-    scored: usize,
+    pub(crate) scored: usize,
 }
 
+#[cfg(feature = "simulated")]
 pub fn run_demo(args: Args) -> Result<()> {
-    let mode: Mode = args.mode.parse().map_err(anyhow::Error::msg)?;
-    if !(args.seconds > 0.0 && args.seconds <= 600.0) {
-        bail!(
-            "--seconds {} is out of range: expected more than 0 and at most 600",
-            args.seconds
-        );
-    }
-    if !(32..=1024).contains(&args.size) {
-        bail!(
-            "--size {} is out of range: expected 32 to 1024 pixels",
-            args.size
-        );
-    }
-    let auto = match args.method.as_str() {
-        "gather" => false,
-        "auto" if mode == Mode::Varifocal => true,
-        "auto" => bail!(
-            "--method auto plans varifocal frames only; {} mode renders with its own method (drop --method)",
-            mode.as_str()
-        ),
-        other => bail!("--method {other:?} is unknown: expected gather or auto"),
-    };
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
-    println!(
-        "dioptra demo: {} mode, {} s of simulated time, {}x{} px, scene seed {}",
-        mode.as_str(),
-        args.seconds,
-        args.size,
-        args.size,
-        args.seed
-    );
-    let mut frames = DemoFrames::new(mode, args.seed, args.size, args.seconds, auto)?;
-    let mut opts = RigOptions::new(
-        mode,
-        frames.gaze_scene(),
-        Duration::from_secs_f64(args.seconds),
-    );
-    opts.sched.eye = frames.eye();
-    if mode == Mode::LightField {
-        // Light-field frames are slow on the CPU: a 30 Hz display.
-        opts.sched.display.frame_period = Duration::from_nanos(33_333_333);
-        opts.sched.display.render_lead = Duration::from_nanos(33_333_333);
-    }
-    println!("running the loop (simulated devices; progress every simulated second)...");
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .start_paused(true)
-        .build()?;
-    let r: Run = rt
-        .block_on(run(opts.clone(), &mut frames))
-        .context("the simulated rig failed to start")?;
-    drop(rt);
-    println!(
-        "\nran {:.1} s of simulated time in {:.1} s of wall time ({:.1}x real time)",
-        r.simulated.as_secs_f64(),
-        r.wall.as_secs_f64(),
-        r.simulated.as_secs_f64() / r.wall.as_secs_f64().max(1e-9)
-    );
-    summary(&r, mode);
-    if auto {
-        let chosen: Vec<String> = frames
-            .planned()
-            .iter()
-            .map(|(m, n)| format!("{m} {n}"))
-            .collect();
-        println!(
-            "method auto: the planner chose (frames) {} for a fovea PSNR target of {} dB",
-            chosen.join(", "),
-            dioptra_render::planner::Target::default().fovea_psnr_db
-        );
-    }
-    let kept = frames.take_kept();
-    score(&r, &frames, &kept, &args)?;
-    plots::latency(&args.out.join("latency.png"), &r)?;
-    plots::focus(&args.out.join("focus.png"), &r, mode)?;
-    println!(
-        "\nwrote {}: frame_*_{{input,rendered,eye,truth}}.png, latency.png, focus.png",
-        args.out.display()
-    );
-    Ok(())
+    run::run_demo(args)
 }
 
-fn ms(us: u64) -> f64 {
-    us as f64 / 1000.0
-}
-
-fn p50_p99(h: &Histogram<u64>) -> String {
-    if h.is_empty() {
-        return "none recorded".into();
-    }
-    format!(
-        "p50 {:.2} ms, p99 {:.2} ms (n = {})",
-        ms(h.value_at_quantile(0.5)),
-        ms(h.value_at_quantile(0.99)),
-        h.len()
+#[cfg(not(feature = "simulated"))]
+pub fn run_demo(_: Args) -> Result<()> {
+    anyhow::bail!(
+        "the demo runs the rig on simulated time, and this dioptra was built without the \
+         `simulated` feature; rebuild with default features (cargo run --release -- demo)"
     )
-}
-
-fn summary(r: &Run, mode: Mode) {
-    let st = r.scheduler.status();
-    let c = st.counters;
-    let l = r.scheduler.latency();
-    println!("\n== loop ==");
-    println!(
-        "gaze samples {}, saccades {}, blinks {}",
-        c.gaze_samples, c.saccades, c.blinks
-    );
-    if mode == Mode::Varifocal {
-        println!("lens commands {}", c.lens_commands);
-        println!(
-            "gaze-to-focus latency (tracker exposure to lens settled): {}",
-            p50_p99(l.stage(Stage::GazeToSettled))
-        );
-        println!(
-            "lens settle (command on the wire to settled readback): {}",
-            p50_p99(l.stage(Stage::WireToSettled))
-        );
-        match (
-            percentile(&r.log.host_path, 50.0),
-            percentile(&r.log.host_path, 99.0),
-        ) {
-            (Some(a), Some(b)) => println!(
-                "host path, gaze sample received to lens command written (wall clock on this machine): p50 {:.1} µs, p99 {:.1} µs (n = {})",
-                a.as_secs_f64() * 1e6,
-                b.as_secs_f64() * 1e6,
-                r.log.host_path.len()
-            ),
-            _ => println!("host path: no gaze-caused lens command"),
-        }
-    }
-    println!(
-        "tracker to host, after the driver's clock mapping (one-way evidence cannot see the constant part of the delay): {}",
-        p50_p99(l.stage(Stage::TrackerToHost))
-    );
-    println!(
-        "gaze sample to display: {}",
-        p50_p99(l.stage(Stage::GazeToDisplay))
-    );
-    println!(
-        "frames: requested {}, rendered {}, presented {}, deadline misses {} (frame shown again), late {}, slots skipped while rendering {}",
-        c.frames_requested,
-        c.frames_rendered,
-        c.frames_presented,
-        c.misses,
-        c.late_frames,
-        c.renders_skipped
-    );
-    if mode == Mode::Multifocal {
-        println!(
-            "sync board: {} events, {} faults",
-            r.log.sequencer_events, c.sequencer_faults
-        );
-    }
-    for (method, h) in l.render_by_method() {
-        println!(
-            "render time, {} (CPU, wall clock on this machine): {}",
-            method.as_str(),
-            p50_p99(h)
-        );
-    }
-}
-
-/// The probe nearest `t`.
-fn probe_at(r: &Run, t: Timestamp) -> Option<&dioptra_loop_tests::Probe> {
-    r.log
-        .probes
-        .iter()
-        .min_by_key(|p| p.t.signed_diff_ns(t).unsigned_abs())
-}
-
-/// Scores the kept frames: what the eye sees against a thin-lens render of the same scene
-/// at the eye's accommodation.
-fn score(r: &Run, frames: &DemoFrames, kept: &[Kept], args: &Args) -> Result<()> {
-    println!(
-        "\n== accuracy: what the eye sees vs thin-lens ground truth ({} rays/pixel) ==",
-        args.truth_samples
-    );
-    if kept.is_empty() {
-        println!("no frame was kept for scoring (the run was too short)");
-        return Ok(());
-    }
-    for (i, k) in kept.iter().take(args.scored).enumerate() {
-        let started = Instant::now();
-        // The eye accommodates to its vergence; the lens is wherever it really was.
-        let Some(p) = probe_at(r, k.display_time) else {
-            continue;
-        };
-        let accommodation = Diopters(p.vergence_d.unwrap_or(1.0).max(0.0) as f32);
-        // Only a varifocal display moves its lens with gaze.
-        let lens = p.lens_power.filter(|_| frames.mode() == Mode::Varifocal);
-        let eye_img = frames.eye_view(k, accommodation, lens)?;
-        let truth = frames.ground_truth(k, accommodation, args.truth_samples)?;
-        let q = metrics::quality(&eye_img, &truth, None)?;
-        let base = args.out.join(format!("frame_{i}"));
-        write(&base, "input", &k.input.color)?;
-        for (name, img) in frames.rendered_images(k) {
-            write(&base, &name, &img)?;
-        }
-        write(&base, "eye", &eye_img)?;
-        write(&base, "truth", &truth)?;
-        println!(
-            "frame {} at {:.2} s: eye focused at {:.2} D{}: PSNR {:.2} dB, SSIM {:.4} ({:.1} s to score)",
-            k.frame,
-            k.display_time.as_secs_f64(),
-            accommodation.0,
-            lens.map_or(String::new(), |l| format!(", lens at {:.2} D", l.0)),
-            q.psnr,
-            q.ssim,
-            started.elapsed().as_secs_f64()
-        );
-    }
-    Ok(())
-}
-
-fn write(base: &Path, what: &str, img: &RgbImage) -> Result<()> {
-    let path = PathBuf::from(format!("{}_{what}.png", base.display()));
-    dioptra_render::io::write_color(&path, img)
-        .with_context(|| format!("cannot write {}", path.display()))
 }

@@ -5,7 +5,8 @@ use std::path::Path;
 use std::sync::Once;
 
 use anyhow::{anyhow, Result};
-use dioptra_loop_tests::Run;
+#[cfg(feature = "simulated")]
+use dioptra_rig::simulated::Run;
 use dioptra_sched::{Mode, Stage};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
@@ -26,9 +27,10 @@ fn err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
 }
 
 /// Histogram of the loop's main latency: gaze-to-focus (varifocal) or gaze-to-display.
+#[cfg(feature = "simulated")]
 pub fn latency(path: &Path, r: &Run) -> Result<()> {
     font();
-    let l = r.scheduler.latency();
+    let l = &r.latency;
     let (stage, what) = if l.stage(Stage::GazeToSettled).is_empty() {
         (Stage::GazeToDisplay, "gaze sample to display")
     } else {
@@ -79,6 +81,7 @@ pub fn latency(path: &Path, r: &Run) -> Result<()> {
 
 /// Focus over time: the depth looked at and the eyes' vergence (ground truth), and in
 /// varifocal mode the commanded and actual lens power.
+#[cfg(feature = "simulated")]
 pub fn focus(path: &Path, r: &Run, mode: Mode) -> Result<()> {
     font();
     let p = &r.log.probes;
@@ -114,7 +117,7 @@ pub fn focus(path: &Path, r: &Run, mode: Mode) -> Result<()> {
         .y_desc("diopters")
         .draw()
         .map_err(err)?;
-    type Pick = fn(&dioptra_loop_tests::Probe) -> Option<f64>;
+    type Pick = fn(&dioptra_rig::simulated::Probe) -> Option<f64>;
     let series: [(&str, RGBColor, Pick); 4] = [
         ("depth looked at (truth)", RGBColor(120, 120, 120), |q| {
             q.gaze_target_d

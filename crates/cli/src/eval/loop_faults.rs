@@ -1,6 +1,7 @@
-//! The control-loop half of the failure-case suite: the whole loop (scheduler, real drivers,
-//! simulated devices; `dioptra-loop-tests`) in varifocal mode under one fault at a time, each
-//! against the same run without faults. Measured from ground truth: focus error (the
+//! The control-loop half of the failure-case suite: the whole loop on the rig runtime `dioptra
+//! serve` runs (dioptra-rig's simulated rig: the example rig config, real drivers, simulated
+//! devices) in varifocal mode under one fault at a time, each against the same run without
+//! faults. Measured from ground truth: focus error (the
 //! simulated lens's true power against the depth of what the viewer really looks at) over
 //! time, frame deadline misses, and recovery times.
 
@@ -9,8 +10,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use dioptra_core::{DepthMap, Plane, Timestamp};
-use dioptra_loop_tests::{run, Action, Frames, RigOptions, Run};
-use dioptra_sched::{FrameRequest, Mode};
+use dioptra_rig::config::Mode;
+use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
 use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
 use dioptra_sim::gaze::Scene;
 
@@ -86,27 +87,6 @@ fn split_depth() -> Arc<DepthMap> {
     Arc::new(DepthMap::from_diopters(p).unwrap_or_else(|_| unreachable!("constant depths")))
 }
 
-/// Renders take 4 ms, or two frame periods every 4th frame when misses are injected.
-struct FaultyFrames {
-    depth: Option<Arc<DepthMap>>,
-    slow_every: Option<u64>,
-    slow: Duration,
-    count: u64,
-}
-
-impl Frames for FaultyFrames {
-    fn depth(&mut self, _t: Timestamp) -> Option<Arc<DepthMap>> {
-        self.depth.take()
-    }
-    fn render(&mut self, _req: &FrameRequest) -> Duration {
-        self.count += 1;
-        match self.slow_every {
-            Some(n) if self.count.is_multiple_of(n) => self.slow,
-            _ => Duration::from_millis(4),
-        }
-    }
-}
-
 fn gaze_scene() -> Scene {
     let t = |yaw: f64, d: f32| Target {
         yaw_deg: yaw,
@@ -146,26 +126,20 @@ pub struct LoopResult {
     pub simulated_s: f64,
 }
 
-fn options(fault: Fault, seconds: f64) -> (RigOptions, FaultyFrames) {
-    let mut o = RigOptions::new(
-        Mode::Varifocal,
-        gaze_scene(),
-        Duration::from_secs_f64(seconds),
-    );
-    o.gaze.blink_rate_hz = 0.0;
-    let mut frames = FaultyFrames {
-        depth: Some(split_depth()),
-        slow_every: None,
-        slow: o.sched.display.frame_period * 2,
-        count: 0,
-    };
+/// Renders take 4 ms, or two frame periods every 4th frame when misses are injected.
+fn options(fault: Fault, seconds: f64) -> Result<(SimRun, ScriptedRenderer)> {
+    let mut o = SimRun::example(Mode::Varifocal, Duration::from_secs_f64(seconds))?;
+    o.spec.gaze_scene = gaze_scene();
+    o.spec.gaze.blink_rate_hz = 0.0;
+    let slow = o.sched.display.frame_period * 2;
+    let mut slow_every = None;
     match fault {
         Fault::None => {}
-        Fault::TrackerNoise => o.gaze.noise_deg = 0.5,
-        Fault::TrackerDropouts => o.gaze.dropout_probability = 0.2,
-        Fault::Blinks => o.gaze.blink_rate_hz = 2.0,
-        Fault::LensLag => o.lens.lens.settle_time = Duration::from_millis(80),
-        Fault::DeadlineMisses => frames.slow_every = Some(4),
+        Fault::TrackerNoise => o.spec.gaze.noise_deg = 0.5,
+        Fault::TrackerDropouts => o.spec.gaze.dropout_probability = 0.2,
+        Fault::Blinks => o.spec.gaze.blink_rate_hz = 2.0,
+        Fault::LensLag => o.spec.lens.settle_time = Duration::from_millis(80),
+        Fault::DeadlineMisses => slow_every = Some(4),
         Fault::Unplug => {
             o.actions = vec![
                 (UNPLUG_AT, Action::UnplugLens),
@@ -173,7 +147,16 @@ fn options(fault: Fault, seconds: f64) -> (RigOptions, FaultyFrames) {
             ]
         }
     }
-    (o, frames)
+    let planes = o.cfg.optics.planes.len();
+    let count = std::sync::atomic::AtomicU64::new(0);
+    let renderer = ScriptedRenderer::new(split_depth(), planes, move |_| {
+        let n = count.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        match slow_every {
+            Some(every) if n.is_multiple_of(every) => slow,
+            _ => Duration::from_millis(4),
+        }
+    });
+    Ok((o, renderer))
 }
 
 /// First time at or after `from` (µs) that the error is within [`IN_FOCUS_D`], as a delay, ms.
@@ -257,7 +240,7 @@ fn measure(fault: Fault, r: &Run, seconds: f64) -> LoopResult {
         .iter()
         .filter_map(|&t| time_to_focus(&err_us, t, end + 1))
         .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))));
-    let c = r.scheduler.status().counters;
+    let c = r.status.counters;
     LoopResult {
         fault,
         error: err_us.iter().map(|(t, e)| (*t as f64 / 1e6, *e)).collect(),
@@ -281,14 +264,10 @@ pub fn run_all(seconds: f64, mut progress: impl FnMut(Fault)) -> Result<Vec<Loop
     let mut out = Vec::new();
     for fault in Fault::ALL {
         progress(fault);
-        let (opts, mut frames) = options(fault, seconds);
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .start_paused(true)
-            .build()?;
-        let r = rt
-            .block_on(run(opts, &mut frames))
-            .with_context(|| format!("the simulated rig failed to start ({})", fault.name()))?;
+        let (opts, renderer) = options(fault, seconds)?;
+        let r = opts
+            .run_paused(Arc::new(renderer), None)
+            .with_context(|| format!("the simulated rig failed ({})", fault.name()))?;
         out.push(measure(fault, &r, seconds));
     }
     Ok(out)

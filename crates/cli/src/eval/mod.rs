@@ -2,11 +2,13 @@
 //! failure-case suite (scenes built to break methods; faults in the control loop). Writes
 //! CSV tables, charts (PNG and SVG) and a Markdown report to `--out`.
 //!
-//! `--suite speed|failure|all` (default all) picks the parts; `--quick` is the one-minute
-//! version CI runs (one 128 px scene, fewer settings and runs, every method still present).
+//! `--suite speed|failure|loop|all` (default all) picks the parts (failure includes the
+//! control-loop faults; loop is those alone); `--quick` is the one-minute version CI runs (one
+//! 128 px scene, fewer settings and runs, every method still present).
 
 mod charts;
 mod failure;
+#[cfg(feature = "simulated")]
 mod loop_faults;
 mod methods;
 mod report;
@@ -56,7 +58,8 @@ pub struct Args {
     /// Test scenes per size (default 2; --quick 1).
     #[arg(long)]
     scenes: Option<usize>,
-    /// speed, failure or all.
+    /// speed, failure (with the control-loop faults), loop (the control-loop faults only) or
+    /// all.
     #[arg(long, default_value = "all")]
     suite: String,
     /// Thin-lens rays per pixel of the ground truth (default 64; --quick 16).
@@ -89,16 +92,18 @@ fn parse_sizes(s: &str) -> Result<Vec<usize>> {
 struct Settings {
     speed: Option<speed::SpeedPlan>,
     failure: Option<failure::FailurePlan>,
-    loop_seconds: f64,
+    /// The control-loop faults, for this many simulated seconds each.
+    loop_seconds: Option<f64>,
     backends: Vec<String>,
 }
 
 fn settings(a: &Args) -> Result<Settings> {
-    let (run_speed, run_failure) = match a.suite.as_str() {
-        "speed" => (true, false),
-        "failure" => (false, true),
-        "all" => (true, true),
-        s => bail!("--suite {s:?}: expected speed, failure or all"),
+    let (run_speed, run_failure, run_loop) = match a.suite.as_str() {
+        "speed" => (true, false, false),
+        "failure" => (false, true, true),
+        "loop" => (false, false, true),
+        "all" => (true, true, true),
+        s => bail!("--suite {s:?}: expected speed, failure, loop or all"),
     };
     let backends: Vec<String> = match a.backend.as_str() {
         "cpu" => vec!["cpu".into()],
@@ -187,7 +192,7 @@ fn settings(a: &Args) -> Result<Settings> {
     Ok(Settings {
         speed,
         failure,
-        loop_seconds,
+        loop_seconds: run_loop.then_some(loop_seconds),
         backends,
     })
 }
@@ -269,16 +274,9 @@ pub fn run(a: Args) -> Result<()> {
         failure::table(&rows, &cases).write(&a.out.join("failure.csv"))?;
         failure_charts(&a, &rows, &cases)?;
         failure_report(&mut md, plan, &rows, &cases);
-
-        let pb = bar(loop_faults::Fault::ALL.len() as u64)?;
-        let results = loop_faults::run_all(s.loop_seconds, |f| {
-            pb.set_message(format!("control loop: {}", f.name()));
-            pb.inc(1);
-        })?;
-        pb.finish_with_message("control-loop faults done");
-        loop_faults::table(&results).write(&a.out.join("loop.csv"))?;
-        loop_chart(&a, &results)?;
-        loop_report(&mut md, &results, s.loop_seconds);
+    }
+    if let Some(seconds) = s.loop_seconds {
+        run_loop_faults(&a, &mut md, seconds)?;
     }
     let _ = writeln!(
         md,
@@ -619,6 +617,30 @@ fn failure_report(
     md.push('\n');
 }
 
+/// The control-loop faults on the simulated rig (needs the simulated clock).
+#[cfg(feature = "simulated")]
+fn run_loop_faults(a: &Args, md: &mut String, seconds: f64) -> Result<()> {
+    let pb = bar(loop_faults::Fault::ALL.len() as u64)?;
+    let results = loop_faults::run_all(seconds, |f| {
+        pb.set_message(format!("control loop: {}", f.name()));
+        pb.inc(1);
+    })?;
+    pb.finish_with_message("control-loop faults done");
+    loop_faults::table(&results).write(&a.out.join("loop.csv"))?;
+    loop_chart(a, &results)?;
+    loop_report(md, &results, seconds);
+    Ok(())
+}
+
+#[cfg(not(feature = "simulated"))]
+fn run_loop_faults(_: &Args, _: &mut String, _: f64) -> Result<()> {
+    bail!(
+        "the control-loop faults run the rig on simulated time, and this dioptra was built \
+         without the `simulated` feature; rebuild with default features, or pass --suite speed"
+    )
+}
+
+#[cfg(feature = "simulated")]
 fn loop_chart(a: &Args, results: &[loop_faults::LoopResult]) -> Result<()> {
     let panels: Vec<(String, Vec<Series>)> = results
         .iter()
@@ -644,6 +666,7 @@ fn loop_chart(a: &Args, results: &[loop_faults::LoopResult]) -> Result<()> {
     )
 }
 
+#[cfg(feature = "simulated")]
 fn loop_report(md: &mut String, results: &[loop_faults::LoopResult], seconds: f64) {
     let _ = writeln!(
         md,

@@ -4,7 +4,7 @@
 //! |---|---|---|---|
 //! | GET | `/status` | | mode, method, focus, devices, frames, latency, recording |
 //! | POST | `/mode` | `{"mode": "varifocal"}` | varifocal, multifocal or lightfield |
-//! | POST | `/method` | `{"method": "gather"}` | a render method that fits the mode |
+//! | POST | `/method` | `{"method": "gather"}` | a render method that fits the mode, or `auto` (varifocal) |
 //! | POST | `/focus` | `{"diopters": 1.5}` or `{"diopters": null}` | manual focus, or back to gaze |
 //! | POST | `/recording/start` | | starts an MCAP recording in `recording.dir` |
 //! | POST | `/recording/stop` | | finishes it; answers with its path and message count |
@@ -15,6 +15,8 @@
 //! Errors are `{"error": "...", "key": "..."}` with a 4xx status: 400 for a body that is not
 //! JSON, 422 for JSON of the wrong shape or a value out of range, 404 for an unknown path,
 //! 405 for a wrong method, 409 when the request conflicts with the daemon's state.
+//! Before any endpoint runs, [`super::guard`] refuses requests a web page could send (Host,
+//! Origin, Content-Type) and checks the token.
 
 use std::sync::Arc;
 
@@ -30,8 +32,10 @@ use serde::Deserialize;
 use serde_json::json;
 use tokio::sync::broadcast;
 
-use super::config::{methods, Method, Mode};
-use super::{Control, Shared};
+use dioptra_rig::config::{methods, Method, Mode};
+use dioptra_rig::{Control, ControlError, RigState};
+
+type Shared = RigState;
 
 /// A 4xx/5xx answer with a JSON body.
 #[derive(Debug)]
@@ -49,12 +53,20 @@ impl ApiError {
             key: None,
         }
     }
-    pub fn message(&self) -> &str {
-        &self.error
-    }
     fn at(mut self, key: &str) -> Self {
         self.key = Some(key.to_string());
         self
+    }
+}
+
+impl From<ControlError> for ApiError {
+    fn from(e: ControlError) -> Self {
+        let status = match &e {
+            ControlError::Conflict(_) => StatusCode::CONFLICT,
+            ControlError::ShuttingDown => StatusCode::SERVICE_UNAVAILABLE,
+            ControlError::Failed { .. } => StatusCode::INTERNAL_SERVER_ERROR,
+        };
+        ApiError::new(status, e.to_string())
     }
 }
 
@@ -188,6 +200,9 @@ async fn set_mode(
         .at("mode"));
     }
     s.control(Control::Mode(mode)).await?;
+    if mode != Mode::Varifocal {
+        set_auto(&s, false);
+    }
     Ok(Json(json!({ "mode": mode.as_str() })))
 }
 
@@ -196,23 +211,51 @@ async fn set_method(
     b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let m: MethodBody = body(&b)?;
-    let method = Method::parse(&m.method).ok_or_else(|| {
-        ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            format!(
-                "unknown method {:?}: expected one of {}",
-                m.method,
-                methods()
-            ),
-        )
-        .at("method")
-    })?;
-    let mode = super::devices::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let mode = dioptra_core::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let auto = m.method == "auto";
+    let method = if auto {
+        if mode != Mode::Varifocal {
+            return Err(ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "auto plans varifocal frames; the rig is in {} mode",
+                    mode.as_str()
+                ),
+            )
+            .at("method"));
+        }
+        // The planner chooses per frame; the scheduler runs the mode's default method.
+        Method(dioptra_sched::RenderMethod::default_for(mode.sched()))
+    } else {
+        Method::parse(&m.method).ok_or_else(|| {
+            ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "unknown method {:?}: expected auto or one of {}",
+                    m.method,
+                    methods()
+                ),
+            )
+            .at("method")
+        })?
+    };
     if let Some(why) = method.unavailable(mode) {
         return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at("method"));
     }
     s.control(Control::Method(method)).await?;
-    Ok(Json(json!({ "method": method.as_str() })))
+    set_auto(&s, auto);
+    Ok(Json(
+        json!({ "method": if auto { "auto" } else { method.as_str() } }),
+    ))
+}
+
+/// Turns the planner on or off; off, its last choice no longer describes the frames.
+fn set_auto(s: &Shared, auto: bool) {
+    s.auto_method
+        .store(auto, std::sync::atomic::Ordering::Relaxed);
+    if !auto {
+        dioptra_core::lock(&s.status).planned = None;
+    }
 }
 
 async fn set_focus(
@@ -264,11 +307,12 @@ async fn sim_plug(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let sims = s.sims.get();
     let plug = sims.and_then(|sims| match device.as_str() {
-        "lens" => sims.lens.as_ref().map(|(_, p)| p),
+        "lens" => sims.lens.as_ref(),
         "gaze" => sims.gaze.as_ref(),
         "sync" => sims.sync.as_ref(),
         _ => None,
     });
+    let plug = plug.map(|slot| &slot.plug);
     let Some(plug) = plug else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,

@@ -1,6 +1,7 @@
 //! The daemon on simulated devices: API (in-process and over real sockets), shutdown,
-//! device loss and recovery, recording and replay. Real time with short polls; no test
-//! asserts how long anything took.
+//! device loss and recovery, recording and replay. On tokio's paused clock (simulated time,
+//! which moves only when every task waits), so a loaded machine cannot change what a test sees;
+//! no test asserts how long anything took.
 
 use std::path::Path;
 use std::time::Duration;
@@ -11,9 +12,10 @@ use http_body_util::BodyExt;
 use serde_json::{json, Value};
 use tower::ServiceExt;
 
-use super::config::tests::SIM_RIG;
-use super::config::RigConfig;
-use super::devices::State;
+use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_RIG as SIM_RIG};
+use dioptra_rig::devices::State;
+use dioptra_rig::render::Renderer as _;
+
 use super::{api, Daemon, Listening};
 
 /// The example sim rig on an ephemeral port, recording into `dir` (from the start if `record`).
@@ -67,10 +69,12 @@ fn status_of(d: &Daemon) -> Value {
     d.shared().status_json()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_api_rejects_malformed_requests_with_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let app = api::router(d.shared().clone());
 
     // (method, path, body, status, key, words in the error)
@@ -162,7 +166,7 @@ async fn the_api_rejects_malformed_requests_with_clear_errors() {
             "{\"method\": \"magic\"}",
             StatusCode::UNPROCESSABLE_ENTITY,
             Some("method"),
-            "expected one of gather",
+            "expected auto or one of gather",
         ),
         (
             "POST",
@@ -288,15 +292,26 @@ fn parse_http(out: &[u8]) -> (u16, Value) {
     (status, serde_json::from_str(&body).unwrap_or(Value::Null))
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let Listening::Tcp(addr) = d.listening().clone() else {
         panic!("not TCP")
     };
     assert!(addr.ip().is_loopback() && addr.port() != 0);
-    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+    let lens_sim = d
+        .shared()
+        .sims
+        .get()
+        .unwrap()
+        .lens
+        .clone()
+        .unwrap()
+        .lens
+        .unwrap();
 
     // The stream carries gaze samples from the simulated tracker.
     let (mut ws, _) = tokio_tungstenite::connect_async(format!("ws://{addr}/stream"))
@@ -306,6 +321,8 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     while kinds.len() < 2 {
         let text = next_text(&mut ws).await;
         let v: Value = serde_json::from_str(&text).unwrap();
+        // Every message carries the host time and the wall-clock time it was sent.
+        assert!(v["host_ns"].is_u64() && v["wall_ns"].is_u64(), "{v}");
         kinds.insert(v["type"].as_str().unwrap().to_string());
         kinds.retain(|k| k == "gaze" || k == "frame");
     }
@@ -357,6 +374,227 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     assert!(tokio::net::TcpStream::connect(addr).await.is_err());
 }
 
+/// Writes `req` as it is, then reads until the server closes: (status, JSON body or null).
+async fn raw(addr: std::net::SocketAddr, req: &str) -> (u16, Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(req.as_bytes()).await.unwrap();
+    let mut out = Vec::new();
+    // A 101 keeps the socket open: the head is enough.
+    let _ = tokio::time::timeout(Duration::from_secs(20), s.read_to_end(&mut out)).await;
+    let text = String::from_utf8_lossy(&out);
+    let status: u16 = text
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or_else(|| panic!("not an HTTP response: {text:?}"));
+    if status == 101 {
+        return (101, Value::Null);
+    }
+    parse_http(&out)
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_web_page_cannot_drive_the_api() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    let port = addr.port();
+    let post = |path: &str, headers: &str, body: &str| {
+        format!(
+            "POST {path} HTTP/1.1\r\n{headers}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+            body.len()
+        )
+    };
+    let focus = "{\"diopters\": 2}";
+    // fetch(url, {mode: "no-cors", method: "POST", body}) from a page on another site.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/focus",
+            &format!("Host: {addr}\r\nOrigin: http://evil.example\r\nContent-Type: text/plain;charset=UTF-8\r\n"),
+            focus,
+        ),
+    )
+    .await;
+    assert_eq!(code, 403, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("web pages"), "{v}");
+    // The same body without an Origin (a non-browser sending text/plain): 415.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/focus",
+            &format!("Host: {addr}\r\nContent-Type: text/plain\r\n"),
+            focus,
+        ),
+    )
+    .await;
+    assert_eq!(code, 415, "{v}");
+    // A form post to a rebinding DNS name that resolves to 127.0.0.1.
+    let (code, v) = raw(
+        addr,
+        &post(
+            "/shutdown",
+            &format!(
+                "Host: evil.example:{port}\r\nContent-Type: application/x-www-form-urlencoded\r\n"
+            ),
+            "a=1",
+        ),
+    )
+    .await;
+    assert_eq!(code, 403, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("Host"), "{v}");
+    // A bodiless POST (a simple request) is refused too.
+    let (code, v) = raw(
+        addr,
+        &post("/shutdown", &format!("Host: localhost:{port}\r\n"), ""),
+    )
+    .await;
+    assert_eq!(code, 415, "{v}");
+    // WebSocket upgrades from a page (a foreign or "null" Origin) are refused; a script's
+    // upgrade, with no Origin or the API's own, is accepted.
+    let upgrade = |origin: &str| {
+        format!(
+            "GET /stream HTTP/1.1\r\nHost: {addr}\r\n{origin}Connection: Upgrade\r\nUpgrade: websocket\r\n\
+             Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n"
+        )
+    };
+    for origin in ["Origin: http://evil.example\r\n", "Origin: null\r\n"] {
+        let (code, v) = raw(addr, &upgrade(origin)).await;
+        assert_eq!(code, 403, "{origin}: {v}");
+    }
+    for origin in [
+        "".to_string(),
+        format!("Origin: http://localhost:{port}\r\n"),
+    ] {
+        let (code, _) = raw(addr, &upgrade(&origin)).await;
+        assert_eq!(code, 101, "{origin}");
+    }
+    // Nothing above reached the rig.
+    let v = status_of(&d);
+    assert!(v["focus"]["manual_d"].is_null(), "{v}");
+    assert!(!d.cancel_token().is_cancelled());
+    // A script's request goes through.
+    let (code, v) = http(addr, "POST", "/focus", focus).await;
+    assert_eq!(code, 200, "{v}");
+
+    // Oversized requests get JSON errors like every other refusal.
+    let long = format!(
+        "GET /status?{} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n",
+        "a".repeat(5000)
+    );
+    let (code, v) = raw(addr, &long).await;
+    assert_eq!(code, 414, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+    let big_header = format!(
+        "GET /status HTTP/1.1\r\nHost: {addr}\r\nX-Big: {}\r\nConnection: close\r\n\r\n",
+        "a".repeat(20_000)
+    );
+    let (code, v) = raw(addr, &big_header).await;
+    assert_eq!(code, 431, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+    // (Headers only: a server that refuses a body unread resets the socket.)
+    let big_body = format!(
+        "POST /focus HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+         Content-Length: 100000\r\nConnection: close\r\n\r\n"
+    );
+    let (code, v) = raw(addr, &big_body).await;
+    assert_eq!(code, 413, "{v}");
+    assert!(v["error"].is_string(), "{v}");
+
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
+async fn slow_and_idle_clients_are_timed_out() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    // Half a header section, then nothing: closed.
+    let mut slow = tokio::net::TcpStream::connect(addr).await.unwrap();
+    slow.write_all(format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n").as_bytes())
+        .await
+        .unwrap();
+    let start = tokio::time::Instant::now();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), slow.read_to_end(&mut out))
+        .await
+        .expect("a slow header kept its connection for 60 s")
+        .unwrap();
+    assert!(start.elapsed() >= super::guard::HEADER_TIMEOUT);
+    // A keep-alive connection that goes idle after one request: closed.
+    let mut idle = tokio::net::TcpStream::connect(addr).await.unwrap();
+    idle.write_all(format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n\r\n").as_bytes())
+        .await
+        .unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), idle.read_to_end(&mut out))
+        .await
+        .expect("an idle connection stayed open for 60 s")
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out).starts_with("HTTP/1.1 200"));
+    // A body that stops arriving: 408, as JSON.
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    s.write_all(
+        format!(
+            "POST /focus HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
+             Content-Length: 40\r\nConnection: close\r\n\r\n{{\"diop"
+        )
+        .as_bytes(),
+    )
+    .await
+    .unwrap();
+    let mut out = Vec::new();
+    tokio::time::timeout(Duration::from_secs(60), s.read_to_end(&mut out))
+        .await
+        .expect("a stalled body kept its connection for 60 s")
+        .unwrap();
+    let (code, v) = parse_http(&out);
+    assert_eq!(code, 408, "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
+async fn with_a_token_every_request_carries_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let token = "5f0c3a9e1b7d4c2a8e6f";
+    let token_file = dir.path().join("token");
+    std::fs::write(&token_file, format!("{token}\n")).unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.api.token_file = Some(token_file);
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    let get = |auth: &str| {
+        format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n{auth}Connection: close\r\n\r\n")
+    };
+    let (code, v) = raw(addr, &get("")).await;
+    assert_eq!(code, 401, "{v}");
+    let (code, _) = raw(
+        addr,
+        &get("Authorization: Bearer wrong-token-wrong-token\r\n"),
+    )
+    .await;
+    assert_eq!(code, 401);
+    let (code, v) = raw(addr, &get(&format!("Authorization: Bearer {token}\r\n"))).await;
+    assert_eq!(code, 200, "{v}");
+    assert_eq!(v["mode"], json!("varifocal"));
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
 /// The next text message of a WebSocket, within 20 s.
 async fn next_text<S>(ws: &mut S) -> String
 where
@@ -380,11 +618,22 @@ where
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
-    let lens_sim = d.shared().sims.get().unwrap().lens.clone().unwrap().0;
+    let d = Daemon::start_config(sim_config(dir.path(), true))
+        .await
+        .unwrap();
+    let lens_sim = d
+        .shared()
+        .sims
+        .get()
+        .unwrap()
+        .lens
+        .clone()
+        .unwrap()
+        .lens
+        .unwrap();
     let sh = d.shared().clone();
     // Run until gaze has moved the lens and frames have been shown.
     eventually("gaze-driven lens commands and frames", || {
@@ -413,7 +662,7 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     // The recording is complete (summary and footer written) and holds the run.
     let stats = report.recording.unwrap().unwrap();
     assert_eq!(stats.path, rec_path);
-    let back = super::recording::read(&rec_path).unwrap();
+    let back = dioptra_rig::recording::read(&rec_path).unwrap();
     assert!(back.complete);
     assert_eq!(back.messages.len() as u64, stats.messages);
     let count = |topic: &str| {
@@ -435,10 +684,12 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
     eventually("the lens to connect", || {
@@ -488,13 +739,13 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     assert!(report.ok(), "{report:?}");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
     let missing = dir.path().join("ttyACM-missing");
-    cfg.devices.lens.port = super::config::Port::Path(missing.clone());
-    let d = Daemon::start(cfg).await.unwrap();
+    cfg.devices.lens.port = dioptra_rig::config::Port::Path(missing.clone());
+    let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let lens = eventually("a failed lens connect", || {
         let s = sh.registry.snapshot()["lens"].clone();
@@ -515,7 +766,7 @@ async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     assert!(report.problems()[0].contains("not connected"), "{report:?}");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_api_on_a_unix_socket_is_private() {
     use std::os::unix::fs::PermissionsExt;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -525,7 +776,7 @@ async fn the_api_on_a_unix_socket_is_private() {
         "listen = \"127.0.0.1:7420\"",
         &format!("unix = {:?}", sock.display().to_string()),
     );
-    let d = Daemon::start(RigConfig::parse(&text).unwrap())
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
         .await
         .unwrap();
     let mode = std::fs::metadata(&sock).unwrap().permissions().mode() & 0o777;
@@ -544,20 +795,24 @@ async fn the_api_on_a_unix_socket_is_private() {
     assert!(!sock.exists(), "the socket is removed on shutdown");
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn a_recorded_run_replays_to_the_same_commands() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), true)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), true))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     eventually("a few gaze-driven lens commands", || {
         (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
     })
     .await;
     // An API command is part of the run too.
-    sh.control(super::Control::ManualFocus(Some(2.0)))
+    sh.control(dioptra_rig::Control::ManualFocus(Some(2.0)))
         .await
         .unwrap();
-    sh.control(super::Control::ManualFocus(None)).await.unwrap();
+    sh.control(dioptra_rig::Control::ManualFocus(None))
+        .await
+        .unwrap();
     eventually("frames", || {
         (sh.status_json()["counts"]["frames_shown"].as_u64() >= Some(5)).then_some(())
     })
@@ -584,12 +839,39 @@ async fn a_recorded_run_replays_to_the_same_commands() {
         r.matching_prefix
     );
     assert_eq!(r.recorded, r.replayed);
+    assert_eq!(r.verdict(), crate::replay::Verdict::Identical);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
+async fn a_recording_started_mid_run_is_not_compared() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    eventually("a few lens commands", || {
+        (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
+    })
+    .await;
+    sh.start_recording(false).unwrap();
+    eventually("frames", || {
+        (sh.status_json()["counts"]["frames_shown"].as_u64() >= Some(10)).then_some(())
+    })
+    .await;
+    let stats = sh.stop_recording().await.unwrap();
+    let r = crate::replay::replay_file(&stats.path).unwrap();
+    assert!(!r.from_start);
+    assert_eq!(r.verdict(), crate::replay::Verdict::CannotCompare);
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
 async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start(sim_config(dir.path(), false)).await.unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
     eventually("the sync board to connect", || {
@@ -650,7 +932,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     assert!(d.wait().await.ok());
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn method_auto_renders_the_planners_choice_and_shows_it() {
     let dir = tempfile::tempdir().unwrap();
     let text = SIM_RIG
@@ -662,7 +944,7 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
         );
     let cfg = RigConfig::parse(&text).unwrap();
     assert!(cfg.auto_method);
-    let d = Daemon::start(cfg).await.unwrap();
+    let d = Daemon::start_config(cfg).await.unwrap();
     let planned = eventually("a planned frame", || {
         let s = status_of(&d);
         (!s["planned"].is_null()).then_some(s)
@@ -681,6 +963,27 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
             .contains("fovea"),
         "{planned}"
     );
+    // Off and on again through the API, as the README documents it.
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"gather\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let v = status_of(&d);
+    assert_eq!(v["method"], json!("gather"), "{v}");
+    assert!(v["planned"].is_null(), "{v}");
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
+    assert_eq!((s, &v["method"]), (StatusCode::OK, &json!("auto")), "{v}");
+    eventually("a planned frame after auto", || {
+        (!status_of(&d)["planned"].is_null()).then_some(())
+    })
+    .await;
+    assert_eq!(status_of(&d)["method"], json!("auto"));
+    // Multifocal frames are the hardware's planes: no planner, and a switch turns it off.
+    let (s, _) = call(&app, "POST", "/mode", "{\"mode\": \"multifocal\"}").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(status_of(&d)["method"], json!("linear"));
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert_eq!(v["key"], json!("method"));
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
@@ -699,7 +1002,7 @@ fn random_weights(dir: &Path) {
 
 fn network_config(dir: &Path, weights: &Path) -> RigConfig {
     let mut cfg = sim_config(dir, false);
-    cfg.method = super::config::Method(dioptra_sched::RenderMethod::Network);
+    cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Network);
     cfg.render.weights = Some(weights.to_path_buf());
     cfg
 }
@@ -712,7 +1015,7 @@ fn the_network_renders_what_the_net_computes() {
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let cfg = network_config(dir.path(), &weights);
-    let r = super::render::Renderer::new(&cfg).unwrap();
+    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
     assert!(r.network_missing().is_empty());
     let c1 = dioptra_net::load_net(Some(&weights.join("c1.safetensors")), "c1").unwrap();
     let eye = dioptra_core::EyeModel {
@@ -723,24 +1026,37 @@ fn the_network_renders_what_the_net_computes() {
     };
     let focus = dioptra_core::Diopters(1.5);
     let shown = r
-        .render(super::config::Mode::Varifocal, cfg.method, focus, None)
+        .render_frame(
+            dioptra_rig::config::Mode::Varifocal,
+            cfg.method,
+            focus,
+            None,
+            false,
+        )
         .unwrap()
         .images;
     assert_eq!(shown, vec![c1.defocus(r.input(), focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
-        .render(
-            super::config::Mode::Varifocal,
+        .render_frame(
+            dioptra_rig::config::Mode::Varifocal,
             cfg.method,
             dioptra_core::Diopters(0.1),
             None,
+            false,
         )
         .unwrap()
         .images;
     assert_ne!(shown, other);
     let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
     let layers = r
-        .render(super::config::Mode::Multifocal, cfg.method, focus, None)
+        .render_frame(
+            dioptra_rig::config::Mode::Multifocal,
+            cfg.method,
+            focus,
+            None,
+            false,
+        )
         .unwrap()
         .images;
     assert_eq!(layers, c4.decompose(r.input()).unwrap().images);
@@ -754,10 +1070,10 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
     cfg.optics.planes = vec![0.5, 1.5];
-    let r = super::render::Renderer::new(&cfg).unwrap();
+    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
     let missing = r.network_missing();
     assert_eq!(missing.len(), 1, "{missing:?}");
-    assert_eq!(missing[0].0, super::config::Mode::Multifocal);
+    assert_eq!(missing[0].0, dioptra_rig::config::Mode::Multifocal);
     assert!(
         missing[0].1.contains("planes [0.2, 0.8, 1.4, 2.0] D")
             && missing[0].1.contains("optics.planes is [0.5, 1.5] D"),
@@ -766,14 +1082,14 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     );
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights() {
     let dir = tempfile::tempdir().unwrap();
     let weights = dir.path().join("weights");
     random_weights(&weights);
     // Only C1: varifocal runs, multifocal is refused with the missing file named.
     std::fs::remove_file(weights.join("c4.safetensors")).unwrap();
-    let d = Daemon::start(network_config(dir.path(), &weights))
+    let d = Daemon::start_config(network_config(dir.path(), &weights))
         .await
         .unwrap();
     let sh = d.shared().clone();
@@ -800,14 +1116,14 @@ async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights(
     assert!(d.wait().await.ok());
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[tokio::test(start_paused = true)]
 async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let dir = tempfile::tempdir().unwrap();
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
-    cfg.mode = super::config::Mode::Multifocal;
-    let d = Daemon::start(cfg).await.unwrap();
+    cfg.mode = dioptra_rig::config::Mode::Multifocal;
+    let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     eventually("C4 layered frames", || {
         let v = sh.status_json();
@@ -817,6 +1133,138 @@ async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let v = sh.status_json();
     assert_eq!(v["method"], json!("network"));
     assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+/// Waits until `frames_shown` has grown by `n` (simulated time), returning the status.
+async fn after_frames(d: &Daemon, n: u64) -> Value {
+    let start = status_of(d)["counts"]["frames_shown"].as_u64().unwrap();
+    eventually("frames to be shown", || {
+        let v = status_of(d);
+        (v["counts"]["frames_shown"].as_u64().unwrap() >= start + n).then_some(v)
+    })
+    .await
+}
+
+#[tokio::test(start_paused = true)]
+async fn focus_at_and_beyond_optical_infinity_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let app = api::router(d.shared().clone());
+    after_frames(&d, 3).await;
+    for method in ["gather", "lightfield-defocus"] {
+        let (s, v) = call(
+            &app,
+            "POST",
+            "/method",
+            &format!("{{\"method\": \"{method}\"}}"),
+        )
+        .await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+        // The example rig's lens reaches -1 D: 0 D and below are everyday values.
+        for focus in [0.0, -1.0, -0.25] {
+            let (s, v) = call(
+                &app,
+                "POST",
+                "/focus",
+                &format!("{{\"diopters\": {focus}}}"),
+            )
+            .await;
+            assert_eq!(s, StatusCode::OK, "{v}");
+            let v = after_frames(&d, 5).await;
+            assert_eq!(
+                v["counts"]["render_errors"],
+                json!(0),
+                "{method} at {focus} D: {v}"
+            );
+        }
+    }
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+/// The scene, but every render at a focus below 1 D fails, and the first at 2 D or more
+/// panics.
+struct FailingBelow1D(
+    dioptra_rig::scene::SceneRenderer,
+    std::sync::atomic::AtomicBool,
+);
+
+impl dioptra_rig::render::Renderer for FailingBelow1D {
+    fn depth(
+        &self,
+        now: dioptra_core::Timestamp,
+    ) -> Option<std::sync::Arc<dioptra_core::DepthMap>> {
+        self.0.depth(now)
+    }
+    fn render(
+        &self,
+        job: &dioptra_rig::render::RenderJob,
+    ) -> Result<dioptra_rig::render::RenderOutput, dioptra_render::RenderError> {
+        if job.focus.0 >= 2.0 && !self.1.swap(true, std::sync::atomic::Ordering::SeqCst) {
+            panic!("a renderer bug");
+        }
+        if job.focus.0 < 1.0 {
+            return Err(dioptra_render::RenderError::Unsupported {
+                backend: "test",
+                method: "focus below 1 D",
+            });
+        }
+        self.0.render(job)
+    }
+    fn unblurred(
+        &self,
+        job: &dioptra_rig::render::RenderJob,
+    ) -> Option<Vec<dioptra_core::RgbImage>> {
+        self.0.unblurred(job)
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = sim_config(dir.path(), false);
+    let scene = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let mut setup = dioptra_rig::RigSetup::new(cfg);
+    setup.renderer = Some(std::sync::Arc::new(FailingBelow1D(
+        scene,
+        Default::default(),
+    )));
+    let d = Daemon::start(setup).await.unwrap();
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 0.5}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    // Frames keep coming: the failed ones are shown unblurred.
+    let v = after_frames(&d, 20).await;
+    let errors = v["counts"]["render_errors"].as_u64().unwrap();
+    assert!(errors >= 10, "{v}");
+    assert_eq!(
+        v["render_errors"]["by_method"]["gather"].as_u64(),
+        Some(errors),
+        "{v}"
+    );
+    assert!(
+        v["counts"]["fallback_frames"].as_u64().unwrap() >= errors,
+        "{v}"
+    );
+    let last = &v["render_errors"]["last"];
+    assert_eq!(last["method"], json!("gather"), "{v}");
+    assert_eq!(last["kind"], json!("unsupported"), "{v}");
+    assert!(
+        last["error"].as_str().unwrap().contains("focus below 1 D"),
+        "{v}"
+    );
+    // Back in range: one render panics, then frames render again and the count stops.
+    let (s, _) = call(&app, "POST", "/focus", "{\"diopters\": 2}").await;
+    assert_eq!(s, StatusCode::OK);
+    let v = after_frames(&d, 5).await;
+    assert_eq!(v["render_errors"]["last"]["kind"], json!("panic"), "{v}");
+    let before = v["counts"]["render_errors"].as_u64().unwrap();
+    let v = after_frames(&d, 10).await;
+    assert_eq!(v["counts"]["render_errors"].as_u64(), Some(before), "{v}");
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }

@@ -23,31 +23,12 @@ use std::time::Instant;
 
 use dioptra_core::image::linear_to_srgb;
 use dioptra_core::{RgbImage, Timestamp};
-use serde::{Deserialize, Serialize};
+
 use thiserror::Error;
 
-use super::display::{DisplayError, DisplaySink, Frame};
+use dioptra_rig::display::{DisplayError, DisplaySink, Frame};
 
-/// Which monitor the window goes on: its name as the system gives it (e.g. `"HDMI-1"`), or
-/// its index in the system's list.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(
-    untagged,
-    expecting = "a monitor name such as \"HDMI-1\" or an index such as 0"
-)]
-pub enum MonitorChoice {
-    Index(usize),
-    Name(String),
-}
-
-impl std::fmt::Display for MonitorChoice {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            MonitorChoice::Index(i) => write!(f, "{i}"),
-            MonitorChoice::Name(n) => write!(f, "{n:?}"),
-        }
-    }
-}
+pub use dioptra_rig::config::MonitorChoice;
 
 #[derive(Debug, Error)]
 pub enum WindowError {
@@ -253,10 +234,10 @@ impl WindowSink {
     }
 
     fn hand_over(&mut self, frame: &Frame, layer: usize) -> Result<(), DisplayError> {
-        if let Some(e) = super::devices::lock(&self.stats.error).clone() {
+        if let Some(e) = dioptra_core::lock(&self.stats.error).clone() {
             return Err(DisplayError::Window(e));
         }
-        let mut slot = super::devices::lock(&self.mailbox.job);
+        let mut slot = dioptra_core::lock(&self.mailbox.job);
         if slot
             .0
             .replace(Job {
@@ -274,7 +255,7 @@ impl WindowSink {
 
 impl Drop for WindowSink {
     fn drop(&mut self) {
-        super::devices::lock(&self.mailbox.job).1 = true;
+        dioptra_core::lock(&self.mailbox.job).1 = true;
         self.mailbox.ready.notify_one();
         if let Some(t) = self.presenter.take() {
             let _ = t.join();
@@ -317,7 +298,7 @@ impl DisplaySink for WindowSink {
             "presented": s.presented.load(Ordering::Relaxed),
             "replaced": s.replaced.load(Ordering::Relaxed),
             "last_present_interval_ms": (interval > 0).then(|| interval as f64 / 1e6),
-            "error": super::devices::lock(&s.error).clone(),
+            "error": dioptra_core::lock(&s.error).clone(),
         })
     }
 }
@@ -327,7 +308,7 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
     let mut last: Option<Instant> = None;
     loop {
         let job = {
-            let mut slot = super::devices::lock(&mailbox.job);
+            let mut slot = dioptra_core::lock(&mailbox.job);
             loop {
                 if slot.1 {
                     return;
@@ -357,7 +338,7 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
             // Skipped (occluded, timed out, reconfigured): the next frame tries again.
             Ok(false) => {}
             Err(e) => {
-                *super::devices::lock(&stats.error) = Some(e.to_string());
+                *dioptra_core::lock(&stats.error) = Some(e.to_string());
                 return;
             }
         }

@@ -11,8 +11,10 @@ use crate::foveate::LogPolar;
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
 use crate::lightfield::{halton_disk, LightFieldParams};
 use crate::metrics::Quality;
-use crate::multifocal::{check_planes, Layers, OptimizeParams, OptimizeReport};
-use crate::retina::{pupil_weights, LfView};
+use crate::multifocal::{
+    check_optimize_inputs, check_planes, Layers, OptimizeParams, OptimizeReport,
+};
+use crate::retina::LfView;
 use crate::views::RgbdView;
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
@@ -264,12 +266,7 @@ pub(super) fn retina_varifocal(
     focus: Diopters,
     eye: &EyeModel,
 ) -> Out<RgbImage> {
-    check_focus(display)?;
-    check_focus(focus)?;
-    if image.width() == 0 || image.height() == 0 {
-        return Err(invalid("image is empty"));
-    }
-    let eye = eye_for(eye, image.width())?;
+    let eye = crate::retina::check_varifocal_inputs(image, display, focus, eye)?;
     let d = eye.coc_px(display, focus);
     let (mut v, s) = convolve_sum(ctx, &[image], &[vec![d]])?;
     let img = v
@@ -305,36 +302,15 @@ pub(super) fn retina_lightfield(
     focus: Diopters,
     eye: &EyeModel,
 ) -> Out<RgbImage> {
-    check_focus(focus)?;
-    let first = views
-        .first()
-        .ok_or_else(|| invalid("the light field has no views"))?;
-    let (w, h) = (first.image.width(), first.image.height());
-    if w == 0
-        || h == 0
-        || views
-            .iter()
-            .any(|v| (v.image.width(), v.image.height()) != (w, h))
-    {
-        return Err(mismatch("light-field views are empty or differ in size"));
-    }
-    if !(spacing.is_finite() && spacing > 0.0)
-        || views
-            .iter()
-            .any(|v| !v.position.iter().all(|p| p.is_finite()))
-    {
-        return Err(invalid(format!(
-            "view spacing {spacing} m or a view position is invalid"
-        )));
-    }
-    let eye = eye_for(eye, w)?;
+    let crate::retina::LightFieldInputs {
+        w,
+        h,
+        eye,
+        weights,
+        total,
+    } = crate::retina::check_lightfield_inputs(views, spacing, focus, eye)?;
     let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
     let pitch = eye.pixel_pitch_tan();
-    let weights = pupil_weights(views, spacing, 0.5 * eye.pupil_diameter.to_meters().0);
-    let total: f32 = weights.iter().sum();
-    if total <= 0.0 {
-        return Err(invalid("no light-field view lies inside the pupil"));
-    }
     // Views outside the pupil carry no weight: they are never uploaded.
     let used: Vec<(&LfView, [f32; 4])> = views
         .iter()
@@ -488,13 +464,7 @@ pub(super) fn lightfield(
     params: LightFieldParams,
     progress: Progress,
 ) -> Out<Vec<RgbImage>> {
-    check_rgbd(input)?;
-    if !(1..=1024).contains(&params.views) {
-        return Err(invalid(format!(
-            "views = {} is invalid: expected 1 to 1024",
-            params.views
-        )));
-    }
+    crate::lightfield::check_lightfield_inputs(input, &params)?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
     let (w, h) = (input.width(), input.height());
@@ -641,30 +611,7 @@ pub(super) fn optimized_blend(
     params: OptimizeParams,
     progress: Progress,
 ) -> Out<(Layers, OptimizeReport)> {
-    check_planes(planes)?;
-    if targets.is_empty() || targets.len() != foci.len() {
-        return Err(mismatch(format!(
-            "{} target slices for {} focal samples",
-            targets.len(),
-            foci.len()
-        )));
-    }
-    foci.iter().try_for_each(|&q| check_focus(q))?;
-    let (w, h) = (targets[0].width(), targets[0].height());
-    if w == 0 || h == 0 || targets.iter().any(|t| (t.width(), t.height()) != (w, h)) {
-        return Err(mismatch("target slices are empty or differ in size"));
-    }
-    if let Some(l) = init {
-        l.check()?;
-        if (l.width(), l.height()) != (w, h) || l.planes != planes {
-            return Err(mismatch(
-                "initial layers do not match the targets' size or the planes",
-            ));
-        }
-    }
-    if params.iterations > 100_000 {
-        return Err(invalid("iterations must be at most 100000"));
-    }
+    let (w, h) = check_optimize_inputs(targets, foci, planes, init, &params)?;
     let eye = eye_for(eye, w)?;
     let (np, nf) = (planes.len(), foci.len());
     let ks: Vec<Vec<crate::kernel::Kernel>> = foci

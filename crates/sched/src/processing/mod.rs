@@ -23,6 +23,7 @@ pub mod vergence;
 use dioptra_core::{GazeSample, Timestamp};
 
 use filters::{OneEuro, OneEuroConfig};
+use glam::DVec3;
 pub use prediction::PredictedGaze;
 use saccades::{SaccadeConfig, SaccadeDetector, SaccadeEvent};
 use vergence::{to_f64, unit, Vergence, V3};
@@ -48,14 +49,12 @@ impl Angles {
     }
     /// Great-circle angle to `other`, degrees.
     pub fn distance_deg(&self, other: &Angles) -> f64 {
-        let (a, b) = (self.direction(), other.direction());
-        let c = vergence::dot(a, b).clamp(-1.0, 1.0);
-        let s = vergence::norm([
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]);
-        s.atan2(c).to_degrees()
+        let (a, b) = (
+            DVec3::from(self.direction()),
+            DVec3::from(other.direction()),
+        );
+        let c = a.dot(b).clamp(-1.0, 1.0);
+        a.cross(b).length().atan2(c).to_degrees()
     }
 }
 
@@ -182,10 +181,10 @@ pub struct GazeProcessor {
 const HISTORY_LEN: usize = 64;
 
 fn valid_dir(e: &dioptra_core::EyeRay) -> Option<V3> {
-    let o = to_f64(e.origin_mm);
-    (e.valid && o.iter().all(|v| v.is_finite()))
+    (e.valid && to_f64(e.origin_mm).is_finite())
         .then(|| unit(to_f64(e.direction)))
         .flatten()
+        .map(|d| d.to_array())
 }
 
 impl GazeProcessor {
@@ -335,7 +334,7 @@ impl GazeProcessor {
     fn cyclopean(&mut self, s: &GazeSample) -> Option<V3> {
         match (valid_dir(&s.left), valid_dir(&s.right)) {
             (Some(l), Some(r)) => {
-                let c = unit(vergence::add(l, r))?;
+                let c = unit(DVec3::from(l) + DVec3::from(r))?.to_array();
                 let ca = Angles::from_direction(c);
                 let off = |d: V3| {
                     let a = Angles::from_direction(d);

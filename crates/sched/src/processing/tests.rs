@@ -25,11 +25,11 @@ impl Noise {
 /// Both eyes fixating the point at `a` and `diopters`, each ray perturbed by `noise_deg`.
 fn sample(t_us: u64, a: Angles, diopters: f64, noise_deg: f64, rng: &mut Noise) -> GazeSample {
     let dist = 1000.0 / diopters;
-    let p = vergence::scale(a.direction(), dist);
+    let p = glam::DVec3::from(a.direction()) * dist;
     let eye = |x: f64, rng: &mut Noise| {
-        let o = [x, 0.0, 0.0];
-        let d = unit(vergence::sub(p, o)).unwrap();
-        let mut ang = Angles::from_direction(d);
+        let o = glam::DVec3::new(x, 0.0, 0.0);
+        let d = unit(p - o).unwrap();
+        let mut ang = Angles::from_direction(d.to_array());
         ang.yaw_deg += noise_deg * rng.normal();
         ang.pitch_deg += noise_deg * rng.normal();
         let d = ang.direction();

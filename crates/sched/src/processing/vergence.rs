@@ -2,6 +2,7 @@
 //! propagated from the tracker's angular noise.
 
 use dioptra_core::EyeRay;
+use glam::DVec3;
 
 /// One vergence measurement.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -17,29 +18,16 @@ pub struct Vergence {
     pub miss_mm: f64,
 }
 
+/// A direction or point as the public types hold it.
 pub(crate) type V3 = [f64; 3];
 
-pub(crate) fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+/// The unit vector along `a`, when it has a length.
+pub(crate) fn unit(a: DVec3) -> Option<DVec3> {
+    let n = a.length();
+    (n.is_finite() && n > 1e-9).then(|| a * (1.0 / n))
 }
-pub(crate) fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-pub(crate) fn norm(a: V3) -> f64 {
-    dot(a, a).sqrt()
-}
-pub(crate) fn scale(a: V3, k: f64) -> V3 {
-    [a[0] * k, a[1] * k, a[2] * k]
-}
-pub(crate) fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-pub(crate) fn unit(a: V3) -> Option<V3> {
-    let n = norm(a);
-    (n.is_finite() && n > 1e-9).then(|| scale(a, 1.0 / n))
-}
-pub(crate) fn to_f64(a: [f32; 3]) -> V3 {
-    [f64::from(a[0]), f64::from(a[1]), f64::from(a[2])]
+pub(crate) fn to_f64(a: [f32; 3]) -> DVec3 {
+    DVec3::from(a.map(f64::from))
 }
 
 /// Vergence of two valid rays; `sigma_angle_deg` is the per-eye angular noise (1 sd).
@@ -51,40 +39,40 @@ pub fn vergence(left: &EyeRay, right: &EyeRay, sigma_angle_deg: f64) -> Option<V
     let (p1, p2) = (to_f64(left.origin_mm), to_f64(right.origin_mm));
     let d1 = unit(to_f64(left.direction))?;
     let d2 = unit(to_f64(right.direction))?;
-    if !p1.iter().chain(&p2).all(|v| v.is_finite()) {
+    if !(p1.is_finite() && p2.is_finite()) {
         return None;
     }
-    let baseline = sub(p2, p1);
-    let ipd_mm = norm(baseline);
+    let baseline = p2 - p1;
+    let ipd_mm = baseline.length();
     if ipd_mm < 1.0 {
         return None;
     }
-    let mid = scale(add(p1, p2), 0.5);
+    let mid = (p1 + p2) * 0.5;
     // Closest approach of p1 + s d1 and p2 + t d2.
-    let b = dot(d1, d2);
-    let w = sub(p1, p2);
-    let (d, e) = (dot(d1, w), dot(d2, w));
+    let b = d1.dot(d2);
+    let w = p1 - p2;
+    let (d, e) = (d1.dot(w), d2.dot(w));
     let denom = 1.0 - b * b;
     // Vergence angle, signed: positive when the rays converge in front of the eyes.
     let cross_angle = denom.max(0.0).sqrt().atan2(b);
-    let converging = dot(sub(d1, d2), baseline) > 0.0;
+    let converging = (d1 - d2).dot(baseline) > 0.0;
     let ipd_m = ipd_mm * 1e-3;
     let sigma_angle = sigma_angle_deg.to_radians() * std::f64::consts::SQRT_2;
     let (diopters, point, miss) = if denom > 1e-12 {
         let s = (b * e - d) / denom;
         let t = (e - b * d) / denom;
-        let q1 = add(p1, scale(d1, s));
-        let q2 = add(p2, scale(d2, t));
-        let miss = norm(sub(q1, q2));
-        let point = scale(add(q1, q2), 0.5);
-        let dist_mm = norm(sub(point, mid));
+        let q1 = p1 + d1 * s;
+        let q2 = p2 + d2 * t;
+        let miss = (q1 - q2).length();
+        let point = (q1 + q2) * 0.5;
+        let dist_mm = (point - mid).length();
         if converging && s > 0.0 && t > 0.0 && dist_mm > 1e-6 {
-            (1000.0 / dist_mm, Some(point), miss)
+            (1000.0 / dist_mm, Some(point.to_array()), miss)
         } else {
             (-cross_angle / ipd_m, None, miss)
         }
     } else {
-        (0.0, None, norm(sub(w, scale(d1, d))))
+        (0.0, None, (w - d1 * d).length())
     };
     // Angular noise moves the vergence angle by sqrt(2) sigma; depth in diopters is
     // angle / IPD. A miss between the rays is read as extra angular error at that depth.

@@ -10,6 +10,10 @@
 //!
 //! Writing happens on a blocking thread fed through a bounded channel: the loop never waits
 //! for the disk. Messages that do not fit the channel are counted as dropped.
+//!
+//! Crash safety: a chunk holds at most [`CHUNK_SPAN`] of messages and is flushed to the file
+//! when it closes, so a process killed mid-recording (SIGKILL, a power cut) loses at most the
+//! open chunk; [`recover`] rewrites such a file into a complete one.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -313,6 +317,17 @@ pub struct StartRec {
     pub manual_focus_d: Option<f32>,
     /// Whether the recording began with the daemon (a replay then starts from the same state).
     pub from_start: bool,
+    /// The device tasks' settings ([`crate::devices::DeviceSettings`]); absent in older
+    /// recordings.
+    #[serde(default)]
+    pub device_tasks: serde_json::Value,
+    /// Wall-clock time (UTC, ns since the Unix epoch) of host time 0: host time `t` happened
+    /// at `wall_zero_ns + t`. `None` on a simulated clock, and in older recordings.
+    #[serde(default)]
+    pub wall_zero_ns: Option<u64>,
+    /// What the host times count.
+    #[serde(default)]
+    pub clock: String,
 }
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
@@ -370,7 +385,7 @@ const EYE_SCHEMA: &str = r#"{"type":"object","properties":{"origin_mm":{"type":"
 
 topics! {
     Start => "/start", "dioptra.Start",
-        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B}"#);
+        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S}"#);
     Gaze => "/gaze", "dioptra.Gaze",
         format!(r#""device_ns":{N},"host_receive_ns":{N},"host_ns":{N},"left":{EYE_SCHEMA},"right":{EYE_SCHEMA}"#);
     LensState => "/lens/state", "dioptra.LensState",
@@ -408,12 +423,16 @@ pub struct RecordingStats {
 /// Messages the channel holds before the loop starts dropping them.
 const QUEUE: usize = 16_384;
 
+/// The most host time one chunk spans: what a killed recording can lose.
+pub const CHUNK_SPAN: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// A recording in progress. [`Recorder::finish`] writes the summary and closes the file.
 pub struct Recorder {
     path: PathBuf,
     tx: mpsc::Sender<(u64, Rec)>,
     dropped: Arc<AtomicU64>,
-    thread: tokio::task::JoinHandle<Result<u64, RecordingError>>,
+    /// The writer thread's result: messages written.
+    thread: tokio::sync::oneshot::Receiver<Result<u64, RecordingError>>,
 }
 
 impl std::fmt::Debug for Recorder {
@@ -425,7 +444,7 @@ impl std::fmt::Debug for Recorder {
 }
 
 impl Recorder {
-    /// Creates the file and starts its writer thread. Needs a tokio runtime.
+    /// Creates the file and starts its writer thread.
     pub fn start(path: &Path) -> Result<Recorder, RecordingError> {
         let file = File::create(path).map_err(|source| RecordingError::Create {
             path: path.to_path_buf(),
@@ -453,13 +472,18 @@ impl Recorder {
         }
         let (tx, mut rx) = mpsc::channel::<(u64, Rec)>(QUEUE);
         let p = path.to_path_buf();
-        let thread = tokio::task::spawn_blocking(move || {
+        let (done, thread) = tokio::sync::oneshot::channel();
+        // A thread of its own, not tokio's blocking pool: a blocking task that lives as long as
+        // the recording would stop a paused (simulated) clock from advancing.
+        let mut write = move || {
             let werr = |e: String| RecordingError::Write {
                 path: p.clone(),
                 detail: e,
             };
             let mut seq: u32 = 0;
             let mut first_error = None;
+            let span = CHUNK_SPAN.as_nanos() as u64;
+            let mut chunk_start: Option<u64> = None;
             while let Some((t, rec)) = rx.blocking_recv() {
                 if first_error.is_some() {
                     continue;
@@ -483,6 +507,14 @@ impl Recorder {
                     Ok(()) => seq = seq.wrapping_add(1),
                     Err(e) => first_error = Some(werr(e)),
                 }
+                // Close and flush the chunk once it spans CHUNK_SPAN.
+                let start = *chunk_start.get_or_insert(t);
+                if t.saturating_sub(start) >= span {
+                    chunk_start = None;
+                    if let Err(e) = w.flush() {
+                        first_error.get_or_insert(werr(e.to_string()));
+                    }
+                }
             }
             let finished = w.finish().map_err(|e| werr(e.to_string()));
             if let Some(e) = first_error {
@@ -490,7 +522,16 @@ impl Recorder {
             }
             finished?;
             Ok(u64::from(seq))
-        });
+        };
+        std::thread::Builder::new()
+            .name("dioptra-recorder".into())
+            .spawn(move || {
+                let _ = done.send(write());
+            })
+            .map_err(|source| RecordingError::Create {
+                path: path.to_path_buf(),
+                source,
+            })?;
         tracing::info!(path = %path.display(), "recording");
         Ok(Recorder {
             path: path.to_path_buf(),
@@ -589,6 +630,81 @@ pub fn read(path: &Path) -> Result<Recorded, RecordingError> {
     })
 }
 
+/// What [`recover`] saved.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Recovered {
+    pub output: PathBuf,
+    pub messages: u64,
+    /// Whether the input was cut off (false: it was complete already, and is copied whole).
+    pub was_cut: bool,
+    /// Why reading stopped, for a cut file.
+    pub cut_at: Option<String>,
+}
+
+/// Rewrites the recording `input`, cut off mid-write, into a complete file `output`: every
+/// message up to the cut (the chunks closed before it), with the same channels, schemas,
+/// sequence numbers and times, and a summary.
+pub fn recover(input: &Path, output: &Path) -> Result<Recovered, RecordingError> {
+    let rerr = |detail: String| RecordingError::Read {
+        path: input.to_path_buf(),
+        detail,
+    };
+    let werr = |detail: String| RecordingError::Write {
+        path: output.to_path_buf(),
+        detail,
+    };
+    let bytes = std::fs::read(input).map_err(|e| rerr(e.to_string()))?;
+    if !bytes.starts_with(mcap::MAGIC) {
+        return Err(rerr(
+            "it does not start with the MCAP magic bytes: not an MCAP file".into(),
+        ));
+    }
+    let was_cut = !matches!(mcap::Summary::read(&bytes), Ok(Some(_)));
+    let stream = mcap::MessageStream::new_with_options(
+        &bytes,
+        enumset::enum_set!(mcap::read::Options::IgnoreEndMagic),
+    )
+    .map_err(|e| rerr(e.to_string()))?;
+    if output.exists() {
+        return Err(werr("it exists already; give another --out".into()));
+    }
+    let file = File::create(output).map_err(|source| RecordingError::Create {
+        path: output.to_path_buf(),
+        source,
+    })?;
+    let mut w = mcap::WriteOptions::new()
+        .compression(None)
+        .profile("")
+        .library(concat!(
+            "dioptra ",
+            env!("CARGO_PKG_VERSION"),
+            " (recovered)"
+        ))
+        .create(BufWriter::new(file))
+        .map_err(|e| werr(e.to_string()))?;
+    let mut messages = 0u64;
+    let mut cut_at = None;
+    for m in stream {
+        match m {
+            Ok(m) => {
+                w.write(&m).map_err(|e| werr(e.to_string()))?;
+                messages += 1;
+            }
+            Err(e) => {
+                cut_at = Some(e.to_string());
+                break;
+            }
+        }
+    }
+    w.finish().map_err(|e| werr(e.to_string()))?;
+    Ok(Recovered {
+        output: output.to_path_buf(),
+        messages,
+        was_cut,
+        cut_at,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -613,6 +729,71 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn chunks_span_at_most_a_second_and_a_cut_file_is_recovered() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.mcap");
+        let rec = Recorder::start(&path).unwrap();
+        // 5 s of gaze at 1 kHz.
+        let n = 5000u64;
+        for i in 0..n {
+            let t = i * 1_000_000;
+            rec.record(Timestamp(t), Rec::Gaze(GazeRec::from(&gaze(t))));
+            if i % 1000 == 999 {
+                tokio::task::yield_now().await;
+            }
+        }
+        let stats = rec.finish().await.unwrap();
+        assert_eq!((stats.messages, stats.dropped), (n, 0));
+        let bytes = std::fs::read(&path).unwrap();
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        assert!(
+            summary.chunk_indexes.len() >= 5,
+            "{} chunks",
+            summary.chunk_indexes.len()
+        );
+        for c in &summary.chunk_indexes {
+            let span = c.message_end_time - c.message_start_time;
+            assert!(
+                span <= CHUNK_SPAN.as_nanos() as u64,
+                "a chunk spans {span} ns"
+            );
+        }
+        // Cut where a kill would: in the middle of the third chunk.
+        let third = &summary.chunk_indexes[2];
+        let cut_at = (third.chunk_start_offset + third.chunk_length / 2) as usize;
+        let cut = dir.path().join("cut.mcap");
+        std::fs::write(&cut, &bytes[..cut_at]).unwrap();
+        assert!(!read(&cut).unwrap().complete);
+        let out = dir.path().join("fixed.mcap");
+        let r = recover(&cut, &out).unwrap();
+        assert!(r.was_cut && r.cut_at.is_some(), "{r:?}");
+        let fixed = read(&out).unwrap();
+        assert!(fixed.complete);
+        assert_eq!(fixed.messages.len() as u64, r.messages);
+        // Every message of the first two chunks (and the whole records of the cut one, an
+        // uncompressed chunk reads record by record), in order, none after the cut.
+        let in_two: u64 = summary.chunk_indexes[..2]
+            .iter()
+            .map(|c| c.message_end_time / 1_000_000 - c.message_start_time / 1_000_000 + 1)
+            .sum();
+        let in_three = in_two + (third.message_end_time - third.message_start_time) / 1_000_000 + 1;
+        assert!(
+            (in_two..in_three).contains(&r.messages),
+            "{} of {in_two}..{in_three}",
+            r.messages
+        );
+        for (i, (t, _)) in fixed.messages.iter().enumerate() {
+            assert_eq!(t.0, i as u64 * 1_000_000);
+        }
+        // A complete file is copied whole; an existing output is not overwritten.
+        let again = dir.path().join("again.mcap");
+        let r = recover(&path, &again).unwrap();
+        assert!(!r.was_cut);
+        assert_eq!(r.messages, stats.messages);
+        assert!(recover(&cut, &out).is_err());
+    }
+
+    #[tokio::test]
     async fn a_recording_reads_back_exactly_in_order() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.mcap");
@@ -632,6 +813,9 @@ mod tests {
                     method: "gather".into(),
                     manual_focus_d: None,
                     from_start: true,
+                    device_tasks: serde_json::Value::Null,
+                    wall_zero_ns: Some(1_764_000_000_000_000_000),
+                    clock: "test".into(),
                 }),
             ),
             (Timestamp(1), Rec::Gaze(GazeRec::from(&gaze(1_000)))),

@@ -133,7 +133,7 @@ impl Method {
         self.0.suits(mode.sched())
     }
     /// Why the daemon cannot render with this method in `mode`, if it cannot (the network's
-    /// weights are checked when the daemon starts: [`super::render::Renderer::new`]).
+    /// weights are checked when the daemon starts: [`crate::scene::SceneRenderer::new`]).
     pub fn unavailable(self, mode: Mode) -> Option<String> {
         match (self.0, mode) {
             (RenderMethod::Network, Mode::Lightfield) => Some(format!(
@@ -239,6 +239,9 @@ pub struct LensDevice {
     /// Settle time of the simulated lens, ms (sim only).
     #[serde(default = "default_settle_ms")]
     pub sim_settle_ms: f64,
+    /// How often the lens is read back, ms.
+    #[serde(default = "default_lens_poll_ms")]
+    pub poll_ms: f64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -265,11 +268,17 @@ pub struct SyncDevice {
     /// DLPC350 only: frame rate of the video the projector receives, Hz; each VSYNC starts
     /// one pass over the planes (default 60).
     pub video_hz: Option<f64>,
+    /// Settle time of the lens the simulated sync board steps through the planes, ms (sim
+    /// only; a multifocal lens must settle within a sub-frame's dark allowance).
+    #[serde(default = "default_sync_settle_ms")]
+    pub sim_settle_ms: f64,
 }
 
 impl SyncDevice {
     /// The DLPC350's video rate when none is configured, Hz.
     pub const DEFAULT_VIDEO_HZ: f64 = 60.0;
+    /// The simulated multifocal lens's settle time when none is configured, ms.
+    pub const DEFAULT_SIM_SETTLE_MS: f64 = 1.2;
 
     /// The DLPC350 driver's configuration (the video rate; the rest at the driver's defaults).
     pub fn dlpc350_config(&self) -> dioptra_sync::dlpc350::Dlpc350Config {
@@ -341,6 +350,27 @@ pub enum SinkKind {
     Window,
 }
 
+/// Which monitor the window goes on: its name as the system gives it (e.g. `"HDMI-1"`), or
+/// its index in the system's list.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(
+    untagged,
+    expecting = "a monitor name such as \"HDMI-1\" or an index such as 0"
+)]
+pub enum MonitorChoice {
+    Index(usize),
+    Name(String),
+}
+
+impl std::fmt::Display for MonitorChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MonitorChoice::Index(i) => write!(f, "{i}"),
+            MonitorChoice::Name(n) => write!(f, "{n:?}"),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Display {
@@ -348,7 +378,7 @@ pub struct Display {
     #[serde(default = "default_sink", alias = "sink")]
     pub kind: SinkKind,
     /// The window's monitor: a name such as "HDMI-1" or an index; default the primary.
-    pub monitor: Option<super::window::MonitorChoice>,
+    pub monitor: Option<MonitorChoice>,
     #[serde(default = "default_size")]
     pub width: u32,
     #[serde(default = "default_size")]
@@ -390,6 +420,11 @@ pub struct Api {
     pub unix: Option<PathBuf>,
     #[serde(default)]
     pub allow_remote: bool,
+    /// A bearer token every request must carry (`Authorization: Bearer ...`); required with
+    /// `allow_remote = true`. Prefer `token_file`, which keeps it out of the config.
+    pub token: Option<String>,
+    /// A file holding the token (surrounding whitespace ignored); instead of `token`.
+    pub token_file: Option<PathBuf>,
 }
 
 impl Default for Api {
@@ -398,11 +433,17 @@ impl Default for Api {
             listen: Some(DEFAULT_LISTEN.into()),
             unix: None,
             allow_remote: false,
+            token: None,
+            token_file: None,
         }
     }
 }
 
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:7420";
+
+/// The example rig of simulated devices (`crates/cli/examples/rig-sim.toml`), which the demo,
+/// the loop tests and `dioptra eval --suite loop` run.
+pub const EXAMPLE_SIM_RIG: &str = include_str!("../../cli/examples/rig-sim.toml");
 
 /// Where the API listens, validated.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -465,6 +506,12 @@ impl Render {
 
 fn default_settle_ms() -> f64 {
     15.0
+}
+fn default_lens_poll_ms() -> f64 {
+    10.0
+}
+fn default_sync_settle_ms() -> f64 {
+    SyncDevice::DEFAULT_SIM_SETTLE_MS
 }
 fn default_scenario() -> String {
     "saccades".into()
@@ -546,6 +593,12 @@ impl RigConfig {
 
     /// The sync device's own settings, and whether it can run the configured schedule.
     fn check_sync(&self, s: &SyncDevice) -> Result<(), ConfigError> {
+        if !(s.sim_settle_ms.is_finite() && s.sim_settle_ms > 0.0 && s.sim_settle_ms <= 1000.0) {
+            return Err(invalid(
+                "devices.sync.sim_settle_ms",
+                "expected a settle time of 0 to 1000 ms",
+            ));
+        }
         match s.driver {
             SyncDriver::Sync => {
                 if s.video_hz.is_some() {
@@ -696,6 +749,13 @@ impl RigConfig {
                 "expected a settle time of 0 to 1000 ms",
             ));
         }
+        let poll = self.devices.lens.poll_ms;
+        if !(poll.is_finite() && (1.0..=1000.0).contains(&poll)) {
+            return Err(invalid(
+                "devices.lens.poll_ms",
+                format!("expected a read-back interval of 1 to 1000 ms (got {poll})"),
+            ));
+        }
         let g = &self.devices.gaze;
         if g.port == Port::Sim && !dioptra_sim::gaze::SCENARIOS.contains(&g.sim_scenario.as_str()) {
             return Err(invalid(
@@ -711,12 +771,6 @@ impl RigConfig {
             return Err(invalid(
                 "devices.gaze.sim_rate_hz",
                 "expected a sample rate of 1 to 2000 Hz",
-            ));
-        }
-        if g.driver == GazeDriver::Hid && matches!(g.port, Port::Sim) {
-            return Err(invalid(
-                "devices.gaze.port",
-                "the simulated tracker is the dioptra tracker: use driver = \"dioptra-tracker\" with port = \"sim\"",
             ));
         }
         if self.mode == Mode::Multifocal && self.devices.sync.is_none() {
@@ -786,6 +840,7 @@ impl RigConfig {
             ));
         }
         self.listen()?;
+        self.api_token()?;
         Ok(())
     }
 
@@ -812,14 +867,61 @@ impl RigConfig {
                     return Err(invalid(
                         "api.listen",
                         format!(
-                            "{addr} is reachable from other machines and the API has no authentication; \
-                             use 127.0.0.1 or set api.allow_remote = true if you mean it"
+                            "{addr} is reachable from other machines; use 127.0.0.1, or set \
+                             api.allow_remote = true and an api.token_file if you mean it"
+                        ),
+                    ));
+                }
+                if !addr.ip().is_loopback() && a.token.is_none() && a.token_file.is_none() {
+                    return Err(invalid(
+                        "api.token_file",
+                        format!(
+                            "{addr} is reachable from other machines: the API needs a token \
+                             (api.token_file, or api.token) that every request must carry"
                         ),
                     ));
                 }
                 Ok(Listen::Tcp(addr))
             }
         }
+    }
+
+    /// The API's bearer token, read from `api.token_file` or taken from `api.token`.
+    pub fn api_token(&self) -> Result<Option<String>, ConfigError> {
+        let a = &self.api;
+        let token = match (&a.token, &a.token_file) {
+            (Some(_), Some(_)) => {
+                return Err(invalid(
+                    "api.token",
+                    "give either token or token_file, not both",
+                ))
+            }
+            (Some(t), None) => t.trim().to_string(),
+            (None, Some(p)) => std::fs::read_to_string(p)
+                .map_err(|e| {
+                    invalid(
+                        "api.token_file",
+                        format!("cannot read {}: {e}", p.display()),
+                    )
+                })?
+                .trim()
+                .to_string(),
+            (None, None) => return Ok(None),
+        };
+        // Short tokens can be guessed; a header value cannot hold control characters.
+        if token.len() < 16 || !token.bytes().all(|b| b.is_ascii_graphic()) {
+            let key = if a.token.is_some() {
+                "api.token"
+            } else {
+                "api.token_file"
+            };
+            return Err(invalid(
+                key,
+                "the token must be at least 16 printable ASCII characters without spaces \
+                 (e.g. the output of `openssl rand -hex 16`)",
+            ));
+        }
+        Ok(Some(token))
     }
 }
 
@@ -836,7 +938,7 @@ pub(crate) mod tests {
     use super::*;
 
     /// A complete simulated rig; tests edit it.
-    pub const SIM_RIG: &str = include_str!("../../examples/rig-sim.toml");
+    pub const SIM_RIG: &str = EXAMPLE_SIM_RIG;
 
     fn err(text: &str) -> ConfigError {
         match RigConfig::parse(text) {
@@ -997,8 +1099,18 @@ pub(crate) mod tests {
         let e = err(&text);
         assert_eq!(e.key(), "api.listen");
         assert!(e.to_string().contains("allow_remote"), "{e}");
-        let ok = RigConfig::parse(&text.replace("[api]", "[api]\nallow_remote = true")).unwrap();
+        // Reachable from other machines: only with a token.
+        let remote = text.replace("[api]", "[api]\nallow_remote = true");
+        assert_eq!(err(&remote).key(), "api.token_file");
+        let with_token = remote.replace("[api]", "[api]\ntoken = \"0123456789abcdef0123\"");
+        let ok = RigConfig::parse(&with_token).unwrap();
         assert!(matches!(ok.listen().unwrap(), Listen::Tcp(a) if !a.ip().is_loopback()));
+        assert_eq!(
+            ok.api_token().unwrap().as_deref(),
+            Some("0123456789abcdef0123")
+        );
+        let e = err(&remote.replace("[api]", "[api]\ntoken = \"short\""));
+        assert_eq!(e.key(), "api.token");
         let e = err(&SIM_RIG.replace("127.0.0.1:7420", "localhost"));
         assert!(e.to_string().contains("IP:PORT"), "{e}");
     }
@@ -1011,7 +1123,6 @@ pub(crate) mod tests {
 
     #[test]
     fn the_display_kind_and_monitor_parse() {
-        use super::super::window::MonitorChoice;
         let win = |extra: &str| {
             RigConfig::parse(&SIM_RIG.replace(
                 "kind = \"headless\"",

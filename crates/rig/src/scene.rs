@@ -1,4 +1,4 @@
-//! The daemon's render workers' work: the rig shows a procedural scene (dioptra-sim, seed
+//! The renderer of the rig's procedural scene: the rig shows a procedural scene (dioptra-sim, seed
 //! `display.scene_seed`) rendered once as RGB-D at the display's size, and each frame is made
 //! from it by the configured method on the CPU backend. The scene is static, so a multifocal
 //! decomposition (which does not depend on the focus) is made once per method and reused, and
@@ -17,55 +17,41 @@
 //! configured mode's must load (else the daemon does not start, naming the file), the other's
 //! absence only refuses a switch to it.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{Diopters, EyeModel, InputError, Millimeters, RgbImage, Rgbd};
+use dioptra_core::{
+    lock, DepthMap, Diopters, EyeModel, InputError, Millimeters, RgbImage, Rgbd, Timestamp,
+};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_blend};
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::{OptimizeParams, RenderError};
 
-use super::config::{Method, Mode, RigConfig};
-use super::devices::lock;
+use crate::config::{Method, Mode, RigConfig};
+use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
-/// Renders frames of one scene; shared by the render workers.
-pub struct Renderer {
+/// Renders frames of one static procedural scene.
+pub struct SceneRenderer {
     input: Rgbd,
+    depth: Arc<DepthMap>,
+    depth_given: AtomicBool,
     eye: EyeModel,
     planes: Vec<Diopters>,
     layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
     scene: dioptra_sim::scene::Scene,
     cam: dioptra_sim::scene::Camera,
     panel: Mutex<Option<Arc<RgbImage>>>,
-    /// `method = "auto"`: plan each varifocal frame.
-    auto: bool,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
     nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
-}
-
-/// A frame's images, and the planner's choice when it chose.
-#[derive(Debug)]
-pub struct RenderedFrame {
-    pub images: Vec<RgbImage>,
-    /// `method = "auto"`: what the planner chose and why.
-    pub planned: Option<Planned>,
-}
-
-/// The planner's choice for one frame.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct Planned {
-    /// `none`, `gather` or `lightfield-N`.
-    pub choice: String,
-    pub predicted_psnr_db: f64,
-    pub why: String,
 }
 
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
 const LF_GRID: usize = 5;
 const LF_SPAN_M: f32 = 0.004;
 
-impl std::fmt::Debug for Renderer {
+impl std::fmt::Debug for SceneRenderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Renderer")
             .field("width", &self.input.width())
@@ -74,8 +60,8 @@ impl std::fmt::Debug for Renderer {
     }
 }
 
-impl Renderer {
-    pub fn new(cfg: &RigConfig) -> Result<Renderer, RenderError> {
+impl SceneRenderer {
+    pub fn new(cfg: &RigConfig) -> Result<SceneRenderer, RenderError> {
         let d = &cfg.display;
         let eye = EyeModel {
             pupil_diameter: Millimeters(cfg.eye.pupil_mm),
@@ -92,25 +78,19 @@ impl Renderer {
             (Mode::Varifocal, load_net(cfg, "c1")),
             (Mode::Multifocal, load_net(cfg, "c4")),
         ];
-        Ok(Renderer {
-            input: Rgbd::new(color, depth)?,
+        let input = Rgbd::new(color, depth)?;
+        Ok(SceneRenderer {
+            depth: Arc::new(input.depth.clone()),
+            depth_given: AtomicBool::new(false),
+            input,
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
             layers: Mutex::new(Vec::new()),
             scene,
             cam,
             panel: Mutex::new(None),
-            auto: cfg.auto_method,
             nets,
         })
-    }
-
-    /// The modes the network cannot render in, and why.
-    pub fn network_missing(&self) -> Vec<(Mode, String)> {
-        self.nets
-            .iter()
-            .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
-            .collect()
     }
 
     fn net(&self, mode: Mode) -> Result<&dioptra_net::CpuNet, RenderError> {
@@ -131,16 +111,17 @@ impl Renderer {
 
     /// The images of one frame: one for varifocal and light field, one per plane for
     /// multifocal. `gaze` is the gaze point in pixels (the image centre when unknown); with
-    /// `method = "auto"` the planner chooses a varifocal frame's method from it. CPU work:
-    /// call it from a blocking thread.
-    pub fn render(
+    /// `auto` (`method = "auto"`) the planner chooses a varifocal frame's method from it. CPU
+    /// work: call it from a blocking thread.
+    pub fn render_frame(
         &self,
         mode: Mode,
         method: Method,
         focus: Diopters,
         gaze: Option<[f32; 2]>,
-    ) -> Result<RenderedFrame, RenderError> {
-        if self.auto && mode == Mode::Varifocal {
+        auto: bool,
+    ) -> Result<RenderOutput, RenderError> {
+        if auto && mode == Mode::Varifocal {
             let (w, h) = (self.input.width() as f32, self.input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
             let stats = FrameStats::from_rgbd(&self.input, gaze, focus, &self.eye);
@@ -155,18 +136,20 @@ impl Renderer {
                     LightFieldParams { views, mip: true },
                 )?,
             };
-            return Ok(RenderedFrame {
+            return Ok(RenderOutput {
                 images: vec![image],
                 planned: Some(Planned {
                     choice: plan.choice.to_string(),
                     predicted_psnr_db: plan.predicted_psnr,
                     why: plan.why,
                 }),
+                cost: None,
             });
         }
-        Ok(RenderedFrame {
+        Ok(RenderOutput {
             images: self.render_fixed(mode, method, focus)?,
             planned: None,
+            cost: None,
         })
     }
 
@@ -269,6 +252,39 @@ impl Renderer {
         let images = Arc::new(images);
         lock(&self.layers).push((method, images.clone()));
         Ok(images)
+    }
+}
+
+impl Renderer for SceneRenderer {
+    fn depth(&self, _now: Timestamp) -> Option<Arc<DepthMap>> {
+        // The scene is static: its depth once.
+        (!self.depth_given.swap(true, Ordering::AcqRel)).then(|| self.depth.clone())
+    }
+    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
+        self.render_frame(job.mode, job.method, job.focus, job.gaze, job.auto)
+    }
+    fn unblurred(&self, job: &RenderJob) -> Option<Vec<RgbImage>> {
+        let color = &self.input.color;
+        Some(match job.mode {
+            Mode::Multifocal => {
+                let n = self.planes.len().max(1);
+                let share = 1.0 / n as f32;
+                let planes = color.channels.each_ref().map(|p| {
+                    let d = p.data().iter().map(|v| v * share).collect();
+                    dioptra_core::Plane::from_vec(p.width(), p.height(), d)
+                });
+                let [r, g, b] = planes;
+                let layer = RgbImage::from_planes(r.ok()?, g.ok()?, b.ok()?).ok()?;
+                vec![layer; n]
+            }
+            _ => vec![color.clone()],
+        })
+    }
+    fn network_missing(&self) -> Vec<(Mode, String)> {
+        self.nets
+            .iter()
+            .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
+            .collect()
     }
 }
 

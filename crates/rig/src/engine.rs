@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{
-    DepthMap, Diopters, EyeModel, Millimeters, PlaneSchedule, PowerRange, Rgbd, Timestamp,
+    DepthMap, Diopters, EyeModel, Millimeters, PlaneSchedule, PowerRange, Timestamp,
 };
 use dioptra_sched::{
     CommandId, DisplayTiming, Event, FrameId, LensDynamics, LinkStatus, RenderMethod, Scheduler,
@@ -18,17 +18,17 @@ use serde_json::json;
 
 pub use dioptra_sched::Command;
 
-use super::config::{Method, Mode, RigConfig};
-use super::devices::DeviceInput;
-use super::Control;
+use crate::config::{Method, Mode, RigConfig};
+use crate::devices::DeviceInput;
+use crate::Control;
 
 /// What the daemon gives the scheduler.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Input {
     Device(DeviceInput),
     Control(Control),
-    /// The depth map of the scene being shown (the adapter holds it).
-    Depth,
+    /// The depth map of the content being shown (diopters), read at the gaze point.
+    Depth(Arc<DepthMap>),
     RenderFinished {
         frame: u64,
         method: Method,
@@ -54,7 +54,6 @@ pub fn reason_name(r: dioptra_sched::FocusReason) -> String {
 /// The scheduler, configured from a rig config.
 pub struct Engine {
     sched: Scheduler,
-    depth: Arc<DepthMap>,
     /// Modes the network cannot render in, and why (its weights did not load).
     network_missing: Vec<(Mode, String)>,
 }
@@ -103,18 +102,22 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
 }
 
 impl Engine {
-    /// A scheduler for `cfg`, reading fixation depth from `scene`'s depth map.
-    pub fn new(cfg: &RigConfig, scene: &Rgbd) -> Result<Engine, String> {
-        let sched = Scheduler::new(sched_config(cfg)?).map_err(|e| e.to_string())?;
+    /// A scheduler for `cfg`.
+    pub fn new(cfg: &RigConfig) -> Result<Engine, String> {
+        Self::with_config(sched_config(cfg)?)
+    }
+
+    /// A scheduler with settings of its own (the simulated-rig builder tunes them).
+    pub fn with_config(cfg: SchedulerConfig) -> Result<Engine, String> {
+        let sched = Scheduler::new(cfg).map_err(|e| e.to_string())?;
         Ok(Engine {
             sched,
-            depth: Arc::new(scene.depth.clone()),
             network_missing: Vec::new(),
         })
     }
 
     /// Tells the engine in which modes the network cannot render (from
-    /// [`super::render::Renderer::network_missing`]), so that the API refuses to switch to it.
+    /// [`crate::render::Renderer::unavailable`]), so that the API refuses to switch to it.
     pub fn set_network_missing(&mut self, missing: Vec<(Mode, String)>) {
         self.network_missing = missing;
     }
@@ -146,7 +149,7 @@ impl Engine {
     pub fn step(&mut self, now: Timestamp, input: Input) -> Result<Vec<Command>, String> {
         let event = match input {
             Input::Device(d) => match d {
-                DeviceInput::Gaze(g) => Event::Gaze(g),
+                DeviceInput::Gaze(g, _) => Event::Gaze(g),
                 DeviceInput::LensState(s) => Event::LensState(s),
                 DeviceInput::LensWire { id, wire_time, .. } => Event::LensCommandWritten {
                     id: CommandId(id),
@@ -197,7 +200,7 @@ impl Engine {
                     Event::SetMode(m.sched())
                 }
             },
-            Input::Depth => Event::Depth(self.depth.clone()),
+            Input::Depth(d) => Event::Depth(d),
             Input::RenderFinished {
                 frame,
                 method,

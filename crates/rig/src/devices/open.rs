@@ -1,0 +1,447 @@
+//! The drivers' table: for each device kind, one row per driver the rig config can name,
+//! saying how its device is reached (serial or HID), how its simulator is made for
+//! `port = "sim"`, and how the driver connects over a link. A device is opened by looking up
+//! its row; the port then decides only where the link comes from.
+
+use std::sync::{Arc, Mutex};
+
+use dioptra_core::{Clock, DeviceError, Diopters, LinkError, PowerRange};
+use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
+use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
+use dioptra_lens::{ControllerConfig, LensController, LensLimits, Optotune, OptotuneConfig};
+use dioptra_sync::board::SyncBoard;
+use dioptra_sync::dlpc350::Dlpc350;
+use dioptra_transport::{AnyByteLink, AnyHidLink};
+
+use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxSequencer};
+use crate::config::{GazeDriver, LensDriver, Port, RigConfig, SyncDriver};
+use crate::sim::{
+    byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug, SimSlot,
+    SimSpec,
+};
+
+/// How a driver's real device is reached from its port.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Transport {
+    /// A serial port (a tty path, or the one USB serial port with a VID:PID).
+    Serial,
+    /// A HID device (a hidraw path, or the first HID interface with a VID:PID).
+    Hid,
+}
+
+/// What a driver connects over: a real device's link or a simulator's.
+pub enum Link {
+    Byte(AnyByteLink),
+    Hid(AnyHidLink),
+}
+
+impl Link {
+    fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
+        match self {
+            Link::Byte(l) => Ok(l),
+            Link::Hid(_) => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over a byte link, and was given a HID link"
+            ))),
+        }
+    }
+    fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
+        match self {
+            Link::Hid(l) => Ok(l),
+            Link::Byte(_) => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over HID, and was given a byte link"
+            ))),
+        }
+    }
+}
+
+/// What a driver's connect gets.
+#[derive(Clone)]
+pub struct Context {
+    pub cfg: Arc<RigConfig>,
+    pub clock: Arc<dyn Clock>,
+}
+
+type Connect<D> = fn(Link, Context) -> BoxFuture<'static, Result<D, DeviceError>>;
+type MakeSim = fn(&SimSpec, &Context) -> SimEndpoint;
+
+/// One driver of a device kind.
+pub struct Row<K: 'static, D: 'static> {
+    pub driver: K,
+    /// The driver's name in the rig config and the API.
+    pub name: &'static str,
+    /// The device, for messages ("Lens Driver 4").
+    pub what: &'static str,
+    pub transport: Transport,
+    pub(crate) sim: MakeSim,
+    pub(crate) connect: Connect<D>,
+}
+
+pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
+    Row {
+        driver: LensDriver::Optotune,
+        name: "optotune",
+        what: "Lens Driver 4",
+        transport: Transport::Serial,
+        sim: sim_optotune,
+        connect: connect_optotune,
+    },
+    Row {
+        driver: LensDriver::Lens,
+        name: "lens",
+        what: "lens controller",
+        transport: Transport::Serial,
+        sim: sim_lens_controller,
+        connect: connect_lens_controller,
+    },
+];
+
+pub static GAZE: [Row<GazeDriver, BoxGaze>; 2] = [
+    Row {
+        driver: GazeDriver::DioptraTracker,
+        name: "dioptra-tracker",
+        what: "dioptra eye tracker",
+        transport: Transport::Hid,
+        sim: sim_dioptra_tracker,
+        connect: connect_dioptra_tracker,
+    },
+    Row {
+        driver: GazeDriver::Hid,
+        name: "hid",
+        what: "HID eye tracker",
+        transport: Transport::Hid,
+        sim: sim_hid_tracker,
+        connect: connect_hid_tracker,
+    },
+];
+
+pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
+    Row {
+        driver: SyncDriver::Sync,
+        name: "sync",
+        what: "sync board",
+        transport: Transport::Serial,
+        sim: sim_sync_board,
+        connect: connect_sync_board,
+    },
+    Row {
+        driver: SyncDriver::Dlpc350,
+        name: "dlpc350",
+        what: "DLPC350",
+        transport: Transport::Hid,
+        sim: sim_dlpc350,
+        connect: connect_dlpc350,
+    },
+];
+
+/// The row of `driver` in `rows`.
+pub fn row<K: PartialEq + std::fmt::Debug, D>(
+    rows: &'static [Row<K, D>],
+    driver: K,
+) -> Result<&'static Row<K, D>, DeviceError> {
+    rows.iter()
+        .find(|r| r.driver == driver)
+        .ok_or_else(|| DeviceError::Invalid(format!("no driver is registered for {driver:?}")))
+}
+
+/// The connect function a device task retries: opens the link `port` names (a new link to the
+/// simulator for `port = "sim"`, whose handles go into `slot`) and connects `row`'s driver.
+pub(crate) fn device_connector<K, D: Send + 'static>(
+    row: &'static Row<K, D>,
+    port: &Port,
+    ctx: Context,
+    spec: &SimSpec,
+    slot: &mut Option<SimSlot>,
+    gaze_truth: &mut Option<GazeTruth>,
+) -> impl FnMut() -> BoxFuture<'static, Result<D, DeviceError>> + Send + 'static {
+    let mut open: Box<dyn FnMut() -> Result<Link, DeviceError> + Send> = match port {
+        Port::Sim => {
+            let mut sim = (row.sim)(spec, &ctx);
+            let plug = SimPlug::new();
+            *slot = Some(SimSlot {
+                plug: plug.clone(),
+                lens: sim.lens.take(),
+            });
+            if sim.gaze_truth.is_some() {
+                *gaze_truth = sim.gaze_truth.take();
+            }
+            let what = row.what;
+            Box::new(move || {
+                let link = plug.open(what, &mut sim.open)?;
+                Ok(match link {
+                    SimLink::Byte(l) => Link::Byte(l),
+                    SimLink::Hid(l) => Link::Hid(l),
+                })
+            })
+        }
+        port => {
+            let (port, what, transport) = (port.clone(), row.what, row.transport);
+            Box::new(move || match transport {
+                Transport::Serial => Ok(Link::Byte(serial_at(what, &port)?.into())),
+                Transport::Hid => Ok(Link::Hid(hid_at(what, &port)?.into())),
+            })
+        }
+    };
+    let connect = row.connect;
+    move || {
+        let link = open();
+        let ctx = ctx.clone();
+        Box::pin(async move { connect(link?, ctx).await })
+    }
+}
+
+fn unsupported_port(what: &str, port: &Port) -> DeviceError {
+    DeviceError::Link(LinkError::Unavailable(format!(
+        "the {what} cannot be reached at {port}: give its device path (e.g. /dev/ttyACM0), its USB VID:PID or \"sim\""
+    )))
+}
+
+/// The HID link at a device's port: a hidraw path, or the first HID interface with that VID:PID.
+fn hid_at(what: &str, port: &Port) -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
+    Ok(match port {
+        Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, None)?,
+        Port::Path(p) => dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?,
+        Port::Sim => return Err(unsupported_port(what, port)),
+    })
+}
+
+/// The serial link at a device's port: a path, or the one USB serial port with that VID:PID
+/// (looked up in sysfs at every attempt, so a replugged device that moved is found again).
+pub(crate) fn serial_at(
+    what: &str,
+    port: &Port,
+) -> Result<dioptra_transport::serial::SerialLink, DeviceError> {
+    let path = match port {
+        Port::Path(p) => p.clone(),
+        Port::VidPid(v, p) => {
+            dioptra_transport::discovery::serial_port_by_id(std::path::Path::new("/sys"), *v, *p)
+                .map_err(|e| {
+                    DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
+                })?
+        }
+        Port::Sim => return Err(unsupported_port(what, port)),
+    };
+    Ok(dioptra_transport::serial::SerialLink::open(
+        &path,
+        dioptra_transport::serial::SerialSettings::baud(115_200),
+    )?)
+}
+
+/// The rig's lens range as the drivers' limits.
+fn lens_limits(cfg: &RigConfig) -> Result<LensLimits, DeviceError> {
+    let r = cfg.optics.lens_range;
+    PowerRange::new(Diopters(r.min), Diopters(r.max))
+        .map(LensLimits::new)
+        .ok_or_else(|| DeviceError::Invalid("optics.lens_range is empty".into()))
+}
+
+fn connect_optotune(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
+    Box::pin(async move {
+        let cfg = OptotuneConfig::new(lens_limits(&ctx.cfg)?);
+        let d = Optotune::connect(link.byte("Lens Driver 4")?, cfg, ctx.clock).await?;
+        Ok(BoxLens(Box::new(d)))
+    })
+}
+
+fn connect_lens_controller(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
+    Box::pin(async move {
+        let cfg = ControllerConfig::new(lens_limits(&ctx.cfg)?);
+        let d = LensController::connect(link.byte("lens controller")?, cfg, ctx.clock).await?;
+        Ok(BoxLens(Box::new(d)))
+    })
+}
+
+fn connect_dioptra_tracker(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
+    Box::pin(async move {
+        let link = link.hid("dioptra eye tracker")?;
+        let d = DioptraTracker::connect(link, DioptraTrackerConfig::default(), ctx.clock).await?;
+        Ok(BoxGaze(Box::new(d)))
+    })
+}
+
+fn connect_hid_tracker(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
+    Box::pin(async move {
+        let link = link.hid("HID eye tracker")?;
+        let d = HidEyeTracker::connect(link, HidTrackerConfig::default(), ctx.clock).await?;
+        Ok(BoxGaze(Box::new(d)))
+    })
+}
+
+fn connect_sync_board(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxSequencer, DeviceError>> {
+    Box::pin(async move {
+        let d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
+        Ok(BoxSequencer(Box::new(d)))
+    })
+}
+
+fn connect_dlpc350(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxSequencer, DeviceError>> {
+    Box::pin(async move {
+        let driver_cfg = ctx
+            .cfg
+            .devices
+            .sync
+            .as_ref()
+            .map(|s| s.dlpc350_config())
+            .unwrap_or_default();
+        let d = Dlpc350::new(link.hid("DLPC350")?, ctx.clock, driver_cfg);
+        Ok(BoxSequencer(Box::new(d)))
+    })
+}
+
+fn sim_optotune(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let dev = Arc::new(Mutex::new(dioptra_sim::optotune::OptotuneSim::new(
+        dioptra_sim::optotune::OptotuneSimConfig {
+            lens: spec.lens,
+            ..Default::default()
+        },
+    )));
+    SimEndpoint {
+        lens: Some(SimLens::Optotune(dev.clone())),
+        open: Box::new(byte_endpoint("Lens Driver 4", dev, ctx.clock.clone())),
+        gaze_truth: None,
+    }
+}
+
+fn sim_lens_controller(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let dev = Arc::new(Mutex::new(
+        dioptra_sim::lens_controller::LensControllerSim::new(
+            dioptra_sim::lens_controller::LensControllerSimConfig {
+                lens: spec.lens,
+                ..Default::default()
+            },
+        ),
+    ));
+    SimEndpoint {
+        lens: Some(SimLens::Controller(dev.clone())),
+        open: Box::new(byte_endpoint("lens controller", dev, ctx.clock.clone())),
+        gaze_truth: None,
+    }
+}
+
+fn sim_sync_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let dev = Arc::new(Mutex::new(dioptra_sim::sync_board::SyncBoardSim::new(
+        spec.board.clone(),
+    )));
+    SimEndpoint {
+        lens: None,
+        open: Box::new(byte_endpoint("sync board", dev, ctx.clock.clone())),
+        gaze_truth: None,
+    }
+}
+
+fn sim_dlpc350(spec: &SimSpec, _ctx: &Context) -> SimEndpoint {
+    let cfg = spec.dlpc350;
+    SimEndpoint {
+        lens: None,
+        open: Box::new(move || {
+            let (link, projector) = dioptra_sim::dlpc350::new(cfg);
+            let cut: Cut = Box::new(move || projector.unplug("unplugged"));
+            Ok((SimLink::Hid(link.into()), cut))
+        }),
+        gaze_truth: None,
+    }
+}
+
+/// A gaze generator for a new connection to a simulated tracker: the spec's scene from its
+/// start, recording its truth when asked.
+fn gaze_source(
+    spec: &SimSpec,
+    truth: &Option<GazeTruth>,
+    clock: &Arc<dyn Clock>,
+) -> Result<Box<dyn dioptra_sim::gaze::SampleSource>, LinkError> {
+    let gen = dioptra_sim::gaze::GazeGenerator::new(spec.gaze_scene.clone(), spec.gaze)
+        .map_err(|e| LinkError::Unavailable(format!("the simulated gaze scene: {e}")))?;
+    Ok(match truth {
+        Some(truth) => Box::new(RecordedGaze {
+            gen,
+            truth: truth.clone(),
+            origin_us: clock.now().as_micros(),
+        }),
+        None => Box::new(gen),
+    })
+}
+
+fn gaze_endpoint(
+    spec: &SimSpec,
+    ctx: &Context,
+    spawn: fn(
+        Box<dyn dioptra_sim::gaze::SampleSource>,
+        &SimSpec,
+    ) -> (dioptra_transport::hid::memory::MemoryHidLink, Cut),
+) -> SimEndpoint {
+    let truth = spec
+        .record_gaze_truth
+        .then(|| GazeTruth::new(Mutex::new(Vec::new())));
+    let (spec, clock, t) = (spec.clone(), ctx.clock.clone(), truth.clone());
+    SimEndpoint {
+        lens: None,
+        open: Box::new(move || {
+            let (link, cut) = spawn(gaze_source(&spec, &t, &clock)?, &spec);
+            Ok((SimLink::Hid(link.into()), cut))
+        }),
+        gaze_truth: truth,
+    }
+}
+
+fn sim_dioptra_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    gaze_endpoint(spec, ctx, |source, spec| {
+        let (link, tracker) = dioptra_sim::gaze::dioptra_tracker::spawn(source);
+        tracker.set_faults(dioptra_sim::gaze::Faults {
+            latency_us: spec.gaze_latency_us,
+            ..Default::default()
+        });
+        (link, Box::new(move || tracker.disconnect("unplugged")))
+    })
+}
+
+fn sim_hid_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    gaze_endpoint(spec, ctx, |source, spec| {
+        let (link, tracker) = dioptra_sim::gaze::hid_tracker::spawn(source, spec.hid_tracker);
+        tracker.set_faults(dioptra_sim::gaze::Faults {
+            latency_us: spec.gaze_latency_us,
+            ..Default::default()
+        });
+        (link, Box::new(move || tracker.disconnect("unplugged")))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_driver_the_config_names_has_a_row() {
+        for d in [LensDriver::Optotune, LensDriver::Lens] {
+            assert!(row(&LENS, d).is_ok(), "{d:?}");
+        }
+        for d in [GazeDriver::DioptraTracker, GazeDriver::Hid] {
+            assert!(row(&GAZE, d).is_ok(), "{d:?}");
+        }
+        for d in [SyncDriver::Sync, SyncDriver::Dlpc350] {
+            assert!(row(&SYNC, d).is_ok(), "{d:?}");
+        }
+    }
+
+    #[test]
+    fn a_serial_device_by_vid_pid_that_is_absent_is_a_link_error_naming_it() {
+        // No machine has feed:beef; without sysfs the error still names the port.
+        let e = serial_at("lens controller", &Port::VidPid(0xfeed, 0xbeef)).unwrap_err();
+        assert!(matches!(e, DeviceError::Link(_)), "{e:?}");
+        let text = e.to_string();
+        assert!(text.contains("lens controller at feed:beef"), "{text}");
+    }
+}

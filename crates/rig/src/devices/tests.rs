@@ -1,0 +1,285 @@
+use super::*;
+use crate::config::tests::SIM_RIG;
+use dioptra_core::{PowerRange, SequencerEvent};
+use dioptra_lens::{LensLimits, Optotune, OptotuneConfig};
+
+#[test]
+fn backoff_doubles_to_its_cap_and_resets() {
+    let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(500));
+    let waits: Vec<_> = (0..5).map(|_| b.next_wait().as_millis()).collect();
+    assert_eq!(waits, [100, 200, 400, 500, 500]);
+    b.reset();
+    assert_eq!(b.next_wait().as_millis(), 100);
+}
+
+#[test]
+fn reconnect_attempts_start_at_once_then_follow_the_backoff() {
+    let p = LinkPolicy::default();
+    let ms: Vec<u128> = p
+        .attempts_after_loss(5)
+        .iter()
+        .map(|d| d.as_millis())
+        .collect();
+    assert_eq!(ms, [0, 100, 300, 700, 1500]);
+}
+
+#[test]
+fn a_gone_link_is_lost_at_once_a_refusal_never_and_timeouts_after_a_run() {
+    let policy = LinkPolicy::default();
+    let mut h = LinkHealth::new(&policy);
+    let gone = DeviceError::Link(LinkError::Disconnected("x".into()));
+    let absent = DeviceError::Link(LinkError::Unavailable("x".into()));
+    let refused = DeviceError::Refused {
+        code: 2,
+        detail: "no".into(),
+    };
+    let timeout = DeviceError::Link(LinkError::Timeout { ms: 5 });
+    assert_eq!(h.judge(&gone), Verdict::Lost);
+    assert_eq!(h.judge(&absent), Verdict::Lost);
+    for _ in 0..10 {
+        assert_eq!(h.judge(&refused), Verdict::Keep);
+    }
+    // Timeouts in a row: the device stopped answering.
+    for _ in 1..policy.timeouts_lost {
+        assert_eq!(h.judge(&timeout), Verdict::Keep);
+    }
+    assert_eq!(h.judge(&timeout), Verdict::Lost);
+    // One answer in between starts the count again.
+    let mut h = LinkHealth::new(&policy);
+    for _ in 0..10 {
+        assert_eq!(h.judge(&timeout), Verdict::Keep);
+        h.ok();
+    }
+}
+
+/// The device tasks of the example rig with `edit` applied to its config text, on the
+/// simulators.
+struct Started {
+    sims: SimDevices,
+    links: DeviceLinks,
+    tasks: DeviceTasks,
+    registry: Arc<Registry>,
+    inputs: mpsc::Receiver<DeviceInput>,
+    stop: CancellationToken,
+    cfg: Arc<RigConfig>,
+}
+
+fn start(edit: impl Fn(&str) -> String) -> Started {
+    let text = edit(SIM_RIG);
+    assert_ne!(text, SIM_RIG, "the edit changed nothing");
+    let cfg = Arc::new(RigConfig::parse(&text).unwrap());
+    let spec = SimSpec::from_config(&cfg).unwrap();
+    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+    let registry = Arc::new(Registry::default());
+    let (out, inputs) = mpsc::channel(4096);
+    let stop = CancellationToken::new();
+    let settings = DeviceSettings::from_config(&cfg);
+    let (sims, links, tasks) =
+        spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
+    Started {
+        sims,
+        links,
+        tasks,
+        registry,
+        inputs,
+        stop,
+        cfg,
+    }
+}
+
+impl Started {
+    async fn stop(self) {
+        self.stop.cancel();
+        for t in self.tasks.others {
+            t.await.unwrap();
+        }
+        self.tasks.lens.await.unwrap();
+    }
+}
+
+/// `driver = "dlpc350"` on the simulator: multifocal mode programs and starts the projector's
+/// pattern sequence, its sub-frames arrive in plane order, and after its cable is pulled and
+/// plugged back the sequence is reprogrammed and runs again.
+#[tokio::test(start_paused = true)]
+async fn a_dlpc350_runs_the_plane_schedule_and_comes_back_after_an_unplug() {
+    let mut rig = start(|t| t.replace("driver = \"sync\"", "driver = \"dlpc350\""));
+    let planes = rig.cfg.optics.planes.len() as u8;
+    let (inputs, registry) = (&mut rig.inputs, rig.registry.clone());
+    // The next `n` sub-frame starts (other devices' inputs skipped), within 5 s.
+    async fn subframes(inputs: &mut mpsc::Receiver<DeviceInput>, n: usize) -> Vec<u8> {
+        let mut got = Vec::new();
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        while got.len() < n {
+            match tokio::time::timeout_at(deadline, inputs.recv()).await {
+                Ok(Some(DeviceInput::Sync(SequencerEvent::SubframeStart {
+                    plane_index, ..
+                }))) => got.push(plane_index),
+                Ok(Some(_)) => {}
+                Ok(None) | Err(_) => break,
+            }
+        }
+        got
+    }
+    rig.links.multifocal.send_replace(true);
+    let first = subframes(inputs, 8).await;
+    assert_eq!(first.len(), 8, "sub-frames before the unplug: {first:?}");
+    for w in first.windows(2) {
+        assert_eq!(w[1], (w[0] + 1) % planes, "out of plane order: {first:?}");
+    }
+    let plug = rig
+        .sims
+        .sync
+        .clone()
+        .expect("the simulated DLPC350's plug")
+        .plug;
+    plug.unplug();
+    // Lost is brief between retries; the failure count stays.
+    tokio::time::timeout(Duration::from_secs(5), async {
+        while registry.snapshot()["sync"].failures == 0 {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    })
+    .await
+    .expect("the unplugged DLPC350 was never reported lost");
+    plug.replug();
+    // Drop what came before the loss, then the sequence must run again.
+    while inputs.try_recv().is_ok() {}
+    let after = subframes(inputs, 8).await;
+    assert_eq!(after.len(), 8, "sub-frames after the replug: {after:?}");
+    let sync = registry.snapshot()["sync"].clone();
+    assert_eq!(
+        (sync.driver.as_str(), sync.state),
+        ("dlpc350", State::Ok),
+        "{sync:?}"
+    );
+    assert!(sync.connects >= 2, "{sync:?}");
+    rig.stop().await;
+}
+
+/// The simulated HID usage page 0x12 tracker, reached through the drivers' table, streams gaze.
+#[tokio::test(start_paused = true)]
+async fn the_hid_tracker_driver_runs_on_its_simulator() {
+    let mut rig = start(|t| t.replace("driver = \"dioptra-tracker\"", "driver = \"hid\""));
+    let mut gaze = 0;
+    tokio::time::timeout(Duration::from_secs(2), async {
+        while gaze < 50 {
+            if let Some(DeviceInput::Gaze(s, _)) = rig.inputs.recv().await {
+                assert!(s.left.valid || s.right.valid || s.host_time.0 > 0);
+                gaze += 1;
+            }
+        }
+    })
+    .await
+    .expect("no gaze from the simulated HID tracker");
+    assert_eq!(rig.registry.snapshot()["gaze"].driver, "hid");
+    rig.stop().await;
+}
+
+/// Commands sent at every phase of the state poll, to the simulated Lens Driver 4 with 1 ms
+/// replies: each one reaches the wire in order, and the driver keeps working after the reads
+/// a command cut short (no error, no reconnect, state reports keep coming and end at the last
+/// command, parking works). Prints the command -> wire delay (a figure, not a check).
+#[tokio::test(start_paused = true)]
+async fn commands_during_state_reads_all_reach_the_lens() {
+    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+    let sim = Arc::new(Mutex::new(dioptra_sim::optotune::OptotuneSim::new(
+        Default::default(),
+    )));
+    // Replies take 1 ms, as over a USB serial adapter: a state read (three exchanges) takes
+    // about 3 ms, long enough for commands to arrive during it.
+    let (sim2, c1) = (sim.clone(), clock.clone());
+    let range = PowerRange::new(Diopters(-1.0), Diopters(4.0)).unwrap();
+    let connect = move || {
+        let (mut sim, clock) = (sim2.clone(), c1.clone());
+        async move {
+            let (host, mut end) = dioptra_transport::memory::pair(4096);
+            host.faults().set_latency(Duration::from_millis(1));
+            let c = clock.clone();
+            tokio::spawn(async move {
+                let _ = dioptra_sim::serve::serve(&mut end, &mut sim, c.as_ref()).await;
+            });
+            Optotune::connect(host, OptotuneConfig::new(LensLimits::new(range)), clock).await
+        }
+    };
+    let registry = Arc::new(Registry::default());
+    let dev = registry.add("lens", "optotune", &Port::Sim);
+    let (tx, rx) = watch::channel(None);
+    let (out, mut inputs) = mpsc::channel(4096);
+    let stop = CancellationToken::new();
+    let settings = DeviceSettings {
+        link: LinkPolicy::default(),
+        lens_poll: Duration::from_millis(10),
+        park_timeout: Duration::from_secs(1),
+    };
+    let task = tokio::spawn(lens::lens_task(
+        connect,
+        dev,
+        settings,
+        rx,
+        out,
+        Diopters(0.5),
+        stop.clone(),
+    ));
+    loop {
+        if let Some(DeviceInput::LensLink(true)) = inputs.recv().await {
+            break;
+        }
+    }
+    const N: u64 = 200;
+    let mut sent = Vec::new();
+    let power = |i: u64| Diopters(-0.5 + (i % 9) as f32 * 0.5);
+    for i in 1..=N {
+        // 3.0 to 8.9 ms apart: every phase of the 10 ms poll and of a read.
+        tokio::time::sleep(Duration::from_micros(3_000 + (i * 2_971) % 5_900)).await;
+        sent.push(clock.now());
+        tx.send_replace(Some(LensOrder {
+            id: i,
+            power: power(i),
+            caused_by_gaze: None,
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    stop.cancel();
+    let park = task.await.unwrap();
+    assert_eq!(park.error, None, "{park:?}");
+    let (mut wired, mut states, mut delays) = (Vec::new(), 0, Vec::new());
+    let mut last_state = None;
+    while let Ok(i) = inputs.try_recv() {
+        match i {
+            DeviceInput::LensWire {
+                id,
+                requested,
+                wire_time,
+                ..
+            } => {
+                assert_eq!(requested, power(id));
+                delays.push(wire_time.saturating_since(sent[id as usize - 1]));
+                wired.push(id);
+            }
+            DeviceInput::LensState(s) => {
+                states += 1;
+                last_state = Some(s);
+            }
+            _ => {}
+        }
+    }
+    assert_eq!(wired, (1..=N).collect::<Vec<_>>(), "a command was lost");
+    // Commands every 6 ms on average cut most 3 ms reads short (a real scheduler commands a
+    // few times a second); some still complete.
+    assert!(states > 10, "state reads stopped: {states}");
+    // Read 100 ms after the last command: the lens is there, and the reads say so.
+    let last = last_state.unwrap();
+    assert!((last.power.0 - power(N).0).abs() < 0.05, "{last:?}");
+    let lens = registry.snapshot()["lens"].clone();
+    assert_eq!(lens.last_error, None, "{lens:?}");
+    assert_eq!(lens.failures, 0, "{lens:?}");
+    delays.sort();
+    let q = |p: f64| delays[((delays.len() - 1) as f64 * p) as usize];
+    eprintln!(
+        "command -> wire: p50 {:?}, p99 {:?}, max {:?} (n = {}, {states} state reads)",
+        q(0.5),
+        q(0.99),
+        delays[delays.len() - 1],
+        delays.len()
+    );
+}

@@ -1,0 +1,628 @@
+//! dioptra-rig: the running rig. One implementation that `dioptra serve`, `dioptra hil`, the
+//! demo, `dioptra eval --suite loop` and the whole-loop tests all run, so the figures they
+//! publish describe the code that drives a rig.
+//!
+//! - [`config`]: the rig config (`rig.toml`) and its validation.
+//! - [`devices`]: one task per device (lens, gaze, sync), opened through the drivers' table
+//!   ([`devices::open`]), with one policy for lost links and backoff.
+//! - [`executor`]: the loop that steps the scheduler ([`engine`]) and carries out its commands;
+//!   [`executor::LoopHook`]s see what it does.
+//! - [`render`]: the render worker's [`render::Renderer`] (the procedural scene: [`scene`]).
+//! - [`display`]: where frames go ([`display::DisplaySink`]; headless here, the window in the
+//!   binary).
+//! - [`recording`]: MCAP recordings.
+//! - [`sim`]: the simulated devices of `port = "sim"`; [`simulated`] (feature `simulated`):
+//!   a whole rig on simulated devices and tokio's paused clock, recording ground truth.
+//!
+//! Everything stops through one [`CancellationToken`] ([`RigState::cancel`]): the loop carries
+//! out the scheduler's shutdown (its park command), then the device tasks stop (the lens task
+//! parks the lens and waits for it, the sync task stops the sequence), and [`Rig::wait`]
+//! finishes the recording.
+
+pub mod config;
+pub mod devices;
+pub mod display;
+pub mod engine;
+pub mod executor;
+pub mod recording;
+pub mod render;
+pub mod scene;
+pub mod sim;
+#[cfg(feature = "simulated")]
+pub mod simulated;
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, OnceLock};
+
+use dioptra_core::{lock, Clock, Timestamp};
+use dioptra_sched::SchedulerConfig;
+use serde::Serialize;
+use serde_json::json;
+use thiserror::Error;
+use tokio::sync::{broadcast, mpsc, oneshot};
+use tokio_util::sync::CancellationToken;
+
+use config::{ConfigError, Method, Mode, RigConfig};
+use devices::{DeviceInput, DeviceSettings, ParkReport, Registry};
+use display::{DisplaySink, HeadlessSink};
+use engine::Engine;
+use executor::LoopHook;
+use recording::{ControlRec, Rec, Recorder, RecordingStats, StartRec};
+use render::Renderer;
+use sim::{SimDevices, SimSpec};
+
+/// Why a rig did not start.
+#[derive(Debug, Error)]
+pub enum RigError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("cannot render the scene the display shows: {0}")]
+    Scene(#[source] dioptra_render::RenderError),
+    #[error("cannot start the scheduler: {0}")]
+    Scheduler(String),
+    #[error("method = \"network\" in {mode} mode: {why}")]
+    NetworkMissing { mode: &'static str, why: String },
+    #[error("cannot start the devices: {0}")]
+    Devices(#[source] dioptra_core::DeviceError),
+    #[error("the display: {0}")]
+    Display(#[source] display::DisplayError),
+    #[error("cannot start recording: {0}")]
+    Recording(#[source] ControlError),
+    #[error("display.kind = \"window\": the window is opened on the main thread by the binary and its sink handed to the rig")]
+    WindowSinkNeeded,
+    #[error("a rig task failed to start: {0}")]
+    Task(String),
+}
+
+/// Why an API command was not carried out.
+#[derive(Debug, Error)]
+pub enum ControlError {
+    /// It conflicts with the rig's state or config (a method that does not fit the mode, no
+    /// recording dir, already recording).
+    #[error("{0}")]
+    Conflict(String),
+    #[error("the rig is shutting down; the command was not applied")]
+    ShuttingDown,
+    /// Something failed on this machine (a file could not be written).
+    #[error("{what}: {source}")]
+    Failed {
+        what: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+/// A command for the loop (from the API, or a script of the simulated rig).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Control {
+    Mode(Mode),
+    Method(Method),
+    ManualFocus(Option<f32>),
+}
+
+impl Control {
+    pub(crate) fn rec(&self) -> ControlRec {
+        match self {
+            Control::Mode(m) => ControlRec::Mode {
+                mode: m.as_str().into(),
+            },
+            Control::Method(m) => ControlRec::Method {
+                method: m.as_str().into(),
+            },
+            Control::ManualFocus(d) => ControlRec::ManualFocus { diopters: *d },
+        }
+    }
+}
+
+pub(crate) struct ControlMsg {
+    pub cmd: Control,
+    pub reply: oneshot::Sender<Result<(), String>>,
+}
+
+/// What the loop publishes for `GET /status`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct LoopStatus {
+    pub mode: Option<Mode>,
+    pub method: Option<Method>,
+    pub manual_focus_d: Option<f32>,
+    /// The newest lens power the scheduler commanded.
+    pub commanded_focus_d: Option<f32>,
+    /// The newest lens power the lens reported.
+    pub lens_power_d: Option<f32>,
+    pub gaze_samples: u64,
+    pub lens_commands: u64,
+    pub sync_events: u64,
+    pub frames_requested: u64,
+    pub frames_shown: u64,
+    pub render_errors: u64,
+    /// Render errors per method (`gather`, `network`, ...).
+    pub render_errors_by_method: std::collections::BTreeMap<String, u64>,
+    /// The newest render error.
+    pub last_render_error: Option<RenderErrorNote>,
+    /// Frames shown unblurred because their render failed.
+    pub fallback_frames: u64,
+    pub last_render_ms: Option<f64>,
+    /// `method = "auto"`: the planner's choice for the newest frame.
+    pub planned: Option<render::Planned>,
+    pub display: serde_json::Value,
+    pub scheduler: serde_json::Value,
+}
+
+/// The newest render error, as `/status` shows it.
+#[derive(Debug, Clone, Serialize)]
+pub struct RenderErrorNote {
+    pub frame: u64,
+    pub method: String,
+    pub kind: &'static str,
+    pub error: String,
+    pub focus_d: f32,
+}
+
+/// State shared by the loop, the API and the device tasks.
+pub struct RigState {
+    pub cfg: Arc<RigConfig>,
+    pub registry: Arc<Registry>,
+    pub settings: DeviceSettings,
+    pub status: Mutex<LoopStatus>,
+    /// JSON text messages for the API's `/stream`.
+    pub stream: broadcast::Sender<Arc<str>>,
+    pub recording: Mutex<Option<Recorder>>,
+    pub cancel: CancellationToken,
+    /// The wall-clock time (UTC, ns since the Unix epoch) of the host timeline's zero, read
+    /// at start; `None` on a simulated clock. Host time `t` happened at `wall_zero_ns + t`.
+    pub wall_zero_ns: Option<u64>,
+    /// What the host timeline counts.
+    pub clock_source: &'static str,
+    /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
+    pub auto_method: std::sync::atomic::AtomicBool,
+    /// Fires when the lens task has parked the lens (or given up) and ended: after this,
+    /// exiting the process leaves the lens safe.
+    pub lens_parked: CancellationToken,
+    pub clock: Arc<dyn Clock>,
+    /// The simulated devices (none on a hardware rig); set once the devices start.
+    pub sims: OnceLock<SimDevices>,
+    controls: mpsc::Sender<ControlMsg>,
+    started: Timestamp,
+}
+
+impl RigState {
+    pub fn status_json(&self) -> serde_json::Value {
+        let now = self.clock.now();
+        let status = lock(&self.status).clone();
+        let recording = lock(&self.recording)
+            .as_ref()
+            .map(|r| r.path().display().to_string());
+        json!({
+            "uptime_s": now.saturating_since(self.started).as_secs_f64(),
+            "host_ns": now.0,
+            "mode": status.mode,
+            "method": if self.auto_method.load(std::sync::atomic::Ordering::Relaxed) {
+                json!("auto")
+            } else {
+                json!(status.method)
+            },
+            "planned": status.planned.as_ref().map(|p| json!({
+                "method": p.choice,
+                "predicted_fovea_psnr_db": p.predicted_psnr_db,
+                "why": p.why,
+            })),
+            "focus": {
+                "manual_d": status.manual_focus_d,
+                "commanded_d": status.commanded_focus_d,
+                "lens_d": status.lens_power_d,
+                "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
+            },
+            "clock": {
+                "source": self.clock_source,
+                "wall_zero_ns": self.wall_zero_ns,
+            },
+            "devices": self.registry.snapshot(),
+            "device_tasks": self.settings,
+            "counts": {
+                "gaze_samples": status.gaze_samples,
+                "lens_commands": status.lens_commands,
+                "sync_events": status.sync_events,
+                "frames_requested": status.frames_requested,
+                "frames_shown": status.frames_shown,
+                "render_errors": status.render_errors,
+                "fallback_frames": status.fallback_frames,
+            },
+            "render_errors": {
+                "by_method": status.render_errors_by_method,
+                "last": status.last_render_error,
+            },
+            "last_render_ms": status.last_render_ms,
+            "display": status.display,
+            "scheduler": status.scheduler,
+            "recording": recording,
+            "sim_lens": self.sims.get().and_then(|s| s.lens.as_ref()).and_then(|slot| {
+                let m = slot.lens.as_ref()?.model();
+                Some(json!({
+                    "power_d": m.power().0,
+                    "target_d": m.target_power().0,
+                    "settled": m.settled(),
+                    "plugged": slot.plug.is_plugged(),
+                }))
+            }),
+        })
+    }
+
+    /// Hands a command to the loop and waits for its answer.
+    pub async fn control(&self, cmd: Control) -> Result<(), ControlError> {
+        let (reply, rx) = oneshot::channel();
+        self.controls
+            .send(ControlMsg { cmd, reply })
+            .await
+            .map_err(|_| ControlError::ShuttingDown)?;
+        rx.await
+            .map_err(|_| ControlError::ShuttingDown)?
+            .map_err(ControlError::Conflict)
+    }
+
+    pub(crate) fn record(&self, t: Timestamp, rec: Rec) {
+        if let Some(r) = lock(&self.recording).as_ref() {
+            r.record(t, rec);
+        }
+    }
+
+    /// Sends a `/stream` message, made only when someone listens.
+    /// Sends a `/stream` message, stamped with the host time and (on a real clock) the
+    /// wall-clock time it was sent.
+    pub(crate) fn publish(&self, msg: impl FnOnce() -> serde_json::Value) {
+        if self.stream.receiver_count() > 0 {
+            let mut m = msg();
+            if let Some(o) = m.as_object_mut() {
+                o.insert("host_ns".into(), json!(self.clock.now().0));
+                o.insert(
+                    "wall_ns".into(),
+                    json!(self.wall_zero_ns.is_some().then(wall_ns)),
+                );
+            }
+            let _ = self.stream.send(Arc::from(m.to_string()));
+        }
+    }
+
+    /// Starts a recording in `recording.dir`; returns its path.
+    pub fn start_recording(&self, from_start: bool) -> Result<PathBuf, ControlError> {
+        let Some(rc) = &self.cfg.recording else {
+            return Err(ControlError::Conflict(
+                "the rig config has no [recording] section with a dir; add one to record".into(),
+            ));
+        };
+        let mut slot = lock(&self.recording);
+        if let Some(r) = slot.as_ref() {
+            return Err(ControlError::Conflict(format!(
+                "already recording to {}",
+                r.path().display()
+            )));
+        }
+        std::fs::create_dir_all(&rc.dir).map_err(|e| ControlError::Failed {
+            what: format!("cannot create {}", rc.dir.display()),
+            source: Box::new(e),
+        })?;
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        let mut path = rc.dir.join(format!("dioptra-{}.mcap", stamp.as_secs()));
+        let mut n = 1;
+        while path.exists() {
+            path = rc.dir.join(format!("dioptra-{}-{n}.mcap", stamp.as_secs()));
+            n += 1;
+        }
+        let r = Recorder::start(&path).map_err(|e| ControlError::Failed {
+            what: "cannot start the recording".into(),
+            source: Box::new(e),
+        })?;
+        // The rig config and the scheduler's state, so that a replay starts where the run was.
+        let st = lock(&self.status).clone();
+        r.record(
+            self.clock.now(),
+            Rec::Start(StartRec {
+                config: toml::to_string(self.cfg.as_ref()).unwrap_or_default(),
+                mode: st.mode.unwrap_or(self.cfg.mode).as_str().into(),
+                method: st.method.unwrap_or(self.cfg.method).as_str().into(),
+                manual_focus_d: st.manual_focus_d,
+                from_start,
+                device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
+                wall_zero_ns: self.wall_zero_ns,
+                clock: self.clock_source.into(),
+            }),
+        );
+        *slot = Some(r);
+        Ok(path)
+    }
+
+    /// Finishes the recording in progress.
+    pub async fn stop_recording(&self) -> Result<RecordingStats, ControlError> {
+        let r = lock(&self.recording)
+            .take()
+            .ok_or_else(|| ControlError::Conflict("not recording".into()))?;
+        r.finish().await.map_err(|e| ControlError::Failed {
+            what: "cannot finish the recording".into(),
+            source: Box::new(e),
+        })
+    }
+}
+
+/// What a rig is made of. [`RigSetup::new`] is a rig as its config describes it (what `dioptra
+/// serve` runs); the simulated-rig builder and `dioptra hil` change only what they name.
+pub struct RigSetup {
+    pub cfg: RigConfig,
+    /// The rig's clock (default tokio's: wall time, or simulated time under a paused runtime).
+    pub clock: Option<Arc<dyn Clock>>,
+    /// Default: the procedural scene of `display.scene_seed`.
+    pub renderer: Option<Arc<dyn Renderer>>,
+    /// Default: the headless sink (`display.kind = "window"` needs the binary's window sink).
+    pub sink: Option<Box<dyn DisplaySink>>,
+    /// Default: [`SimSpec::from_config`].
+    pub sim: Option<SimSpec>,
+    /// Default: [`engine::sched_config`] of the config.
+    pub scheduler: Option<SchedulerConfig>,
+    pub hooks: Vec<Box<dyn LoopHook>>,
+    /// The clock is simulated (a paused runtime): its times have no wall-clock anchor.
+    pub simulated_time: bool,
+}
+
+impl RigSetup {
+    pub fn new(cfg: RigConfig) -> RigSetup {
+        RigSetup {
+            cfg,
+            clock: None,
+            renderer: None,
+            sink: None,
+            sim: None,
+            scheduler: None,
+            hooks: Vec::new(),
+            simulated_time: false,
+        }
+    }
+}
+
+/// Nanoseconds since the Unix epoch (UTC) now.
+fn wall_ns() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
+        .unwrap_or(0)
+}
+
+/// How the rig stopped.
+#[derive(Debug, Clone, Serialize)]
+pub struct ShutdownReport {
+    pub park: Option<ParkReport>,
+    pub recording: Option<Result<RecordingStats, String>>,
+    pub task_errors: Vec<String>,
+}
+
+impl ShutdownReport {
+    pub fn problems(&self) -> Vec<String> {
+        let mut p = self.task_errors.clone();
+        match &self.park {
+            Some(ParkReport { error: Some(e), .. }) => p.push(e.clone()),
+            None => p.push("the lens task did not report".into()),
+            _ => {}
+        }
+        if let Some(Err(e)) = &self.recording {
+            p.push(e.clone());
+        }
+        p
+    }
+    pub fn ok(&self) -> bool {
+        self.problems().is_empty()
+    }
+    pub fn summary(&self) -> String {
+        let mut s = String::new();
+        match &self.park {
+            Some(ParkReport {
+                park_power,
+                reported_power: Some(r),
+                error: None,
+            }) => s += &format!("lens parked at {park_power} D (reports {r:.3} D)"),
+            Some(ParkReport { error: Some(e), .. }) => s += &format!("lens: {e}"),
+            _ => s += "lens: no report",
+        }
+        match &self.recording {
+            Some(Ok(r)) => {
+                s += &format!(
+                    "; recording {} finished ({} messages, {} dropped)",
+                    r.path.display(),
+                    r.messages,
+                    r.dropped
+                )
+            }
+            Some(Err(e)) => s += &format!("; recording failed: {e}"),
+            None => {}
+        }
+        s
+    }
+}
+
+/// A running rig.
+pub struct Rig {
+    state: Arc<RigState>,
+    lens: tokio::task::JoinHandle<Result<ParkReport, tokio::task::JoinError>>,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+    looper: tokio::task::JoinHandle<()>,
+    devices_stop: CancellationToken,
+}
+
+/// Device inputs the loop has not taken yet; beyond this a gaze task waits.
+const INPUT_QUEUE: usize = 4096;
+
+impl Rig {
+    /// Validates the config, makes the renderer (in a blocking thread: the scene is ray cast),
+    /// and starts the device tasks and the loop. Needs a tokio runtime.
+    pub async fn start(setup: RigSetup) -> Result<Rig, RigError> {
+        let RigSetup {
+            cfg,
+            clock,
+            renderer,
+            sink,
+            sim,
+            scheduler,
+            hooks,
+            simulated_time,
+        } = setup;
+        cfg.validate()?;
+        let cfg = Arc::new(cfg);
+        let clock: Arc<dyn Clock> =
+            clock.unwrap_or_else(|| Arc::new(dioptra_sim::tokio_clock::TokioClock::new()));
+        let renderer: Arc<dyn Renderer> = match renderer {
+            Some(r) => r,
+            None => {
+                let c = cfg.clone();
+                let r = tokio::task::spawn_blocking(move || scene::SceneRenderer::new(&c))
+                    .await
+                    .map_err(|e| RigError::Task(e.to_string()))?
+                    .map_err(RigError::Scene)?;
+                Arc::new(r)
+            }
+        };
+        let mut engine = match scheduler {
+            Some(s) => Engine::with_config(s),
+            None => Engine::new(&cfg),
+        }
+        .map_err(RigError::Scheduler)?;
+        let network_missing = renderer.network_missing();
+        if cfg.method.0 == dioptra_sched::RenderMethod::Network {
+            if let Some((_, why)) = network_missing.iter().find(|(m, _)| *m == cfg.mode) {
+                return Err(RigError::NetworkMissing {
+                    mode: cfg.mode.as_str(),
+                    why: why.clone(),
+                });
+            }
+        }
+        engine.set_network_missing(network_missing);
+        let sink: Box<dyn DisplaySink> = match (sink, cfg.display.kind) {
+            (Some(s), _) => s,
+            (None, config::SinkKind::Headless) => Box::new(
+                HeadlessSink::new(cfg.display.png_every, cfg.display.png_dir.clone())
+                    .map_err(RigError::Display)?,
+            ),
+            (None, config::SinkKind::Window) => return Err(RigError::WindowSinkNeeded),
+        };
+        let spec = match sim {
+            Some(s) => s,
+            None => SimSpec::from_config(&cfg)?,
+        };
+        let settings = DeviceSettings::from_config(&cfg);
+        let (controls_tx, controls_rx) = mpsc::channel(64);
+        let (stream, _) = broadcast::channel(1024);
+        let registry = Arc::new(Registry::default());
+        let state = Arc::new(RigState {
+            registry: registry.clone(),
+            settings,
+            status: Mutex::new(LoopStatus {
+                display: sink.status(),
+                ..Default::default()
+            }),
+            sims: OnceLock::new(),
+            stream,
+            recording: Mutex::new(None),
+            cancel: CancellationToken::new(),
+            lens_parked: CancellationToken::new(),
+            auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
+            wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
+            clock_source: if simulated_time {
+                "simulated time (tokio's paused clock), from the run's start"
+            } else {
+                "the host's monotonic clock (CLOCK_MONOTONIC, through tokio), from daemon start"
+            },
+            clock: clock.clone(),
+            controls: controls_tx,
+            started: clock.now(),
+            cfg: cfg.clone(),
+        });
+        if cfg.recording.as_ref().is_some_and(|r| r.start) {
+            state.start_recording(true).map_err(RigError::Recording)?;
+        }
+        let (dev_tx, dev_rx) = mpsc::channel::<DeviceInput>(INPUT_QUEUE);
+        let devices_stop = CancellationToken::new();
+        let (sims, links, dtasks) = devices::spawn_devices(
+            &cfg,
+            &spec,
+            settings,
+            &registry,
+            clock,
+            dev_tx,
+            &devices_stop,
+        )
+        .map_err(RigError::Devices)?;
+        let _ = state.sims.set(sims);
+        let looper = tokio::spawn(executor::run_loop(executor::LoopParts {
+            state: state.clone(),
+            engine,
+            renderer,
+            sink,
+            links,
+            inputs: dev_rx,
+            controls: controls_rx,
+            hooks,
+            devices_stop: devices_stop.clone(),
+        }));
+        let (lens_task, parked) = (dtasks.lens, state.lens_parked.clone());
+        let lens = tokio::spawn(async move {
+            let r = lens_task.await;
+            parked.cancel();
+            r
+        });
+        Ok(Rig {
+            state,
+            lens,
+            tasks: dtasks.others,
+            looper,
+            devices_stop,
+        })
+    }
+
+    pub fn state(&self) -> &Arc<RigState> {
+        &self.state
+    }
+
+    /// Waits until the rig is told to stop ([`RigState::cancel`]), then lets the loop carry
+    /// out the scheduler's shutdown, parks the lens, stops every device task and finishes
+    /// the recording.
+    pub async fn wait(self) -> ShutdownReport {
+        let Rig {
+            state,
+            lens,
+            tasks,
+            looper,
+            devices_stop,
+        } = self;
+        state.cancel.cancelled().await;
+        let mut task_errors = Vec::new();
+        if let Err(e) = looper.await {
+            task_errors.push(format!("the loop task failed: {e}"));
+        }
+        // Normally the loop did this after its shutdown step.
+        devices_stop.cancel();
+        let park = match lens.await.and_then(|r| r) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                task_errors.push(format!("the lens task failed: {e}"));
+                None
+            }
+        };
+        for t in tasks {
+            if let Err(e) = t.await {
+                task_errors.push(format!("a device task failed: {e}"));
+            }
+        }
+        let rec = lock(&state.recording).take();
+        let recording = match rec {
+            Some(r) => Some(r.finish().await.map_err(|e| e.to_string())),
+            None => None,
+        };
+        ShutdownReport {
+            park,
+            recording,
+            task_errors,
+        }
+    }
+}
+
+/// Waits on `clock` until `t` (tokio's timer; simulated under a paused runtime).
+pub async fn sleep_until(clock: &dyn Clock, t: Timestamp) {
+    tokio::time::sleep(t.saturating_since(clock.now())).await;
+}

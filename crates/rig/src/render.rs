@@ -1,0 +1,80 @@
+//! The render worker's side of the loop: what makes a frame's images ([`Renderer`]), and the
+//! job and result that travel between the loop and the worker thread.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{DepthMap, Diopters, RgbImage, Timestamp};
+use dioptra_render::RenderError;
+
+use crate::config::{Method, Mode};
+
+/// A frame to render.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RenderJob {
+    pub frame: u64,
+    pub mode: Mode,
+    pub method: Method,
+    /// The focus it is rendered for (the lens's park power when the scheduler gave none).
+    pub focus: Diopters,
+    /// Gaze point on the frame, pixels (for `method = "auto"`).
+    pub gaze: Option<[f32; 2]>,
+    /// `method = "auto"`: the planner chooses this (varifocal) frame's method.
+    pub auto: bool,
+    /// When the scheduler will show it.
+    pub display_time: Timestamp,
+}
+
+/// A frame's images, and the planner's choice when it chose.
+#[derive(Debug)]
+pub struct RenderOutput {
+    /// One image (varifocal, light field) or one per focal plane (multifocal).
+    pub images: Vec<RgbImage>,
+    /// `method = "auto"`: what the planner chose and why.
+    pub planned: Option<Planned>,
+    /// The time the render counts as having taken. `None`: the wall time it took on this
+    /// machine. A scripted renderer (the loop tests) gives its own.
+    pub cost: Option<Duration>,
+}
+
+/// The planner's choice for one frame.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Planned {
+    /// `none`, `gather` or `lightfield-N`.
+    pub choice: String,
+    pub predicted_psnr_db: f64,
+    pub why: String,
+}
+
+/// Makes frames from the rig's content. Called from the render worker's blocking thread
+/// (`render`) and from the loop (`depth`), so it is shared and takes `&self`.
+pub trait Renderer: Send + Sync + 'static {
+    /// The depth map (diopters, spanning the eye's field) of the content at `now`, when it
+    /// differs from the one returned last; always `Some` at the first call. The scheduler
+    /// reads the fixation depth from it.
+    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>>;
+    /// Renders one frame.
+    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError>;
+    /// The modes in which `method = "network"` cannot render, and why (the API refuses a
+    /// switch to them).
+    fn network_missing(&self) -> Vec<(Mode, String)> {
+        Vec::new()
+    }
+    /// What is shown when `render` fails, so the display never freezes: the content without
+    /// blur (in multifocal mode spread evenly over the planes, which add up to it). `None`:
+    /// nothing (the previous frame stays up).
+    fn unblurred(&self, _job: &RenderJob) -> Option<Vec<RgbImage>> {
+        None
+    }
+}
+
+/// The kind of a render error, for counting and rate-limited logging.
+pub fn error_kind(e: &RenderError) -> &'static str {
+    match e {
+        RenderError::Input(_) => "input",
+        RenderError::Unsupported { .. } => "unsupported",
+        RenderError::Gpu(_) => "gpu",
+        RenderError::Io { .. } => "io",
+        RenderError::Format { .. } => "format",
+    }
+}

@@ -1,0 +1,265 @@
+//! The simulated devices of a rig (`port = "sim"`): what each simulator is set up with
+//! ([`SimSpec`], from the rig config), the plug that pulls and restores its cable
+//! ([`SimPlug`]), and the handles the API and the simulated-rig builder look at
+//! ([`SimDevices`]). The simulators are dioptra-sim's, speaking the real bytes over in-memory
+//! links, so the real drivers run on them.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use dioptra_core::{lock, Clock, LinkError, Timestamp};
+use dioptra_sim::gaze::generator::{SampleSource, TruthSample};
+use dioptra_sim::gaze::hid_tracker::HidTrackerSetup;
+use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene};
+use dioptra_sim::lens_model::{LensModel, LensModelConfig};
+use dioptra_sim::serve::ByteDevice;
+use dioptra_transport::{memory, AnyByteLink, AnyHidLink};
+
+use crate::config::{ConfigError, RigConfig, SyncDevice};
+
+/// How the simulated devices of a rig are set up. [`SimSpec::from_config`] is what `dioptra
+/// serve` runs; the simulated-rig builder starts from the same and may change it (a scripted
+/// gaze scene, injected faults).
+#[derive(Debug, Clone)]
+pub struct SimSpec {
+    /// The varifocal lens (Lens Driver 4 or dioptra lens controller simulator).
+    pub lens: LensModelConfig,
+    /// The sync board simulator, with the lens it steps through the planes.
+    pub board: dioptra_sim::sync_board::SyncBoardSimConfig,
+    pub dlpc350: dioptra_sim::dlpc350::Dlpc350SimConfig,
+    /// What the viewer looks at, and how the eyes move.
+    pub gaze_scene: Scene,
+    pub gaze: GeneratorConfig,
+    /// Delay from exposure to delivery of each gaze report, µs: minimum and uniform jitter
+    /// (USB polling and the tracker's processing).
+    pub gaze_latency_us: (u64, u64),
+    /// The simulated HID usage page 0x12 tracker's setup.
+    pub hid_tracker: HidTrackerSetup,
+    /// Keep the generator's ground truth (what the eyes really did) in
+    /// [`SimDevices::gaze_truth`]; off in the daemon, where it would grow without bound.
+    pub record_gaze_truth: bool,
+}
+
+impl SimSpec {
+    /// The simulators a rig config describes (its `sim_*` keys).
+    pub fn from_config(cfg: &RigConfig) -> Result<SimSpec, ConfigError> {
+        let l = &cfg.devices.lens;
+        let g = &cfg.devices.gaze;
+        let ms = |v: f64| Duration::from_secs_f64(v / 1000.0);
+        let gaze_scene = Scene::named(&g.sim_scenario).ok_or_else(|| ConfigError::Invalid {
+            key: "devices.gaze.sim_scenario".into(),
+            message: format!("unknown scenario {:?}", g.sim_scenario),
+        })?;
+        let board_settle = cfg
+            .devices
+            .sync
+            .as_ref()
+            .map_or(SyncDevice::DEFAULT_SIM_SETTLE_MS, |s| s.sim_settle_ms);
+        Ok(SimSpec {
+            lens: LensModelConfig {
+                settle_time: ms(l.sim_settle_ms),
+                ..Default::default()
+            },
+            board: dioptra_sim::sync_board::SyncBoardSimConfig {
+                lens: LensModelConfig {
+                    settle_time: ms(board_settle),
+                    ..Default::default()
+                },
+                ..Default::default()
+            },
+            dlpc350: dioptra_sim::dlpc350::Dlpc350SimConfig {
+                vsync_hz: cfg
+                    .devices
+                    .sync
+                    .as_ref()
+                    .and_then(|s| s.video_hz)
+                    .unwrap_or(SyncDevice::DEFAULT_VIDEO_HZ),
+                ..Default::default()
+            },
+            gaze_scene,
+            gaze: GeneratorConfig {
+                rate_hz: g.sim_rate_hz,
+                seed: g.sim_seed,
+                ipd_mm: f64::from(cfg.eye.ipd_mm),
+                ..Default::default()
+            },
+            gaze_latency_us: (1500, 500),
+            hid_tracker: HidTrackerSetup::default(),
+            record_gaze_truth: false,
+        })
+    }
+}
+
+/// Plugs and unplugs a simulated device, as its cable would.
+#[derive(Default)]
+pub struct SimPlug {
+    plugged: AtomicBool,
+    /// Cuts the current connection.
+    current: Mutex<Option<Cut>>,
+    opened: std::sync::atomic::AtomicU32,
+}
+
+/// Breaks one open link to a simulator.
+pub(crate) type Cut = Box<dyn FnOnce() + Send>;
+
+impl std::fmt::Debug for SimPlug {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimPlug")
+            .field("plugged", &self.is_plugged())
+            .finish_non_exhaustive()
+    }
+}
+
+impl SimPlug {
+    pub(crate) fn new() -> Arc<Self> {
+        Arc::new(SimPlug {
+            plugged: AtomicBool::new(true),
+            ..Default::default()
+        })
+    }
+    pub fn is_plugged(&self) -> bool {
+        self.plugged.load(Ordering::Acquire)
+    }
+    /// How many links were opened to the device (1 + reconnects).
+    pub fn opened(&self) -> u32 {
+        self.opened.load(Ordering::Acquire)
+    }
+    /// Cuts the link and refuses new ones until [`SimPlug::replug`].
+    pub fn unplug(&self) {
+        self.plugged.store(false, Ordering::Release);
+        if let Some(cut) = lock(&self.current).take() {
+            cut();
+        }
+    }
+    pub fn replug(&self) {
+        self.plugged.store(true, Ordering::Release);
+    }
+    /// Opens a link through `open` if plugged in, and keeps the way to cut it.
+    pub(crate) fn open<L>(
+        &self,
+        what: &str,
+        open: impl FnOnce() -> Result<(L, Cut), LinkError>,
+    ) -> Result<L, LinkError> {
+        if !self.is_plugged() {
+            return Err(LinkError::Unavailable(format!(
+                "the simulated {what} is unplugged"
+            )));
+        }
+        let (link, cut) = open()?;
+        if let Some(old) = lock(&self.current).replace(cut) {
+            old();
+        }
+        self.opened.fetch_add(1, Ordering::AcqRel);
+        Ok(link)
+    }
+}
+
+/// The simulated lens of a rig, for tests and the API to look at.
+#[derive(Clone)]
+pub enum SimLens {
+    Optotune(Arc<Mutex<dioptra_sim::optotune::OptotuneSim>>),
+    Controller(Arc<Mutex<dioptra_sim::lens_controller::LensControllerSim>>),
+}
+
+impl SimLens {
+    /// The lens model as the simulator last advanced it.
+    pub fn model(&self) -> LensModel {
+        match self {
+            SimLens::Optotune(d) => lock(d).lens().clone(),
+            SimLens::Controller(d) => lock(d).lens().clone(),
+        }
+    }
+    /// The lens model advanced to `now`: where the lens really is.
+    pub fn at(&self, now: Timestamp) -> LensModel {
+        match self {
+            SimLens::Optotune(d) => {
+                let mut d = lock(d);
+                d.advance_to(now);
+                d.lens().clone()
+            }
+            SimLens::Controller(d) => {
+                let mut d = lock(d);
+                d.advance_to(now);
+                d.lens().clone()
+            }
+        }
+    }
+}
+
+/// One simulated device of a rig.
+#[derive(Clone)]
+pub struct SimSlot {
+    pub plug: Arc<SimPlug>,
+    /// The lens, for the lens slot.
+    pub lens: Option<SimLens>,
+}
+
+/// What the generator of the simulated tracker really did, on the rig's clock.
+pub type GazeTruth = Arc<Mutex<Vec<TruthSample>>>;
+
+/// Handles on the simulated devices of a rig (empty for hardware).
+#[derive(Clone, Default)]
+pub struct SimDevices {
+    pub lens: Option<SimSlot>,
+    pub gaze: Option<SimSlot>,
+    pub sync: Option<SimSlot>,
+    /// With [`SimSpec::record_gaze_truth`].
+    pub gaze_truth: Option<GazeTruth>,
+}
+
+/// A link to a simulator: the kind its driver talks over.
+pub enum SimLink {
+    Byte(AnyByteLink),
+    Hid(AnyHidLink),
+}
+
+/// Opens links to one simulated device, each time it is (re)connected.
+pub(crate) struct SimEndpoint {
+    pub open: Box<dyn FnMut() -> Result<(SimLink, Cut), LinkError> + Send>,
+    pub lens: Option<SimLens>,
+    pub gaze_truth: Option<GazeTruth>,
+}
+
+/// A byte-speaking simulator shared by every link opened to it, served on `clock`.
+pub(crate) fn byte_endpoint<D: ByteDevice + Send + 'static>(
+    what: &'static str,
+    device: Arc<Mutex<D>>,
+    clock: Arc<dyn Clock>,
+) -> impl FnMut() -> Result<(SimLink, Cut), LinkError> + Send {
+    move || {
+        let (host, mut end) = memory::pair(4096);
+        let faults = end.faults();
+        let mut device = device.clone();
+        let clock = clock.clone();
+        tokio::spawn(async move {
+            let _ = dioptra_sim::serve::serve(&mut end, &mut device, clock.as_ref()).await;
+        });
+        let cut: Cut = Box::new(move || faults.disconnect("unplugged"));
+        Ok((
+            SimLink::Byte(host.named(format!("simulated {what}")).into()),
+            cut,
+        ))
+    }
+}
+
+/// A gaze generator that also records what the eyes really did, on the rig's clock.
+pub(crate) struct RecordedGaze {
+    pub gen: GazeGenerator,
+    pub truth: GazeTruth,
+    /// Rig time of the generator's first sample.
+    pub origin_us: u64,
+}
+
+impl SampleSource for RecordedGaze {
+    fn next_sample(&mut self) -> Option<(u64, dioptra_protocol::BinocularSample)> {
+        let mut s = self.gen.next_truth();
+        let reported = (s.time_us, s.reported);
+        s.time_us += self.origin_us;
+        lock(&self.truth).push(s);
+        Some(reported)
+    }
+    fn rate_hz(&self) -> f64 {
+        self.gen.rate_hz()
+    }
+}

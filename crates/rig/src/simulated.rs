@@ -1,0 +1,472 @@
+//! A whole rig on simulated devices, through [`Rig::start`] as `dioptra serve` starts it: the
+//! same device tasks, loop and render worker, with every device a dioptra-sim simulator on an
+//! in-memory link. Run it inside a tokio runtime with paused time (`#[tokio::test(start_paused
+//! = true)]`, or [`SimRun::run_paused`]) and it runs as fast as the host computes it, in
+//! simulated time: a frame's render counts the time its [`Renderer`] says, or the wall time
+//! it really took.
+//!
+//! Ground truth is recorded beside what the rig did: the gaze generator's true eye movements,
+//! and, every [`SimRun::probe`], where the simulated lens really is.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant as WallInstant};
+
+use dioptra_core::{lock, Clock, DepthMap, Diopters, RgbImage, Timestamp};
+use dioptra_render::RenderError;
+use dioptra_sched::processing::EyePhase;
+use dioptra_sched::{Command, CommandId, FocusReason, FrameRequest, LinkStatus, SchedulerConfig};
+use dioptra_sim::gaze::generator::TruthSample;
+
+use crate::config::{Mode, Port, RigConfig};
+use crate::devices::DeviceInput;
+use crate::display::DisplaySink;
+use crate::engine::{sched_config, Engine};
+use crate::executor::LoopHook;
+use crate::render::{RenderJob, RenderOutput, Renderer};
+use crate::sim::{SimDevices, SimSpec};
+use crate::{Control, Rig, RigError, RigSetup, RigState, ShutdownReport};
+
+/// Something scripted to happen during a run, at a time after its start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Action {
+    /// Pulls the lens cable: the link breaks and the device cannot be reopened until
+    /// [`Action::ReplugLens`].
+    UnplugLens,
+    ReplugLens,
+    ManualFocus(Option<Diopters>),
+}
+
+/// What to run.
+pub struct SimRun {
+    pub cfg: RigConfig,
+    /// The simulators (from the config; a run may script the gaze or inject faults).
+    pub spec: SimSpec,
+    /// The scheduler's settings (from the config).
+    pub sched: SchedulerConfig,
+    /// Ground truth is sampled this often (`None`: not at all).
+    pub probe: Option<Duration>,
+    /// Simulated time until the rig is told to stop.
+    pub duration: Duration,
+    /// Simulated time after the rig stopped before the last probe (the lens has parked).
+    pub after_shutdown: Duration,
+    pub actions: Vec<(Duration, Action)>,
+}
+
+impl SimRun {
+    /// `cfg` run for `duration` of simulated time. Every device must be simulated.
+    pub fn new(cfg: RigConfig, duration: Duration) -> Result<SimRun, RigError> {
+        cfg.validate()?;
+        let d = &cfg.devices;
+        let ports = [
+            ("devices.lens.port", Some(&d.lens.port)),
+            ("devices.gaze.port", Some(&d.gaze.port)),
+            ("devices.sync.port", d.sync.as_ref().map(|s| &s.port)),
+        ];
+        for (key, port) in ports {
+            if let Some(p) = port.filter(|p| **p != Port::Sim) {
+                return Err(RigError::Config(crate::config::ConfigError::Invalid {
+                    key: key.into(),
+                    message: format!(
+                        "{p}: a simulated run needs every device simulated (port = \"sim\")"
+                    ),
+                }));
+            }
+        }
+        let mut spec = SimSpec::from_config(&cfg)?;
+        spec.record_gaze_truth = true;
+        let sched = sched_config(&cfg).map_err(RigError::Scheduler)?;
+        Ok(SimRun {
+            cfg,
+            spec,
+            sched,
+            probe: Some(Duration::from_millis(1)),
+            duration,
+            after_shutdown: Duration::from_millis(200),
+            actions: Vec::new(),
+        })
+    }
+
+    /// The example rig of simulated devices in `mode`, with the mode's default method.
+    pub fn example(mode: Mode, duration: Duration) -> Result<SimRun, RigError> {
+        Self::new(example_config(mode)?, duration)
+    }
+
+    /// Runs on a new single-threaded runtime with paused time.
+    pub fn run_paused(
+        self,
+        renderer: Arc<dyn Renderer>,
+        sink: Option<Box<dyn DisplaySink>>,
+    ) -> Result<Run, RigError> {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .start_paused(true)
+            .build()
+            .map_err(|e| RigError::Task(format!("cannot start a runtime: {e}")))?;
+        rt.block_on(self.run(renderer, sink))
+    }
+
+    /// Starts the rig, carries out the actions, stops it after `duration` and returns what it
+    /// recorded. Needs a tokio runtime (paused time for a fast, deterministic run).
+    pub async fn run(
+        self,
+        renderer: Arc<dyn Renderer>,
+        sink: Option<Box<dyn DisplaySink>>,
+    ) -> Result<Run, RigError> {
+        let wall = WallInstant::now();
+        let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let start = clock.now();
+        let log = Arc::new(Mutex::new(Log::default()));
+        let sims = Arc::new(std::sync::OnceLock::<SimDevices>::new());
+        let hook = TruthRecorder {
+            log: log.clone(),
+            sims: sims.clone(),
+            probe: self.probe,
+            next_probe: self.probe.map(|_| start),
+            last_gaze_truth: 0,
+        };
+        let mut setup = RigSetup::new(self.cfg);
+        setup.simulated_time = true;
+        setup.clock = Some(clock.clone());
+        setup.renderer = Some(renderer);
+        setup.sink = sink;
+        setup.sim = Some(self.spec);
+        setup.scheduler = Some(self.sched);
+        setup.hooks.push(Box::new(hook));
+        let rig = Rig::start(setup).await?;
+        let state = rig.state().clone();
+        if let Some(s) = state.sims.get() {
+            let _ = sims.set(s.clone());
+        }
+        let mut actions = self.actions;
+        actions.sort_by_key(|a| a.0);
+        let script = {
+            let (state, clock) = (state.clone(), clock.clone());
+            tokio::spawn(async move {
+                for (after, action) in actions {
+                    crate::sleep_until(clock.as_ref(), start + after).await;
+                    act(&state, action).await;
+                }
+            })
+        };
+        crate::sleep_until(clock.as_ref(), start + self.duration).await;
+        state.cancel.cancel();
+        script.abort();
+        let report = rig.wait().await;
+        tokio::time::sleep(self.after_shutdown).await;
+        let now = clock.now();
+        let mut log = std::mem::take(&mut *lock(&log));
+        let end = log
+            .end
+            .take()
+            .ok_or_else(|| RigError::Task("the rig's loop stopped without its shutdown".into()))?;
+        // The last probe: where the lens came to rest after parking.
+        if self.probe.is_some() {
+            let (lens_power, lens_target) = lens_truth(state.sims.get(), now).unzip();
+            log.probes.push(Probe {
+                t: now,
+                lens_power,
+                lens_target,
+                predicted: None,
+                commanded: end.status.commanded_power,
+                gaze_target_d: None,
+                vergence_d: None,
+                phase: end.status.phase,
+            });
+        }
+        if let Some(t) = state.sims.get().and_then(|s| s.gaze_truth.as_ref()) {
+            log.truth = std::mem::take(&mut *lock(t));
+        }
+        if let Some(g) = state.registry.snapshot().get("gaze") {
+            if g.failures > 0 {
+                log.gaze_errors.extend(g.last_error.clone());
+            }
+        }
+        Ok(Run {
+            log,
+            status: end.status,
+            latency: end.latency,
+            lens_opened: state
+                .sims
+                .get()
+                .and_then(|s| s.lens.as_ref())
+                .map_or(0, |l| l.plug.opened()),
+            report,
+            state,
+            simulated: now.saturating_since(start),
+            wall: wall.elapsed(),
+        })
+    }
+}
+
+async fn act(state: &RigState, action: Action) {
+    let lens_plug = || {
+        state
+            .sims
+            .get()
+            .and_then(|s| s.lens.as_ref())
+            .map(|l| l.plug.clone())
+    };
+    match action {
+        Action::UnplugLens => {
+            if let Some(p) = lens_plug() {
+                p.unplug()
+            }
+        }
+        Action::ReplugLens => {
+            if let Some(p) = lens_plug() {
+                p.replug()
+            }
+        }
+        Action::ManualFocus(f) => {
+            if let Err(e) = state.control(Control::ManualFocus(f.map(|d| d.0))).await {
+                tracing::warn!(error = %e, "scripted manual focus refused");
+            }
+        }
+    }
+}
+
+/// The example rig of simulated devices in `mode`, with the mode's default method.
+pub fn example_config(mode: Mode) -> Result<RigConfig, RigError> {
+    let text = crate::config::EXAMPLE_SIM_RIG
+        .replace(
+            "mode = \"varifocal\"",
+            &format!("mode = \"{}\"", mode.as_str()),
+        )
+        .replace(
+            "method = \"gather\"",
+            &format!(
+                "method = \"{}\"",
+                dioptra_sched::RenderMethod::default_for(mode.sched()).as_str()
+            ),
+        );
+    Ok(RigConfig::parse(&text)?)
+}
+
+fn lens_truth(sims: Option<&SimDevices>, now: Timestamp) -> Option<(Diopters, Diopters)> {
+    let lens = sims?.lens.as_ref()?.lens.as_ref()?.at(now);
+    Some((lens.power(), lens.target_power()))
+}
+
+/// Ground truth at one instant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Probe {
+    pub t: Timestamp,
+    /// The simulated lens's true power and the power it heads to.
+    pub lens_power: Option<Diopters>,
+    pub lens_target: Option<Diopters>,
+    /// The scheduler's model of the lens.
+    pub predicted: Option<Diopters>,
+    pub commanded: Option<Diopters>,
+    /// The depth of what the viewer really looks at, and the eyes' vergence, diopters.
+    pub gaze_target_d: Option<f64>,
+    pub vergence_d: Option<f64>,
+    pub phase: EyePhase,
+}
+
+/// A lens command as issued.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensCommand {
+    pub t: Timestamp,
+    pub id: CommandId,
+    pub power: Diopters,
+    pub reason: FocusReason,
+    /// When the driver had it on the wire (`None`: never, e.g. the link was down).
+    pub wire: Option<Timestamp>,
+}
+
+/// Everything a run recorded.
+#[derive(Debug, Default)]
+pub struct Log {
+    pub lens_commands: Vec<LensCommand>,
+    pub presents: Vec<(Timestamp, Command)>,
+    pub frames_requested: Vec<(Timestamp, FrameRequest)>,
+    pub probes: Vec<Probe>,
+    pub truth: Vec<TruthSample>,
+    /// Wall-clock host path per lens command a gaze sample caused: from the gaze task
+    /// receiving the sample to the lens driver having written the command (the figure `dioptra
+    /// hil` reports on hardware).
+    pub host_path: Vec<Duration>,
+    pub gaze_samples: u64,
+    pub sequencer_events: u64,
+    pub link_events: Vec<(Timestamp, LinkStatus)>,
+    /// The gaze device's last error when it was lost during the run.
+    pub gaze_errors: Vec<String>,
+    end: Option<End>,
+}
+
+#[derive(Debug)]
+struct End {
+    status: dioptra_sched::Status,
+    latency: dioptra_sched::Latency,
+}
+
+/// The result of [`SimRun::run`].
+pub struct Run {
+    pub log: Log,
+    /// The scheduler's status and latency figures when the rig stopped.
+    pub status: dioptra_sched::Status,
+    pub latency: dioptra_sched::Latency,
+    /// How many links the lens task opened (1 + reconnects).
+    pub lens_opened: u32,
+    pub report: ShutdownReport,
+    pub state: Arc<RigState>,
+    /// Simulated time covered, and the wall time it took.
+    pub simulated: Duration,
+    pub wall: Duration,
+}
+
+/// The hook that records the run.
+struct TruthRecorder {
+    log: Arc<Mutex<Log>>,
+    sims: Arc<std::sync::OnceLock<SimDevices>>,
+    probe: Option<Duration>,
+    next_probe: Option<Timestamp>,
+    /// Truth samples already searched (probes move forward in time).
+    last_gaze_truth: usize,
+}
+
+impl TruthRecorder {
+    fn gaze_truth_at(&mut self, now: Timestamp) -> Option<TruthSample> {
+        let truth = self.sims.get()?.gaze_truth.as_ref()?;
+        let truth = lock(truth);
+        let mut i = self.last_gaze_truth.min(truth.len());
+        while i < truth.len() && Timestamp::from_micros(truth[i].time_us) <= now {
+            i += 1;
+        }
+        self.last_gaze_truth = i.saturating_sub(1);
+        i.checked_sub(1).map(|j| truth[j])
+    }
+}
+
+impl LoopHook for TruthRecorder {
+    fn input(&mut self, now: Timestamp, input: &DeviceInput) {
+        let mut log = lock(&self.log);
+        match input {
+            DeviceInput::Gaze(..) => log.gaze_samples += 1,
+            DeviceInput::Sync(_) => log.sequencer_events += 1,
+            DeviceInput::LensLink(up) => log.link_events.push((
+                now,
+                if *up {
+                    LinkStatus::Connected
+                } else {
+                    LinkStatus::Lost
+                },
+            )),
+            DeviceInput::LensWire {
+                id,
+                wire_time,
+                host_path,
+                ..
+            } => {
+                if let Some(c) = log.lens_commands.iter_mut().rev().find(|c| c.id.0 == *id) {
+                    c.wire.get_or_insert(*wire_time);
+                }
+                log.host_path.extend(*host_path);
+            }
+            DeviceInput::LensState(_) => {}
+        }
+    }
+
+    fn command(&mut self, now: Timestamp, cmd: &Command) {
+        let mut log = lock(&self.log);
+        match *cmd {
+            Command::SetLensPower {
+                id, power, reason, ..
+            } => log.lens_commands.push(LensCommand {
+                t: now,
+                id,
+                power,
+                reason,
+                wire: None,
+            }),
+            Command::RenderFrame(r) => log.frames_requested.push((now, r)),
+            Command::Present { .. } | Command::PresentLayer { .. } => {
+                log.presents.push((now, *cmd))
+            }
+            _ => {}
+        }
+    }
+
+    fn next_wakeup(&self) -> Option<Timestamp> {
+        self.next_probe
+    }
+
+    fn wake(&mut self, now: Timestamp, engine: &Engine) {
+        let (Some(p), Some(every)) = (self.next_probe, self.probe) else {
+            return;
+        };
+        let truth = self.gaze_truth_at(now);
+        let (lens_power, lens_target) = lens_truth(self.sims.get(), now).unzip();
+        let st = engine.scheduler().status();
+        lock(&self.log).probes.push(Probe {
+            t: now,
+            lens_power,
+            lens_target,
+            predicted: engine.scheduler().predicted_lens_power(now),
+            commanded: st.commanded_power,
+            gaze_target_d: truth.map(|s| s.target_diopters),
+            vergence_d: truth.map(|s| s.diopters),
+            phase: st.phase,
+        });
+        self.next_probe = Some((p + every).max(now));
+    }
+
+    fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
+        self.next_probe = None;
+        lock(&self.log).end = Some(End {
+            status: engine.scheduler().status(),
+            latency: engine.scheduler().latency().clone(),
+        });
+    }
+}
+
+/// A renderer for loop tests: the content's depth map once, and every frame taking the
+/// simulated time `cost` gives (its images are 1 x 1 pixels: nothing looks at them).
+pub struct ScriptedRenderer {
+    depth: Mutex<Option<Arc<DepthMap>>>,
+    planes: usize,
+    cost: Box<dyn Fn(&RenderJob) -> Duration + Send + Sync>,
+}
+
+impl ScriptedRenderer {
+    pub fn new(
+        depth: Arc<DepthMap>,
+        planes: usize,
+        cost: impl Fn(&RenderJob) -> Duration + Send + Sync + 'static,
+    ) -> Self {
+        ScriptedRenderer {
+            depth: Mutex::new(Some(depth)),
+            planes,
+            cost: Box::new(cost),
+        }
+    }
+}
+
+impl Renderer for ScriptedRenderer {
+    fn depth(&self, _now: Timestamp) -> Option<Arc<DepthMap>> {
+        lock(&self.depth).take()
+    }
+    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
+        let layers = if job.mode == Mode::Multifocal {
+            self.planes
+        } else {
+            1
+        };
+        Ok(RenderOutput {
+            images: vec![RgbImage::new(1, 1, [0.5; 3]); layers],
+            planned: None,
+            cost: Some((self.cost)(job)),
+        })
+    }
+}
+
+/// Percentile (0..=100) of durations, by nearest rank; `None` when empty.
+pub fn percentile(values: &[Duration], p: f64) -> Option<Duration> {
+    if values.is_empty() {
+        return None;
+    }
+    let mut v = values.to_vec();
+    v.sort();
+    let rank = ((p / 100.0) * v.len() as f64).ceil().max(1.0) as usize;
+    v.get(rank.min(v.len()) - 1).copied()
+}
