@@ -242,6 +242,9 @@ pub struct LensDevice {
     /// How often the lens is read back, ms.
     #[serde(default = "default_lens_poll_ms")]
     pub poll_ms: f64,
+    /// Optotune only: the lens's temperature limits `[lower, upper]`, °C, sent at every
+    /// connect (`PwTA`); the device's focal-power range follows from them. Default 20-40 °C.
+    pub temperature_limits_c: Option<[f32; 2]>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -742,6 +745,20 @@ impl RigConfig {
                 ),
             ));
         }
+        if let Some([lo, hi]) = self.devices.lens.temperature_limits_c {
+            if self.devices.lens.driver != LensDriver::Optotune {
+                return Err(invalid(
+                    "devices.lens.temperature_limits_c",
+                    "only the Optotune Lens Driver 4 takes temperature limits (driver = \"optotune\")",
+                ));
+            }
+            if !(lo.is_finite() && hi.is_finite() && lo < hi && lo >= -120.0 && hi <= 120.0) {
+                return Err(invalid(
+                    "devices.lens.temperature_limits_c",
+                    format!("[{lo}, {hi}]: expected [lower, upper] in °C, lower below upper, within -120..120"),
+                ));
+            }
+        }
         let settle = self.devices.lens.sim_settle_ms;
         if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
             return Err(invalid(
@@ -1091,6 +1108,24 @@ pub(crate) mod tests {
         assert!(e.to_string().contains("linear, optimized"), "{e}");
         let ok = RigConfig::parse(&text.replace("method = \"gather\"", "method = \"linear\""));
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn optotune_temperature_limits_are_checked() {
+        let with = |v: &str| {
+            SIM_RIG.replace(
+                "park_power = 0.5",
+                &format!("park_power = 0.5\ntemperature_limits_c = {v}"),
+            )
+        };
+        let ok = RigConfig::parse(&with("[15.0, 45.0]")).unwrap();
+        assert_eq!(ok.devices.lens.temperature_limits_c, Some([15.0, 45.0]));
+        for bad in ["[45.0, 15.0]", "[-200.0, 40.0]", "[20.0, nan]"] {
+            let e = err(&with(bad));
+            assert_eq!(e.key(), "devices.lens.temperature_limits_c", "{bad}: {e}");
+        }
+        let other = with("[15.0, 45.0]").replace("driver = \"optotune\"", "driver = \"lens\"");
+        assert_eq!(err(&other).key(), "devices.lens.temperature_limits_c");
     }
 
     #[test]

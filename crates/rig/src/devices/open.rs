@@ -236,7 +236,10 @@ fn lens_limits(cfg: &RigConfig) -> Result<LensLimits, DeviceError> {
 
 fn connect_optotune(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
     Box::pin(async move {
-        let cfg = OptotuneConfig::new(lens_limits(&ctx.cfg)?);
+        let mut cfg = OptotuneConfig::new(lens_limits(&ctx.cfg)?);
+        if let Some([lo, hi]) = ctx.cfg.devices.lens.temperature_limits_c {
+            cfg = cfg.with_temperature_limits_c(lo, hi);
+        }
         let d = Optotune::connect(link.byte("Lens Driver 4")?, cfg, ctx.clock).await?;
         Ok(BoxLens(Box::new(d)))
     })
