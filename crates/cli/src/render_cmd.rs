@@ -92,17 +92,20 @@ pub struct InputArgs {
     /// Override the depth file's units: m, mm or D.
     #[arg(long)]
     pub depth_units: Option<String>,
+    /// Refuse images whose header claims more pixels than this (before reading them).
+    #[arg(long, default_value_t = dioptra_render::io::DEFAULT_MAX_PIXELS)]
+    pub max_pixels: u64,
 }
 
 impl InputArgs {
     fn load(&self) -> Result<Rgbd> {
-        let color = read_color(&self.color)?;
+        let color = dioptra_render::io::read_color_limited(&self.color, self.max_pixels)?;
         let units = self
             .depth_units
             .as_deref()
             .map(str::parse::<DepthUnits>)
             .transpose()?;
-        let depth = read_depth(&self.depth, units)?;
+        let depth = dioptra_render::io::read_depth_limited(&self.depth, units, self.max_pixels)?;
         Rgbd::new(color, depth).with_context(|| {
             format!(
                 "{} and {} must be the same size",

@@ -9,6 +9,27 @@ use std::fs::File;
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::Path;
 
+/// Images with more pixels than this are refused from their header, before their pixels are
+/// allocated (64 Mpx, e.g. 8192 x 8192: four f32 channels of it are 1 GiB).
+pub const DEFAULT_MAX_PIXELS: u64 = 64 * 1024 * 1024;
+
+/// Refuses a size a header claims when it exceeds `max_pixels`.
+fn check_size(path: &Path, w: u64, h: u64, max_pixels: u64) -> Result<(), RenderError> {
+    let n = w.saturating_mul(h);
+    if n > max_pixels {
+        return Err(fmt_err(
+            path,
+            format!(
+                "its header claims {w} x {h} pixels ({:.1} Mpx), more than the limit of {:.1} Mpx \
+                 (--max-pixels)",
+                n as f64 / 1048576.0,
+                max_pixels as f64 / 1048576.0
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// What the numbers in a depth file mean.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum DepthUnits {
@@ -79,13 +100,15 @@ struct Raw {
     max_int: f32,
 }
 
-fn read_png(path: &Path) -> Result<Raw, RenderError> {
+fn read_png(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     let f = File::open(path).map_err(|e| io_err(path, e))?;
     let mut dec = png::Decoder::new(BufReader::new(f));
     dec.set_transformations(png::Transformations::EXPAND);
     let mut reader = dec
         .read_info()
         .map_err(|e| fmt_err(path, format!("not a readable PNG: {e}")))?;
+    let (w, h) = (reader.info().width, reader.info().height);
+    check_size(path, u64::from(w), u64::from(h), max_pixels)?;
     let size = reader
         .output_buffer_size()
         .ok_or_else(|| fmt_err(path, "PNG is too large"))?;
@@ -121,7 +144,14 @@ fn read_png(path: &Path) -> Result<Raw, RenderError> {
     })
 }
 
-fn read_exr(path: &Path) -> Result<Raw, RenderError> {
+fn read_exr(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
+    // The headers alone first: the sizes they claim decide whether to read the pixels.
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .map_err(|e| fmt_err(path, format!("not a readable EXR: {e}")))?;
+    for header in &meta.headers {
+        let size = header.layer_size;
+        check_size(path, size.width() as u64, size.height() as u64, max_pixels)?;
+    }
     let img = exr::prelude::read_first_flat_layer_from_file(path)
         .map_err(|e| fmt_err(path, format!("not a readable EXR: {e}")))?;
     let layer = &img.layer_data;
@@ -155,7 +185,7 @@ fn read_exr(path: &Path) -> Result<Raw, RenderError> {
     })
 }
 
-fn read_pfm(path: &Path) -> Result<Raw, RenderError> {
+fn read_pfm(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     let mut bytes = Vec::new();
     File::open(path)
         .map_err(|e| io_err(path, e))?
@@ -189,6 +219,7 @@ fn read_pfm(path: &Path) -> Result<Raw, RenderError> {
             .map_err(|_| fmt_err(path, format!("bad PFM size {s:?}")))
     };
     let (w, h) = (parse(&fields[1])?, parse(&fields[2])?);
+    check_size(path, w as u64, h as u64, max_pixels)?;
     let scale: f32 = fields[3]
         .parse()
         .map_err(|_| fmt_err(path, "bad PFM scale"))?;
@@ -221,7 +252,7 @@ fn read_pfm(path: &Path) -> Result<Raw, RenderError> {
     })
 }
 
-fn read_raw(path: &Path) -> Result<Raw, RenderError> {
+fn read_raw(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     if !path.exists() {
         return Err(io_err(
             path,
@@ -229,15 +260,20 @@ fn read_raw(path: &Path) -> Result<Raw, RenderError> {
         ));
     }
     match format_of(path)? {
-        Format::Png => read_png(path),
-        Format::Exr => read_exr(path),
-        Format::Pfm => read_pfm(path),
+        Format::Png => read_png(path, max_pixels),
+        Format::Exr => read_exr(path, max_pixels),
+        Format::Pfm => read_pfm(path, max_pixels),
     }
 }
 
-/// Reads a colour image into linear light.
+/// Reads a colour image into linear light, refusing one larger than [`DEFAULT_MAX_PIXELS`].
 pub fn read_color(path: &Path) -> Result<RgbImage, RenderError> {
-    let raw = read_raw(path)?;
+    read_color_limited(path, DEFAULT_MAX_PIXELS)
+}
+
+/// [`read_color`], refusing images of more than `max_pixels` from their header.
+pub fn read_color_limited(path: &Path, max_pixels: u64) -> Result<RgbImage, RenderError> {
+    let raw = read_raw(path, max_pixels)?;
     let (w, h) = (raw.width, raw.height);
     let pick = |c: usize| -> Vec<f32> {
         // Grey (+alpha) images repeat channel 0; alpha is dropped.
@@ -272,7 +308,16 @@ pub fn read_color(path: &Path) -> Result<RgbImage, RenderError> {
 /// Reads a depth map. `units` overrides the format's default (metres for EXR/PFM,
 /// millimetres for 16-bit PNG). NaN, negative or zero distances are errors naming the pixel.
 pub fn read_depth(path: &Path, units: Option<DepthUnits>) -> Result<DepthMap, RenderError> {
-    let raw = read_raw(path)?;
+    read_depth_limited(path, units, DEFAULT_MAX_PIXELS)
+}
+
+/// [`read_depth`], refusing images of more than `max_pixels` from their header.
+pub fn read_depth_limited(
+    path: &Path,
+    units: Option<DepthUnits>,
+    max_pixels: u64,
+) -> Result<DepthMap, RenderError> {
+    let raw = read_raw(path, max_pixels)?;
     if raw.is_png && raw.max_int < 65535.0 && units.is_none() {
         return Err(fmt_err(path, "8-bit PNG depth has too little precision: use 16-bit PNG (mm), EXR or PFM, or pass --depth-units"));
     }
@@ -412,6 +457,71 @@ pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The refusal names the size and the limit (and did not allocate: a 60000 x 60000 float
+    /// image would be 43 GB).
+    fn refused_from_header(r: Result<RgbImage, RenderError>) {
+        let e = r.expect_err("a hostile header was read");
+        let msg = e.to_string();
+        assert!(
+            msg.contains("60000 x 60000") && msg.contains("--max-pixels"),
+            "{msg}"
+        );
+    }
+
+    fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+        out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+        out.extend_from_slice(kind);
+        out.extend_from_slice(data);
+        let mut body = kind.to_vec();
+        body.extend_from_slice(data);
+        let crc = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC).checksum(&body);
+        out.extend_from_slice(&crc.to_be_bytes());
+    }
+
+    #[test]
+    fn hostile_headers_are_refused_before_allocating() {
+        // PNG: a 60000 x 60000 RGB IHDR and an empty IDAT, 60 bytes in all.
+        let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+        let mut ihdr = Vec::new();
+        ihdr.extend_from_slice(&60000u32.to_be_bytes());
+        ihdr.extend_from_slice(&60000u32.to_be_bytes());
+        ihdr.extend_from_slice(&[8, 2, 0, 0, 0]);
+        png_chunk(&mut png, b"IHDR", &ihdr);
+        png_chunk(&mut png, b"IDAT", b"\x78\x9c\x03\x00\x00\x00\x00\x01");
+        png_chunk(&mut png, b"IEND", b"");
+        let p = tmp("huge.png");
+        std::fs::write(&p, &png).unwrap();
+        refused_from_header(read_color(&p));
+        assert!(read_depth(&p, Some(DepthUnits::Millimeters)).is_err());
+
+        // EXR: a real 4 x 4 file whose data window is rewritten to 60000 x 60000.
+        let small = tmp("small.exr");
+        write_color(&small, &RgbImage::new(4, 4, [0.5; 3])).unwrap();
+        let mut exr = std::fs::read(&small).unwrap();
+        let key = b"dataWindow\0box2i\0";
+        let at = exr
+            .windows(key.len())
+            .position(|w| w == key)
+            .expect("no dataWindow attribute")
+            + key.len()
+            + 4;
+        exr[at + 8..at + 12].copy_from_slice(&59999i32.to_le_bytes());
+        exr[at + 12..at + 16].copy_from_slice(&59999i32.to_le_bytes());
+        let p = tmp("huge.exr");
+        std::fs::write(&p, &exr).unwrap();
+        refused_from_header(read_color(&p));
+
+        // PFM: the header alone.
+        let p = tmp("huge.pfm");
+        std::fs::write(&p, b"PF\n60000 60000\n-1.0\n\0\0\0\0").unwrap();
+        refused_from_header(read_color(&p));
+
+        // The limit is the caller's: a 4 x 4 image over a 15-pixel limit is refused too.
+        let e = read_color_limited(&small, 15).unwrap_err().to_string();
+        assert!(e.contains("4 x 4"), "{e}");
+        assert!(read_color_limited(&small, 16).is_ok());
+    }
 
     fn tmp(name: &str) -> std::path::PathBuf {
         let d = std::env::temp_dir().join(format!("dioptra-render-io-{}", std::process::id()));

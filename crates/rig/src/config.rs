@@ -280,8 +280,9 @@ pub struct SyncDevice {
 impl SyncDevice {
     /// The DLPC350's video rate when none is configured, Hz.
     pub const DEFAULT_VIDEO_HZ: f64 = 60.0;
-    /// The simulated multifocal lens's settle time when none is configured, ms.
-    pub const DEFAULT_SIM_SETTLE_MS: f64 = 1.2;
+    /// The simulated multifocal lens's settle time when none is configured, ms: within the
+    /// dark quarter of a 240 Hz sub-frame (1.04 ms), with room for the largest plane step.
+    pub const DEFAULT_SIM_SETTLE_MS: f64 = 0.8;
 
     /// The DLPC350 driver's configuration (the video rate; the rest at the driver's defaults).
     pub fn dlpc350_config(&self) -> dioptra_sync::dlpc350::Dlpc350Config {
@@ -600,6 +601,20 @@ impl RigConfig {
             return Err(invalid(
                 "devices.sync.sim_settle_ms",
                 "expected a settle time of 0 to 1000 ms",
+            ));
+        }
+        // The board measures the lens when a sub-frame's dark quarter ends: a simulated lens
+        // slower than that would fault on every sub-frame.
+        let dark_ms = 250.0 / self.optics.subframe_hz;
+        if s.port == Port::Sim && s.sim_settle_ms > dark_ms {
+            return Err(invalid(
+                "devices.sync.sim_settle_ms",
+                format!(
+                    "the simulated multifocal lens settles in {} ms, longer than the dark quarter \
+                     of a sub-frame ({dark_ms:.2} ms at optics.subframe_hz = {}): every sub-frame \
+                     would be lit before the lens arrives; lower one of the two",
+                    s.sim_settle_ms, self.optics.subframe_hz
+                ),
             ));
         }
         match s.driver {
@@ -1108,6 +1123,18 @@ pub(crate) mod tests {
         assert!(e.to_string().contains("linear, optimized"), "{e}");
         let ok = RigConfig::parse(&text.replace("method = \"gather\"", "method = \"linear\""));
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn a_simulated_multifocal_lens_slower_than_the_dark_allowance_is_refused() {
+        let slow = SIM_RIG.replace("sim_settle_ms = 0.8", "sim_settle_ms = 1.2");
+        let e = err(&slow);
+        assert_eq!(e.key(), "devices.sync.sim_settle_ms", "{e}");
+        assert!(e.to_string().contains("optics.subframe_hz"), "{e}");
+        // At 120 Hz sub-frames the dark quarter is 2.08 ms: 1.2 ms fits.
+        assert!(
+            RigConfig::parse(&slow.replace("subframe_hz = 240.0", "subframe_hz = 120.0")).is_ok()
+        );
     }
 
     #[test]

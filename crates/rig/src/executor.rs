@@ -285,7 +285,25 @@ impl Executor<'_> {
             DeviceInput::LensLink(up) => sh.record(now, Rec::LensLink(LensLinkRec { up: *up })),
             DeviceInput::Sync(e) => {
                 sh.record(now, Rec::Sync(e.into()));
-                lock(&sh.status).sync_events += 1;
+                let mut st = lock(&sh.status);
+                st.sync_events += 1;
+                match e {
+                    dioptra_core::SequencerEvent::SubframeStart {
+                        plane_index,
+                        lens_power,
+                        ..
+                    } => {
+                        st.subframes += 1;
+                        let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
+                        if let (Some(p), Some(l)) = (plane, lens_power) {
+                            st.subframes_measured += 1;
+                            if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
+                                st.subframes_off_target += 1;
+                            }
+                        }
+                    }
+                    dioptra_core::SequencerEvent::Fault { .. } => st.subframe_faults += 1,
+                }
             }
         }
     }

@@ -132,6 +132,12 @@ pub struct LoopStatus {
     pub gaze_samples: u64,
     pub lens_commands: u64,
     pub sync_events: u64,
+    /// Sub-frames the sync hardware started, those with a measured lens power, those whose
+    /// power was off its plane by more than [`SUBFRAME_TOLERANCE_D`], and its fault reports.
+    pub subframes: u64,
+    pub subframes_measured: u64,
+    pub subframes_off_target: u64,
+    pub subframe_faults: u64,
     pub frames_requested: u64,
     pub frames_shown: u64,
     pub render_errors: u64,
@@ -147,6 +153,75 @@ pub struct LoopStatus {
     pub display: serde_json::Value,
     pub scheduler: serde_json::Value,
 }
+
+/// What an experiment calls a recording (`POST /recording/start` body): each part at most
+/// 64 characters of letters, digits, `-`, `_` and `.`, so that it can go into a file name.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordingMeta {
+    pub name: Option<String>,
+    pub subject: Option<String>,
+    /// A number or a label.
+    #[serde(default, deserialize_with = "number_or_text")]
+    pub trial: Option<String>,
+}
+
+fn number_or_text<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
+    use serde::Deserialize;
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum T {
+        N(u64),
+        S(String),
+    }
+    Ok(Option::<T>::deserialize(d)?.map(|t| match t {
+        T::N(n) => n.to_string(),
+        T::S(s) => s,
+    }))
+}
+
+impl RecordingMeta {
+    /// The first part that cannot go into a file name: (key, why).
+    pub fn invalid(&self) -> Option<(&'static str, String)> {
+        let parts = [
+            ("name", &self.name),
+            ("subject", &self.subject),
+            ("trial", &self.trial),
+        ];
+        parts.into_iter().find_map(|(key, v)| {
+            let v = v.as_deref()?;
+            let ok = !v.is_empty()
+                && v.len() <= 64
+                && !v.starts_with('.')
+                && v.bytes()
+                    .all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b));
+            (!ok).then(|| {
+                (
+                    key,
+                    format!("{v:?}: use 1 to 64 letters, digits, '-', '_' or '.' (not first)"),
+                )
+            })
+        })
+    }
+
+    fn file_suffix(&self) -> String {
+        let mut s = String::new();
+        for (tag, v) in [
+            ("", &self.name),
+            ("sub-", &self.subject),
+            ("trial-", &self.trial),
+        ] {
+            if let Some(v) = v {
+                s += &format!("-{tag}{v}");
+            }
+        }
+        s
+    }
+}
+
+/// A sub-frame's lens power off its plane by more than this is off target (the dioptra sync
+/// board's own settle tolerance).
+pub const SUBFRAME_TOLERANCE_D: f32 = 0.02;
 
 /// The newest render error, as `/status` shows it.
 #[derive(Debug, Clone, Serialize)]
@@ -227,6 +302,15 @@ impl RigState {
                 "render_errors": status.render_errors,
                 "fallback_frames": status.fallback_frames,
             },
+            "subframes": {
+                "started": status.subframes,
+                "measured": status.subframes_measured,
+                "off_target": status.subframes_off_target,
+                "off_target_rate": (status.subframes_measured > 0)
+                    .then(|| status.subframes_off_target as f64 / status.subframes_measured as f64),
+                "tolerance_d": SUBFRAME_TOLERANCE_D,
+                "faults": status.subframe_faults,
+            },
             "render_errors": {
                 "by_method": status.render_errors_by_method,
                 "last": status.last_render_error,
@@ -284,6 +368,16 @@ impl RigState {
 
     /// Starts a recording in `recording.dir`; returns its path.
     pub fn start_recording(&self, from_start: bool) -> Result<PathBuf, ControlError> {
+        self.start_recording_with(from_start, &RecordingMeta::default())
+    }
+
+    /// [`RigState::start_recording`] with the experiment's names, which go into the file
+    /// name and the `/start` message.
+    pub fn start_recording_with(
+        &self,
+        from_start: bool,
+        meta: &RecordingMeta,
+    ) -> Result<PathBuf, ControlError> {
         let Some(rc) = &self.cfg.recording else {
             return Err(ControlError::Conflict(
                 "the rig config has no [recording] section with a dir; add one to record".into(),
@@ -303,10 +397,11 @@ impl RigState {
         let stamp = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .unwrap_or_default();
-        let mut path = rc.dir.join(format!("dioptra-{}.mcap", stamp.as_secs()));
+        let stem = format!("dioptra-{}{}", stamp.as_secs(), meta.file_suffix());
+        let mut path = rc.dir.join(format!("{stem}.mcap"));
         let mut n = 1;
         while path.exists() {
-            path = rc.dir.join(format!("dioptra-{}-{n}.mcap", stamp.as_secs()));
+            path = rc.dir.join(format!("{stem}-{n}.mcap"));
             n += 1;
         }
         let r = Recorder::start(&path).map_err(|e| ControlError::Failed {
@@ -326,6 +421,9 @@ impl RigState {
                 device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
                 wall_zero_ns: self.wall_zero_ns,
                 clock: self.clock_source.into(),
+                name: meta.name.clone(),
+                subject: meta.subject.clone(),
+                trial: meta.trial.clone(),
             }),
         );
         *slot = Some(r);

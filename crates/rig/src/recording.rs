@@ -328,6 +328,13 @@ pub struct StartRec {
     /// What the host times count.
     #[serde(default)]
     pub clock: String,
+    /// The experiment's names for this recording (`POST /recording/start`).
+    #[serde(default)]
+    pub name: Option<String>,
+    #[serde(default)]
+    pub subject: Option<String>,
+    #[serde(default)]
+    pub trial: Option<String>,
 }
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
@@ -380,12 +387,13 @@ macro_rules! topics {
 const N: &str = r#"{"type":"number"}"#;
 const ON: &str = r#"{"type":["number","null"]}"#;
 const S: &str = r#"{"type":"string"}"#;
+const OS: &str = r#"{"type":["string","null"]}"#;
 const B: &str = r#"{"type":"boolean"}"#;
 const EYE_SCHEMA: &str = r#"{"type":"object","properties":{"origin_mm":{"type":"array","items":{"type":"number"}},"direction":{"type":"array","items":{"type":"number"}},"pupil_mm":{"type":"number"},"valid":{"type":"boolean"}}}"#;
 
 topics! {
     Start => "/start", "dioptra.Start",
-        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S}"#);
+        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S},"name":{OS},"subject":{OS},"trial":{OS}"#);
     Gaze => "/gaze", "dioptra.Gaze",
         format!(r#""device_ns":{N},"host_receive_ns":{N},"host_ns":{N},"left":{EYE_SCHEMA},"right":{EYE_SCHEMA}"#);
     LensState => "/lens/state", "dioptra.LensState",
@@ -816,6 +824,9 @@ mod tests {
                     device_tasks: serde_json::Value::Null,
                     wall_zero_ns: Some(1_764_000_000_000_000_000),
                     clock: "test".into(),
+                    name: Some("vergence".into()),
+                    subject: None,
+                    trial: Some("3".into()),
                 }),
             ),
             (Timestamp(1), Rec::Gaze(GazeRec::from(&gaze(1_000)))),

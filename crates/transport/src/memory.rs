@@ -98,11 +98,27 @@ impl ByteLink for MemoryLink {
                     let (now, later) = rest.split_at(space.min(rest.len()));
                     let ready_at = Instant::now() + s.latency;
                     s.buffered += now.len();
-                    s.chunks.push_back(Chunk {
-                        ready_at,
-                        data: now.to_vec(),
-                        pos: 0,
-                    });
+                    if s.byte_time.is_zero() {
+                        s.chunks.push_back(Chunk {
+                            ready_at,
+                            data: now.to_vec(),
+                            pos: 0,
+                        });
+                    } else {
+                        // One byte at a time, as a serial line delivers them.
+                        let mut t = s
+                            .chunks
+                            .back()
+                            .map_or(ready_at, |c| c.ready_at.max(ready_at));
+                        for &b in now {
+                            t += s.byte_time;
+                            s.chunks.push_back(Chunk {
+                                ready_at: t,
+                                data: vec![b],
+                                pos: 0,
+                            });
+                        }
+                    }
                     rest = later;
                     drop(s);
                     self.tx.readable.notify_one();
@@ -226,6 +242,14 @@ impl Faults {
     pub fn set_latency(&self, latency: Duration) {
         self.rx.update(|s| s.latency = latency);
     }
+
+    /// Bytes the peer writes from now on arrive one at a time, `byte_time` apart, after the
+    /// latency: a serial line's pace (115200 baud 8N1 is 86.8 µs a byte). Zero: at once.
+    /// A reader wakes at tokio's timer resolution (1 ms), so a faster pace arrives in bursts
+    /// of the bytes due by then: partial frames all the same.
+    pub fn set_byte_time(&self, byte_time: Duration) {
+        self.rx.update(|s| s.byte_time = byte_time);
+    }
 }
 
 /// One direction of the link.
@@ -245,6 +269,8 @@ struct PipeState {
     buffered: usize,
     capacity: usize,
     latency: Duration,
+    /// Time between bytes ([`Faults::set_byte_time`]).
+    byte_time: Duration,
     writer_open: bool,
     reader_open: bool,
     /// Set by [`Faults::disconnect`].
@@ -266,6 +292,7 @@ impl Pipe {
                 buffered: 0,
                 capacity: capacity.max(1),
                 latency: Duration::ZERO,
+                byte_time: Duration::ZERO,
                 writer_open: true,
                 reader_open: true,
                 severed: None,
@@ -339,6 +366,25 @@ mod tests {
         let mut buf = [0u8; 7];
         a.read_exact(&mut buf, SEC).await.unwrap();
         assert_eq!(&buf, b"Ready\r\n");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_paced_link_delivers_one_byte_per_byte_time() {
+        let (mut a, mut b) = pair(64);
+        // Above tokio's 1 ms timer resolution, so each byte is its own wake-up.
+        let byte = Duration::from_millis(2);
+        a.faults().set_byte_time(byte);
+        let t0 = Instant::now();
+        b.write_all(b"abc").await.unwrap();
+        let mut buf = [0u8; 3];
+        let mut got = Vec::new();
+        while got.len() < 3 {
+            let n = a.read(&mut buf, SEC).await.unwrap();
+            got.extend_from_slice(&buf[..n]);
+            assert_eq!(n, 1, "one byte per read: they arrive apart");
+            assert_eq!(Instant::now() - t0, byte * got.len() as u32);
+        }
+        assert_eq!(got, b"abc");
     }
 
     #[tokio::test(start_paused = true)]

@@ -6,7 +6,7 @@
 //! | POST | `/mode` | `{"mode": "varifocal"}` | varifocal, multifocal or lightfield |
 //! | POST | `/method` | `{"method": "gather"}` | a render method that fits the mode, or `auto` (varifocal) |
 //! | POST | `/focus` | `{"diopters": 1.5}` or `{"diopters": null}` | manual focus, or back to gaze |
-//! | POST | `/recording/start` | | starts an MCAP recording in `recording.dir` |
+//! | POST | `/recording/start` | none, or `{"name": "vergence", "subject": "s01", "trial": 3}` | starts an MCAP recording in `recording.dir` |
 //! | POST | `/recording/stop` | | finishes it; answers with its path and message count |
 //! | POST | `/shutdown` | | parks the lens, finishes files, exits |
 //! | POST | `/sim/{lens,gaze,sync}/{unplug,replug}` | | simulated devices only: pull or restore the cable |
@@ -286,8 +286,18 @@ async fn set_focus(
 
 async fn recording_start(
     State(s): State<Arc<Shared>>,
+    b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let path = s.start_recording(false)?;
+    // The body is optional: nothing, `{}`, or the experiment's names.
+    let meta: dioptra_rig::RecordingMeta = if b.iter().all(u8::is_ascii_whitespace) {
+        Default::default()
+    } else {
+        body(&b)?
+    };
+    if let Some((key, why)) = meta.invalid() {
+        return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at(key));
+    }
+    let path = s.start_recording_with(false, &meta)?;
     Ok(Json(json!({ "recording": path })))
 }
 

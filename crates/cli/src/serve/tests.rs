@@ -902,6 +902,15 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
         "no layered frames: {v:#}"
     );
     assert!(v["counts"]["frames_shown"].as_u64() > Some(2), "{v}");
+    // The example rig's multifocal lens keeps up: sub-frames reach their planes, and
+    // /status says how many did not.
+    let sub = eventually("measured sub-frames", || {
+        let v = sh.status_json();
+        (v["subframes"]["measured"].as_u64() > Some(40)).then_some(v["subframes"].clone())
+    })
+    .await;
+    let rate = sub["off_target_rate"].as_f64().unwrap();
+    assert!(rate < 0.05, "{sub}");
     // Back to varifocal: the sequence stops.
     let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"varifocal\"}").await;
     assert_eq!(s, StatusCode::OK, "{v}");
@@ -1265,6 +1274,56 @@ async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
     let before = v["counts"]["render_errors"].as_u64().unwrap();
     let v = after_frames(&d, 10).await;
     assert_eq!(v["counts"]["render_errors"].as_u64(), Some(before), "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_recording_takes_the_experiments_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let app = api::router(d.shared().clone());
+    for (body, key) in [
+        ("{\"name\": \"../etc\"}", "name"),
+        ("{\"subject\": \"\"}", "subject"),
+        ("{\"trial\": \"a b\"}", "trial"),
+        ("{\"run\": 1}", "run"),
+    ] {
+        let (s, v) = call(&app, "POST", "/recording/start", body).await;
+        assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{body}: {v}");
+        assert_eq!(v["key"], json!(key), "{body}: {v}");
+    }
+    let (s, v) = call(
+        &app,
+        "POST",
+        "/recording/start",
+        "{\"name\": \"vergence\", \"subject\": \"s01\", \"trial\": 3}",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let path = v["recording"].as_str().unwrap().to_string();
+    assert!(path.ends_with("-vergence-sub-s01-trial-3.mcap"), "{path}");
+    eventually("frames", || {
+        (status_of(&d)["counts"]["frames_shown"].as_u64() >= Some(3)).then_some(())
+    })
+    .await;
+    let (s, _) = call(&app, "POST", "/recording/stop", "").await;
+    assert_eq!(s, StatusCode::OK);
+    let rec = dioptra_rig::recording::read(Path::new(&path)).unwrap();
+    let Some((_, dioptra_rig::recording::Rec::Start(start))) = rec.messages.first() else {
+        panic!("no /start first");
+    };
+    assert_eq!(
+        (
+            start.name.as_deref(),
+            start.subject.as_deref(),
+            start.trial.as_deref()
+        ),
+        (Some("vergence"), Some("s01"), Some("3"))
+    );
+    assert!(start.wall_zero_ns.is_some() && !start.clock.is_empty());
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }

@@ -89,8 +89,10 @@ pub struct Optotune<L: ByteLink> {
     last_power: Option<Diopters>,
     /// Status error bits last seen; focal-power control stays stopped while set.
     fault: Option<Status>,
-    /// Reply payload length of an exchange dropped while waiting for its reply.
-    unread_reply: Option<usize>,
+    /// The reply being read, kept here rather than on the exchange's stack: an exchange
+    /// dropped mid-reply (a state read cut short by a new command) leaves what it read, and
+    /// the next exchange reads the rest of that frame before its own.
+    reply: Option<Reply>,
     buf: Vec<u8>,
     stray_crc_errors: u64,
     reconnects: u64,
@@ -144,7 +146,7 @@ impl<L: ByteLink> Optotune<L> {
             mode: Mode::Other(0),
             last_power: None,
             fault: None,
-            unread_reply: None,
+            reply: None,
             buf: Vec::with_capacity(protocol::MAX_COMMAND_LEN),
             stray_crc_errors: 0,
             reconnects: 0,
@@ -439,14 +441,14 @@ impl<L: ByteLink> Optotune<L> {
         let timeout = self.cfg.reply_timeout;
         let scaling = self.scaling;
         let link = self.link.as_mut().ok_or_else(not_connected)?;
-        // A caller dropped the last exchange after its command went out (a state read cut
-        // short by a new command): its reply may still be on the way. Let it arrive and drop
-        // it, or it would be read as this command's reply.
-        if let Some(expected) = self.unread_reply.take() {
-            let mut stale = [0u8; MAX_FRAME_LEN];
-            match read_frame(link, &mut stale, expected, timeout).await {
+        // A caller dropped the last exchange after its command went out: the rest of its
+        // reply may still be on the way. Read that frame to its end and drop it, or it would
+        // be read as this command's reply.
+        if self.reply.is_some() {
+            match finish_reply(link, &mut self.reply, timeout).await {
                 Err(e) if e.needs_reconnect() => return Err(e),
-                _ => {}
+                // A reply that never came (timeout, or garbage): drain resynchronises.
+                _ => self.reply = None,
             }
         }
         self.stray_crc_errors += drain(link).await?;
@@ -457,13 +459,12 @@ impl<L: ByteLink> Optotune<L> {
         if C::REPLY_LEN == 0 {
             return Ok((C::parse(&[], &scaling).map_err(protocol_error)?, sent));
         }
-        let mut frame = [0u8; MAX_FRAME_LEN];
-        // Cleared only once the read ends, whatever its outcome: still set means dropped.
-        self.unread_reply = Some(C::REPLY_LEN);
-        let read = read_frame(link, &mut frame, C::REPLY_LEN, timeout).await;
-        self.unread_reply = None;
+        self.reply = Some(Reply::new(C::REPLY_LEN));
+        let read = finish_reply(link, &mut self.reply, timeout).await;
+        let frame = self.reply.take();
         let len = read?;
-        let r = protocol::decode::<C>(&frame[..len], &scaling).map_err(protocol_error)?;
+        let frame = frame.ok_or_else(|| DeviceError::Protocol("reply state lost".into()))?;
+        let r = protocol::decode::<C>(&frame.frame[..len], &scaling).map_err(protocol_error)?;
         Ok((r, self.clock.now()))
     }
 }
@@ -471,16 +472,47 @@ impl<L: ByteLink> Optotune<L> {
 /// Longest reply frame: IR's 10-byte payload + CRC + CRLF.
 const MAX_FRAME_LEN: usize = 16;
 
-/// Reads one reply frame of a command whose payload is `reply_len` bytes (`N\r\n` and `E`
-/// frames have their own lengths) within `timeout`; returns its length.
-async fn read_frame<L: ByteLink>(
-    link: &mut L,
-    frame: &mut [u8; MAX_FRAME_LEN],
+/// A reply frame read so far.
+#[derive(Debug, Clone)]
+struct Reply {
+    /// Payload length of the command's normal reply (`N\r\n` and `E` frames have their own).
     reply_len: usize,
+    frame: [u8; MAX_FRAME_LEN],
+    got: usize,
+}
+
+impl Reply {
+    fn new(reply_len: usize) -> Reply {
+        Reply {
+            reply_len,
+            frame: [0; MAX_FRAME_LEN],
+            got: 0,
+        }
+    }
+
+    /// The whole frame's length, known from its first byte.
+    fn len(&self) -> usize {
+        if self.got == 0 {
+            return 1;
+        }
+        match self.frame[0] {
+            b'N' => protocol::CRC_ERROR_REPLY.len(),
+            b'E' => protocol::ERROR_PAYLOAD_LEN + protocol::TRAILER_LEN,
+            _ => self.reply_len + protocol::TRAILER_LEN,
+        }
+        .min(MAX_FRAME_LEN)
+    }
+}
+
+/// Reads the rest of the frame in `reply` within `timeout`; returns its length. Cancel-safe:
+/// every byte read is stored in `reply` before the next await, so a dropped call loses
+/// nothing and a later call goes on where it stopped.
+async fn finish_reply<L: ByteLink>(
+    link: &mut L,
+    reply: &mut Option<Reply>,
     timeout: Duration,
 ) -> Result<usize, DeviceError> {
     let deadline = Instant::now() + timeout;
-    let left = || deadline.saturating_duration_since(Instant::now());
     let timed_out = |e: LinkError| match e {
         LinkError::Timeout { .. } => LinkError::Timeout {
             ms: u64::try_from(timeout.as_millis()).unwrap_or(u64::MAX),
@@ -488,19 +520,24 @@ async fn read_frame<L: ByteLink>(
         .into(),
         other => DeviceError::from(other),
     };
-    link.read_exact(&mut frame[..1], left())
-        .await
-        .map_err(timed_out)?;
-    let len = match frame[0] {
-        b'N' => protocol::CRC_ERROR_REPLY.len(),
-        b'E' => protocol::ERROR_PAYLOAD_LEN + protocol::TRAILER_LEN,
-        _ => reply_len + protocol::TRAILER_LEN,
+    loop {
+        let r = reply
+            .as_mut()
+            .ok_or_else(|| DeviceError::Protocol("no reply is being read".into()))?;
+        let len = r.len();
+        if r.got >= len && r.got > 0 {
+            return Ok(len);
+        }
+        let left = deadline.saturating_duration_since(Instant::now());
+        let n = link
+            .read(&mut r.frame[r.got..len], left)
+            .await
+            .map_err(timed_out)?;
+        if n == 0 && left.is_zero() {
+            return Err(timed_out(LinkError::Timeout { ms: 0 }));
+        }
+        r.got += n;
     }
-    .min(MAX_FRAME_LEN);
-    link.read_exact(&mut frame[1..len], left())
-        .await
-        .map_err(timed_out)?;
-    Ok(len)
 }
 
 /// Reads and drops whatever already arrived; returns how many `N\r\n` it held.

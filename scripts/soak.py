@@ -1,0 +1,182 @@
+#!/usr/bin/env python3
+"""Soak test of `dioptra serve` on the simulated rig, with independent clients.
+
+The example rig with its tracker at 1 kHz runs for --seconds while this script polls
+GET /status at 10 Hz and reads the /stream WebSocket (websocket-client), recording all the
+while. At the end it reports RSS at start and end, gaze samples against the tracker's rate,
+stream messages lost to lag, recording drops and render errors. Then a second daemon records
+for --kill-after seconds and is killed with SIGKILL; the official `mcap` reader reads the cut
+file, and `dioptra recording recover` rewrites it.
+
+    pip install websocket-client mcap
+    cargo build --release
+    python3 scripts/soak.py --seconds 600
+
+Exit code 0 when nothing was dropped and no render failed.
+"""
+
+import argparse
+import json
+import os
+import pathlib
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+
+import websocket  # websocket-client
+from mcap.reader import make_reader
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def config(tmp: pathlib.Path, record: bool) -> pathlib.Path:
+    text = (ROOT / "crates/cli/examples/rig-sim.toml").read_text()
+    text = text.replace("127.0.0.1:7420", "127.0.0.1:0")
+    text = text.replace("sim_rate_hz = 250.0", "sim_rate_hz = 1000.0")
+    text = text.replace('dir = "recordings"', f'dir = "{tmp / "rec"}"')
+    text = text.replace("start = false", f"start = {'true' if record else 'false'}")
+    path = tmp / "rig.toml"
+    path.write_text(text)
+    return path
+
+
+def start(binary: str, cfg: pathlib.Path):
+    p = subprocess.Popen([binary, "serve", "--config", str(cfg)],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    line = p.stderr.readline()
+    m = re.search(r"http://(\S+)", line)
+    if not m:
+        p.kill()
+        sys.exit(f"no API address in {line!r}")
+    return p, m.group(1)
+
+
+def call(addr: str, path: str, body=None):
+    req = urllib.request.Request(
+        f"http://{addr}{path}", method="POST" if body is not None else "GET",
+        data=None if body is None else json.dumps(body).encode(),
+        headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return json.load(r)
+
+
+def rss_kib(pid: int) -> int:
+    for line in pathlib.Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return -1
+
+
+def wait_ok(addr: str):
+    for _ in range(600):
+        s = call(addr, "/status")
+        if all(s["devices"][d]["state"] == "ok" for d in ("lens", "gaze", "sync")):
+            return s
+        time.sleep(0.1)
+    sys.exit("the devices never came up")
+
+
+def soak(binary: str, seconds: float) -> bool:
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="dioptra-soak-"))
+    p, addr = start(binary, config(tmp, record=True))
+    stream = {"messages": 0, "gaze": 0, "lagged_skipped": 0, "errors": 0}
+    stop = threading.Event()
+
+    def reader():
+        ws = websocket.create_connection(f"ws://{addr}/stream", timeout=10)
+        while not stop.is_set():
+            try:
+                m = json.loads(ws.recv())
+            except Exception:
+                stream["errors"] += 1
+                break
+            stream["messages"] += 1
+            if m.get("type") == "gaze":
+                stream["gaze"] += 1
+            elif m.get("type") == "lagged":
+                stream["lagged_skipped"] += m["skipped"]
+        ws.close()
+
+    wait_ok(addr)
+    time.sleep(5)  # past start-up allocations
+    first = call(addr, "/status")
+    rss0 = rss_kib(p.pid)
+    t = threading.Thread(target=reader, daemon=True)
+    t.start()
+    polls, t_end = 0, time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        call(addr, "/status")
+        polls += 1
+        time.sleep(0.1)
+    last = call(addr, "/status")
+    rss1 = rss_kib(p.pid)
+    stop.set()
+    rec = call(addr, "/recording/stop", {})
+    call(addr, "/shutdown", {})
+    p.wait(timeout=60)
+    span = last["uptime_s"] - first["uptime_s"]
+    samples = last["counts"]["gaze_samples"] - first["counts"]["gaze_samples"]
+    print(f"soak: {span:.0f} s, {polls} status polls, exit {p.returncode}")
+    print(f"  RSS {rss0} KiB at start, {rss1} KiB at end ({rss1 - rss0:+d} KiB)")
+    print(f"  gaze samples {samples} ({samples / span:.1f} Hz; the tracker sends 1000 Hz)")
+    print(f"  stream: {stream['messages']} messages, {stream['gaze']} gaze, "
+          f"{stream['lagged_skipped']} skipped by lag, {stream['errors']} errors")
+    print(f"  recording: {rec['messages']} messages, {rec['dropped']} dropped")
+    print(f"  render errors {last['counts']['render_errors']}, "
+          f"frames shown {last['counts']['frames_shown']}")
+    ok = (rec["dropped"] == 0 and stream["lagged_skipped"] == 0
+          and last["counts"]["render_errors"] == 0 and p.returncode == 0
+          and abs(samples / span - 1000.0) < 10.0)
+    return ok
+
+
+def killed(binary: str, after: float) -> bool:
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix="dioptra-kill-"))
+    p, addr = start(binary, config(tmp, record=True))
+    wait_ok(addr)
+    time.sleep(after)
+    sent = call(addr, "/status")["recording"]
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    files = list((tmp / "rec").glob("*.mcap"))
+    f = files[0]
+    n, error = 0, None
+    with open(f, "rb") as fh:
+        try:
+            for _ in make_reader(fh).iter_messages():
+                n += 1
+        except Exception as e:  # the cut chunk
+            error = f"{type(e).__name__}: {e}"
+    print(f"SIGKILL after {after:.0f} s: {f.stat().st_size} bytes; the official reader "
+          f"read {n} messages" + (f", then {error}" if error else " and no error"))
+    print(f"  status just before the kill: {json.dumps(sent)}")
+    out = tmp / "fixed.mcap"
+    r = subprocess.run([binary, "recording", "recover", str(f), "--out", str(out)],
+                       capture_output=True, text=True)
+    print("  " + r.stdout.strip())
+    m = 0
+    with open(out, "rb") as fh:
+        for _ in make_reader(fh).iter_messages():
+            m += 1
+    print(f"  the official reader reads {m} messages from the recovered file")
+    return r.returncode == 0 and m > 0
+
+
+def main():
+    a = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    a.add_argument("--binary", default=str(ROOT / "target/release/dioptra"))
+    a.add_argument("--seconds", type=float, default=600.0)
+    a.add_argument("--kill-after", type=float, default=10.0)
+    args = a.parse_args()
+    ok = killed(args.binary, args.kill_after)
+    ok = soak(args.binary, args.seconds) and ok
+    sys.exit(0 if ok else 1)
+
+
+if __name__ == "__main__":
+    main()
