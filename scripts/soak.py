@@ -29,7 +29,7 @@ import time
 import urllib.request
 
 import websocket  # websocket-client
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
@@ -145,15 +145,22 @@ def killed(binary: str, after: float) -> bool:
     p.wait()
     files = list((tmp / "rec").glob("*.mcap"))
     f = files[0]
-    n, error = 0, None
-    with open(f, "rb") as fh:
-        try:
-            for _ in make_reader(fh).iter_messages():
-                n += 1
-        except Exception as e:  # the cut chunk
-            error = f"{type(e).__name__}: {e}"
-    print(f"SIGKILL after {after:.0f} s: {f.stat().st_size} bytes; the official reader "
-          f"read {n} messages" + (f", then {error}" if error else " and no error"))
+
+    def count(reader):
+        n, error = 0, None
+        with open(f, "rb") as fh:
+            try:
+                for _ in reader(fh).iter_messages(log_time_order=False):
+                    n += 1
+            except Exception as e:  # the cut chunk
+                error = f"{type(e).__name__}: {str(e)[:80]}"
+        return n, error
+
+    print(f"SIGKILL after {after:.0f} s: {f.stat().st_size} bytes")
+    for name, reader in (("make_reader", make_reader), ("NonSeekingReader", NonSeekingReader)):
+        n, error = count(reader)
+        print(f"  the official reader ({name}, log_time_order=False) read {n} messages"
+              + (f", then {error}" if error else " and no error"))
     print(f"  status just before the kill: {json.dumps(sent)}")
     out = tmp / "fixed.mcap"
     r = subprocess.run([binary, "recording", "recover", str(f), "--out", str(out)],
