@@ -369,3 +369,104 @@ fn a_recording_killed_with_sigkill_is_recovered() {
         String::from_utf8_lossy(&replay.stderr)
     );
 }
+
+#[test]
+fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let bin = env!("CARGO_BIN_EXE_dioptra");
+    let scene = dir.path().join("scene");
+    let ok = Command::new(bin)
+        .args(["sim", "scene", "--seed", "1000000", "--size", "96", "--out"])
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let (color, depth) = (scene.join("color.exr"), scene.join("depth.exr"));
+    let frames = dir.path().join("frames");
+    let text = std::fs::read_to_string(write_config(dir.path(), false))
+        .unwrap()
+        .replace("png_every = 0", "png_every = 1")
+        .replace(
+            "[display]",
+            &format!("[display]\npng_dir = {:?}", frames.display().to_string()),
+        )
+        + &format!(
+            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n",
+            color.display().to_string(),
+            depth.display().to_string()
+        );
+    let config = dir.path().join("files.toml");
+    std::fs::write(&config, text).unwrap();
+    let (mut daemon, mut stderr, addr) = start(&config);
+    wait_for_lens(addr);
+    let (code, body) = http(addr, "GET", "/status", "");
+    assert!(
+        body.contains("\"content\":{") && body.contains("\"source\":\"files\""),
+        "{code} {body}"
+    );
+    let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 1.5}");
+    assert_eq!(code, 200, "{body}");
+    // Frames at the manual focus: the lens has settled there and more frames came.
+    let mut shown_at_focus = 0;
+    for _ in 0..3000 {
+        let (_, body) = http(addr, "GET", "/status", "");
+        let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+        if v["focus"]["commanded_d"].as_f64() == Some(1.5) {
+            shown_at_focus += 1;
+            if shown_at_focus > 30 {
+                break;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert!(shown_at_focus > 30, "the focus never reached 1.5 D");
+    let (code, _) = http(addr, "POST", "/shutdown", "");
+    assert_eq!(code, 202);
+    let mut rest = String::new();
+    stderr.read_to_string(&mut rest).unwrap();
+    assert!(daemon.0.wait().unwrap().success(), "{rest}");
+    let mut pngs: Vec<_> = std::fs::read_dir(&frames)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    pngs.sort();
+    let newest = pngs.last().expect("no frames written");
+    let cli = dir.path().join("cli.png");
+    let out = Command::new(bin)
+        .args([
+            "render",
+            "--method",
+            "gather",
+            "--focus",
+            "1.5",
+            "--backend",
+            "cpu",
+        ])
+        .arg("--color")
+        .arg(&color)
+        .arg("--depth")
+        .arg(&depth)
+        .arg("--out")
+        .arg(&cli)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let a = dioptra_render::io::read_color(newest).unwrap();
+    let b = dioptra_render::io::read_color(&cli).unwrap();
+    let psnr = dioptra_render::metrics::psnr(&a, &b, None).unwrap();
+    eprintln!("{}: {psnr} dB against dioptra render", newest.display());
+    assert!(
+        psnr >= 50.0,
+        "{}: {psnr} dB against dioptra render",
+        newest.display()
+    );
+}

@@ -487,6 +487,59 @@ pub struct RigConfig {
     pub auto_method: bool,
     #[serde(default)]
     pub render: Render,
+    #[serde(default)]
+    pub content: ContentConfig,
+}
+
+/// What the rig shows.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ContentSource {
+    /// The procedural scene of `display.scene_seed`.
+    #[default]
+    Scene,
+    /// RGB-D files: one frame, or a numbered sequence.
+    Files,
+}
+
+/// `[content]`: the rig's RGB-D content.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ContentConfig {
+    #[serde(default)]
+    pub source: ContentSource,
+    /// Colour: PNG (8/16-bit sRGB) or EXR/PFM (linear); `%04d` makes it a sequence.
+    pub color: Option<String>,
+    /// Depth: EXR/PFM metres or 16-bit PNG millimetres; a sequence like `color`.
+    pub depth: Option<String>,
+    /// Override the depth files' units: m, mm or D.
+    pub depth_units: Option<String>,
+    /// A sequence's frame rate, Hz.
+    #[serde(default = "default_content_fps")]
+    pub fps: f64,
+    /// Play a sequence again from its start (otherwise its last frame stays).
+    #[serde(default, rename = "loop")]
+    pub looped: bool,
+    /// A sequence's first number (default 0).
+    pub first: Option<usize>,
+}
+
+impl Default for ContentConfig {
+    fn default() -> Self {
+        ContentConfig {
+            source: ContentSource::Scene,
+            color: None,
+            depth: None,
+            depth_units: None,
+            fps: default_content_fps(),
+            looped: false,
+            first: None,
+        }
+    }
+}
+
+fn default_content_fps() -> f64 {
+    30.0
 }
 
 /// Render settings.
@@ -690,6 +743,41 @@ impl RigConfig {
 
     /// Range and consistency checks serde cannot express.
     pub fn validate(&self) -> Result<(), ConfigError> {
+        let c = &self.content;
+        match c.source {
+            ContentSource::Files => {
+                for (key, v) in [("content.color", &c.color), ("content.depth", &c.depth)] {
+                    if v.as_deref().is_none_or(str::is_empty) {
+                        return Err(invalid(
+                            key,
+                            "source = \"files\" needs content.color and content.depth (a file, or a pattern such as \"stim/color_%04d.png\")",
+                        ));
+                    }
+                }
+                if !(c.fps.is_finite() && c.fps > 0.0 && c.fps <= 1000.0) {
+                    return Err(invalid(
+                        "content.fps",
+                        "expected a frame rate of 0 to 1000 Hz",
+                    ));
+                }
+                if let Some(u) = &c.depth_units {
+                    if !["m", "mm", "D"].contains(&u.as_str()) {
+                        return Err(invalid(
+                            "content.depth_units",
+                            format!("{u:?}: expected m, mm or D"),
+                        ));
+                    }
+                }
+            }
+            ContentSource::Scene => {
+                if c.color.is_some() || c.depth.is_some() {
+                    return Err(invalid(
+                        "content.source",
+                        "content.color and content.depth are read with source = \"files\"",
+                    ));
+                }
+            }
+        }
         let o = &self.optics;
         let r = o.lens_range;
         if !(r.min.is_finite() && r.max.is_finite()) {

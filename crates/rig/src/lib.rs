@@ -20,6 +20,7 @@
 //! finishes the recording.
 
 pub mod config;
+pub mod content;
 pub mod devices;
 pub mod display;
 pub mod engine;
@@ -248,6 +249,8 @@ pub struct RigState {
     pub wall_zero_ns: Option<u64>,
     /// What the host timeline counts.
     pub clock_source: &'static str,
+    /// What makes the frames (for `/status`'s `content`).
+    pub renderer: Arc<dyn Renderer>,
     /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
     pub auto_method: std::sync::atomic::AtomicBool,
     /// Fires when the lens task has parked the lens (or given up) and ended: after this,
@@ -287,6 +290,7 @@ impl RigState {
                 "lens_d": status.lens_power_d,
                 "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
             },
+            "content": self.renderer.content_status(),
             "clock": {
                 "source": self.clock_source,
                 "wall_zero_ns": self.wall_zero_ns,
@@ -620,6 +624,7 @@ impl Rig {
             cancel: CancellationToken::new(),
             lens_parked: CancellationToken::new(),
             auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
+            renderer: renderer.clone(),
             wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
             clock_source: if simulated_time {
                 "simulated time (tokio's paused clock), from the run's start"

@@ -66,6 +66,10 @@ pub trait Renderer: Send + Sync + 'static {
     fn unblurred(&self, _job: &RenderJob) -> Option<Vec<RgbImage>> {
         None
     }
+    /// What `/status` shows under `content`: the source and its counters.
+    fn content_status(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
 }
 
 /// The kind of a render error, for counting and rate-limited logging.

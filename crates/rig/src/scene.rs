@@ -28,19 +28,24 @@ use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::{OptimizeParams, RenderError};
 
-use crate::config::{Method, Mode, RigConfig};
+use crate::config::{ContentSource, Method, Mode, RigConfig};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
-/// Renders frames of one static procedural scene.
+/// Renders frames of the rig's content: the static procedural scene, or a lab's RGB-D
+/// files ([`crate::content`]).
 pub struct SceneRenderer {
-    input: Rgbd,
-    depth: Arc<DepthMap>,
+    /// The content frame on show.
+    current: Mutex<Arc<Rgbd>>,
+    /// Whether the loop has the current frame's depth.
     depth_given: AtomicBool,
+    /// `source = "files"`: the sequence being played.
+    files: Option<crate::content::FileFrames>,
     eye: EyeModel,
     planes: Vec<Diopters>,
     layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
-    scene: dioptra_sim::scene::Scene,
+    /// The procedural scene (`source = "scene"`), for the light-field panel.
+    scene: Option<dioptra_sim::scene::Scene>,
     cam: dioptra_sim::scene::Camera,
     panel: Mutex<Option<Arc<RgbImage>>>,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
@@ -54,8 +59,8 @@ const LF_SPAN_M: f32 = 0.004;
 impl std::fmt::Debug for SceneRenderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Renderer")
-            .field("width", &self.input.width())
-            .field("height", &self.input.height())
+            .field("width", &self.input().width())
+            .field("height", &self.input().height())
             .finish_non_exhaustive()
     }
 }
@@ -71,18 +76,33 @@ impl SceneRenderer {
         }
         .validated()?;
         let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
-        let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
-        let (color, depth) = dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
-        let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
+        let (input, scene, files) = match cfg.content.source {
+            ContentSource::Scene => {
+                let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
+                let (color, depth) =
+                    dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
+                (Rgbd::new(color, depth)?, Some(scene), None)
+            }
+            ContentSource::Files => {
+                let files = crate::content::FileFrames::open(cfg).map_err(|e| match e {
+                    crate::content::ContentError::File { path, reason } => RenderError::Format {
+                        path: path.display().to_string(),
+                        detail: reason,
+                    },
+                    other => RenderError::Input(InputError::InvalidValue(other.to_string())),
+                })?;
+                let first = files.current();
+                ((*first).clone(), None, Some(files))
+            }
+        };
         let nets = vec![
             (Mode::Varifocal, load_net(cfg, "c1")),
             (Mode::Multifocal, load_net(cfg, "c4")),
         ];
-        let input = Rgbd::new(color, depth)?;
         Ok(SceneRenderer {
-            depth: Arc::new(input.depth.clone()),
+            current: Mutex::new(Arc::new(input)),
             depth_given: AtomicBool::new(false),
-            input,
+            files,
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
             layers: Mutex::new(Vec::new()),
@@ -104,9 +124,9 @@ impl SceneRenderer {
         }
     }
 
-    /// The scene's RGB-D (its depth is what the scheduler looks up at the gaze point).
-    pub fn input(&self) -> &Rgbd {
-        &self.input
+    /// The content frame on show (its depth is what the scheduler looks up at the gaze point).
+    pub fn input(&self) -> Arc<Rgbd> {
+        lock(&self.current).clone()
     }
 
     /// The images of one frame: one for varifocal and light field, one per plane for
@@ -121,16 +141,18 @@ impl SceneRenderer {
         gaze: Option<[f32; 2]>,
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
+        let input = self.input();
+        let input = input.as_ref();
         if auto && mode == Mode::Varifocal {
-            let (w, h) = (self.input.width() as f32, self.input.height() as f32);
+            let (w, h) = (input.width() as f32, input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
-            let stats = FrameStats::from_rgbd(&self.input, gaze, focus, &self.eye);
+            let stats = FrameStats::from_rgbd(input, gaze, focus, &self.eye);
             let plan = Planner.plan(&stats, &Target::default());
             let image = match plan.choice {
-                Choice::None => self.input.color.clone(),
-                Choice::Gather => dioptra_render::gather::gather(&self.input, focus, &self.eye)?,
+                Choice::None => input.color.clone(),
+                Choice::Gather => dioptra_render::gather::gather(input, focus, &self.eye)?,
                 Choice::LightField { views } => dioptra_render::lightfield::lightfield(
-                    &self.input,
+                    input,
                     focus,
                     &self.eye,
                     LightFieldParams { views, mip: true },
@@ -147,7 +169,7 @@ impl SceneRenderer {
             });
         }
         Ok(RenderOutput {
-            images: self.render_fixed(mode, method, focus)?,
+            images: self.render_fixed(input, mode, method, focus)?,
             planned: None,
             cost: None,
         })
@@ -155,20 +177,21 @@ impl SceneRenderer {
 
     fn render_fixed(
         &self,
+        input: &Rgbd,
         mode: Mode,
         method: Method,
         focus: Diopters,
     ) -> Result<Vec<RgbImage>, RenderError> {
         match (mode, method.0) {
             (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
-            (Mode::Multifocal, _) => Ok(self.layers(method)?.as_ref().clone()),
+            (Mode::Multifocal, _) => Ok(self.layers(input, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self
                 .net(mode)?
-                .defocus(&self.input, focus, &self.eye)
+                .defocus(input, focus, &self.eye)
                 .map_err(net_error)?]),
             (_, RenderMethod::LightFieldDefocus) => {
                 Ok(vec![dioptra_render::lightfield::lightfield(
-                    &self.input,
+                    input,
                     focus,
                     &self.eye,
                     LightFieldParams {
@@ -178,9 +201,7 @@ impl SceneRenderer {
                 )?])
             }
             _ => Ok(vec![dioptra_render::gather::gather(
-                &self.input,
-                focus,
-                &self.eye,
+                input, focus, &self.eye,
             )?]),
         }
     }
@@ -191,11 +212,16 @@ impl SceneRenderer {
         if let Some(p) = lock(&self.panel).as_ref() {
             return Ok(p.clone());
         }
+        let Some(scene) = &self.scene else {
+            return Err(RenderError::Unsupported {
+                backend: "daemon",
+                method: "views of file content (light-field mode shows the procedural scene's light field)",
+            });
+        };
         let (w, h) = (self.cam.width, self.cam.height);
         // Views at half size: a panel of 5 px per lenslet cannot show more.
         let vcam = dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
-        let views =
-            dioptra_sim::scene::render_light_field(&self.scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+        let views = dioptra_sim::scene::render_light_field(scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
         let images: Vec<RgbImage> = views.into_iter().map(|v| v.color).collect();
         let grid = ViewGrid {
             grid: LF_GRID,
@@ -215,21 +241,21 @@ impl SceneRenderer {
         Ok(panel)
     }
 
-    fn layers(&self, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
+    fn layers(&self, input: &Rgbd, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
         if let Some((_, l)) = lock(&self.layers).iter().find(|(m, _)| *m == method) {
             return Ok(l.clone());
         }
         let images = if method.0 == RenderMethod::Network {
             self.net(Mode::Multifocal)?
-                .decompose(&self.input)
+                .decompose(input)
                 .map_err(net_error)?
                 .images
         } else if method.0 == RenderMethod::Optimized {
-            let linear = linear_blend(&self.input, &self.planes)?;
+            let linear = linear_blend(input, &self.planes)?;
             let foci = default_focal_samples();
             let targets = foci
                 .iter()
-                .map(|&q| dioptra_render::gather::gather(&self.input, q, &self.eye))
+                .map(|&q| dioptra_render::gather::gather(input, q, &self.eye))
                 .collect::<Result<Vec<_>, _>>()?;
             let params = OptimizeParams {
                 iterations: 30,
@@ -247,7 +273,7 @@ impl SceneRenderer {
             .0
             .images
         } else {
-            linear_blend(&self.input, &self.planes)?.images
+            linear_blend(input, &self.planes)?.images
         };
         let images = Arc::new(images);
         lock(&self.layers).push((method, images.clone()));
@@ -256,15 +282,32 @@ impl SceneRenderer {
 }
 
 impl Renderer for SceneRenderer {
-    fn depth(&self, _now: Timestamp) -> Option<Arc<DepthMap>> {
-        // The scene is static: its depth once.
-        (!self.depth_given.swap(true, Ordering::AcqRel)).then(|| self.depth.clone())
+    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>> {
+        if let Some(files) = &self.files {
+            let (frame, changed) = files.frame_at(now);
+            if changed {
+                *lock(&self.current) = frame;
+                // Layers were made for the frame before.
+                lock(&self.layers).clear();
+                self.depth_given.store(false, Ordering::Release);
+            }
+        }
+        // A static scene's depth once; a sequence's at each new frame.
+        (!self.depth_given.swap(true, Ordering::AcqRel))
+            .then(|| Arc::new(self.input().depth.clone()))
+    }
+    fn content_status(&self) -> serde_json::Value {
+        match &self.files {
+            Some(f) => serde_json::to_value(f.status()).unwrap_or_default(),
+            None => serde_json::json!({ "source": "scene" }),
+        }
     }
     fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
         self.render_frame(job.mode, job.method, job.focus, job.gaze, job.auto)
     }
     fn unblurred(&self, job: &RenderJob) -> Option<Vec<RgbImage>> {
-        let color = &self.input.color;
+        let input = self.input();
+        let color = &input.color;
         Some(match job.mode {
             Mode::Multifocal => {
                 let n = self.planes.len().max(1);

@@ -1044,7 +1044,7 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
-    assert_eq!(shown, vec![c1.defocus(r.input(), focus, &eye).unwrap()]);
+    assert_eq!(shown, vec![c1.defocus(&r.input(), focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
         .render_frame(
@@ -1068,7 +1068,7 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
-    assert_eq!(layers, c4.decompose(r.input()).unwrap().images);
+    assert_eq!(layers, c4.decompose(&r.input()).unwrap().images);
     assert_eq!(layers.len(), cfg.optics.planes.len());
 }
 

@@ -1,0 +1,447 @@
+//! A lab's own RGB-D content from files (`[content] source = "files"`): one frame, or a
+//! numbered sequence (`color = "stim/color_%04d.png"`) played at `fps`, decoded ahead on a
+//! worker thread so playback never waits for the disk.
+//!
+//! At start every file of the sequence must exist and the first frame must decode and match
+//! the display's size: otherwise the rig does not start, naming the path and the reason. A
+//! frame that fails later (corrupt, wrong size) is skipped and counted, and the frame before
+//! it stays on screen; one not decoded by the time it is due is counted late (same).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Condvar, Mutex};
+
+use dioptra_core::{lock, Rgbd, Timestamp};
+use dioptra_render::io::{read_color, read_depth, DepthUnits};
+use serde::Serialize;
+
+use crate::config::{ContentConfig, RigConfig};
+
+/// Frames decoded ahead of the one on show.
+const AHEAD: usize = 4;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ContentError {
+    #[error("content: {0}")]
+    Config(String),
+    #[error("content: {path}: {reason}")]
+    File { path: PathBuf, reason: String },
+}
+
+/// What `/status` shows under `content`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct ContentStatus {
+    pub source: &'static str,
+    pub frames_in_sequence: usize,
+    /// The sequence index on show.
+    pub index: usize,
+    /// Frames decoded (the first included).
+    pub decoded: u64,
+    /// Frames that failed to decode, or had the wrong size: skipped.
+    pub skipped: u64,
+    /// Frames not decoded when they were due: the previous one stayed on show.
+    pub late: u64,
+    pub last_error: Option<String>,
+    /// Host time (ns) the frame on show became current.
+    pub since_ns: u64,
+}
+
+/// The files of a sequence, in order.
+fn expand(pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
+    let Some(at) = pattern.find('%') else {
+        return Ok(vec![PathBuf::from(pattern)]);
+    };
+    // %d or %0Nd, once.
+    let rest = &pattern[at + 1..];
+    let digits: String = rest.chars().take_while(|c| c.is_ascii_digit()).collect();
+    if !rest[digits.len()..].starts_with('d') || rest.contains('%') {
+        return Err(ContentError::Config(format!(
+            "{pattern:?}: a sequence pattern holds one %d or %0Nd (e.g. color_%04d.png)"
+        )));
+    }
+    let width: usize = digits.parse().unwrap_or(0);
+    let (head, tail) = (&pattern[..at], &rest[digits.len() + 1..]);
+    let name = |i: usize| PathBuf::from(format!("{head}{i:0width$}{tail}"));
+    let mut paths = Vec::new();
+    let mut i = first;
+    while name(i).exists() {
+        paths.push(name(i));
+        i += 1;
+    }
+    if paths.is_empty() {
+        return Err(ContentError::File {
+            path: name(first),
+            reason: "not found: the sequence's first file must exist (set content.first to \
+                     its number if it does not start at 0)"
+                .into(),
+        });
+    }
+    Ok(paths)
+}
+
+fn decode(
+    color: &Path,
+    depth: &Path,
+    units: Option<DepthUnits>,
+    size: (usize, usize),
+) -> Result<Rgbd, ContentError> {
+    let err = |path: &Path, e: &dyn std::fmt::Display| ContentError::File {
+        path: path.to_path_buf(),
+        reason: e.to_string(),
+    };
+    let c = read_color(color).map_err(|e| err(color, &e))?;
+    let d = read_depth(depth, units).map_err(|e| err(depth, &e))?;
+    if (c.width(), c.height()) != size {
+        return Err(err(
+            color,
+            &format!(
+                "{} x {} pixels, and display.width x display.height is {} x {}: set them to \
+                 the content's size",
+                c.width(),
+                c.height(),
+                size.0,
+                size.1
+            ),
+        ));
+    }
+    Rgbd::new(c, d).map_err(|e| err(depth, &format!("does not match its colour image: {e}")))
+}
+
+struct Shared {
+    state: Mutex<Worker>,
+    wake: Condvar,
+}
+
+struct Worker {
+    /// The index the loop shows; the worker decodes from here on.
+    want: usize,
+    cache: BTreeMap<usize, Result<Arc<Rgbd>, String>>,
+    /// Frames decoded so far (the first included).
+    decoded: u64,
+    stop: bool,
+}
+
+/// A file sequence being played.
+pub struct FileFrames {
+    pairs: Arc<Vec<(PathBuf, PathBuf)>>,
+    fps: f64,
+    looped: bool,
+    shared: Arc<Shared>,
+    /// (start time, index on show, frame on show).
+    on_show: Mutex<(Option<Timestamp>, usize, Arc<Rgbd>)>,
+    /// The index last counted late (each late frame counts once).
+    late_index: Mutex<Option<usize>>,
+    status: Mutex<ContentStatus>,
+}
+
+impl std::fmt::Debug for FileFrames {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FileFrames")
+            .field("frames", &self.pairs.len())
+            .field("fps", &self.fps)
+            .finish_non_exhaustive()
+    }
+}
+
+impl FileFrames {
+    /// Opens the sequence of `cfg.content` and decodes its first frame.
+    pub fn open(cfg: &RigConfig) -> Result<FileFrames, ContentError> {
+        let c: &ContentConfig = &cfg.content;
+        let (Some(color), Some(depth)) = (&c.color, &c.depth) else {
+            return Err(ContentError::Config(
+                "source = \"files\" needs content.color and content.depth".into(),
+            ));
+        };
+        let units = c
+            .depth_units
+            .as_deref()
+            .map(str::parse::<DepthUnits>)
+            .transpose()
+            .map_err(|e| ContentError::Config(format!("content.depth_units: {e}")))?;
+        let first = c.first.unwrap_or(0);
+        let colors = expand(color, first)?;
+        let depths = expand(depth, first)?;
+        if colors.len() != depths.len() {
+            return Err(ContentError::Config(format!(
+                "{} colour files ({color}) and {} depth files ({depth}): they must pair up",
+                colors.len(),
+                depths.len()
+            )));
+        }
+        let size = (cfg.display.width as usize, cfg.display.height as usize);
+        let first_frame = Arc::new(decode(&colors[0], &depths[0], units, size)?);
+        let pairs: Arc<Vec<_>> = Arc::new(colors.into_iter().zip(depths).collect());
+        let shared = Arc::new(Shared {
+            state: Mutex::new(Worker {
+                want: 0,
+                cache: BTreeMap::from([(0, Ok(first_frame.clone()))]),
+                decoded: 1,
+                stop: false,
+            }),
+            wake: Condvar::new(),
+        });
+        if pairs.len() > 1 {
+            let (pairs, shared) = (pairs.clone(), shared.clone());
+            let looped = c.looped;
+            std::thread::Builder::new()
+                .name("dioptra-content".into())
+                .spawn(move || decode_ahead(&pairs, &shared, units, size, looped))
+                .map_err(|e| ContentError::Config(format!("cannot start the decoder: {e}")))?;
+        }
+        Ok(FileFrames {
+            fps: c.fps,
+            looped: c.looped,
+            status: Mutex::new(ContentStatus {
+                source: "files",
+                frames_in_sequence: pairs.len(),
+                decoded: 1,
+                ..Default::default()
+            }),
+            pairs,
+            shared,
+            on_show: Mutex::new((None, 0, first_frame)),
+            late_index: Mutex::new(None),
+        })
+    }
+
+    /// The frame on show now.
+    pub fn current(&self) -> Arc<Rgbd> {
+        lock(&self.on_show).2.clone()
+    }
+
+    /// The frame on show at `now`, and whether it changed since the last call. The first call
+    /// starts the sequence.
+    pub fn frame_at(&self, now: Timestamp) -> (Arc<Rgbd>, bool) {
+        let mut show = lock(&self.on_show);
+        let n = self.pairs.len();
+        let start = *show.0.get_or_insert(now);
+        if n == 1 {
+            return (show.2.clone(), false);
+        }
+        let k = (now.saturating_since(start).as_secs_f64() * self.fps) as usize;
+        let k = if self.looped { k % n } else { k.min(n - 1) };
+        if k == show.1 {
+            return (show.2.clone(), false);
+        }
+        let got = {
+            let mut w = lock(&self.shared.state);
+            w.want = k;
+            let got = w.cache.get(&k).cloned();
+            self.shared.wake.notify_one();
+            got
+        };
+        let mut st = lock(&self.status);
+        match got {
+            Some(Ok(frame)) => {
+                st.index = k;
+                st.since_ns = now.0;
+                *show = (show.0, k, frame);
+                (show.2.clone(), true)
+            }
+            Some(Err(e)) => {
+                // Skipped: counted once, the frame before stays.
+                if st.index != k {
+                    st.skipped += 1;
+                    st.last_error = Some(e);
+                    st.index = k;
+                }
+                show.1 = k;
+                (show.2.clone(), false)
+            }
+            None => {
+                let mut late = lock(&self.late_index);
+                if *late != Some(k) {
+                    *late = Some(k);
+                    st.late += 1;
+                }
+                (show.2.clone(), false)
+            }
+        }
+    }
+
+    pub fn status(&self) -> ContentStatus {
+        let mut st = lock(&self.status).clone();
+        st.decoded = lock(&self.shared.state).decoded;
+        st
+    }
+}
+
+impl Drop for FileFrames {
+    fn drop(&mut self) {
+        lock(&self.shared.state).stop = true;
+        self.shared.wake.notify_all();
+    }
+}
+
+/// The worker: keeps frames `want..want + AHEAD` decoded, drops the ones behind.
+fn decode_ahead(
+    pairs: &[(PathBuf, PathBuf)],
+    shared: &Shared,
+    units: Option<DepthUnits>,
+    size: (usize, usize),
+    looped: bool,
+) {
+    let n = pairs.len();
+    let mut w = lock(&shared.state);
+    loop {
+        if w.stop {
+            return;
+        }
+        let window: Vec<usize> = (0..=AHEAD)
+            .map(|i| w.want + i)
+            .filter_map(|i| {
+                if looped {
+                    Some(i % n)
+                } else {
+                    (i < n).then_some(i)
+                }
+            })
+            .collect();
+        let keep_from = w.want;
+        w.cache.retain(|k, _| window.contains(k) || *k == keep_from);
+        let Some(&next) = window.iter().find(|k| !w.cache.contains_key(k)) else {
+            w = shared.wake.wait(w).unwrap_or_else(|p| p.into_inner());
+            continue;
+        };
+        drop(w);
+        let (c, d) = &pairs[next];
+        let r = decode(c, d, units, size)
+            .map(Arc::new)
+            .map_err(|e| e.to_string());
+        w = lock(&shared.state);
+        if r.is_ok() {
+            w.decoded += 1;
+        }
+        w.cache.insert(next, r);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dioptra_core::{DepthMap, Plane, RgbImage};
+    use dioptra_render::io::{write_color, write_depth};
+    use std::time::Duration;
+
+    fn frame(v: f32, w: usize, h: usize) -> (RgbImage, DepthMap) {
+        let depth = DepthMap::from_diopters(Plane::new(w, h, 1.0 + v)).unwrap();
+        (RgbImage::new(w, h, [v, 0.5, 0.25]), depth)
+    }
+
+    fn config(dir: &Path, color: &str, depth: &str, extra: &str) -> RigConfig {
+        let text = crate::config::EXAMPLE_SIM_RIG.to_string()
+            + &format!(
+                "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n{extra}\n",
+                dir.join(color).display().to_string(),
+                dir.join(depth).display().to_string()
+            );
+        RigConfig::parse(&text).unwrap()
+    }
+
+    fn write_sequence(dir: &Path, n: usize) {
+        for i in 0..n {
+            let (c, d) = frame(0.1 * i as f32, 96, 96);
+            write_color(&dir.join(format!("c_{i:03}.exr")), &c).unwrap();
+            write_depth(&dir.join(format!("d_{i:03}.exr")), &d).unwrap();
+        }
+    }
+
+    /// Waits (real time, bounded) until the worker has decoded `n` frames.
+    fn decoded(f: &FileFrames, n: u64) {
+        for _ in 0..2000 {
+            if f.status().decoded >= n {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        panic!("the decoder did not decode {n} frames: {:?}", f.status());
+    }
+
+    #[test]
+    fn a_sequence_plays_at_its_rate_and_loops() {
+        let dir = tempfile::tempdir().unwrap();
+        write_sequence(dir.path(), 3);
+        let cfg = config(
+            dir.path(),
+            "c_%03d.exr",
+            "d_%03d.exr",
+            "fps = 10\nloop = true",
+        );
+        let f = FileFrames::open(&cfg).unwrap();
+        assert_eq!(f.status().frames_in_sequence, 3);
+        let ms = |m: u64| Timestamp(m * 1_000_000);
+        let (first, changed) = f.frame_at(ms(0));
+        assert!(!changed);
+        assert_eq!(first.color.channels[0].data()[0], 0.0);
+        decoded(&f, 3);
+        // 10 fps: frame 1 from 100 ms, frame 2 from 200 ms, frame 0 again from 300 ms.
+        assert!(!f.frame_at(ms(99)).1);
+        for (t, v) in [(100, 0.1), (250, 0.2), (300, 0.0)] {
+            let (fr, changed) = f.frame_at(ms(t));
+            assert!(changed, "{t} ms");
+            assert!((fr.color.channels[0].data()[0] - v).abs() < 1e-6, "{t} ms");
+            decoded(&f, 3);
+        }
+        let st = f.status();
+        assert_eq!((st.skipped, st.index), (0, 0), "{st:?}");
+    }
+
+    #[test]
+    fn a_corrupt_frame_mid_sequence_is_skipped_and_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        write_sequence(dir.path(), 3);
+        std::fs::write(dir.path().join("c_001.exr"), b"not an exr").unwrap();
+        let cfg = config(dir.path(), "c_%03d.exr", "d_%03d.exr", "fps = 10");
+        let f = FileFrames::open(&cfg).unwrap();
+        f.frame_at(Timestamp(0));
+        for _ in 0..2000 {
+            if lock(&f.shared.state).cache.len() >= 3 {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        let (fr, changed) = f.frame_at(Timestamp(150_000_000));
+        assert!(!changed, "the corrupt frame is not shown");
+        assert_eq!(
+            fr.color.channels[0].data()[0],
+            0.0,
+            "the frame before stays"
+        );
+        let st = f.status();
+        assert_eq!(st.skipped, 1, "{st:?}");
+        assert!(
+            st.last_error.as_deref().unwrap().contains("c_001.exr"),
+            "{st:?}"
+        );
+        // The next good frame is shown; without loop the last one stays.
+        let (fr, changed) = f.frame_at(Timestamp(250_000_000));
+        assert!(changed && (fr.color.channels[0].data()[0] - 0.2).abs() < 1e-6);
+        assert!(!f.frame_at(Timestamp(900_000_000)).1);
+    }
+
+    #[test]
+    fn bad_content_stops_the_start_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        write_sequence(dir.path(), 1);
+        let e = FileFrames::open(&config(dir.path(), "x_%03d.exr", "d_%03d.exr", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("x_000.exr") && e.contains("not found"), "{e}");
+        std::fs::write(dir.path().join("bad.png"), b"\x89PNG garbage").unwrap();
+        let e = FileFrames::open(&config(dir.path(), "bad.png", "d_000.exr", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("bad.png"), "{e}");
+        let (c, d) = frame(0.3, 64, 48);
+        write_color(&dir.path().join("small.exr"), &c).unwrap();
+        write_depth(&dir.path().join("small_d.exr"), &d).unwrap();
+        let e = FileFrames::open(&config(dir.path(), "small.exr", "small_d.exr", ""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("64 x 48") && e.contains("display.width"), "{e}");
+        // The config itself: files needs both paths.
+        let text = crate::config::EXAMPLE_SIM_RIG.to_string() + "\n[content]\nsource = \"files\"\n";
+        let e = RigConfig::parse(&text).unwrap_err();
+        assert_eq!(e.key(), "content.color");
+    }
+}
