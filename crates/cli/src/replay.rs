@@ -144,6 +144,8 @@ impl Cmd {
 pub struct ReplayReport {
     pub file: PathBuf,
     pub complete: bool,
+    /// Rewritten by `dioptra recording recover` from a cut file.
+    pub recovered: bool,
     pub from_start: bool,
     pub mode: String,
     pub method: String,
@@ -166,7 +168,7 @@ impl ReplayReport {
     pub fn identical(&self) -> bool {
         match &self.first_difference {
             None => true,
-            Some((None, Some(_))) => !self.complete,
+            Some((None, Some(_))) => !self.complete || self.recovered,
             Some(_) => false,
         }
     }
@@ -225,7 +227,9 @@ fn print_summary(r: &ReplayReport) {
         r.duration_s,
         r.mode,
         r.method,
-        if r.complete {
+        if r.recovered {
+            "recovered from a cut recording"
+        } else if r.complete {
             "complete"
         } else {
             "cut off (read up to the cut)"
@@ -257,7 +261,7 @@ fn print_summary(r: &ReplayReport) {
     }
     match &r.first_difference {
         None => println!("replay identical to the recording"),
-        Some((None, Some(_))) if !r.complete => println!(
+        Some((None, Some(_))) if !r.complete || r.recovered => println!(
             "replay identical to the recording up to its cut ({} matching commands; the \
              replay's last {} fell in the lost part)",
             r.matching_prefix,
@@ -366,6 +370,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
     Ok(ReplayReport {
         file: PathBuf::new(),
         complete: rec.complete,
+        recovered: rec.recovered,
         from_start: start.from_start,
         mode: start.mode.clone(),
         method: start.method.clone(),

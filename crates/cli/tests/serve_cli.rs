@@ -53,27 +53,24 @@ fn http(addr: SocketAddr, method: &str, path: &str, body: &str) -> (u16, String)
     (status, body)
 }
 
+/// Runs `dioptra ARGS` to its end: (whether it succeeded, stdout, stderr).
+fn dioptra<S: AsRef<std::ffi::OsStr>>(args: &[S]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(args)
+        .output()
+        .unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
 #[test]
 fn serve_answers_the_api_and_stops_through_it_then_replay_matches() {
     let dir = tempfile::tempdir().unwrap();
     let config = write_config(dir.path(), true);
-    let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["serve", "--config"])
-        .arg(&config)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stderr = BufReader::new(child.stderr.take().unwrap());
-    let daemon = Daemon(child);
-    let mut line = String::new();
-    stderr.read_line(&mut line).unwrap();
-    let addr: SocketAddr = line
-        .trim()
-        .strip_prefix("dioptra serve: API on http://")
-        .unwrap_or_else(|| panic!("first line {line:?}"))
-        .parse()
-        .unwrap();
+    let (daemon, mut stderr, addr) = start(&config);
 
     let (code, body) = http(addr, "GET", "/status", "");
     assert_eq!(code, 200, "{body}");
@@ -125,16 +122,8 @@ fn serve_answers_the_api_and_stops_through_it_then_replay_matches() {
         .to_string();
 
     // The recording replays to the same commands (exit 0 only when it does).
-    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["replay", &recording])
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let (ok, text, err) = dioptra(&["replay", &recording]);
+    assert!(ok, "{text}{err}");
     assert!(text.contains("replay identical to the recording"), "{text}");
     assert!(text.contains("/lens/command"), "{text}");
 }
@@ -151,24 +140,15 @@ fn serve_refuses_a_bad_config_naming_the_key() {
         ),
     )
     .unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["serve", "--config"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
+    let (ok, _, err) = dioptra(&["serve".as_ref(), "--config".as_ref(), path.as_os_str()]);
+    assert!(!ok);
     assert!(
         err.contains("optics.lens_range: min must be below max"),
         "{err}"
     );
-    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["serve", "--config"])
-        .arg(dir.path().join("missing.toml"))
-        .output()
-        .unwrap();
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
+    let missing = dir.path().join("missing.toml");
+    let (ok, _, err) = dioptra(&["serve".as_ref(), "--config".as_ref(), missing.as_os_str()]);
+    assert!(!ok);
     assert!(err.contains("cannot read the rig config"), "{err}");
 }
 
@@ -338,53 +318,75 @@ fn a_recording_killed_with_sigkill_is_recovered() {
     daemon.0.kill().unwrap();
     daemon.0.wait().unwrap();
     let out = dir.path().join("fixed.mcap");
-    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["recording", "recover"])
-        .arg(&file)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&run.stdout);
-    assert!(
-        run.status.success(),
-        "{text}{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
+    let (ok, text, err) = dioptra(&[
+        "recording".as_ref(),
+        "recover".as_ref(),
+        file.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert!(ok, "{text}{err}");
     assert!(text.contains("cut off"), "{text}");
     let bytes = std::fs::read(&out).unwrap();
     let summary = mcap::Summary::read(&bytes).unwrap().expect("no summary");
     let n = summary.stats.unwrap().message_count;
     assert!(n > 100, "{n} messages recovered");
-    // And replay reads it.
-    let replay = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .arg("replay")
-        .arg(&out)
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&replay.stdout);
+    // Replay compares the recovered file up to the cut, and reads the cut file itself.
+    let (ok, text, err) = dioptra(&["replay".as_ref(), out.as_os_str()]);
     assert!(
-        text.contains("/lens/command"),
-        "{text}{}",
-        String::from_utf8_lossy(&replay.stderr)
+        ok && text.contains("replay identical to the recording"),
+        "{text}{err}"
+    );
+    let (_, text, err) = dioptra(&["replay".as_ref(), file.as_os_str()]);
+    assert!(text.contains("cut off"), "{text}{err}");
+
+    // `| head`: a reader that goes away ends the command quietly, with no panic.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["replay", "--json"])
+        .arg(&out)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut head = [0u8; 16];
+    child
+        .stdout
+        .as_mut()
+        .unwrap()
+        .read_exact(&mut head)
+        .unwrap();
+    drop(child.stdout.take());
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let status = child.wait().unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    use std::os::unix::process::ExitStatusExt;
+    assert!(
+        status.success() || status.signal() == Some(libc::SIGPIPE),
+        "{status}: {err}"
     );
 }
 
 #[test]
 fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     let dir = tempfile::tempdir().unwrap();
-    let bin = env!("CARGO_BIN_EXE_dioptra");
     let scene = dir.path().join("scene");
-    let ok = Command::new(bin)
-        .args(["sim", "scene", "--seed", "1000000", "--size", "96", "--out"])
-        .arg(&scene)
-        .output()
-        .unwrap();
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
+    let (ok, _, err) = dioptra(&[
+        "sim".as_ref(),
+        "scene".as_ref(),
+        "--seed".as_ref(),
+        "1000000".as_ref(),
+        "--size".as_ref(),
+        "96".as_ref(),
+        "--out".as_ref(),
+        scene.as_os_str(),
+    ]);
+    assert!(ok, "{err}");
     let (color, depth) = (scene.join("color.exr"), scene.join("depth.exr"));
     let frames = dir.path().join("frames");
     let text = std::fs::read_to_string(write_config(dir.path(), false))
@@ -437,29 +439,22 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     pngs.sort();
     let newest = pngs.last().expect("no frames written");
     let cli = dir.path().join("cli.png");
-    let out = Command::new(bin)
-        .args([
-            "render",
-            "--method",
-            "gather",
-            "--focus",
-            "1.5",
-            "--backend",
-            "cpu",
-        ])
-        .arg("--color")
-        .arg(&color)
-        .arg("--depth")
-        .arg(&depth)
-        .arg("--out")
-        .arg(&cli)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let (ok, _, err) = dioptra(&[
+        "render".as_ref(),
+        "--method".as_ref(),
+        "gather".as_ref(),
+        "--focus".as_ref(),
+        "1.5".as_ref(),
+        "--backend".as_ref(),
+        "cpu".as_ref(),
+        "--color".as_ref(),
+        color.as_os_str(),
+        "--depth".as_ref(),
+        depth.as_os_str(),
+        "--out".as_ref(),
+        cli.as_os_str(),
+    ]);
+    assert!(ok, "{err}");
     let a = dioptra_render::io::read_color(newest).unwrap();
     let b = dioptra_render::io::read_color(&cli).unwrap();
     let psnr = dioptra_render::metrics::psnr(&a, &b, None).unwrap();

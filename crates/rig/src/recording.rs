@@ -588,7 +588,13 @@ pub struct Recorded {
     pub unknown: u64,
     /// Whether the file ends with a summary (it was finished, not cut off).
     pub complete: bool,
+    /// Written by [`recover`] from a cut file: complete, but its last inputs' commands may
+    /// have been lost with the cut.
+    pub recovered: bool,
 }
+
+/// What [`recover`] writes as the header's library, after the version.
+const RECOVERED_TAG: &str = " (recovered)";
 
 /// Reads a recording. A file cut off mid-write reads up to the cut, with `complete` false.
 pub fn read(path: &Path) -> Result<Recorded, RecordingError> {
@@ -603,6 +609,15 @@ pub fn read(path: &Path) -> Result<Recorded, RecordingError> {
         ));
     }
     let complete = matches!(mcap::Summary::read(&bytes), Ok(Some(_)));
+    let recovered = mcap::read::LinearReader::new_with_options(
+        &bytes,
+        enumset::enum_set!(mcap::read::Options::IgnoreEndMagic),
+    )
+    .ok()
+    .and_then(|mut r| r.next())
+    .is_some_and(
+        |h| matches!(h, Ok(mcap::records::Record::Header(h)) if h.library.ends_with(RECOVERED_TAG)),
+    );
     let stream = mcap::MessageStream::new(&bytes).map_err(|e| {
         rerr(format!(
             "{e}; is it an MCAP file written by `dioptra serve`?"
@@ -635,6 +650,7 @@ pub fn read(path: &Path) -> Result<Recorded, RecordingError> {
         messages: messages.into_iter().map(|(_, t, r)| (t, r)).collect(),
         unknown,
         complete,
+        recovered,
     })
 }
 
@@ -776,7 +792,8 @@ mod tests {
         let r = recover(&cut, &out).unwrap();
         assert!(r.was_cut && r.cut_at.is_some(), "{r:?}");
         let fixed = read(&out).unwrap();
-        assert!(fixed.complete);
+        assert!(fixed.complete && fixed.recovered);
+        assert!(!read(&path).unwrap().recovered);
         assert_eq!(fixed.messages.len() as u64, r.messages);
         // Every message of the first two chunks (and the whole records of the cut one, an
         // uncompressed chunk reads record by record), in order, none after the cut.
