@@ -465,3 +465,34 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
         newest.display()
     );
 }
+
+#[test]
+fn a_second_signal_during_shutdown_exits_once_the_lens_is_parked() {
+    let dir = tempfile::tempdir().unwrap();
+    // A slow lens, so that parking it takes about half a second.
+    let config = write_config(dir.path(), true);
+    let text = std::fs::read_to_string(&config)
+        .unwrap()
+        .replace("sim_settle_ms = 15.0", "sim_settle_ms = 500.0");
+    std::fs::write(&config, text).unwrap();
+    let (mut daemon, mut stderr, addr) = start(&config);
+    wait_for_lens(addr);
+    let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 3.5}");
+    assert_eq!(code, 200, "{body}");
+    std::thread::sleep(Duration::from_millis(700));
+    let pid = daemon.0.id() as libc::pid_t;
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);
+    let mut line = String::new();
+    while !line.contains("stopping (SIGTERM)") {
+        line.clear();
+        assert!(stderr.read_line(&mut line).unwrap() > 0, "no stopping line");
+    }
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGINT) }, 0);
+    let mut rest = String::new();
+    stderr.read_to_string(&mut rest).unwrap();
+    let status = daemon.0.wait().unwrap();
+    assert_eq!(status.code(), Some(130), "{rest}");
+    assert!(rest.contains("SIGINT during shutdown"), "{rest}");
+    assert!(rest.contains("lens parked; exiting"), "{rest}");
+}
