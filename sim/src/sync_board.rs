@@ -193,11 +193,19 @@ impl SyncBoardSim {
                         (self.cfg.vsync_pulse_us.max(0.0) * 1000.0) as u64
                     };
                     let first = self.now.as_nanos() + self.edge_interval_ns() + pulse_ns;
+                    let first_plane = s.plane_powers_d.first().copied();
                     self.run = Some(Run {
                         subframe: 0,
                         next_edge_ns: first,
                         pending: None,
                     });
+                    // The lens goes to the first plane at once (PROTOCOL.md, Start), so the
+                    // first subframe does not find it wherever the last run left it.
+                    if let Some(p) = first_plane {
+                        let now = self.now.as_nanos();
+                        self.move_lens_to(now);
+                        self.lens.set_focal_power(Diopters(p));
+                    }
                     Message::Ack
                 }
             },
@@ -451,6 +459,41 @@ mod tests {
         ));
         assert_eq!(send(&mut sim, 8, &Message::Stop), vec![(8, Message::Ack)]);
         assert!(!sim.running());
+    }
+
+    #[test]
+    fn start_moves_the_lens_to_the_first_plane_so_no_subframe_is_off() {
+        // The rig's schedule: 240 Hz, a quarter of it dark; a 0.8 ms lens starting at its
+        // zero-current power (-2 D), outside every plane.
+        let lens = LensModelConfig {
+            settle_time: Duration::from_micros(800),
+            ..Default::default()
+        };
+        let mut sim = SyncBoardSim::new(quiet(lens));
+        assert!(sim.lens().power().0 < -1.0);
+        send(&mut sim, 1, &schedule(4166, 1041));
+        send(&mut sim, 2, &Message::Start);
+        // Before the first vsync edge the lens is already at the first plane.
+        let early = run_for(&mut sim, Timestamp::ZERO, 4);
+        assert!(early.is_empty(), "{early:?}");
+        assert!(
+            (sim.lens().power().0 - 0.2).abs() < 0.02,
+            "{:?}",
+            sim.lens().power()
+        );
+        let events = run_for(&mut sim, Timestamp::ZERO + Duration::from_millis(4), 100);
+        let mut n = 0;
+        for m in &events {
+            match m {
+                Message::SubframeEvent(e) => {
+                    let want = [0.2, 0.8, 1.4, 2.0][e.plane_index as usize];
+                    assert!((e.lens_power_d - want).abs() < 0.02, "{e:?}");
+                    n += 1;
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert!(n >= 20, "{n} subframes");
     }
 
     #[test]
