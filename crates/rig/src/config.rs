@@ -549,6 +549,22 @@ pub struct Render {
     /// Directory of the network's weights for `method = "network"`: `c1.safetensors`
     /// (varifocal) and `c4.safetensors` (multifocal). Default: the shipped crates/net/weights.
     pub weights: Option<PathBuf>,
+    /// Where gather, light-field defocus and linear blending run: `auto` (the GPU when a
+    /// hardware adapter exists), `cpu` or `gpu` (any adapter, a software one included).
+    #[serde(default)]
+    pub backend: RenderBackend,
+    /// `backend = "gpu"`: the adapter whose name contains this (e.g. "nvidia", "llvmpipe").
+    pub adapter: Option<String>,
+}
+
+/// `[render] backend`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RenderBackend {
+    #[default]
+    Auto,
+    Cpu,
+    Gpu,
 }
 
 impl Render {
@@ -743,6 +759,12 @@ impl RigConfig {
 
     /// Range and consistency checks serde cannot express.
     pub fn validate(&self) -> Result<(), ConfigError> {
+        if self.render.adapter.is_some() && self.render.backend == RenderBackend::Cpu {
+            return Err(invalid(
+                "render.adapter",
+                "an adapter is chosen for the GPU: set render.backend = \"gpu\" or remove it",
+            ));
+        }
         let c = &self.content;
         match c.source {
             ContentSource::Files => {

@@ -291,6 +291,7 @@ impl RigState {
                 "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
             },
             "content": self.renderer.content_status(),
+            "render": self.renderer.backend_status(),
             "clock": {
                 "source": self.clock_source,
                 "wall_zero_ns": self.wall_zero_ns,

@@ -70,6 +70,10 @@ pub trait Renderer: Send + Sync + 'static {
     fn content_status(&self) -> serde_json::Value {
         serde_json::Value::Null
     }
+    /// What `/status` shows under `render`: the backend frames are rendered on.
+    fn backend_status(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
 }
 
 /// The kind of a render error, for counting and rate-limited logging.

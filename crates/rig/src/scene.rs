@@ -23,12 +23,13 @@ use std::sync::{Arc, Mutex};
 use dioptra_core::{
     lock, DepthMap, Diopters, EyeModel, InputError, Millimeters, RgbImage, Rgbd, Timestamp,
 };
+use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_blend};
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
-use dioptra_render::{OptimizeParams, RenderError};
+use dioptra_render::{Cpu, DefocusMethod, OptimizeParams, RenderError};
 
-use crate::config::{ContentSource, Method, Mode, RigConfig};
+use crate::config::{ContentSource, Method, Mode, RenderBackend, RigConfig};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
@@ -48,6 +49,8 @@ pub struct SceneRenderer {
     scene: Option<dioptra_sim::scene::Scene>,
     cam: dioptra_sim::scene::Camera,
     panel: Mutex<Option<Arc<RgbImage>>>,
+    /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
+    compute: Mutex<Compute>,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
     nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
 }
@@ -99,7 +102,9 @@ impl SceneRenderer {
             (Mode::Varifocal, load_net(cfg, "c1")),
             (Mode::Multifocal, load_net(cfg, "c4")),
         ];
+        let compute = Compute::open(cfg)?;
         Ok(SceneRenderer {
+            compute: Mutex::new(compute),
             current: Mutex::new(Arc::new(input)),
             depth_given: AtomicBool::new(false),
             files,
@@ -111,6 +116,44 @@ impl SceneRenderer {
             panel: Mutex::new(None),
             nets,
         })
+    }
+
+    /// One defocused image on the rig's backend; a GPU failure moves the rig to the CPU
+    /// (said in the log and `/status`) and the frame is rendered there.
+    fn defocus(
+        &self,
+        input: &Rgbd,
+        focus: Diopters,
+        method: DefocusMethod,
+    ) -> Result<RgbImage, RenderError> {
+        let backend = lock(&self.compute).backend.clone();
+        let r = backend.defocus(input, &[focus], &self.eye, method, &|_| {});
+        let mut images = match r {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                Cpu.defocus(input, &[focus], &self.eye, method, &|_| {})?
+            }
+            r => r?,
+        };
+        images
+            .pop()
+            .ok_or_else(|| RenderError::Input(InputError::InvalidValue("no image rendered".into())))
+    }
+
+    fn linear(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
+        let backend = lock(&self.compute).backend.clone();
+        match backend.linear_blend(input, &self.planes) {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                Ok(Cpu.linear_blend(input, &self.planes)?.images)
+            }
+            r => Ok(r?.images),
+        }
+    }
+
+    /// Where frames are rendered, for `/status`.
+    pub fn backend_status(&self) -> serde_json::Value {
+        lock(&self.compute).status()
     }
 
     fn net(&self, mode: Mode) -> Result<&dioptra_net::CpuNet, RenderError> {
@@ -150,12 +193,11 @@ impl SceneRenderer {
             let plan = Planner.plan(&stats, &Target::default());
             let image = match plan.choice {
                 Choice::None => input.color.clone(),
-                Choice::Gather => dioptra_render::gather::gather(input, focus, &self.eye)?,
-                Choice::LightField { views } => dioptra_render::lightfield::lightfield(
+                Choice::Gather => self.defocus(input, focus, DefocusMethod::Gather)?,
+                Choice::LightField { views } => self.defocus(
                     input,
                     focus,
-                    &self.eye,
-                    LightFieldParams { views, mip: true },
+                    DefocusMethod::LightField(LightFieldParams { views, mip: true }),
                 )?,
             };
             return Ok(RenderOutput {
@@ -189,20 +231,15 @@ impl SceneRenderer {
                 .net(mode)?
                 .defocus(input, focus, &self.eye)
                 .map_err(net_error)?]),
-            (_, RenderMethod::LightFieldDefocus) => {
-                Ok(vec![dioptra_render::lightfield::lightfield(
-                    input,
-                    focus,
-                    &self.eye,
-                    LightFieldParams {
-                        views: 16,
-                        mip: true,
-                    },
-                )?])
-            }
-            _ => Ok(vec![dioptra_render::gather::gather(
-                input, focus, &self.eye,
+            (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
+                input,
+                focus,
+                DefocusMethod::LightField(LightFieldParams {
+                    views: 16,
+                    mip: true,
+                }),
             )?]),
+            _ => Ok(vec![self.defocus(input, focus, DefocusMethod::Gather)?]),
         }
     }
 
@@ -273,7 +310,7 @@ impl SceneRenderer {
             .0
             .images
         } else {
-            linear_blend(input, &self.planes)?.images
+            self.linear(input)?
         };
         let images = Arc::new(images);
         lock(&self.layers).push((method, images.clone()));
@@ -295,6 +332,9 @@ impl Renderer for SceneRenderer {
         // A static scene's depth once; a sequence's at each new frame.
         (!self.depth_given.swap(true, Ordering::AcqRel))
             .then(|| Arc::new(self.input().depth.clone()))
+    }
+    fn backend_status(&self) -> serde_json::Value {
+        SceneRenderer::backend_status(self)
     }
     fn content_status(&self) -> serde_json::Value {
         match &self.files {
@@ -368,4 +408,69 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
         }
     }
     Ok(Arc::new(net))
+}
+
+/// The render backend and what `/status` says of it.
+struct Compute {
+    backend: Arc<dyn Backend>,
+    adapter: Option<String>,
+    /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
+    cpu_because: Option<String>,
+}
+
+impl Compute {
+    fn cpu(because: Option<String>) -> Compute {
+        Compute {
+            backend: Arc::new(Cpu),
+            adapter: None,
+            cpu_because: because,
+        }
+    }
+
+    fn gpu(adapter: Option<&str>) -> Result<Compute, dioptra_render::GpuError> {
+        let gpu = dioptra_render::Gpu::new(adapter)?;
+        let name = gpu.context().adapter().name.clone();
+        Ok(Compute {
+            backend: Arc::new(gpu),
+            adapter: Some(name),
+            cpu_because: None,
+        })
+    }
+
+    /// `[render] backend`: `gpu` must open (or the rig does not start); `auto` takes a
+    /// hardware adapter when there is one and the CPU otherwise.
+    fn open(cfg: &RigConfig) -> Result<Compute, RenderError> {
+        let adapter = cfg.render.adapter.as_deref();
+        match cfg.render.backend {
+            RenderBackend::Cpu => Ok(Compute::cpu(None)),
+            RenderBackend::Gpu => Ok(Compute::gpu(adapter)?),
+            RenderBackend::Auto => {
+                if !dioptra_render::gpu::hardware_adapter_exists() {
+                    return Ok(Compute::cpu(Some(
+                        "no hardware GPU adapter (render.backend = \"gpu\" uses a software one)"
+                            .into(),
+                    )));
+                }
+                Ok(Compute::gpu(adapter).unwrap_or_else(|e| {
+                    tracing::warn!(error = %e, "cannot open the GPU; rendering on the CPU");
+                    Compute::cpu(Some(format!("the GPU did not open: {e}")))
+                }))
+            }
+        }
+    }
+
+    fn fall_back(&mut self, e: &dioptra_render::GpuError) {
+        if self.cpu_because.is_none() {
+            tracing::error!(error = %e, "the GPU failed; rendering on the CPU from now on");
+            *self = Compute::cpu(Some(format!("the GPU failed: {e}")));
+        }
+    }
+
+    fn status(&self) -> serde_json::Value {
+        serde_json::json!({
+            "backend": self.backend.name(),
+            "adapter": self.adapter,
+            "cpu_because": self.cpu_because,
+        })
+    }
 }

@@ -1327,3 +1327,47 @@ async fn a_recording_takes_the_experiments_names() {
     d.cancel_token().cancel();
     assert!(d.wait().await.ok());
 }
+
+/// A GPU to test on: `None` (skipped) when there is none, unless DIOPTRA_REQUIRE_GPU is set.
+fn gpu_available() -> bool {
+    let ok = !dioptra_render::gpu::list_adapters().is_empty();
+    if !ok && std::env::var_os("DIOPTRA_REQUIRE_GPU").is_some() {
+        panic!("DIOPTRA_REQUIRE_GPU is set and there is no GPU adapter");
+    }
+    ok
+}
+
+#[test]
+fn the_gpu_backend_renders_what_the_cpu_renders() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut cpu_cfg = sim_config(dir.path(), false);
+    cpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
+    let mut gpu_cfg = cpu_cfg.clone();
+    gpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
+    let cpu = dioptra_rig::scene::SceneRenderer::new(&cpu_cfg).unwrap();
+    let gpu = dioptra_rig::scene::SceneRenderer::new(&gpu_cfg).unwrap();
+    let status = gpu.backend_status();
+    assert_eq!(status["backend"], json!("gpu"), "{status}");
+    assert!(status["adapter"].is_string(), "{status}");
+    assert_eq!(cpu.backend_status()["backend"], json!("cpu"));
+    use dioptra_rig::config::{Method, Mode};
+    for (mode, method, focus) in [
+        (Mode::Varifocal, "gather", 0.4),
+        (Mode::Varifocal, "gather", -0.5),
+        (Mode::Varifocal, "lightfield-defocus", 1.7),
+        (Mode::Multifocal, "linear", 1.0),
+    ] {
+        let m = Method::parse(method).unwrap();
+        let q = dioptra_core::Diopters(focus);
+        let a = cpu.render_frame(mode, m, q, None, false).unwrap().images;
+        let b = gpu.render_frame(mode, m, q, None, false).unwrap().images;
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(&b) {
+            let p = dioptra_render::metrics::psnr(x, y, None).unwrap();
+            assert!(p > 50.0, "{method} at {focus} D: GPU {p} dB from the CPU");
+        }
+    }
+}
