@@ -48,12 +48,13 @@ def config(tmp: pathlib.Path, record: bool) -> pathlib.Path:
 def start(binary: str, cfg: pathlib.Path):
     p = subprocess.Popen([binary, "serve", "--config", str(cfg)],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    line = p.stderr.readline()
-    m = re.search(r"http://(\S+)", line)
-    if not m:
-        p.kill()
-        sys.exit(f"no API address in {line!r}")
-    return p, m.group(1)
+    # The GPU probe may print the Vulkan loader's own lines before the API line.
+    for line in p.stderr:
+        m = re.search(r"API on http://(\S+)", line)
+        if m:
+            return p, m.group(1)
+    p.kill()
+    sys.exit("serve ended before it listened")
 
 
 def call(addr: str, path: str, body=None):

@@ -231,7 +231,7 @@ fn the_network_method_without_weights_names_the_missing_file() {
     assert!(err.contains("render.weights"), "{err}");
 }
 
-/// Starts `dioptra serve` on `config`: the daemon, its stderr after the first line, and the
+/// Starts `dioptra serve` on `config`: the daemon, its stderr after the API line, and the
 /// API's address from that line.
 fn start(config: &Path) -> (Daemon, BufReader<std::process::ChildStderr>, SocketAddr) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
@@ -242,14 +242,18 @@ fn start(config: &Path) -> (Daemon, BufReader<std::process::ChildStderr>, Socket
         .spawn()
         .unwrap();
     let mut stderr = BufReader::new(child.stderr.take().unwrap());
-    let mut line = String::new();
-    stderr.read_line(&mut line).unwrap();
-    let addr: SocketAddr = line
-        .trim()
-        .strip_prefix("dioptra serve: API on http://")
-        .unwrap_or_else(|| panic!("first line {line:?}"))
-        .parse()
-        .unwrap();
+    // The GPU probe (render.backend = "auto") may print the Vulkan loader's own lines first.
+    let mut seen = String::new();
+    let addr = loop {
+        let mut line = String::new();
+        if stderr.read_line(&mut line).unwrap() == 0 {
+            panic!("serve ended before it listened: {seen}");
+        }
+        if let Some(a) = line.trim().strip_prefix("dioptra serve: API on http://") {
+            break a.parse::<SocketAddr>().unwrap();
+        }
+        seen += &line;
+    };
     (Daemon(child), stderr, addr)
 }
 
