@@ -35,6 +35,22 @@ fn sim_config(dir: &Path, record: bool) -> RigConfig {
     RigConfig::parse(&text).unwrap()
 }
 
+/// The daemon of `cfg` and the TCP address its API listens on.
+async fn start_tcp(cfg: RigConfig) -> (Daemon, std::net::SocketAddr) {
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let Listening::Tcp(addr) = d.listening().clone() else {
+        panic!("not TCP")
+    };
+    (d, addr)
+}
+
+/// Stops the daemon and checks it stopped cleanly (lens parked, files finished).
+async fn stop(d: Daemon) {
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+}
+
 /// Polls `f` every 10 ms until it returns `Some`, for at most 20 s.
 async fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
     for _ in 0..2000 {
@@ -295,12 +311,7 @@ fn parse_http(out: &[u8]) -> (u16, Value) {
 #[tokio::test(start_paused = true)]
 async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start_config(sim_config(dir.path(), false))
-        .await
-        .unwrap();
-    let Listening::Tcp(addr) = d.listening().clone() else {
-        panic!("not TCP")
-    };
+    let (d, addr) = start_tcp(sim_config(dir.path(), false)).await;
     assert!(addr.ip().is_loopback() && addr.port() != 0);
     let lens_sim = d
         .shared()
@@ -397,12 +408,7 @@ async fn raw(addr: std::net::SocketAddr, req: &str) -> (u16, Value) {
 #[tokio::test(start_paused = true)]
 async fn a_web_page_cannot_drive_the_api() {
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start_config(sim_config(dir.path(), false))
-        .await
-        .unwrap();
-    let Listening::Tcp(addr) = d.listening().clone() else {
-        panic!("not TCP")
-    };
+    let (d, addr) = start_tcp(sim_config(dir.path(), false)).await;
     let port = addr.port();
     let post = |path: &str, headers: &str, body: &str| {
         format!(
@@ -506,20 +512,14 @@ async fn a_web_page_cannot_drive_the_api() {
     assert_eq!(code, 413, "{v}");
     assert!(v["error"].is_string(), "{v}");
 
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
 async fn slow_and_idle_clients_are_timed_out() {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start_config(sim_config(dir.path(), false))
-        .await
-        .unwrap();
-    let Listening::Tcp(addr) = d.listening().clone() else {
-        panic!("not TCP")
-    };
+    let (d, addr) = start_tcp(sim_config(dir.path(), false)).await;
     // Half a header section, then nothing: closed.
     let mut slow = tokio::net::TcpStream::connect(addr).await.unwrap();
     slow.write_all(format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n").as_bytes())
@@ -561,8 +561,7 @@ async fn slow_and_idle_clients_are_timed_out() {
         .unwrap();
     let (code, v) = parse_http(&out);
     assert_eq!(code, 408, "{v}");
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -573,10 +572,7 @@ async fn with_a_token_every_request_carries_it() {
     std::fs::write(&token_file, format!("{token}\n")).unwrap();
     let mut cfg = sim_config(dir.path(), false);
     cfg.api.token_file = Some(token_file);
-    let d = Daemon::start_config(cfg).await.unwrap();
-    let Listening::Tcp(addr) = d.listening().clone() else {
-        panic!("not TCP")
-    };
+    let (d, addr) = start_tcp(cfg).await;
     let get = |auth: &str| {
         format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n{auth}Connection: close\r\n\r\n")
     };
@@ -591,8 +587,7 @@ async fn with_a_token_every_request_carries_it() {
     let (code, v) = raw(addr, &get(&format!("Authorization: Bearer {token}\r\n"))).await;
     assert_eq!(code, 200, "{v}");
     assert_eq!(v["mode"], json!("varifocal"));
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 /// The next text message of a WebSocket, within 20 s.
@@ -790,8 +785,7 @@ async fn the_api_on_a_unix_socket_is_private() {
     let (code, v) = parse_http(&out);
     assert_eq!(code, 200);
     assert_eq!(v["mode"], json!("varifocal"));
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
     assert!(!sock.exists(), "the socket is removed on shutdown");
 }
 
@@ -862,8 +856,7 @@ async fn a_recording_started_mid_run_is_not_compared() {
     let r = crate::replay::replay_file(&stats.path).unwrap();
     assert!(!r.from_start);
     assert_eq!(r.verdict(), crate::replay::Verdict::CannotCompare);
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -937,8 +930,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     // The network does not render light fields (C5) in the daemon: refused, with why.
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -993,8 +985,7 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     assert_eq!(v["key"], json!("method"));
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 /// Random (untrained) C1 and C4 weights in `dir`, as `render.weights` expects them.
@@ -1121,8 +1112,7 @@ async fn the_daemon_renders_with_the_network_and_refuses_a_mode_without_weights(
     assert_eq!(s, StatusCode::OK, "{v}");
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
     assert_eq!(s, StatusCode::OK, "{v}");
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -1142,8 +1132,7 @@ async fn the_daemon_shows_c4_layers_in_multifocal_mode() {
     let v = sh.status_json();
     assert_eq!(v["method"], json!("network"));
     assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 /// Waits until `frames_shown` has grown by `n` (simulated time), returning the status.
@@ -1191,8 +1180,7 @@ async fn focus_at_and_beyond_optical_infinity_renders() {
             );
         }
     }
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 /// The scene, but every render at a focus below 1 D fails, and the first at 2 D or more
@@ -1274,8 +1262,7 @@ async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
     let before = v["counts"]["render_errors"].as_u64().unwrap();
     let v = after_frames(&d, 10).await;
     assert_eq!(v["counts"]["render_errors"].as_u64(), Some(before), "{v}");
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -1324,8 +1311,7 @@ async fn a_recording_takes_the_experiments_names() {
         (Some("vergence"), Some("s01"), Some("3"))
     );
     assert!(start.wall_zero_ns.is_some() && !start.clock.is_empty());
-    d.cancel_token().cancel();
-    assert!(d.wait().await.ok());
+    stop(d).await;
 }
 
 /// A GPU to test on: `None` (skipped) when there is none, unless DIOPTRA_REQUIRE_GPU is set.
