@@ -93,16 +93,10 @@ fn serve_answers_the_api_and_stops_through_it_then_replay_matches() {
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 1.25}");
     assert_eq!(code, 200, "{body}");
     // The lens follows: the simulated lens's own state reaches 1.25 D.
-    let mut reached = false;
-    for _ in 0..2000 {
-        let (_, body) = http(addr, "GET", "/status", "");
-        if body.contains("\"target_d\":1.25") && body.contains("\"settled\":true") {
-            reached = true;
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    assert!(reached, "the simulated lens never settled at 1.25 D");
+    wait_for(addr, "the simulated lens to settle at 1.25 D", |v| {
+        let body = v.to_string();
+        body.contains("\"target_d\":1.25") && body.contains("\"settled\":true")
+    });
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": \"far\"}");
     assert_eq!(code, 422, "{body}");
 
@@ -257,16 +251,30 @@ fn start(config: &Path) -> (Daemon, BufReader<std::process::ChildStderr>, Socket
     (Daemon(child), stderr, addr)
 }
 
-/// Polls `/status` until the lens is `ok`.
-fn wait_for_lens(addr: SocketAddr) {
-    for _ in 0..2000 {
+/// Polls `/status` until `done` holds for it (a wait for the daemon's state, not a timing
+/// check: the bound, 60 s, is only there so that a broken daemon fails the test).
+fn wait_for(
+    addr: SocketAddr,
+    what: &str,
+    done: impl Fn(&serde_json::Value) -> bool,
+) -> serde_json::Value {
+    let until = std::time::Instant::now() + Duration::from_secs(60);
+    while std::time::Instant::now() < until {
         let (_, body) = http(addr, "GET", "/status", "");
-        if body.contains("\"lens\":{") && body.contains("\"state\":\"ok\"") {
-            return;
+        let v: serde_json::Value = serde_json::from_str(&body).unwrap();
+        if done(&v) {
+            return v;
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    panic!("the lens never came up");
+    panic!("waited 60 s for {what}");
+}
+
+/// Polls `/status` until the lens is `ok`.
+fn wait_for_lens(addr: SocketAddr) {
+    wait_for(addr, "the lens to come up", |v| {
+        v["devices"]["lens"]["state"] == "ok"
+    });
 }
 
 #[test]
@@ -417,19 +425,13 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 1.5}");
     assert_eq!(code, 200, "{body}");
     // Frames at the manual focus: the lens has settled there and more frames came.
-    let mut shown_at_focus = 0;
-    for _ in 0..3000 {
-        let (_, body) = http(addr, "GET", "/status", "");
-        let v: serde_json::Value = serde_json::from_str(&body).unwrap();
-        if v["focus"]["commanded_d"].as_f64() == Some(1.5) {
-            shown_at_focus += 1;
-            if shown_at_focus > 30 {
-                break;
-            }
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    assert!(shown_at_focus > 30, "the focus never reached 1.5 D");
+    let at = wait_for(addr, "the lens command to reach 1.5 D", |v| {
+        v["focus"]["commanded_d"].as_f64() == Some(1.5)
+    });
+    let shown = at["counts"]["frames_shown"].as_u64().unwrap();
+    wait_for(addr, "10 more frames", |v| {
+        v["counts"]["frames_shown"].as_u64() > Some(shown + 10)
+    });
     let (code, _) = http(addr, "POST", "/shutdown", "");
     assert_eq!(code, 202);
     let mut rest = String::new();
@@ -483,7 +485,10 @@ fn a_second_signal_during_shutdown_exits_once_the_lens_is_parked() {
     wait_for_lens(addr);
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 3.5}");
     assert_eq!(code, 200, "{body}");
-    std::thread::sleep(Duration::from_millis(700));
+    // Wait until the lens is far from its park power, so that parking takes a while.
+    wait_for(addr, "the lens to reach 3 D", |v| {
+        v["focus"]["lens_d"].as_f64().is_some_and(|d| d > 3.0)
+    });
     let pid = daemon.0.id() as libc::pid_t;
     // SAFETY: kill(2) on our own child's pid.
     assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);

@@ -109,7 +109,10 @@ fn decode(
 
 struct Shared {
     state: Mutex<Worker>,
+    /// Wakes the worker: the loop wants another frame, or the sequence is dropped.
     wake: Condvar,
+    /// Notified after each decode (for tests that wait for the worker).
+    decoded: Condvar,
 }
 
 struct Worker {
@@ -179,6 +182,7 @@ impl FileFrames {
                 stop: false,
             }),
             wake: Condvar::new(),
+            decoded: Condvar::new(),
         });
         if pairs.len() > 1 {
             let (pairs, shared) = (pairs.clone(), shared.clone());
@@ -313,6 +317,7 @@ fn decode_ahead(
             w.decoded += 1;
         }
         w.cache.insert(next, r);
+        shared.decoded.notify_all();
     }
 }
 
@@ -346,15 +351,16 @@ mod tests {
         }
     }
 
-    /// Waits (real time, bounded) until the worker has decoded `n` frames.
-    fn decoded(f: &FileFrames, n: u64) {
-        for _ in 0..2000 {
-            if f.status().decoded >= n {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        panic!("the decoder did not decode {n} frames: {:?}", f.status());
+    /// Waits until the decoder thread has `n` frames in its cache (a wait for the thread, not
+    /// a timing check: the 60 s bound only fails a broken decoder).
+    fn cached(f: &FileFrames, n: usize) {
+        let w = lock(&f.shared.state);
+        let (w, _) = f
+            .shared
+            .decoded
+            .wait_timeout_while(w, Duration::from_secs(60), |w| w.cache.len() < n)
+            .unwrap_or_else(|p| p.into_inner());
+        assert!(w.cache.len() >= n, "the decoder did not decode {n} frames");
     }
 
     #[test]
@@ -373,14 +379,14 @@ mod tests {
         let (first, changed) = f.frame_at(ms(0));
         assert!(!changed);
         assert_eq!(first.color.channels[0].data()[0], 0.0);
-        decoded(&f, 3);
+        cached(&f, 3);
         // 10 fps: frame 1 from 100 ms, frame 2 from 200 ms, frame 0 again from 300 ms.
         assert!(!f.frame_at(ms(99)).1);
         for (t, v) in [(100, 0.1), (250, 0.2), (300, 0.0)] {
             let (fr, changed) = f.frame_at(ms(t));
             assert!(changed, "{t} ms");
             assert!((fr.color.channels[0].data()[0] - v).abs() < 1e-6, "{t} ms");
-            decoded(&f, 3);
+            cached(&f, 3);
         }
         let st = f.status();
         assert_eq!((st.skipped, st.index), (0, 0), "{st:?}");
@@ -394,12 +400,7 @@ mod tests {
         let cfg = config(dir.path(), "c_%03d.exr", "d_%03d.exr", "fps = 10");
         let f = FileFrames::open(&cfg).unwrap();
         f.frame_at(Timestamp(0));
-        for _ in 0..2000 {
-            if lock(&f.shared.state).cache.len() >= 3 {
-                break;
-            }
-            std::thread::sleep(Duration::from_millis(5));
-        }
+        cached(&f, 3);
         let (fr, changed) = f.frame_at(Timestamp(150_000_000));
         assert!(!changed, "the corrupt frame is not shown");
         assert_eq!(
