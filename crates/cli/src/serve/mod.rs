@@ -13,6 +13,7 @@
 
 pub mod api;
 pub mod guard;
+mod head_limit;
 pub mod window;
 
 use std::net::SocketAddr;
@@ -278,7 +279,8 @@ async fn serve_api<L: axum::serve::Listener>(
     let mut http = hyper::server::conn::http1::Builder::new();
     http.timer(hyper_util::rt::TokioTimer::new())
         .header_read_timeout(guard::HEADER_TIMEOUT)
-        .max_buf_size(64 * 1024);
+        .max_buf_size(head_limit::HYPER_BUF)
+        .max_headers(head_limit::HYPER_MAX_HEADERS);
     let mut connections = tokio::task::JoinSet::new();
     loop {
         let io = tokio::select! {
@@ -287,7 +289,10 @@ async fn serve_api<L: axum::serve::Listener>(
         };
         let service = hyper_util::service::TowerToHyperService::new(app.clone());
         let conn = http
-            .serve_connection(hyper_util::rt::TokioIo::new(io), service)
+            .serve_connection(
+                hyper_util::rt::TokioIo::new(head_limit::HeadLimited::new(io)),
+                service,
+            )
             .with_upgrades();
         let cancel = cancel.clone();
         connections.spawn(async move {

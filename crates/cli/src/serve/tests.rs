@@ -503,6 +503,59 @@ async fn a_web_page_cannot_drive_the_api() {
     let (code, v) = raw(addr, &big_header).await;
     assert_eq!(code, 431, "{v}");
     assert!(v["error"].is_string(), "{v}");
+    // Heads past hyper's own limits (its buffer, its header count) get JSON too, not
+    // hyper's empty 431.
+    let huge_header = format!(
+        "GET /status HTTP/1.1\r\nHost: {addr}\r\nX-Big: {}\r\nConnection: close\r\n\r\n",
+        "a".repeat(200_000)
+    );
+    let many_headers = format!(
+        "GET /status HTTP/1.1\r\nHost: {addr}\r\n{}Connection: close\r\n\r\n",
+        (0..150)
+            .map(|i| format!("X-{i}: 1\r\n"))
+            .collect::<String>()
+    );
+    for (what, req) in [("200 kB", &huge_header), ("150 headers", &many_headers)] {
+        let (code, v) = raw(addr, req).await;
+        assert_eq!(code, 431, "{what}: {v}");
+        assert!(v["error"].is_string(), "{what}: {v}");
+    }
+    // The same on a kept-alive connection's second request.
+    {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+        let first = format!("GET /status HTTP/1.1\r\nHost: {addr}\r\n\r\n");
+        s.write_all(first.as_bytes()).await.unwrap();
+        let mut got = Vec::new();
+        let mut chunk = [0u8; 4096];
+        // Read the first reply whole (its length from content-length).
+        loop {
+            let n = s.read(&mut chunk).await.unwrap();
+            assert!(n > 0, "the daemon closed a kept-alive connection");
+            got.extend_from_slice(&chunk[..n]);
+            let text = String::from_utf8_lossy(&got).to_string();
+            if let Some((head, body)) = text.split_once("\r\n\r\n") {
+                let len: usize = head
+                    .lines()
+                    .find_map(|l| {
+                        let l = l.to_ascii_lowercase();
+                        l.strip_prefix("content-length:")
+                            .map(|v| v.trim().parse().unwrap())
+                    })
+                    .expect("a content-length");
+                if body.len() >= len {
+                    break;
+                }
+            }
+        }
+        assert_eq!(parse_http(&got).0, 200);
+        s.write_all(huge_header.as_bytes()).await.unwrap();
+        let mut out = Vec::new();
+        let _ = tokio::time::timeout(Duration::from_secs(20), s.read_to_end(&mut out)).await;
+        let (code, v) = parse_http(&out);
+        assert_eq!(code, 431, "{v}");
+        assert!(v["error"].is_string(), "{v}");
+    }
     // (Headers only: a server that refuses a body unread resets the socket.)
     let big_body = format!(
         "POST /focus HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\n\
