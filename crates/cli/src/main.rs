@@ -11,6 +11,7 @@ mod eval;
 mod gaze_cmd;
 mod hil;
 mod lens_cmd;
+mod lsl_cmd;
 mod recording_cmd;
 mod render_cmd;
 mod replay;
@@ -76,6 +77,8 @@ enum Command {
     /// Hardware-in-the-loop latency harness: gaze to lens command, command to settled,
     /// sub-frame timing, on the devices a rig config names (simulated ones say so).
     Hil(hil::Args),
+    /// Lab Streaming Layer: the outlets a rig config makes (`--list`).
+    Lsl(lsl_cmd::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -146,6 +149,7 @@ fn main() -> std::process::ExitCode {
         Command::Train(args) => train::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Hil(args) => hil::run(args),
+        Command::Lsl(args) => lsl_cmd::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -489,6 +489,9 @@ pub struct RigConfig {
     pub render: Render,
     #[serde(default)]
     pub content: ContentConfig,
+    /// Lab Streaming Layer outlets.
+    #[serde(default)]
+    pub lsl: crate::lsl::LslConfig,
 }
 
 /// What the rig shows.
@@ -759,6 +762,18 @@ impl RigConfig {
 
     /// Range and consistency checks serde cannot express.
     pub fn validate(&self) -> Result<(), ConfigError> {
+        let name = &self.lsl.name;
+        if name.is_empty()
+            || name.len() > 64
+            || !name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        {
+            return Err(invalid(
+                "lsl.name",
+                format!("{name:?}: expected 1 to 64 letters, digits, '-' or '_' (it names the LSL streams)"),
+            ));
+        }
         if self.render.adapter.is_some() && self.render.backend == RenderBackend::Cpu {
             return Err(invalid(
                 "render.adapter",

@@ -134,7 +134,11 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                 match engine.step(now, Input::Control(cmd.clone())) {
                     Ok(cmds) => {
                         // Recorded only when applied: a refused command changed nothing.
-                        state.record(now, Rec::Control(cmd.rec()));
+                        let rec = cmd.rec();
+                        if let Some(l) = &state.lsl {
+                            l.marker(now, "control", serde_json::to_value(&rec).unwrap_or_default());
+                        }
+                        state.record(now, Rec::Control(rec));
                         if let Control::Mode(_) = cmd {
                             let _ = links.multifocal.send(engine.mode() == Mode::Multifocal);
                         }
@@ -159,7 +163,17 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                     cause = Some(*at);
                 }
                 ex.device_input(&input, now);
-                engine.step(now, Input::Device(input)).unwrap_or_default()
+                let gaze = match (&state.lsl, &input) {
+                    (Some(_), DeviceInput::Gaze(g, _)) => Some(*g),
+                    _ => None,
+                };
+                let cmds = engine.step(now, Input::Device(input)).unwrap_or_default();
+                // With the scheduler's reading of it: eye phase and fused vergence.
+                if let (Some(l), Some(g)) = (&state.lsl, gaze) {
+                    let st = engine.scheduler().status();
+                    l.gaze(&g, st.phase.as_str(), st.vergence_d);
+                }
+                cmds
             }
             _ = tokio::time::sleep(sleep), if wake.is_some() => {
                 now = clock.now();
@@ -264,7 +278,14 @@ impl Executor<'_> {
             }
             DeviceInput::LensState(s) => {
                 sh.record(now, Rec::LensState(s.into()));
-                lock(&sh.status).lens_power_d = Some(s.power.0);
+                let commanded = {
+                    let mut st = lock(&sh.status);
+                    st.lens_power_d = Some(s.power.0);
+                    st.commanded_focus_d
+                };
+                if let Some(l) = &sh.lsl {
+                    l.lens_state(s, commanded);
+                }
                 sh.publish(
                     || json!({ "type": "lens", "host_ns": s.host_time.0, "power_d": s.power.0 }),
                 );
@@ -274,14 +295,19 @@ impl Executor<'_> {
                 requested,
                 wire_time,
                 ..
-            } => sh.record(
-                now,
-                Rec::LensWire(LensWireRec {
-                    id: *id,
-                    requested_d: requested.0,
-                    wire_ns: wire_time.0,
-                }),
-            ),
+            } => {
+                if let Some(l) = &sh.lsl {
+                    l.lens_wire(*wire_time, requested.0);
+                }
+                sh.record(
+                    now,
+                    Rec::LensWire(LensWireRec {
+                        id: *id,
+                        requested_d: requested.0,
+                        wire_ns: wire_time.0,
+                    }),
+                )
+            }
             DeviceInput::LensLink(up) => sh.record(now, Rec::LensLink(LensLinkRec { up: *up })),
             DeviceInput::Sync(e) => {
                 sh.record(now, Rec::Sync(e.into()));
@@ -289,12 +315,26 @@ impl Executor<'_> {
                 st.sync_events += 1;
                 match e {
                     dioptra_core::SequencerEvent::SubframeStart {
+                        frame,
                         plane_index,
                         lens_power,
+                        host_time,
                         ..
                     } => {
                         st.subframes += 1;
                         let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
+                        if let Some(l) = &sh.lsl {
+                            l.marker(
+                                *host_time,
+                                "subframe",
+                                json!({
+                                    "frame": frame,
+                                    "plane": plane_index,
+                                    "plane_d": plane,
+                                    "lens_d": lens_power.map(|d| d.0),
+                                }),
+                            );
+                        }
                         if let (Some(p), Some(l)) = (plane, lens_power) {
                             st.subframes_measured += 1;
                             if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
@@ -518,16 +558,30 @@ impl Executor<'_> {
             Some(l) => self.sink.present_layer(f, usize::from(l), at),
         };
         match shown {
-            Ok(t) => sh.publish(|| {
-                json!({
-                    "type": "frame",
-                    "frame": frame,
-                    "layer": layer,
-                    "focus_d": f.focus.0,
-                    "shown_ns": t.0,
-                    "repeat": repeat,
+            Ok(t) => {
+                if let Some(l) = &sh.lsl {
+                    l.marker(
+                        t,
+                        "frame",
+                        json!({
+                            "frame": frame,
+                            "layer": layer,
+                            "focus_d": f.focus.0,
+                            "repeat": repeat,
+                        }),
+                    );
+                }
+                sh.publish(|| {
+                    json!({
+                        "type": "frame",
+                        "frame": frame,
+                        "layer": layer,
+                        "focus_d": f.focus.0,
+                        "shown_ns": t.0,
+                        "repeat": repeat,
+                    })
                 })
-            }),
+            }
             Err(e) => tracing::warn!(error = %e, "display failed"),
         }
         let mut st = lock(&sh.status);

@@ -25,6 +25,7 @@ pub mod devices;
 pub mod display;
 pub mod engine;
 pub mod executor;
+pub mod lsl;
 pub mod recording;
 pub mod render;
 pub mod scene;
@@ -73,6 +74,8 @@ pub enum RigError {
     WindowSinkNeeded,
     #[error("a rig task failed to start: {0}")]
     Task(String),
+    #[error("[lsl] enabled = true: {0}")]
+    Lsl(String),
 }
 
 /// Why an API command was not carried out.
@@ -259,6 +262,8 @@ pub struct RigState {
     pub clock: Arc<dyn Clock>,
     /// The simulated devices (none on a hardware rig); set once the devices start.
     pub sims: OnceLock<SimDevices>,
+    /// Lab Streaming Layer outlets (`[lsl] enabled = true`).
+    pub lsl: Option<lsl::LslOutlets>,
     controls: mpsc::Sender<ControlMsg>,
     started: Timestamp,
 }
@@ -324,6 +329,7 @@ impl RigState {
             "display": status.display,
             "scheduler": status.scheduler,
             "recording": recording,
+            "lsl": self.lsl.as_ref().map(|l| l.status_json()),
             "sim_lens": self.sims.get().and_then(|s| s.lens.as_ref()).and_then(|slot| {
                 let m = slot.lens.as_ref()?.model();
                 Some(json!({
@@ -432,6 +438,18 @@ impl RigState {
             }),
         );
         *slot = Some(r);
+        if let Some(l) = &self.lsl {
+            l.marker(
+                self.clock.now(),
+                "recording_start",
+                json!({
+                    "path": path.display().to_string(),
+                    "name": meta.name,
+                    "subject": meta.subject,
+                    "trial": meta.trial,
+                }),
+            );
+        }
         Ok(path)
     }
 
@@ -440,6 +458,13 @@ impl RigState {
         let r = lock(&self.recording)
             .take()
             .ok_or_else(|| ControlError::Conflict("not recording".into()))?;
+        if let Some(l) = &self.lsl {
+            l.marker(
+                self.clock.now(),
+                "recording_stop",
+                json!({ "path": r.path().display().to_string() }),
+            );
+        }
         r.finish().await.map_err(|e| ControlError::Failed {
             what: "cannot finish the recording".into(),
             source: Box::new(e),
@@ -464,6 +489,9 @@ pub struct RigSetup {
     pub hooks: Vec<Box<dyn LoopHook>>,
     /// The clock is simulated (a paused runtime): its times have no wall-clock anchor.
     pub simulated_time: bool,
+    /// Default: liblsl's outlets when `[lsl] enabled = true` (tests hand in
+    /// [`lsl::LslOutlets::to_channel`]).
+    pub lsl: Option<lsl::LslOutlets>,
 }
 
 impl RigSetup {
@@ -477,6 +505,7 @@ impl RigSetup {
             scheduler: None,
             hooks: Vec::new(),
             simulated_time: false,
+            lsl: None,
         }
     }
 }
@@ -565,11 +594,26 @@ impl Rig {
             scheduler,
             hooks,
             simulated_time,
+            lsl,
         } = setup;
         cfg.validate()?;
         let cfg = Arc::new(cfg);
         let clock: Arc<dyn Clock> =
             clock.unwrap_or_else(|| Arc::new(dioptra_sim::tokio_clock::TokioClock::new()));
+        let lsl = match lsl {
+            Some(l) => Some(l),
+            None if cfg.lsl.enabled && simulated_time => {
+                return Err(RigError::Lsl(
+                    "this run is on simulated time, which LSL's clock cannot follow; LSL \
+                     outlets run with `dioptra serve`"
+                        .into(),
+                ))
+            }
+            None if cfg.lsl.enabled => {
+                Some(lsl::LslOutlets::start(&cfg, clock.clone()).map_err(RigError::Lsl)?)
+            }
+            None => None,
+        };
         let renderer: Arc<dyn Renderer> = match renderer {
             Some(r) => r,
             None => {
@@ -620,6 +664,7 @@ impl Rig {
                 ..Default::default()
             }),
             sims: OnceLock::new(),
+            lsl,
             stream,
             recording: Mutex::new(None),
             cancel: CancellationToken::new(),

@@ -1,0 +1,731 @@
+//! Lab Streaming Layer outlets (`[lsl] enabled = true`): the rig's gaze, lens and events as
+//! three LSL streams, for LabRecorder, pylsl and MATLAB beside a lab's other instruments.
+//!
+//! The loop hands each sample to [`LslOutlets`] as it handles it (a bounded channel: a stalled
+//! LSL thread costs samples, counted in `/status`, never the loop's time); one thread owns the
+//! liblsl outlets and pushes them. Every sample is stamped on LSL's clock with the time it
+//! happened (a gaze sample's mapped device time, a lens command's time on the wire, a frame's
+//! time on screen), not when it was pushed.
+//!
+//! What the streams hold is described by [`stream_specs`] (also `dioptra lsl --list`). liblsl
+//! itself comes in with the `lsl` cargo feature; without it, starting a rig with LSL enabled
+//! says how to build it.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+
+use dioptra_core::{lock, Clock, GazeSample, LensState, Timestamp};
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::config::RigConfig;
+
+/// `[lsl]` in the rig config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LslConfig {
+    #[serde(default)]
+    pub enabled: bool,
+    /// The streams are `<name>-gaze`, `<name>-lens` and `<name>-markers`; their source ids
+    /// derive from it, so a consumer picks the streams up again after a restart.
+    #[serde(default = "default_name")]
+    pub name: String,
+}
+
+fn default_name() -> String {
+    "dioptra".into()
+}
+
+impl Default for LslConfig {
+    fn default() -> Self {
+        LslConfig {
+            enabled: false,
+            name: default_name(),
+        }
+    }
+}
+
+/// Whether this build links liblsl.
+pub const BUILT_WITH_LSL: bool = cfg!(feature = "lsl");
+
+/// How to get a build with LSL.
+pub const HOW_TO_BUILD: &str = "this dioptra was built without Lab Streaming Layer support: \
+     rebuild with `cargo build --release --features lsl` (it builds liblsl from source, which \
+     needs cmake and a C++ compiler: `apt install cmake g++`)";
+
+/// A channel's description, following the XDF meta-data conventions (for `Gaze` streams:
+/// <https://github.com/sccn/xdf/wiki/Gaze-Meta-Data>).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ChannelSpec {
+    pub label: &'static str,
+    /// `left`, `right` or `both` (gaze channels only).
+    #[serde(skip_serializing_if = "str::is_empty")]
+    pub eye: &'static str,
+    #[serde(rename = "type")]
+    pub kind: &'static str,
+    pub unit: &'static str,
+}
+
+/// A stream's sample format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Double64,
+    String,
+}
+
+/// One outlet's declaration.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct StreamSpec {
+    pub name: String,
+    /// LSL's content type.
+    #[serde(rename = "type")]
+    pub kind: &'static str,
+    /// Nominal rate, Hz; 0 for an irregular stream.
+    pub rate_hz: f64,
+    pub format: Format,
+    pub source_id: String,
+    pub channels: Vec<ChannelSpec>,
+    /// What each sample's LSL timestamp is.
+    pub timestamps: &'static str,
+}
+
+const fn ch(
+    label: &'static str,
+    eye: &'static str,
+    kind: &'static str,
+    unit: &'static str,
+) -> ChannelSpec {
+    ChannelSpec {
+        label,
+        eye,
+        kind,
+        unit,
+    }
+}
+
+/// The gaze stream's channels, in sample order (see [`gaze_values`]).
+pub const GAZE_CHANNELS: [ChannelSpec; 24] = [
+    ch("left_direction_x", "left", "DirectionX", "normalized"),
+    ch("left_direction_y", "left", "DirectionY", "normalized"),
+    ch("left_direction_z", "left", "DirectionZ", "normalized"),
+    ch("left_position_x", "left", "PositionX", "mm"),
+    ch("left_position_y", "left", "PositionY", "mm"),
+    ch("left_position_z", "left", "PositionZ", "mm"),
+    ch("left_pupil_diameter", "left", "Diameter", "mm"),
+    ch("left_valid", "left", "Confidence", "normalized"),
+    ch("right_direction_x", "right", "DirectionX", "normalized"),
+    ch("right_direction_y", "right", "DirectionY", "normalized"),
+    ch("right_direction_z", "right", "DirectionZ", "normalized"),
+    ch("right_position_x", "right", "PositionX", "mm"),
+    ch("right_position_y", "right", "PositionY", "mm"),
+    ch("right_position_z", "right", "PositionZ", "mm"),
+    ch("right_pupil_diameter", "right", "Diameter", "mm"),
+    ch("right_valid", "right", "Confidence", "normalized"),
+    ch("cyclopean_direction_x", "both", "DirectionX", "normalized"),
+    ch("cyclopean_direction_y", "both", "DirectionY", "normalized"),
+    ch("cyclopean_direction_z", "both", "DirectionZ", "normalized"),
+    ch("cyclopean_valid", "both", "Confidence", "normalized"),
+    ch("vergence_depth", "both", "VergenceDepth", "diopters"),
+    ch("eye_phase", "both", "EyePhase", "code"),
+    ch("device_time", "both", "DeviceTime", "s"),
+    ch("host_time", "both", "HostTime", "s"),
+];
+
+/// The lens stream's channels (see [`LslOutlets::lens_wire`] and [`LslOutlets::lens_state`]).
+pub const LENS_CHANNELS: [ChannelSpec; 4] = [
+    ch("event", "", "Event", "code"),
+    ch("commanded_power", "", "Power", "diopters"),
+    ch("actual_power", "", "Power", "diopters"),
+    ch("settled", "", "Flag", "boolean"),
+];
+
+/// Lens stream `event` codes.
+pub const LENS_EVENT_COMMANDED: f64 = 1.0;
+pub const LENS_EVENT_READ_BACK: f64 = 2.0;
+
+/// The codes of the gaze stream's `eye_phase` channel, in code order.
+pub const EYE_PHASES: [&str; 6] = ["unknown", "fixation", "pursuit", "saccade", "blink", "lost"];
+
+/// The outlets a rig with `cfg` makes, whether or not LSL is enabled in it.
+pub fn stream_specs(cfg: &RigConfig) -> Vec<StreamSpec> {
+    let name = &cfg.lsl.name;
+    vec![
+        StreamSpec {
+            name: format!("{name}-gaze"),
+            kind: "Gaze",
+            // A real tracker's rate is known only once it is connected: irregular.
+            rate_hz: if cfg.devices.gaze.port == crate::config::Port::Sim {
+                cfg.devices.gaze.sim_rate_hz
+            } else {
+                0.0
+            },
+            format: Format::Double64,
+            source_id: format!("{name}-gaze"),
+            channels: GAZE_CHANNELS.to_vec(),
+            timestamps: "the sample's device time mapped to the host timeline (the tracker \
+                         driver's clock-offset estimate), on LSL's clock",
+        },
+        StreamSpec {
+            name: format!("{name}-lens"),
+            kind: "Lens",
+            rate_hz: 0.0,
+            format: Format::Double64,
+            source_id: format!("{name}-lens"),
+            channels: LENS_CHANNELS.to_vec(),
+            timestamps: "event 1 (commanded): when the command was on the wire; event 2 \
+                         (read back): when the lens's reply arrived; on LSL's clock",
+        },
+        StreamSpec {
+            name: format!("{name}-markers"),
+            kind: "Markers",
+            rate_hz: 0.0,
+            format: Format::String,
+            source_id: format!("{name}-markers"),
+            channels: vec![ch("event", "", "Marker", "json")],
+            timestamps: "when the event happened: a frame's time on screen, a sub-frame's \
+                         start as the sync hardware reports it, a control's or recording's \
+                         time of taking effect; on LSL's clock",
+        },
+    ]
+}
+
+/// A sample on its way to an outlet; `t` is on the host timeline.
+#[derive(Debug, Clone, PartialEq)]
+pub enum LslSample {
+    Gaze { t: Timestamp, values: Vec<f64> },
+    Lens { t: Timestamp, values: Vec<f64> },
+    Marker { t: Timestamp, text: String },
+}
+
+/// Counters for `/status`.
+#[derive(Debug, Default)]
+struct Counts {
+    queued: AtomicU64,
+    dropped: AtomicU64,
+}
+
+/// What the LSL thread reports.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct PushStatus {
+    pub pushed: u64,
+    /// Outlets with at least one consumer, the last time it looked.
+    pub with_consumers: Vec<String>,
+    pub last_error: Option<String>,
+}
+
+/// The loop's end of the outlets.
+pub struct LslOutlets {
+    tx: SyncSender<LslSample>,
+    counts: Counts,
+    names: Vec<String>,
+    pushed: Arc<Mutex<PushStatus>>,
+}
+
+/// Samples that may wait for the LSL thread: a few seconds of 1 kHz gaze.
+const QUEUE: usize = 8192;
+
+impl LslOutlets {
+    /// Starts the outlets `cfg` declares on an LSL thread of their own.
+    pub fn start(cfg: &RigConfig, clock: Arc<dyn Clock>) -> Result<LslOutlets, String> {
+        let specs = stream_specs(cfg);
+        let (tx, rx) = sync_channel(QUEUE);
+        let pushed = Arc::new(Mutex::new(PushStatus::default()));
+        outlet_thread(specs.clone(), rx, clock, pushed.clone())?;
+        Ok(LslOutlets {
+            tx,
+            counts: Counts::default(),
+            names: specs.into_iter().map(|s| s.name).collect(),
+            pushed,
+        })
+    }
+
+    /// Outlets whose samples go to `rx` instead of liblsl (tests).
+    pub fn to_channel(cfg: &RigConfig) -> (LslOutlets, Receiver<LslSample>) {
+        let (tx, rx) = sync_channel(QUEUE);
+        let outlets = LslOutlets {
+            tx,
+            counts: Counts::default(),
+            names: stream_specs(cfg).into_iter().map(|s| s.name).collect(),
+            pushed: Arc::default(),
+        };
+        (outlets, rx)
+    }
+
+    fn send(&self, s: LslSample) {
+        match self.tx.try_send(s) {
+            Ok(()) => {
+                self.counts.queued.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => {
+                self.counts.dropped.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+
+    /// A gaze sample, with the scheduler's eye phase and fused vergence after it.
+    pub fn gaze(&self, g: &GazeSample, phase: &str, vergence_d: Option<f64>) {
+        self.send(LslSample::Gaze {
+            t: g.host_time,
+            values: gaze_values(g, phase, vergence_d),
+        });
+    }
+
+    /// A lens command on the wire at `wire_time`.
+    pub fn lens_wire(&self, wire_time: Timestamp, commanded_d: f32) {
+        self.send(LslSample::Lens {
+            t: wire_time,
+            values: vec![
+                LENS_EVENT_COMMANDED,
+                f64::from(commanded_d),
+                f64::NAN,
+                f64::NAN,
+            ],
+        });
+    }
+
+    /// A lens read-back, with the power last commanded.
+    pub fn lens_state(&self, s: &LensState, commanded_d: Option<f32>) {
+        self.send(LslSample::Lens {
+            t: s.host_time,
+            values: vec![
+                LENS_EVENT_READ_BACK,
+                commanded_d.map_or(f64::NAN, f64::from),
+                f64::from(s.power.0),
+                s.settled.map_or(f64::NAN, |b| f64::from(u8::from(b))),
+            ],
+        });
+    }
+
+    /// An event marker: `event` names it, `fields` (a JSON object) says the rest.
+    pub fn marker(&self, t: Timestamp, event: &str, fields: Value) {
+        let mut m = json!({ "event": event });
+        if let (Some(o), Value::Object(f)) = (m.as_object_mut(), fields) {
+            o.extend(f);
+        }
+        self.send(LslSample::Marker {
+            t,
+            text: m.to_string(),
+        });
+    }
+
+    /// `/status`'s `lsl`.
+    pub fn status_json(&self) -> Value {
+        let p = lock(&self.pushed).clone();
+        json!({
+            "streams": self.names,
+            "queued": self.counts.queued.load(Ordering::Relaxed),
+            "pushed": p.pushed,
+            "dropped": self.counts.dropped.load(Ordering::Relaxed),
+            "with_consumers": p.with_consumers,
+            "last_error": p.last_error,
+        })
+    }
+}
+
+/// The gaze stream's sample for `g` (channels as [`GAZE_CHANNELS`]); values of an invalid eye
+/// are NaN.
+pub fn gaze_values(g: &GazeSample, phase: &str, vergence_d: Option<f64>) -> Vec<f64> {
+    let mut v = Vec::with_capacity(GAZE_CHANNELS.len());
+    for eye in [&g.left, &g.right] {
+        let ok = |x: f32| if eye.valid { f64::from(x) } else { f64::NAN };
+        v.extend(eye.direction.iter().map(|&x| ok(x)));
+        v.extend(eye.origin_mm.iter().map(|&x| ok(x)));
+        v.push(ok(eye.pupil_mm));
+        v.push(f64::from(u8::from(eye.valid)));
+    }
+    // Cyclopean: the mean direction of the valid eyes.
+    let valid: Vec<_> = [&g.left, &g.right]
+        .into_iter()
+        .filter(|e| e.valid)
+        .collect();
+    let mut c = [0f64; 3];
+    for e in &valid {
+        for (ci, d) in c.iter_mut().zip(e.direction) {
+            *ci += f64::from(d);
+        }
+    }
+    let norm = c.iter().map(|x| x * x).sum::<f64>().sqrt();
+    if valid.is_empty() || norm == 0.0 || !norm.is_finite() {
+        v.extend([f64::NAN; 3]);
+        v.push(0.0);
+    } else {
+        v.extend(c.iter().map(|x| x / norm));
+        v.push(1.0);
+    }
+    v.push(vergence_d.unwrap_or(f64::NAN));
+    v.push(
+        EYE_PHASES
+            .iter()
+            .position(|p| *p == phase)
+            .map_or(0.0, |i| i as f64),
+    );
+    v.push(g.device_time.0 as f64 * 1e-9);
+    v.push(g.host_time.0 as f64 * 1e-9);
+    v
+}
+
+/// The host timeline on LSL's clock: `lsl = host + offset`. Both count the machine's monotonic
+/// clock, so one estimate holds; it is taken from the tightest of a few paired readings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ClockMap {
+    pub offset_s: f64,
+}
+
+impl ClockMap {
+    /// Pairs `host()` before and after `lsl()` `n` times and keeps the tightest pair's midpoint.
+    pub fn estimate(n: usize, mut host: impl FnMut() -> f64, mut lsl: impl FnMut() -> f64) -> Self {
+        let mut best = (f64::INFINITY, 0.0);
+        for _ in 0..n.max(1) {
+            let a = host();
+            let l = lsl();
+            let b = host();
+            if b - a < best.0 {
+                best = (b - a, l - (a + b) / 2.0);
+            }
+        }
+        ClockMap { offset_s: best.1 }
+    }
+    pub fn lsl_time(&self, t: Timestamp) -> f64 {
+        t.0 as f64 * 1e-9 + self.offset_s
+    }
+}
+
+#[cfg(not(feature = "lsl"))]
+fn outlet_thread(
+    _specs: Vec<StreamSpec>,
+    _rx: Receiver<LslSample>,
+    _clock: Arc<dyn Clock>,
+    _pushed: Arc<Mutex<PushStatus>>,
+) -> Result<(), String> {
+    Err(HOW_TO_BUILD.into())
+}
+
+/// Starts the thread that owns the liblsl outlets; returns once they exist (or could not be
+/// made).
+#[cfg(feature = "lsl")]
+fn outlet_thread(
+    specs: Vec<StreamSpec>,
+    rx: Receiver<LslSample>,
+    clock: Arc<dyn Clock>,
+    pushed: Arc<Mutex<PushStatus>>,
+) -> Result<(), String> {
+    let (ready_tx, ready_rx) = sync_channel(1);
+    std::thread::Builder::new()
+        .name("dioptra-lsl".into())
+        .spawn(move || {
+            let outlets = match liblsl::outlets(&specs) {
+                Ok(o) => {
+                    let _ = ready_tx.send(Ok(()));
+                    o
+                }
+                Err(e) => {
+                    let _ = ready_tx.send(Err(e));
+                    return;
+                }
+            };
+            let map = ClockMap::estimate(16, || clock.now().0 as f64 * 1e-9, lsl::local_clock);
+            liblsl::push_all(&outlets, &specs, rx, map, &pushed);
+        })
+        .map_err(|e| format!("cannot start the LSL thread: {e}"))?;
+    ready_rx
+        .recv()
+        .map_err(|_| "the LSL thread ended before making its outlets".to_string())?
+}
+
+#[cfg(feature = "lsl")]
+mod liblsl {
+    use super::*;
+    use lsl::ExPushable;
+
+    pub(super) fn outlets(specs: &[StreamSpec]) -> Result<Vec<lsl::StreamOutlet>, String> {
+        specs
+            .iter()
+            .map(|s| {
+                let format = match s.format {
+                    Format::Double64 => lsl::ChannelFormat::Double64,
+                    Format::String => lsl::ChannelFormat::String,
+                };
+                let mut info = lsl::StreamInfo::new(
+                    &s.name,
+                    s.kind,
+                    s.channels.len() as u32,
+                    s.rate_hz,
+                    format,
+                    &s.source_id,
+                )
+                .map_err(|e| format!("LSL stream {}: {e:?}", s.name))?;
+                let mut desc = info.desc();
+                desc.append_child_value("manufacturer", "dioptra");
+                desc.append_child_value("timestamps", s.timestamps);
+                let mut channels = desc.append_child("channels");
+                for c in &s.channels {
+                    let mut e = channels.append_child("channel");
+                    e.append_child_value("label", c.label);
+                    if !c.eye.is_empty() {
+                        e.append_child_value("eye", c.eye);
+                    }
+                    e.append_child_value("type", c.kind);
+                    e.append_child_value("unit", c.unit);
+                }
+                if s.kind == "Gaze" {
+                    let mut codes = desc.append_child("eye_phase_codes");
+                    for (i, p) in EYE_PHASES.iter().enumerate() {
+                        codes.append_child_value(p, &i.to_string());
+                    }
+                    desc.append_child_value(
+                        "coordinate_system",
+                        "head frame: +x right, +y up, +z forward; eye positions in mm",
+                    );
+                }
+                lsl::StreamOutlet::new(&info, 0, 360)
+                    .map_err(|e| format!("LSL outlet {}: {e:?}", s.name))
+            })
+            .collect()
+    }
+
+    pub(super) fn push_all(
+        outlets: &[lsl::StreamOutlet],
+        specs: &[StreamSpec],
+        rx: Receiver<LslSample>,
+        map: ClockMap,
+        pushed: &Mutex<PushStatus>,
+    ) {
+        let (gaze, lens, markers) = (&outlets[0], &outlets[1], &outlets[2]);
+        let mut n = 0u64;
+        let mut last_look = std::time::Instant::now();
+        // Ends when the rig drops its end.
+        for s in rx {
+            let r = match &s {
+                LslSample::Gaze { t, values } => {
+                    gaze.push_sample_ex(values, map.lsl_time(*t), true)
+                }
+                LslSample::Lens { t, values } => {
+                    lens.push_sample_ex(values, map.lsl_time(*t), true)
+                }
+                LslSample::Marker { t, text } => {
+                    markers.push_sample_ex(&vec![text.clone()], map.lsl_time(*t), true)
+                }
+            };
+            n += 1;
+            let error = r.err().map(|e| format!("{e:?}"));
+            if error.is_some() || last_look.elapsed().as_millis() >= 500 {
+                last_look = std::time::Instant::now();
+                let mut p = lock(pushed);
+                p.pushed = n;
+                if error.is_some() {
+                    p.last_error = error;
+                }
+                p.with_consumers = outlets
+                    .iter()
+                    .zip(specs)
+                    .filter(|(o, _)| o.have_consumers())
+                    .map(|(_, s)| s.name.clone())
+                    .collect();
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dioptra_core::EyeRay;
+
+    fn sample() -> GazeSample {
+        GazeSample {
+            device_time: Timestamp(5_000_000_000),
+            host_receive_time: Timestamp(2_001_000_000),
+            host_time: Timestamp(2_000_000_000),
+            left: EyeRay {
+                origin_mm: [-32.0, 0.0, 0.0],
+                direction: [0.1, 0.0, 0.995],
+                pupil_mm: 4.0,
+                valid: true,
+            },
+            right: EyeRay {
+                origin_mm: [32.0, 0.0, 0.0],
+                direction: [-0.1, 0.0, 0.995],
+                pupil_mm: 4.1,
+                valid: true,
+            },
+        }
+    }
+
+    #[test]
+    fn a_gaze_sample_fills_every_declared_channel_in_order() {
+        let v = gaze_values(&sample(), "fixation", Some(2.0));
+        assert_eq!(v.len(), GAZE_CHANNELS.len());
+        let at = |label: &str| v[GAZE_CHANNELS.iter().position(|c| c.label == label).unwrap()];
+        assert_eq!(at("left_position_x"), -32.0);
+        assert_eq!(at("right_pupil_diameter"), f64::from(4.1f32));
+        assert_eq!(at("left_valid"), 1.0);
+        // Converging eyes look straight ahead together.
+        assert!(at("cyclopean_direction_x").abs() < 1e-9);
+        assert!((at("cyclopean_direction_z") - 1.0).abs() < 1e-9);
+        assert_eq!(at("vergence_depth"), 2.0);
+        assert_eq!(at("eye_phase"), 1.0);
+        assert_eq!(at("device_time"), 5.0);
+        assert_eq!(at("host_time"), 2.0);
+    }
+
+    #[test]
+    fn an_invalid_eye_is_nan_and_the_cyclopean_ray_is_the_other_one() {
+        let mut g = sample();
+        g.left.valid = false;
+        let v = gaze_values(&g, "saccade", None);
+        assert!(v[0..7].iter().all(|x| x.is_nan()), "{v:?}");
+        assert_eq!(v[7], 0.0);
+        let right_dir = &v[8..11];
+        let cyc = &v[16..19];
+        let n = (0.1f64.powi(2) + 0.995f64.powi(2)).sqrt();
+        for (c, r) in cyc.iter().zip(right_dir) {
+            assert!((c - r / n).abs() < 1e-6, "{cyc:?} {right_dir:?}");
+        }
+        assert_eq!(v[19], 1.0);
+        assert!(v[20].is_nan());
+        assert_eq!(v[21], 3.0);
+        g.right.valid = false;
+        let v = gaze_values(&g, "blink", None);
+        assert!(v[16..19].iter().all(|x| x.is_nan()));
+        assert_eq!(v[19], 0.0);
+    }
+
+    #[test]
+    fn the_clock_map_keeps_the_tightest_pair() {
+        // Host readings 0, 10 (wide pair), then 20, 21 (tight): LSL read 1000 and 1020.5.
+        let host = [0.0, 10.0, 20.0, 21.0];
+        let lsl = [1000.0, 1020.5];
+        let (mut h, mut l) = (host.iter(), lsl.iter());
+        let m = ClockMap::estimate(2, || *h.next().unwrap(), || *l.next().unwrap());
+        assert_eq!(m.offset_s, 1000.0);
+        assert_eq!(m.lsl_time(Timestamp(3_000_000_000)), 1003.0);
+    }
+
+    #[test]
+    fn the_specs_name_three_streams_by_the_configured_name() {
+        let mut cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        cfg.lsl.name = "rig7".into();
+        let s = stream_specs(&cfg);
+        let names: Vec<_> = s.iter().map(|s| (s.name.as_str(), s.kind)).collect();
+        assert_eq!(
+            names,
+            [
+                ("rig7-gaze", "Gaze"),
+                ("rig7-lens", "Lens"),
+                ("rig7-markers", "Markers")
+            ]
+        );
+        assert_eq!(s[0].rate_hz, cfg.devices.gaze.sim_rate_hz);
+    }
+
+    #[test]
+    fn markers_are_json_with_the_event_first() {
+        let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        let (o, rx) = LslOutlets::to_channel(&cfg);
+        o.marker(Timestamp(7), "frame", json!({ "frame": 3 }));
+        match rx.try_recv().unwrap() {
+            LslSample::Marker { t, text } => {
+                assert_eq!(t, Timestamp(7));
+                let v: Value = serde_json::from_str(&text).unwrap();
+                assert_eq!(v, json!({ "event": "frame", "frame": 3 }));
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+
+    /// What a running simulated rig hands its outlets.
+    #[tokio::test(start_paused = true)]
+    async fn a_running_rig_hands_gaze_lens_and_markers_to_its_outlets() {
+        use crate::{Control, Rig, RigSetup};
+        let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        let rate = cfg.devices.gaze.sim_rate_hz;
+        let (outlets, rx) = LslOutlets::to_channel(&cfg);
+        let mut setup = RigSetup::new(cfg);
+        setup.simulated_time = true;
+        setup.lsl = Some(outlets);
+        let rig = Rig::start(setup).await.unwrap();
+        let state = rig.state().clone();
+        tokio::time::sleep(std::time::Duration::from_secs(2)).await;
+        state
+            .control(Control::ManualFocus(Some(2.0)))
+            .await
+            .unwrap();
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+        assert_eq!(state.status_json()["lsl"]["dropped"], 0);
+        state.cancel.cancel();
+        rig.wait().await;
+
+        let (mut gaze, mut lens, mut markers) = (vec![], vec![], vec![]);
+        for s in rx.try_iter() {
+            match s {
+                LslSample::Gaze { t, values } => gaze.push((t, values)),
+                LslSample::Lens { t, values } => lens.push((t, values)),
+                LslSample::Marker { t, text } => markers.push((t, text)),
+            }
+        }
+        // 2.5 s of samples, each with every channel, in time order.
+        let expected = 2.5 * rate;
+        assert!(
+            (gaze.len() as f64) > 0.9 * expected && (gaze.len() as f64) < 1.1 * expected,
+            "{} gaze samples for {expected}",
+            gaze.len()
+        );
+        assert!(gaze.iter().all(|(_, v)| v.len() == GAZE_CHANNELS.len()));
+        assert!(gaze.windows(2).all(|w| w[0].0 <= w[1].0));
+        // The scheduler's phase reached the stream: the saccades scene has fixations.
+        let phase = GAZE_CHANNELS
+            .iter()
+            .position(|c| c.label == "eye_phase")
+            .unwrap();
+        assert!(gaze.iter().any(|(_, v)| v[phase] == 1.0));
+        // Commands on the wire and read-backs, the manual 2 D among the commands.
+        assert!(lens.iter().all(|(_, v)| v.len() == LENS_CHANNELS.len()));
+        assert!(lens
+            .iter()
+            .any(|(_, v)| v[0] == LENS_EVENT_COMMANDED && v[1] == 2.0));
+        assert!(lens
+            .iter()
+            .any(|(_, v)| v[0] == LENS_EVENT_READ_BACK && v[2].is_finite()));
+        let events: Vec<Value> = markers
+            .iter()
+            .map(|(_, m)| serde_json::from_str(m).unwrap())
+            .collect();
+        assert!(events.iter().any(|e| e["event"] == "frame"));
+        assert!(events.iter().any(|e| e["event"] == "control"
+            && e["kind"] == "manual_focus"
+            && e["diopters"] == 2.0));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn lsl_on_simulated_time_is_refused() {
+        let mut cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        cfg.lsl.enabled = true;
+        let mut setup = crate::RigSetup::new(cfg);
+        setup.simulated_time = true;
+        let e = crate::Rig::start(setup).await.err().expect("refused");
+        assert!(e.to_string().contains("simulated time"), "{e}");
+    }
+
+    #[cfg(not(feature = "lsl"))]
+    #[test]
+    fn without_the_feature_starting_outlets_says_how_to_build_them() {
+        let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let e = LslOutlets::start(&cfg, clock).err().expect("no liblsl");
+        assert!(e.contains("--features lsl"), "{e}");
+    }
+
+    #[test]
+    fn a_full_queue_drops_and_counts_rather_than_blocking_the_loop() {
+        let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        let (o, _rx) = LslOutlets::to_channel(&cfg);
+        for _ in 0..QUEUE + 5 {
+            o.marker(Timestamp(0), "x", json!({}));
+        }
+        let s = o.status_json();
+        assert_eq!(s["queued"], QUEUE as u64);
+        assert_eq!(s["dropped"], 5);
+    }
+}
