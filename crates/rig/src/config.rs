@@ -503,6 +503,8 @@ pub enum ContentSource {
     Scene,
     /// RGB-D files: one frame, or a numbered sequence.
     Files,
+    /// Frames pushed by a running application (shared-memory ring or `PUT /frame`).
+    Stream,
 }
 
 /// `[content]`: the rig's RGB-D content.
@@ -525,6 +527,35 @@ pub struct ContentConfig {
     pub looped: bool,
     /// A sequence's first number (default 0).
     pub first: Option<usize>,
+    /// `source = "stream"`: the shared-memory ring's file (default: beside `api.unix`, or
+    /// `/dev/shm/dioptra-<pid>.frames`); `"none"` for `PUT /frame` only.
+    pub ring: Option<PathBuf>,
+}
+
+impl ContentConfig {
+    /// The stream's shared-memory ring file (`None`: `ring = "none"`, `PUT /frame` only).
+    pub fn ring_path(&self, api: &Api) -> Option<PathBuf> {
+        match &self.ring {
+            Some(p) if p.as_os_str() == "none" => None,
+            Some(p) => Some(p.clone()),
+            None => Some(match &api.unix {
+                Some(sock) => {
+                    let mut p = sock.clone().into_os_string();
+                    p.push(".frames");
+                    PathBuf::from(p)
+                }
+                None => {
+                    let shm = std::path::Path::new("/dev/shm");
+                    let dir = if shm.is_dir() {
+                        shm.to_path_buf()
+                    } else {
+                        std::env::temp_dir()
+                    };
+                    dir.join(format!("dioptra-{}.frames", std::process::id()))
+                }
+            }),
+        }
+    }
 }
 
 impl Default for ContentConfig {
@@ -537,6 +568,7 @@ impl Default for ContentConfig {
             fps: default_content_fps(),
             looped: false,
             first: None,
+            ring: None,
         }
     }
 }
@@ -806,7 +838,7 @@ impl RigConfig {
                     }
                 }
             }
-            ContentSource::Scene => {
+            ContentSource::Scene | ContentSource::Stream => {
                 if c.color.is_some() || c.depth.is_some() {
                     return Err(invalid(
                         "content.source",
@@ -814,6 +846,12 @@ impl RigConfig {
                     ));
                 }
             }
+        }
+        if c.ring.is_some() && c.source != ContentSource::Stream {
+            return Err(invalid(
+                "content.ring",
+                "the shared-memory ring is made with source = \"stream\"",
+            ));
         }
         let o = &self.optics;
         let r = o.lens_range;

@@ -32,6 +32,7 @@ pub mod scene;
 pub mod sim;
 #[cfg(feature = "simulated")]
 pub mod simulated;
+pub mod stream;
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock};

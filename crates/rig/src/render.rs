@@ -74,6 +74,10 @@ pub trait Renderer: Send + Sync + 'static {
     fn backend_status(&self) -> serde_json::Value {
         serde_json::Value::Null
     }
+    /// `source = "stream"`: where the API hands an application's frames.
+    fn stream(&self) -> Option<&crate::stream::StreamFrames> {
+        None
+    }
 }
 
 /// The kind of a render error, for counting and rate-limited logging.

@@ -42,6 +42,8 @@ pub struct SceneRenderer {
     depth_given: AtomicBool,
     /// `source = "files"`: the sequence being played.
     files: Option<crate::content::FileFrames>,
+    /// `source = "stream"`: frames an application pushes.
+    stream: Option<crate::stream::StreamFrames>,
     eye: EyeModel,
     planes: Vec<Diopters>,
     layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
@@ -79,12 +81,30 @@ impl SceneRenderer {
         }
         .validated()?;
         let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
+        let mut stream = None;
         let (input, scene, files) = match cfg.content.source {
             ContentSource::Scene => {
                 let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
                 let (color, depth) =
                     dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
                 (Rgbd::new(color, depth)?, Some(scene), None)
+            }
+            ContentSource::Stream => {
+                let ring = cfg.content.ring_path(&cfg.api);
+                let s = crate::stream::StreamFrames::open(
+                    d.width as usize,
+                    d.height as usize,
+                    ring.as_deref(),
+                )
+                .map_err(|e| RenderError::Format {
+                    path: ring
+                        .as_ref()
+                        .map_or_else(|| "content.ring".into(), |p| p.display().to_string()),
+                    detail: format!("cannot create the shared-memory ring: {e}"),
+                })?;
+                let first = s.placeholder();
+                stream = Some(s);
+                (first, None, None)
             }
             ContentSource::Files => {
                 let files = crate::content::FileFrames::open(cfg).map_err(|e| match e {
@@ -108,6 +128,7 @@ impl SceneRenderer {
             current: Mutex::new(Arc::new(input)),
             depth_given: AtomicBool::new(false),
             files,
+            stream,
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
             layers: Mutex::new(Vec::new()),
@@ -329,6 +350,11 @@ impl Renderer for SceneRenderer {
                 self.depth_given.store(false, Ordering::Release);
             }
         }
+        if let Some(frame) = self.stream.as_ref().and_then(|s| s.take_new()) {
+            *lock(&self.current) = frame;
+            lock(&self.layers).clear();
+            self.depth_given.store(false, Ordering::Release);
+        }
         // A static scene's depth once; a sequence's at each new frame.
         (!self.depth_given.swap(true, Ordering::AcqRel))
             .then(|| Arc::new(self.input().depth.clone()))
@@ -337,10 +363,14 @@ impl Renderer for SceneRenderer {
         SceneRenderer::backend_status(self)
     }
     fn content_status(&self) -> serde_json::Value {
-        match &self.files {
-            Some(f) => serde_json::to_value(f.status()).unwrap_or_default(),
-            None => serde_json::json!({ "source": "scene" }),
+        match (&self.files, &self.stream) {
+            (Some(f), _) => serde_json::to_value(f.status()).unwrap_or_default(),
+            (_, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
+            _ => serde_json::json!({ "source": "scene" }),
         }
+    }
+    fn stream(&self) -> Option<&crate::stream::StreamFrames> {
+        self.stream.as_ref()
     }
     fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
         self.render_frame(job.mode, job.method, job.focus, job.gaze, job.auto)

@@ -11,6 +11,7 @@
 //! | POST | `/shutdown` | | parks the lens, finishes files, exits |
 //! | POST | `/sim/{lens,gaze,sync}/{unplug,replug}` | | simulated devices only: pull or restore the cable |
 //! | GET | `/stream` | | WebSocket: one JSON text message per gaze sample, focus change and frame |
+//! | GET, POST, PUT | `/frame/ring`, `/frame` | | `[content] source = "stream"`: see [`super::frame`] |
 //!
 //! Errors are `{"error": "...", "key": "..."}` with a 4xx status: 400 for a body that is not
 //! JSON, 422 for JSON of the wrong shape or a value out of range, 404 for an unknown path,
@@ -81,7 +82,7 @@ impl IntoResponse for ApiError {
 }
 
 /// Parses a JSON body, naming the key that is wrong.
-fn body<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
+pub(super) fn body<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
     if bytes.iter().all(u8::is_ascii_whitespace) {
         return Err(ApiError::new(
             StatusCode::BAD_REQUEST,
@@ -138,11 +139,17 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/shutdown", post(shutdown))
         .route("/sim/{device}/{action}", post(sim_plug))
         .route("/stream", get(stream))
+        .route(
+            "/frame",
+            post(super::frame::from_slot).put(super::frame::put),
+        )
+        .route("/frame/ring", get(super::frame::ring))
         .fallback(|| async {
             ApiError::new(
                 StatusCode::NOT_FOUND,
                 "no such endpoint; see GET /status, POST /mode, /method, /focus, \
-                 /recording/start, /recording/stop, /shutdown, and GET /stream (WebSocket)",
+                 /recording/start, /recording/stop, /shutdown, GET /stream (WebSocket), and \
+                 for a streaming rig POST/PUT /frame and GET /frame/ring",
             )
         })
         .method_not_allowed_fallback(|| async {

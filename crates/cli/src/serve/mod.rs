@@ -12,6 +12,7 @@
 //! ([`window::run_on_main_thread`]) and the runtime runs on a thread of its own.
 
 pub mod api;
+mod frame;
 pub mod guard;
 mod head_limit;
 pub mod window;

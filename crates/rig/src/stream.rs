@@ -1,0 +1,878 @@
+//! RGB-D frames pushed by a running application (`[content] source = "stream"`).
+//!
+//! Two ways in, one decoder ([`decode_frame`]):
+//! - the fast path, a shared-memory ring of frame slots: a file (0600) the daemon creates and
+//!   maps, which the application maps too, writes a frame into a slot and names it with
+//!   `POST /frame {"slot", "seq"}`. The daemon copies the slot out before it answers, so the
+//!   slot is the application's again once the answer arrives. Layout: [`RING_MAGIC`] and the
+//!   constants below; `GET /frame/ring` says it too.
+//! - the slow, simple path, `PUT /frame?width=&height=&color=&depth=[&near=&far=&seq=]` with
+//!   the colour bytes then the depth bytes as the body.
+//!
+//! A frame is refused, with the reason, counted and never shown when: its size is not the
+//! display's, a buffer is shorter or longer than its size says, a depth is NaN or outside its
+//! convention's range, its sequence number is not newer than the newest accepted, or its slot
+//! was rewritten while it was read. The frame on show stays until a good one replaces it.
+
+use std::fs::OpenOptions;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use dioptra_core::image::srgb_to_linear;
+use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Timestamp};
+use serde::Serialize;
+
+/// The ring file's first 8 bytes.
+pub const RING_MAGIC: &[u8; 8] = b"DIOPTRA1";
+pub const RING_VERSION: u32 = 1;
+/// The ring header's size; slot `i` starts at `RING_HEADER + i * slot_bytes`.
+pub const RING_HEADER: usize = 64;
+/// A slot's header size; its colour bytes follow it, then its depth bytes.
+pub const SLOT_HEADER: usize = 64;
+/// Slots in the ring.
+pub const RING_SLOTS: usize = 3;
+/// A slot holds the largest frame: RGB f32 colour and f32 depth, 16 bytes a pixel.
+const SLOT_BYTES_PER_PX: usize = 16;
+
+/// The colour's encoding.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ColorFormat {
+    /// 8-bit sRGB, 3 bytes a pixel.
+    Rgb8 = 1,
+    /// 8-bit sRGB with alpha (ignored), 4 bytes a pixel.
+    Rgba8 = 2,
+    /// Linear light, 3 little-endian f32 a pixel.
+    Rgbf32 = 3,
+}
+
+impl ColorFormat {
+    pub fn bytes_per_px(self) -> usize {
+        match self {
+            ColorFormat::Rgb8 => 3,
+            ColorFormat::Rgba8 => 4,
+            ColorFormat::Rgbf32 => 12,
+        }
+    }
+    pub fn from_code(c: u32) -> Option<Self> {
+        [Self::Rgb8, Self::Rgba8, Self::Rgbf32]
+            .into_iter()
+            .find(|f| *f as u32 == c)
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "rgb8" => Some(Self::Rgb8),
+            "rgba8" => Some(Self::Rgba8),
+            "rgbf32" => Some(Self::Rgbf32),
+            _ => None,
+        }
+    }
+}
+
+/// What the depth values are (each a little-endian f32).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DepthKind {
+    /// Distance along the view axis, metres (> 0; +inf is optical infinity).
+    Metres = 1,
+    /// Diopters (>= 0).
+    Diopters = 2,
+    /// An OpenGL depth buffer in normalised device coordinates, [-1, 1], -1 at `near`.
+    Gl = 3,
+    /// The same with reversed Z: 1 at `near`, -1 at `far`.
+    GlReversed = 4,
+    /// A Vulkan / Direct3D depth buffer, [0, 1], 0 at `near`.
+    Vulkan = 5,
+    /// Reversed Z, [0, 1], 1 at `near`, 0 at `far` (`far` may be infinite).
+    VulkanReversed = 6,
+}
+
+impl DepthKind {
+    pub fn from_code(c: u32) -> Option<Self> {
+        [
+            Self::Metres,
+            Self::Diopters,
+            Self::Gl,
+            Self::GlReversed,
+            Self::Vulkan,
+            Self::VulkanReversed,
+        ]
+        .into_iter()
+        .find(|k| *k as u32 == c)
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "m" => Some(Self::Metres),
+            "D" => Some(Self::Diopters),
+            "gl" => Some(Self::Gl),
+            "gl-reversed" => Some(Self::GlReversed),
+            "vulkan" | "d3d" => Some(Self::Vulkan),
+            "vulkan-reversed" | "d3d-reversed" => Some(Self::VulkanReversed),
+            _ => None,
+        }
+    }
+    fn is_buffer(self) -> bool {
+        !matches!(self, Self::Metres | Self::Diopters)
+    }
+
+    /// `v` in diopters, or why it is refused. `near`/`far` in metres (checked by the caller).
+    fn diopters(self, v: f32, near: f32, far: f32) -> Result<f32, &'static str> {
+        if v.is_nan() {
+            return Err("NaN");
+        }
+        let (n, f) = (f64::from(near), f64::from(far));
+        let v64 = f64::from(v);
+        // Eye-space distance, metres.
+        let z = match self {
+            Self::Diopters => {
+                return if v.is_finite() && v >= 0.0 {
+                    Ok(v)
+                } else {
+                    Err("not a finite power >= 0 D")
+                }
+            }
+            Self::Metres => {
+                return if v > 0.0 {
+                    Ok((1.0 / v64) as f32)
+                } else {
+                    Err("not a distance > 0 m")
+                }
+            }
+            Self::Gl | Self::GlReversed => {
+                if !(-1.0..=1.0).contains(&v) {
+                    return Err("outside an OpenGL depth buffer's [-1, 1]");
+                }
+                let d = if self == Self::Gl { v64 } else { -v64 };
+                // z_ndc = (f + n - 2 f n / z) / (f - n), solved for z.
+                if f.is_infinite() {
+                    2.0 * n / (1.0 - d)
+                } else {
+                    2.0 * f * n / (f + n - d * (f - n))
+                }
+            }
+            Self::Vulkan | Self::VulkanReversed => {
+                if !(0.0..=1.0).contains(&v) {
+                    return Err("outside a depth buffer's [0, 1]");
+                }
+                let d = if self == Self::Vulkan { v64 } else { 1.0 - v64 };
+                // d = f (z - n) / (z (f - n)), solved for z.
+                if f.is_infinite() {
+                    n / (1.0 - d)
+                } else {
+                    f * n / (f - d * (f - n))
+                }
+            }
+        };
+        // At the far plane of an infinite projection z is +inf: 0 D.
+        Ok(if z.is_infinite() {
+            0.0
+        } else {
+            (1.0 / z) as f32
+        })
+    }
+}
+
+/// A frame's description.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FrameDesc {
+    pub width: usize,
+    pub height: usize,
+    pub color: ColorFormat,
+    pub depth: DepthKind,
+    /// Near and far planes of a depth buffer, metres (far may be infinite for reversed Z).
+    pub near: Option<f32>,
+    pub far: Option<f32>,
+    /// Must grow from frame to frame; `None`: the daemon numbers it.
+    pub seq: Option<u64>,
+    /// The application's time for the frame, ns (kept, not interpreted).
+    pub app_time_ns: Option<u64>,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FrameError {
+    #[error("the frame is {got_w}x{got_h}; the display is {want_w}x{want_h}")]
+    WrongSize {
+        got_w: usize,
+        got_h: usize,
+        want_w: usize,
+        want_h: usize,
+    },
+    #[error("the {what} is {got} bytes; a {w}x{h} frame's is {want}")]
+    Length {
+        what: &'static str,
+        got: usize,
+        want: usize,
+        w: usize,
+        h: usize,
+    },
+    #[error("depth at pixel ({x}, {y}) is {value}: {why}")]
+    Depth {
+        x: usize,
+        y: usize,
+        value: f32,
+        why: &'static str,
+    },
+    #[error("{0}")]
+    Invalid(String),
+    #[error("sequence number {seq} is not newer than {newest}, the newest frame accepted")]
+    Stale { seq: u64, newest: u64 },
+    #[error("slot {0} was rewritten while the daemon read it (its sequence number changed)")]
+    Torn(usize),
+    #[error("the content source is not \"stream\"")]
+    NotStreaming,
+}
+
+impl FrameError {
+    /// A short name for counting refusals.
+    pub fn kind(&self) -> &'static str {
+        match self {
+            FrameError::WrongSize { .. } => "wrong_size",
+            FrameError::Length { .. } => "length",
+            FrameError::Depth { .. } => "depth",
+            FrameError::Invalid(_) => "invalid",
+            FrameError::Stale { .. } => "stale",
+            FrameError::Torn(_) => "torn",
+            FrameError::NotStreaming => "not_streaming",
+        }
+    }
+}
+
+/// Decodes one frame: 8-bit colour from sRGB to linear light, depth to diopters.
+pub fn decode_frame(
+    desc: &FrameDesc,
+    color: &[u8],
+    depth: &[u8],
+    display: (usize, usize),
+) -> Result<Rgbd, FrameError> {
+    let (w, h) = (desc.width, desc.height);
+    if (w, h) != display {
+        return Err(FrameError::WrongSize {
+            got_w: w,
+            got_h: h,
+            want_w: display.0,
+            want_h: display.1,
+        });
+    }
+    let n = w * h;
+    for (what, got, want) in [
+        ("colour", color.len(), n * desc.color.bytes_per_px()),
+        ("depth", depth.len(), n * 4),
+    ] {
+        if got != want {
+            return Err(FrameError::Length {
+                what,
+                got,
+                want,
+                w,
+                h,
+            });
+        }
+    }
+    let (near, far) = if desc.depth.is_buffer() {
+        match (desc.near, desc.far) {
+            (Some(n), Some(f)) if n > 0.0 && n.is_finite() && f > n => (n, f),
+            _ => {
+                return Err(FrameError::Invalid(format!(
+                    "a {:?} depth buffer needs near and far planes in metres with 0 < near < far \
+                     (far may be infinite): got near {:?}, far {:?}",
+                    desc.depth, desc.near, desc.far
+                )))
+            }
+        }
+    } else {
+        (1.0, 2.0)
+    };
+    let mut planes = [vec![0f32; n], vec![0f32; n], vec![0f32; n]];
+    match desc.color {
+        ColorFormat::Rgb8 | ColorFormat::Rgba8 => {
+            let lut: Vec<f32> = (0..=255u8)
+                .map(|v| srgb_to_linear(f32::from(v) / 255.0))
+                .collect();
+            let step = desc.color.bytes_per_px();
+            for (i, px) in color.chunks_exact(step).enumerate() {
+                for (c, plane) in planes.iter_mut().enumerate() {
+                    plane[i] = lut[usize::from(px[c])];
+                }
+            }
+        }
+        ColorFormat::Rgbf32 => {
+            for (i, px) in color.chunks_exact(12).enumerate() {
+                for (c, plane) in planes.iter_mut().enumerate() {
+                    let b = [px[4 * c], px[4 * c + 1], px[4 * c + 2], px[4 * c + 3]];
+                    let v = f32::from_le_bytes(b);
+                    if !v.is_finite() {
+                        return Err(FrameError::Invalid(format!(
+                            "colour at pixel ({}, {}) is {v}",
+                            i % w,
+                            i / w
+                        )));
+                    }
+                    plane[i] = v.max(0.0);
+                }
+            }
+        }
+    }
+    let mut d = vec![0f32; n];
+    for (i, b) in depth.chunks_exact(4).enumerate() {
+        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        d[i] = desc
+            .depth
+            .diopters(v, near, far)
+            .map_err(|why| FrameError::Depth {
+                x: i % w,
+                y: i / w,
+                value: v,
+                why,
+            })?;
+    }
+    let [r, g, b] = planes;
+    let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
+    let color = RgbImage::from_planes(
+        Plane::from_vec(w, h, r).map_err(bad)?,
+        Plane::from_vec(w, h, g).map_err(bad)?,
+        Plane::from_vec(w, h, b).map_err(bad)?,
+    )
+    .map_err(bad)?;
+    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).map_err(bad)?).map_err(bad)?;
+    Rgbd::new(color, depth).map_err(bad)
+}
+
+/// What `/status` shows under `content` for a stream.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct StreamStatus {
+    pub source: &'static str,
+    /// Frames accepted.
+    pub received: u64,
+    /// Accepted frames the display took up.
+    pub shown: u64,
+    /// Accepted frames a newer one replaced before the display took them up.
+    pub replaced: u64,
+    /// Frames refused, by reason; the newest reason in `last_error`.
+    pub refused: std::collections::BTreeMap<&'static str, u64>,
+    pub last_error: Option<String>,
+    /// Sequence number of the newest frame accepted, and of the one on show.
+    pub newest_seq: Option<u64>,
+    pub on_show_seq: Option<u64>,
+    /// Host time (ns) the newest accepted frame arrived, and its application time.
+    pub newest_received_ns: Option<u64>,
+    pub newest_app_time_ns: Option<u64>,
+    /// How old the newest accepted frame is, ms (at the time of asking).
+    pub newest_age_ms: Option<f64>,
+    pub ring: Option<String>,
+    #[serde(skip)]
+    newest_at: Option<std::time::Instant>,
+}
+
+struct Pending {
+    frame: Arc<Rgbd>,
+    seq: u64,
+}
+
+/// The shared-memory ring: the file and its mapping.
+struct Ring {
+    path: PathBuf,
+    map: memmap2::MmapRaw,
+    slot_bytes: usize,
+}
+
+impl Ring {
+    fn create(path: &Path, width: usize, height: usize) -> std::io::Result<Ring> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let slot_bytes = SLOT_HEADER + width * height * SLOT_BYTES_PER_PX;
+        if let Ok(meta) = std::fs::symlink_metadata(path) {
+            if !meta.file_type().is_file() {
+                return Err(std::io::Error::other(format!(
+                    "{} exists and is not a regular file; choose another content.ring",
+                    path.display()
+                )));
+            }
+            // A ring an earlier daemon left.
+            std::fs::remove_file(path)?;
+        }
+        let mut f = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .custom_flags(libc_o_nofollow())
+            .open(path)?;
+        let mut header = [0u8; RING_HEADER];
+        header[0..8].copy_from_slice(RING_MAGIC);
+        header[8..12].copy_from_slice(&RING_VERSION.to_le_bytes());
+        header[12..16].copy_from_slice(&(RING_SLOTS as u32).to_le_bytes());
+        header[16..20].copy_from_slice(&(width as u32).to_le_bytes());
+        header[20..24].copy_from_slice(&(height as u32).to_le_bytes());
+        header[24..32].copy_from_slice(&(slot_bytes as u64).to_le_bytes());
+        header[32..36].copy_from_slice(&(RING_HEADER as u32).to_le_bytes());
+        header[36..40].copy_from_slice(&(SLOT_HEADER as u32).to_le_bytes());
+        f.write_all(&header)?;
+        f.set_len((RING_HEADER + RING_SLOTS * slot_bytes) as u64)?;
+        let map = memmap2::MmapOptions::new().map_raw(&f)?;
+        Ok(Ring {
+            path: path.to_path_buf(),
+            map,
+            slot_bytes,
+        })
+    }
+
+    /// Copies `len` bytes at `offset`. The application may write the file at any time, so it
+    /// is read through the raw pointer, never as a Rust reference.
+    fn read(&self, offset: usize, len: usize) -> Vec<u8> {
+        let mut out = vec![0u8; len];
+        debug_assert!(offset + len <= self.map.len());
+        // SAFETY: offset + len is inside the mapping (checked by the callers against
+        // slot_bytes); the bytes are copied, not referenced.
+        unsafe {
+            std::ptr::copy_nonoverlapping(self.map.as_ptr().add(offset), out.as_mut_ptr(), len);
+        }
+        out
+    }
+
+    fn seq(&self, slot: usize) -> u64 {
+        let b = self.read(RING_HEADER + slot * self.slot_bytes, 8);
+        std::sync::atomic::fence(std::sync::atomic::Ordering::Acquire);
+        u64::from_le_bytes(b.try_into().unwrap_or([0; 8]))
+    }
+}
+
+impl Drop for Ring {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+fn libc_o_nofollow() -> i32 {
+    // O_NOFOLLOW on Linux (x86-64, aarch64): do not open through a planted symlink.
+    0o400000
+}
+
+/// The stream source: the newest accepted frame, waiting for the display.
+pub struct StreamFrames {
+    size: (usize, usize),
+    ring: Option<Ring>,
+    pending: Mutex<Option<Pending>>,
+    status: Mutex<StreamStatus>,
+}
+
+impl std::fmt::Debug for StreamFrames {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StreamFrames")
+            .field("size", &self.size)
+            .finish_non_exhaustive()
+    }
+}
+
+impl StreamFrames {
+    /// A stream of `width` x `height` frames with its ring at `ring` (`None`: `PUT /frame`
+    /// only).
+    pub fn open(width: usize, height: usize, ring: Option<&Path>) -> std::io::Result<Self> {
+        let ring = ring.map(|p| Ring::create(p, width, height)).transpose()?;
+        Ok(StreamFrames {
+            size: (width, height),
+            status: Mutex::new(StreamStatus {
+                source: "stream",
+                ring: ring.as_ref().map(|r| r.path.display().to_string()),
+                ..Default::default()
+            }),
+            ring,
+            pending: Mutex::new(None),
+        })
+    }
+
+    /// The frame shown before any arrives: black at optical infinity.
+    pub fn placeholder(&self) -> Rgbd {
+        let (w, h) = self.size;
+        let zero = || Plane::from_vec(w, h, vec![0.0; w * h]).expect("sized plane");
+        Rgbd::new(
+            RgbImage::from_planes(zero(), zero(), zero()).expect("equal planes"),
+            DepthMap::from_diopters(zero()).expect("0 D is valid"),
+        )
+        .expect("equal sizes")
+    }
+
+    /// `GET /frame/ring`: where the ring is and its layout.
+    pub fn ring_json(&self) -> serde_json::Value {
+        match &self.ring {
+            None => serde_json::json!({
+                "path": null,
+                "width": self.size.0,
+                "height": self.size.1,
+            }),
+            Some(r) => serde_json::json!({
+                "path": r.path.display().to_string(),
+                "magic": String::from_utf8_lossy(RING_MAGIC),
+                "version": RING_VERSION,
+                "slots": RING_SLOTS,
+                "width": self.size.0,
+                "height": self.size.1,
+                "header_bytes": RING_HEADER,
+                "slot_header_bytes": SLOT_HEADER,
+                "slot_bytes": r.slot_bytes,
+                "slot_header": {
+                    "seq": [0, "u64"], "color_format": [8, "u32"], "depth_kind": [12, "u32"],
+                    "near": [16, "f32"], "far": [20, "f32"], "width": [24, "u32"],
+                    "height": [28, "u32"], "app_time_ns": [32, "u64"],
+                    "color_bytes": [40, "u64"], "depth_bytes": [48, "u64"],
+                },
+            }),
+        }
+    }
+
+    /// A frame from `PUT /frame`.
+    pub fn submit(
+        &self,
+        desc: &FrameDesc,
+        color: &[u8],
+        depth: &[u8],
+        now: Timestamp,
+    ) -> Result<u64, FrameError> {
+        let r = self
+            .check_seq(desc.seq)
+            .and_then(|seq| Ok((seq, decode_frame(desc, color, depth, self.size)?)));
+        self.accept(r, desc.app_time_ns, now)
+    }
+
+    /// A frame the application wrote into ring slot `slot` with sequence number `seq`.
+    pub fn submit_slot(&self, slot: usize, seq: u64, now: Timestamp) -> Result<u64, FrameError> {
+        let r = self.read_slot(slot, seq);
+        let app = r.as_ref().ok().and_then(|(_, _, a)| *a);
+        self.accept(r.map(|(s, f, _)| (s, f)), app, now)
+    }
+
+    fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
+        let ring = self.ring.as_ref().ok_or_else(|| {
+            FrameError::Invalid("this daemon has no shared-memory ring: use PUT /frame".into())
+        })?;
+        if slot >= RING_SLOTS {
+            return Err(FrameError::Invalid(format!(
+                "slot {slot}: the ring has slots 0 to {}",
+                RING_SLOTS - 1
+            )));
+        }
+        let base = RING_HEADER + slot * ring.slot_bytes;
+        let in_slot = ring.seq(slot);
+        if in_slot != seq {
+            return Err(FrameError::Invalid(format!(
+                "slot {slot} holds sequence number {in_slot}, not {seq} (write the sequence \
+                 number last, after the frame)"
+            )));
+        }
+        let seq = self.check_seq(Some(seq))?;
+        let h = ring.read(base, SLOT_HEADER);
+        let u32_at = |o: usize| u32::from_le_bytes([h[o], h[o + 1], h[o + 2], h[o + 3]]);
+        let u64_at = |o: usize| u64::from_le_bytes(h[o..o + 8].try_into().unwrap_or([0; 8]));
+        let f32_at = |o: usize| f32::from_bits(u32_at(o));
+        let color = ColorFormat::from_code(u32_at(8)).ok_or_else(|| {
+            FrameError::Invalid(format!("slot {slot}: unknown colour format {}", u32_at(8)))
+        })?;
+        let depth = DepthKind::from_code(u32_at(12)).ok_or_else(|| {
+            FrameError::Invalid(format!("slot {slot}: unknown depth kind {}", u32_at(12)))
+        })?;
+        let desc = FrameDesc {
+            width: u32_at(24) as usize,
+            height: u32_at(28) as usize,
+            color,
+            depth,
+            near: Some(f32_at(16)),
+            far: Some(f32_at(20)),
+            seq: Some(seq),
+            app_time_ns: Some(u64_at(32)).filter(|&t| t != 0),
+        };
+        let (cb, db) = (u64_at(40) as usize, u64_at(48) as usize);
+        let room = ring.slot_bytes - SLOT_HEADER;
+        if cb.checked_add(db).is_none_or(|total| total > room) {
+            return Err(FrameError::Invalid(format!(
+                "slot {slot}: {cb} colour and {db} depth bytes do not fit its {room}"
+            )));
+        }
+        let color_bytes = ring.read(base + SLOT_HEADER, cb);
+        let depth_bytes = ring.read(base + SLOT_HEADER + cb, db);
+        if ring.seq(slot) != seq {
+            return Err(FrameError::Torn(slot));
+        }
+        let frame = decode_frame(&desc, &color_bytes, &depth_bytes, self.size)?;
+        Ok((seq, frame, desc.app_time_ns))
+    }
+
+    /// The sequence number a frame gets: its own (if newer than the newest) or the next.
+    fn check_seq(&self, seq: Option<u64>) -> Result<u64, FrameError> {
+        let newest = lock(&self.status).newest_seq;
+        match (seq, newest) {
+            (Some(s), Some(n)) if s <= n => Err(FrameError::Stale { seq: s, newest: n }),
+            (Some(s), _) => Ok(s),
+            (None, n) => Ok(n.map_or(1, |n| n + 1)),
+        }
+    }
+
+    fn accept(
+        &self,
+        r: Result<(u64, Rgbd), FrameError>,
+        app_time_ns: Option<u64>,
+        now: Timestamp,
+    ) -> Result<u64, FrameError> {
+        let mut st = lock(&self.status);
+        match r {
+            Err(e) => {
+                *st.refused.entry(e.kind()).or_default() += 1;
+                st.last_error = Some(e.to_string());
+                Err(e)
+            }
+            Ok((seq, frame)) => {
+                // Two requests may race past check_seq: the newer wins.
+                if let Some(n) = st.newest_seq.filter(|&n| seq <= n) {
+                    let e = FrameError::Stale { seq, newest: n };
+                    *st.refused.entry(e.kind()).or_default() += 1;
+                    st.last_error = Some(e.to_string());
+                    return Err(e);
+                }
+                st.received += 1;
+                st.newest_seq = Some(seq);
+                st.newest_received_ns = Some(now.0);
+                st.newest_at = Some(std::time::Instant::now());
+                st.newest_app_time_ns = app_time_ns;
+                let old = lock(&self.pending).replace(Pending {
+                    frame: Arc::new(frame),
+                    seq,
+                });
+                if old.is_some() {
+                    st.replaced += 1;
+                }
+                Ok(seq)
+            }
+        }
+    }
+
+    /// The newest frame not yet taken up by the display, if any.
+    pub fn take_new(&self) -> Option<Arc<Rgbd>> {
+        let p = lock(&self.pending).take()?;
+        let mut st = lock(&self.status);
+        st.shown += 1;
+        st.on_show_seq = Some(p.seq);
+        Some(p.frame)
+    }
+
+    pub fn status(&self) -> StreamStatus {
+        let mut st = lock(&self.status).clone();
+        st.newest_age_ms = st.newest_at.map(|t| t.elapsed().as_secs_f64() * 1e3);
+        st
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn desc(w: usize, h: usize, color: ColorFormat, depth: DepthKind) -> FrameDesc {
+        FrameDesc {
+            width: w,
+            height: h,
+            color,
+            depth,
+            near: Some(0.1),
+            far: Some(100.0),
+            seq: None,
+            app_time_ns: None,
+        }
+    }
+
+    fn f32s(v: &[f32]) -> Vec<u8> {
+        v.iter().flat_map(|x| x.to_le_bytes()).collect()
+    }
+
+    /// A depth buffer value of a point at `z` metres, by each API's projection.
+    fn buffer_value(kind: DepthKind, z: f64, n: f64, f: f64) -> f32 {
+        let vk = if f.is_infinite() {
+            1.0 - n / z
+        } else {
+            f * (z - n) / (z * (f - n))
+        };
+        let gl = if f.is_infinite() {
+            1.0 - 2.0 * n / z
+        } else {
+            (f + n - 2.0 * f * n / z) / (f - n)
+        };
+        (match kind {
+            DepthKind::Vulkan => vk,
+            DepthKind::VulkanReversed => 1.0 - vk,
+            DepthKind::Gl => gl,
+            DepthKind::GlReversed => -gl,
+            _ => unreachable!(),
+        }) as f32
+    }
+
+    #[test]
+    fn every_depth_convention_gives_the_same_diopters() {
+        for kind in [
+            DepthKind::Gl,
+            DepthKind::GlReversed,
+            DepthKind::Vulkan,
+            DepthKind::VulkanReversed,
+        ] {
+            for far in [100.0f64, f64::INFINITY] {
+                for z in [0.25f64, 0.5, 1.0, 2.0, 10.0] {
+                    let v = buffer_value(kind, z, 0.1, far);
+                    let d = kind.diopters(v, 0.1, far as f32).unwrap();
+                    let want = 1.0 / z;
+                    assert!(
+                        (f64::from(d) - want).abs() < 2e-3 * want.max(1.0),
+                        "{kind:?} far {far} z {z}: {d} D, want {want}"
+                    );
+                }
+            }
+        }
+        assert_eq!(
+            DepthKind::VulkanReversed.diopters(0.0, 0.1, f32::INFINITY),
+            Ok(0.0)
+        );
+        assert_eq!(DepthKind::Metres.diopters(0.5, 0.0, 0.0), Ok(2.0));
+        assert_eq!(DepthKind::Metres.diopters(f32::INFINITY, 0.0, 0.0), Ok(0.0));
+        assert_eq!(DepthKind::Diopters.diopters(1.5, 0.0, 0.0), Ok(1.5));
+    }
+
+    #[test]
+    fn bad_depth_is_refused_naming_the_pixel() {
+        let d = desc(2, 2, ColorFormat::Rgb8, DepthKind::Metres);
+        let color = vec![0u8; 12];
+        let e = decode_frame(&d, &color, &f32s(&[1.0, 1.0, f32::NAN, 1.0]), (2, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::Depth { x: 0, y: 1, .. }), "{e}");
+        let e = decode_frame(&d, &color, &f32s(&[1.0, -1.0, 1.0, 1.0]), (2, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::Depth { x: 1, y: 0, .. }), "{e}");
+        let vk = desc(2, 2, ColorFormat::Rgb8, DepthKind::Vulkan);
+        let e = decode_frame(&vk, &color, &f32s(&[0.5, 1.5, 0.5, 0.5]), (2, 2)).unwrap_err();
+        assert!(e.to_string().contains("[0, 1]"), "{e}");
+        let mut no_planes = vk;
+        no_planes.near = None;
+        let e = decode_frame(&no_planes, &color, &f32s(&[0.5; 4]), (2, 2)).unwrap_err();
+        assert!(e.to_string().contains("near and far"), "{e}");
+    }
+
+    #[test]
+    fn wrong_sizes_and_lengths_are_refused() {
+        let d = desc(2, 2, ColorFormat::Rgba8, DepthKind::Diopters);
+        let depth = f32s(&[1.0; 4]);
+        let e = decode_frame(&d, &[0u8; 16], &depth, (3, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::WrongSize { .. }), "{e}");
+        let e = decode_frame(&d, &[0u8; 12], &depth, (2, 2)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::Length {
+                    what: "colour",
+                    got: 12,
+                    want: 16,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        let e = decode_frame(&d, &[0u8; 16], &depth[..15], (2, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::Length { what: "depth", .. }), "{e}");
+    }
+
+    #[test]
+    fn colour_is_decoded_from_srgb_or_taken_linear() {
+        let d = desc(1, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let f = decode_frame(&d, &[255, 0, 188], &f32s(&[1.0]), (1, 1)).unwrap();
+        let px: Vec<f32> = f.color.channels.iter().map(|p| p.data()[0]).collect();
+        assert_eq!(px[0], 1.0);
+        assert_eq!(px[1], 0.0);
+        assert!((px[2] - 0.5).abs() < 0.01, "{px:?}");
+        let d = desc(1, 1, ColorFormat::Rgbf32, DepthKind::Diopters);
+        let f = decode_frame(&d, &f32s(&[0.25, 0.5, 0.75]), &f32s(&[1.0]), (1, 1)).unwrap();
+        assert_eq!(f.color.channels[1].data()[0], 0.5);
+        assert_eq!(f.depth.plane().data()[0], 1.0);
+    }
+
+    #[test]
+    fn the_newest_frame_wins_and_every_frame_is_accounted_for() {
+        let s = StreamFrames::open(1, 1, None).unwrap();
+        let d = FrameDesc {
+            seq: Some(5),
+            ..desc(1, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        let depth = f32s(&[1.0]);
+        assert_eq!(s.submit(&d, &[1, 2, 3], &depth, Timestamp(10)), Ok(5));
+        // A stale one is refused, the newer one replaces the first before the display took it.
+        let e = s.submit(&d, &[1, 2, 3], &depth, Timestamp(11)).unwrap_err();
+        assert!(matches!(e, FrameError::Stale { seq: 5, newest: 5 }));
+        let d7 = FrameDesc { seq: Some(7), ..d };
+        assert_eq!(s.submit(&d7, &[9, 9, 9], &depth, Timestamp(12)), Ok(7));
+        assert!(s.take_new().is_some());
+        assert!(s.take_new().is_none(), "taken once");
+        let st = s.status();
+        assert_eq!((st.received, st.shown, st.replaced), (2, 1, 1));
+        assert_eq!(st.refused.get("stale"), Some(&1));
+        assert_eq!(st.on_show_seq, Some(7));
+        assert!(st.newest_age_ms.is_some());
+        // Unnumbered frames continue the numbering.
+        let auto = FrameDesc { seq: None, ..d };
+        assert_eq!(s.submit(&auto, &[0, 0, 0], &depth, Timestamp(13)), Ok(8));
+    }
+
+    /// Writes a frame into a ring slot the way a client does: sequence number last.
+    fn write_slot(ring: &Ring, slot: usize, seq: u64, w: u32, h: u32, color: &[u8], depth: &[u8]) {
+        let base = RING_HEADER + slot * ring.slot_bytes;
+        let mut head = vec![0u8; SLOT_HEADER];
+        head[8..12].copy_from_slice(&1u32.to_le_bytes());
+        head[12..16].copy_from_slice(&2u32.to_le_bytes());
+        head[24..28].copy_from_slice(&w.to_le_bytes());
+        head[28..32].copy_from_slice(&h.to_le_bytes());
+        head[40..48].copy_from_slice(&(color.len() as u64).to_le_bytes());
+        head[48..56].copy_from_slice(&(depth.len() as u64).to_le_bytes());
+        let mut bytes = head;
+        bytes.extend_from_slice(color);
+        bytes.extend_from_slice(depth);
+        let f = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&ring.path)
+            .unwrap();
+        use std::os::unix::fs::FileExt;
+        f.write_all_at(&bytes[8..], (base + 8) as u64).unwrap();
+        f.write_all_at(&seq.to_le_bytes(), base as u64).unwrap();
+    }
+
+    #[test]
+    fn a_ring_slot_is_read_and_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frames");
+        let s = StreamFrames::open(2, 1, Some(&path)).unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+        let ring = s.ring.as_ref().unwrap();
+        let header = std::fs::read(&path).unwrap();
+        assert_eq!(&header[..8], RING_MAGIC);
+        write_slot(ring, 1, 3, 2, 1, &[255; 6], &f32s(&[0.5, 2.0]));
+        assert_eq!(s.submit_slot(1, 3, Timestamp(1)), Ok(3));
+        let f = s.take_new().unwrap();
+        assert_eq!(f.depth.plane().data(), &[0.5, 2.0]);
+        // The wrong sequence number, a slot out of range, sizes that overflow the slot.
+        assert!(s.submit_slot(1, 4, Timestamp(2)).is_err());
+        assert!(s.submit_slot(RING_SLOTS, 4, Timestamp(2)).is_err());
+        write_slot(ring, 0, 9, 2, 1, &[0; 6], &vec![0; ring.slot_bytes]);
+        let e = s.submit_slot(0, 9, Timestamp(3)).unwrap_err();
+        assert!(e.to_string().contains("do not fit"), "{e}");
+        // A truncated slot: its header says fewer depth bytes than the frame needs.
+        write_slot(ring, 2, 10, 2, 1, &[0; 6], &f32s(&[1.0]));
+        let e = s.submit_slot(2, 10, Timestamp(4)).unwrap_err();
+        assert!(matches!(e, FrameError::Length { what: "depth", .. }), "{e}");
+        let st = s.status();
+        assert_eq!(st.received, 1);
+        assert_eq!(st.refused.values().sum::<u64>(), 4);
+        drop(s);
+        assert!(!path.exists(), "the ring is removed with the stream");
+    }
+
+    #[test]
+    fn a_ring_path_that_is_a_symlink_is_not_followed() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("target");
+        std::fs::write(&target, b"keep").unwrap();
+        let link = dir.path().join("frames");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        let e = StreamFrames::open(2, 2, Some(&link)).unwrap_err();
+        assert!(e.to_string().contains("not a regular file"), "{e}");
+        assert_eq!(std::fs::read(&target).unwrap(), b"keep");
+    }
+}
