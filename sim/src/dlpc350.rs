@@ -882,7 +882,7 @@ impl State {
                 ack()
             }
             cmd::MBOX_DATA => {
-                if data.is_empty() || data.len() % 3 != 0 {
+                if data.is_empty() || !data.len().is_multiple_of(3) {
                     return Err(());
                 }
                 let n = data.len() / 3;
@@ -1063,7 +1063,7 @@ impl State {
                         device_time_us: at.duration_since(origin).as_micros() as u64,
                         exposure_us,
                         trig_out1: true,
-                        trig_out2: shown % every == 0,
+                        trig_out2: shown.is_multiple_of(every),
                     };
                     shown += 1;
                     // No subscriber is fine: the projector runs whether or not anyone watches.

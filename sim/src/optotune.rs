@@ -766,7 +766,7 @@ mod tests {
             x ^= x << 5;
             let b = [x as u8, (x >> 8) as u8, b"PwDACrMA"[(x >> 16) as usize % 8]];
             sim.receive(&b[..1 + (x >> 24) as usize % 3], &mut out);
-            if x % 7 == 0 {
+            if x.is_multiple_of(7) {
                 sim.idle_timeout(&mut out);
             }
         }

@@ -14,6 +14,7 @@ use dioptra_core::{Clock, DeviceError, GazeSample, GazeSource, SystemClock};
 use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::ids::{DIOPTRA_TRACKER_PID, DIOPTRA_VID};
+use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
 use dioptra_protocol::{BinocularSample, EyeSample};
 use dioptra_sched::processing::{Angles, GazeProcessor, ProcessorConfig};
 use dioptra_sim::gaze::generator::SampleSource;
@@ -25,7 +26,8 @@ use dioptra_transport::HidLink;
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// sim:SCENARIO or sim:TRACE.csv (simulated dioptra tracker, in-process),
-    /// sim-hid:SCENARIO (simulated usage page 0x12 tracker), hid:VID:PID or hid:/dev/hidrawN.
+    /// sim-hid:SCENARIO (simulated usage page 0x12 tracker), hid:VID:PID or hid:/dev/hidrawN,
+    /// pupil:HOST:PORT (Pupil Capture's Pupil Remote, e.g. pupil:127.0.0.1:50020).
     /// Scenarios: saccades, fixation, pursuit, vergence, blinks.
     #[arg(long)]
     device: Option<String>,
@@ -121,10 +123,10 @@ async fn run_async(args: Args) -> Result<()> {
     let device = args
         .device
         .as_deref()
-        .context("--device SPEC is required (sim:SCENARIO, sim-hid:SCENARIO or hid:VID:PID)")?;
-    let (kind, rest) = device
-        .split_once(':')
-        .context("--device must be sim:SCENARIO, sim-hid:SCENARIO or hid:VID:PID")?;
+        .context("--device SPEC is required (sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT)")?;
+    let (kind, rest) = device.split_once(':').context(
+        "--device must be sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT",
+    )?;
     match kind {
         "sim" => {
             let (link, _sim) = sim_dioptra::spawn(sim_source(rest, &args)?);
@@ -165,7 +167,20 @@ async fn run_async(args: Args) -> Result<()> {
                 .await
             }
         }
-        other => bail!("unknown device kind {other:?}: use sim, sim-hid or hid"),
+        "pupil" => {
+            let t = PupilCapture::connect(PupilConfig::new(rest), clock).await?;
+            let o = t.clock_offset();
+            let info = format!(
+                "driver pupil\ndevice Pupil Capture {} at {rest} (IPC publisher port {})\nclock offset {:.6} s (Pupil minus host; sd {:.1} us over {} requests)",
+                t.version(),
+                t.sub_port(),
+                o.mean_s,
+                o.std_s * 1e6,
+                o.samples
+            );
+            act(t, &args.action, info, HARDWARE_NOISE_DEG).await
+        }
+        other => bail!("unknown device kind {other:?}: use sim, sim-hid, hid or pupil"),
     }
 }
 
@@ -479,6 +494,33 @@ mod tests {
         run(args("sim-hid:pursuit", stream_n(3))).unwrap();
         run(args("sim:vergence", Action::Info)).unwrap();
         run(args("sim-hid:fixation", Action::Info)).unwrap();
+    }
+
+    /// `pupil:HOST:PORT` against a simulated Capture served by another runtime (as another
+    /// process would); a port with no Capture is an error, not a hang.
+    #[test]
+    fn streams_from_pupil_capture_by_address() {
+        use dioptra_sim::gaze::pupil_capture::{PupilCaptureConfig, PupilCaptureSim};
+        let rt = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .unwrap();
+        let gen = GazeGenerator::new(Scene::named("saccades").unwrap(), Default::default());
+        let sim = rt
+            .block_on(async {
+                PupilCaptureSim::spawn(PupilCaptureConfig::default(), Box::new(gen.unwrap()))
+            })
+            .unwrap();
+        let addr = sim.remote_addr();
+        run(args(&format!("pupil:{addr}"), stream_n(3))).unwrap();
+        run(args(&format!("pupil:{addr}"), Action::Info)).unwrap();
+        drop(sim);
+        let free = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = free.local_addr().unwrap().port();
+        drop(free);
+        let e = run(args(&format!("pupil:127.0.0.1:{port}"), stream_n(1))).unwrap_err();
+        assert!(e.to_string().contains("Pupil Remote"), "{e:#}");
     }
 
     #[test]

@@ -29,6 +29,8 @@ pub enum SimCommand {
     Lens(LensSimArgs),
     /// Serve a simulated dioptra sync board with a display and a lens (`--pty`).
     Sync(SyncSimArgs),
+    /// Serve a simulated Pupil Capture (Pupil Remote and its IPC backbone) on loopback TCP.
+    PupilCapture(PupilCaptureArgs),
 }
 
 #[derive(ClapArgs, Debug)]
@@ -73,6 +75,7 @@ pub fn run(args: Args) -> Result<()> {
         SimCommand::Optotune(a) => optotune_sim(a),
         SimCommand::Lens(a) => lens_sim(a),
         SimCommand::Sync(a) => sync_sim(a),
+        SimCommand::PupilCapture(a) => pupil_capture_sim(a),
     }
 }
 
@@ -282,6 +285,83 @@ where
             pair.slave_path.display()
         );
         serve(pair.master, dioptra_sim::tokio_clock::TokioClock::new()).await?;
+        Ok(())
+    })
+}
+
+#[derive(ClapArgs, Debug)]
+pub struct PupilCaptureArgs {
+    /// Pupil Remote's port on 127.0.0.1 (0: any free port).
+    #[arg(long, default_value_t = dioptra_gaze::pupil::ids::DEFAULT_REMOTE_PORT)]
+    port: u16,
+    /// Eye movements: saccades, fixation, pursuit, vergence, blinks.
+    #[arg(long, default_value = "saccades")]
+    scenario: String,
+    /// Gaze rate, Hz.
+    #[arg(long, default_value_t = 200.0)]
+    rate_hz: f64,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Pupil time at start, s (Capture's clock has its own base).
+    #[arg(long, default_value_t = 3000.0)]
+    time_base: f64,
+}
+
+/// Serves a simulated Pupil Capture until SIGTERM or Ctrl-C; the first line of stdout gives
+/// its ports.
+fn pupil_capture_sim(a: PupilCaptureArgs) -> Result<()> {
+    use dioptra_sim::gaze::pupil_capture::{PupilCaptureConfig, PupilCaptureSim};
+    use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene, SCENARIOS};
+    use std::io::Write as _;
+    let scene = Scene::named(&a.scenario).with_context(|| {
+        format!(
+            "unknown --scenario {:?}; expected one of {}",
+            a.scenario,
+            SCENARIOS.join(", ")
+        )
+    })?;
+    if !(a.rate_hz.is_finite() && (1.0..=2000.0).contains(&a.rate_hz)) {
+        bail!("--rate-hz must be 1 to 2000");
+    }
+    if !a.time_base.is_finite() {
+        bail!("--time-base must be a number of seconds");
+    }
+    let gen = GazeGenerator::new(
+        scene,
+        GeneratorConfig {
+            rate_hz: a.rate_hz,
+            seed: a.seed,
+            ..Default::default()
+        },
+    )
+    .map_err(anyhow::Error::msg)?;
+    crate::block_on(async move {
+        let cfg = PupilCaptureConfig {
+            remote_port: a.port,
+            pupil_time_at_start_s: a.time_base,
+            ..Default::default()
+        };
+        let sim = PupilCaptureSim::spawn(cfg, Box::new(gen))
+            .with_context(|| format!("cannot bind Pupil Remote on 127.0.0.1:{}", a.port))?;
+        println!(
+            "pupil remote {} sub_port {} pub_port {}",
+            sim.remote_addr(),
+            sim.sub_port(),
+            sim.pub_port()
+        );
+        std::io::stdout().flush()?;
+        eprintln!(
+            "sim pupil-capture: Pupil Remote on tcp://{} ({} scenario at {} Hz) until stopped (Ctrl-C)",
+            sim.remote_addr(),
+            a.scenario,
+            a.rate_hz
+        );
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term.recv() => {}
+        }
+        sim.shutdown().await;
         Ok(())
     })
 }

@@ -89,7 +89,7 @@ impl Field {
         }
         let mut v: u64 = 0;
         // Byte-wise when aligned (the common case), bit-wise otherwise.
-        if start % 8 == 0 && bits % 8 == 0 {
+        if start % 8 == 0 && bits.is_multiple_of(8) {
             let b = (start / 8) as usize;
             for (i, byte) in report[b..b + (bits / 8) as usize].iter().enumerate() {
                 v |= u64::from(*byte) << (8 * i);

@@ -6,4 +6,5 @@ pub mod dioptra_tracker;
 pub mod eye_hid;
 pub mod hid_descriptor;
 pub mod ids;
+pub mod pupil;
 mod timing;

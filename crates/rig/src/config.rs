@@ -155,13 +155,16 @@ impl Method {
     }
 }
 
-/// Where a device is: simulated in-process, a device path, or a USB/HID VID:PID.
+/// Where a device is: simulated in-process, a device path, a USB/HID VID:PID, or a network
+/// address (Pupil Capture's Pupil Remote).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(try_from = "String", into = "String")]
 pub enum Port {
     Sim,
     Path(PathBuf),
     VidPid(u16, u16),
+    /// "host:port": an IP literal (IPv6 in brackets), "localhost", or a host name with a dot.
+    Net(String),
 }
 
 impl TryFrom<String> for Port {
@@ -179,11 +182,39 @@ impl TryFrom<String> for Port {
                 return Ok(Port::VidPid(v, p));
             }
         }
+        if is_network_address(&s) {
+            return Ok(Port::Net(s));
+        }
         Err(format!(
             "invalid port {s:?}: expected \"sim\", a device path such as \"/dev/ttyACM0\", \
-             or a USB VID:PID in hex such as \"1209:d10a\""
+             a USB VID:PID in hex such as \"1209:d10a\", or a network address host:port such \
+             as \"127.0.0.1:50020\" or \"localhost:50020\""
         ))
     }
+}
+
+/// "host:port" with a decimal port: an IP literal, "localhost", or a host name with a dot
+/// (so "1209:d10a" stays a VID:PID and a typo of one is not taken for a host).
+fn is_network_address(s: &str) -> bool {
+    let Some((host, port)) = s.rsplit_once(':') else {
+        return false;
+    };
+    let port_ok = !port.is_empty()
+        && port.bytes().all(|b| b.is_ascii_digit())
+        && port.parse::<u16>().is_ok_and(|p| p > 0);
+    let host_ok = if let Some(v6) = host.strip_prefix('[').and_then(|h| h.strip_suffix(']')) {
+        v6.parse::<std::net::Ipv6Addr>().is_ok()
+    } else {
+        host.parse::<std::net::Ipv4Addr>().is_ok()
+            || host == "localhost"
+            || (host.contains('.')
+                && !host.starts_with('.')
+                && !host.ends_with('.')
+                && host.split('.').all(|l| {
+                    !l.is_empty() && l.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-')
+                }))
+    };
+    port_ok && host_ok
 }
 
 impl From<Port> for String {
@@ -192,6 +223,7 @@ impl From<Port> for String {
             Port::Sim => "sim".into(),
             Port::Path(p) => p.display().to_string(),
             Port::VidPid(v, p) => format!("{v:04x}:{p:04x}"),
+            Port::Net(a) => a,
         }
     }
 }
@@ -218,6 +250,8 @@ pub enum GazeDriver {
     DioptraTracker,
     /// A HID usage page 0x12 eye tracker.
     Hid,
+    /// Pupil Core, through Pupil Capture's network API (Pupil Remote's address as the port).
+    Pupil,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -261,6 +295,9 @@ pub struct GazeDevice {
     /// Seed of the simulated tracker (sim only).
     #[serde(default = "default_seed")]
     pub sim_seed: u64,
+    /// Pupil only: gaze below this confidence (0 to 1) is a dropout; Pupil Labs recommend 0.6.
+    #[serde(default = "default_min_confidence")]
+    pub min_confidence: f32,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -624,6 +661,9 @@ fn default_sync_settle_ms() -> f64 {
 fn default_scenario() -> String {
     "saccades".into()
 }
+fn default_min_confidence() -> f32 {
+    dioptra_gaze::pupil::ids::RECOMMENDED_MIN_CONFIDENCE
+}
 fn default_gaze_rate() -> f64 {
     250.0
 }
@@ -962,6 +1002,41 @@ impl RigConfig {
                 ),
             ));
         }
+        let c = g.min_confidence;
+        if !(c.is_finite() && (0.0..=1.0).contains(&c)) {
+            return Err(invalid(
+                "devices.gaze.min_confidence",
+                format!("expected a confidence of 0 to 1 (got {c})"),
+            ));
+        }
+        match (g.driver, &g.port) {
+            (GazeDriver::Pupil, Port::Net(_) | Port::Sim) => {}
+            (GazeDriver::Pupil, p) => {
+                return Err(invalid(
+                    "devices.gaze.port",
+                    format!("{p}: driver = \"pupil\" reaches Pupil Capture over the network: give Pupil Remote's address, e.g. \"127.0.0.1:50020\", or \"sim\""),
+                ))
+            }
+            (_, Port::Net(a)) => {
+                return Err(invalid(
+                    "devices.gaze.port",
+                    format!("{a}: a network address is for driver = \"pupil\"; this driver needs a device path, a VID:PID or \"sim\""),
+                ))
+            }
+            _ => {}
+        }
+        if let Port::Net(a) = &self.devices.lens.port {
+            return Err(invalid(
+                "devices.lens.port",
+                format!("{a}: lenses are reached by device path, VID:PID or \"sim\", not over the network"),
+            ));
+        }
+        if let Some(Port::Net(a)) = self.devices.sync.as_ref().map(|s| &s.port) {
+            return Err(invalid(
+                "devices.sync.port",
+                format!("{a}: sync hardware is reached by device path, VID:PID or \"sim\", not over the network"),
+            ));
+        }
         if !(g.sim_rate_hz.is_finite() && (1.0..=2000.0).contains(&g.sim_rate_hz)) {
             return Err(invalid(
                 "devices.gaze.sim_rate_hz",
@@ -1256,6 +1331,70 @@ pub(crate) mod tests {
         ))
         .unwrap();
         assert_eq!(ok.devices.lens.port, Port::Path("/dev/ttyACM0".into()));
+    }
+
+    #[test]
+    fn ports_tell_vid_pids_from_network_addresses() {
+        let port = |s: &str| Port::try_from(s.to_string());
+        assert_eq!(port("1209:d10a"), Ok(Port::VidPid(0x1209, 0xd10a)));
+        // Four digits each side are hex: a VID:PID, never a host.
+        assert_eq!(port("1234:5678"), Ok(Port::VidPid(0x1234, 0x5678)));
+        for a in [
+            "127.0.0.1:50020",
+            "localhost:50020",
+            "[::1]:50020",
+            "capture.lab:50020",
+        ] {
+            assert_eq!(port(a), Ok(Port::Net(a.into())), "{a}");
+            assert_eq!(String::from(Port::Net(a.into())), a);
+        }
+        for bad in [
+            "capture:50020",
+            "127.0.0.1:0",
+            "127.0.0.1:70000",
+            "127.0.0.1:",
+            "localhost",
+            ".lab:1",
+            "::1:50020",
+            "1209:d10",
+        ] {
+            let e = port(bad).unwrap_err();
+            assert!(
+                e.contains("host:port") && e.contains("VID:PID"),
+                "{bad}: {e}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_pupil_driver_takes_an_address_and_a_confidence_threshold() {
+        let pupil = SIM_RIG.replace("driver = \"dioptra-tracker\"", "driver = \"pupil\"");
+        assert_ne!(pupil, SIM_RIG);
+        let c = RigConfig::parse(&pupil).unwrap();
+        assert_eq!(c.devices.gaze.driver, GazeDriver::Pupil);
+        assert_eq!(c.devices.gaze.min_confidence, 0.6);
+        let net = pupil.replace(
+            "port = \"sim\"                # pupil",
+            "port = \"127.0.0.1:50020\"\nmin_confidence = 0.8 # pupil",
+        );
+        assert_ne!(net, pupil);
+        let c = RigConfig::parse(&net).unwrap();
+        assert_eq!(c.devices.gaze.port, Port::Net("127.0.0.1:50020".into()));
+        assert_eq!(c.devices.gaze.min_confidence, 0.8);
+        let e = err(&net.replace("min_confidence = 0.8", "min_confidence = 1.2"));
+        assert_eq!(e.key(), "devices.gaze.min_confidence", "{e}");
+        // A path is not where Pupil Capture is; an address is not where a HID tracker is.
+        let e = err(&pupil.replace(
+            "port = \"sim\"                # pupil",
+            "port = \"/dev/hidraw0\" # pupil",
+        ));
+        assert_eq!(e.key(), "devices.gaze.port", "{e}");
+        let e = err(&SIM_RIG.replace(
+            "port = \"sim\"                # pupil",
+            "port = \"127.0.0.1:50020\" # pupil",
+        ));
+        assert_eq!(e.key(), "devices.gaze.port", "{e}");
+        assert!(e.to_string().contains("pupil"), "{e}");
     }
 
     #[test]

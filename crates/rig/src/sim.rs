@@ -193,6 +193,120 @@ pub struct SimSlot {
     pub plug: Arc<SimPlug>,
     /// The lens, for the lens slot.
     pub lens: Option<SimLens>,
+    /// The simulated Pupil Capture, for a gaze slot with `driver = "pupil"`.
+    pub pupil: Option<SimPupilCapture>,
+}
+
+/// Makes the gaze a new simulated Capture publishes.
+pub(crate) type MakeGaze = Box<dyn FnMut() -> Result<Box<dyn SampleSource>, LinkError> + Send>;
+
+/// The simulated Pupil Capture of a rig (`driver = "pupil"`, `port = "sim"`): a separate
+/// "process" on loopback TCP that the driver reaches by address, as it would a real one.
+/// Connecting starts it if it is not running; unplugging quits it; [`SimPupilCapture::restart`]
+/// quits it and starts a new one on the same Pupil Remote port (new IPC ports, new time
+/// base), as a lab restarting Capture does.
+#[derive(Clone)]
+pub struct SimPupilCapture(Arc<Mutex<PupilSlot>>);
+
+struct PupilSlot {
+    running: Option<dioptra_sim::gaze::pupil_capture::PupilCaptureSim>,
+    /// Pupil Remote's port, kept across restarts (0 until the first start).
+    port: u16,
+    /// Starts so far; each start gets its own Pupil time base.
+    starts: u32,
+    /// The connection that may quit the running Capture when its link is cut.
+    owner: u64,
+    opened: u64,
+    gaze: MakeGaze,
+}
+
+impl SimPupilCapture {
+    pub(crate) fn new(gaze: MakeGaze) -> Self {
+        SimPupilCapture(Arc::new(Mutex::new(PupilSlot {
+            running: None,
+            port: 0,
+            starts: 0,
+            owner: 0,
+            opened: 0,
+            gaze,
+        })))
+    }
+
+    /// Pupil Remote's port once started.
+    pub fn remote_port(&self) -> Option<u16> {
+        let s = lock(&self.0);
+        (s.port != 0).then_some(s.port)
+    }
+
+    /// The running Capture's IPC publisher port (`SUB_PORT`), if running.
+    pub fn sub_port(&self) -> Option<u16> {
+        lock(&self.0).running.as_ref().map(|c| c.sub_port())
+    }
+
+    /// Times Capture was started.
+    pub fn starts(&self) -> u32 {
+        lock(&self.0).starts
+    }
+
+    fn start(slot: &mut PupilSlot) -> Result<(), LinkError> {
+        use dioptra_sim::gaze::pupil_capture::{PupilCaptureConfig, PupilCaptureSim};
+        let source = (slot.gaze)()?;
+        let cfg = PupilCaptureConfig {
+            remote_port: slot.port,
+            // Each Capture has its own arbitrary clock base.
+            pupil_time_at_start_s: 3000.0 + 1000.0 * f64::from(slot.starts),
+            ..Default::default()
+        };
+        let sim = PupilCaptureSim::spawn(cfg, source).map_err(|e| {
+            LinkError::Unavailable(format!(
+                "the simulated Pupil Capture cannot bind port {}: {e}",
+                slot.port
+            ))
+        })?;
+        slot.port = sim.remote_addr().port();
+        slot.starts += 1;
+        slot.running = Some(sim);
+        Ok(())
+    }
+
+    /// Quits Capture and starts a new one on the same Pupil Remote port, waiting (up to 5 s)
+    /// for the old port to close.
+    pub async fn restart(&self) -> Result<(), LinkError> {
+        let old = lock(&self.0).running.take();
+        if let Some(old) = old {
+            old.shutdown().await;
+        }
+        let mut last = None;
+        for _ in 0..250 {
+            match Self::start(&mut lock(&self.0)) {
+                Ok(()) => return Ok(()),
+                Err(e) => last = Some(e),
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        Err(last.unwrap_or_else(|| LinkError::Unavailable("no restart attempted".into())))
+    }
+
+    /// A link for a new connection: Pupil Remote's address (Capture started if need be), and
+    /// the cut that quits Capture while this connection is the newest.
+    pub(crate) fn open(&self) -> Result<(SimLink, Cut), LinkError> {
+        let mut s = lock(&self.0);
+        if s.running.is_none() {
+            Self::start(&mut s)?;
+        }
+        s.opened += 1;
+        s.owner = s.opened;
+        let (me, addr) = (s.opened, format!("127.0.0.1:{}", s.port));
+        let slot = self.0.clone();
+        let cut: Cut = Box::new(move || {
+            let mut s = lock(&slot);
+            if s.owner == me {
+                // Dropping it stops its tasks; the ports close as they end.
+                s.running = None;
+            }
+        });
+        Ok((SimLink::Net(addr), cut))
+    }
 }
 
 /// What the generator of the simulated tracker really did, on the rig's clock.
@@ -212,6 +326,8 @@ pub struct SimDevices {
 pub enum SimLink {
     Byte(AnyByteLink),
     Hid(AnyHidLink),
+    /// A network address ("host:port") the simulator serves on.
+    Net(String),
 }
 
 /// Opens links to one simulated device, each time it is (re)connected.
@@ -219,6 +335,7 @@ pub(crate) struct SimEndpoint {
     pub open: Box<dyn FnMut() -> Result<(SimLink, Cut), LinkError> + Send>,
     pub lens: Option<SimLens>,
     pub gaze_truth: Option<GazeTruth>,
+    pub pupil: Option<SimPupilCapture>,
 }
 
 /// A byte-speaking simulator shared by every link opened to it, served on `clock`.

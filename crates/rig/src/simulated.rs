@@ -72,6 +72,13 @@ impl SimRun {
                 }));
             }
         }
+        if d.gaze.driver == crate::config::GazeDriver::Pupil {
+            // Its simulator is reached over real sockets, which a paused clock would outrun.
+            return Err(RigError::Config(crate::config::ConfigError::Invalid {
+                key: "devices.gaze.driver".into(),
+                message: "pupil: the simulated Pupil Capture runs on real loopback sockets and real time; a simulated-time run needs dioptra-tracker or hid (run the pupil rig with `dioptra serve`)".into(),
+            }));
+        }
         let mut spec = SimSpec::from_config(&cfg)?;
         spec.record_gaze_truth = true;
         let sched = sched_config(&cfg).map_err(RigError::Scheduler)?;

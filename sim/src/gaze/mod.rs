@@ -6,6 +6,7 @@ pub mod csv;
 pub mod dioptra_tracker;
 pub mod generator;
 pub mod hid_tracker;
+pub mod pupil_capture;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

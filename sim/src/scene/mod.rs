@@ -221,7 +221,7 @@ impl Scene {
                 },
             };
             let texture = random_texture(&mut rng, z);
-            let alpha = if opts.semi_transparent && rng.next_u32() % 3 == 0 {
+            let alpha = if opts.semi_transparent && rng.next_u32().is_multiple_of(3) {
                 rng.range(0.3, 0.7)
             } else {
                 1.0

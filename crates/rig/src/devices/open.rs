@@ -8,6 +8,7 @@ use std::sync::{Arc, Mutex};
 use dioptra_core::{Clock, DeviceError, Diopters, LinkError, PowerRange};
 use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
+use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
 use dioptra_lens::{ControllerConfig, LensController, LensLimits, Optotune, OptotuneConfig};
 use dioptra_sync::board::SyncBoard;
 use dioptra_sync::dlpc350::Dlpc350;
@@ -16,8 +17,8 @@ use dioptra_transport::{AnyByteLink, AnyHidLink};
 use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxSequencer};
 use crate::config::{GazeDriver, LensDriver, Port, RigConfig, SyncDriver};
 use crate::sim::{
-    byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug, SimSlot,
-    SimSpec,
+    byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
+    SimPupilCapture, SimSlot, SimSpec,
 };
 
 /// How a driver's real device is reached from its port.
@@ -27,28 +28,50 @@ pub enum Transport {
     Serial,
     /// A HID device (a hidraw path, or the first HID interface with a VID:PID).
     Hid,
+    /// A network service at "host:port" (the driver opens its own sockets).
+    Net,
 }
 
 /// What a driver connects over: a real device's link or a simulator's.
 pub enum Link {
     Byte(AnyByteLink),
     Hid(AnyHidLink),
+    /// The address of a network service.
+    Net(String),
 }
 
 impl Link {
+    fn kind(&self) -> &'static str {
+        match self {
+            Link::Byte(_) => "a byte link",
+            Link::Hid(_) => "a HID link",
+            Link::Net(_) => "a network address",
+        }
+    }
     fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
         match self {
             Link::Byte(l) => Ok(l),
-            Link::Hid(_) => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over a byte link, and was given a HID link"
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over a byte link, and was given {}",
+                other.kind()
             ))),
         }
     }
     fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
         match self {
             Link::Hid(l) => Ok(l),
-            Link::Byte(_) => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over HID, and was given a byte link"
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over HID, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+    fn net(self, what: &str) -> Result<String, DeviceError> {
+        match self {
+            Link::Net(a) => Ok(a),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over the network, and was given {}",
+                other.kind()
             ))),
         }
     }
@@ -95,7 +118,7 @@ pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
     },
 ];
 
-pub static GAZE: [Row<GazeDriver, BoxGaze>; 2] = [
+pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
     Row {
         driver: GazeDriver::DioptraTracker,
         name: "dioptra-tracker",
@@ -111,6 +134,14 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 2] = [
         transport: Transport::Hid,
         sim: sim_hid_tracker,
         connect: connect_hid_tracker,
+    },
+    Row {
+        driver: GazeDriver::Pupil,
+        name: "pupil",
+        what: "Pupil Capture",
+        transport: Transport::Net,
+        sim: sim_pupil_capture,
+        connect: connect_pupil,
     },
 ];
 
@@ -160,6 +191,7 @@ pub(crate) fn device_connector<K, D: Send + 'static>(
             *slot = Some(SimSlot {
                 plug: plug.clone(),
                 lens: sim.lens.take(),
+                pupil: sim.pupil.take(),
             });
             if sim.gaze_truth.is_some() {
                 *gaze_truth = sim.gaze_truth.take();
@@ -170,6 +202,7 @@ pub(crate) fn device_connector<K, D: Send + 'static>(
                 Ok(match link {
                     SimLink::Byte(l) => Link::Byte(l),
                     SimLink::Hid(l) => Link::Hid(l),
+                    SimLink::Net(a) => Link::Net(a),
                 })
             })
         }
@@ -178,6 +211,7 @@ pub(crate) fn device_connector<K, D: Send + 'static>(
             Box::new(move || match transport {
                 Transport::Serial => Ok(Link::Byte(serial_at(what, &port)?.into())),
                 Transport::Hid => Ok(Link::Hid(hid_at(what, &port)?.into())),
+                Transport::Net => net_at(what, &port).map(Link::Net),
             })
         }
     };
@@ -195,12 +229,22 @@ fn unsupported_port(what: &str, port: &Port) -> DeviceError {
     )))
 }
 
+/// The address at a network device's port.
+fn net_at(what: &str, port: &Port) -> Result<String, DeviceError> {
+    match port {
+        Port::Net(a) => Ok(a.clone()),
+        _ => Err(DeviceError::Link(LinkError::Unavailable(format!(
+            "the {what} is reached over the network: give its address host:port (e.g. 127.0.0.1:50020) or \"sim\", not {port}"
+        )))),
+    }
+}
+
 /// The HID link at a device's port: a hidraw path, or the first HID interface with that VID:PID.
 fn hid_at(what: &str, port: &Port) -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
     Ok(match port {
         Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, None)?,
         Port::Path(p) => dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?,
-        Port::Sim => return Err(unsupported_port(what, port)),
+        Port::Sim | Port::Net(_) => return Err(unsupported_port(what, port)),
     })
 }
 
@@ -218,7 +262,7 @@ pub(crate) fn serial_at(
                     DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
                 })?
         }
-        Port::Sim => return Err(unsupported_port(what, port)),
+        Port::Sim | Port::Net(_) => return Err(unsupported_port(what, port)),
     };
     Ok(dioptra_transport::serial::SerialLink::open(
         &path,
@@ -278,6 +322,19 @@ fn connect_hid_tracker(
     })
 }
 
+fn connect_pupil(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
+    Box::pin(async move {
+        let g = &ctx.cfg.devices.gaze;
+        let mut cfg = PupilConfig::new(link.net("Pupil Capture")?);
+        cfg.min_confidence = g.min_confidence;
+        if g.port == Port::Sim {
+            cfg.rate_hz = g.sim_rate_hz as f32;
+        }
+        let d = PupilCapture::connect(cfg, ctx.clock).await?;
+        Ok(BoxGaze(Box::new(d)))
+    })
+}
+
 fn connect_sync_board(
     link: Link,
     ctx: Context,
@@ -316,6 +373,7 @@ fn sim_optotune(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
         lens: Some(SimLens::Optotune(dev.clone())),
         open: Box::new(byte_endpoint("Lens Driver 4", dev, ctx.clock.clone())),
         gaze_truth: None,
+        pupil: None,
     }
 }
 
@@ -332,6 +390,7 @@ fn sim_lens_controller(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
         lens: Some(SimLens::Controller(dev.clone())),
         open: Box::new(byte_endpoint("lens controller", dev, ctx.clock.clone())),
         gaze_truth: None,
+        pupil: None,
     }
 }
 
@@ -343,6 +402,7 @@ fn sim_sync_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
         lens: None,
         open: Box::new(byte_endpoint("sync board", dev, ctx.clock.clone())),
         gaze_truth: None,
+        pupil: None,
     }
 }
 
@@ -356,6 +416,7 @@ fn sim_dlpc350(spec: &SimSpec, _ctx: &Context) -> SimEndpoint {
             Ok((SimLink::Hid(link.into()), cut))
         }),
         gaze_truth: None,
+        pupil: None,
     }
 }
 
@@ -397,6 +458,24 @@ fn gaze_endpoint(
             Ok((SimLink::Hid(link.into()), cut))
         }),
         gaze_truth: truth,
+        pupil: None,
+    }
+}
+
+/// A simulated Pupil Capture on loopback TCP, publishing the spec's gaze scene; each start
+/// of Capture plays the scene from its beginning.
+fn sim_pupil_capture(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let truth = spec
+        .record_gaze_truth
+        .then(|| GazeTruth::new(Mutex::new(Vec::new())));
+    let (spec, clock, t) = (spec.clone(), ctx.clock.clone(), truth.clone());
+    let capture = SimPupilCapture::new(Box::new(move || gaze_source(&spec, &t, &clock)));
+    let c = capture.clone();
+    SimEndpoint {
+        lens: None,
+        open: Box::new(move || c.open()),
+        gaze_truth: truth,
+        pupil: Some(capture),
     }
 }
 
@@ -431,7 +510,11 @@ mod tests {
         for d in [LensDriver::Optotune, LensDriver::Lens] {
             assert!(row(&LENS, d).is_ok(), "{d:?}");
         }
-        for d in [GazeDriver::DioptraTracker, GazeDriver::Hid] {
+        for d in [
+            GazeDriver::DioptraTracker,
+            GazeDriver::Hid,
+            GazeDriver::Pupil,
+        ] {
             assert!(row(&GAZE, d).is_ok(), "{d:?}");
         }
         for d in [SyncDriver::Sync, SyncDriver::Dlpc350] {

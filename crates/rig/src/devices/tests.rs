@@ -283,3 +283,120 @@ async fn commands_during_state_reads_all_reach_the_lens() {
         delays.len()
     );
 }
+
+/// The example rig with `driver = "pupil"` on the simulated Capture (real loopback sockets,
+/// so real time: bounds are failure timeouts only).
+fn pupil_rig(t: &str) -> String {
+    t.replace("driver = \"dioptra-tracker\"", "driver = \"pupil\"")
+}
+
+/// Waits (up to 60 s) for `n` gaze samples with both eyes valid; returns their device times.
+async fn pupil_gaze(inputs: &mut mpsc::Receiver<DeviceInput>, n: usize) -> Vec<f64> {
+    let mut times = Vec::new();
+    let r = tokio::time::timeout(Duration::from_secs(60), async {
+        while times.len() < n {
+            match inputs.recv().await {
+                Some(DeviceInput::Gaze(s, _)) if s.left.valid && s.right.valid => {
+                    times.push(s.device_time.as_secs_f64())
+                }
+                Some(_) => {}
+                None => break,
+            }
+        }
+    })
+    .await;
+    assert!(r.is_ok(), "{} of {n} gaze samples in 60 s", times.len());
+    times
+}
+
+/// `driver = "pupil"`, `port = "sim"`: the drivers' table starts the simulated Capture and
+/// the driver reaches it by address; after Capture restarts on the same Pupil Remote port
+/// (new IPC port, new time base) the gaze task reconnects and gaze flows again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_pupil_driver_streams_the_simulated_capture_and_follows_its_restart() {
+    let mut rig = start(pupil_rig);
+    let first = pupil_gaze(&mut rig.inputs, 50).await;
+    // The first Capture's Pupil time starts at 3000 s.
+    assert!(
+        first.iter().all(|t| (3000.0..3900.0).contains(t)),
+        "{first:?}"
+    );
+    assert!(
+        first.windows(2).all(|w| w[1] > w[0]),
+        "not monotonic: {first:?}"
+    );
+    let gaze = rig.registry.snapshot()["gaze"].clone();
+    assert_eq!((gaze.driver.as_str(), gaze.state), ("pupil", State::Ok));
+    let capture = rig
+        .sims
+        .gaze
+        .clone()
+        .unwrap()
+        .pupil
+        .expect("the sim Capture");
+    let port = capture.remote_port().unwrap();
+    capture.restart().await.unwrap();
+    assert_eq!(capture.remote_port(), Some(port));
+    assert_eq!(capture.starts(), 2);
+    // The old subscription goes quiet; the driver reconnects to the new Capture, whose
+    // Pupil time starts at 4000 s.
+    let registry = rig.registry.clone();
+    tokio::time::timeout(Duration::from_secs(60), async {
+        while registry.snapshot()["gaze"].connects < 2 {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await
+    .expect("the gaze task never reconnected to the restarted Capture");
+    while rig.inputs.try_recv().is_ok() {}
+    let after = pupil_gaze(&mut rig.inputs, 20).await;
+    assert!(after.iter().all(|t| *t >= 4000.0), "{after:?}");
+    let gaze = rig.registry.snapshot()["gaze"].clone();
+    assert!(gaze.failures >= 1 && gaze.state == State::Ok, "{gaze:?}");
+    assert!(
+        gaze.last_error.as_deref().unwrap_or("").contains("no gaze"),
+        "{gaze:?}"
+    );
+    rig.stop().await;
+}
+
+/// The whole rig (scheduler, lens, renderer) with gaze from the simulated Pupil Capture:
+/// gaze samples reach the loop and the lens is commanded to follow them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_rig_focuses_where_pupil_gaze_looks() {
+    let cfg = RigConfig::parse(&pupil_rig(SIM_RIG)).unwrap();
+    assert_eq!(cfg.devices.gaze.driver, crate::config::GazeDriver::Pupil);
+    let rig = crate::Rig::start(crate::RigSetup::new(cfg)).await.unwrap();
+    let state = rig.state().clone();
+    // Wait for the lens to be commanded to powers half a diopter apart as the gaze moves
+    // over the scene (saccades between targets at different depths).
+    let mut powers: Vec<f32> = Vec::new();
+    let r = tokio::time::timeout(Duration::from_secs(90), async {
+        loop {
+            let s = dioptra_core::lock(&state.status).clone();
+            if let Some(p) = s.commanded_focus_d {
+                if powers.last() != Some(&p) {
+                    powers.push(p);
+                }
+            }
+            let lo = powers.iter().copied().fold(f32::INFINITY, f32::min);
+            let hi = powers.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            if s.gaze_samples > 100 && hi - lo > 0.5 {
+                return s;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    })
+    .await;
+    let status = r.unwrap_or_else(|_| {
+        panic!(
+            "the lens did not follow Pupil gaze: commanded {powers:?}, status {}",
+            state.status_json()
+        )
+    });
+    assert!(status.lens_commands >= 2, "{status:?}");
+    assert_eq!(state.registry.snapshot()["gaze"].driver, "pupil");
+    state.cancel.cancel();
+    let report = rig.wait().await;
+    assert!(report.ok(), "{:?}", report.problems());
+}
