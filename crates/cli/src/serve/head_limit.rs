@@ -190,6 +190,14 @@ impl<IO: AsyncRead + AsyncWrite + Unpin> AsyncRead for HeadLimited<IO> {
 }
 
 impl<IO: AsyncRead + AsyncWrite + Unpin> HeadLimited<IO> {
+    /// The connection is being refused: its reply is ours, hyper writes nothing more.
+    fn refused(&self) -> bool {
+        matches!(
+            self.state,
+            State::Closed | State::Draining { .. } | State::Refusing { .. }
+        )
+    }
+
     /// A reply starting to go out ends a request: the next bytes read are a new head.
     /// Interim replies (100 Continue) do not, and a 101 hands the stream to the upgrade.
     fn on_write(&mut self, first: &[u8]) {
@@ -214,10 +222,7 @@ impl<IO: AsyncRead + AsyncWrite + Unpin> AsyncWrite for HeadLimited<IO> {
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
         let this = self.get_mut();
-        if matches!(
-            this.state,
-            State::Closed | State::Draining { .. } | State::Refusing { .. }
-        ) {
+        if this.refused() {
             return Poll::Ready(Err(io::ErrorKind::BrokenPipe.into()));
         }
         let n = ready!(Pin::new(&mut this.io).poll_write(cx, buf))?;
@@ -233,10 +238,7 @@ impl<IO: AsyncRead + AsyncWrite + Unpin> AsyncWrite for HeadLimited<IO> {
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
         let this = self.get_mut();
-        if matches!(
-            this.state,
-            State::Closed | State::Draining { .. } | State::Refusing { .. }
-        ) {
+        if this.refused() {
             return Poll::Ready(Err(io::ErrorKind::BrokenPipe.into()));
         }
         let n = ready!(Pin::new(&mut this.io).poll_write_vectored(cx, bufs))?;
