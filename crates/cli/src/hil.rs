@@ -19,6 +19,11 @@
 //!    schedule, and faults counted. Skipped for a DLPC350, which reports no sub-frame times
 //!    of its own.
 //!
+//! 4. content latency (when `[content]` is a stream or files): from a content frame's arrival
+//!    to its being ready, and to the display time of the first frame showing it, from the
+//!    rig's own latency histograms. With `source = "stream"` the harness plays the application:
+//!    `--trials` frames through the stream's `PUT /frame` path at `display.frame_hz`.
+//!
 //! It writes `summary.txt` and `summary.json` (HdrHistogram percentiles) and one PNG histogram
 //! per measurement to `--out`. With simulated devices every output says SIMULATED.
 
@@ -172,6 +177,8 @@ enum Seen {
     Input(DeviceInput),
     /// The loop handed lens command `id` to the lens task at this time.
     LensCommand(u64, Timestamp),
+    /// The loop stopped: the scheduler's latency histograms.
+    Stopped(Box<dioptra_sched::Latency>),
 }
 
 /// Forwards what the loop sees to the harness, which measures outside the loop's task.
@@ -186,6 +193,75 @@ impl LoopHook for Forward {
             let _ = self.0.send(Seen::LensCommand(id.0, now));
         }
     }
+    fn stopped(&mut self, _now: Timestamp, engine: &dioptra_rig::engine::Engine) {
+        let latency = engine.scheduler().latency().clone();
+        let _ = self.0.send(Seen::Stopped(Box::new(latency)));
+    }
+}
+
+/// Plays the application of a `source = "stream"` rig: `n` frames at `hz` through the
+/// stream's `PUT /frame` path, a bright square stepping between 0.5 and 2 m. Returns the
+/// frames accepted.
+async fn push_stream_frames(
+    state: &std::sync::Arc<dioptra_rig::RigState>,
+    n: usize,
+    hz: f64,
+) -> usize {
+    use dioptra_rig::stream::{ColorFormat, DepthKind, FrameDesc};
+    let d = &state.cfg.display;
+    let (w, h) = (d.width as usize, d.height as usize);
+    let desc = FrameDesc {
+        width: w,
+        height: h,
+        color: ColorFormat::Rgb8,
+        depth: DepthKind::Metres,
+        near: None,
+        far: None,
+        seq: None,
+        app_time_ns: None,
+    };
+    let mut accepted = 0;
+    let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / hz));
+    for i in 0..n {
+        tick.tick().await;
+        let near = if i % 2 == 0 { 0.5f32 } else { 2.0 };
+        let inside =
+            |x: usize, y: usize| (w / 4..3 * w / 4).contains(&x) && (h / 4..3 * h / 4).contains(&y);
+        let mut color = Vec::with_capacity(w * h * 3);
+        let mut depth = Vec::with_capacity(w * h * 4);
+        for y in 0..h {
+            for x in 0..w {
+                let v = if inside(x, y) { 230u8 } else { 40 };
+                color.extend_from_slice(&[v, v, v]);
+                let m = if inside(x, y) { near } else { 3.0 };
+                depth.extend_from_slice(&m.to_le_bytes());
+            }
+        }
+        let st = state.clone();
+        let now = state.clock.now();
+        let ok = tokio::task::spawn_blocking(move || {
+            st.renderer
+                .stream()
+                .is_some_and(|s| s.submit(&desc, &color, &depth, now).is_ok())
+        })
+        .await
+        .unwrap_or(false);
+        accepted += usize::from(ok);
+    }
+    accepted
+}
+
+/// A histogram of the rig's scheduler as a measurement.
+fn from_latency(
+    key: &'static str,
+    title: &'static str,
+    h: &Histogram<u64>,
+    note: String,
+) -> Measure {
+    let mut m = Measure::new(key, title);
+    let _ = m.hist.add(h);
+    m.note = note;
+    m
 }
 
 async fn measure(
@@ -421,6 +497,18 @@ async fn measure(
     } else {
         println!("sub-frame timing: skipped (the config names no devices.sync)");
     }
+    // 4. Content latency: the harness is the application of a stream rig.
+    use dioptra_rig::config::ContentSource;
+    let source = cfg.content.source;
+    let pushed = if source == ContentSource::Stream {
+        let n = push_stream_frames(&state, args.trials, cfg.display.frame_hz).await;
+        // The last frames reach the display.
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        println!("content: {n} of {} stream frames accepted", args.trials);
+        Some(n)
+    } else {
+        None
+    };
     state.cancel.cancel();
     let report = rig.wait().await;
     if !report.ok() {
@@ -428,6 +516,46 @@ async fn measure(
             "the rig did not stop cleanly: {}",
             report.problems().join("; ")
         );
+    }
+    let mut latency = None;
+    // The hook sends the figures as the loop stops, then is dropped with the rig.
+    while let Ok(Some(s)) = tokio::time::timeout(Duration::from_secs(5), rx.recv()).await {
+        if let Seen::Stopped(l) = s {
+            latency = Some(l);
+            break;
+        }
+    }
+    if source != ContentSource::Scene {
+        let Some(l) = latency else {
+            bail!("the rig's loop stopped without its latency figures");
+        };
+        use dioptra_sched::Stage;
+        let how = match pushed {
+            Some(n) => format!(
+                "{n} frames pushed by the harness through the stream's PUT /frame path (copy, checks, conversion) at display.frame_hz = {} Hz, {}x{}",
+                cfg.display.frame_hz, cfg.display.width, cfg.display.height
+            ),
+            None => "the files source's frames over the whole run, arrival being each frame's due time in the sequence".into(),
+        };
+        let received = l.stage(Stage::ContentReceived);
+        let shown = l.stage(Stage::ContentToPresented);
+        println!(
+            "content: {} frames received, {} shown (the rest replaced by newer ones first)",
+            received.len(),
+            shown.len()
+        );
+        measures.push(from_latency(
+            "content_received",
+            "content frame arrival to ready",
+            received,
+            format!("{how}; from a frame's arrival to its being ready to render, for each frame the display took up (frames a newer one replaced first are not counted)"),
+        ));
+        measures.push(from_latency(
+            "content_to_presented",
+            "content frame arrival to presented",
+            shown,
+            format!("{how}; from a frame's arrival to the display time of the first frame showing it (frames replaced before any frame showed them are not counted)"),
+        ));
     }
     Ok(measures)
 }

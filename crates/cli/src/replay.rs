@@ -336,6 +336,10 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
                 render_time: Duration::from_nanos(f.render_ns),
             },
             Rec::Depth(_) => Input::Depth(depth.clone()),
+            Rec::Content(c) => Input::Content(dioptra_rig::render::Arrival {
+                arrived: Timestamp(c.arrived_ns),
+                ready: Timestamp(c.ready_ns),
+            }),
             Rec::Tick(_) => Input::Tick,
             Rec::Shutdown(_) => Input::Shutdown,
             Rec::Control(c) => Input::Control(match c {

@@ -106,3 +106,36 @@ fn hil_with_a_dlpc350_says_it_cannot_time_sub_frames() {
     );
     assert_eq!(js["measurements"]["command_to_settled"]["count"], 3, "{js}");
 }
+
+#[test]
+fn hil_on_a_stream_rig_measures_content_to_presented() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = RIG.replace(
+        "# [content]\n",
+        "[content]\nsource = \"stream\"\nring = \"none\"\n",
+    );
+    assert!(text.contains("source = \"stream\""));
+    let config = write_config(dir.path(), &text);
+    let out = dir.path().join("hil");
+    let run = hil(&config, 30, &out);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    assert!(
+        stdout.contains("30 of 30 stream frames accepted"),
+        "{stdout}"
+    );
+    let js = summary_json(&out);
+    let m = &js["measurements"];
+    // At 60 Hz frames and 60 Hz content most frames show (a few are replaced by the next
+    // before a frame is requested); each shown one is timed both ways. A frame is at least
+    // a render and a frame period's lead from arrival to display.
+    let shown = m["content_to_presented"]["count"].as_u64().unwrap();
+    assert!((15..=30).contains(&shown), "{js}");
+    assert_eq!(m["content_received"]["count"], shown, "{js}");
+    assert!(
+        m["content_to_presented"]["p50_us"].as_u64().unwrap() > 1000,
+        "{js}"
+    );
+    assert!(out.join("content_to_presented.png").exists());
+}

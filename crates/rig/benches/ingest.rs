@@ -30,7 +30,7 @@ fn ingest(c: &mut Criterion) {
                 b.iter(|| {
                     desc.seq = None;
                     s.submit(&desc, &color, &depth, Timestamp(0)).unwrap();
-                    s.take_new().unwrap()
+                    s.take_new().unwrap().0
                 })
             });
         }

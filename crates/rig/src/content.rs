@@ -10,6 +10,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
 
 use dioptra_core::{lock, Rgbd, Timestamp};
 use dioptra_render::io::{read_color, read_depth, DepthUnits};
@@ -135,6 +136,8 @@ pub struct FileFrames {
     /// The index last counted late (each late frame counts once).
     late_index: Mutex<Option<usize>>,
     status: Mutex<ContentStatus>,
+    /// The due time of the frame taken up last, and when it was, until the loop asks.
+    arrival: Mutex<Option<crate::render::Arrival>>,
 }
 
 impl std::fmt::Debug for FileFrames {
@@ -205,7 +208,13 @@ impl FileFrames {
             shared,
             on_show: Mutex::new((None, 0, first_frame)),
             late_index: Mutex::new(None),
+            arrival: Mutex::new(None),
         })
+    }
+
+    /// The due time of the frame the latest [`FileFrames::frame_at`] took up, once.
+    pub fn take_arrival(&self) -> Option<crate::render::Arrival> {
+        lock(&self.arrival).take()
     }
 
     /// The frame on show now.
@@ -222,8 +231,12 @@ impl FileFrames {
         if n == 1 {
             return (show.2.clone(), false);
         }
-        let k = (now.saturating_since(start).as_secs_f64() * self.fps) as usize;
-        let k = if self.looped { k % n } else { k.min(n - 1) };
+        let count = (now.saturating_since(start).as_secs_f64() * self.fps) as usize;
+        let k = if self.looped {
+            count % n
+        } else {
+            count.min(n - 1)
+        };
         if k == show.1 {
             return (show.2.clone(), false);
         }
@@ -239,6 +252,12 @@ impl FileFrames {
             Some(Ok(frame)) => {
                 st.index = k;
                 st.since_ns = now.0;
+                // Its due time: where the sequence's clock put it (late if decoding lagged).
+                let shown = if self.looped { count } else { k };
+                *lock(&self.arrival) = Some(crate::render::Arrival {
+                    arrived: start + Duration::from_secs_f64(shown as f64 / self.fps),
+                    ready: now,
+                });
                 *show = (show.0, k, frame);
                 (show.2.clone(), true)
             }
@@ -382,10 +401,14 @@ mod tests {
         cached(&f, 3);
         // 10 fps: frame 1 from 100 ms, frame 2 from 200 ms, frame 0 again from 300 ms.
         assert!(!f.frame_at(ms(99)).1);
-        for (t, v) in [(100, 0.1), (250, 0.2), (300, 0.0)] {
+        // Each frame arrives when it is due (frame 2 at 200 ms although taken up at 250 ms).
+        for (t, v, due) in [(100, 0.1, 100), (250, 0.2, 200), (300, 0.0, 300)] {
             let (fr, changed) = f.frame_at(ms(t));
             assert!(changed, "{t} ms");
             assert!((fr.color.channels[0].data()[0] - v).abs() < 1e-6, "{t} ms");
+            let a = f.take_arrival().unwrap();
+            assert_eq!((a.arrived, a.ready), (ms(due), ms(t)));
+            assert!(f.take_arrival().is_none(), "given once");
             cached(&f, 3);
         }
         let st = f.status();

@@ -29,6 +29,8 @@ pub enum Input {
     Control(Control),
     /// The depth map of the content being shown (diopters), read at the gaze point.
     Depth(Arc<DepthMap>),
+    /// The content frame of the latest depth arrived and was ready then.
+    Content(crate::render::Arrival),
     RenderFinished {
         frame: u64,
         method: Method,
@@ -201,6 +203,10 @@ impl Engine {
                 }
             },
             Input::Depth(d) => Event::Depth(d),
+            Input::Content(a) => Event::Content {
+                arrived: a.arrived,
+                ready: a.ready,
+            },
             Input::RenderFinished {
                 frame,
                 method,

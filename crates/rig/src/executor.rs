@@ -107,9 +107,8 @@ pub(crate) async fn run_loop(parts: LoopParts) {
     ex.sync_status(&engine);
     let now = clock.now();
     if let Some(d) = renderer.depth(now) {
-        state.record(now, Rec::Depth(Marker {}));
-        let cmds = engine.step(now, Input::Depth(d)).unwrap_or_default();
-        ex.execute(now, cmds, None).await;
+        let arrival = renderer.take_arrival();
+        ex.give_content(&mut engine, now, d, arrival).await;
     }
     loop {
         let wake = [
@@ -193,10 +192,8 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         ex.execute(now, cmds, cause).await;
         // A frame was asked for and the content had moved on: the scheduler reads the new
         // depth.
-        if let Some(d) = ex.new_depth.take() {
-            state.record(now, Rec::Depth(Marker {}));
-            let cmds = engine.step(now, Input::Depth(d)).unwrap_or_default();
-            ex.execute(now, cmds, None).await;
+        if let Some((d, arrival)) = ex.new_depth.take() {
+            ex.give_content(&mut engine, now, d, arrival).await;
         }
         lock(&state.status).scheduler = engine.status();
     }
@@ -244,12 +241,36 @@ struct Executor<'a> {
     pending: Option<(RenderJob, Option<Diopters>, Timestamp)>,
     hooks: Vec<Box<dyn LoopHook>>,
     /// The content's depth when it changed at a frame request, for the scheduler.
-    new_depth: Option<Arc<dioptra_core::DepthMap>>,
+    new_depth: Option<(Arc<dioptra_core::DepthMap>, Option<crate::render::Arrival>)>,
     /// Per (method, error kind): when it was last logged, and how many since.
     error_log: std::collections::HashMap<(String, &'static str), (Timestamp, u64)>,
 }
 
 impl Executor<'_> {
+    /// Gives the scheduler the content's new depth, and when that content frame arrived.
+    async fn give_content(
+        &mut self,
+        engine: &mut Engine,
+        now: Timestamp,
+        depth: Arc<dioptra_core::DepthMap>,
+        arrival: Option<crate::render::Arrival>,
+    ) {
+        self.state.record(now, Rec::Depth(Marker {}));
+        let cmds = engine.step(now, Input::Depth(depth)).unwrap_or_default();
+        self.execute(now, cmds, None).await;
+        if let Some(a) = arrival {
+            self.state.record(
+                now,
+                Rec::Content(crate::recording::ContentRec {
+                    arrived_ns: a.arrived.0,
+                    ready_ns: a.ready.0,
+                }),
+            );
+            let cmds = engine.step(now, Input::Content(a)).unwrap_or_default();
+            self.execute(now, cmds, None).await;
+        }
+    }
+
     fn sync_status(&self, engine: &Engine) {
         let mut st = lock(&self.state.status);
         st.mode = Some(engine.mode());
@@ -416,7 +437,7 @@ impl Executor<'_> {
                     lock(&sh.status).frames_requested += 1;
                     // The frame shows the content as it is now.
                     if let Some(d) = self.renderer.depth(now) {
-                        self.new_depth = Some(d);
+                        self.new_depth = Some((d, self.renderer.take_arrival()));
                     }
                     let d = &sh.cfg.display;
                     let gaze = req.gaze.and_then(|a| {

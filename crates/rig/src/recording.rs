@@ -242,6 +242,13 @@ pub struct FrameRec {
     pub focus_d: Option<f32>,
 }
 
+/// The content frame of the latest depth: when it arrived and was ready (host ns).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ContentRec {
+    pub arrived_ns: u64,
+    pub ready_ns: u64,
+}
+
 /// A command from the API.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
@@ -338,7 +345,7 @@ pub struct StartRec {
 }
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
-/// LensWire, LensLink, Sync, Frame, Control, Depth, Tick, Shutdown. Outputs (what it
+/// LensWire, LensLink, Sync, Frame, Control, Depth, Content, Tick, Shutdown. Outputs (what it
 /// commanded): LensCommand, Render, Present, StopSequencer.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Rec {
@@ -351,6 +358,7 @@ pub enum Rec {
     Frame(FrameRec),
     Control(ControlRec),
     Depth(Marker),
+    Content(ContentRec),
     Tick(Marker),
     Shutdown(Marker),
     LensCommand(LensCommandRec),
@@ -408,6 +416,8 @@ topics! {
     Control => "/control", "dioptra.Control",
         format!(r#""kind":{{"enum":["mode","method","manual_focus"]}},"mode":{S},"method":{S},"diopters":{ON}"#);
     Depth => "/depth", "dioptra.DepthGiven", "";
+    Content => "/content", "dioptra.ContentArrival",
+        format!(r#""arrived_ns":{N},"ready_ns":{N}"#);
     Tick => "/tick", "dioptra.Tick", "";
     Shutdown => "/shutdown", "dioptra.Shutdown", "";
     LensCommand => "/lens/command", "dioptra.LensCommand",

@@ -46,6 +46,14 @@ pub struct Planned {
     pub why: String,
 }
 
+/// When a content frame arrived (a stream frame's request, a file frame's due time) and when it
+/// was ready to render, on the rig's clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Arrival {
+    pub arrived: Timestamp,
+    pub ready: Timestamp,
+}
+
 /// Makes frames from the rig's content. Called from the render worker's blocking thread
 /// (`render`) and from the loop (`depth`), so it is shared and takes `&self`.
 pub trait Renderer: Send + Sync + 'static {
@@ -53,6 +61,11 @@ pub trait Renderer: Send + Sync + 'static {
     /// differs from the one returned last; always `Some` at the first call. The scheduler
     /// reads the fixation depth from it.
     fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>>;
+    /// The arrival of the content frame the latest `depth` call took up, once (`None` when
+    /// it took none, or the source does not know: a static scene).
+    fn take_arrival(&self) -> Option<Arrival> {
+        None
+    }
     /// Renders one frame.
     fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError>;
     /// The modes in which `method = "network"` cannot render, and why (the API refuses a

@@ -44,6 +44,8 @@ pub struct SceneRenderer {
     files: Option<crate::content::FileFrames>,
     /// `source = "stream"`: frames an application pushes.
     stream: Option<crate::stream::StreamFrames>,
+    /// When the content frame taken up last arrived, until the loop asks.
+    arrival: Mutex<Option<crate::render::Arrival>>,
     eye: EyeModel,
     planes: Vec<Diopters>,
     layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
@@ -129,6 +131,7 @@ impl SceneRenderer {
             depth_given: AtomicBool::new(false),
             files,
             stream,
+            arrival: Mutex::new(None),
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
             layers: Mutex::new(Vec::new()),
@@ -344,13 +347,15 @@ impl Renderer for SceneRenderer {
         if let Some(files) = &self.files {
             let (frame, changed) = files.frame_at(now);
             if changed {
+                *lock(&self.arrival) = files.take_arrival();
                 *lock(&self.current) = frame;
                 // Layers were made for the frame before.
                 lock(&self.layers).clear();
                 self.depth_given.store(false, Ordering::Release);
             }
         }
-        if let Some(frame) = self.stream.as_ref().and_then(|s| s.take_new()) {
+        if let Some((frame, arrival)) = self.stream.as_ref().and_then(|s| s.take_new()) {
+            *lock(&self.arrival) = Some(arrival);
             *lock(&self.current) = frame;
             lock(&self.layers).clear();
             self.depth_given.store(false, Ordering::Release);
@@ -361,6 +366,9 @@ impl Renderer for SceneRenderer {
     }
     fn backend_status(&self) -> serde_json::Value {
         SceneRenderer::backend_status(self)
+    }
+    fn take_arrival(&self) -> Option<crate::render::Arrival> {
+        lock(&self.arrival).take()
     }
     fn content_status(&self) -> serde_json::Value {
         match (&self.files, &self.stream) {

@@ -367,6 +367,7 @@ pub struct StreamStatus {
 struct Pending {
     frame: Arc<Rgbd>,
     seq: u64,
+    arrival: crate::render::Arrival,
 }
 
 /// The shared-memory ring: the file and its mapping.
@@ -527,17 +528,19 @@ impl StreamFrames {
         depth: &[u8],
         now: Timestamp,
     ) -> Result<u64, FrameError> {
+        let t0 = std::time::Instant::now();
         let r = self
             .check_seq(desc.seq)
             .and_then(|seq| Ok((seq, decode_frame(desc, color, depth, self.size)?)));
-        self.accept(r, desc.app_time_ns, now)
+        self.accept(r, desc.app_time_ns, now, t0)
     }
 
     /// A frame the application wrote into ring slot `slot` with sequence number `seq`.
     pub fn submit_slot(&self, slot: usize, seq: u64, now: Timestamp) -> Result<u64, FrameError> {
+        let t0 = std::time::Instant::now();
         let r = self.read_slot(slot, seq);
         let app = r.as_ref().ok().and_then(|(_, _, a)| *a);
-        self.accept(r.map(|(s, f, _)| (s, f)), app, now)
+        self.accept(r.map(|(s, f, _)| (s, f)), app, now, t0)
     }
 
     fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
@@ -610,7 +613,13 @@ impl StreamFrames {
         r: Result<(u64, Rgbd), FrameError>,
         app_time_ns: Option<u64>,
         now: Timestamp,
+        started: std::time::Instant,
     ) -> Result<u64, FrameError> {
+        // Ready once copied and converted: the request's arrival plus that work.
+        let arrival = crate::render::Arrival {
+            arrived: now,
+            ready: now + started.elapsed(),
+        };
         let mut st = lock(&self.status);
         match r {
             Err(e) => {
@@ -634,6 +643,7 @@ impl StreamFrames {
                 let old = lock(&self.pending).replace(Pending {
                     frame: Arc::new(frame),
                     seq,
+                    arrival,
                 });
                 if old.is_some() {
                     st.replaced += 1;
@@ -643,13 +653,13 @@ impl StreamFrames {
         }
     }
 
-    /// The newest frame not yet taken up by the display, if any.
-    pub fn take_new(&self) -> Option<Arc<Rgbd>> {
+    /// The newest frame not yet taken up by the display, if any, and when it arrived.
+    pub fn take_new(&self) -> Option<(Arc<Rgbd>, crate::render::Arrival)> {
         let p = lock(&self.pending).take()?;
         let mut st = lock(&self.status);
         st.shown += 1;
         st.on_show_seq = Some(p.seq);
-        Some(p.frame)
+        Some((p.frame, p.arrival))
     }
 
     pub fn status(&self) -> StreamStatus {
@@ -845,7 +855,7 @@ mod tests {
         assert_eq!(&header[..8], RING_MAGIC);
         write_slot(ring, 1, 3, 2, 1, &[255; 6], &f32s(&[0.5, 2.0]));
         assert_eq!(s.submit_slot(1, 3, Timestamp(1)), Ok(3));
-        let f = s.take_new().unwrap();
+        let (f, _) = s.take_new().unwrap();
         assert_eq!(f.depth.plane().data(), &[0.5, 2.0]);
         // The wrong sequence number, a slot out of range, sizes that overflow the slot.
         assert!(s.submit_slot(1, 4, Timestamp(2)).is_err());

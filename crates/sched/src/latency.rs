@@ -2,7 +2,8 @@
 //!
 //! Per gaze sample: device time (mapped to the host) -> host receive -> lens command on the
 //! wire -> lens settled. Per frame: render time, and gaze sample -> display time of the first
-//! frame rendered after it.
+//! frame rendered after it. Per content frame (a lab's RGB-D): arrival to ready, and arrival
+//! to the display time of the first frame showing it.
 
 use std::time::Duration;
 
@@ -26,16 +27,24 @@ pub enum Stage {
     GazeToDisplay,
     /// Render time of every frame, all methods.
     Render,
+    /// A content frame's arrival (a stream frame's request, a file frame's due time) to its
+    /// being ready to render (copied, checked, converted; decoded), for each frame the display
+    /// takes up (a frame a newer one replaces first never reaches the scheduler).
+    ContentReceived,
+    /// A content frame's arrival to the display time of the first frame showing it.
+    ContentToPresented,
 }
 
 impl Stage {
-    pub const ALL: [Stage; 6] = [
+    pub const ALL: [Stage; 8] = [
         Stage::TrackerToHost,
         Stage::HostToWire,
         Stage::WireToSettled,
         Stage::GazeToSettled,
         Stage::GazeToDisplay,
         Stage::Render,
+        Stage::ContentReceived,
+        Stage::ContentToPresented,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -46,6 +55,8 @@ impl Stage {
             Stage::GazeToSettled => "gaze sample to lens settled",
             Stage::GazeToDisplay => "gaze sample to display",
             Stage::Render => "render",
+            Stage::ContentReceived => "content received",
+            Stage::ContentToPresented => "content to presented",
         }
     }
 

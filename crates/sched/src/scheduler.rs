@@ -60,6 +60,13 @@ pub enum Event {
     /// The depth map (diopters) of the scene frame now being rendered, spanning the eye
     /// model's horizontal field. Fixation depth is read from the latest one.
     Depth(Arc<DepthMap>),
+    /// The content frame whose depth came last arrived at `arrived` (a stream frame's request,
+    /// a file frame's due time) and was ready to render at `ready`. The frame being rendered
+    /// (or, with none in flight, the next one requested) shows it.
+    Content {
+        arrived: Timestamp,
+        ready: Timestamp,
+    },
     /// An event from the multifocal sync hardware.
     Sequencer(SequencerEvent),
     /// The renderer finished `frame`, which took `render_time`.
@@ -205,6 +212,8 @@ struct Tracked {
 struct InFlight {
     frame: FrameId,
     gaze_time: Option<Timestamp>,
+    /// Arrival of the content frame it shows first.
+    content_time: Option<Timestamp>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -212,6 +221,7 @@ struct Ready {
     frame: FrameId,
     at: Timestamp,
     gaze_time: Option<Timestamp>,
+    content_time: Option<Timestamp>,
 }
 
 /// Finished frames remembered (newest last); the newest ready by a deadline is shown.
@@ -234,6 +244,8 @@ pub struct Scheduler {
     lens: LensPredictor,
     latency: Latency,
     depth: Option<Arc<DepthMap>>,
+    /// Arrival of a content frame that no requested frame shows yet.
+    content_new: Option<Timestamp>,
     counters: Counters,
     prev_phase: EyePhase,
     /// Treat the next fixation sample as an onset (after manual focus or a mode change).
@@ -282,6 +294,7 @@ impl Scheduler {
             lens: LensPredictor::new(cfg.lens),
             latency,
             depth: None,
+            content_new: None,
             counters: Counters::default(),
             prev_phase: EyePhase::Unknown,
             reevaluate: false,
@@ -322,6 +335,7 @@ impl Scheduler {
             Event::LensCommandWritten { id, wire_time } => self.on_written(id, wire_time),
             Event::LensLink(l) => self.on_link(now, l, out),
             Event::Depth(d) => self.depth = Some(d),
+            Event::Content { arrived, ready } => self.on_content(arrived, ready),
             Event::Sequencer(e) => self.on_sequencer(now, &e, out),
             Event::RenderFinished {
                 frame,
@@ -735,7 +749,11 @@ impl Scheduler {
             (None, None)
         };
         let gaze_time = self.last_gaze.map(|g| g.0);
-        self.in_flight = Some(InFlight { frame, gaze_time });
+        self.in_flight = Some(InFlight {
+            frame,
+            gaze_time,
+            content_time: self.content_new.take(),
+        });
         self.counters.frames_requested += 1;
         out.push(Command::RenderFrame(FrameRequest {
             frame,
@@ -747,6 +765,19 @@ impl Scheduler {
             gaze: self.last_gaze.map(|g| g.1),
             gaze_time,
         }));
+    }
+
+    fn on_content(&mut self, arrived: Timestamp, ready: Timestamp) {
+        if ready >= arrived {
+            self.latency
+                .record(Stage::ContentReceived, since(ready, arrived));
+        }
+        // The executor takes content up when a frame is requested: that frame shows it. A
+        // newer arrival replaces an older one that no frame showed.
+        match &mut self.in_flight {
+            Some(f) => f.content_time = Some(arrived),
+            None => self.content_new = Some(arrived),
+        }
     }
 
     fn on_render_finished(
@@ -770,6 +801,7 @@ impl Scheduler {
             frame,
             at: now,
             gaze_time: f.gaze_time,
+            content_time: f.content_time,
         });
     }
 
@@ -797,6 +829,17 @@ impl Scheduler {
             if let Some(g) = r.gaze_time {
                 self.latency
                     .record(Stage::GazeToDisplay, since(display_time, g));
+            }
+            // Content first shown now: this frame's, or that of an older frame it overtook.
+            let first = self
+                .ready
+                .iter_mut()
+                .filter(|f| f.frame.0 <= r.frame.0)
+                .filter_map(|f| f.content_time.take())
+                .min();
+            if let Some(c) = first {
+                self.latency
+                    .record(Stage::ContentToPresented, since(display_time, c));
             }
         }
         self.shown = Some(r.frame);

@@ -508,3 +508,90 @@ fn vsync_events_lock_the_frame_clock_to_the_display() {
     }
     assert_eq!(s.status().counters.misses, 0);
 }
+
+#[test]
+fn content_latency_runs_from_arrival_to_the_first_frame_showing_it() {
+    // 60 Hz varifocal frames rendered in 2 ms; content frames arrive at 30, 105 and 106 ms
+    // (the last replaces the one before: no request comes between them), each ready 1 ms later.
+    // The executor takes content up at the next request, as the rig's does.
+    let mut s = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    let arrivals = [30u64, 105, 106];
+    // Arrivals before this index were taken up by a frame (or replaced).
+    let mut taken = 0;
+    let mut events: Vec<(Timestamp, Event)> =
+        vec![(Timestamp::ZERO, Event::ManualFocus(Some(Diopters(1.0))))];
+    let mut t = Timestamp::ZERO;
+    let mut presents = Vec::new();
+    while t < Timestamp::from_millis(250) {
+        events.sort_by_key(|e| e.0);
+        let (at, ev) = match events.first() {
+            Some(e) if e.0 <= t => events.remove(0),
+            _ => (t, Event::Tick),
+        };
+        let mut out = Vec::new();
+        s.step(at, ev, &mut out);
+        for c in out {
+            {
+                if let Command::RenderFrame(r) = c {
+                    // The newest arrival not yet taken up is what this frame renders.
+                    let due = arrivals[taken..]
+                        .iter()
+                        .filter(|&&a| Timestamp::from_millis(a) <= at)
+                        .count();
+                    if due > 0 {
+                        taken += due;
+                        let a = arrivals[taken - 1];
+                        let mut o = Vec::new();
+                        s.step(
+                            at,
+                            Event::Content {
+                                arrived: Timestamp::from_millis(a),
+                                ready: Timestamp::from_millis(a + 1),
+                            },
+                            &mut o,
+                        );
+                        presents.push((a, r.display_time));
+                    }
+                    events.push((
+                        at + Duration::from_millis(2),
+                        Event::RenderFinished {
+                            frame: r.frame,
+                            method: r.method,
+                            render_time: Duration::from_millis(2),
+                        },
+                    ));
+                }
+            }
+        }
+        let next_event = events.iter().map(|e| e.0).min();
+        t = s
+            .next_wakeup()
+            .into_iter()
+            .chain(next_event)
+            .min()
+            .unwrap()
+            .max(t);
+    }
+    // Two content frames reached a frame (106 ms replaced 105 ms before any request).
+    assert_eq!(
+        presents.iter().map(|p| p.0).collect::<Vec<_>>(),
+        [30, 106],
+        "{presents:?}"
+    );
+    let l = s.latency();
+    let received = l.stage(Stage::ContentReceived);
+    assert_eq!(received.len(), 2);
+    assert!((999..=1001).contains(&received.max()), "{}", received.max());
+    let shown = l.stage(Stage::ContentToPresented);
+    assert_eq!(shown.len(), 2, "one per content frame shown");
+    // Each is its frame's display time less the arrival.
+    for (a, display) in &presents {
+        let us = display
+            .saturating_since(Timestamp::from_millis(*a))
+            .as_micros() as u64;
+        assert!(
+            shown.count_between(us.saturating_sub(us / 500 + 1), us + us / 500 + 1) >= 1,
+            "no sample near {us} µs for the frame of {a} ms"
+        );
+    }
+}
