@@ -386,6 +386,23 @@ fn a_recording_killed_with_sigkill_is_recovered() {
 
 #[test]
 fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
+    daemon_shows_files_as_dioptra_render("cpu");
+}
+
+#[test]
+fn on_the_gpu_the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
+    let gpu = !dioptra_render::gpu::list_adapters().is_empty();
+    if !gpu && std::env::var_os("DIOPTRA_REQUIRE_GPU").is_some() {
+        panic!("DIOPTRA_REQUIRE_GPU is set and there is no GPU adapter");
+    }
+    if gpu {
+        daemon_shows_files_as_dioptra_render("gpu");
+    }
+}
+
+/// The daemon on `backend` shows a files source at a manual focus as `dioptra render
+/// --backend <backend>` renders the same files at that focus.
+fn daemon_shows_files_as_dioptra_render(backend: &str) {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     let (ok, _, err) = dioptra(&[
@@ -409,7 +426,7 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
             &format!("[display]\npng_dir = {:?}", frames.display().to_string()),
         )
         + &format!(
-            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n",
+            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n\n[render]\nbackend = {backend:?}\n",
             color.display().to_string(),
             depth.display().to_string()
         );
@@ -420,6 +437,10 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     let (code, body) = http(addr, "GET", "/status", "");
     assert!(
         body.contains("\"content\":{") && body.contains("\"source\":\"files\""),
+        "{code} {body}"
+    );
+    assert!(
+        body.contains(&format!("\"backend\":\"{backend}\"")),
         "{code} {body}"
     );
     let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 1.5}");
@@ -452,7 +473,7 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
         "--focus".as_ref(),
         "1.5".as_ref(),
         "--backend".as_ref(),
-        "cpu".as_ref(),
+        backend.as_ref(),
         "--color".as_ref(),
         color.as_os_str(),
         "--depth".as_ref(),
@@ -464,7 +485,10 @@ fn the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     let a = dioptra_render::io::read_color(newest).unwrap();
     let b = dioptra_render::io::read_color(&cli).unwrap();
     let psnr = dioptra_render::metrics::psnr(&a, &b, None).unwrap();
-    eprintln!("{}: {psnr} dB against dioptra render", newest.display());
+    eprintln!(
+        "{backend}: {}: {psnr} dB against dioptra render",
+        newest.display()
+    );
     assert!(
         psnr >= 50.0,
         "{}: {psnr} dB against dioptra render",

@@ -11,9 +11,12 @@
 //! and the focus: no blur, gather, or the light-field method with as few views as the
 //! disparity needs. The scheduler (sans-IO) chooses the focus, not the method.
 //!
-//! `method = "network"` renders with the DeepFocus-family network on the CPU: C1 (defocus at
-//! the frame's focus) in varifocal mode, C4 (layers for the rig's planes) in multifocal mode,
-//! from `render.weights` (default the shipped weights). Both are loaded at start; the
+//! `method = "network"` renders with the DeepFocus-family network: C1 (defocus at the frame's
+//! focus) in varifocal mode, C4 (layers for the rig's planes) in multifocal mode, from
+//! `render.weights` (default the shipped weights), on the GPU when the rig renders there (the
+//! same weights uploaded once to the render's device) and on the CPU otherwise. Every method
+//! (optimized blending included) runs on the rig's backend; on the GPU each frame's GPU time
+//! comes from timestamp queries where the adapter has them (`/status` → `render`). Both are loaded at start; the
 //! configured mode's must load (else the daemon does not start, naming the file), the other's
 //! absence only refuses a switch to it.
 
@@ -25,7 +28,7 @@ use dioptra_core::{
 };
 use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
-use dioptra_render::multifocal::{default_focal_samples, linear_blend, optimized_blend};
+use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::{Cpu, DefocusMethod, OptimizeParams, RenderError};
 
@@ -124,7 +127,7 @@ impl SceneRenderer {
             (Mode::Varifocal, load_net(cfg, "c1")),
             (Mode::Multifocal, load_net(cfg, "c4")),
         ];
-        let compute = Compute::open(cfg)?;
+        let compute = Compute::open(cfg, &nets)?;
         Ok(SceneRenderer {
             compute: Mutex::new(compute),
             current: Mutex::new(Arc::new(input)),
@@ -150,29 +153,95 @@ impl SceneRenderer {
         focus: Diopters,
         method: DefocusMethod,
     ) -> Result<RgbImage, RenderError> {
-        let backend = lock(&self.compute).backend.clone();
-        let r = backend.defocus(input, &[focus], &self.eye, method, &|_| {});
-        let mut images = match r {
-            Err(RenderError::Gpu(e)) => {
-                lock(&self.compute).fall_back(&e);
-                Cpu.defocus(input, &[focus], &self.eye, method, &|_| {})?
-            }
-            r => r?,
+        let label = match method {
+            DefocusMethod::Gather => "gather".to_string(),
+            DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
         };
+        let mut images = self.on_backend(&label, |b| {
+            b.defocus(input, &[focus], &self.eye, method, &|_| {})
+        })?;
         images
             .pop()
             .ok_or_else(|| RenderError::Input(InputError::InvalidValue("no image rendered".into())))
     }
 
     fn linear(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
-        let backend = lock(&self.compute).backend.clone();
-        match backend.linear_blend(input, &self.planes) {
+        Ok(self
+            .on_backend("linear", |b| b.linear_blend(input, &self.planes))?
+            .images)
+    }
+
+    /// Runs `work` on the rig's backend, timing it on the GPU (`label` in `/status`); a GPU
+    /// failure moves the rig to the CPU (said in the log and `/status`) and reruns it there.
+    fn on_backend<T>(
+        &self,
+        label: &str,
+        work: impl Fn(&dyn Backend) -> Result<T, RenderError>,
+    ) -> Result<T, RenderError> {
+        let (backend, gpu) = {
+            let c = lock(&self.compute);
+            (c.backend.clone(), c.gpu.clone())
+        };
+        match work(backend.as_ref()) {
             Err(RenderError::Gpu(e)) => {
                 lock(&self.compute).fall_back(&e);
-                Ok(Cpu.linear_blend(input, &self.planes)?.images)
+                work(&Cpu)
             }
-            r => Ok(r?.images),
+            Ok(v) => {
+                if let Some(g) = gpu {
+                    lock(&self.compute).timed(label, g.last_stats().gpu_ns);
+                }
+                Ok(v)
+            }
+            Err(e) => Err(e),
         }
+    }
+
+    /// C1 (varifocal) on the GPU when the rig renders there, else on the CPU.
+    fn net_defocus(
+        &self,
+        mode: Mode,
+        input: &Rgbd,
+        focus: Diopters,
+    ) -> Result<RgbImage, RenderError> {
+        let gpu_net = lock(&self.compute).gpu_net(mode);
+        if let Some(g) = gpu_net {
+            match g.defocus(input, focus, &self.eye) {
+                Ok(img) => {
+                    lock(&self.compute).timed("network", g.last_stats().gpu_ns);
+                    return Ok(img);
+                }
+                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
+                    lock(&self.compute).fall_back(&e);
+                }
+                Err(e) => return Err(net_error(e)),
+            }
+        }
+        self.net(mode)?
+            .defocus(input, focus, &self.eye)
+            .map_err(net_error)
+    }
+
+    /// C4 (multifocal layers) on the GPU when the rig renders there, else on the CPU.
+    fn net_decompose(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
+        let gpu_net = lock(&self.compute).gpu_net(Mode::Multifocal);
+        if let Some(g) = gpu_net {
+            match g.decompose(input) {
+                Ok(l) => {
+                    lock(&self.compute).timed("network", g.last_stats().gpu_ns);
+                    return Ok(l.images);
+                }
+                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
+                    lock(&self.compute).fall_back(&e);
+                }
+                Err(e) => return Err(net_error(e)),
+            }
+        }
+        Ok(self
+            .net(Mode::Multifocal)?
+            .decompose(input)
+            .map_err(net_error)?
+            .images)
     }
 
     /// Where frames are rendered, for `/status`.
@@ -251,10 +320,7 @@ impl SceneRenderer {
         match (mode, method.0) {
             (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
             (Mode::Multifocal, _) => Ok(self.layers(input, method)?.as_ref().clone()),
-            (_, RenderMethod::Network) => Ok(vec![self
-                .net(mode)?
-                .defocus(input, focus, &self.eye)
-                .map_err(net_error)?]),
+            (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
                 input,
                 focus,
@@ -307,30 +373,28 @@ impl SceneRenderer {
             return Ok(l.clone());
         }
         let images = if method.0 == RenderMethod::Network {
-            self.net(Mode::Multifocal)?
-                .decompose(input)
-                .map_err(net_error)?
-                .images
+            self.net_decompose(input)?
         } else if method.0 == RenderMethod::Optimized {
-            let linear = linear_blend(input, &self.planes)?;
+            // Targets (a gathered focal stack), the linear start and the iterations all on
+            // the rig's backend.
             let foci = default_focal_samples();
-            let targets = foci
-                .iter()
-                .map(|&q| dioptra_render::gather::gather(input, q, &self.eye))
-                .collect::<Result<Vec<_>, _>>()?;
             let params = OptimizeParams {
                 iterations: 30,
                 ..OptimizeParams::default()
             };
-            optimized_blend(
-                &targets,
-                &foci,
-                &self.planes,
-                &self.eye,
-                Some(&linear),
-                params,
-                |_| {},
-            )?
+            self.on_backend("optimized", |b| {
+                let linear = b.linear_blend(input, &self.planes)?;
+                let targets = b.defocus(input, &foci, &self.eye, DefocusMethod::Gather, &|_| {})?;
+                b.optimized_blend(
+                    &targets,
+                    &foci,
+                    &self.planes,
+                    &self.eye,
+                    Some(&linear),
+                    params,
+                    &|_| {},
+                )
+            })?
             .0
             .images
         } else {
@@ -448,10 +512,21 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
     Ok(Arc::new(net))
 }
 
+/// The network of each mode, loaded for the CPU (or why not).
+type CpuNets = Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>;
+
 /// The render backend and what `/status` says of it.
 struct Compute {
     backend: Arc<dyn Backend>,
+    /// The same backend when it is the GPU, for its timestamp figures.
+    gpu: Option<Arc<dioptra_render::Gpu>>,
+    /// The networks on the GPU, per mode (or why that mode's runs on the CPU).
+    gpu_nets: Vec<(Mode, Result<Arc<dioptra_net::gpu::GpuNet>, String>)>,
     adapter: Option<String>,
+    /// Whether the adapter has timestamp queries (GPU time per method in `/status`).
+    timestamps: bool,
+    /// GPU time per method, µs, from timestamp queries.
+    gpu_time: std::collections::BTreeMap<String, hdrhistogram::Histogram<u64>>,
     /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
     cpu_because: Option<String>,
 }
@@ -460,28 +535,51 @@ impl Compute {
     fn cpu(because: Option<String>) -> Compute {
         Compute {
             backend: Arc::new(Cpu),
+            gpu: None,
+            gpu_nets: Vec::new(),
             adapter: None,
+            timestamps: false,
+            gpu_time: Default::default(),
             cpu_because: because,
         }
     }
 
-    fn gpu(adapter: Option<&str>) -> Result<Compute, dioptra_render::GpuError> {
-        let gpu = dioptra_render::Gpu::new(adapter)?;
+    fn gpu(adapter: Option<&str>, nets: &CpuNets) -> Result<Compute, dioptra_render::GpuError> {
+        let gpu = Arc::new(dioptra_render::Gpu::new(adapter)?);
+        let ctx = dioptra_render::gpu::GpuContext::shared(adapter)?;
         let name = gpu.context().adapter().name.clone();
+        // The same weights the CPU loaded, uploaded once to the render's device.
+        let gpu_nets = nets
+            .iter()
+            .filter_map(|(m, n)| {
+                let n = n.as_ref().ok()?;
+                let g = dioptra_net::gpu::GpuNet::on(ctx.clone(), n.weights().clone())
+                    .map(Arc::new)
+                    .map_err(|e| {
+                        tracing::warn!(mode = m.as_str(), error = %e, "the network runs on the CPU");
+                        e.to_string()
+                    });
+                Some((*m, g))
+            })
+            .collect();
         Ok(Compute {
-            backend: Arc::new(gpu),
+            timestamps: gpu.context().has_timestamps(),
+            backend: gpu.clone(),
+            gpu: Some(gpu),
+            gpu_nets,
             adapter: Some(name),
+            gpu_time: Default::default(),
             cpu_because: None,
         })
     }
 
     /// `[render] backend`: `gpu` must open (or the rig does not start); `auto` takes a
     /// hardware adapter when there is one and the CPU otherwise.
-    fn open(cfg: &RigConfig) -> Result<Compute, RenderError> {
+    fn open(cfg: &RigConfig, nets: &CpuNets) -> Result<Compute, RenderError> {
         let adapter = cfg.render.adapter.as_deref();
         match cfg.render.backend {
             RenderBackend::Cpu => Ok(Compute::cpu(None)),
-            RenderBackend::Gpu => Ok(Compute::gpu(adapter)?),
+            RenderBackend::Gpu => Ok(Compute::gpu(adapter, nets)?),
             RenderBackend::Auto => {
                 if !dioptra_render::gpu::hardware_adapter_exists() {
                     return Ok(Compute::cpu(Some(
@@ -489,11 +587,32 @@ impl Compute {
                             .into(),
                     )));
                 }
-                Ok(Compute::gpu(adapter).unwrap_or_else(|e| {
+                Ok(Compute::gpu(adapter, nets).unwrap_or_else(|e| {
                     tracing::warn!(error = %e, "cannot open the GPU; rendering on the CPU");
                     Compute::cpu(Some(format!("the GPU did not open: {e}")))
                 }))
             }
+        }
+    }
+
+    fn gpu_net(&self, mode: Mode) -> Option<Arc<dioptra_net::gpu::GpuNet>> {
+        self.gpu_nets
+            .iter()
+            .find(|(m, _)| *m == mode)
+            .and_then(|(_, n)| n.as_ref().ok().cloned())
+    }
+
+    /// Records `label`'s GPU time (timestamp queries; nothing without them).
+    fn timed(&mut self, label: &str, gpu_ns: Option<f64>) {
+        let Some(ns) = gpu_ns else { return };
+        if !self.gpu_time.contains_key(label) {
+            match hdrhistogram::Histogram::new_with_bounds(1, 60_000_000, 3) {
+                Ok(h) => self.gpu_time.insert(label.to_string(), h),
+                Err(_) => return,
+            };
+        }
+        if let Some(h) = self.gpu_time.get_mut(label) {
+            h.saturating_record((ns / 1e3).round().max(1.0) as u64);
         }
     }
 
@@ -505,10 +624,41 @@ impl Compute {
     }
 
     fn status(&self) -> serde_json::Value {
+        let gpu_time: serde_json::Map<String, serde_json::Value> = self
+            .gpu_time
+            .iter()
+            .map(|(k, h)| {
+                (
+                    k.clone(),
+                    serde_json::json!({
+                        "count": h.len(),
+                        "p50_us": h.value_at_quantile(0.5),
+                        "p99_us": h.value_at_quantile(0.99),
+                        "max_us": h.max(),
+                    }),
+                )
+            })
+            .collect();
+        let network: serde_json::Map<String, serde_json::Value> = self
+            .gpu_nets
+            .iter()
+            .map(|(m, n)| {
+                (
+                    m.as_str().to_string(),
+                    match n {
+                        Ok(_) => serde_json::json!("gpu"),
+                        Err(e) => serde_json::json!(format!("cpu: {e}")),
+                    },
+                )
+            })
+            .collect();
         serde_json::json!({
             "backend": self.backend.name(),
             "adapter": self.adapter,
             "cpu_because": self.cpu_because,
+            "timestamps": self.timestamps,
+            "gpu_time_us": gpu_time,
+            "network": network,
         })
     }
 }

@@ -1384,6 +1384,8 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     let dir = tempfile::tempdir().unwrap();
     let mut cpu_cfg = sim_config(dir.path(), false);
     cpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
+    // The shipped networks.
+    cpu_cfg.render.weights = None;
     let mut gpu_cfg = cpu_cfg.clone();
     gpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
     let cpu = dioptra_rig::scene::SceneRenderer::new(&cpu_cfg).unwrap();
@@ -1398,6 +1400,9 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         (Mode::Varifocal, "gather", -0.5),
         (Mode::Varifocal, "lightfield-defocus", 1.7),
         (Mode::Multifocal, "linear", 1.0),
+        (Mode::Varifocal, "network", 1.2),
+        (Mode::Multifocal, "network", 1.0),
+        (Mode::Multifocal, "optimized", 1.0),
     ] {
         let m = Method::parse(method).unwrap();
         let q = dioptra_core::Diopters(focus);
@@ -1407,6 +1412,19 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         for (x, y) in a.iter().zip(&b) {
             let p = dioptra_render::metrics::psnr(x, y, None).unwrap();
             assert!(p > 50.0, "{method} at {focus} D: GPU {p} dB from the CPU");
+        }
+    }
+    // The networks ran on the GPU; each method's GPU time is shown when the adapter can
+    // time it.
+    let status = gpu.backend_status();
+    assert_eq!(status["network"]["varifocal"], json!("gpu"), "{status}");
+    assert_eq!(status["network"]["multifocal"], json!("gpu"), "{status}");
+    if status["timestamps"] == json!(true) {
+        for m in ["gather", "lightfield-16", "linear", "network", "optimized"] {
+            assert!(
+                status["gpu_time_us"][m]["count"].as_u64() >= Some(1),
+                "{m}: {status}"
+            );
         }
     }
 }
