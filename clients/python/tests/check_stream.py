@@ -10,11 +10,15 @@ Starts `dioptra serve` on the example simulated rig with `[content] source = "st
 4. kills a streaming client with SIGKILL and checks the daemon keeps showing its last frame
    and goes on running;
 5. stops the daemon with SIGTERM (exit 0).
-It prints the ingest time per frame (client write to the daemon's answer) at the display size.
+It prints the ingest time per frame (client write to the daemon's answer) at the display size,
+and the daemon's own "content received" and "content to presented" latency.
 
     pip install ./clients/python
     cargo build
-    python3 clients/python/tests/check_stream.py target/debug/dioptra
+    python3 clients/python/tests/check_stream.py target/debug/dioptra [cpu|gpu]
+
+The second argument is the daemon's `[render] backend` (default cpu; gpu takes any adapter,
+a software one included).
 """
 
 import json
@@ -42,11 +46,11 @@ def check(ok, what):
         failures.append(what)
 
 
-def config(tmp: pathlib.Path) -> pathlib.Path:
+def config(tmp: pathlib.Path, backend: str) -> pathlib.Path:
     text = (ROOT / "crates/cli/examples/rig-sim.toml").read_text()
     text = text.replace("127.0.0.1:7420", "127.0.0.1:0")
     text = text.replace('dir = "recordings"', f'dir = "{tmp / "rec"}"')
-    text += '\n[content]\nsource = "stream"\n'
+    text += f'\n[content]\nsource = "stream"\n\n[render]\nbackend = "{backend}"\n'
     path = tmp / "rig.toml"
     path.write_text(text)
     return path
@@ -86,8 +90,11 @@ def accounted(before, after, sent_ok, what):
 
 def main():
     binary = sys.argv[1] if len(sys.argv) > 1 else str(ROOT / "target/debug/dioptra")
+    backend = sys.argv[2] if len(sys.argv) > 2 else "cpu"
+    if backend not in ("cpu", "gpu"):
+        sys.exit(f"backend {backend!r}: expected cpu or gpu")
     tmp = pathlib.Path(tempfile.mkdtemp())
-    p = subprocess.Popen([binary, "serve", "--config", str(config(tmp))],
+    p = subprocess.Popen([binary, "serve", "--config", str(config(tmp, backend))],
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     addr = None
     for line in p.stderr:
@@ -102,6 +109,9 @@ def main():
     url = f"http://{addr}"
     try:
         d = Dioptra(url)
+        render = d.status()["render"]
+        check(render["backend"] == backend,
+              f"the daemon renders on the {render['backend']} ({render.get('adapter')})")
         check(d.uses_ring, f"the client maps the ring ({d.width}x{d.height})")
         before = d.status()["content"]
         ok, refused, times = stream(d, 300, 90.0)
@@ -127,6 +137,13 @@ def main():
         ms = sorted(t * 1e3 for t in times2)
         print(f"     PUT ingest: p50 {statistics.median(ms):.2f} ms, "
               f"p99 {ms[int(0.99 * len(ms))]:.2f} ms")
+        lat = put.status()["scheduler"]["latency_us"]
+        for stage in ("content received", "content to presented"):
+            st = lat.get(stage)
+            check(st is not None and st["count"] > 0, f"the daemon times {stage!r}")
+            if st:
+                print(f"     {stage}: n {st['count']}, p50 {st['p50_us']} us, "
+                      f"p99 {st['p99_us']} us, max {st['max_us']} us")
 
         # Refusals: each counted under its reason, the frame on show unchanged. (The ring
         # client goes on after the PUT client's numbers, as a new client would.)
