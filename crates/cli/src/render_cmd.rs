@@ -3,7 +3,9 @@
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dioptra_core::{Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
-use dioptra_net::gpu::load_gpu_net;
+use dioptra_net::gpu::{load_gpu_net, GpuNet};
+use dioptra_net::refine::classical_defocus;
+use dioptra_net::Task;
 use dioptra_render::gpu::list_adapters;
 use dioptra_render::io::{read_color, read_depth, write_color, DepthUnits};
 use dioptra_render::metrics::quality;
@@ -119,10 +121,12 @@ impl InputArgs {
 /// Defocus method options.
 #[derive(Args, Debug, Clone)]
 pub struct MethodArgs {
-    /// gather (single-image CoC blur), lightfield (Yu et al. 2010) or network (DeepFocus C1).
+    /// gather (single-image CoC blur), lightfield (Yu et al. 2010), network (DeepFocus C1) or
+    /// refine (C1R: the classical render its weights name, corrected by a small net on the
+    /// tiles near depth discontinuities).
     #[arg(long, default_value = "lightfield")]
     pub method: String,
-    /// Network weights for --method network (default: the shipped ones).
+    /// Network weights for --method network or refine (default: the shipped ones).
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Virtual lens cameras for the lightfield method.
@@ -198,6 +202,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let input = a.input.load()?;
     let b = a.eye.backend()?;
     let t = std::time::Instant::now();
+    let mut note = String::new();
     let out = if a.method.method == "network" {
         let (weights, eye) = (a.method.weights.as_deref(), a.eye.eye()?);
         if b.name() == "gpu" {
@@ -207,6 +212,28 @@ pub fn render(a: RenderArgs) -> Result<()> {
             let net = dioptra_net::load_net(weights, "c1")?;
             vec![net.defocus(&input, Diopters(a.focus), &eye)?]
         }
+    } else if a.method.method == "refine" {
+        let (weights, eye, q) = (a.method.weights.as_deref(), a.eye.eye()?, Diopters(a.focus));
+        let net = dioptra_net::load_net(weights, "c1r")?;
+        let Task::C1r { classical } = net.arch().task else {
+            bail!("the c1r weights name no classical method");
+        };
+        let base = classical_defocus(b.as_ref(), classical, &input, q, &eye)?;
+        let r = if b.name() == "gpu" {
+            GpuNet::on(
+                dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
+                net.weights().clone(),
+            )?
+            .refine_defocus(&input, &base, q, &eye)?
+        } else {
+            net.refine_defocus(&input, &base, q, &eye)?
+        };
+        note = format!(
+            "; {} refined on {:.0} % of the tiles",
+            classical.label(),
+            100.0 * r.tiles.fraction()
+        );
+        vec![r.image]
     } else {
         b.defocus(
             &input,
@@ -222,7 +249,7 @@ pub fn render(a: RenderArgs) -> Result<()> {
         .context("the backend returned no image")?;
     write_color(&a.out, &img)?;
     println!(
-        "wrote {} ({:.0} ms)",
+        "wrote {} ({:.0} ms{note})",
         a.out.display(),
         t.elapsed().as_secs_f64() * 1e3
     );
@@ -279,10 +306,11 @@ pub struct DecomposeArgs {
     /// Display planes, diopters.
     #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
     planes: String,
-    /// linear (Akeley), optimized (Narain) or network (DeepFocus C4; its planes are fixed).
+    /// linear (Akeley), optimized (Narain), network (DeepFocus C4; its planes are fixed) or
+    /// refine (C4R: linear blending corrected by a small net; its planes are fixed).
     #[arg(long, default_value = "optimized")]
     method: String,
-    /// Network weights for --method network (default: the shipped ones).
+    /// Network weights for --method network or refine (default: the shipped ones).
     #[arg(long)]
     weights: Option<PathBuf>,
     /// Optimized: focal samples of the target focal stack.
@@ -358,6 +386,29 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             }
             l
         }
+        "refine" => {
+            let net = dioptra_net::load_net(a.weights.as_deref(), "c4r")?;
+            let theirs: Vec<Diopters> = net
+                .arch()
+                .task
+                .planes()
+                .unwrap_or(&[])
+                .iter()
+                .map(|&p| Diopters(p))
+                .collect();
+            if theirs != planes {
+                bail!("the network's planes are {theirs:?}; pass --planes to match");
+            }
+            if b.name() == "gpu" {
+                GpuNet::on(
+                    dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
+                    net.weights().clone(),
+                )?
+                .refine_decompose(&input, &linear)?
+            } else {
+                net.refine_decompose(&input, &linear)?
+            }
+        }
         "optimized" => {
             let (lo, hi) = parse_range(&a.focal_range)?;
             if a.focal_samples == 0 || a.focal_samples > 200 {
@@ -425,7 +476,9 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             );
             layers
         }
-        m => bail!("unknown decomposition method {m:?}: expected linear, optimized or network"),
+        m => bail!(
+            "unknown decomposition method {m:?}: expected linear, optimized, network or refine"
+        ),
     };
     ensure_dir(&a.out)?;
     for (p, img) in layers.planes.iter().zip(&layers.images) {

@@ -4,15 +4,17 @@
 use anyhow::{bail, Context, Result};
 use clap::Args as ClapArgs;
 use dioptra_net::train::data::DataSpec;
+use dioptra_net::train::trainer::StepTimes;
 use dioptra_net::train::{train, TrainConfig, TrainEvent};
-use dioptra_net::{Arch, Task};
+use dioptra_net::{Arch, Classical, Task};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
 #[derive(ClapArgs, Debug)]
 pub struct Args {
     /// Configuration: c1 (defocus), c3 (focal stack), c4 (multifocal), c5 (light field from
-    /// RGB-D views), fv (foveated view synthesis).
+    /// RGB-D views), fv (foveated view synthesis), c1r (defocus refinement of a classical
+    /// render), c4r (multifocal refinement of linear blending).
     #[arg(long)]
     config: String,
     /// Total steps; rerunning with a larger count resumes and continues.
@@ -21,15 +23,15 @@ pub struct Args {
     /// Output directory: checkpoints, the render cache and the exported weights.
     #[arg(long, default_value = "train-out")]
     out: PathBuf,
-    /// Hidden layers' channels.
-    #[arg(long, default_value_t = 32)]
-    channels: usize,
-    /// Convolution layers, the last included.
-    #[arg(long, default_value_t = 8)]
-    layers: usize,
-    /// Interleave rate: 1, 2 or 4.
-    #[arg(long, default_value_t = 2)]
-    rate: usize,
+    /// Hidden layers' channels (default: the configuration's preset, 32 for most).
+    #[arg(long)]
+    channels: Option<usize>,
+    /// Convolution layers, the last included (default: the preset's, 8 for most).
+    #[arg(long)]
+    layers: Option<usize>,
+    /// Interleave rate: 1, 2 or 4 (default: the preset's, 2).
+    #[arg(long)]
+    rate: Option<usize>,
     #[arg(long, default_value_t = 8)]
     batch: usize,
     /// Training patch side, pixels.
@@ -66,6 +68,37 @@ pub struct Args {
     /// Supersampling (per side) of the pinhole colour.
     #[arg(long, default_value_t = 4)]
     supersample: usize,
+    /// Fields of view of the training scenes, degrees, comma-separated: scene i uses the
+    /// (i mod n)-th (default: 20 for all; c1r: 20,10, so the net sees 512 px blur sizes on
+    /// 256 px renders).
+    #[arg(long, value_delimiter = ',')]
+    fovs: Option<Vec<f32>>,
+    /// c4r: steps distilling optimized blending's layers before the retinal loss.
+    #[arg(long, default_value_t = 0)]
+    distill_steps: u64,
+    /// c1r: the classical render refined: gather, or lightfield:N (N views).
+    #[arg(long)]
+    classical: Option<String>,
+    /// Lower the learning rate from --lr to this by a cosine over --steps.
+    #[arg(long)]
+    lr_final: Option<f64>,
+    /// c1r: fraction of patches drawn by the classical render's error (the rest uniformly
+    /// over the tiles the net runs on).
+    #[arg(long, default_value_t = 0.5)]
+    error_weighted: f64,
+}
+
+/// `gather` or `lightfield:N`.
+fn parse_classical(s: &str) -> Result<Classical> {
+    match s.split_once(':') {
+        None if s == "gather" => Ok(Classical::Gather),
+        Some(("lightfield", n)) => Ok(Classical::Lightfield {
+            views: n
+                .parse()
+                .with_context(|| format!("--classical {s}: N of lightfield:N is a view count"))?,
+        }),
+        _ => bail!("--classical {s}: expected gather or lightfield:N"),
+    }
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -81,16 +114,26 @@ pub fn run(a: Args) -> Result<()> {
         }
         _ => {}
     }
+    if let Some(c) = &a.classical {
+        match &mut arch.task {
+            Task::C1r { classical } => *classical = parse_classical(c)?,
+            _ => bail!("--classical applies to c1r only"),
+        }
+    }
+    if a.distill_steps > 0 && !matches!(arch.task, Task::C4r { .. }) {
+        bail!("--distill-steps applies to c4r only");
+    }
     if let Some(u) = a.unet_channels {
         if !matches!(arch.task, Task::Fv { .. }) {
             bail!("--unet-channels applies to fv only");
         }
         arch.unet_channels = u;
     }
-    arch.channels = a.channels;
-    arch.layers = a.layers;
-    arch.rate = a.rate;
+    arch.channels = a.channels.unwrap_or(arch.channels);
+    arch.layers = a.layers.unwrap_or(arch.layers);
+    arch.rate = a.rate.unwrap_or(arch.rate);
     arch.validate()?;
+    let arch_task_is_c1r = matches!(arch.task, Task::C1r { .. });
     let mut cfg = TrainConfig::new(arch, a.out.clone());
     cfg.steps = a.steps;
     cfg.batch = a.batch;
@@ -99,6 +142,27 @@ pub fn run(a: Args) -> Result<()> {
     cfg.scenes = a.scenes;
     cfg.foci_per_scene = a.foci_per_scene;
     cfg.checkpoint_every = a.checkpoint_every;
+    cfg.distill_steps = a.distill_steps;
+    cfg.lr_final = a.lr_final;
+    if !(0.0..=1.0).contains(&a.error_weighted) {
+        bail!("--error-weighted {}: expected 0 to 1", a.error_weighted);
+    }
+    cfg.error_weighted = a.error_weighted;
+    cfg.fovs = match (&a.fovs, &arch_task_is_c1r) {
+        (Some(f), _) => f.clone(),
+        (None, true) => vec![20.0, 10.0],
+        (None, false) => Vec::new(),
+    };
+    if cfg
+        .fovs
+        .iter()
+        .any(|f| !(f.is_finite() && *f > 0.0 && *f < 180.0))
+    {
+        bail!(
+            "--fovs {:?}: expected angles between 0 and 180 degrees",
+            cfg.fovs
+        );
+    }
     cfg.data = DataSpec {
         size: a.size,
         samples: a.samples,
@@ -121,7 +185,14 @@ pub fn run(a: Args) -> Result<()> {
         .progress_chars("=> "),
     );
     let mut ema: Option<f32> = None;
+    let mut timed = StepTimes::default();
+    let mut timed_steps = 0u32;
     let w = train(&cfg, &mut |e| match e {
+        TrainEvent::Prepare { done, total } => {
+            if done == 1 || done == total || done % 10 == 0 {
+                step_bar.suspend(|| println!("classical results: scene {done}/{total}"));
+            }
+        }
         TrainEvent::Data { done, .. } => {
             data_bar.set_position(done);
             if done == cfg.scenes {
@@ -132,14 +203,31 @@ pub fn run(a: Args) -> Result<()> {
             step_bar.set_position(step);
             step_bar.println(format!("resumed at step {step}"));
         }
-        TrainEvent::Step { step, loss } => {
+        TrainEvent::Step { step, loss, times } => {
             let m = ema.map_or(loss, |m| 0.98 * m + 0.02 * loss);
             ema = Some(m);
             step_bar.set_position(step);
             step_bar.set_message(format!("loss {loss:.4} (avg {m:.4})"));
-            // Plain lines too, for logs when stdout is not a terminal.
+            timed.data += times.data;
+            timed.forward += times.forward;
+            timed.backward += times.backward;
+            timed.optimiser += times.optimiser;
+            timed_steps += 1;
+            // Plain lines too, for logs when stdout is not a terminal; with where the steps'
+            // time went since the last line.
             if step % 50 == 0 || step <= 3 {
-                step_bar.suspend(|| println!("step {step} loss {loss:.5} avg {m:.5}"));
+                let k = 1e3 / f64::from(timed_steps.max(1));
+                step_bar.suspend(|| {
+                    println!(
+                        "step {step} loss {loss:.5} avg {m:.5} | ms/step: data {:.1} forward {:.1} backward {:.1} optimiser {:.1}",
+                        timed.data * k,
+                        timed.forward * k,
+                        timed.backward * k,
+                        timed.optimiser * k
+                    )
+                });
+                timed = StepTimes::default();
+                timed_steps = 0;
             }
         }
         TrainEvent::Checkpoint { step } => {

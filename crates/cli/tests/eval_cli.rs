@@ -70,6 +70,8 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         "linear",
         "optimized",
         "network-c4",
+        "refine-c1r",
+        "refine-c4r",
     ] {
         let mine: Vec<_> = rows
             .iter()
@@ -90,13 +92,22 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
             if r["psnr_db"].is_empty() {
                 // Only an untrained network may go unscored, and it must say so.
                 assert!(
-                    method.starts_with("network") && r["note"].starts_with("untrained"),
+                    (method.starts_with("network") || method.starts_with("refine"))
+                        && r["note"].starts_with("untrained"),
                     "{method} has no score: {r:?}"
                 );
             } else {
                 finite_in(&r["psnr_db"], 10.0, 100.0, &format!("{method} psnr"));
                 finite_in(&r["ssim"], 0.0, 1.0, &format!("{method} ssim"));
             }
+        }
+    }
+    // C1R says on what fraction of the tiles its net ran; no other method has one.
+    for r in rows.iter().filter(|r| !r["time_ms"].is_empty()) {
+        if r["method"] == "refine-c1r" {
+            finite_in(&r["tiles_run"], 0.0, 1.0, "refine-c1r tiles_run");
+        } else {
+            assert!(r["tiles_run"].is_empty(), "{r:?}");
         }
     }
     // Classical methods are scored at every focus of the quick plan.

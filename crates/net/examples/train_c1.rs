@@ -28,7 +28,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         TrainEvent::Data { done, total } => {
             println!("scene {done}/{total} {:.0}s", t.elapsed().as_secs_f64())
         }
-        TrainEvent::Step { step, loss } => {
+        TrainEvent::Step { step, loss, .. } => {
             let m = ema.map_or(loss, |m| 0.98 * m + 0.02 * loss);
             ema = Some(m);
             if step % 10 == 0 || step <= 3 {

@@ -9,7 +9,10 @@
 //! - with `concat_input`, the interleaved input is appended to the last layer's input channels
 //!   (after the features);
 //! - the last layer outputs `out_channels * r^2` channels, mapped to [0, 1] by `(tanh x + 1) / 2`,
-//!   then depth-to-space back to full resolution.
+//!   then depth-to-space back to full resolution. The refinement nets (C1R, C4R) skip the
+//!   `tanh`: their output is a correction added to a classical method's result (then clamped
+//!   to [0, 1] by the task code), and their last layer starts at zero, so an untrained
+//!   refinement net returns the classical result unchanged.
 //!
 //! - FV only (Thumuluri & Sharma 2020, sec. 4.3): a small U-Net runs in parallel on the same
 //!   interleaved input and its output is added to the last layer's before the `tanh`:
@@ -29,6 +32,26 @@ use serde::{Deserialize, Serialize};
 pub const DEPTH_NORM: f32 = 4.0;
 pub const COC_NORM: f32 = 30.0;
 
+/// The classical defocus method a C1R net refines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "method", rename_all = "lowercase")]
+pub enum Classical {
+    Gather,
+    /// The light-field method (Yu et al.) with `views` lens samples, mip prefiltered.
+    Lightfield {
+        views: usize,
+    },
+}
+
+impl Classical {
+    pub fn label(&self) -> String {
+        match self {
+            Classical::Gather => "gather".into(),
+            Classical::Lightfield { views } => format!("lightfield {views} views"),
+        }
+    }
+}
+
 /// What a network computes, by inputs and outputs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "config", rename_all = "lowercase")]
@@ -46,6 +69,12 @@ pub enum Task {
     /// the grid) its log-polar sampling mask, sampled depth / 4 and interpolated RGB (5 each)
     /// -> all `grid` x `grid` RGB views.
     Fv { views: usize, grid: usize },
+    /// Defocus refinement: RGB + depth + CoC map + the `classical` method's render at the
+    /// CoC map's focus (8 channels) -> a correction of that render (3).
+    C1r { classical: Classical },
+    /// Multifocal refinement: RGB + depth + linear blending's layers for `planes` (4 + 3M)
+    /// -> a correction of those layers (3M); trained through the retina at `foci`.
+    C4r { planes: Vec<f32>, foci: Vec<f32> },
 }
 
 /// Convolutions of the FV U-Net (see the module docs).
@@ -59,6 +88,19 @@ impl Task {
             Task::C4 { .. } => "c4",
             Task::C5 { .. } => "c5",
             Task::Fv { .. } => "fv",
+            Task::C1r { .. } => "c1r",
+            Task::C4r { .. } => "c4r",
+        }
+    }
+    /// Refinement nets output a correction of a classical result, not an image.
+    pub fn residual(&self) -> bool {
+        matches!(self, Task::C1r { .. } | Task::C4r { .. })
+    }
+    /// The display planes of a multifocal net (C4, C4R).
+    pub fn planes(&self) -> Option<&[f32]> {
+        match self {
+            Task::C4 { planes, .. } | Task::C4r { planes, .. } => Some(planes),
+            _ => None,
         }
     }
     pub fn in_channels(&self) -> usize {
@@ -67,13 +109,16 @@ impl Task {
             Task::C3 { .. } | Task::C4 { .. } => 4,
             Task::C5 { views, .. } => 4 * views,
             Task::Fv { views, .. } => 5 * views,
+            Task::C1r { .. } => 8,
+            Task::C4r { planes, .. } => 4 + 3 * planes.len(),
         }
     }
     pub fn out_channels(&self) -> usize {
         match self {
             Task::C1 => 3,
             Task::C3 { foci } => 3 * foci.len(),
-            Task::C4 { planes, .. } => 3 * planes.len(),
+            Task::C4 { planes, .. } | Task::C4r { planes, .. } => 3 * planes.len(),
+            Task::C1r { .. } => 3,
             Task::C5 { grid, .. } | Task::Fv { grid, .. } => 3 * grid * grid,
         }
     }
@@ -112,10 +157,17 @@ impl Task {
         match self {
             Task::C1 => Ok(()),
             Task::C3 { foci } => diopters(foci, "focal slices", 64),
-            Task::C4 { planes, foci } => {
+            Task::C4 { planes, foci } | Task::C4r { planes, foci } => {
                 diopters(planes, "display planes", 16)?;
                 diopters(foci, "focal samples", 64)
             }
+            Task::C1r { classical } => match classical {
+                Classical::Gather => Ok(()),
+                Classical::Lightfield { views } if (1..=256).contains(views) => Ok(()),
+                Classical::Lightfield { views } => {
+                    Err(format!("{views} light-field views: expected 1 to 256"))
+                }
+            },
             Task::C5 { views, grid } | Task::Fv { views, grid } => {
                 if ![5, 9].contains(views) || !(3..=9).contains(grid) || grid % 2 == 0 {
                     Err(format!(
@@ -187,14 +239,29 @@ impl Arch {
             // grid cost 81 renders per training scene; 5 of 9 keeps the same task (synthesise
             // the views between foveated inputs) at a size this machine trains in minutes.
             "fv" => Task::Fv { views: 5, grid: 3 },
+            "c1r" => Task::C1r {
+                classical: Classical::Lightfield { views: 12 },
+            },
+            "c4r" => Task::C4r {
+                planes: vec![0.2, 0.8, 1.4, 2.0],
+                foci: stack(0.1, 2.2, 22),
+            },
             _ => {
                 return Err(NetError::BadArch(format!(
-                    "unknown configuration {name:?}: expected c1, c3, c4, c5 or fv"
+                    "unknown configuration {name:?}: expected c1, c3, c4, c5, fv, c1r or c4r"
                 )))
             }
         };
         let fv = matches!(task, Task::Fv { .. });
+        // The refinement nets are small: they learn a residual, on the CPU, run per frame.
+        let (layers, channels) = match task {
+            Task::C1r { .. } => (6, 24),
+            Task::C4r { .. } => (6, 32),
+            _ => (8, 32),
+        };
         let arch = Arch {
+            layers,
+            channels,
             // The light-field nets (and FV's long skip, sec. 4.3.2) see the input at the end.
             concat_input: matches!(task, Task::C5 { .. } | Task::Fv { .. }),
             unet_channels: if fv { 16 } else { 0 },

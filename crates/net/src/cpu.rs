@@ -7,6 +7,7 @@ use crate::arch::Arch;
 use crate::direct::{self, DirectWeights};
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
+use crate::refine::{TileMap, TILE};
 use crate::weights::Weights;
 use rayon::prelude::*;
 
@@ -149,32 +150,88 @@ fn conv3x3(x: &Act, k: &Packed, elu: bool) -> Result<Act, NetError> {
         )));
     }
     match &k.direct {
-        Some(d) => Ok(conv3x3_direct(x, d, elu)),
+        Some(d) => Ok(conv3x3_direct(x, d, elu, None)),
         None => conv3x3_gemm(x, k, elu),
     }
 }
 
-fn conv3x3_direct(x: &Act, k: &DirectWeights, elu: bool) -> Act {
+fn conv3x3_direct(x: &Act, k: &DirectWeights, elu: bool, spans: Option<&Spans>) -> Act {
     let (h, w, cout) = (x.h, x.w, k.cout);
     let padded = direct::pad_zero(&x.data, h, w, x.c);
     let mut out = vec![0.0f32; h * w * cout];
+    let whole = [(0, w)];
     out.par_chunks_mut(w * cout)
         .enumerate()
         .for_each(|(y, row)| {
-            #[cfg(target_arch = "x86_64")]
-            // SAFETY: `direct` is only set when `direct::available()`; `padded` is the
-            // (h + 2) x (w + 2) x cin border copy, y < h, and `row` is w x cout.
-            unsafe {
-                direct::conv_row(&padded, w, y, k, elu, row)
+            let runs = spans.map_or(&whole[..], |s| &s.rows[y][..]);
+            for &(x0, x1) in runs {
+                #[cfg(target_arch = "x86_64")]
+                // SAFETY: `direct` is only set when `direct::available()`; `padded` is the
+                // (h + 2) x (w + 2) x cin border copy, y < h, `row` is w x cout and every
+                // span lies within 0..w (`Spans::dilated` clamps them).
+                unsafe {
+                    direct::conv_span(&padded, w, y, x0, x1, k, elu, row)
+                }
+                #[cfg(not(target_arch = "x86_64"))]
+                let _ = (y, x0, x1, &row, elu, &padded);
             }
-            #[cfg(not(target_arch = "x86_64"))]
-            let _ = (y, row, elu, &padded);
         });
     Act {
         h,
         w,
         c: cout,
         data: out,
+    }
+}
+
+/// The pixels of one activation that must be computed: per row, half-open `[x0, x1)` runs.
+#[derive(Debug, Clone)]
+struct Spans {
+    rows: Vec<Vec<(usize, usize)>>,
+}
+
+impl Spans {
+    /// The runs of `mask` (`w` x `h`) dilated by `k` pixels (a square).
+    fn dilated(mask: &[bool], w: usize, h: usize, k: usize) -> Spans {
+        // Rows first (a run per row grown by k), then the union over k rows up and down.
+        let grown: Vec<Vec<(usize, usize)>> = (0..h)
+            .map(|y| {
+                let mut runs: Vec<(usize, usize)> = Vec::new();
+                let row = &mask[y * w..][..w];
+                let mut x = 0;
+                while x < w {
+                    if !row[x] {
+                        x += 1;
+                        continue;
+                    }
+                    let start = x;
+                    while x < w && row[x] {
+                        x += 1;
+                    }
+                    runs.push((start.saturating_sub(k), (x + k).min(w)));
+                }
+                runs
+            })
+            .collect();
+        let rows = (0..h)
+            .map(|y| {
+                let mut all: Vec<(usize, usize)> = grown[y.saturating_sub(k)..(y + k + 1).min(h)]
+                    .iter()
+                    .flatten()
+                    .copied()
+                    .collect();
+                all.sort_unstable();
+                let mut merged: Vec<(usize, usize)> = Vec::with_capacity(all.len());
+                for (a, b) in all {
+                    match merged.last_mut() {
+                        Some(last) if a <= last.1 => last.1 = last.1.max(b),
+                        _ => merged.push((a, b)),
+                    }
+                }
+                merged
+            })
+            .collect();
+        Spans { rows }
     }
 }
 
@@ -321,6 +378,90 @@ impl CpuNet {
         let padded = x.pad_to_multiple(arch.size_multiple());
         let y = forward(arch, self, &padded)?;
         Ok(y.crop(x.h, x.w))
+    }
+}
+
+impl CpuNet {
+    /// [`CpuNet::forward`] computed only where `tiles` needs it: each layer on the tiles that
+    /// run, grown by the receptive field still ahead of it, so on those tiles the output
+    /// equals a full-image pass (the same kernel over the same values); elsewhere it is
+    /// unspecified. Falls back to a full pass without the direct kernel or with a U-Net.
+    pub fn forward_tiles(&self, x: &Act, tiles: &TileMap) -> Result<Act, NetError> {
+        let arch = self.arch();
+        let r = arch.rate;
+        let sparse_ok = arch.unet_channels == 0
+            && self.packed.iter().all(|p| p.direct.is_some())
+            && TILE % r == 0;
+        if !sparse_ok {
+            return self.forward(x);
+        }
+        if (tiles.width, tiles.height) != (x.w, x.h) {
+            return Err(input(format!(
+                "tile map of {}x{} for a {}x{} input",
+                tiles.width, tiles.height, x.w, x.h
+            )));
+        }
+        // The last layer's wanted pixels, at interleaved resolution (padded size).
+        let (hp, wp) = (x.h.div_ceil(r), x.w.div_ceil(r));
+        let mut last = vec![false; hp * wp];
+        for (y, row) in last.chunks_mut(wp).enumerate() {
+            for (xx, v) in row.iter_mut().enumerate() {
+                *v = tiles.covers(xx * r, y * r);
+            }
+        }
+        let needed = (0..arch.layers)
+            .map(|i| Spans::dilated(&last, wp, hp, arch.layers - 1 - i))
+            .collect();
+        let sparse = Sparse { net: self, needed };
+        let padded = x.pad_to_multiple(r);
+        let y = forward(arch, &sparse, &padded)?;
+        Ok(y.crop(x.h, x.w))
+    }
+}
+
+/// [`CpuNet`]'s operations with each convolution computed on its needed pixels only.
+struct Sparse<'a> {
+    net: &'a CpuNet,
+    /// Per layer, the pixels of its output that later layers read.
+    needed: Vec<Spans>,
+}
+
+impl Ops for Sparse<'_> {
+    type T = Act;
+    type E = NetError;
+    fn conv(&self, x: &Act, layer: usize, elu: bool) -> Result<Act, NetError> {
+        let k = self
+            .net
+            .packed
+            .get(layer)
+            .ok_or_else(|| input(format!("no layer {layer}")))?;
+        match (&k.direct, self.needed.get(layer)) {
+            (Some(d), Some(s)) if x.c == k.cin && s.rows.len() == x.h => {
+                Ok(conv3x3_direct(x, d, elu, Some(s)))
+            }
+            _ => conv3x3(x, k, elu),
+        }
+    }
+    fn add(&self, a: &Act, b: &Act) -> Result<Act, NetError> {
+        self.net.add(a, b)
+    }
+    fn concat(&self, a: &Act, b: &Act) -> Result<Act, NetError> {
+        self.net.concat(a, b)
+    }
+    fn tanh01(&self, x: &Act) -> Result<Act, NetError> {
+        self.net.tanh01(x)
+    }
+    fn space_to_depth(&self, x: &Act, r: usize) -> Result<Act, NetError> {
+        space_to_depth(x, r)
+    }
+    fn depth_to_space(&self, x: &Act, r: usize) -> Result<Act, NetError> {
+        depth_to_space(x, r)
+    }
+    fn avg_pool2(&self, x: &Act) -> Result<Act, NetError> {
+        avg_pool2(x)
+    }
+    fn upsample2(&self, x: &Act) -> Result<Act, NetError> {
+        upsample2(x)
     }
 }
 

@@ -58,28 +58,32 @@ pub fn available() -> bool {
     }
 }
 
-/// One output row `y` of a 3x3 "same" convolution. `padded` is the input with a one-pixel
-/// zero border: `(h + 2) x (w + 2) x cin`, HWC. `row` receives `w x cout` values.
+/// The pixels `x0..x1` of output row `y` of a 3x3 "same" convolution (the row's other
+/// pixels are left as they are). `padded` is the input with a one-pixel zero border:
+/// `(h + 2) x (w + 2) x cin`, HWC. `row` holds the row's `w x cout` values.
 ///
 /// # Safety
 /// The CPU must support AVX2 and FMA ([`available`]); `padded` must hold `(h + 2) * (w + 2) * cin`
-/// values with `y < h`, and `row` exactly `w * k.cout`.
+/// values with `y < h`, `row` exactly `w * k.cout`, and `x0 <= x1 <= w`.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-pub unsafe fn conv_row(
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn conv_span(
     padded: &[f32],
     w: usize,
     y: usize,
+    x0: usize,
+    x1: usize,
     k: &DirectWeights,
     elu: bool,
     row: &mut [f32],
 ) {
-    let mut x = 0;
-    while x + PX <= w {
+    let mut x = x0;
+    while x + PX <= x1 {
         tile::<PX>(padded, w, y, x, k, elu, row);
         x += PX;
     }
-    match w - x {
+    match x1 - x {
         0 => {}
         1 => tile::<1>(padded, w, y, x, k, elu, row),
         2 => tile::<2>(padded, w, y, x, k, elu, row),

@@ -7,6 +7,10 @@ use crate::arch::{Arch, Task};
 use crate::cpu::Act;
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
+use crate::refine::{
+    check_planes, compose_defocus, compose_layers, error_tiles, refine_defocus_input,
+    refine_layers_input, Refined,
+};
 use crate::tasks::{defocus_input, rgb_at, rgbd_input};
 use crate::weights::Weights;
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
@@ -254,6 +258,41 @@ impl GpuNet {
                 .map(|k| rgb_at(&y, k))
                 .collect::<Result<_, _>>()?,
         })
+    }
+}
+
+impl GpuNet {
+    /// C1R on the GPU: the net runs on the whole image and its correction is kept on the
+    /// tiles the error map selects, so the result equals [`crate::CpuNet::refine_defocus`]
+    /// (which evaluates only those tiles).
+    pub fn refine_defocus(
+        &self,
+        rgbd: &Rgbd,
+        classical: &RgbImage,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<Refined, NetError> {
+        self.arch().expect_task("c1r")?;
+        let tiles = error_tiles(&rgbd.depth, focus, eye)?;
+        if !tiles.on.contains(&true) {
+            return Ok(Refined {
+                image: classical.clone(),
+                tiles,
+            });
+        }
+        let y = self.forward(&refine_defocus_input(rgbd, classical, focus, eye)?)?;
+        Ok(Refined {
+            image: compose_defocus(classical, &y, &tiles)?,
+            tiles,
+        })
+    }
+
+    /// C4R on the GPU (as [`crate::CpuNet::refine_decompose`]).
+    pub fn refine_decompose(&self, rgbd: &Rgbd, linear: &Layers) -> Result<Layers, NetError> {
+        self.arch().expect_task("c4r")?;
+        check_planes(&self.arch().task, linear)?;
+        let y = self.forward(&refine_layers_input(rgbd, linear)?)?;
+        compose_layers(linear, &y)
     }
 }
 

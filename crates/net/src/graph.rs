@@ -56,7 +56,10 @@ pub fn forward<O: Ops>(arch: &Arch, ops: &O, input: &O::T) -> Result<O::T, O::E>
             if arch.unet_channels > 0 {
                 y = ops.add(&y, &unet(arch, ops, &x0)?)?;
             }
-            return ops.depth_to_space(&ops.tanh01(&y)?, arch.rate);
+            if !arch.task.residual() {
+                y = ops.tanh01(&y)?;
+            }
+            return ops.depth_to_space(&y, arch.rate);
         }
         h.push(ops.conv(&x, i, true)?);
     }

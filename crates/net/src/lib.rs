@@ -10,12 +10,13 @@ pub mod error;
 pub mod fv;
 pub mod gpu;
 pub mod graph;
+pub mod refine;
 pub mod tasks;
 #[cfg(feature = "train")]
 pub mod train;
 pub mod weights;
 
-pub use arch::{Arch, Task};
+pub use arch::{Arch, Classical, Task};
 pub use cpu::{Act, CpuNet};
 pub use error::NetError;
 pub use weights::Weights;

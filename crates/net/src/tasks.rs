@@ -19,7 +19,7 @@ fn check_focus(q: Diopters) -> Result<(), NetError> {
 }
 
 /// The eye with its field spread over `width` pixels (as the renderer does).
-fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, NetError> {
+pub(crate) fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, NetError> {
     let w = u32::try_from(width).map_err(|_| input(format!("image width {width} is too large")))?;
     Ok(eye.with_width(w).validated()?)
 }

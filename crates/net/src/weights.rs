@@ -58,9 +58,10 @@ impl Weights {
             .map(|i| {
                 let (cin, cout) = (arch.conv_in(i), arch.conv_out(i));
                 let mut bound = (6.0 / (9 * cin) as f32).sqrt();
-                // Each branch's last convolution (the chain's and the U-Net's).
+                // Each branch's last convolution (the chain's and the U-Net's); a refinement
+                // net's starts at zero, so untrained it returns the classical result.
                 if i + 1 == arch.layers || i + 1 == arch.conv_count() {
-                    bound *= 0.1;
+                    bound *= if arch.task.residual() { 0.0 } else { 0.1 };
                 }
                 Conv {
                     cin,

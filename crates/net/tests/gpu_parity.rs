@@ -224,3 +224,95 @@ fn shipped_weights_run_on_the_gpu_like_on_the_cpu() {
     eprintln!("shipped c4: max |gpu - cpu| = {err:e}");
     assert!(err < 1e-3, "shipped c4: {err}");
 }
+
+/// Random weights throughout, the refinement nets' zero-initialised last layer included.
+fn weights_all_random(arch: &Arch, seed: u64) -> Weights {
+    let mut w = weights(arch, seed);
+    let mut r = SplitMix(seed ^ 0x1a57);
+    for v in w.convs.iter_mut().flat_map(|c| c.weight.iter_mut()) {
+        if *v == 0.0 {
+            *v = 0.05 * r.uniform();
+        }
+    }
+    w
+}
+
+#[test]
+fn refinement_nets_match_cpu() {
+    if !gpu_ok() {
+        return;
+    }
+    // A depth step at column 20 of 52: the error map runs the tiles near it only.
+    let (w, h) = (52, 36);
+    let mut input = rgbd(w, h, 7);
+    let d: Vec<f32> = (0..w * h)
+        .map(|i| if i % w < 20 { 3.0 } else { 0.5 })
+        .collect();
+    input.depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap();
+    let eye = EyeModel::default();
+    let q = Diopters(3.0);
+    let arch = Arch {
+        rate: 4,
+        ..Arch::preset("c1r").unwrap()
+    };
+    let c1r = weights_all_random(&arch, 3);
+    let (cpu, gpu) = (
+        CpuNet::new(c1r.clone()).unwrap(),
+        GpuNet::new(c1r, None).unwrap(),
+    );
+    let base = dioptra_net::refine::classical_defocus(
+        &dioptra_render::Cpu,
+        dioptra_net::Classical::Lightfield { views: 12 },
+        &input,
+        q,
+        &eye,
+    )
+    .unwrap();
+    let a = cpu.refine_defocus(&input, &base, q, &eye).unwrap();
+    let b = gpu.refine_defocus(&input, &base, q, &eye).unwrap();
+    assert_eq!(a.tiles, b.tiles);
+    assert!(
+        a.tiles.fraction() > 0.0 && a.tiles.fraction() < 1.0,
+        "{}",
+        a.tiles.fraction()
+    );
+    assert_ne!(a.image, base, "the random net corrects");
+    let err = (0..3)
+        .flat_map(|c| {
+            a.image.channels[c]
+                .data()
+                .iter()
+                .zip(b.image.channels[c].data())
+        })
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("c1r: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "c1r: {err}");
+    let c4r = weights_all_random(&Arch::preset("c4r").unwrap(), 4);
+    let (cpu, gpu) = (
+        CpuNet::new(c4r.clone()).unwrap(),
+        GpuNet::new(c4r, None).unwrap(),
+    );
+    let planes: Vec<Diopters> = [0.2, 0.8, 1.4, 2.0].map(Diopters).to_vec();
+    let linear = dioptra_render::multifocal::linear_blend(&input, &planes).unwrap();
+    let (a, b) = (
+        cpu.refine_decompose(&input, &linear).unwrap(),
+        gpu.refine_decompose(&input, &linear).unwrap(),
+    );
+    let err = a
+        .images
+        .iter()
+        .zip(&b.images)
+        .flat_map(|(la, lb)| {
+            (0..3).flat_map(move |c| la.channels[c].data().iter().zip(lb.channels[c].data()))
+        })
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("c4r: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "c4r: {err}");
+    assert!(a
+        .images
+        .iter()
+        .flat_map(|l| l.channels.iter().flat_map(|p| p.data()))
+        .all(|v| (0.0..=1.0).contains(v)));
+}

@@ -340,3 +340,62 @@ fn adam_moments_and_variables_hold_no_graph_after_a_step() {
     assert!(adam.m.iter().chain(&adam.v).all(|t| !t.track_op()));
     assert!(vars.iter().all(|v| v.as_tensor().is_variable()));
 }
+
+#[test]
+fn c1r_training_lowers_the_loss_from_the_classical_render() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c1r", dir.path(), 40);
+    cfg.arch.task = Task::C1r {
+        classical: dioptra_net::Classical::Gather,
+    };
+    cfg.arch.layers = 3;
+    // Large blur on the tiny renders (as 512 px), the halo (3 layers x r 2) inside the patch.
+    cfg.fovs = vec![5.0];
+    cfg.patch = 32;
+    let (w, losses, _) = run(&cfg);
+    let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
+    let last: f32 = losses[35..].iter().sum::<f32>() / 5.0;
+    assert!(last < first - 0.05, "loss went from {first} to {last}");
+    let back = Weights::load(&dir.path().join("c1r.safetensors")).unwrap();
+    assert_eq!(back.convs, w.convs);
+    assert!(back.provenance["refines"].contains("gather"));
+    assert!(back.provenance["fovs"].contains("5.0"));
+    // A patch that cannot hold a tile inside the halo is refused, saying the size needed.
+    cfg.patch = 24;
+    let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("at least 28"), "{e}");
+}
+
+#[test]
+fn c4r_training_distils_then_lowers_the_retinal_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c4r", dir.path(), 30);
+    cfg.arch.task = Task::C4r {
+        planes: vec![0.2, 0.8, 1.4, 2.0],
+        foci: vec![0.1, 0.7, 1.4, 2.2],
+    };
+    cfg.distill_steps = 15;
+    let (_, losses, _) = run(&cfg);
+    // Each phase's loss falls (they measure different things).
+    let mean = |s: &[f32]| s.iter().sum::<f32>() / s.len() as f32;
+    assert!(
+        mean(&losses[10..15]) < mean(&losses[..5]) - 0.05,
+        "distillation: {losses:?}"
+    );
+    assert!(
+        mean(&losses[25..30]) < mean(&losses[15..20]) - 0.02,
+        "retina: {losses:?}"
+    );
+    // Optimized blending's layers are cached per scene.
+    let cached = std::fs::read_dir(dir.path().join("cache"))
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with("distill-")
+        })
+        .count();
+    assert_eq!(cached, 2);
+}

@@ -96,6 +96,8 @@ pub fn suite_methods(optimized_iterations: usize, c1_rate: usize) -> Vec<Method>
             iterations: optimized_iterations,
         },
         Method::NetworkC4,
+        Method::RefineC1,
+        Method::RefineC4,
     ]
 }
 
@@ -187,7 +189,7 @@ pub fn run(
                             .context("no retinal image")
                     })
                 } else {
-                    methods::defocus(&Cpu, m, net, input, q, &eye)
+                    methods::defocus(&Cpu, m, net, input, q, &eye).map(|(img, _)| img)
                 };
                 match r {
                     Ok(img) => outs.push(img),

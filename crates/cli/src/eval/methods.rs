@@ -4,7 +4,8 @@
 use anyhow::{anyhow, Result};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_net::gpu::GpuNet;
-use dioptra_net::{Arch, CpuNet, Weights};
+use dioptra_net::refine::{classical_defocus, Refined};
+use dioptra_net::{Arch, Classical, CpuNet, Task, Weights};
 use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::{Backend, DefocusMethod, Layers, LightFieldParams, OptimizeParams};
 
@@ -24,6 +25,10 @@ pub enum Method {
         iterations: usize,
     },
     NetworkC4,
+    /// C1R: the classical render its weights name, refined on the error map's tiles.
+    RefineC1,
+    /// C4R: linear blending's layers, refined.
+    RefineC4,
 }
 
 impl Method {
@@ -35,12 +40,14 @@ impl Method {
             Method::Linear => "linear",
             Method::Optimized { .. } => "optimized",
             Method::NetworkC4 => "network-c4",
+            Method::RefineC1 => "refine-c1r",
+            Method::RefineC4 => "refine-c4r",
         }
     }
 
     pub fn setting(&self) -> String {
         match self {
-            Method::Gather | Method::Linear => String::new(),
+            Method::Gather | Method::Linear | Method::RefineC1 | Method::RefineC4 => String::new(),
             Method::LightField { views } => format!("{views} views"),
             Method::NetworkC1 { rate } => format!("r={rate}"),
             Method::Optimized { iterations } => format!("{iterations} it"),
@@ -63,7 +70,7 @@ impl Method {
     pub fn multifocal(&self) -> bool {
         matches!(
             self,
-            Method::Linear | Method::Optimized { .. } | Method::NetworkC4
+            Method::Linear | Method::Optimized { .. } | Method::NetworkC4 | Method::RefineC4
         )
     }
 
@@ -79,7 +86,10 @@ impl Method {
     }
 
     pub fn network(&self) -> bool {
-        matches!(self, Method::NetworkC1 { .. } | Method::NetworkC4)
+        matches!(
+            self,
+            Method::NetworkC1 { .. } | Method::NetworkC4 | Method::RefineC1 | Method::RefineC4
+        )
     }
 }
 
@@ -88,9 +98,13 @@ impl Method {
 pub struct Nets {
     c1: Option<CpuNet>,
     c4: Option<CpuNet>,
+    c1r: Option<CpuNet>,
+    c4r: Option<CpuNet>,
     /// Why the shipped weights are not used, when they are not.
     c1_missing: String,
     c4_missing: String,
+    c1r_missing: String,
+    c4r_missing: String,
 }
 
 fn load_shipped(config: &str) -> (Option<CpuNet>, String) {
@@ -118,11 +132,17 @@ impl Nets {
     pub fn load() -> Nets {
         let (c1, c1_missing) = load_shipped("c1");
         let (c4, c4_missing) = load_shipped("c4");
+        let (c1r, c1r_missing) = load_shipped("c1r");
+        let (c4r, c4r_missing) = load_shipped("c4r");
         Nets {
             c1,
             c4,
+            c1r,
+            c4r,
             c1_missing,
             c4_missing,
+            c1r_missing,
+            c4r_missing,
         }
     }
 
@@ -136,6 +156,8 @@ impl Nets {
         let (shipped, missing, config, rate) = match m {
             Method::NetworkC1 { rate } => (&self.c1, &self.c1_missing, "c1", Some(rate)),
             Method::NetworkC4 => (&self.c4, &self.c4_missing, "c4", None),
+            Method::RefineC1 => (&self.c1r, &self.c1r_missing, "c1r", None),
+            Method::RefineC4 => (&self.c4r, &self.c4r_missing, "c4r", None),
             _ => return Err(anyhow!("{} is not a network", m.name())),
         };
         if let Some(n) = shipped {
@@ -179,6 +201,12 @@ pub enum NetOn<'a> {
 }
 
 impl NetOn<'_> {
+    fn backend_name(self) -> &'static str {
+        match self {
+            NetOn::Cpu(_) => "cpu",
+            NetOn::Gpu(_) => "gpu",
+        }
+    }
     fn defocus(self, input: &Rgbd, q: Diopters, eye: &EyeModel) -> Result<RgbImage> {
         Ok(match self {
             NetOn::Cpu(n) => n.defocus(input, q, eye)?,
@@ -191,6 +219,34 @@ impl NetOn<'_> {
             NetOn::Gpu(n) => n.decompose(input)?,
         })
     }
+    fn classical(self) -> Result<Classical> {
+        let task = match self {
+            NetOn::Cpu(n) => &n.arch().task,
+            NetOn::Gpu(n) => &n.arch().task,
+        };
+        match task {
+            Task::C1r { classical } => Ok(*classical),
+            t => Err(anyhow!("{} is not a c1r net", t.name())),
+        }
+    }
+    fn refine_defocus(
+        self,
+        input: &Rgbd,
+        base: &RgbImage,
+        q: Diopters,
+        eye: &EyeModel,
+    ) -> Result<Refined> {
+        Ok(match self {
+            NetOn::Cpu(n) => n.refine_defocus(input, base, q, eye)?,
+            NetOn::Gpu(n) => n.refine_defocus(input, base, q, eye)?,
+        })
+    }
+    fn refine_decompose(self, input: &Rgbd, linear: &Layers) -> Result<Layers> {
+        Ok(match self {
+            NetOn::Cpu(n) => n.refine_decompose(input, linear)?,
+            NetOn::Gpu(n) => n.refine_decompose(input, linear)?,
+        })
+    }
 }
 
 /// The display planes of the multifocal methods (DeepFocus's 0.2, 0.8, 1.4, 2.0 D).
@@ -198,7 +254,7 @@ pub fn planes() -> Vec<Diopters> {
     DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect()
 }
 
-/// A varifocal method's image at focus `q`.
+/// A varifocal method's image at focus `q`, and for C1R the fraction of tiles it ran on.
 pub fn defocus(
     backend: &dyn Backend,
     m: Method,
@@ -206,7 +262,7 @@ pub fn defocus(
     input: &Rgbd,
     q: Diopters,
     eye: &EyeModel,
-) -> Result<RgbImage> {
+) -> Result<(RgbImage, Option<f64>)> {
     let method = match m {
         Method::Gather => DefocusMethod::Gather,
         Method::LightField { views } => {
@@ -214,14 +270,30 @@ pub fn defocus(
         }
         Method::NetworkC1 { .. } => {
             let net = net.ok_or_else(|| anyhow!("network-c1 needs a net"))?;
-            return net.defocus(input, q, eye);
+            return Ok((net.defocus(input, q, eye)?, None));
+        }
+        Method::RefineC1 => {
+            let net = net.ok_or_else(|| anyhow!("refine-c1r needs a net"))?;
+            // The classical render on the same backend as the net (the frame's whole cost).
+            let base = if net.backend_name() == backend.name() {
+                classical_defocus(backend, net.classical()?, input, q, eye)?
+            } else {
+                return Err(anyhow!(
+                    "refine-c1r: the net runs on {} but the backend is {}",
+                    net.backend_name(),
+                    backend.name()
+                ));
+            };
+            let r = net.refine_defocus(input, &base, q, eye)?;
+            return Ok((r.image, Some(r.tiles.fraction())));
         }
         _ => return Err(anyhow!("{} is not a varifocal method", m.name())),
     };
-    backend
+    let img = backend
         .defocus(input, &[q], eye, method, &|_| {})?
         .pop()
-        .ok_or_else(|| anyhow!("{} made no image", m.name()))
+        .ok_or_else(|| anyhow!("{} made no image", m.name()))?;
+    Ok((img, None))
 }
 
 /// What a multifocal method needs besides the RGB-D input: the focal stack optimized
@@ -261,6 +333,11 @@ pub fn decompose(
         Method::NetworkC4 => {
             let net = net.ok_or_else(|| anyhow!("network-c4 needs a net"))?;
             net.decompose(input)
+        }
+        Method::RefineC4 => {
+            let net = net.ok_or_else(|| anyhow!("refine-c4r needs a net"))?;
+            let linear = backend.linear_blend(input, &planes)?;
+            net.refine_decompose(input, &linear)
         }
         _ => Err(anyhow!("{} is not a multifocal method", m.name())),
     }

@@ -155,15 +155,19 @@ fn settings(a: &Args) -> Result<Settings> {
             Method::Optimized { iterations: 1 },
             Method::Optimized { iterations: 10 },
             Method::NetworkC4,
+            Method::RefineC1,
+            Method::RefineC4,
         ]
     } else {
         let mut m = vec![Method::Gather];
         m.extend([12, 24, 36, 48, 64].map(|views| Method::LightField { views }));
         // Cheapest first: a setting's time predicts the next one's (see --budget-s).
         m.extend([4, 2, 1].map(|rate| Method::NetworkC1 { rate }));
+        m.push(Method::RefineC1);
         m.push(Method::Linear);
         m.extend([1, 10, 100].map(|iterations| Method::Optimized { iterations }));
         m.push(Method::NetworkC4);
+        m.push(Method::RefineC4);
         m
     };
     let speed = run_speed.then(|| speed::SpeedPlan {

@@ -27,12 +27,24 @@ pub struct SpeedRow {
     pub ssim: Option<f64>,
     /// Timed warm runs (0: one cold run); `None` when not timed.
     pub runs: Option<usize>,
+    /// C1R: the fraction of the error map's tiles the net ran on.
+    pub tiles: Option<f64>,
     pub note: String,
 }
 
-pub const HEADER: [&str; 11] = [
-    "method", "setting", "backend", "size", "scene", "focus_d", "time_ms", "psnr_db", "ssim",
-    "runs", "note",
+pub const HEADER: [&str; 12] = [
+    "method",
+    "setting",
+    "backend",
+    "size",
+    "scene",
+    "focus_d",
+    "time_ms",
+    "psnr_db",
+    "ssim",
+    "runs",
+    "tiles_run",
+    "note",
 ];
 
 /// What to run.
@@ -222,6 +234,7 @@ pub fn run(
                         psnr: None,
                         ssim: None,
                         runs: None,
+                        tiles: None,
                         note: String::new(),
                     };
                     let units = if m.multifocal() {
@@ -350,7 +363,7 @@ pub fn run(
                             last.insert(key, (m.relative_cost(), t.ms));
                         }
                         let row = match r {
-                            Ok((t, img)) if trained => {
+                            Ok((t, (img, tiles))) if trained => {
                                 let gt = truth_at(&truth, q).context("missing ground truth")?;
                                 let qa = quality(&img, gt, None)?;
                                 SpeedRow {
@@ -359,14 +372,16 @@ pub fn run(
                                     psnr: Some(qa.psnr),
                                     ssim: Some(qa.ssim),
                                     runs: Some(t.runs),
+                                    tiles,
                                     note: join(&note, &t.note(plan.runs)),
                                     ..base.clone()
                                 }
                             }
-                            Ok((t, _)) => SpeedRow {
+                            Ok((t, (_, tiles))) => SpeedRow {
                                 focus: Some(q.0),
                                 time_ms: Some(t.ms),
                                 runs: Some(t.runs),
+                                tiles,
                                 note: join(&note, &t.note(plan.runs)),
                                 ..base.clone()
                             },
@@ -400,6 +415,7 @@ pub fn table(rows: &[SpeedRow]) -> Table {
             num(r.psnr, 3),
             num(r.ssim, 5),
             r.runs.map_or(String::new(), |n| n.to_string()),
+            num(r.tiles, 3),
             r.note.clone(),
         ]);
     }

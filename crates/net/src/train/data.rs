@@ -69,7 +69,7 @@ pub struct SceneData {
 /// foci drawn uniformly over 0.1-4.0 D from the seed.
 pub fn scene_foci(task: &Task, seed: u64, k: usize) -> Vec<f32> {
     match task {
-        Task::C3 { foci } | Task::C4 { foci, .. } => foci.clone(),
+        Task::C3 { foci } | Task::C4 { foci, .. } | Task::C4r { foci, .. } => foci.clone(),
         _ => {
             let mut r = SplitMix(seed ^ 0x5eed_f0c1);
             let mut f: Vec<f32> = (0..k)
@@ -354,6 +354,12 @@ pub struct Batch {
     pub target_channels: usize,
     pub n: usize,
     pub patch: usize,
+    /// Per pixel (N x 1 x P x P), where the loss counts (C1R); everywhere when `None`.
+    pub mask: Option<Vec<f32>>,
+    /// C4R: optimized blending's layers (N x 3M x P x P), distilled before the retinal loss.
+    pub distill: Option<Vec<f32>>,
+    /// C4R: the foci (indices) this step's retinal loss is scored at; all when `None`.
+    pub foci: Option<Vec<u32>>,
 }
 
 /// A random patch origin on the `align` grid (x drawn first, then y: batches depend on it).
@@ -390,6 +396,12 @@ pub fn sample_batch(
         Task::C3 { foci } | Task::C4 { foci, .. } => (4, 3 * foci.len()),
         Task::C5 { .. } | Task::Fv { .. } => {
             return sample_light_field_batch(task, scenes, rng, n, patch, align)
+        }
+        Task::C1r { .. } | Task::C4r { .. } => {
+            return Err(NetError::Data(format!(
+                "{} batches come from train::refine_data",
+                task.name()
+            )))
         }
     };
     let mut input = Vec::with_capacity(n * cin * patch * patch);
@@ -435,6 +447,9 @@ pub fn sample_batch(
         target_channels: ct,
         n,
         patch,
+        mask: None,
+        distill: None,
+        foci: None,
     })
 }
 
@@ -516,5 +531,8 @@ fn sample_light_field_batch(
         target_channels: ct,
         n,
         patch,
+        mask: None,
+        distill: None,
+        foci: None,
     })
 }

@@ -10,8 +10,10 @@
 //! so late training is not starved of gradient. C4 is trained through the retinal model
 //! ([`retina`]): the loss is on the focal stack its layers produce, never on the layers.
 
+mod conv;
 pub mod data;
 pub mod model;
+pub mod refine_data;
 pub mod retina;
 pub mod trainer;
 
@@ -30,9 +32,11 @@ impl LossKind {
     pub fn for_task(task: &crate::Task) -> LossKind {
         match task {
             crate::Task::C1 | crate::Task::C3 { .. } => LossKind::LogL1,
-            crate::Task::C4 { .. } | crate::Task::C5 { .. } | crate::Task::Fv { .. } => {
-                LossKind::LogL2
-            }
+            crate::Task::C4 { .. }
+            | crate::Task::C5 { .. }
+            | crate::Task::Fv { .. }
+            | crate::Task::C1r { .. }
+            | crate::Task::C4r { .. } => LossKind::LogL2,
         }
     }
 }
@@ -52,4 +56,28 @@ pub fn loss(pred: &Tensor, target: &Tensor, kind: LossKind) -> Result<Tensor> {
         (m + 1e-10)?.log()? * std::f64::consts::LOG10_E
     };
     log10(&e)? + ((log10(&dx)? + log10(&dy)?)? * 0.5)?
+}
+
+/// sRGB encoding of linear values in [0, 1], differentiable (the metrics' encoding: the
+/// refinement nets train on the error the PSNR they are judged by measures).
+pub fn srgb(x: &Tensor) -> Result<Tensor> {
+    const CUT: f64 = 0.003_130_8;
+    let low = (x * 12.92)?;
+    let high = ((x.maximum(CUT)?.powf(1.0 / 2.4)? * 1.055)? - 0.055)?;
+    x.le(CUT)?.where_cond(&low, &high)
+}
+
+/// `log10` of the mean squared error of `pred` against `target` (NCHW), over the pixels
+/// where `mask` (N x 1 x H x W) is 1 when given: -PSNR / 10 for a peak of 1.
+pub fn log_mse(pred: &Tensor, target: &Tensor, mask: Option<&Tensor>) -> Result<Tensor> {
+    let e2 = (pred - target)?.sqr()?;
+    let mse = match mask {
+        None => e2.mean_all()?,
+        Some(m) => {
+            let c = e2.dim(1)? as f64;
+            let count = (m.sum_all()? * c)?;
+            (e2.broadcast_mul(m)?.sum_all()? / count.maximum(1.0)?)?
+        }
+    };
+    (mse + 1e-10)?.log()? * std::f64::consts::LOG10_E
 }

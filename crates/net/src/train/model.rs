@@ -60,14 +60,7 @@ impl Ops for CandleNet {
     type E = candle_core::Error;
     fn conv(&self, x: &Tensor, layer: usize, elu: bool) -> Result<Tensor> {
         let (w, b) = &self.convs[layer];
-        let y = x
-            .conv2d(w.as_tensor(), 1, 1, 1, 1)?
-            .broadcast_add(&b.as_tensor().reshape((1, (), 1, 1))?)?;
-        if elu {
-            y.elu(1.0)
-        } else {
-            Ok(y)
-        }
+        super::conv::conv(x, w.as_tensor(), b.as_tensor(), elu)
     }
     fn add(&self, a: &Tensor, b: &Tensor) -> Result<Tensor> {
         a + b

@@ -7,6 +7,8 @@ use dioptra_core::{Diopters, EyeModel};
 use dioptra_render::kernel::disk_kernel;
 
 pub struct Retina {
+    /// [J, M, side, side]: the disk of (plane i, focus j); the same for every colour, so the
+    /// colours are convolved as separate samples (a third of a [3J, 3M] kernel's work).
     weight: Tensor,
     /// Kernel radius: the border of this width is unreliable (zero padding) and is left out
     /// of the loss.
@@ -33,34 +35,59 @@ impl Retina {
             .unwrap_or(0);
         let side = 2 * radius + 1;
         let (m, j) = (planes.len(), foci.len());
-        let mut w = vec![0.0f32; 3 * j * 3 * m * side * side];
+        let mut w = vec![0.0f32; j * m * side * side];
         for (jj, ks) in kernels.iter().enumerate() {
             for (ii, k) in ks.iter().enumerate() {
                 let r = k.radius as isize;
-                for c in 0..3 {
-                    let (o, i) = (3 * jj + c, 3 * ii + c);
-                    for dy in -r..=r {
-                        for dx in -r..=r {
-                            let (y, x) = (
-                                (dy + radius as isize) as usize,
-                                (dx + radius as isize) as usize,
-                            );
-                            // conv2d is a correlation: flip the (symmetric) kernel anyway.
-                            w[((o * 3 * m + i) * side + y) * side + x] = k.at(-dx, -dy);
-                        }
+                for dy in -r..=r {
+                    for dx in -r..=r {
+                        let (y, x) = (
+                            (dy + radius as isize) as usize,
+                            (dx + radius as isize) as usize,
+                        );
+                        // The convolution is a correlation: flip the (symmetric) kernel anyway.
+                        w[((jj * m + ii) * side + y) * side + x] = k.at(-dx, -dy);
                     }
                 }
             }
         }
         Ok(Retina {
-            weight: Tensor::from_vec(w, (3 * j, 3 * m, side, side), dev)?,
+            weight: Tensor::from_vec(w, (j, m, side, side), dev)?,
             radius,
         })
     }
 
-    /// NCHW layers (3M channels) -> NCHW retinal focal stack (3J channels).
+    /// NCHW layers (3M channels, plane-major: plane i's R, G, B at 3i..3i+3) -> NCHW retinal
+    /// focal stack (3J channels, focus-major).
     pub fn apply(&self, layers: &Tensor) -> Result<Tensor> {
-        layers.conv2d(&self.weight, self.radius, 1, 1, 1)
+        self.apply_foci(layers, None)
+    }
+
+    /// [`Retina::apply`] at the foci `only` (indices into the foci), when given: 3 x their
+    /// count channels in that order.
+    pub fn apply_foci(&self, layers: &Tensor, only: Option<&[u32]>) -> Result<Tensor> {
+        let (n, c, h, w) = layers.dims4()?;
+        let m = self.weight.dim(1)?;
+        if c != 3 * m {
+            candle_core::bail!("retina: {c} layer channels for {m} planes");
+        }
+        let weight = match only {
+            Some(idx) => {
+                let i = Tensor::from_slice(idx, idx.len(), self.weight.device())?;
+                self.weight.index_select(&i, 0)?
+            }
+            None => self.weight.clone(),
+        };
+        let j = weight.dim(0)?;
+        // (N, M, 3, H, W) -> (N * 3, M, H, W): colours as samples.
+        let by_colour = layers
+            .reshape((n, m, 3, h, w))?
+            .permute((0, 2, 1, 3, 4))?
+            .reshape((n * 3, m, h, w))?;
+        let seen = super::conv::conv_fixed(&by_colour, &weight)?;
+        seen.reshape((n, 3, j, h, w))?
+            .permute((0, 2, 1, 3, 4))?
+            .reshape((n, 3 * j, h, w))
     }
 
     /// Drops the unreliable border of an NCHW tensor.

@@ -1,13 +1,18 @@
 //! The training loop: data, Adam, checkpoints every N steps, resume, export.
 
 use super::data::{
-    load_or_render, load_or_render_views, sample_batch, scene_foci, DataSpec, SceneData,
+    load_or_render, load_or_render_views, sample_batch, scene_foci, Batch, DataSpec, SceneData,
 };
 use super::model::{Adam, CandleNet};
+use super::refine_data::{
+    prepare_c1r, prepare_c4r, sample_c1r_batch, sample_c4r_batch, RefineScene, TileSampler,
+    DISTILL_ITERATIONS,
+};
 use super::retina::Retina;
-use super::{loss, LossKind};
+use super::{log_mse, loss, srgb, LossKind};
 use crate::arch::{Arch, Task};
 use crate::error::NetError;
+use crate::refine::TILE;
 use crate::weights::{SplitMix, Weights};
 use candle_core::{Device, Tensor};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
@@ -35,6 +40,19 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Seed of initialisation and patch sampling.
     pub seed: u64,
+    /// Fields of view (degrees) the training scenes are rendered with, scene `i` with
+    /// `fovs[i % len]` (empty: `data.fov_deg` only). A narrower field at the same size has
+    /// larger blur in pixels: 10 degrees on 256 px blurs as 20 degrees on 512 px.
+    pub fovs: Vec<f32>,
+    /// C4R: steps that distil optimized blending's layers before the retinal loss.
+    pub distill_steps: u64,
+    /// With it, the learning rate falls from `lr` to this by a cosine over the run's steps
+    /// (step `s` of `steps` uses `lr_final + (lr - lr_final) (1 + cos(pi s / steps)) / 2`;
+    /// it depends only on the step, so a resumed run keeps to it).
+    pub lr_final: Option<f64>,
+    /// C1R: the fraction of patches centred on tiles drawn by the classical render's error
+    /// there (the rest uniformly over the tiles that run).
+    pub error_weighted: f64,
 }
 
 impl TrainConfig {
@@ -53,17 +71,70 @@ impl TrainConfig {
             out,
             checkpoint_every: 100,
             seed: 1,
+            fovs: Vec::new(),
+            distill_steps: 0,
+            lr_final: None,
+            error_weighted: 0.5,
         }
     }
+
+    /// The learning rate of step `step` (see [`TrainConfig::lr_final`]).
+    pub fn lr_at(&self, step: u64) -> f64 {
+        match self.lr_final {
+            None => self.lr,
+            Some(lo) => {
+                let t = step as f64 / self.steps.max(1) as f64;
+                lo + (self.lr - lo) * 0.5 * (1.0 + (std::f64::consts::PI * t.min(1.0)).cos())
+            }
+        }
+    }
+
+    /// The render settings of training scene `i` (its field of view from `fovs`).
+    pub fn spec_of(&self, i: u64) -> DataSpec {
+        let mut spec = self.data.clone();
+        if !self.fovs.is_empty() {
+            spec.fov_deg = self.fovs[(i % self.fovs.len() as u64) as usize];
+        }
+        spec
+    }
+}
+
+/// Where one training step's time went, seconds.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct StepTimes {
+    /// Sampling the batch from the cached renders.
+    pub data: f64,
+    /// The forward pass and the loss.
+    pub forward: f64,
+    pub backward: f64,
+    pub optimiser: f64,
 }
 
 #[derive(Debug, Clone)]
 pub enum TrainEvent {
-    Data { done: u64, total: u64 },
-    Resumed { step: u64 },
-    Step { step: u64, loss: f32 },
-    Checkpoint { step: u64 },
-    Exported { path: PathBuf },
+    Data {
+        done: u64,
+        total: u64,
+    },
+    Resumed {
+        step: u64,
+    },
+    Step {
+        step: u64,
+        loss: f32,
+        times: StepTimes,
+    },
+    /// Preparing the refinement nets' classical results: scenes done of total.
+    Prepare {
+        done: u64,
+        total: u64,
+    },
+    Checkpoint {
+        step: u64,
+    },
+    Exported {
+        path: PathBuf,
+    },
 }
 
 const CKPT: &str = "checkpoint.safetensors";
@@ -128,13 +199,14 @@ pub fn load_scenes(
     (0..cfg.scenes)
         .map(|i| {
             let seed = cfg.first_seed + i;
+            let spec = cfg.spec_of(i);
             let s = match &cfg.arch.task {
                 Task::C5 { grid, .. } | Task::Fv { grid, .. } => {
-                    load_or_render_views(&cfg.cache, seed, *grid, &cfg.data)
+                    load_or_render_views(&cfg.cache, seed, *grid, &spec)
                 }
                 task => {
                     let foci = scene_foci(task, seed, cfg.foci_per_scene);
-                    load_or_render(&cfg.cache, seed, &foci, &cfg.data)
+                    load_or_render(&cfg.cache, seed, &foci, &spec)
                 }
             };
             on(TrainEvent::Data {
@@ -146,24 +218,75 @@ pub fn load_scenes(
         .collect()
 }
 
-/// One step's loss on a batch (the forward pass and, for C4, the retinal model).
+/// The training data of each kind of net.
+enum Data {
+    Plain(Vec<SceneData>),
+    C1r(Vec<RefineScene>, TileSampler),
+    C4r(Vec<RefineScene>),
+}
+
+/// One step's loss on a batch (the forward pass and, for C4 and C4R, the retinal model).
+///
+/// The refinement nets are scored on what inference shows: the classical result plus the
+/// correction, clamped to [0, 1]. C1R's loss is the sRGB mean squared error (the PSNR it is
+/// judged by) over the tiles that run; C4R's distils optimized blending's layers for
+/// `distill_steps`, then is the sRGB error of the retinal focal stack.
 fn batch_loss(
     net: &CandleNet,
     retina: Option<&Retina>,
-    b: &super::data::Batch,
+    b: &Batch,
+    distilling: bool,
     dev: &Device,
 ) -> Result<Tensor, NetError> {
-    let x = Tensor::from_vec(b.input.clone(), (b.n, b.in_channels, b.patch, b.patch), dev)?;
-    let t = Tensor::from_vec(
-        b.target.clone(),
-        (b.n, b.target_channels, b.patch, b.patch),
-        dev,
-    )?;
+    let shape = |c: usize| (b.n, c, b.patch, b.patch);
+    let x = Tensor::from_vec(b.input.clone(), shape(b.in_channels), dev)?;
+    let t = Tensor::from_vec(b.target.clone(), shape(b.target_channels), dev)?;
     let y = net.forward(&x)?;
-    let kind = LossKind::for_task(&net.arch.task);
-    Ok(match retina {
-        Some(r) => loss(&r.interior(&r.apply(&y)?)?, &r.interior(&t)?, kind)?,
-        None => loss(&y, &t, kind)?,
+    Ok(match &net.arch.task {
+        Task::C1r { .. } => {
+            let pred = (x.narrow(1, 5, 3)? + &y)?.clamp(0f32, 1f32)?;
+            let mask = match &b.mask {
+                Some(m) => Some(Tensor::from_vec(m.clone(), shape(1), dev)?),
+                None => None,
+            };
+            log_mse(&srgb(&pred)?, &srgb(&t)?, mask.as_ref())?
+        }
+        Task::C4r { planes, .. } => {
+            let m3 = 3 * planes.len();
+            let layers = (x.narrow(1, 4, m3)? + &y)?.clamp(0f32, 1f32)?;
+            match (&b.distill, retina, distilling) {
+                (Some(d), _, true) => {
+                    let d = Tensor::from_vec(d.clone(), shape(m3), dev)?;
+                    log_mse(&layers, &d, None)?
+                }
+                (_, Some(r), _) => {
+                    let (seen, t) = match &b.foci {
+                        Some(f) => {
+                            let ch: Vec<u32> = f
+                                .iter()
+                                .flat_map(|&j| [3 * j, 3 * j + 1, 3 * j + 2])
+                                .collect();
+                            let ch = Tensor::from_slice(&ch, ch.len(), dev)?;
+                            (r.apply_foci(&layers, Some(f))?, t.index_select(&ch, 1)?)
+                        }
+                        None => (r.apply(&layers)?, t),
+                    };
+                    log_mse(&srgb(&r.interior(&seen)?)?, &srgb(&r.interior(&t)?)?, None)?
+                }
+                _ => {
+                    return Err(NetError::Data(
+                        "a C4R batch needs optimized layers or the retinal model".into(),
+                    ))
+                }
+            }
+        }
+        task => {
+            let kind = LossKind::for_task(task);
+            match retina {
+                Some(r) => loss(&r.interior(&r.apply(&y)?)?, &r.interior(&t)?, kind)?,
+                None => loss(&y, &t, kind)?,
+            }
+        }
     })
 }
 
@@ -178,14 +301,65 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             if align > cfg.arch.rate { " x 4 for the U-Net" } else { "" }
         )));
     }
+    let halo = cfg.arch.layers * cfg.arch.rate;
+    if matches!(cfg.arch.task, Task::C1r { .. }) && cfg.patch < 2 * halo + TILE {
+        return Err(NetError::Input(format!(
+            "patch {} leaves no room for a {TILE} px tile inside the net's {halo} px halo ({} layers x rate {}): use at least {}",
+            cfg.patch,
+            cfg.arch.layers,
+            cfg.arch.rate,
+            2 * halo + TILE
+        )));
+    }
     std::fs::create_dir_all(&cfg.out).map_err(io(&cfg.out))?;
     let dev = Device::Cpu;
     let started = Instant::now();
     let scenes = load_scenes(cfg, on)?;
     let eye = cfg.data.eye()?;
     let retina = match &cfg.arch.task {
-        Task::C4 { planes, foci } => Some(Retina::new(planes, foci, &eye, &dev)?),
+        Task::C4 { planes, foci } | Task::C4r { planes, foci } => {
+            Some(Retina::new(planes, foci, &eye, &dev)?)
+        }
         _ => None,
+    };
+    let with_eyes =
+        |scenes: Vec<SceneData>| -> Result<Vec<(SceneData, dioptra_core::EyeModel)>, NetError> {
+            scenes
+                .into_iter()
+                .enumerate()
+                .map(|(i, s)| Ok((s, cfg.spec_of(i as u64).eye()?)))
+                .collect()
+        };
+    let mut prep = |done: usize, total: usize| {
+        on(TrainEvent::Prepare {
+            done: done as u64,
+            total: total as u64,
+        })
+    };
+    let data = match &cfg.arch.task {
+        Task::C1r { classical } => {
+            let (s, sampler) = prepare_c1r(
+                with_eyes(scenes)?,
+                *classical,
+                cfg.error_weighted,
+                &mut prep,
+            )?;
+            Data::C1r(s, sampler)
+        }
+        Task::C4r { .. } => {
+            if !cfg.fovs.is_empty() && cfg.fovs.iter().any(|&f| f != cfg.data.fov_deg) {
+                return Err(NetError::Input(
+                    "C4R trains through one retinal model: one field of view".into(),
+                ));
+            }
+            Data::C4r(prepare_c4r(
+                with_eyes(scenes)?,
+                &cfg.arch.task,
+                &cfg.cache,
+                &mut prep,
+            )?)
+        }
+        _ => Data::Plain(scenes),
     };
     if let Some(r) = &retina {
         if cfg.patch <= 2 * r.radius + 2 {
@@ -239,25 +413,49 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         // Batches depend only on (seed, step): a resumed run sees the same data.
         let mut rng =
             SplitMix(cfg.seed.wrapping_mul(0x9e37_79b9) ^ step.wrapping_mul(0x2545_f491_4f6c_dd1d));
-        let b = sample_batch(
-            &cfg.arch.task,
-            &scenes,
-            &eye,
-            &mut rng,
-            cfg.batch,
-            cfg.patch,
-            align,
-        )?;
-        let l = batch_loss(&net, retina.as_ref(), &b, &dev)?;
+        let t0 = Instant::now();
+        let b = match &data {
+            Data::Plain(scenes) => sample_batch(
+                &cfg.arch.task,
+                scenes,
+                &eye,
+                &mut rng,
+                cfg.batch,
+                cfg.patch,
+                align,
+            )?,
+            Data::C1r(scenes, sampler) => {
+                sample_c1r_batch(scenes, sampler, &mut rng, cfg.batch, cfg.patch, align, halo)?
+            }
+            Data::C4r(scenes) => sample_c4r_batch(scenes, &mut rng, cfg.batch, cfg.patch, align)?,
+        };
+        let t1 = Instant::now();
+        let distilling = step < cfg.distill_steps;
+        let l = batch_loss(&net, retina.as_ref(), &b, distilling, &dev)?;
         let lv = l.to_scalar::<f32>()?;
         if !lv.is_finite() {
             return Err(NetError::Data(format!(
                 "loss became {lv} at step {step}; lower --lr and resume from the last checkpoint"
             )));
         }
-        adam.step(&vars, &l.backward()?)?;
+        let t2 = Instant::now();
+        let grads = l.backward()?;
+        let t3 = Instant::now();
+        adam.lr = cfg.lr_at(step);
+        adam.step(&vars, &grads)?;
+        let t4 = Instant::now();
         step += 1;
-        on(TrainEvent::Step { step, loss: lv });
+        let times = StepTimes {
+            data: (t1 - t0).as_secs_f64(),
+            forward: (t2 - t1).as_secs_f64(),
+            backward: (t3 - t2).as_secs_f64(),
+            optimiser: (t4 - t3).as_secs_f64(),
+        };
+        on(TrainEvent::Step {
+            step,
+            loss: lv,
+            times,
+        });
         if step % cfg.checkpoint_every.max(1) == 0 || step == cfg.steps {
             checkpoint(&net, &adam, step)?;
             on(TrainEvent::Checkpoint { step });
@@ -282,15 +480,64 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         ),
         _ => format!(
             "{}px renders, pinhole colour {}x{} supersampled, thin-lens targets {} rays/px, fov {} deg, pupil {} mm, {} foci per scene",
-            cfg.data.size, cfg.data.supersample, cfg.data.supersample, cfg.data.samples, cfg.data.fov_deg, cfg.data.pupil_mm, cfg.foci_per_scene
+            cfg.data.size,
+            cfg.data.supersample,
+            cfg.data.supersample,
+            cfg.data.samples,
+            if cfg.fovs.is_empty() {
+                cfg.data.fov_deg.to_string()
+            } else {
+                format!("{:?}", cfg.fovs)
+            },
+            cfg.data.pupil_mm,
+            cfg.foci_per_scene
         ),
     };
     p.insert("data".into(), data);
+    if !cfg.fovs.is_empty() {
+        p.insert(
+            "fovs".into(),
+            format!(
+                "{:?} deg, scene i rendered with fovs[i % {}]",
+                cfg.fovs,
+                cfg.fovs.len()
+            ),
+        );
+    }
+    match &cfg.arch.task {
+        Task::C1r { classical } => {
+            p.insert(
+                "refines".into(),
+                format!(
+                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the error map's tiles, patches centred on them ({:.0} % drawn by the classical error there, the rest uniformly)",
+                    classical.label(),
+                    100.0 * cfg.error_weighted
+                ),
+            );
+        }
+        Task::C4r { .. } => {
+            p.insert(
+                "refines".into(),
+                format!(
+                    "linear blending's layers; loss: MSE (log10) against optimized blending's layers ({DISTILL_ITERATIONS} iterations fitting the thin-lens stack) for the first {} steps, then sRGB MSE (log10) of the retinal focal stack",
+                    cfg.distill_steps
+                ),
+            );
+        }
+        _ => {}
+    }
     p.insert(
         "optimiser".into(),
         format!(
-            "Adam lr {} batch {} patch {} seed {}",
-            cfg.lr, cfg.batch, cfg.patch, cfg.seed
+            "Adam lr {}{} batch {} patch {} seed {}",
+            cfg.lr,
+            cfg.lr_final.map_or(String::new(), |f| format!(
+                " cosine to {f} over {} steps",
+                cfg.steps
+            )),
+            cfg.batch,
+            cfg.patch,
+            cfg.seed
         ),
     );
     p.insert(

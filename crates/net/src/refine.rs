@@ -1,0 +1,458 @@
+//! Refinement nets (C1R, C4R): a classical method everywhere and a small net that learns
+//! only its residual (after BokehMe, Peng et al. 2022).
+//!
+//! C1R runs only where an error map from depth says the classical render is wrong: tiles
+//! within the blur radius of a depth discontinuity ([`error_tiles`]). Every other pixel is the
+//! classical render, unchanged, and a scene with no discontinuity inside the blur costs
+//! nothing beyond the map. The net itself is evaluated only on those tiles plus the halo its
+//! receptive field needs ([`crate::CpuNet::forward_tiles`]), so its output there equals a
+//! full-image pass exactly.
+
+use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
+use crate::cpu::{Act, CpuNet};
+use crate::error::{input, NetError};
+use crate::tasks::{eye_for, rgb_at};
+use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::{Backend, DefocusMethod, Layers, LightFieldParams};
+
+/// Side of an error-map tile, pixels (a multiple of every interleave rate).
+pub const TILE: usize = 16;
+
+/// A depth step between neighbouring pixels matters when the two depths' blurs differ by
+/// this many pixels (CoC diameter of the step itself): below it the classical methods'
+/// single-layer assumption holds.
+pub const EDGE_BLUR_PX: f32 = 1.0;
+
+/// Which tiles of an image the refinement net runs on.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TileMap {
+    pub width: usize,
+    pub height: usize,
+    /// Tiles per row and per column.
+    pub cols: usize,
+    pub rows: usize,
+    /// Row-major, `rows * cols`.
+    pub on: Vec<bool>,
+}
+
+impl TileMap {
+    pub fn none(width: usize, height: usize) -> TileMap {
+        let (cols, rows) = (width.div_ceil(TILE), height.div_ceil(TILE));
+        TileMap {
+            width,
+            height,
+            cols,
+            rows,
+            on: vec![false; cols * rows],
+        }
+    }
+
+    pub fn all(width: usize, height: usize) -> TileMap {
+        let mut t = TileMap::none(width, height);
+        t.on.fill(true);
+        t
+    }
+
+    /// The fraction of tiles run.
+    pub fn fraction(&self) -> f64 {
+        if self.on.is_empty() {
+            return 0.0;
+        }
+        self.on.iter().filter(|&&b| b).count() as f64 / self.on.len() as f64
+    }
+
+    /// Whether pixel `(x, y)` lies in a tile that runs.
+    pub fn covers(&self, x: usize, y: usize) -> bool {
+        self.on
+            .get((y / TILE) * self.cols + x / TILE)
+            .copied()
+            .unwrap_or(false)
+    }
+
+    /// 1 on the pixels of tiles that run, 0 elsewhere.
+    pub fn mask(&self) -> Plane {
+        let data = (0..self.width * self.height)
+            .map(|i| f32::from(u8::from(self.covers(i % self.width, i / self.width))))
+            .collect();
+        Plane::from_vec(self.width, self.height, data)
+            .unwrap_or_else(|_| Plane::new(self.width, self.height, 0.0))
+    }
+
+    /// Marks every tile that the pixel box `[x0, x1] x [y0, y1]` (inclusive, clamped to the
+    /// image) touches.
+    fn mark(&mut self, x0: isize, y0: isize, x1: isize, y1: isize) {
+        let clamp = |v: isize, max: usize| v.clamp(0, max as isize - 1) as usize;
+        let (tx0, tx1) = (clamp(x0, self.width) / TILE, clamp(x1, self.width) / TILE);
+        let (ty0, ty1) = (clamp(y0, self.height) / TILE, clamp(y1, self.height) / TILE);
+        for ty in ty0..=ty1 {
+            self.on[ty * self.cols + tx0..=ty * self.cols + tx1].fill(true);
+        }
+    }
+}
+
+/// The error map (BokehMe's, from depth alone): the tiles within the blur radius of a depth
+/// discontinuity at focus `focus`. A pair of neighbouring pixels is a discontinuity when their
+/// depths differ by at least [`EDGE_BLUR_PX`] of blur; it affects every pixel the more blurred
+/// side's disk reaches (radius CoC / 2, plus one pixel), and nothing when neither side blurs
+/// by half a pixel.
+pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
+    let (w, h) = (depth.width(), depth.height());
+    let eye = eye_for(eye, w)?;
+    let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
+    let d = depth.data();
+    let q = focus.0;
+    let mut map = TileMap::none(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let a = d[y * w + x];
+            for (nx, ny) in [(x + 1, y), (x, y + 1)] {
+                if nx >= w || ny >= h {
+                    continue;
+                }
+                let b = d[ny * w + nx];
+                if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
+                    continue;
+                }
+                let radius = 0.5 * (a - q).abs().max((b - q).abs()) * px_per_d;
+                if radius < 0.5 {
+                    continue;
+                }
+                let r = radius.ceil() as isize + 1;
+                let (x, y) = (x as isize, y as isize);
+                map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
+            }
+        }
+    }
+    Ok(map)
+}
+
+/// The classical render a C1R net refines.
+pub fn classical_defocus(
+    backend: &dyn Backend,
+    classical: Classical,
+    rgbd: &Rgbd,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<RgbImage, NetError> {
+    let method = match classical {
+        Classical::Gather => DefocusMethod::Gather,
+        Classical::Lightfield { views } => {
+            DefocusMethod::LightField(LightFieldParams { views, mip: true })
+        }
+    };
+    backend
+        .defocus(rgbd, &[focus], eye, method, &|_| {})?
+        .pop()
+        .ok_or_else(|| input("the classical method made no image"))
+}
+
+/// C1R input: [R, G, B, depth / 4, CoC px / 30, classical R, G, B] per pixel.
+pub fn refine_defocus_input(
+    rgbd: &Rgbd,
+    classical: &RgbImage,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<Act, NetError> {
+    let (w, h) = (rgbd.width(), rgbd.height());
+    if (classical.width(), classical.height()) != (w, h) {
+        return Err(input(format!(
+            "the classical render is {}x{}, the RGB-D {w}x{h}",
+            classical.width(),
+            classical.height()
+        )));
+    }
+    let eye = eye_for(eye, w)?;
+    let c = rgbd.color.channels.each_ref().map(|p| p.data());
+    let k = classical.channels.each_ref().map(|p| p.data());
+    let d = rgbd.depth.data();
+    let mut data = Vec::with_capacity(w * h * 8);
+    for i in 0..w * h {
+        data.extend_from_slice(&[
+            c[0][i],
+            c[1][i],
+            c[2][i],
+            d[i] / DEPTH_NORM,
+            eye.coc_px(Diopters(d[i]), focus) / COC_NORM,
+            k[0][i],
+            k[1][i],
+            k[2][i],
+        ]);
+    }
+    Act::new(h, w, 8, data)
+}
+
+/// C4R input: [R, G, B, depth / 4, then each layer's R, G, B] per pixel.
+pub fn refine_layers_input(rgbd: &Rgbd, layers: &Layers) -> Result<Act, NetError> {
+    let (w, h) = (rgbd.width(), rgbd.height());
+    if layers.images.is_empty() || (layers.width(), layers.height()) != (w, h) {
+        return Err(input(format!(
+            "{} layers of {}x{} for a {w}x{h} RGB-D",
+            layers.images.len(),
+            layers.width(),
+            layers.height()
+        )));
+    }
+    let m = layers.images.len();
+    let c = rgbd.color.channels.each_ref().map(|p| p.data());
+    let d = rgbd.depth.data();
+    let mut data = Vec::with_capacity(w * h * (4 + 3 * m));
+    for i in 0..w * h {
+        data.extend_from_slice(&[c[0][i], c[1][i], c[2][i], d[i] / DEPTH_NORM]);
+        for img in &layers.images {
+            data.extend(img.channels.iter().map(|p| p.data()[i]));
+        }
+    }
+    Act::new(h, w, 4 + 3 * m, data)
+}
+
+/// `clamp(base + correction, 0, 1)` per value, `correction` channels `3k..3k+3` of `y`.
+fn corrected(
+    base: &RgbImage,
+    y: &Act,
+    k: usize,
+    only: Option<&TileMap>,
+) -> Result<RgbImage, NetError> {
+    let fix = rgb_at(y, k)?;
+    let (w, h) = (base.width(), base.height());
+    let mut out = base.clone();
+    for (o, f) in out.channels.iter_mut().zip(&fix.channels) {
+        for (i, (v, &c)) in o.data_mut().iter_mut().zip(f.data()).enumerate() {
+            if only.is_none_or(|t| t.covers(i % w, i / w)) {
+                *v = (*v + c).clamp(0.0, 1.0);
+            }
+        }
+    }
+    debug_assert_eq!((out.width(), out.height()), (w, h));
+    Ok(out)
+}
+
+/// The refined image: the classical render with the net's correction on the tiles of
+/// `tiles` (the net's output `y`, channels 0..3).
+pub fn compose_defocus(
+    classical: &RgbImage,
+    y: &Act,
+    tiles: &TileMap,
+) -> Result<RgbImage, NetError> {
+    corrected(classical, y, 0, Some(tiles))
+}
+
+/// The refined layers: each of `base`'s layers with its correction, clamped to [0, 1].
+pub fn compose_layers(base: &Layers, y: &Act) -> Result<Layers, NetError> {
+    Ok(Layers {
+        planes: base.planes.clone(),
+        images: base
+            .images
+            .iter()
+            .enumerate()
+            .map(|(k, img)| corrected(img, y, k, None))
+            .collect::<Result<_, _>>()?,
+    })
+}
+
+/// What a C1R refinement did.
+#[derive(Debug, Clone)]
+pub struct Refined {
+    pub image: RgbImage,
+    pub tiles: TileMap,
+}
+
+/// The display planes of a C4R net, checked against the layers it is given.
+pub(crate) fn check_planes(task: &Task, layers: &Layers) -> Result<(), NetError> {
+    let planes = task.planes().unwrap_or(&[]);
+    let given: Vec<f32> = layers.planes.iter().map(|p| p.0).collect();
+    if given != planes {
+        return Err(input(format!(
+            "the net refines layers for planes {planes:?} D, given layers for {given:?} D"
+        )));
+    }
+    Ok(())
+}
+
+impl CpuNet {
+    /// C1R: `classical` (the net's classical method at `focus`) refined on the tiles the
+    /// error map selects; every other pixel is `classical`, unchanged.
+    pub fn refine_defocus(
+        &self,
+        rgbd: &Rgbd,
+        classical: &RgbImage,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<Refined, NetError> {
+        self.arch().expect_task("c1r")?;
+        let tiles = error_tiles(&rgbd.depth, focus, eye)?;
+        if !tiles.on.contains(&true) {
+            return Ok(Refined {
+                image: classical.clone(),
+                tiles,
+            });
+        }
+        let x = refine_defocus_input(rgbd, classical, focus, eye)?;
+        let y = self.forward_tiles(&x, &tiles)?;
+        Ok(Refined {
+            image: compose_defocus(classical, &y, &tiles)?,
+            tiles,
+        })
+    }
+
+    /// C4R: `linear` (linear blending's layers for the net's planes) refined.
+    pub fn refine_decompose(&self, rgbd: &Rgbd, linear: &Layers) -> Result<Layers, NetError> {
+        self.arch().expect_task("c4r")?;
+        check_planes(&self.arch().task, linear)?;
+        let y = self.forward(&refine_layers_input(rgbd, linear)?)?;
+        compose_layers(linear, &y)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::weights::{SplitMix, Weights};
+    use crate::Arch;
+    use dioptra_core::Plane;
+    use dioptra_render::multifocal::linear_blend;
+
+    fn eye(w: usize) -> EyeModel {
+        EyeModel::default().with_width(w as u32)
+    }
+
+    /// Depth `near` D on the left `split` columns, `far` D on the rest; colour random.
+    fn step_scene(w: usize, h: usize, split: usize, near: f32, far: f32, seed: u64) -> Rgbd {
+        let mut r = SplitMix(seed);
+        let mut ch = || {
+            Plane::from_vec(w, h, (0..w * h).map(|_| 0.5 + 0.4 * r.uniform()).collect()).unwrap()
+        };
+        let color = RgbImage::from_planes(ch(), ch(), ch()).unwrap();
+        let d = (0..w * h)
+            .map(|i| if i % w < split { near } else { far })
+            .collect();
+        Rgbd::new(
+            color,
+            DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap(),
+        )
+        .unwrap()
+    }
+
+    /// A C1R net with random weights throughout (its last layer too, so it corrects).
+    fn trained_like(arch: &Arch, seed: u64) -> CpuNet {
+        let mut w = Weights::random(arch, seed).unwrap();
+        let mut r = SplitMix(seed ^ 7);
+        for c in &mut w.convs {
+            for v in c.weight.iter_mut().chain(c.bias.iter_mut()) {
+                if *v == 0.0 {
+                    *v = 0.05 * r.uniform();
+                }
+            }
+        }
+        CpuNet::new(w).unwrap()
+    }
+
+    #[test]
+    fn the_error_map_selects_tiles_within_the_blur_of_a_depth_step_only() {
+        let (w, h) = (128, 48);
+        let e = eye(w);
+        // 1 D step at column 64; focus on the far side: the near side blurs by
+        // coc(2 D - 1 D) = 1 D of blur, about 2.9 px at 128 px / 20 degrees... times 2.
+        let s = step_scene(w, h, 64, 2.0, 1.0, 1);
+        let map = error_tiles(&s.depth, Diopters(1.0), &e).unwrap();
+        let r = 0.5 * e.with_width(w as u32).coc_px(Diopters(2.0), Diopters(1.0));
+        let reach = r.ceil() as usize + 1;
+        for t in 0..map.on.len() {
+            let (x0, x1) = ((t % map.cols) * TILE, (t % map.cols + 1) * TILE);
+            // Tiles whose columns come within `reach` of the step at x = 63.5 run.
+            let near = x0 <= 64 + reach && x1 + reach >= 64;
+            assert_eq!(map.on[t], near, "tile {t} ({x0}..{x1}), reach {reach}");
+        }
+        assert!(map.fraction() > 0.0 && map.fraction() < 1.0);
+        // Nothing blurs at a focus between... a step with both sides sharp: none.
+        let flat = step_scene(w, h, 64, 1.0, 1.0, 2);
+        assert!(!error_tiles(&flat.depth, Diopters(3.0), &e)
+            .unwrap()
+            .on
+            .contains(&true));
+        // A step far smaller than a pixel of blur: none.
+        let tiny = step_scene(w, h, 64, 1.0, 1.05, 3);
+        assert!(!error_tiles(&tiny.depth, Diopters(3.0), &e)
+            .unwrap()
+            .on
+            .contains(&true));
+    }
+
+    #[test]
+    fn tiled_evaluation_equals_the_full_image_on_the_tiles_it_runs() {
+        for rate in [1, 2, 4] {
+            let arch = Arch {
+                rate,
+                layers: 5,
+                channels: 16,
+                ..Arch::preset("c1r").unwrap()
+            };
+            let net = trained_like(&arch, rate as u64);
+            let (w, h) = (70, 53);
+            let mut r = SplitMix(9);
+            let x = Act::new(h, w, 8, (0..w * h * 8).map(|_| r.uniform()).collect()).unwrap();
+            let mut tiles = TileMap::none(w, h);
+            for (i, t) in tiles.on.iter_mut().enumerate() {
+                *t = i % 3 == 1;
+            }
+            let full = net.forward(&x).unwrap();
+            let part = net.forward_tiles(&x, &tiles).unwrap();
+            let mut checked = 0;
+            for y in 0..h {
+                for xx in 0..w {
+                    if tiles.covers(xx, y) {
+                        for c in 0..3 {
+                            let i = (y * w + xx) * 3 + c;
+                            assert!(
+                                (full.data[i] - part.data[i]).abs() <= 1e-5,
+                                "r {rate} ({xx}, {y}): {} vs {}",
+                                full.data[i],
+                                part.data[i]
+                            );
+                        }
+                        checked += 1;
+                    }
+                }
+            }
+            assert!(checked > 0);
+        }
+    }
+
+    #[test]
+    fn an_untrained_refinement_net_returns_its_classical_input_exactly() {
+        let (w, h) = (64, 40);
+        let e = eye(w);
+        let s = step_scene(w, h, 30, 3.0, 0.5, 4);
+        let c1r = CpuNet::new(Weights::random(&Arch::preset("c1r").unwrap(), 5).unwrap()).unwrap();
+        let base = classical_defocus(
+            &dioptra_render::Cpu,
+            Classical::Lightfield { views: 12 },
+            &s,
+            Diopters(3.0),
+            &e,
+        )
+        .unwrap();
+        let r = c1r.refine_defocus(&s, &base, Diopters(3.0), &e).unwrap();
+        assert!(r.tiles.fraction() > 0.0, "the step blurs: the net runs");
+        assert_eq!(r.image, base);
+        let c4r = CpuNet::new(Weights::random(&Arch::preset("c4r").unwrap(), 6).unwrap()).unwrap();
+        let planes: Vec<Diopters> = [0.2, 0.8, 1.4, 2.0].map(Diopters).to_vec();
+        let linear = linear_blend(&s, &planes).unwrap();
+        assert_eq!(c4r.refine_decompose(&s, &linear).unwrap(), linear);
+        // Layers for other planes are refused, naming both.
+        let other = linear_blend(&s, &[Diopters(0.5), Diopters(1.5)]).unwrap();
+        let err = c4r.refine_decompose(&s, &other).unwrap_err().to_string();
+        assert!(err.contains("0.5") && err.contains("0.2"), "{err}");
+    }
+
+    #[test]
+    fn corrections_are_clamped_to_the_display_range_and_kept_off_other_tiles() {
+        let (w, h) = (48, 32);
+        let base = RgbImage::new(w, h, [0.9, 0.5, 0.05]);
+        let y = Act::new(h, w, 3, [0.3f32, 0.1, -0.2].repeat(w * h)).unwrap();
+        let mut tiles = TileMap::none(w, h);
+        tiles.on[1] = true;
+        let out = compose_defocus(&base, &y, &tiles).unwrap();
+        assert_eq!(out.pixel(20, 5), Some([1.0, 0.6, 0.0]));
+        assert_eq!(out.pixel(5, 5), Some([0.9, 0.5, 0.05]));
+    }
+}

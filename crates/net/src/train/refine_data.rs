@@ -1,0 +1,426 @@
+//! Training data of the refinement nets (C1R, C4R): the classical results they correct,
+//! computed once per scene and focus, and where to sample patches.
+//!
+//! C1R: the classical render at every training focus, and the error map's tiles
+//! ([`crate::refine::error_tiles`], the same map inference uses). Patches are drawn around
+//! tiles that run, a set fraction of them in proportion to the classical render's squared
+//! error there against the thin-lens target (the "where the classical method errs")
+//! and the rest uniformly; the loss covers only those tiles' pixels. C4R: linear blending's layers, and
+//! optimized blending's layers (fitting the thin-lens focal stack, 100 iterations from linear)
+//! to distil before fine-tuning through the retina; the optimized layers are cached on disk.
+
+use super::data::{Batch, SceneData};
+use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
+use crate::error::NetError;
+use crate::refine::{classical_defocus, error_tiles, TileMap, TILE};
+use crate::weights::SplitMix;
+use dioptra_core::image::linear_to_srgb;
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
+use dioptra_render::multifocal::{linear_blend, optimized_blend};
+use dioptra_render::{Cpu, OptimizeParams};
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use std::path::Path;
+
+/// Iterations of the optimized blending C4R distils.
+pub const DISTILL_ITERATIONS: usize = 100;
+
+/// A training scene with what its refinement net corrects.
+pub struct RefineScene {
+    pub data: SceneData,
+    /// The eye the scene was rendered for (its field spread over the render's width).
+    pub eye: EyeModel,
+    /// C1R: the classical render at each of `data.foci`; C4R: linear blending's layers.
+    pub base: Vec<RgbImage>,
+    /// C1R: the error map at each focus.
+    pub tiles: Vec<TileMap>,
+    /// C4R: optimized blending's layers.
+    pub distill: Vec<RgbImage>,
+}
+
+/// Tiles to centre C1R patches on: (scene, focus, tile), with cumulative weights.
+pub struct TileSampler {
+    entries: Vec<(usize, usize, usize)>,
+    cumulative: Vec<f64>,
+}
+
+impl TileSampler {
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+    fn pick(&self, rng: &mut SplitMix) -> (usize, usize, usize) {
+        let total = self.cumulative.last().copied().unwrap_or(0.0);
+        let u = (0.5 + 0.5 * rng.uniform() as f64) * total;
+        let i = self.cumulative.partition_point(|&c| c <= u);
+        self.entries[i.min(self.entries.len() - 1)]
+    }
+}
+
+fn sq_err_srgb(a: &RgbImage, b: &RgbImage, x0: usize, y0: usize, x1: usize, y1: usize) -> f64 {
+    let w = a.width();
+    let mut s = 0.0f64;
+    for (pa, pb) in a.channels.iter().zip(&b.channels) {
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let e = linear_to_srgb(pa.data()[y * w + x]) - linear_to_srgb(pb.data()[y * w + x]);
+                s += f64::from(e * e);
+            }
+        }
+    }
+    s
+}
+
+/// C1R: the classical renders and error maps of every scene, and the tile sampler.
+pub fn prepare_c1r(
+    scenes: Vec<(SceneData, EyeModel)>,
+    classical: Classical,
+    error_weighted: f64,
+    on: &mut dyn FnMut(usize, usize),
+) -> Result<(Vec<RefineScene>, TileSampler), NetError> {
+    let total = scenes.len();
+    let mut out = Vec::with_capacity(total);
+    let (mut entries, mut errors) = (Vec::new(), Vec::new());
+    for (si, (data, eye)) in scenes.into_iter().enumerate() {
+        let mut base = Vec::with_capacity(data.foci.len());
+        let mut tiles = Vec::with_capacity(data.foci.len());
+        for (k, &q) in data.foci.iter().enumerate() {
+            let img = classical_defocus(&Cpu, classical, &data.rgbd, Diopters(q), &eye)?;
+            let map = error_tiles(&data.rgbd.depth, Diopters(q), &eye)?;
+            for (t, _) in map.on.iter().enumerate().filter(|(_, &on)| on) {
+                let (tx, ty) = ((t % map.cols) * TILE, (t / map.cols) * TILE);
+                let (x1, y1) = ((tx + TILE).min(map.width), (ty + TILE).min(map.height));
+                entries.push((si, k, t));
+                errors.push(sq_err_srgb(&img, &data.stack[k], tx, ty, x1, y1));
+            }
+            base.push(img);
+            tiles.push(map);
+        }
+        out.push(RefineScene {
+            data,
+            eye,
+            base,
+            tiles,
+            distill: Vec::new(),
+        });
+        on(si + 1, total);
+    }
+    if entries.is_empty() {
+        return Err(NetError::Data(
+            "no training scene has a depth discontinuity inside the blur: nothing to refine".into(),
+        ));
+    }
+    // Uniform over the tiles that run, and `error_weighted` of it by the classical render's
+    // error there.
+    let (n, sum) = (entries.len() as f64, errors.iter().sum::<f64>().max(1e-12));
+    let k = error_weighted.clamp(0.0, 1.0);
+    let mut acc = 0.0;
+    let cumulative = errors
+        .iter()
+        .map(|e| {
+            acc += (1.0 - k) / n + k * e / sum;
+            acc
+        })
+        .collect();
+    Ok((
+        out,
+        TileSampler {
+            entries,
+            cumulative,
+        },
+    ))
+}
+
+fn images_to_bytes(images: &[RgbImage]) -> Vec<u8> {
+    images
+        .iter()
+        .flat_map(|img| img.channels.iter().flat_map(|p| p.data().iter()))
+        .flat_map(|v| v.to_le_bytes())
+        .collect()
+}
+
+fn write_images(path: &Path, images: &[RgbImage]) -> Result<(), NetError> {
+    let (w, h) = images.first().map_or((0, 0), |i| (i.width(), i.height()));
+    let bytes = images_to_bytes(images);
+    let view = TensorView::new(Dtype::F32, vec![images.len(), 3, h, w], &bytes)
+        .map_err(|e| NetError::Data(e.to_string()))?;
+    let data = safetensors::serialize([("images".to_string(), view)], None)
+        .map_err(|e| NetError::Data(e.to_string()))?;
+    let io = |e: std::io::Error| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    };
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(io)?;
+    }
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, data).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)
+}
+
+fn read_images(path: &Path, n: usize, w: usize, h: usize) -> Result<Vec<RgbImage>, NetError> {
+    let raw = std::fs::read(path).map_err(|e| NetError::Io {
+        path: path.display().to_string(),
+        source: e,
+    })?;
+    let st = SafeTensors::deserialize(&raw).map_err(|e| NetError::Data(e.to_string()))?;
+    let t = st
+        .tensor("images")
+        .map_err(|e| NetError::Data(e.to_string()))?;
+    if t.shape() != [n, 3, h, w] {
+        return Err(NetError::Data(format!(
+            "{}: cached images of shape {:?}",
+            path.display(),
+            t.shape()
+        )));
+    }
+    let v: Vec<f32> = t
+        .data()
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let plane = |k: usize| Plane::from_vec(w, h, v[k * w * h..][..w * h].to_vec());
+    (0..n)
+        .map(|i| {
+            Ok(RgbImage::from_planes(
+                plane(3 * i)?,
+                plane(3 * i + 1)?,
+                plane(3 * i + 2)?,
+            )?)
+        })
+        .collect()
+}
+
+/// C4R: linear blending's layers of every scene, and optimized blending's (read from `cache`
+/// or fitted to the scene's thin-lens focal stack and cached).
+pub fn prepare_c4r(
+    scenes: Vec<(SceneData, EyeModel)>,
+    task: &Task,
+    cache: &Path,
+    on: &mut dyn FnMut(usize, usize),
+) -> Result<Vec<RefineScene>, NetError> {
+    let planes: Vec<Diopters> = task
+        .planes()
+        .ok_or_else(|| NetError::Data(format!("{} has no display planes", task.name())))?
+        .iter()
+        .map(|&p| Diopters(p))
+        .collect();
+    let total = scenes.len();
+    scenes
+        .into_iter()
+        .enumerate()
+        .map(|(i, (data, eye))| {
+            let linear = linear_blend(&data.rgbd, &planes)?;
+            let (w, h) = (data.rgbd.width(), data.rgbd.height());
+            let key: String = planes
+                .iter()
+                .map(|p| format!("{:.2}", p.0))
+                .collect::<Vec<_>>()
+                .join("-");
+            let path = cache.join(format!(
+                "distill-{}-{w}px-fov{}-{key}-{DISTILL_ITERATIONS}it.safetensors",
+                data.seed, eye.fov_horizontal_deg
+            ));
+            let distill = match read_images(&path, planes.len(), w, h) {
+                Ok(v) => v,
+                Err(_) => {
+                    let foci: Vec<Diopters> = data.foci.iter().map(|&q| Diopters(q)).collect();
+                    let (l, _) = optimized_blend(
+                        &data.stack,
+                        &foci,
+                        &planes,
+                        &eye,
+                        Some(&linear),
+                        OptimizeParams {
+                            iterations: DISTILL_ITERATIONS,
+                            tolerance: 0.0,
+                        },
+                        |_| {},
+                    )?;
+                    write_images(&path, &l.images)?;
+                    l.images
+                }
+            };
+            on(i + 1, total);
+            Ok(RefineScene {
+                data,
+                eye,
+                base: linear.images,
+                tiles: Vec::new(),
+                distill,
+            })
+        })
+        .collect()
+}
+
+/// Copies the `patch` x `patch` window at `(x0, y0)` of `p`, mapped by `f`, into `out`.
+fn crop(p: &Plane, x0: usize, y0: usize, patch: usize, out: &mut Vec<f32>, f: impl Fn(f32) -> f32) {
+    for y in y0..y0 + patch {
+        out.extend(p.row(y)[x0..x0 + patch].iter().map(|&v| f(v)));
+    }
+}
+
+/// A batch of C1R patches centred (with jitter) on sampled tiles: inputs (8 channels), the
+/// thin-lens targets (3) and the loss mask (1: pixels of tiles that run, away from the patch
+/// edges the zero padding reaches, `halo` pixels, except where the patch edge is the image's).
+#[allow(clippy::too_many_arguments)]
+pub fn sample_c1r_batch(
+    scenes: &[RefineScene],
+    sampler: &TileSampler,
+    rng: &mut SplitMix,
+    n: usize,
+    patch: usize,
+    align: usize,
+    halo: usize,
+) -> Result<Batch, NetError> {
+    if patch < 2 * halo + TILE {
+        return Err(NetError::Input(format!(
+            "patch {patch} leaves no room for a {TILE} px tile inside the net's {halo} px halo: use at least {}",
+            2 * halo + TILE
+        )));
+    }
+    let mut input = Vec::with_capacity(n * 8 * patch * patch);
+    let mut target = Vec::with_capacity(n * 3 * patch * patch);
+    let mut mask = Vec::with_capacity(n * patch * patch);
+    for _ in 0..n {
+        let (si, k, t) = sampler.pick(rng);
+        let s = &scenes[si];
+        let (w, h) = (s.data.rgbd.width(), s.data.rgbd.height());
+        if w < patch || h < patch {
+            return Err(NetError::Data(format!(
+                "patch {patch} is larger than the {w}x{h} renders"
+            )));
+        }
+        let map = &s.tiles[k];
+        let (tx, ty) = ((t % map.cols) * TILE, (t / map.cols) * TILE);
+        // The tile anywhere inside the patch's interior, the origin on the rate's grid.
+        let slack = patch - 2 * halo - TILE;
+        let mut origin = |c: usize, size: usize| {
+            let j = (rng.next_u64() % (slack as u64 + 1)) as usize;
+            let o = (c + TILE + halo + j).saturating_sub(patch);
+            (o.min(size - patch) / align) * align
+        };
+        let (x0, y0) = (origin(tx, w), origin(ty, h));
+        let q = Diopters(s.data.foci[k]);
+        let rgbd = &s.data.rgbd;
+        for c in &rgbd.color.channels {
+            crop(c, x0, y0, patch, &mut input, |v| v);
+        }
+        crop(rgbd.depth.plane(), x0, y0, patch, &mut input, |d| {
+            d / DEPTH_NORM
+        });
+        crop(rgbd.depth.plane(), x0, y0, patch, &mut input, |d| {
+            s.eye.coc_px(Diopters(d), q) / COC_NORM
+        });
+        for c in &s.base[k].channels {
+            crop(c, x0, y0, patch, &mut input, |v| v);
+        }
+        for c in &s.data.stack[k].channels {
+            crop(c, x0, y0, patch, &mut target, |v| v);
+        }
+        let lo = |o: usize| if o == 0 { 0 } else { halo };
+        let hi = |o: usize, size: usize| {
+            if o + patch == size {
+                patch
+            } else {
+                patch - halo
+            }
+        };
+        let (xa, xb, ya, yb) = (lo(x0), hi(x0, w), lo(y0), hi(y0, h));
+        for py in 0..patch {
+            for px in 0..patch {
+                let inside = (xa..xb).contains(&px) && (ya..yb).contains(&py);
+                mask.push(f32::from(u8::from(inside && map.covers(x0 + px, y0 + py))));
+            }
+        }
+    }
+    Ok(Batch {
+        input,
+        in_channels: 8,
+        target,
+        target_channels: 3,
+        n,
+        patch,
+        mask: Some(mask),
+        distill: None,
+        foci: None,
+    })
+}
+
+/// C4R's retinal loss is scored at this many of the foci per step, drawn afresh each step
+/// (the retinal model at all 22 costs more than the net).
+pub const C4R_FOCI_PER_STEP: usize = 8;
+
+/// A batch of random C4R patches: inputs (RGB, depth, linear layers), the thin-lens focal
+/// stack (3 per focus), optimized blending's layers (3 per plane) and the foci scored.
+pub fn sample_c4r_batch(
+    scenes: &[RefineScene],
+    rng: &mut SplitMix,
+    n: usize,
+    patch: usize,
+    align: usize,
+) -> Result<Batch, NetError> {
+    let m = scenes.first().map_or(0, |s| s.base.len());
+    let j = scenes.first().map_or(0, |s| s.data.stack.len());
+    let cin = 4 + 3 * m;
+    let mut input = Vec::with_capacity(n * cin * patch * patch);
+    let mut target = Vec::with_capacity(n * 3 * j * patch * patch);
+    let mut distill = Vec::with_capacity(n * 3 * m * patch * patch);
+    for _ in 0..n {
+        let s = &scenes[(rng.next_u64() % scenes.len() as u64) as usize];
+        let (w, h) = (s.data.rgbd.width(), s.data.rgbd.height());
+        if w < patch || h < patch || s.base.len() != m || s.data.stack.len() != j {
+            return Err(NetError::Data(format!(
+                "scene {}: patch {patch} of a {w}x{h} render, {} layers and {} slices (expected {m} and {j})",
+                s.data.seed,
+                s.base.len(),
+                s.data.stack.len()
+            )));
+        }
+        let mut pick =
+            |size: usize| ((rng.next_u64() % ((size - patch) / align + 1) as u64) as usize) * align;
+        let (x0, y0) = (pick(w), pick(h));
+        let rgbd = &s.data.rgbd;
+        for c in &rgbd.color.channels {
+            crop(c, x0, y0, patch, &mut input, |v| v);
+        }
+        crop(rgbd.depth.plane(), x0, y0, patch, &mut input, |d| {
+            d / DEPTH_NORM
+        });
+        for img in &s.base {
+            for c in &img.channels {
+                crop(c, x0, y0, patch, &mut input, |v| v);
+            }
+        }
+        for img in &s.data.stack {
+            for c in &img.channels {
+                crop(c, x0, y0, patch, &mut target, |v| v);
+            }
+        }
+        for img in &s.distill {
+            for c in &img.channels {
+                crop(c, x0, y0, patch, &mut distill, |v| v);
+            }
+        }
+    }
+    // A partial Fisher-Yates shuffle: the first k of a permutation of the foci.
+    let mut order: Vec<u32> = (0..j as u32).collect();
+    let k = C4R_FOCI_PER_STEP.min(j);
+    for i in 0..k {
+        let r = i + (rng.next_u64() % (j - i) as u64) as usize;
+        order.swap(i, r);
+    }
+    order.truncate(k);
+    Ok(Batch {
+        input,
+        in_channels: cin,
+        target,
+        target_channels: 3 * j,
+        n,
+        patch,
+        mask: None,
+        distill: Some(distill),
+        foci: Some(order),
+    })
+}
