@@ -255,7 +255,9 @@ impl Executor<'_> {
         depth: Arc<dioptra_core::DepthMap>,
         arrival: Option<crate::render::Arrival>,
     ) {
-        self.state.record(now, Rec::Depth(Marker {}));
+        let scene_ns = self.renderer.content_time().map(|t| t.0);
+        self.state
+            .record(now, Rec::Depth(crate::recording::DepthRec { scene_ns }));
         let cmds = engine.step(now, Input::Depth(depth)).unwrap_or_default();
         self.execute(now, cmds, None).await;
         if let Some(a) = arrival {

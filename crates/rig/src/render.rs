@@ -62,8 +62,13 @@ pub trait Renderer: Send + Sync + 'static {
     /// reads the fixation depth from it.
     fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>>;
     /// The arrival of the content frame the latest `depth` call took up, once (`None` when
-    /// it took none, or the source does not know: a static scene).
+    /// it took none, or the source does not know: a still scene).
     fn take_arrival(&self) -> Option<Arrival> {
+        None
+    }
+    /// The scene time of the content frame on show, for content that has one (the animated
+    /// procedural scene): recorded with each depth, so a replay renders the same frame.
+    fn content_time(&self) -> Option<Timestamp> {
         None
     }
     /// Renders one frame.

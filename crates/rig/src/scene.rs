@@ -1,9 +1,10 @@
-//! The renderer of the rig's procedural scene: the rig shows a procedural scene (dioptra-sim, seed
-//! `display.scene_seed`) rendered once as RGB-D at the display's size, and each frame is made
-//! from it by the configured method on the CPU backend. The scene is static, so a multifocal
-//! decomposition (which does not depend on the focus) is made once per method and reused, and
-//! so is the light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled
-//! by `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
+//! The renderer of the rig's content: the procedural scene (dioptra-sim, seed
+//! `display.scene_seed`, animated: [`crate::animated`]), a lab's RGB-D files
+//! ([`crate::content`]) or frames an application streams ([`crate::stream`]), each frame made
+//! from the content frame on show by the configured method. A multifocal decomposition (which
+//! does not depend on the focus) is made once per method and content frame, and so is the
+//! light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled by
+//! `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
 //! 5 x 5 pixels (0.25 mm pitch, 0.94 mm gap, 15 mm eye relief).
 //!
 //! With `method = "auto"` (varifocal mode) each frame's method is chosen here, where frames
@@ -32,15 +33,16 @@ use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::{Cpu, DefocusMethod, OptimizeParams, RenderError};
 
+use crate::animated::{AnimatedScene, Pacing};
 use crate::config::{ContentSource, Method, Mode, RenderBackend, RigConfig};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
-/// Renders frames of the rig's content: the static procedural scene, or a lab's RGB-D
-/// files ([`crate::content`]).
+/// Renders frames of the rig's content: the procedural scene, a lab's RGB-D files, or a
+/// stream.
 pub struct SceneRenderer {
     /// The content frame on show.
-    current: Mutex<Arc<Rgbd>>,
+    current: Mutex<OnShow>,
     /// Whether the loop has the current frame's depth.
     depth_given: AtomicBool,
     /// `source = "files"`: the sequence being played.
@@ -51,15 +53,34 @@ pub struct SceneRenderer {
     arrival: Mutex<Option<crate::render::Arrival>>,
     eye: EyeModel,
     planes: Vec<Diopters>,
-    layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
-    /// The procedural scene (`source = "scene"`), for the light-field panel.
-    scene: Option<dioptra_sim::scene::Scene>,
+    /// Multifocal layers per method and content frame.
+    layers: Mutex<Vec<CachedLayers>>,
+    /// `source = "scene"`: the procedural scene.
+    scene: Option<AnimatedScene>,
     cam: dioptra_sim::scene::Camera,
-    panel: Mutex<Option<Arc<RgbImage>>>,
+    /// The light-field panel, made from the content frame numbered with it.
+    panel: Mutex<Option<(u64, Arc<RgbImage>)>>,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
     compute: Mutex<Compute>,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
     nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
+}
+
+/// Multifocal layers one method made from the content frame numbered `frame`.
+struct CachedLayers {
+    frame: u64,
+    method: Method,
+    images: Arc<Vec<RgbImage>>,
+}
+
+/// The content frame on show.
+#[derive(Clone)]
+struct OnShow {
+    frame: Arc<Rgbd>,
+    /// Counts the frames taken up: what the layer and panel caches were made from.
+    number: u64,
+    /// The procedural scene's time of the frame (zero for other content).
+    scene_time: Timestamp,
 }
 
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
@@ -76,7 +97,14 @@ impl std::fmt::Debug for SceneRenderer {
 }
 
 impl SceneRenderer {
+    /// The renderer of `cfg`'s content on the system clock.
     pub fn new(cfg: &RigConfig) -> Result<SceneRenderer, RenderError> {
+        SceneRenderer::with_pacing(cfg, Pacing::RealTime)
+    }
+
+    /// The renderer of `cfg`'s content; `pacing` says whether the loop waits for the animated
+    /// scene's frames (on a simulated clock).
+    pub fn with_pacing(cfg: &RigConfig, pacing: Pacing) -> Result<SceneRenderer, RenderError> {
         let d = &cfg.display;
         let eye = EyeModel {
             pupil_diameter: Millimeters(cfg.eye.pupil_mm),
@@ -89,10 +117,9 @@ impl SceneRenderer {
         let mut stream = None;
         let (input, scene, files) = match cfg.content.source {
             ContentSource::Scene => {
-                let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
-                let (color, depth) =
-                    dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
-                (Rgbd::new(color, depth)?, Some(scene), None)
+                let animate = cfg.content.animate.unwrap_or(true);
+                let scene = AnimatedScene::start(d.scene_seed, cam, animate, pacing)?;
+                ((*scene.current().0).clone(), Some(scene), None)
             }
             ContentSource::Stream => {
                 let ring = cfg.content.ring_path(&cfg.api);
@@ -130,7 +157,11 @@ impl SceneRenderer {
         let compute = Compute::open(cfg, &nets)?;
         Ok(SceneRenderer {
             compute: Mutex::new(compute),
-            current: Mutex::new(Arc::new(input)),
+            current: Mutex::new(OnShow {
+                frame: Arc::new(input),
+                number: 0,
+                scene_time: Timestamp::ZERO,
+            }),
             depth_given: AtomicBool::new(false),
             files,
             stream,
@@ -262,7 +293,41 @@ impl SceneRenderer {
 
     /// The content frame on show (its depth is what the scheduler looks up at the gaze point).
     pub fn input(&self) -> Arc<Rgbd> {
-        lock(&self.current).clone()
+        lock(&self.current).frame.clone()
+    }
+
+    /// Puts a new content frame on show (of scene time `scene_time` for the procedural
+    /// scene): the loop is given its depth and arrival at its next `depth` call, and what was
+    /// made from the frame before is dropped.
+    fn take_up(
+        &self,
+        frame: Arc<Rgbd>,
+        arrival: Option<crate::render::Arrival>,
+        scene_time: Timestamp,
+    ) {
+        *lock(&self.arrival) = arrival;
+        let number = {
+            let mut c = lock(&self.current);
+            *c = OnShow {
+                frame,
+                number: c.number + 1,
+                scene_time,
+            };
+            c.number
+        };
+        lock(&self.layers).retain(|l| l.frame == number);
+        let mut panel = lock(&self.panel);
+        if panel.as_ref().is_some_and(|(n, _)| *n != number) {
+            *panel = None;
+        }
+        self.depth_given.store(false, Ordering::Release);
+    }
+
+    /// The depth of the procedural scene's frame of scene time `t` (a replay's), rendered now;
+    /// `None` when the content is not the procedural scene.
+    pub fn scene_depth_at(&self, t: Timestamp) -> Option<Result<DepthMap, RenderError>> {
+        let scene = self.scene.as_ref()?;
+        Some(scene.render_at(t).map(|f| f.depth))
     }
 
     /// The images of one frame: one for varifocal and light field, one per plane for
@@ -277,8 +342,8 @@ impl SceneRenderer {
         gaze: Option<[f32; 2]>,
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
-        let input = self.input();
-        let input = input.as_ref();
+        let shown = lock(&self.current).clone();
+        let input = shown.frame.as_ref();
         if auto && mode == Mode::Varifocal {
             let (w, h) = (input.width() as f32, input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
@@ -304,7 +369,7 @@ impl SceneRenderer {
             });
         }
         Ok(RenderOutput {
-            images: self.render_fixed(input, mode, method, focus)?,
+            images: self.render_fixed(&shown, mode, method, focus)?,
             planned: None,
             cost: None,
         })
@@ -312,14 +377,15 @@ impl SceneRenderer {
 
     fn render_fixed(
         &self,
-        input: &Rgbd,
+        shown: &OnShow,
         mode: Mode,
         method: Method,
         focus: Diopters,
     ) -> Result<Vec<RgbImage>, RenderError> {
+        let input = shown.frame.as_ref();
         match (mode, method.0) {
-            (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
-            (Mode::Multifocal, _) => Ok(self.layers(input, method)?.as_ref().clone()),
+            (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone()]),
+            (Mode::Multifocal, _) => Ok(self.layers(shown, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
                 input,
@@ -333,10 +399,13 @@ impl SceneRenderer {
         }
     }
 
-    /// The lenslet panel image of the scene's light field.
-    fn panel(&self) -> Result<Arc<RgbImage>, RenderError> {
+    /// The lenslet panel image of the scene's light field at the time of `shown`.
+    fn panel(&self, shown: &OnShow) -> Result<Arc<RgbImage>, RenderError> {
         use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
-        if let Some(p) = lock(&self.panel).as_ref() {
+        if let Some((_, p)) = lock(&self.panel)
+            .as_ref()
+            .filter(|(n, _)| *n == shown.number)
+        {
             return Ok(p.clone());
         }
         let Some(scene) = &self.scene else {
@@ -345,10 +414,11 @@ impl SceneRenderer {
                 method: "views of file content (light-field mode shows the procedural scene's light field)",
             });
         };
+        let scene = scene.scene_at(shown.scene_time);
         let (w, h) = (self.cam.width, self.cam.height);
         // Views at half size: a panel of 5 px per lenslet cannot show more.
         let vcam = dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
-        let views = dioptra_sim::scene::render_light_field(scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+        let views = dioptra_sim::scene::render_light_field(&scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
         let images: Vec<RgbImage> = views.into_iter().map(|v| v.color).collect();
         let grid = ViewGrid {
             grid: LF_GRID,
@@ -364,14 +434,21 @@ impl SceneRenderer {
             eye_relief_m: 0.015,
         };
         let panel = Arc::new(elemental_images(&grid, &display)?);
-        *lock(&self.panel) = Some(panel.clone());
+        // Kept unless the content moved on while it was made.
+        if lock(&self.current).number == shown.number {
+            *lock(&self.panel) = Some((shown.number, panel.clone()));
+        }
         Ok(panel)
     }
 
-    fn layers(&self, input: &Rgbd, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
-        if let Some((_, l)) = lock(&self.layers).iter().find(|(m, _)| *m == method) {
-            return Ok(l.clone());
+    fn layers(&self, shown: &OnShow, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
+        if let Some(l) = lock(&self.layers)
+            .iter()
+            .find(|l| l.frame == shown.number && l.method == method)
+        {
+            return Ok(l.images.clone());
         }
+        let input = shown.frame.as_ref();
         let images = if method.0 == RenderMethod::Network {
             self.net_decompose(input)?
         } else if method.0 == RenderMethod::Optimized {
@@ -401,7 +478,13 @@ impl SceneRenderer {
             self.linear(input)?
         };
         let images = Arc::new(images);
-        lock(&self.layers).push((method, images.clone()));
+        if lock(&self.current).number == shown.number {
+            lock(&self.layers).push(CachedLayers {
+                frame: shown.number,
+                method,
+                images: images.clone(),
+            });
+        }
         Ok(images)
     }
 }
@@ -411,22 +494,21 @@ impl Renderer for SceneRenderer {
         if let Some(files) = &self.files {
             let (frame, changed) = files.frame_at(now);
             if changed {
-                *lock(&self.arrival) = files.take_arrival();
-                *lock(&self.current) = frame;
-                // Layers were made for the frame before.
-                lock(&self.layers).clear();
-                self.depth_given.store(false, Ordering::Release);
+                self.take_up(frame, files.take_arrival(), Timestamp::ZERO);
             }
         }
         if let Some((frame, arrival)) = self.stream.as_ref().and_then(|s| s.take_new()) {
-            *lock(&self.arrival) = Some(arrival);
-            *lock(&self.current) = frame;
-            lock(&self.layers).clear();
-            self.depth_given.store(false, Ordering::Release);
+            self.take_up(frame, Some(arrival), Timestamp::ZERO);
         }
-        // A static scene's depth once; a sequence's at each new frame.
+        if let Some((frame, arrival)) = self.scene.as_ref().and_then(|s| s.frame_at(now)) {
+            self.take_up(frame, Some(arrival), arrival.arrived);
+        }
+        // The depth at the first call, and again at each new content frame.
         (!self.depth_given.swap(true, Ordering::AcqRel))
             .then(|| Arc::new(self.input().depth.clone()))
+    }
+    fn content_time(&self) -> Option<Timestamp> {
+        self.scene.as_ref().map(|_| lock(&self.current).scene_time)
     }
     fn backend_status(&self) -> serde_json::Value {
         SceneRenderer::backend_status(self)
@@ -435,10 +517,11 @@ impl Renderer for SceneRenderer {
         lock(&self.arrival).take()
     }
     fn content_status(&self) -> serde_json::Value {
-        match (&self.files, &self.stream) {
-            (Some(f), _) => serde_json::to_value(f.status()).unwrap_or_default(),
-            (_, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
-            _ => serde_json::json!({ "source": "scene" }),
+        match (&self.files, &self.stream, &self.scene) {
+            (Some(f), _, _) => serde_json::to_value(f.status()).unwrap_or_default(),
+            (_, Some(s), _) => serde_json::to_value(s.status()).unwrap_or_default(),
+            (_, _, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
+            _ => serde_json::Value::Null,
         }
     }
     fn stream(&self) -> Option<&crate::stream::StreamFrames> {
