@@ -7,7 +7,9 @@
 //!   slot is the application's again once the answer arrives. Layout: [`RING_MAGIC`] and the
 //!   constants below; `GET /frame/ring` says it too.
 //! - the slow, simple path, `PUT /frame?width=&height=&color=&depth=[&near=&far=&seq=]` with
-//!   the colour bytes then the depth bytes as the body.
+//!   the colour bytes then the depth bytes as the body; or, with `color=png|exr|pfm` and
+//!   `color_bytes=N`, a colour image file (N bytes) then a depth image file (EXR, PFM or
+//!   16-bit PNG), decoded by `dioptra render`'s readers. One body, so one frame is atomic.
 //!
 //! A frame is refused, with the reason, counted and never shown when: its size is not the
 //! display's, a buffer is shorter or longer than its size says, a depth is NaN or outside its
@@ -21,6 +23,7 @@ use std::sync::{Arc, Mutex};
 
 use dioptra_core::image::srgb_to_linear;
 use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Timestamp};
+use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat};
 use serde::Serialize;
 
 /// The ring file's first 8 bytes.
@@ -35,7 +38,8 @@ pub const RING_SLOTS: usize = 3;
 /// A slot holds the largest frame: RGB f32 colour and f32 depth, 16 bytes a pixel.
 const SLOT_BYTES_PER_PX: usize = 16;
 
-/// The colour's encoding.
+/// The colour's encoding: raw pixels, or (`PUT /frame` only) an image file, whose frame's
+/// depth is an image file too.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ColorFormat {
@@ -45,28 +49,61 @@ pub enum ColorFormat {
     Rgba8 = 2,
     /// Linear light, 3 little-endian f32 a pixel.
     Rgbf32 = 3,
+    /// A PNG file (8 or 16-bit, sRGB).
+    Png = 4,
+    /// An EXR file (linear light).
+    Exr = 5,
+    /// A PFM file (linear light).
+    Pfm = 6,
 }
 
 impl ColorFormat {
-    pub fn bytes_per_px(self) -> usize {
+    /// Bytes a pixel of raw colour; `None` for an image file.
+    pub fn bytes_per_px(self) -> Option<usize> {
         match self {
-            ColorFormat::Rgb8 => 3,
-            ColorFormat::Rgba8 => 4,
-            ColorFormat::Rgbf32 => 12,
+            ColorFormat::Rgb8 => Some(3),
+            ColorFormat::Rgba8 => Some(4),
+            ColorFormat::Rgbf32 => Some(12),
+            ColorFormat::Png | ColorFormat::Exr | ColorFormat::Pfm => None,
         }
     }
+    /// The image file format of an encoded colour.
+    fn file_format(self) -> Option<ImageFormat> {
+        match self {
+            ColorFormat::Png => Some(ImageFormat::Png),
+            ColorFormat::Exr => Some(ImageFormat::Exr),
+            ColorFormat::Pfm => Some(ImageFormat::Pfm),
+            _ => None,
+        }
+    }
+    /// Its name in `PUT /frame?color=`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ColorFormat::Rgb8 => "rgb8",
+            ColorFormat::Rgba8 => "rgba8",
+            ColorFormat::Rgbf32 => "rgbf32",
+            ColorFormat::Png => "png",
+            ColorFormat::Exr => "exr",
+            ColorFormat::Pfm => "pfm",
+        }
+    }
+    /// A ring slot's colour format (raw pixels only).
     pub fn from_code(c: u32) -> Option<Self> {
         [Self::Rgb8, Self::Rgba8, Self::Rgbf32]
             .into_iter()
             .find(|f| *f as u32 == c)
     }
     pub fn parse(s: &str) -> Option<Self> {
-        match s {
-            "rgb8" => Some(Self::Rgb8),
-            "rgba8" => Some(Self::Rgba8),
-            "rgbf32" => Some(Self::Rgbf32),
-            _ => None,
-        }
+        [
+            Self::Rgb8,
+            Self::Rgba8,
+            Self::Rgbf32,
+            Self::Png,
+            Self::Exr,
+            Self::Pfm,
+        ]
+        .into_iter()
+        .find(|f| f.as_str() == s)
     }
 }
 
@@ -78,6 +115,8 @@ pub enum DepthKind {
     Metres = 1,
     /// Diopters (>= 0).
     Diopters = 2,
+    /// Distance along the view axis, millimetres (> 0; a 16-bit PNG's usual unit).
+    Millimetres = 7,
     /// An OpenGL depth buffer in normalised device coordinates, [-1, 1], -1 at `near`.
     Gl = 3,
     /// The same with reversed Z: 1 at `near`, -1 at `far`.
@@ -93,6 +132,7 @@ impl DepthKind {
         [
             Self::Metres,
             Self::Diopters,
+            Self::Millimetres,
             Self::Gl,
             Self::GlReversed,
             Self::Vulkan,
@@ -104,6 +144,7 @@ impl DepthKind {
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "m" => Some(Self::Metres),
+            "mm" => Some(Self::Millimetres),
             "D" => Some(Self::Diopters),
             "gl" => Some(Self::Gl),
             "gl-reversed" => Some(Self::GlReversed),
@@ -113,7 +154,7 @@ impl DepthKind {
         }
     }
     fn is_buffer(self) -> bool {
-        !matches!(self, Self::Metres | Self::Diopters)
+        !matches!(self, Self::Metres | Self::Millimetres | Self::Diopters)
     }
 
     /// `v` in diopters, or why it is refused. `near`/`far` in metres (checked by the caller).
@@ -137,6 +178,13 @@ impl DepthKind {
                     Ok((1.0 / v64) as f32)
                 } else {
                     Err("not a distance > 0 m")
+                }
+            }
+            Self::Millimetres => {
+                return if v > 0.0 {
+                    Ok((1000.0 / v64) as f32)
+                } else {
+                    Err("not a distance > 0 mm")
                 }
             }
             Self::Gl | Self::GlReversed => {
@@ -219,6 +267,17 @@ pub enum FrameError {
     Stale { seq: u64, newest: u64 },
     #[error("slot {0} was rewritten while the daemon read it (its sequence number changed)")]
     Torn(usize),
+    #[error("the {what}: {detail}")]
+    Encoding { what: &'static str, detail: String },
+    /// A `PUT /frame` request that does not describe a frame (its query or Content-Type).
+    #[error("{0}")]
+    Request(String),
+    #[error("PUT /frame needs Content-Type: application/octet-stream")]
+    MediaType,
+    #[error("the body is larger than a {w}x{h} frame's {max} bytes")]
+    TooLarge { max: usize, w: usize, h: usize },
+    #[error("the frame's body did not arrive within {0} s")]
+    Timeout(u64),
     #[error("the content source is not \"stream\"")]
     NotStreaming,
 }
@@ -233,12 +292,17 @@ impl FrameError {
             FrameError::Invalid(_) => "invalid",
             FrameError::Stale { .. } => "stale",
             FrameError::Torn(_) => "torn",
+            FrameError::Encoding { .. } => "encoding",
+            FrameError::Request(_) | FrameError::MediaType => "request",
+            FrameError::TooLarge { .. } => "too_large",
+            FrameError::Timeout(_) => "timeout",
             FrameError::NotStreaming => "not_streaming",
         }
     }
 }
 
-/// Decodes one frame: 8-bit colour from sRGB to linear light, depth to diopters.
+/// Decodes one frame: colour to linear light (8-bit from sRGB), depth to diopters. Raw
+/// pixels, or (colour an image file) a colour and a depth image file.
 pub fn decode_frame(
     desc: &FrameDesc,
     color: &[u8],
@@ -254,49 +318,79 @@ pub fn decode_frame(
             want_h: display.1,
         });
     }
-    let n = w * h;
-    for (what, got, want) in [
-        ("colour", color.len(), n * desc.color.bytes_per_px()),
-        ("depth", depth.len(), n * 4),
-    ] {
-        if got != want {
-            return Err(FrameError::Length {
-                what,
-                got,
-                want,
-                w,
-                h,
-            });
-        }
-    }
-    let (near, far) = if desc.depth.is_buffer() {
-        match (desc.near, desc.far) {
-            (Some(n), Some(f)) if n > 0.0 && n.is_finite() && f > n => (n, f),
-            _ => {
-                return Err(FrameError::Invalid(format!(
-                    "a {:?} depth buffer needs near and far planes in metres with 0 < near < far \
-                     (far may be infinite): got near {:?}, far {:?}",
-                    desc.depth, desc.near, desc.far
-                )))
+    let (near, far) = depth_planes(desc)?;
+    let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
+    let (color, depth) = match desc.color.bytes_per_px() {
+        Some(bpp) => {
+            let n = w * h;
+            for (what, got, want) in [
+                ("colour", color.len(), n * bpp),
+                ("depth", depth.len(), n * 4),
+            ] {
+                if got != want {
+                    return Err(FrameError::Length {
+                        what,
+                        got,
+                        want,
+                        w,
+                        h,
+                    });
+                }
             }
+            let color = raw_color(desc.color, color, w, h)?;
+            let values = |i: usize| {
+                let b = &depth[4 * i..4 * i + 4];
+                f32::from_le_bytes([b[0], b[1], b[2], b[3]])
+            };
+            (color, to_diopters(desc.depth, near, far, w, h, values)?)
         }
-    } else {
-        (1.0, 2.0)
+        None => {
+            let (color, samples) = decode_files(desc, color, depth)?;
+            let values = |i: usize| samples.data()[i];
+            (color, to_diopters(desc.depth, near, far, w, h, values)?)
+        }
     };
+    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, depth).map_err(bad)?).map_err(bad)?;
+    Rgbd::new(color, depth).map_err(bad)
+}
+
+/// The near and far planes of a depth buffer, checked (`(1, 2)`, unused, for distances).
+fn depth_planes(desc: &FrameDesc) -> Result<(f32, f32), FrameError> {
+    if !desc.depth.is_buffer() {
+        return Ok((1.0, 2.0));
+    }
+    match (desc.near, desc.far) {
+        (Some(n), Some(f)) if n > 0.0 && n.is_finite() && f > n => Ok((n, f)),
+        _ => Err(FrameError::Invalid(format!(
+            "a {:?} depth buffer needs near and far planes in metres with 0 < near < far \
+             (far may be infinite): got near {:?}, far {:?}",
+            desc.depth, desc.near, desc.far
+        ))),
+    }
+}
+
+/// Raw colour pixels in linear light.
+fn raw_color(
+    format: ColorFormat,
+    color: &[u8],
+    w: usize,
+    h: usize,
+) -> Result<RgbImage, FrameError> {
+    let n = w * h;
     let mut planes = [vec![0f32; n], vec![0f32; n], vec![0f32; n]];
-    match desc.color {
+    match format {
         ColorFormat::Rgb8 | ColorFormat::Rgba8 => {
             let lut: Vec<f32> = (0..=255u8)
                 .map(|v| srgb_to_linear(f32::from(v) / 255.0))
                 .collect();
-            let step = desc.color.bytes_per_px();
+            let step = format.bytes_per_px().unwrap_or(3);
             for (i, px) in color.chunks_exact(step).enumerate() {
                 for (c, plane) in planes.iter_mut().enumerate() {
                     plane[i] = lut[usize::from(px[c])];
                 }
             }
         }
-        ColorFormat::Rgbf32 => {
+        _ => {
             for (i, px) in color.chunks_exact(12).enumerate() {
                 for (c, plane) in planes.iter_mut().enumerate() {
                     let b = [px[4 * c], px[4 * c + 1], px[4 * c + 2], px[4 * c + 3]];
@@ -313,29 +407,86 @@ pub fn decode_frame(
             }
         }
     }
-    let mut d = vec![0f32; n];
-    for (i, b) in depth.chunks_exact(4).enumerate() {
-        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-        d[i] = desc
-            .depth
-            .diopters(v, near, far)
-            .map_err(|why| FrameError::Depth {
-                x: i % w,
-                y: i / w,
-                value: v,
-                why,
-            })?;
-    }
-    let [r, g, b] = planes;
     let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
-    let color = RgbImage::from_planes(
+    let [r, g, b] = planes;
+    RgbImage::from_planes(
         Plane::from_vec(w, h, r).map_err(bad)?,
         Plane::from_vec(w, h, g).map_err(bad)?,
         Plane::from_vec(w, h, b).map_err(bad)?,
     )
-    .map_err(bad)?;
-    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).map_err(bad)?).map_err(bad)?;
-    Rgbd::new(color, depth).map_err(bad)
+    .map_err(bad)
+}
+
+/// A colour and a depth image file: each must be the frame's size (checked from its header,
+/// before its pixels are allocated) and the colour file of the declared format.
+fn decode_files(
+    desc: &FrameDesc,
+    color: &[u8],
+    depth: &[u8],
+) -> Result<(RgbImage, Plane), FrameError> {
+    let (w, h) = (desc.width, desc.height);
+    let encoding = |what: &'static str| {
+        move |e: dioptra_render::RenderError| FrameError::Encoding {
+            what,
+            detail: match e {
+                dioptra_render::RenderError::Format { detail, .. } => detail,
+                other => other.to_string(),
+            },
+        }
+    };
+    let want = desc.color.file_format();
+    if ImageFormat::of_bytes(color) != want {
+        return Err(FrameError::Encoding {
+            what: "colour file",
+            detail: format!(
+                "color={} and the body does not start with one (put the colour file first, \
+                 then the depth file, and say where the colour ends with color_bytes)",
+                desc.color.as_str()
+            ),
+        });
+    }
+    for (what, bytes) in [("colour file", color), ("depth file", depth)] {
+        let (fw, fh) = encoded_size(what, bytes).map_err(encoding(what))?;
+        if (fw, fh) != (w, h) {
+            return Err(FrameError::Encoding {
+                what,
+                detail: format!("it is {fw}x{fh}; the frame is {w}x{h}"),
+            });
+        }
+    }
+    let px = (w * h) as u64;
+    let color = decode_color("colour file", color, px).map_err(encoding("colour file"))?;
+    let depth = decode_samples("depth file", depth, px).map_err(encoding("depth file"))?;
+    Ok((color, depth))
+}
+
+/// Depth values (`value(i)`, row-major) converted to diopters, or the first pixel refused.
+fn to_diopters(
+    kind: DepthKind,
+    near: f32,
+    far: f32,
+    w: usize,
+    h: usize,
+    value: impl Fn(usize) -> f32,
+) -> Result<Vec<f32>, FrameError> {
+    (0..w * h)
+        .map(|i| {
+            let v = value(i);
+            kind.diopters(v, near, far)
+                .map_err(|why| FrameError::Depth {
+                    x: i % w,
+                    y: i / w,
+                    value: v,
+                    why,
+                })
+        })
+        .collect()
+}
+
+fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
+    *st.refused.entry(e.kind()).or_default() += 1;
+    st.last_error = Some(e.to_string());
+    e
 }
 
 /// What `/status` shows under `content` for a stream.
@@ -544,6 +695,17 @@ impl StreamFrames {
     }
 
     fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
+        self.read_slot_then(slot, seq, || {})
+    }
+
+    /// [`StreamFrames::read_slot`], calling `copied` once the slot's bytes are copied (a test
+    /// rewrites the slot there, as an application that does not wait for the answer might).
+    fn read_slot_then(
+        &self,
+        slot: usize,
+        seq: u64,
+        copied: impl FnOnce(),
+    ) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
         let ring = self.ring.as_ref().ok_or_else(|| {
             FrameError::Invalid("this daemon has no shared-memory ring: use PUT /frame".into())
         })?;
@@ -591,6 +753,7 @@ impl StreamFrames {
         }
         let color_bytes = ring.read(base + SLOT_HEADER, cb);
         let depth_bytes = ring.read(base + SLOT_HEADER + cb, db);
+        copied();
         if ring.seq(slot) != seq {
             return Err(FrameError::Torn(slot));
         }
@@ -622,18 +785,11 @@ impl StreamFrames {
         };
         let mut st = lock(&self.status);
         match r {
-            Err(e) => {
-                *st.refused.entry(e.kind()).or_default() += 1;
-                st.last_error = Some(e.to_string());
-                Err(e)
-            }
+            Err(e) => Err(count_refusal(&mut st, e)),
             Ok((seq, frame)) => {
                 // Two requests may race past check_seq: the newer wins.
                 if let Some(n) = st.newest_seq.filter(|&n| seq <= n) {
-                    let e = FrameError::Stale { seq, newest: n };
-                    *st.refused.entry(e.kind()).or_default() += 1;
-                    st.last_error = Some(e.to_string());
-                    return Err(e);
+                    return Err(count_refusal(&mut st, FrameError::Stale { seq, newest: n }));
                 }
                 st.received += 1;
                 st.newest_seq = Some(seq);
@@ -651,6 +807,12 @@ impl StreamFrames {
                 Ok(seq)
             }
         }
+    }
+
+    /// Counts a frame refused before it was read (a request that does not describe one, or
+    /// one of the wrong size), as [`StreamFrames::submit`] counts its own refusals.
+    pub fn refuse(&self, e: FrameError) -> FrameError {
+        count_refusal(&mut lock(&self.status), e)
     }
 
     /// The newest frame not yet taken up by the display, if any, and when it arrived.
@@ -795,6 +957,80 @@ mod tests {
     }
 
     #[test]
+    fn image_files_decode_as_dioptra_render_reads_them() {
+        use dioptra_render::io::{read_color, read_depth, write_color, write_depth};
+        let dir = tempfile::tempdir().unwrap();
+        let vals: Vec<f32> = (0..18).map(|i| i as f32 / 17.0).collect();
+        let color = RgbImage::from_interleaved(3, 2, &vals).unwrap();
+        let depth = DepthMap::from_diopters(
+            Plane::from_vec(3, 2, vec![0.5, 1.0, 2.0, 4.0, 0.25, 1.0]).unwrap(),
+        )
+        .unwrap();
+        let file = |name: &str| dir.path().join(name);
+        write_color(&file("c.png"), &color).unwrap();
+        write_color(&file("c.exr"), &color).unwrap();
+        write_depth(&file("d.png"), &depth).unwrap();
+        write_depth(&file("d.exr"), &depth).unwrap();
+        let bytes = |name: &str| std::fs::read(file(name)).unwrap();
+        for (c, fmt, d, kind) in [
+            ("c.png", ColorFormat::Png, "d.png", DepthKind::Millimetres),
+            ("c.exr", ColorFormat::Exr, "d.exr", DepthKind::Metres),
+        ] {
+            let f = decode_frame(&desc(3, 2, fmt, kind), &bytes(c), &bytes(d), (3, 2)).unwrap();
+            assert_eq!(f.color, read_color(&file(c)).unwrap(), "{c}");
+            let want = read_depth(&file(d), None).unwrap();
+            for (a, b) in f.depth.data().iter().zip(want.data()) {
+                assert!((a - b).abs() <= 1e-6 * b.max(1.0), "{d}: {a} vs {b}");
+            }
+        }
+        let png = desc(3, 2, ColorFormat::Png, DepthKind::Millimetres);
+        // The colour part is not the format named.
+        let e = decode_frame(&png, &bytes("c.exr"), &bytes("d.png"), (3, 2)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::Encoding {
+                    what: "colour file",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("color=png"), "{e}");
+        // A file of another size than the frame: refused from its header.
+        write_depth(
+            &file("small.png"),
+            &DepthMap::from_diopters(Plane::new(2, 2, 1.0)).unwrap(),
+        )
+        .unwrap();
+        let e = decode_frame(&png, &bytes("c.png"), &bytes("small.png"), (3, 2)).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("depth file: it is 2x2; the frame is 3x2"),
+            "{e}"
+        );
+        // A depth file cut short, and NaN depth named by pixel.
+        let cut = bytes("d.png");
+        let e = decode_frame(&png, &bytes("c.png"), &cut[..cut.len() / 2], (3, 2)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::Encoding {
+                    what: "depth file",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        // A PFM's rows run bottom to top: its second value is pixel (1, 1).
+        let mut nan_pfm = b"Pf\n3 2\n-1.0\n".to_vec();
+        nan_pfm.extend(f32s(&[1.0, f32::NAN, 1.0, 1.0, 1.0, 1.0]));
+        let metres = desc(3, 2, ColorFormat::Png, DepthKind::Metres);
+        let e = decode_frame(&metres, &bytes("c.png"), &nan_pfm, (3, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::Depth { x: 1, y: 1, .. }), "{e}");
+    }
+
+    #[test]
     fn the_newest_frame_wins_and_every_frame_is_accounted_for() {
         let s = StreamFrames::open(1, 1, None).unwrap();
         let d = FrameDesc {
@@ -867,6 +1103,14 @@ mod tests {
         write_slot(ring, 2, 10, 2, 1, &[0; 6], &f32s(&[1.0]));
         let e = s.submit_slot(2, 10, Timestamp(4)).unwrap_err();
         assert!(matches!(e, FrameError::Length { what: "depth", .. }), "{e}");
+        // A slot rewritten while it was copied out is torn.
+        write_slot(ring, 2, 11, 2, 1, &[0; 6], &f32s(&[1.0, 1.0]));
+        let e = s
+            .read_slot_then(2, 11, || {
+                write_slot(ring, 2, 12, 2, 1, &[1; 6], &f32s(&[2.0, 2.0]))
+            })
+            .unwrap_err();
+        assert_eq!(e, FrameError::Torn(2));
         let st = s.status();
         assert_eq!(st.received, 1);
         assert_eq!(st.refused.values().sum::<u64>(), 4);
