@@ -63,11 +63,29 @@ async fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
 }
 
 async fn call(app: &axum::Router, method: &str, path: &str, body: &str) -> (StatusCode, Value) {
+    call_with(
+        app,
+        method,
+        path,
+        "application/json",
+        body.as_bytes().to_vec(),
+    )
+    .await
+}
+
+/// A request with any body and Content-Type; the answer must be JSON.
+async fn call_with(
+    app: &axum::Router,
+    method: &str,
+    path: &str,
+    content_type: &str,
+    body: Vec<u8>,
+) -> (StatusCode, Value) {
     let req = Request::builder()
         .method(method)
         .uri(path)
-        .header("content-type", "application/json")
-        .body(Body::from(body.to_string()))
+        .header("content-type", content_type)
+        .body(Body::from(body))
         .unwrap();
     let resp = app.clone().oneshot(req).await.unwrap();
     let status = resp.status();
@@ -1427,4 +1445,223 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
             );
         }
     }
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// The stream's `/frame` endpoints: good frames (raw and PNG files) are accepted and shown;
+/// each bad one is refused with its reason in a JSON error, counted in `/status` under that
+/// reason, and the frame on show stays.
+#[tokio::test(start_paused = true)]
+async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
+    cfg.content.ring = Some(dir.path().join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let (w, h) = (96usize, 96usize);
+    let color = vec![200u8; w * h * 3];
+    let depth = f32_bytes(&vec![0.5; w * h]);
+    let frame = [color.clone(), depth.clone()].concat();
+    let octets = "application/octet-stream";
+    let raw = |q: &str| format!("/frame?width={w}&height={h}&color=rgb8&depth=m{q}");
+    let content = || sh.status_json()["content"].clone();
+    let (s, v) = call_with(&app, "PUT", &raw("&seq=5"), octets, frame.clone()).await;
+    assert_eq!((s, &v["seq"]), (StatusCode::OK, &json!(5)), "{v}");
+    eventually("the frame on show", || {
+        (content()["on_show_seq"] == json!(5)).then_some(())
+    })
+    .await;
+
+    let mut nan_depth = vec![0.5f32; w * h];
+    nan_depth[2 * w + 3] = f32::NAN;
+    let nan = [color.clone(), f32_bytes(&nan_depth)].concat();
+    let short = frame[..frame.len() - 1].to_vec();
+    let long = [frame.clone(), vec![0]].concat();
+    let not_png = vec![7u8; 64];
+    // (method, path, Content-Type, body, status, reason counted, words in the error)
+    type Case<'a> = (
+        &'a str,
+        String,
+        &'a str,
+        Vec<u8>,
+        StatusCode,
+        &'a str,
+        &'a str,
+    );
+    let cases: Vec<Case> = vec![
+        (
+            "PUT",
+            format!("/frame?width=95&height={h}&color=rgb8&depth=m"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "wrong_size",
+            "the frame is 95x96; the display is 96x96",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            short,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "length",
+            "the depth is 36863 bytes; a 96x96 frame's is 36864",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            long,
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_large",
+            "larger than a 96x96 frame's 64512 bytes",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            nan,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "depth",
+            "depth at pixel (3, 2) is NaN",
+        ),
+        (
+            "PUT",
+            raw("").replace("depth=m", "depth=vulkan"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "needs near and far planes",
+        ),
+        (
+            "PUT",
+            raw("&seq=5"),
+            octets,
+            frame.clone(),
+            StatusCode::CONFLICT,
+            "stale",
+            "sequence number 5 is not newer than 5",
+        ),
+        (
+            "PUT",
+            raw("&color_bytes=32").replace("color=rgb8", "color=png"),
+            octets,
+            not_png,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "encoding",
+            "color=png and the body does not start with one",
+        ),
+        (
+            "PUT",
+            raw("").replace("color=rgb8", "color=png"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "color_bytes=N says where",
+        ),
+        (
+            "PUT",
+            raw("").replace("color=rgb8", "color=bgr8"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "color=\"bgr8\": expected rgb8, rgba8 or rgbf32",
+        ),
+        (
+            "PUT",
+            raw(""),
+            "text/plain",
+            frame.clone(),
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "request",
+            "needs Content-Type: application/octet-stream",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": 1, "seq": 9}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "slot 1 holds sequence number 0, not 9",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": 7, "seq": 9}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "the ring has slots 0 to 2",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": "first"}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "invalid type: string",
+        ),
+    ];
+    for (method, path, ctype, body, status, reason, words) in cases {
+        let before = content();
+        let (s, v) = call_with(&app, method, &path, ctype, body).await;
+        assert_eq!(s, status, "{method} {path}: {v}");
+        let msg = v["error"].as_str().unwrap_or_default();
+        assert!(
+            msg.contains(words),
+            "{method} {path}: {msg:?} lacks {words:?}"
+        );
+        let after = content();
+        let count = |c: &Value| c["refused"][reason].as_u64().unwrap_or(0);
+        assert_eq!(count(&after), count(&before) + 1, "{reason}: {after}");
+        assert_eq!(after["last_error"], json!(msg), "{after}");
+        assert_eq!(after["received"], before["received"], "{after}");
+        assert_eq!(
+            after["on_show_seq"],
+            json!(5),
+            "the frame on show stays: {after}"
+        );
+    }
+
+    // A frame as files: a PNG colour image and a 16-bit PNG of millimetres.
+    let png = |name: &str, write: &dyn Fn(&Path)| {
+        let p = dir.path().join(name);
+        write(&p);
+        std::fs::read(&p).unwrap()
+    };
+    let c = png("c.png", &|p| {
+        dioptra_render::io::write_color(p, &dioptra_core::RgbImage::new(w, h, [0.2, 0.4, 0.6]))
+            .unwrap()
+    });
+    let plane = dioptra_core::Plane::new(w, h, 2.0);
+    let dm = png("d.png", &|p| {
+        dioptra_render::io::write_depth(
+            p,
+            &dioptra_core::DepthMap::from_diopters(plane.clone()).unwrap(),
+        )
+        .unwrap()
+    });
+    let path = format!(
+        "/frame?width={w}&height={h}&color=png&color_bytes={}&depth=mm&seq=6",
+        c.len()
+    );
+    let (s, v) = call_with(&app, "PUT", &path, octets, [c, dm].concat()).await;
+    assert_eq!((s, &v["seq"]), (StatusCode::OK, &json!(6)), "{v}");
+    let v = eventually("the PNG frame on show", || {
+        let c = content();
+        (c["on_show_seq"] == json!(6)).then_some(c)
+    })
+    .await;
+    assert_eq!((&v["received"], &v["shown"]), (&json!(2), &json!(2)), "{v}");
+    stop(d).await;
 }
