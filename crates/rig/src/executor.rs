@@ -663,11 +663,11 @@ impl Executor<'_> {
         }
         if let Some(images) = failure.unblurred {
             lock(&self.state.status).fallback_frames += 1;
-            self.keep_frame(job, images);
+            self.keep_frame(job, images.into_iter().map(Into::into).collect());
         }
     }
 
-    fn keep_frame(&mut self, job: &RenderJob, images: Vec<dioptra_core::RgbImage>) {
+    fn keep_frame(&mut self, job: &RenderJob, images: Vec<crate::render::FrameImage>) {
         if self.frames.len() == FRAMES_KEPT {
             self.frames.pop_front();
         }

@@ -31,11 +31,11 @@ use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
-use dioptra_render::{Cpu, DefocusMethod, OptimizeParams, RenderError};
+use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError};
 
 use crate::animated::{AnimatedScene, Pacing};
 use crate::config::{ContentSource, Method, Mode, RenderBackend, RigConfig};
-use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
+use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
 /// Renders frames of the rig's content: the procedural scene, a lab's RGB-D files, or a
@@ -70,7 +70,7 @@ pub struct SceneRenderer {
 struct CachedLayers {
     frame: u64,
     method: Method,
-    images: Arc<Vec<RgbImage>>,
+    images: Arc<Vec<FrameImage>>,
 }
 
 /// The content frame on show.
@@ -183,40 +183,45 @@ impl SceneRenderer {
         input: &Rgbd,
         focus: Diopters,
         method: DefocusMethod,
-    ) -> Result<RgbImage, RenderError> {
+    ) -> Result<FrameImage, RenderError> {
         let label = match method {
             DefocusMethod::Gather => "gather".to_string(),
             DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
         };
-        let mut images = self.on_backend(&label, |b| {
-            b.defocus(input, &[focus], &self.eye, method, &|_| {})
-        })?;
-        images
-            .pop()
-            .ok_or_else(|| RenderError::Input(InputError::InvalidValue("no image rendered".into())))
+        self.on_backend(&label, |gpu| match gpu {
+            Some(g) => Ok(FrameImage::Gpu(
+                g.defocus_on_gpu(input, focus, &self.eye, method)?,
+            )),
+            None => Cpu
+                .defocus(input, &[focus], &self.eye, method, &|_| {})?
+                .pop()
+                .map(FrameImage::Host)
+                .ok_or_else(|| {
+                    RenderError::Input(InputError::InvalidValue("no image rendered".into()))
+                }),
+        })
     }
 
-    fn linear(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
-        Ok(self
-            .on_backend("linear", |b| b.linear_blend(input, &self.planes))?
-            .images)
+    fn linear(&self, input: &Rgbd) -> Result<Vec<FrameImage>, RenderError> {
+        self.on_backend("linear", |gpu| match gpu {
+            Some(g) => Ok(on_gpu(g.linear_blend_on_gpu(input, &self.planes)?)),
+            None => Ok(on_host(Cpu.linear_blend(input, &self.planes)?.images)),
+        })
     }
 
-    /// Runs `work` on the rig's backend, timing it on the GPU (`label` in `/status`); a GPU
-    /// failure moves the rig to the CPU (said in the log and `/status`) and reruns it there.
+    /// Runs `work` on the rig's GPU (`Some`) or the CPU (`None`), timing it on the GPU
+    /// (`label` in `/status`); a GPU failure moves the rig to the CPU (said in the log and
+    /// `/status`) and reruns it there.
     fn on_backend<T>(
         &self,
         label: &str,
-        work: impl Fn(&dyn Backend) -> Result<T, RenderError>,
+        work: impl Fn(Option<&Gpu>) -> Result<T, RenderError>,
     ) -> Result<T, RenderError> {
-        let (backend, gpu) = {
-            let c = lock(&self.compute);
-            (c.backend.clone(), c.gpu.clone())
-        };
-        match work(backend.as_ref()) {
+        let gpu = lock(&self.compute).gpu.clone();
+        match work(gpu.as_deref()) {
             Err(RenderError::Gpu(e)) => {
                 lock(&self.compute).fall_back(&e);
-                work(&Cpu)
+                work(None)
             }
             Ok(v) => {
                 if let Some(g) = gpu {
@@ -226,6 +231,15 @@ impl SceneRenderer {
             }
             Err(e) => Err(e),
         }
+    }
+
+    /// The GPU context frames are rendered on and left in, while the rig renders on the GPU
+    /// (a window on its device shows them without a copy).
+    pub fn gpu_context(&self) -> Option<Arc<dioptra_render::gpu::GpuContext>> {
+        lock(&self.compute)
+            .gpu
+            .as_ref()
+            .map(|g| g.context().clone())
     }
 
     /// C1 (varifocal) on the GPU when the rig renders there, else on the CPU.
@@ -350,7 +364,7 @@ impl SceneRenderer {
             let stats = FrameStats::from_rgbd(input, gaze, focus, &self.eye);
             let plan = Planner.plan(&stats, &Target::default());
             let image = match plan.choice {
-                Choice::None => input.color.clone(),
+                Choice::None => FrameImage::Host(input.color.clone()),
                 Choice::Gather => self.defocus(input, focus, DefocusMethod::Gather)?,
                 Choice::LightField { views } => self.defocus(
                     input,
@@ -381,12 +395,12 @@ impl SceneRenderer {
         mode: Mode,
         method: Method,
         focus: Diopters,
-    ) -> Result<Vec<RgbImage>, RenderError> {
+    ) -> Result<Vec<FrameImage>, RenderError> {
         let input = shown.frame.as_ref();
         match (mode, method.0) {
-            (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone()]),
+            (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone().into()]),
             (Mode::Multifocal, _) => Ok(self.layers(shown, method)?.as_ref().clone()),
-            (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?]),
+            (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
                 input,
                 focus,
@@ -441,7 +455,7 @@ impl SceneRenderer {
         Ok(panel)
     }
 
-    fn layers(&self, shown: &OnShow, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
+    fn layers(&self, shown: &OnShow, method: Method) -> Result<Arc<Vec<FrameImage>>, RenderError> {
         if let Some(l) = lock(&self.layers)
             .iter()
             .find(|l| l.frame == shown.number && l.method == method)
@@ -450,30 +464,50 @@ impl SceneRenderer {
         }
         let input = shown.frame.as_ref();
         let images = if method.0 == RenderMethod::Network {
-            self.net_decompose(input)?
+            on_host(self.net_decompose(input)?)
         } else if method.0 == RenderMethod::Optimized {
             // Targets (a gathered focal stack), the linear start and the iterations all on
-            // the rig's backend.
+            // the rig's backend; on the GPU the layers stay there.
             let foci = default_focal_samples();
             let params = OptimizeParams {
                 iterations: 30,
                 ..OptimizeParams::default()
             };
-            self.on_backend("optimized", |b| {
+            self.on_backend("optimized", |gpu| {
+                let b: &dyn Backend = match gpu {
+                    Some(g) => g,
+                    None => &Cpu,
+                };
                 let linear = b.linear_blend(input, &self.planes)?;
                 let targets = b.defocus(input, &foci, &self.eye, DefocusMethod::Gather, &|_| {})?;
-                b.optimized_blend(
-                    &targets,
-                    &foci,
-                    &self.planes,
-                    &self.eye,
-                    Some(&linear),
-                    params,
-                    &|_| {},
-                )
+                let init = Some(&linear);
+                Ok(match gpu {
+                    Some(g) => on_gpu(
+                        g.optimized_blend_on_gpu(
+                            &targets,
+                            &foci,
+                            &self.planes,
+                            &self.eye,
+                            init,
+                            params,
+                        )?
+                        .0,
+                    ),
+                    None => on_host(
+                        b.optimized_blend(
+                            &targets,
+                            &foci,
+                            &self.planes,
+                            &self.eye,
+                            init,
+                            params,
+                            &|_| {},
+                        )?
+                        .0
+                        .images,
+                    ),
+                })
             })?
-            .0
-            .images
         } else {
             self.linear(input)?
         };
@@ -556,6 +590,14 @@ impl Renderer for SceneRenderer {
     }
 }
 
+fn on_gpu(images: Vec<dioptra_render::gpu::GpuImage>) -> Vec<FrameImage> {
+    images.into_iter().map(FrameImage::Gpu).collect()
+}
+
+fn on_host(images: Vec<RgbImage>) -> Vec<FrameImage> {
+    images.into_iter().map(FrameImage::Host).collect()
+}
+
 fn net_error(e: dioptra_net::NetError) -> RenderError {
     RenderError::Input(InputError::InvalidValue(format!("network: {e}")))
 }
@@ -600,8 +642,7 @@ type CpuNets = Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>;
 
 /// The render backend and what `/status` says of it.
 struct Compute {
-    backend: Arc<dyn Backend>,
-    /// The same backend when it is the GPU, for its timestamp figures.
+    /// The GPU frames are rendered on (`None`: the CPU).
     gpu: Option<Arc<dioptra_render::Gpu>>,
     /// The networks on the GPU, per mode (or why that mode's runs on the CPU).
     gpu_nets: Vec<(Mode, Result<Arc<dioptra_net::gpu::GpuNet>, String>)>,
@@ -617,7 +658,6 @@ struct Compute {
 impl Compute {
     fn cpu(because: Option<String>) -> Compute {
         Compute {
-            backend: Arc::new(Cpu),
             gpu: None,
             gpu_nets: Vec::new(),
             adapter: None,
@@ -647,7 +687,6 @@ impl Compute {
             .collect();
         Ok(Compute {
             timestamps: gpu.context().has_timestamps(),
-            backend: gpu.clone(),
             gpu: Some(gpu),
             gpu_nets,
             adapter: Some(name),
@@ -736,7 +775,10 @@ impl Compute {
             })
             .collect();
         serde_json::json!({
-            "backend": self.backend.name(),
+            "backend": if self.gpu.is_some() { "gpu" } else { "cpu" },
+            // Frame images left in GPU memory and read back (a PNG written, a window on
+            // another device).
+            "images_read_back": self.gpu.as_ref().map(|g| g.context().images_read_back()),
             "adapter": self.adapter,
             "cpu_because": self.cpu_because,
             "timestamps": self.timestamps,

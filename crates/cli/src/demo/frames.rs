@@ -365,9 +365,9 @@ impl Renderer for DemoFrames {
             })?;
         let took = started.elapsed();
         let images = match &output {
-            Output::Image(img) => vec![img.clone()],
-            Output::Layers(l) => l.images.clone(),
-            Output::LightField { panel, .. } => vec![panel.clone()],
+            Output::Image(img) => vec![img.clone().into()],
+            Output::Layers(l) => l.images.iter().cloned().map(Into::into).collect(),
+            Output::LightField { panel, .. } => vec![panel.clone().into()],
         };
         let mut st = lock(&self.state);
         if let Some(&after) = st.keep_after.first() {

@@ -4,6 +4,7 @@
 //! no test asserts how long anything took.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::body::Body;
@@ -1078,6 +1079,14 @@ fn network_config(dir: &Path, weights: &Path) -> RigConfig {
     cfg
 }
 
+/// A frame's images on the host (read back when they were left in GPU memory).
+fn on_host(images: Vec<dioptra_rig::render::FrameImage>) -> Vec<dioptra_core::RgbImage> {
+    images
+        .iter()
+        .map(|i| i.to_host().unwrap().into_owned())
+        .collect()
+}
+
 /// What the daemon shows with `method = "network"` is the network's output: C1 at the
 /// frame's focus (varifocal), C4's layers (multifocal).
 #[test]
@@ -1106,6 +1115,7 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
+    let shown = on_host(shown);
     assert_eq!(shown, vec![c1.defocus(&r.input(), focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
@@ -1118,10 +1128,11 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
+    let other = on_host(other);
     assert_ne!(shown, other);
     let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
-    let layers = r
-        .render_frame(
+    let layers = on_host(
+        r.render_frame(
             dioptra_rig::config::Mode::Multifocal,
             cfg.method,
             focus,
@@ -1129,7 +1140,8 @@ fn the_network_renders_what_the_net_computes() {
             false,
         )
         .unwrap()
-        .images;
+        .images,
+    );
     assert_eq!(layers, c4.decompose(&r.input()).unwrap().images);
     assert_eq!(layers.len(), cfg.optics.planes.len());
 }
@@ -1427,9 +1439,44 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         let a = cpu.render_frame(mode, m, q, None, false).unwrap().images;
         let b = gpu.render_frame(mode, m, q, None, false).unwrap().images;
         assert_eq!(a.len(), b.len());
-        for (x, y) in a.iter().zip(&b) {
+        // The GPU's own methods leave their images on the GPU (the network's come back
+        // through dioptra-net); the headless sink reads them back for its PNGs only.
+        let kept = b
+            .iter()
+            .all(|i| matches!(i, dioptra_rig::render::FrameImage::Gpu(_)));
+        assert_eq!(kept, method != "network", "{method}");
+        let png = |images: Vec<dioptra_rig::render::FrameImage>, to: &str| {
+            let out = dir.path().join(format!("{method}-{focus}-{to}"));
+            let mut sink = dioptra_rig::display::HeadlessSink::new(1, Some(out.clone())).unwrap();
+            let n = images.len();
+            let frame = dioptra_rig::display::Frame {
+                number: 0,
+                focus: q,
+                layers: Arc::new(images),
+            };
+            use dioptra_rig::display::DisplaySink as _;
+            sink.present(&frame, dioptra_core::Timestamp::ZERO).unwrap();
+            (0..n)
+                .map(|i| {
+                    let name = if n == 1 {
+                        "frame_000000.png".to_string()
+                    } else {
+                        format!("frame_000000_plane{i}.png")
+                    };
+                    dioptra_render::io::read_color(&out.join(name)).unwrap()
+                })
+                .collect::<Vec<_>>()
+        };
+        let reads = gpu.backend_status()["images_read_back"].as_u64().unwrap();
+        let (x, y) = (png(a, "cpu"), png(b, "gpu"));
+        let read = gpu.backend_status()["images_read_back"].as_u64().unwrap() - reads;
+        assert_eq!(read, if kept { x.len() as u64 } else { 0 }, "{method}");
+        for (x, y) in x.iter().zip(&y) {
             let p = dioptra_render::metrics::psnr(x, y, None).unwrap();
-            assert!(p > 50.0, "{method} at {focus} D: GPU {p} dB from the CPU");
+            assert!(
+                p >= 50.0,
+                "{method} at {focus} D: GPU PNG {p} dB from the CPU's"
+            );
         }
     }
     // The networks ran on the GPU; each method's GPU time is shown when the adapter can
@@ -1664,4 +1711,30 @@ async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
     .await;
     assert_eq!((&v["received"], &v["shown"]), (&json!(2), &json!(2)), "{v}");
     stop(d).await;
+}
+
+/// On the GPU a headless daemon leaves every frame in GPU memory and reads back only the
+/// frames it writes as PNG: one image per written frame (varifocal), none for the others.
+#[tokio::test(start_paused = true)]
+async fn on_the_gpu_only_the_frames_written_as_png_are_read_back() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
+    cfg.display.png_every = 4;
+    cfg.display.png_dir = Some(dir.path().join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    after_frames(&d, 12).await;
+    stop(d).await;
+    let v = sh.status_json();
+    assert_eq!(v["render"]["backend"], json!("gpu"), "{v}");
+    let shown = v["display"]["shown"].as_u64().unwrap();
+    let pngs = v["display"]["pngs_written"].as_u64().unwrap();
+    assert!(shown >= 12, "{v}");
+    assert_eq!(pngs, shown.div_ceil(4), "{v}");
+    assert_eq!(v["render"]["images_read_back"].as_u64(), Some(pngs), "{v}");
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
 }

@@ -3,12 +3,15 @@
 //! the CPU default silently.
 
 mod context;
+mod image;
 mod kernels;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
     GpuContext, Readback, Readbacks, ShaderKernel,
 };
+pub use image::{GpuImage, ImageLayout};
+use kernels::Keep;
 
 use crate::backend::{Backend, DefocusMethod, Foveated, Progress};
 use crate::error::RenderError;
@@ -64,7 +67,7 @@ impl Gpu {
         })
     }
 
-    pub fn context(&self) -> &GpuContext {
+    pub fn context(&self) -> &Arc<GpuContext> {
         &self.ctx
     }
 
@@ -77,6 +80,76 @@ impl Gpu {
         if let Ok(mut l) = self.last.lock() {
             *l = s;
         }
+    }
+
+    fn defocus_to(
+        &self,
+        input: &Rgbd,
+        foci: &[Diopters],
+        eye: &EyeModel,
+        method: DefocusMethod,
+        progress: Progress,
+        keep: Keep,
+    ) -> Result<Vec<kernels::Output>, RenderError> {
+        let (out, s) = match method {
+            DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress, keep)?,
+            DefocusMethod::LightField(p) => {
+                kernels::lightfield(&self.ctx, input, foci, eye, p, progress, keep)?
+            }
+        };
+        self.record(s);
+        Ok(out)
+    }
+
+    /// [`Backend::defocus`] at one focus, the image left in GPU memory.
+    pub fn defocus_on_gpu(
+        &self,
+        input: &Rgbd,
+        focus: Diopters,
+        eye: &EyeModel,
+        method: DefocusMethod,
+    ) -> Result<GpuImage, RenderError> {
+        let out = self.defocus_to(input, &[focus], eye, method, &|_| {}, Keep::Gpu)?;
+        kernels::on_gpu(out)?
+            .pop()
+            .ok_or_else(|| GpuError::Validation("no image rendered".into()).into())
+    }
+
+    /// [`Backend::linear_blend`], one image per plane, left in GPU memory.
+    pub fn linear_blend_on_gpu(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+    ) -> Result<Vec<GpuImage>, RenderError> {
+        let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Gpu)?;
+        self.record(s);
+        kernels::on_gpu(out)
+    }
+
+    /// [`Backend::optimized_blend`], one image per plane, left in GPU memory.
+    #[allow(clippy::too_many_arguments)]
+    pub fn optimized_blend_on_gpu(
+        &self,
+        targets: &[RgbImage],
+        foci: &[Diopters],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        init: Option<&Layers>,
+        params: OptimizeParams,
+    ) -> Result<(Vec<GpuImage>, OptimizeReport), RenderError> {
+        let ((out, report), s) = kernels::optimized_blend(
+            &self.ctx,
+            targets,
+            foci,
+            planes,
+            eye,
+            init,
+            params,
+            &|_| {},
+            Keep::Gpu,
+        )?;
+        self.record(s);
+        Ok((kernels::on_gpu(out)?, report))
     }
 }
 
@@ -93,20 +166,16 @@ impl Backend for Gpu {
         method: DefocusMethod,
         progress: Progress,
     ) -> Result<Vec<RgbImage>, RenderError> {
-        let (out, s) = match method {
-            DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress)?,
-            DefocusMethod::LightField(p) => {
-                kernels::lightfield(&self.ctx, input, foci, eye, p, progress)?
-            }
-        };
-        self.record(s);
-        Ok(out)
+        kernels::on_host(self.defocus_to(input, foci, eye, method, progress, Keep::Host)?)
     }
 
     fn linear_blend(&self, input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {
-        let (out, s) = kernels::linear_blend(&self.ctx, input, planes)?;
+        let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Host)?;
         self.record(s);
-        Ok(out)
+        Ok(Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(out)?,
+        })
     }
 
     fn optimized_blend(
@@ -119,11 +188,23 @@ impl Backend for Gpu {
         params: OptimizeParams,
         progress: Progress,
     ) -> Result<(Layers, OptimizeReport), RenderError> {
-        let (out, s) = kernels::optimized_blend(
-            &self.ctx, targets, foci, planes, eye, init, params, progress,
+        let ((out, report), s) = kernels::optimized_blend(
+            &self.ctx,
+            targets,
+            foci,
+            planes,
+            eye,
+            init,
+            params,
+            progress,
+            Keep::Host,
         )?;
         self.record(s);
-        Ok(out)
+        let layers = Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(out)?,
+        };
+        Ok((layers, report))
     }
 
     fn retina_multifocal(
