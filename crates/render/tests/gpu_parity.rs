@@ -526,7 +526,7 @@ fn images_kept_on_the_gpu_read_back_as_the_readback_path_gives_them() {
     };
     let input = random_rgbd(40, 32, 21);
     let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
-    let reads = || g.context().images_read_back();
+    let reads = || g.images_read_back();
     let before = reads();
     let q = Diopters(1.3);
     for method in [

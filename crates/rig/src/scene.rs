@@ -778,7 +778,7 @@ impl Compute {
             "backend": if self.gpu.is_some() { "gpu" } else { "cpu" },
             // Frame images left in GPU memory and read back (a PNG written, a window on
             // another device).
-            "images_read_back": self.gpu.as_ref().map(|g| g.context().images_read_back()),
+            "images_read_back": self.gpu.as_ref().map(|g| g.images_read_back()),
             "adapter": self.adapter,
             "cpu_because": self.cpu_because,
             "timestamps": self.timestamps,

@@ -1281,10 +1281,10 @@ mod tests {
         let ctx = gpu.context();
         let (device, queue) = (ctx.device(), ctx.queue());
         let mut blit = Blit::new(device, wgpu::TextureFormat::Rgba8UnormSrgb);
-        let reads = ctx.images_read_back();
+        let reads = gpu.images_read_back();
         blit.show_buffer(device, queue, &kept);
         let from_buffer = draw_and_read(device, queue, &blit, (64, 64));
-        assert_eq!(ctx.images_read_back(), reads, "drawn without a readback");
+        assert_eq!(gpu.images_read_back(), reads, "drawn without a readback");
         blit.upload(device, queue, &kept.read().unwrap());
         let from_texture = draw_and_read(device, queue, &blit, (64, 64));
         assert_eq!(from_buffer.len(), from_texture.len());

@@ -4,7 +4,7 @@
 
 use super::GpuError;
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 /// Storage buffers the kernels bind at most (read-only plus read-write).
@@ -215,8 +215,6 @@ pub struct GpuContext {
     shader_pipelines: Mutex<ShaderPipelines>,
     lost: Arc<AtomicBool>,
     errors: Arc<Mutex<Vec<String>>>,
-    /// Images kept in GPU memory that were read back ([`super::GpuImage::read`]).
-    images_read_back: AtomicU64,
 }
 
 /// Names of the adapters this machine offers (Vulkan, Metal, DX12), with whether each is a
@@ -382,7 +380,6 @@ impl GpuContext {
             shader_pipelines: Mutex::new(HashMap::new()),
             lost,
             errors,
-            images_read_back: AtomicU64::new(0),
         };
         ctx.take_errors()?;
         Ok(ctx)
@@ -405,15 +402,6 @@ impl GpuContext {
     }
     pub fn queue(&self) -> &wgpu::Queue {
         &self.queue
-    }
-
-    /// How many images kept in GPU memory were read back to the host.
-    pub fn images_read_back(&self) -> u64 {
-        self.images_read_back.load(Ordering::Relaxed)
-    }
-
-    pub(crate) fn count_image_read_back(&self) {
-        self.images_read_back.fetch_add(1, Ordering::Relaxed);
     }
 
     pub fn has_timestamps(&self) -> bool {

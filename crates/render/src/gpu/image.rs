@@ -1,8 +1,9 @@
 //! Images kept in GPU memory ([`GpuImage`]): a method's output left in the buffer it was
 //! written to, so that a display on the same device shows it without a copy to the host. Only
-//! a consumer that needs the pixels on the host reads it back ([`GpuImage::read`], counted in
-//! [`GpuContext::images_read_back`]).
+//! a consumer that needs the pixels on the host reads it back ([`GpuImage::read`], counted by
+//! the [`super::Gpu`] that made it: [`super::Gpu::images_read_back`]).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use super::context::{BufRef, Frame, GpuContext};
@@ -78,6 +79,8 @@ pub struct GpuImage {
     ctx: Arc<GpuContext>,
     buf: BufRef,
     layout: ImageLayout,
+    /// Counts its readbacks (its maker's count).
+    reads: Option<Arc<AtomicU64>>,
 }
 
 impl std::fmt::Debug for GpuImage {
@@ -95,7 +98,14 @@ impl GpuImage {
             ctx: ctx.clone(),
             buf,
             layout,
+            reads: None,
         }
+    }
+
+    /// Its readbacks counted in `reads`.
+    pub(crate) fn counted_by(mut self, reads: &Arc<AtomicU64>) -> GpuImage {
+        self.reads = Some(reads.clone());
+        self
     }
 
     pub fn width(&self) -> usize {
@@ -116,14 +126,15 @@ impl GpuImage {
         &self.buf.buffer
     }
 
-    /// Copies the image to the host (one submission), counted in
-    /// [`GpuContext::images_read_back`].
+    /// Copies the image to the host (one submission), counted by its maker.
     pub fn read(&self) -> Result<RgbImage, GpuError> {
         let l = self.layout;
         let mut f = Frame::new(&self.ctx)?;
         let r = f.read_range(&self.buf, 4 * l.offset as u64, 4 * l.span() as u64);
         let (rb, _) = f.finish()?;
-        self.ctx.count_image_read_back();
+        if let Some(r) = &self.reads {
+            r.fetch_add(1, Ordering::Relaxed);
+        }
         l.image(&rb.f32s(r))
     }
 }

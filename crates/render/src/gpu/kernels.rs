@@ -116,11 +116,15 @@ pub(super) fn on_host(out: Vec<Output>) -> Result<Vec<RgbImage>, RenderError> {
         .collect()
 }
 
-/// Output images as images in GPU memory (each one kept with [`Keep::Gpu`]).
-pub(super) fn on_gpu(out: Vec<Output>) -> Result<Vec<GpuImage>, RenderError> {
+/// Output images as images in GPU memory (each one kept with [`Keep::Gpu`]), their readbacks
+/// counted in `reads`.
+pub(super) fn on_gpu(
+    out: Vec<Output>,
+    reads: &Arc<std::sync::atomic::AtomicU64>,
+) -> Result<Vec<GpuImage>, RenderError> {
     out.into_iter()
         .map(|o| match o {
-            Output::Gpu(g) => Ok(g),
+            Output::Gpu(g) => Ok(g.counted_by(reads)),
             Output::Host(_) => Err(GpuError::Validation(
                 "an output image was read back though asked to stay in GPU memory".into(),
             )

@@ -21,6 +21,7 @@ use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
 use crate::views::RgbdView;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
@@ -55,6 +56,8 @@ pub enum GpuError {
 pub struct Gpu {
     ctx: Arc<GpuContext>,
     last: Mutex<FrameStats>,
+    /// Images this backend left in GPU memory that were read back since.
+    images_read_back: Arc<AtomicU64>,
 }
 
 impl Gpu {
@@ -64,11 +67,17 @@ impl Gpu {
         Ok(Gpu {
             ctx: GpuContext::shared(adapter)?,
             last: Mutex::new(FrameStats::default()),
+            images_read_back: Arc::new(AtomicU64::new(0)),
         })
     }
 
     pub fn context(&self) -> &Arc<GpuContext> {
         &self.ctx
+    }
+
+    /// How many of the images this backend left in GPU memory were read back to the host.
+    pub fn images_read_back(&self) -> u64 {
+        self.images_read_back.load(Ordering::Relaxed)
     }
 
     /// Dispatches, bytes moved and GPU time of the last call (all its frames together).
@@ -110,7 +119,7 @@ impl Gpu {
         method: DefocusMethod,
     ) -> Result<GpuImage, RenderError> {
         let out = self.defocus_to(input, &[focus], eye, method, &|_| {}, Keep::Gpu)?;
-        kernels::on_gpu(out)?
+        kernels::on_gpu(out, &self.images_read_back)?
             .pop()
             .ok_or_else(|| GpuError::Validation("no image rendered".into()).into())
     }
@@ -123,7 +132,7 @@ impl Gpu {
     ) -> Result<Vec<GpuImage>, RenderError> {
         let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Gpu)?;
         self.record(s);
-        kernels::on_gpu(out)
+        kernels::on_gpu(out, &self.images_read_back)
     }
 
     /// [`Backend::optimized_blend`], one image per plane, left in GPU memory.
@@ -149,7 +158,7 @@ impl Gpu {
             Keep::Gpu,
         )?;
         self.record(s);
-        Ok((kernels::on_gpu(out)?, report))
+        Ok((kernels::on_gpu(out, &self.images_read_back)?, report))
     }
 }
 
