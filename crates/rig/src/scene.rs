@@ -320,15 +320,18 @@ impl SceneRenderer {
         scene_time: Timestamp,
     ) {
         *lock(&self.arrival) = arrival;
-        let number = {
+        let (number, old) = {
             let mut c = lock(&self.current);
-            *c = OnShow {
+            let next = OnShow {
                 frame,
                 number: c.number + 1,
                 scene_time,
             };
-            c.number
+            (next.number, std::mem::replace(&mut *c, next).frame)
         };
+        if let Some(s) = &self.stream {
+            s.recycle(old);
+        }
         lock(&self.layers).retain(|l| l.frame == number);
         let mut panel = lock(&self.panel);
         if panel.as_ref().is_some_and(|(n, _)| *n != number) {

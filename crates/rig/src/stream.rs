@@ -24,6 +24,7 @@ use std::sync::{Arc, Mutex};
 use dioptra_core::image::srgb_to_linear;
 use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Timestamp};
 use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat};
+use rayon::prelude::*;
 use serde::Serialize;
 
 /// The ring file's first 8 bytes.
@@ -158,6 +159,7 @@ impl DepthKind {
     }
 
     /// `v` in diopters, or why it is refused. `near`/`far` in metres (checked by the caller).
+    #[inline(always)]
     fn diopters(self, v: f32, near: f32, far: f32) -> Result<f32, &'static str> {
         if v.is_nan() {
             return Err("NaN");
@@ -309,6 +311,80 @@ pub fn decode_frame(
     depth: &[u8],
     display: (usize, usize),
 ) -> Result<Rgbd, FrameError> {
+    decode_frame_into(
+        desc,
+        color,
+        depth,
+        display,
+        &Planes::new(display.0 * display.1),
+    )
+}
+
+/// Spare planes of one frame size, reused from frame to frame: a fresh allocation each frame
+/// costs a page fault and the kernel's zeroing per page (a 1920 x 1080 frame is 33 MB).
+struct Planes {
+    len: usize,
+    spare: Mutex<Vec<Vec<f32>>>,
+}
+
+/// Spare planes kept: two frames' worth.
+const SPARE_PLANES: usize = 8;
+
+impl Planes {
+    fn new(len: usize) -> Planes {
+        Planes {
+            len,
+            spare: Mutex::new(Vec::new()),
+        }
+    }
+    /// A plane of `len` values (its contents are to be overwritten).
+    fn take(&self) -> Vec<f32> {
+        lock(&self.spare)
+            .pop()
+            .unwrap_or_else(|| vec![0.0; self.len])
+    }
+    fn give(&self, v: Vec<f32>) {
+        let mut spare = lock(&self.spare);
+        if v.len() == self.len && spare.len() < SPARE_PLANES {
+            spare.push(v);
+        }
+    }
+    /// A frame no one else holds: its planes are kept for the next ones.
+    fn give_frame(&self, frame: Arc<Rgbd>) {
+        if let Ok(Rgbd { color, depth }) = Arc::try_unwrap(frame) {
+            let [r, g, b] = color.channels;
+            for p in [r, g, b, depth.into_plane()] {
+                self.give(p.into_vec());
+            }
+        }
+    }
+}
+
+/// Depth values as stored: little-endian f32 bytes (raw frames) or decoded samples (files).
+#[derive(Clone, Copy)]
+enum DepthValues<'a> {
+    Le(&'a [u8]),
+    Samples(&'a [f32]),
+}
+
+impl DepthValues<'_> {
+    fn at(&self, i: usize) -> f32 {
+        match self {
+            DepthValues::Le(b) => {
+                f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+            }
+            DepthValues::Samples(s) => s[i],
+        }
+    }
+}
+
+fn decode_frame_into(
+    desc: &FrameDesc,
+    color: &[u8],
+    depth: &[u8],
+    display: (usize, usize),
+    planes: &Planes,
+) -> Result<Rgbd, FrameError> {
     let (w, h) = (desc.width, desc.height);
     if (w, h) != display {
         return Err(FrameError::WrongSize {
@@ -337,17 +413,23 @@ pub fn decode_frame(
                     });
                 }
             }
-            let color = raw_color(desc.color, color, w, h)?;
-            let values = |i: usize| {
-                let b = &depth[4 * i..4 * i + 4];
-                f32::from_le_bytes([b[0], b[1], b[2], b[3]])
-            };
-            (color, to_diopters(desc.depth, near, far, w, h, values)?)
+            let color = raw_color(desc.color, color, (w, h), planes)?;
+            let depth = to_diopters(
+                desc.depth,
+                (near, far),
+                (w, h),
+                DepthValues::Le(depth),
+                planes,
+            );
+            (color, depth?)
         }
         None => {
             let (color, samples) = decode_files(desc, color, depth)?;
-            let values = |i: usize| samples.data()[i];
-            (color, to_diopters(desc.depth, near, far, w, h, values)?)
+            let values = DepthValues::Samples(samples.data());
+            (
+                color,
+                to_diopters(desc.depth, (near, far), (w, h), values, planes)?,
+            )
         }
     };
     let depth = DepthMap::from_diopters(Plane::from_vec(w, h, depth).map_err(bad)?).map_err(bad)?;
@@ -369,46 +451,70 @@ fn depth_planes(desc: &FrameDesc) -> Result<(f32, f32), FrameError> {
     }
 }
 
-/// Raw colour pixels in linear light.
+/// 8-bit sRGB to linear light.
+fn srgb_lut() -> &'static [f32; 256] {
+    static LUT: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    LUT.get_or_init(|| std::array::from_fn(|v| srgb_to_linear(v as f32 / 255.0)))
+}
+
+/// Raw colour pixels in linear light, converted a row per task (rayon).
 fn raw_color(
     format: ColorFormat,
     color: &[u8],
-    w: usize,
-    h: usize,
+    (w, h): (usize, usize),
+    planes: &Planes,
 ) -> Result<RgbImage, FrameError> {
-    let n = w * h;
-    let mut planes = [vec![0f32; n], vec![0f32; n], vec![0f32; n]];
+    let (mut r, mut g, mut b) = (planes.take(), planes.take(), planes.take());
+    let bpp = format.bytes_per_px().unwrap_or(3);
+    let rows = r
+        .par_chunks_mut(w.max(1))
+        .zip(g.par_chunks_mut(w.max(1)))
+        .zip(b.par_chunks_mut(w.max(1)))
+        .zip(color.par_chunks(bpp * w.max(1)));
     match format {
         ColorFormat::Rgb8 | ColorFormat::Rgba8 => {
-            let lut: Vec<f32> = (0..=255u8)
-                .map(|v| srgb_to_linear(f32::from(v) / 255.0))
-                .collect();
-            let step = format.bytes_per_px().unwrap_or(3);
-            for (i, px) in color.chunks_exact(step).enumerate() {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    plane[i] = lut[usize::from(px[c])];
+            let lut = srgb_lut();
+            rows.for_each(|(((r, g), b), src)| {
+                for (((r, g), b), px) in r.iter_mut().zip(g).zip(b).zip(src.chunks_exact(bpp)) {
+                    *r = lut[usize::from(px[0])];
+                    *g = lut[usize::from(px[1])];
+                    *b = lut[usize::from(px[2])];
                 }
-            }
+            });
         }
         _ => {
-            for (i, px) in color.chunks_exact(12).enumerate() {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    let b = [px[4 * c], px[4 * c + 1], px[4 * c + 2], px[4 * c + 3]];
-                    let v = f32::from_le_bytes(b);
-                    if !v.is_finite() {
-                        return Err(FrameError::Invalid(format!(
-                            "colour at pixel ({}, {}) is {v}",
-                            i % w,
-                            i / w
-                        )));
+            let value = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            let finite = rows
+                .map(|(((r, g), b), src)| {
+                    let mut ok = true;
+                    for (((r, g), b), px) in r.iter_mut().zip(g).zip(b).zip(src.chunks_exact(12)) {
+                        let v = [value(&px[0..4]), value(&px[4..8]), value(&px[8..12])];
+                        ok &= v.iter().all(|v| v.is_finite());
+                        (*r, *g, *b) = (v[0].max(0.0), v[1].max(0.0), v[2].max(0.0));
                     }
-                    plane[i] = v.max(0.0);
+                    ok
+                })
+                .reduce(|| true, |a, b| a && b);
+            if !finite {
+                for p in [r, g, b] {
+                    planes.give(p);
                 }
+                // Rare: find the first bad value for the error.
+                let (i, v) = color
+                    .chunks_exact(4)
+                    .map(value)
+                    .enumerate()
+                    .find(|(_, v)| !v.is_finite())
+                    .unwrap_or((0, f32::NAN));
+                return Err(FrameError::Invalid(format!(
+                    "colour at pixel ({}, {}) is {v}",
+                    (i / 3) % w,
+                    (i / 3) / w
+                )));
             }
         }
     }
     let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
-    let [r, g, b] = planes;
     RgbImage::from_planes(
         Plane::from_vec(w, h, r).map_err(bad)?,
         Plane::from_vec(w, h, g).map_err(bad)?,
@@ -460,27 +566,90 @@ fn decode_files(
     Ok((color, depth))
 }
 
-/// Depth values (`value(i)`, row-major) converted to diopters, or the first pixel refused.
+/// Depth values converted to diopters a row per task (rayon), or the first pixel refused.
 fn to_diopters(
     kind: DepthKind,
-    near: f32,
-    far: f32,
-    w: usize,
-    h: usize,
-    value: impl Fn(usize) -> f32,
+    (near, far): (f32, f32),
+    (w, h): (usize, usize),
+    values: DepthValues,
+    planes: &Planes,
 ) -> Result<Vec<f32>, FrameError> {
-    (0..w * h)
-        .map(|i| {
-            let v = value(i);
-            kind.diopters(v, near, far)
-                .map_err(|why| FrameError::Depth {
-                    x: i % w,
-                    y: i / w,
-                    value: v,
-                    why,
-                })
+    let mut out = planes.take();
+    // One loop per convention, so each compiles to its own conversion with no match inside.
+    let good = match kind {
+        DepthKind::Metres => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Metres.diopters(v, near, far)
+        }),
+        DepthKind::Millimetres => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Millimetres.diopters(v, near, far)
+        }),
+        DepthKind::Diopters => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Diopters.diopters(v, near, far)
+        }),
+        DepthKind::Gl => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Gl.diopters(v, near, far)
+        }),
+        DepthKind::GlReversed => convert_rows(&mut out, w, values, |v| {
+            DepthKind::GlReversed.diopters(v, near, far)
+        }),
+        DepthKind::Vulkan => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Vulkan.diopters(v, near, far)
+        }),
+        DepthKind::VulkanReversed => convert_rows(&mut out, w, values, |v| {
+            DepthKind::VulkanReversed.diopters(v, near, far)
+        }),
+    };
+    if good {
+        return Ok(out);
+    }
+    planes.give(out);
+    // Rare: the first refused pixel, for the error.
+    let refused = (0..w * h).find_map(|i| {
+        let v = values.at(i);
+        kind.diopters(v, near, far).err().map(|why| (i, v, why))
+    });
+    let (i, v, why) = refused.unwrap_or((0, f32::NAN, "refused"));
+    Err(FrameError::Depth {
+        x: i % w.max(1),
+        y: i / w.max(1),
+        value: v,
+        why,
+    })
+}
+
+/// `out`'s rows of `w` converted from `values` by `convert`, a row per task (rayon); whether
+/// every value converted.
+fn convert_rows(
+    out: &mut [f32],
+    w: usize,
+    values: DepthValues,
+    convert: impl Fn(f32) -> Result<f32, &'static str> + Sync,
+) -> bool {
+    let put = |v: f32, d: &mut f32| match convert(v) {
+        Ok(v) => {
+            *d = v;
+            true
+        }
+        Err(_) => false,
+    };
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .map(|(y, row)| {
+            let from = y * w..(y + 1) * w;
+            match values {
+                DepthValues::Le(b) => b[4 * from.start..4 * from.end]
+                    .chunks_exact(4)
+                    .zip(row)
+                    .fold(true, |ok, (v, d)| {
+                        put(f32::from_le_bytes([v[0], v[1], v[2], v[3]]), d) & ok
+                    }),
+                DepthValues::Samples(s) => s[from]
+                    .iter()
+                    .zip(row)
+                    .fold(true, |ok, (&v, d)| put(v, d) & ok),
+            }
         })
-        .collect()
+        .reduce(|| true, |a, b| a && b)
 }
 
 fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
@@ -605,6 +774,8 @@ pub struct StreamFrames {
     ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
     status: Mutex<StreamStatus>,
+    /// Memory of frames done with, for the next ones.
+    planes: Planes,
 }
 
 impl std::fmt::Debug for StreamFrames {
@@ -629,6 +800,7 @@ impl StreamFrames {
             }),
             ring,
             pending: Mutex::new(None),
+            planes: Planes::new(width * height),
         })
     }
 
@@ -680,9 +852,10 @@ impl StreamFrames {
         now: Timestamp,
     ) -> Result<u64, FrameError> {
         let t0 = std::time::Instant::now();
-        let r = self
-            .check_seq(desc.seq)
-            .and_then(|seq| Ok((seq, decode_frame(desc, color, depth, self.size)?)));
+        let r = self.check_seq(desc.seq).and_then(|seq| {
+            let frame = decode_frame_into(desc, color, depth, self.size, &self.planes)?;
+            Ok((seq, frame))
+        });
         self.accept(r, desc.app_time_ns, now, t0)
     }
 
@@ -757,7 +930,7 @@ impl StreamFrames {
         if ring.seq(slot) != seq {
             return Err(FrameError::Torn(slot));
         }
-        let frame = decode_frame(&desc, &color_bytes, &depth_bytes, self.size)?;
+        let frame = decode_frame_into(&desc, &color_bytes, &depth_bytes, self.size, &self.planes)?;
         Ok((seq, frame, desc.app_time_ns))
     }
 
@@ -801,12 +974,19 @@ impl StreamFrames {
                     seq,
                     arrival,
                 });
-                if old.is_some() {
+                if let Some(old) = old {
+                    self.planes.give_frame(old.frame);
                     st.replaced += 1;
                 }
                 Ok(seq)
             }
         }
+    }
+
+    /// A frame the display is done with: its memory is reused for the next ones when no one
+    /// else holds it.
+    pub fn recycle(&self, frame: Arc<Rgbd>) {
+        self.planes.give_frame(frame);
     }
 
     /// Counts a frame refused before it was read (a request that does not describe one, or
@@ -1054,6 +1234,41 @@ mod tests {
         // Unnumbered frames continue the numbering.
         let auto = FrameDesc { seq: None, ..d };
         assert_eq!(s.submit(&auto, &[0, 0, 0], &depth, Timestamp(13)), Ok(8));
+    }
+
+    /// Frames given back are reused only when no one else holds them: a frame still held
+    /// keeps its pixels whatever comes after it, and reused memory holds the new frame whole.
+    #[test]
+    fn reused_memory_never_changes_a_frame_still_held() {
+        let s = StreamFrames::open(2, 1, None).unwrap();
+        let d = desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let send = |v: u8, depth: f32| {
+            s.submit(&d, &[v; 6], &f32s(&[depth; 2]), Timestamp(0))
+                .unwrap();
+        };
+        send(255, 1.0);
+        let held = s.take_new().unwrap().0;
+        let kept = held.clone();
+        // Given back while `kept` holds it: not reused.
+        s.recycle(held);
+        for (k, v) in [(0u8, 2.0f32), (128, 3.0), (64, 4.0)] {
+            send(k, v);
+            // Replaced before shown: its memory goes to the next frame.
+            send(k / 2, v + 0.5);
+            let f = s.take_new().unwrap().0;
+            assert_eq!(f.depth.data(), &[v + 0.5; 2]);
+            assert_eq!(
+                f.color.channels[0].data()[0],
+                srgb_lut()[usize::from(k / 2)]
+            );
+            s.recycle(f);
+        }
+        assert_eq!(kept.color.channels[0].data(), &[1.0, 1.0]);
+        assert_eq!(kept.depth.data(), &[1.0, 1.0]);
+        assert!(
+            !lock(&s.planes.spare).is_empty(),
+            "frames given back are kept for reuse"
+        );
     }
 
     /// Writes a frame into a ring slot the way a client does: sequence number last.
