@@ -3,9 +3,10 @@
 //! ([`crate::content`]) or frames an application streams ([`crate::stream`]), each frame made
 //! from the content frame on show by the configured method. A multifocal decomposition (which
 //! does not depend on the focus) is made once per method and content frame, and so is the
-//! light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled by
-//! `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
-//! 5 x 5 pixels (0.25 mm pitch, 0.94 mm gap, 15 mm eye relief).
+//! light-field panel: 5 x 5 views over a 4 mm pupil (the scene's own pinhole views, or views
+//! synthesised from a file or stream frame's RGB-D), resampled by `dioptra_sched::lenslet`
+//! onto a lenslet display of (width / 5) x (height / 5) lenslets of 5 x 5 pixels (0.25 mm
+//! pitch, 0.94 mm gap, 15 mm eye relief).
 //!
 //! With `method = "auto"` (varifocal mode) each frame's method is chosen here, where frames
 //! are rendered, by `dioptra_render::planner` from the frame's depth around the gaze point
@@ -31,6 +32,7 @@ use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
+use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError};
 
 use crate::animated::{AnimatedScene, Pacing};
@@ -416,41 +418,47 @@ impl SceneRenderer {
         }
     }
 
-    /// The lenslet panel image of the scene's light field at the time of `shown`.
+    /// The lenslet panel image of the light field of the content frame `shown`: the
+    /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
     fn panel(&self, shown: &OnShow) -> Result<Arc<RgbImage>, RenderError> {
-        use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
         if let Some((_, p)) = lock(&self.panel)
             .as_ref()
             .filter(|(n, _)| *n == shown.number)
         {
             return Ok(p.clone());
         }
-        let Some(scene) = &self.scene else {
-            return Err(RenderError::Unsupported {
-                backend: "daemon",
-                method: "views of file content (light-field mode shows the procedural scene's light field)",
-            });
-        };
-        let scene = scene.scene_at(shown.scene_time);
         let (w, h) = (self.cam.width, self.cam.height);
-        // Views at half size: a panel of 5 px per lenslet cannot show more.
-        let vcam = dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
-        let views = dioptra_sim::scene::render_light_field(&scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
-        let images: Vec<RgbImage> = views.into_iter().map(|v| v.color).collect();
-        let grid = ViewGrid {
-            grid: LF_GRID,
-            spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
-            views: &images,
-            pixel_pitch_tan: vcam.eye.pixel_pitch_tan(),
+        let (images, pixel_pitch_tan): (Vec<RgbImage>, f32) = match &self.scene {
+            Some(scene) => {
+                let scene = scene.scene_at(shown.scene_time);
+                // Views at half size: a panel of 5 px per lenslet cannot show more.
+                let vcam =
+                    dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
+                let views =
+                    dioptra_sim::scene::render_light_field(&scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+                let images = views.into_iter().map(|v| v.color).collect();
+                (images, vcam.eye.pixel_pitch_tan())
+            }
+            None => {
+                // The frame as the view from the pupil's centre, warped to each lens position.
+                let input = [RgbdView {
+                    position: [0.0, 0.0],
+                    rgbd: shown.frame.as_ref().clone(),
+                }];
+                let views = self.on_backend("views", |gpu| {
+                    backend_of(gpu).synthesize_light_field(
+                        &input,
+                        LF_GRID,
+                        LF_SPAN_M,
+                        &self.eye,
+                        &|_| {},
+                    )
+                })?;
+                let images = views.into_iter().map(|v| v.image).collect();
+                (images, self.eye.pixel_pitch_tan())
+            }
         };
-        let display = LensletDisplay {
-            lenslets: [(w / 5).max(1), (h / 5).max(1)],
-            pixels_per_lenslet: 5,
-            lenslet_pitch_m: 0.000_25,
-            gap_m: 0.000_94,
-            eye_relief_m: 0.015,
-        };
-        let panel = Arc::new(elemental_images(&grid, &display)?);
+        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
         // Kept unless the content moved on while it was made.
         if lock(&self.current).number == shown.number {
             *lock(&self.panel) = Some((shown.number, panel.clone()));
@@ -477,10 +485,7 @@ impl SceneRenderer {
                 ..OptimizeParams::default()
             };
             self.on_backend("optimized", |gpu| {
-                let b: &dyn Backend = match gpu {
-                    Some(g) => g,
-                    None => &Cpu,
-                };
+                let b = backend_of(gpu);
                 let linear = b.linear_blend(input, &self.planes)?;
                 let targets = b.defocus(input, &foci, &self.eye, DefocusMethod::Gather, &|_| {})?;
                 let init = Some(&linear);
@@ -590,6 +595,38 @@ impl Renderer for SceneRenderer {
             .iter()
             .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
             .collect()
+    }
+}
+
+/// The lenslet display's image of a `LF_GRID` x `LF_GRID` light field of `views` (pixel pitch
+/// `pixel_pitch_tan`) for a `w` x `h` display: (w / 5) x (h / 5) lenslets of 5 x 5 pixels.
+fn lenslet_panel(
+    views: &[RgbImage],
+    pixel_pitch_tan: f32,
+    (w, h): (usize, usize),
+) -> Result<RgbImage, RenderError> {
+    use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
+    let grid = ViewGrid {
+        grid: LF_GRID,
+        spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+        views,
+        pixel_pitch_tan,
+    };
+    let display = LensletDisplay {
+        lenslets: [(w / 5).max(1), (h / 5).max(1)],
+        pixels_per_lenslet: 5,
+        lenslet_pitch_m: 0.000_25,
+        gap_m: 0.000_94,
+        eye_relief_m: 0.015,
+    };
+    Ok(elemental_images(&grid, &display)?)
+}
+
+/// The backend of `on_backend`'s choice: the rig's GPU, or the CPU.
+fn backend_of(gpu: Option<&Gpu>) -> &dyn Backend {
+    match gpu {
+        Some(g) => g,
+        None => &Cpu,
     }
 }
 
@@ -788,5 +825,69 @@ impl Compute {
             "gpu_time_us": gpu_time,
             "network": network,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::EXAMPLE_SIM_RIG;
+    use crate::stream::{ColorFormat, DepthKind, FrameDesc};
+
+    /// Light-field mode on streamed content: the panel is made from views synthesised from the
+    /// frame on show, and made again when another frame comes.
+    #[test]
+    fn light_field_mode_shows_a_streamed_frames_light_field() {
+        let text = EXAMPLE_SIM_RIG.to_string()
+            + "\n[content]\nsource = \"stream\"\nring = \"none\"\n\n[render]\nbackend = \"cpu\"\n";
+        let r = SceneRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap();
+        let (w, h) = (96, 96);
+        // At optical infinity every view is the frame itself: the panel is the lenslet
+        // resampling of 25 copies of it.
+        let send = |seq: u64, colour: &dyn Fn(usize) -> u8| {
+            let desc = FrameDesc {
+                width: w,
+                height: h,
+                color: ColorFormat::Rgb8,
+                depth: DepthKind::Diopters,
+                near: None,
+                far: None,
+                seq: Some(seq),
+                app_time_ns: None,
+            };
+            let color: Vec<u8> = (0..3 * w * h).map(colour).collect();
+            let depth: Vec<u8> = (0..w * h).flat_map(|_| 0f32.to_le_bytes()).collect();
+            let stream = r.stream.as_ref().unwrap();
+            stream
+                .submit(&desc, &color, &depth, Timestamp(seq))
+                .unwrap();
+            assert!(r.depth(Timestamp(seq)).is_some(), "the frame is taken up");
+        };
+        let panel = || {
+            let out = r
+                .render_frame(
+                    Mode::Lightfield,
+                    Method(RenderMethod::Views),
+                    Diopters(1.0),
+                    None,
+                    false,
+                )
+                .unwrap();
+            out.images[0].to_host().unwrap().into_owned()
+        };
+        send(1, &|i| (i * 7 % 251) as u8);
+        let first = panel();
+        let copies = vec![r.input().color.clone(); LF_GRID * LF_GRID];
+        let want = lenslet_panel(&copies, r.eye.pixel_pitch_tan(), (w, h)).unwrap();
+        assert_eq!(
+            (first.width(), first.height()),
+            (want.width(), want.height())
+        );
+        let p = dioptra_render::metrics::psnr(&first, &want, None).unwrap();
+        assert!(p > 60.0, "{p} dB from the frame's own lenslet image");
+        // The same frame: the panel is kept. Another frame: made again.
+        assert_eq!(panel(), first);
+        send(2, &|i| (i * 13 % 241) as u8);
+        assert_ne!(panel(), first);
     }
 }

@@ -1741,3 +1741,38 @@ async fn on_the_gpu_only_the_frames_written_as_png_are_read_back() {
     assert_eq!(v["render"]["images_read_back"].as_u64(), Some(pngs), "{v}");
     assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
 }
+
+/// Light-field mode on a stream: the daemon shows the lenslet panel of the streamed frame's
+/// synthesised light field, without render errors.
+#[tokio::test(start_paused = true)]
+async fn light_field_mode_shows_streamed_content() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
+    cfg.content.ring = Some(dir.path().join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let (w, h) = (96usize, 96usize);
+    let color: Vec<u8> = (0..w * h * 3).map(|i| (i % 253) as u8).collect();
+    let depth = f32_bytes(
+        &(0..w * h)
+            .map(|i| 0.5 + (i % w) as f32 / w as f32)
+            .collect::<Vec<_>>(),
+    );
+    let path = format!("/frame?width={w}&height={h}&color=rgb8&depth=m");
+    let body = [color, depth].concat();
+    let (s, v) = call_with(&app, "PUT", &path, "application/octet-stream", body).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let shown = status_of(&d)["counts"]["frames_shown"].as_u64().unwrap();
+    let v = eventually("light-field frames of the stream", || {
+        let v = status_of(&d);
+        (v["counts"]["frames_shown"].as_u64() > Some(shown + 3)).then_some(v)
+    })
+    .await;
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    assert_eq!(v["content"]["on_show_seq"], json!(1), "{v}");
+    stop(d).await;
+}
