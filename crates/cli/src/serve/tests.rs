@@ -1501,18 +1501,25 @@ fn f32_bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
+/// A daemon on the example sim rig (96 x 96) streaming its content (ring in `dir`), its shared
+/// state and its API.
+async fn stream_daemon(dir: &Path) -> (Daemon, Arc<dioptra_rig::RigState>, axum::Router) {
+    let mut cfg = sim_config(dir, false);
+    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
+    cfg.content.ring = Some(dir.join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    (d, sh, app)
+}
+
 /// The stream's `/frame` endpoints: good frames (raw and PNG files) are accepted and shown;
 /// each bad one is refused with its reason in a JSON error, counted in `/status` under that
 /// reason, and the frame on show stays.
 #[tokio::test(start_paused = true)]
 async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = sim_config(dir.path(), false);
-    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
-    cfg.content.ring = Some(dir.path().join("frames"));
-    let d = Daemon::start_config(cfg).await.unwrap();
-    let sh = d.shared().clone();
-    let app = api::router(sh.clone());
+    let (d, sh, app) = stream_daemon(dir.path()).await;
     let (w, h) = (96usize, 96usize);
     let color = vec![200u8; w * h * 3];
     let depth = f32_bytes(&vec![0.5; w * h]);
@@ -1747,12 +1754,7 @@ async fn on_the_gpu_only_the_frames_written_as_png_are_read_back() {
 #[tokio::test(start_paused = true)]
 async fn light_field_mode_shows_streamed_content() {
     let dir = tempfile::tempdir().unwrap();
-    let mut cfg = sim_config(dir.path(), false);
-    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
-    cfg.content.ring = Some(dir.path().join("frames"));
-    let d = Daemon::start_config(cfg).await.unwrap();
-    let sh = d.shared().clone();
-    let app = api::router(sh.clone());
+    let (d, _, app) = stream_daemon(dir.path()).await;
     let (w, h) = (96usize, 96usize);
     let color: Vec<u8> = (0..w * h * 3).map(|i| (i % 253) as u8).collect();
     let depth = f32_bytes(
