@@ -7,8 +7,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
+use dioptra_rig::animated::Pacing;
 use dioptra_rig::config::{Mode, RigConfig, EXAMPLE_SIM_RIG};
 use dioptra_rig::recording::Rec;
+use dioptra_rig::scene::SceneRenderer;
 use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
 use dioptra_rig::{Rig, RigSetup};
 use dioptra_sched::{Command, FocusReason, LinkStatus};
@@ -466,11 +468,14 @@ async fn shutdown_parks_the_lens() {
 #[tokio::test(start_paused = true)]
 async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
     let dir = tempfile::tempdir().unwrap();
+    // A still scene: the scripted renderer's content does not move either, so both record
+    // the same topics.
     let recording_to = |sub: &str| {
         let d = dir.path().join(sub).display().to_string();
         config(Mode::Varifocal, move |t| {
             t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
                 .replace("start = false", "start = true")
+                + "\n[content]\nanimate = false\n"
         })
     };
     let served = Rig::start(RigSetup::new(recording_to("serve")))
@@ -512,4 +517,50 @@ async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
     assert!(!served_start.device_tasks.is_null());
     assert_eq!(served_start.device_tasks, sim_start.device_tasks);
     assert!(served.ok() && simulated.ok(), "{served:?} {simulated:?}");
+}
+
+/// The daemon's procedural scene moves with the rig's clock: on simulated time each frame it
+/// shows is the scene at the last 50 ms step before the frame was asked for, none late, and
+/// the recording holds each frame's scene time (what a replay renders).
+#[tokio::test(start_paused = true)]
+async fn the_procedural_scene_moves_with_rig_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path().display().to_string();
+    let cfg = config(Mode::Varifocal, move |t| {
+        t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
+            .replace("start = false", "start = true")
+    });
+    let renderer = SceneRenderer::with_pacing(&cfg, Pacing::Simulated).unwrap();
+    let r = SimRun::new(cfg, Duration::from_secs(1))
+        .unwrap()
+        .run(Arc::new(renderer), None)
+        .await
+        .unwrap();
+    assert!(r.report.ok(), "{:?}", r.report);
+    let content = &r.state.status_json()["content"];
+    assert_eq!(content["source"], "scene", "{content}");
+    assert_eq!(content["animated"], true, "{content}");
+    // Frames of 0, 50, ..., 950 ms (60 Hz frames ask for each), none late.
+    assert_eq!(content["shown"], 20, "{content}");
+    assert_eq!(content["late"], 0, "{content}");
+    assert_eq!(content["scene_time_ms"], 950.0, "{content}");
+    let path = &r.report.recording.as_ref().unwrap().as_ref().unwrap().path;
+    let rec = dioptra_rig::recording::read(path).unwrap();
+    let depths: Vec<(Timestamp, u64)> = rec
+        .messages
+        .iter()
+        .filter_map(|(t, m)| match m {
+            Rec::Depth(d) => Some((*t, d.scene_ns.unwrap())),
+            _ => None,
+        })
+        .collect();
+    let step = 50_000_000;
+    for (k, (t, scene_ns)) in depths.iter().enumerate() {
+        assert_eq!(*scene_ns, k as u64 * step, "depth {k} at {t:?}");
+        assert!(
+            t.0 >= *scene_ns && t.0 < scene_ns + step,
+            "depth {k} at {t:?}"
+        );
+    }
+    assert_eq!(depths.len(), 20);
 }

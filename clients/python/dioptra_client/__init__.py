@@ -5,7 +5,9 @@ through the daemon's shared-memory ring (``GET /frame/ring``): the client writes
 a slot and names it with ``POST /frame``; the daemon copies it out before it answers. Where
 the ring cannot be opened (another machine, no permission) frames go as the body of
 ``PUT /frame``. Either way ``send_rgbd`` returns the frame's sequence number, or raises
-``FrameRefused`` with the daemon's reason (wrong size, NaN depth, ...).
+``FrameRefused`` with the daemon's reason (wrong size, NaN depth, ...). With
+``encoding="png"`` a frame goes as ``PUT /frame`` with a PNG colour file and a 16-bit PNG depth
+file (whole millimetres), a fraction of the raw bytes over a network.
 
     import numpy as np
     from dioptra_client import Dioptra
@@ -25,15 +27,17 @@ import os
 import struct
 import time
 import urllib.parse
+import zlib
 
 import numpy as np
 
 __all__ = ["Dioptra", "DioptraError", "FrameRefused", "DEPTH_UNITS"]
 
 #: Depth conventions the daemon converts on ingest (a depth buffer needs ``near`` and ``far``).
-DEPTH_UNITS = ("m", "D", "gl", "gl-reversed", "vulkan", "vulkan-reversed", "d3d", "d3d-reversed")
+DEPTH_UNITS = ("m", "mm", "D", "gl", "gl-reversed", "vulkan", "vulkan-reversed", "d3d",
+               "d3d-reversed")
 _DEPTH_CODES = {"m": 1, "D": 2, "gl": 3, "gl-reversed": 4, "vulkan": 5, "vulkan-reversed": 6,
-                "d3d": 5, "d3d-reversed": 6}
+                "d3d": 5, "d3d-reversed": 6, "mm": 7}
 _COLOR_CODES = {"rgb8": 1, "rgba8": 2, "rgbf32": 3}
 _MAGIC = b"DIOPTRA1"
 
@@ -90,14 +94,22 @@ class Dioptra:
         return self._request("GET", "/status")
 
     def send_rgbd(self, color, depth, depth_units: str = "m", near: float | None = None,
-                  far: float | None = None, app_time_ns: int | None = None) -> int:
+                  far: float | None = None, app_time_ns: int | None = None,
+                  encoding: str = "raw") -> int:
         """Sends one frame; returns its sequence number.
 
         ``color``: H x W x 3 or 4 ``uint8`` (sRGB), or H x W x 3 float (linear light).
         ``depth``: H x W, in ``depth_units`` (see ``DEPTH_UNITS``); a depth buffer
         (``gl``, ``vulkan``, ...) needs ``near`` and ``far`` in metres (``far=float("inf")``
         for an infinite reversed-Z projection). H x W must be the daemon's display size.
+        ``encoding="png"`` (``uint8`` colour, depth in ``m`` or ``mm``) sends PNG files through
+        ``PUT /frame``: depth in whole millimetres from 1 mm to 65.535 m (farther, infinity
+        included, is sent as 65.535 m).
         """
+        if encoding == "png":
+            return self._send_png(color, depth, depth_units, app_time_ns)
+        if encoding != "raw":
+            raise ValueError(f"encoding {encoding!r}: expected 'raw' or 'png'")
         color = np.asarray(color)
         depth = np.asarray(depth)
         if color.ndim != 3 or color.shape[2] not in (3, 4):
@@ -133,6 +145,32 @@ class Dioptra:
             body = color.tobytes() + depth.tobytes()
             r = self._request("PUT", "/frame?" + urllib.parse.urlencode(q), body=body,
                               content_type="application/octet-stream", refused=True)
+        return int(r["seq"])
+
+    def _send_png(self, color, depth, depth_units, app_time_ns):
+        color = np.asarray(color)
+        depth = np.asarray(depth, dtype=np.float64)
+        if color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] not in (3, 4):
+            raise ValueError("encoding='png' takes H x W x 3 or 4 uint8 (sRGB) colour")
+        if depth.shape != color.shape[:2]:
+            raise ValueError(f"depth is {depth.shape}, color {color.shape[:2]}")
+        if depth_units not in ("m", "mm"):
+            raise ValueError("encoding='png' sends depth in millimetres: depth_units 'm' or 'mm'")
+        mm = depth * 1000.0 if depth_units == "m" else depth
+        if np.isnan(mm).any() or (mm <= 0).any():
+            raise ValueError("depth must be a distance > 0 (NaN and <= 0 cannot be sent)")
+        mm = np.clip(np.rint(mm), 1, 65535).astype(">u2")
+        h, w = mm.shape
+        colour_png = _png(np.ascontiguousarray(color[:, :, :3]), 2, 8)
+        depth_png = _png(np.ascontiguousarray(mm), 0, 16)
+        self._seq += 1
+        q = {"width": w, "height": h, "color": "png", "color_bytes": len(colour_png),
+             "depth": "mm", "seq": self._seq}
+        if app_time_ns is not None:
+            q["app_time_ns"] = app_time_ns
+        r = self._request("PUT", "/frame?" + urllib.parse.urlencode(q),
+                          body=colour_png + depth_png,
+                          content_type="application/octet-stream", refused=True)
         return int(r["seq"])
 
     def close(self):
@@ -179,6 +217,22 @@ class Dioptra:
             cls = FrameRefused if refused and resp.status in (409, 413, 422) else DioptraError
             raise cls(resp.status, v.get("error", ""))
         return v
+
+
+def _png(pixels, color_type: int, bit_depth: int) -> bytes:
+    """A PNG of ``pixels`` (H x W x 3 ``uint8`` RGB: colour type 2; H x W big-endian
+    ``uint16`` grey: colour type 0), rows unfiltered, zlib-compressed."""
+    h, w = pixels.shape[:2]
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    rows = pixels.reshape(h, -1).view(np.uint8)
+    raw = np.hstack([np.zeros((h, 1), np.uint8), rows]).tobytes()
+    ihdr = struct.pack(">IIBBBBB", w, h, bit_depth, color_type, 0, 0, 0)
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr)
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
 
 
 class _Ring:

@@ -4,7 +4,7 @@
 Starts `dioptra serve` on the example simulated rig with `[content] source = "stream"`, then:
 1. streams 300 frames at 90 Hz through the shared-memory ring, and checks every frame is
    accounted for (accepted: shown or replaced by a newer one; or refused with a reason);
-2. the same through `PUT /frame` (no ring);
+2. the same through `PUT /frame` (no ring), then 30 frames as PNG files through `PUT /frame`;
 3. sends frames the daemon must refuse (wrong size, NaN depth, depth buffer without near/far,
    stale sequence number) and checks each is refused, counted, and the frame on show stays;
 4. kills a streaming client with SIGKILL and checks the daemon keeps showing its last frame
@@ -63,14 +63,14 @@ def frame(d, k):
     return color, depth
 
 
-def stream(d, n, hz):
+def stream(d, n, hz, encoding="raw"):
     ok, refused, times = [], [], []
     t0 = time.monotonic()
     for k in range(n):
         color, depth = frame(d, k)
         t = time.perf_counter()
         try:
-            ok.append(d.send_rgbd(color, depth, depth_units="m"))
+            ok.append(d.send_rgbd(color, depth, depth_units="m", encoding=encoding))
         except FrameRefused as e:
             refused.append(str(e))
         times.append(time.perf_counter() - t)
@@ -137,6 +137,15 @@ def main():
         ms = sorted(t * 1e3 for t in times2)
         print(f"     PUT ingest: p50 {statistics.median(ms):.2f} ms, "
               f"p99 {ms[int(0.99 * len(ms))]:.2f} ms")
+        before = put.status()["content"]
+        ok3, refused3, times3 = stream(put, 30, 90.0, encoding="png")
+        time.sleep(0.3)
+        after = put.status()["content"]
+        check(len(ok3) == 30 and not refused3,
+              f"30 frames as PNG files through PUT: {len(ok3)} accepted, {refused3[:1]}")
+        accounted(before, after, len(ok3), "PUT png")
+        ms = sorted(t * 1e3 for t in times3)
+        print(f"     PUT png ingest: p50 {statistics.median(ms):.2f} ms")
         lat = put.status()["scheduler"]["latency_us"]
         for stage in ("content received", "content to presented"):
             st = lat.get(stage)

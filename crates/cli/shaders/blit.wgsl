@@ -1,6 +1,7 @@
-// Draws the frame texture over the viewport (set to the letterboxed rectangle on the CPU side).
-// The texture is Rgba8UnormSrgb, so sampling gives linear light; the surface view is sRGB, so
-// the hardware encodes it again on write.
+// Draws the frame over the viewport (set to the letterboxed rectangle on the CPU side), from
+// the frame texture (fs_main) or from a frame left in GPU memory by the renderer (fs_buffer).
+// The texture is Rgba8UnormSrgb, so sampling gives linear light; the buffer holds linear light;
+// the surface view is sRGB, so the hardware encodes it on write.
 
 struct VsOut {
     @builtin(position) position: vec4<f32>,
@@ -25,4 +26,28 @@ fn vs_main(@builtin(vertex_index) i: u32) -> VsOut {
 @fragment
 fn fs_main(in: VsOut) -> @location(0) vec4<f32> {
     return vec4<f32>(textureSample(frame, frame_sampler, in.uv).rgb, 1.0);
+}
+
+// A frame in the renderer's buffer: planar linear f32 (red, green, blue planes), `offset`
+// values in, rows `row_pitch` apart, planes `plane_pitch` apart.
+struct Layout {
+    width: u32,
+    height: u32,
+    offset: u32,
+    row_pitch: u32,
+    plane_pitch: u32,
+};
+
+@group(0) @binding(2) var<uniform> frame_layout: Layout;
+@group(0) @binding(3) var<storage, read> pixels: array<f32>;
+
+@fragment
+fn fs_buffer(in: VsOut) -> @location(0) vec4<f32> {
+    // The nearest pixel, as the texture path's sampler takes it.
+    let x = min(u32(in.uv.x * f32(frame_layout.width)), frame_layout.width - 1u);
+    let y = min(u32(in.uv.y * f32(frame_layout.height)), frame_layout.height - 1u);
+    let i = frame_layout.offset + y * frame_layout.row_pitch + x;
+    let c = vec3<f32>(pixels[i], pixels[i + frame_layout.plane_pitch], pixels[i + 2u * frame_layout.plane_pitch]);
+    // As the texture path packs it: clamped to [0, 1], NaN black.
+    return vec4<f32>(select(vec3<f32>(0.0), clamp(c, vec3<f32>(0.0), vec3<f32>(1.0)), c == c), 1.0);
 }

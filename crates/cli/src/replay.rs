@@ -9,13 +9,15 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use dioptra_core::{Diopters, Timestamp};
+use dioptra_core::{DepthMap, Diopters, Timestamp};
 use serde::Serialize;
 
-use dioptra_rig::config::{Method, Mode, RigConfig};
+use dioptra_rig::animated::Pacing;
+use dioptra_rig::config::{ContentSource, Method, Mode, RigConfig};
 use dioptra_rig::devices::DeviceInput;
 use dioptra_rig::engine::{Command, Engine, Input};
 use dioptra_rig::recording::{self, ControlRec, Rec, Recorded};
@@ -291,12 +293,33 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
     cfg.method = Method::parse(&start.method)
         .with_context(|| format!("unknown method {:?} in the recording", start.method))?;
-    let renderer = SceneRenderer::new(&cfg).context("cannot render the recorded rig's scene")?;
-    // The scene is static: the depth the daemon gave at its start is the one every /depth
-    // message stands for.
+    // A recording without scene times is of a still scene (made before the scene moved, or
+    // with content.animate = false).
+    let animated = rec
+        .messages
+        .iter()
+        .any(|(_, m)| matches!(m, Rec::Depth(d) if d.scene_ns.is_some()));
+    if !animated && cfg.content.source == ContentSource::Scene {
+        cfg.content.animate = Some(false);
+    }
+    let renderer = SceneRenderer::with_pacing(&cfg, Pacing::Simulated)
+        .context("cannot render the recorded rig's scene")?;
+    // The depth the daemon gave at its start: what a /depth message without a scene time
+    // stands for (a still scene). The animated scene's is rendered from the time recorded.
     let depth = renderer
         .depth(*t0)
         .context("the recorded rig's scene has no depth")?;
+    let depth_at = |scene_ns: Option<u64>| -> Result<Arc<DepthMap>> {
+        let Some(t) = scene_ns else {
+            return Ok(depth.clone());
+        };
+        match renderer.scene_depth_at(Timestamp(t)) {
+            Some(d) => Ok(Arc::new(d.with_context(|| {
+                format!("cannot render the scene at {} ms", t / 1_000_000)
+            })?)),
+            None => bail!("the recording has scene times, and its config's content is not the procedural scene"),
+        }
+    };
     let mut engine = Engine::new(&cfg)
         .map_err(anyhow::Error::msg)
         .context("cannot start the scheduler")?;
@@ -335,7 +358,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
                     .with_context(|| format!("unknown method {:?} in /frame", f.method))?,
                 render_time: Duration::from_nanos(f.render_ns),
             },
-            Rec::Depth(_) => Input::Depth(depth.clone()),
+            Rec::Depth(d) => Input::Depth(depth_at(d.scene_ns)?),
             Rec::Content(c) => Input::Content(dioptra_rig::render::Arrival {
                 arrived: Timestamp(c.arrived_ns),
                 ready: Timestamp(c.ready_ns),

@@ -136,6 +136,14 @@ pub struct DepthMap {
 impl DepthMap {
     /// Checks that every value is finite and non-negative, naming the first bad pixel.
     pub fn from_diopters(plane: Plane) -> Result<Self, InputError> {
+        // One pass without an early exit (it vectorises); the pixel is looked for on failure.
+        let valid = plane
+            .data
+            .iter()
+            .fold(true, |ok, v| ok & (v.is_finite() & (*v >= 0.0)));
+        if valid {
+            return Ok(DepthMap { plane });
+        }
         if let Some((i, v)) = plane
             .data
             .iter()
@@ -176,6 +184,10 @@ impl DepthMap {
     }
     pub fn plane(&self) -> &Plane {
         &self.plane
+    }
+    /// The diopters plane, given up (to reuse its memory).
+    pub fn into_plane(self) -> Plane {
+        self.plane
     }
     pub fn data(&self) -> &[f32] {
         &self.plane.data

@@ -6,7 +6,7 @@ use crate::error::RenderError;
 use dioptra_core::image::{linear_to_srgb, srgb_to_linear};
 use dioptra_core::{DepthMap, InputError, Plane, RgbImage};
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
+use std::io::{BufWriter, Write};
 use std::path::Path;
 
 /// Images with more pixels than this are refused from their header, before their pixels are
@@ -14,11 +14,11 @@ use std::path::Path;
 pub const DEFAULT_MAX_PIXELS: u64 = 64 * 1024 * 1024;
 
 /// Refuses a size a header claims when it exceeds `max_pixels`.
-fn check_size(path: &Path, w: u64, h: u64, max_pixels: u64) -> Result<(), RenderError> {
+fn check_size(name: &str, w: u64, h: u64, max_pixels: u64) -> Result<(), RenderError> {
     let n = w.saturating_mul(h);
     if n > max_pixels {
         return Err(fmt_err(
-            path,
+            name,
             format!(
                 "its header claims {w} x {h} pixels ({:.1} Mpx), more than the limit of {:.1} Mpx \
                  (--max-pixels)",
@@ -52,35 +52,65 @@ impl std::str::FromStr for DepthUnits {
     }
 }
 
+/// An image file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Format {
+pub enum ImageFormat {
     Png,
     Exr,
     Pfm,
 }
 
-fn format_of(path: &Path) -> Result<Format, RenderError> {
+impl ImageFormat {
+    /// The format of an encoded image, from its first bytes (its signature).
+    pub fn of_bytes(bytes: &[u8]) -> Option<ImageFormat> {
+        if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+            Some(ImageFormat::Png)
+        } else if bytes.starts_with(&[0x76, 0x2f, 0x31, 0x01]) {
+            Some(ImageFormat::Exr)
+        } else if bytes.starts_with(b"PF") || bytes.starts_with(b"Pf") {
+            Some(ImageFormat::Pfm)
+        } else {
+            None
+        }
+    }
+}
+
+fn format_of(path: &Path) -> Result<ImageFormat, RenderError> {
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
         .unwrap_or("")
         .to_ascii_lowercase();
     match ext.as_str() {
-        "png" => Ok(Format::Png),
-        "exr" => Ok(Format::Exr),
-        "pfm" => Ok(Format::Pfm),
+        "png" => Ok(ImageFormat::Png),
+        "exr" => Ok(ImageFormat::Exr),
+        "pfm" => Ok(ImageFormat::Pfm),
         _ => Err(fmt_err(
-            path,
+            &path.display().to_string(),
             format!("unsupported file type {ext:?}: expected .png, .exr or .pfm"),
         )),
     }
 }
 
-fn fmt_err(path: &Path, detail: impl Into<String>) -> RenderError {
+/// The format of `bytes` from their signature, or an error naming `name`.
+fn format_of_bytes(name: &str, bytes: &[u8]) -> Result<ImageFormat, RenderError> {
+    ImageFormat::of_bytes(bytes).ok_or_else(|| {
+        fmt_err(
+            name,
+            "not a PNG, EXR or PFM image (its first bytes are none of their signatures)",
+        )
+    })
+}
+
+fn fmt_err(name: &str, detail: impl Into<String>) -> RenderError {
     RenderError::Format {
-        path: path.display().to_string(),
+        path: name.to_string(),
         detail: detail.into(),
     }
+}
+
+fn path_err(path: &Path, detail: impl Into<String>) -> RenderError {
+    fmt_err(&path.display().to_string(), detail)
 }
 
 fn io_err(path: &Path, cause: std::io::Error) -> RenderError {
@@ -100,22 +130,27 @@ struct Raw {
     max_int: f32,
 }
 
-fn read_png(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
-    let f = File::open(path).map_err(|e| io_err(path, e))?;
-    let mut dec = png::Decoder::new(BufReader::new(f));
+fn png_reader<'b>(
+    name: &str,
+    bytes: &'b [u8],
+) -> Result<png::Reader<std::io::Cursor<&'b [u8]>>, RenderError> {
+    let mut dec = png::Decoder::new(std::io::Cursor::new(bytes));
     dec.set_transformations(png::Transformations::EXPAND);
-    let mut reader = dec
-        .read_info()
-        .map_err(|e| fmt_err(path, format!("not a readable PNG: {e}")))?;
+    dec.read_info()
+        .map_err(|e| fmt_err(name, format!("not a readable PNG: {e}")))
+}
+
+fn decode_png(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Raw, RenderError> {
+    let mut reader = png_reader(name, bytes)?;
     let (w, h) = (reader.info().width, reader.info().height);
-    check_size(path, u64::from(w), u64::from(h), max_pixels)?;
+    check_size(name, u64::from(w), u64::from(h), max_pixels)?;
     let size = reader
         .output_buffer_size()
-        .ok_or_else(|| fmt_err(path, "PNG is too large"))?;
+        .ok_or_else(|| fmt_err(name, "PNG is too large"))?;
     let mut buf = vec![0u8; size];
     let info = reader
         .next_frame(&mut buf)
-        .map_err(|e| fmt_err(path, format!("PNG decode failed: {e}")))?;
+        .map_err(|e| fmt_err(name, format!("PNG decode failed: {e}")))?;
     let (w, h) = (info.width as usize, info.height as usize);
     let nch = info.color_type.samples();
     let sixteen = info.bit_depth == png::BitDepth::Sixteen;
@@ -144,16 +179,31 @@ fn read_png(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     })
 }
 
-fn read_exr(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
+/// The size of an EXR's first layer, from its headers.
+fn exr_size(name: &str, bytes: &[u8]) -> Result<Vec<(usize, usize)>, RenderError> {
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false)
+        .map_err(|e| fmt_err(name, format!("not a readable EXR: {e}")))?;
+    Ok(meta
+        .headers
+        .iter()
+        .map(|h| (h.layer_size.width(), h.layer_size.height()))
+        .collect())
+}
+
+fn decode_exr(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Raw, RenderError> {
     // The headers alone first: the sizes they claim decide whether to read the pixels.
-    let meta = exr::meta::MetaData::read_from_file(path, false)
-        .map_err(|e| fmt_err(path, format!("not a readable EXR: {e}")))?;
-    for header in &meta.headers {
-        let size = header.layer_size;
-        check_size(path, size.width() as u64, size.height() as u64, max_pixels)?;
+    for (w, h) in exr_size(name, bytes)? {
+        check_size(name, w as u64, h as u64, max_pixels)?;
     }
-    let img = exr::prelude::read_first_flat_layer_from_file(path)
-        .map_err(|e| fmt_err(path, format!("not a readable EXR: {e}")))?;
+    use exr::prelude::{ReadChannels as _, ReadLayers as _};
+    let img = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .map_err(|e| fmt_err(name, format!("not a readable EXR: {e}")))?;
     let layer = &img.layer_data;
     let (w, h) = (layer.size.width(), layer.size.height());
     let list = &layer.channel_data.list;
@@ -169,7 +219,7 @@ fn read_exr(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
         _ => match find(&["Z", "Y", "depth", "R"]) {
             Some(i) => vec![i],
             None if !list.is_empty() => vec![0],
-            None => return Err(fmt_err(path, "EXR has no channels")),
+            None => return Err(fmt_err(name, "EXR has no channels")),
         },
     };
     let channels = pick
@@ -185,12 +235,17 @@ fn read_exr(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     })
 }
 
-fn read_pfm(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
-    let mut bytes = Vec::new();
-    File::open(path)
-        .map_err(|e| io_err(path, e))?
-        .read_to_end(&mut bytes)
-        .map_err(|e| io_err(path, e))?;
+/// A PFM header: channels, width, height, whether the raster is little-endian, and where the
+/// raster starts.
+struct PfmHeader {
+    channels: usize,
+    width: usize,
+    height: usize,
+    little: bool,
+    raster: usize,
+}
+
+fn pfm_header(name: &str, bytes: &[u8]) -> Result<PfmHeader, RenderError> {
     // Header: "PF" or "Pf", then width height, then scale (negative = little-endian), each
     // separated by whitespace, then one whitespace byte and the raster, bottom row first.
     let mut fields = Vec::new();
@@ -204,33 +259,48 @@ fn read_pfm(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
             pos += 1;
         }
         if start == pos {
-            return Err(fmt_err(path, "truncated PFM header"));
+            return Err(fmt_err(name, "truncated PFM header"));
         }
         fields.push(String::from_utf8_lossy(&bytes[start..pos]).to_string());
     }
-    pos += 1;
-    let nch = match fields[0].as_str() {
+    let channels = match fields[0].as_str() {
         "PF" => 3,
         "Pf" => 1,
-        m => return Err(fmt_err(path, format!("not a PFM file (magic {m:?})"))),
+        m => return Err(fmt_err(name, format!("not a PFM file (magic {m:?})"))),
     };
     let parse = |s: &str| {
         s.parse::<usize>()
-            .map_err(|_| fmt_err(path, format!("bad PFM size {s:?}")))
+            .map_err(|_| fmt_err(name, format!("bad PFM size {s:?}")))
     };
-    let (w, h) = (parse(&fields[1])?, parse(&fields[2])?);
-    check_size(path, w as u64, h as u64, max_pixels)?;
     let scale: f32 = fields[3]
         .parse()
-        .map_err(|_| fmt_err(path, "bad PFM scale"))?;
-    let little = scale < 0.0;
+        .map_err(|_| fmt_err(name, "bad PFM scale"))?;
+    Ok(PfmHeader {
+        channels,
+        width: parse(&fields[1])?,
+        height: parse(&fields[2])?,
+        little: scale < 0.0,
+        raster: pos + 1,
+    })
+}
+
+fn decode_pfm(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Raw, RenderError> {
+    let PfmHeader {
+        channels: nch,
+        width: w,
+        height: h,
+        little,
+        raster: pos,
+    } = pfm_header(name, bytes)?;
+    check_size(name, w as u64, h as u64, max_pixels)?;
     let need = w
         .checked_mul(h)
         .and_then(|n| n.checked_mul(nch * 4))
-        .ok_or_else(|| fmt_err(path, "PFM too large"))?;
-    let data = bytes
-        .get(pos..pos + need)
-        .ok_or_else(|| fmt_err(path, format!("PFM raster truncated: need {need} bytes")))?;
+        .ok_or_else(|| fmt_err(name, "PFM too large"))?;
+    let data = pos
+        .checked_add(need)
+        .and_then(|end| bytes.get(pos..end))
+        .ok_or_else(|| fmt_err(name, format!("PFM raster truncated: need {need} bytes")))?;
     let mut channels = vec![vec![0.0f32; w * h]; nch];
     for (k, b) in data.chunks_exact(4).enumerate() {
         let b = [b[0], b[1], b[2], b[3]];
@@ -252,6 +322,19 @@ fn read_pfm(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     })
 }
 
+fn decode_raw(
+    name: &str,
+    format: ImageFormat,
+    bytes: &[u8],
+    max_pixels: u64,
+) -> Result<Raw, RenderError> {
+    match format {
+        ImageFormat::Png => decode_png(name, bytes, max_pixels),
+        ImageFormat::Exr => decode_exr(name, bytes, max_pixels),
+        ImageFormat::Pfm => decode_pfm(name, bytes, max_pixels),
+    }
+}
+
 fn read_raw(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
     if !path.exists() {
         return Err(io_err(
@@ -259,11 +342,53 @@ fn read_raw(path: &Path, max_pixels: u64) -> Result<Raw, RenderError> {
             std::io::Error::new(std::io::ErrorKind::NotFound, "file not found"),
         ));
     }
-    match format_of(path)? {
-        Format::Png => read_png(path, max_pixels),
-        Format::Exr => read_exr(path, max_pixels),
-        Format::Pfm => read_pfm(path, max_pixels),
+    let format = format_of(path)?;
+    let bytes = std::fs::read(path).map_err(|e| io_err(path, e))?;
+    decode_raw(&path.display().to_string(), format, &bytes, max_pixels)
+}
+
+/// The width and height of the image encoded in `bytes` (PNG, EXR or PFM, told apart by
+/// their signatures), from its header alone; errors name `name`.
+pub fn encoded_size(name: &str, bytes: &[u8]) -> Result<(usize, usize), RenderError> {
+    match format_of_bytes(name, bytes)? {
+        ImageFormat::Png => {
+            let r = png_reader(name, bytes)?;
+            Ok((r.info().width as usize, r.info().height as usize))
+        }
+        ImageFormat::Exr => exr_size(name, bytes)?
+            .first()
+            .copied()
+            .ok_or_else(|| fmt_err(name, "EXR has no layers")),
+        ImageFormat::Pfm => pfm_header(name, bytes).map(|h| (h.width, h.height)),
     }
+}
+
+/// Decodes a colour image from `bytes` (PNG, EXR or PFM by signature) into linear light,
+/// refusing one of more than `max_pixels` from its header; errors name `name`.
+pub fn decode_color(name: &str, bytes: &[u8], max_pixels: u64) -> Result<RgbImage, RenderError> {
+    let raw = decode_raw(name, format_of_bytes(name, bytes)?, bytes, max_pixels)?;
+    color_of(name, raw)
+}
+
+/// The first channel of the image in `bytes` (PNG, EXR or PFM by signature) as stored:
+/// floats from EXR and PFM, integers from a 16-bit PNG (an 8-bit one is refused: too coarse
+/// for depth). Refuses more than `max_pixels` from the header; errors name `name`.
+pub fn decode_samples(name: &str, bytes: &[u8], max_pixels: u64) -> Result<Plane, RenderError> {
+    let raw = decode_raw(name, format_of_bytes(name, bytes)?, bytes, max_pixels)?;
+    if raw.is_png && raw.max_int < 65535.0 {
+        return Err(fmt_err(
+            name,
+            "an 8-bit PNG has too little precision for depth: use a 16-bit PNG, EXR or PFM",
+        ));
+    }
+    let Raw {
+        width,
+        height,
+        mut channels,
+        ..
+    } = raw;
+    let first = channels.swap_remove(0);
+    Ok(Plane::from_vec(width, height, first)?)
 }
 
 /// Reads a colour image into linear light, refusing one larger than [`DEFAULT_MAX_PIXELS`].
@@ -273,7 +398,11 @@ pub fn read_color(path: &Path) -> Result<RgbImage, RenderError> {
 
 /// [`read_color`], refusing images of more than `max_pixels` from their header.
 pub fn read_color_limited(path: &Path, max_pixels: u64) -> Result<RgbImage, RenderError> {
-    let raw = read_raw(path, max_pixels)?;
+    color_of(&path.display().to_string(), read_raw(path, max_pixels)?)
+}
+
+/// Decoded samples as a linear colour image.
+fn color_of(name: &str, raw: Raw) -> Result<RgbImage, RenderError> {
     let (w, h) = (raw.width, raw.height);
     let pick = |c: usize| -> Vec<f32> {
         // Grey (+alpha) images repeat channel 0; alpha is dropped.
@@ -293,7 +422,7 @@ pub fn read_color_limited(path: &Path, max_pixels: u64) -> Result<RgbImage, Rend
     let planes = [0, 1, 2].map(pick);
     if let Some(v) = planes.iter().flatten().find(|v| !v.is_finite()) {
         return Err(fmt_err(
-            path,
+            name,
             format!("colour contains a non-finite value ({v})"),
         ));
     }
@@ -319,7 +448,7 @@ pub fn read_depth_limited(
 ) -> Result<DepthMap, RenderError> {
     let raw = read_raw(path, max_pixels)?;
     if raw.is_png && raw.max_int < 65535.0 && units.is_none() {
-        return Err(fmt_err(path, "8-bit PNG depth has too little precision: use 16-bit PNG (mm), EXR or PFM, or pass --depth-units"));
+        return Err(path_err(path, "8-bit PNG depth has too little precision: use 16-bit PNG (mm), EXR or PFM, or pass --depth-units"));
     }
     let units = units.unwrap_or(if raw.is_png {
         DepthUnits::Millimeters
@@ -337,7 +466,7 @@ pub fn read_depth_limited(
             Plane::from_vec(raw.width, raw.height, v.clone()).and_then(DepthMap::from_diopters)
         }
     };
-    r.map_err(|e: InputError| fmt_err(path, e.to_string()))
+    r.map_err(|e: InputError| path_err(path, e.to_string()))
 }
 
 fn write_png(
@@ -351,18 +480,18 @@ fn write_png(
     let f = File::create(path).map_err(|e| io_err(path, e))?;
     let (wu, hu) = (u32::try_from(w), u32::try_from(h));
     let (Ok(wu), Ok(hu)) = (wu, hu) else {
-        return Err(fmt_err(path, "image too large for PNG"));
+        return Err(path_err(path, "image too large for PNG"));
     };
     let mut enc = png::Encoder::new(BufWriter::new(f), wu, hu);
     enc.set_color(color);
     enc.set_depth(depth);
     let mut wr = enc
         .write_header()
-        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))?;
+        .map_err(|e| path_err(path, format!("PNG encode failed: {e}")))?;
     wr.write_image_data(samples)
-        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))?;
+        .map_err(|e| path_err(path, format!("PNG encode failed: {e}")))?;
     wr.finish()
-        .map_err(|e| fmt_err(path, format!("PNG encode failed: {e}")))
+        .map_err(|e| path_err(path, format!("PNG encode failed: {e}")))
 }
 
 fn write_pfm(path: &Path, w: usize, h: usize, channels: &[&Plane]) -> Result<(), RenderError> {
@@ -386,7 +515,7 @@ fn write_pfm(path: &Path, w: usize, h: usize, channels: &[&Plane]) -> Result<(),
 pub fn write_color(path: &Path, img: &RgbImage) -> Result<(), RenderError> {
     let (w, h) = (img.width(), img.height());
     match format_of(path)? {
-        Format::Png => {
+        ImageFormat::Png => {
             let bytes: Vec<u8> = img
                 .to_interleaved()
                 .iter()
@@ -401,15 +530,15 @@ pub fn write_color(path: &Path, img: &RgbImage) -> Result<(), RenderError> {
                 png::BitDepth::Eight,
             )
         }
-        Format::Exr => {
+        ImageFormat::Exr => {
             let c = &img.channels;
             exr::prelude::write_rgb_file(path, w, h, |x, y| {
                 let i = y * w + x;
                 (c[0].data()[i], c[1].data()[i], c[2].data()[i])
             })
-            .map_err(|e| fmt_err(path, format!("EXR encode failed: {e}")))
+            .map_err(|e| path_err(path, format!("EXR encode failed: {e}")))
         }
-        Format::Pfm => write_pfm(path, w, h, &img.channels.each_ref()),
+        ImageFormat::Pfm => write_pfm(path, w, h, &img.channels.each_ref()),
     }
 }
 
@@ -423,7 +552,7 @@ pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {
         .map(|&d| if d > 0.0 { 1.0 / d } else { f32::INFINITY })
         .collect();
     match format_of(path)? {
-        Format::Png => {
+        ImageFormat::Png => {
             let bytes: Vec<u8> = meters
                 .iter()
                 .flat_map(|m| ((m * 1000.0).round().clamp(1.0, 65535.0) as u16).to_be_bytes())
@@ -437,7 +566,7 @@ pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {
                 png::BitDepth::Sixteen,
             )
         }
-        Format::Exr => {
+        ImageFormat::Exr => {
             use exr::prelude::*;
             let px = SpecificChannels::build()
                 .with_channel("Z")
@@ -445,9 +574,9 @@ pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {
             Image::from_channels((w, h), px)
                 .write()
                 .to_file(path)
-                .map_err(|e| fmt_err(path, format!("EXR encode failed: {e}")))
+                .map_err(|e| path_err(path, format!("EXR encode failed: {e}")))
         }
-        Format::Pfm => {
+        ImageFormat::Pfm => {
             let p = Plane::from_vec(w, h, meters)?;
             write_pfm(path, w, h, &[&p])
         }
@@ -558,6 +687,51 @@ mod tests {
                 assert!((a - b).abs() <= tol, "{ext}: {a} vs {b}");
             }
         }
+    }
+
+    #[test]
+    fn images_decode_from_memory_as_from_files() {
+        let img = sample();
+        for ext in ["png", "exr", "pfm"] {
+            let p = tmp(&format!("m.{ext}"));
+            write_color(&p, &img).unwrap();
+            let bytes = std::fs::read(&p).unwrap();
+            assert_eq!(ImageFormat::of_bytes(&bytes), Some(format_of(&p).unwrap()));
+            assert_eq!(encoded_size("the colour file", &bytes).unwrap(), (5, 3));
+            let from_memory = decode_color("the colour file", &bytes, 15).unwrap();
+            assert_eq!(from_memory, read_color(&p).unwrap(), "{ext}");
+            // The caller's limit, from the header, naming what it was given.
+            let e = decode_color("the colour file", &bytes, 14)
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("the colour file") && e.contains("5 x 3"),
+                "{ext}: {e}"
+            );
+        }
+        // Depth samples as stored: whole millimetres in a 16-bit PNG, metres in an EXR.
+        let depth =
+            DepthMap::from_diopters(Plane::from_vec(2, 1, vec![2.0, 0.5]).unwrap()).unwrap();
+        for (ext, want) in [("png", [500.0, 2000.0]), ("exr", [0.5, 2.0])] {
+            let p = tmp(&format!("md.{ext}"));
+            write_depth(&p, &depth).unwrap();
+            let s = decode_samples("the depth file", &std::fs::read(&p).unwrap(), 2).unwrap();
+            assert_eq!(s.data(), &want, "{ext}");
+        }
+        let p = tmp("m8.png");
+        write_color(&p, &img).unwrap();
+        let e = decode_samples("the depth file", &std::fs::read(&p).unwrap(), 100)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("8-bit PNG") && e.contains("16-bit"), "{e}");
+        let e = decode_color("the colour file", b"GIF89a\x01\x00", 100)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a PNG, EXR or PFM"), "{e}");
+        // A signature and nothing after it.
+        assert!(encoded_size("x", b"\x89PNG\r\n\x1a\n").is_err());
+        assert!(encoded_size("x", &[0x76, 0x2f, 0x31, 0x01]).is_err());
+        assert!(decode_color("x", b"PF\n2 2\n-1.0\n\0", 100).is_err());
     }
 
     #[test]

@@ -514,3 +514,57 @@ fn crop(p: &Plane, w: usize, h: usize) -> Plane {
         .collect();
     Plane::from_vec(w, h, d).unwrap()
 }
+
+/// The methods' images left in GPU memory are the images the same kernels read back, and
+/// only reading one back copies it to the host (counted once per image).
+#[test]
+fn images_kept_on_the_gpu_read_back_as_the_readback_path_gives_them() {
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel {
+        fov_horizontal_deg: 4.0,
+        ..EyeModel::default()
+    };
+    let input = random_rgbd(40, 32, 21);
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let reads = || g.images_read_back();
+    let before = reads();
+    let q = Diopters(1.3);
+    for method in [
+        DefocusMethod::Gather,
+        DefocusMethod::LightField(LightFieldParams {
+            views: 12,
+            mip: true,
+        }),
+    ] {
+        let n = reads();
+        let kept = g.defocus_on_gpu(&input, q, &eye, method).unwrap();
+        assert_eq!((kept.width(), kept.height()), (40, 32));
+        assert_eq!(reads(), n, "{method:?}: nothing read back yet");
+        let read = g.defocus(&input, &[q], &eye, method, &|_| {}).unwrap();
+        assert_eq!(kept.read().unwrap(), read[0], "{method:?}");
+    }
+    let kept = g.linear_blend_on_gpu(&input, &planes).unwrap();
+    let read = g.linear_blend(&input, &planes).unwrap();
+    assert_eq!(kept.len(), planes.len());
+    for (k, r) in kept.iter().zip(&read.images) {
+        assert_eq!(&k.read().unwrap(), r);
+    }
+    let foci = linspace(0.1, 2.2, 4);
+    let targets = Cpu
+        .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
+        .unwrap();
+    let params = OptimizeParams {
+        iterations: 5,
+        tolerance: 0.0,
+    };
+    let (kept, _) = g
+        .optimized_blend_on_gpu(&targets, &foci, &planes, &eye, None, params)
+        .unwrap();
+    let (read, _) = g
+        .optimized_blend(&targets, &foci, &planes, &eye, None, params, &|_| {})
+        .unwrap();
+    for (k, r) in kept.iter().zip(&read.images) {
+        assert_eq!(&k.read().unwrap(), r);
+    }
+    assert_eq!(reads(), before + 2 + 2 * planes.len() as u64);
+}

@@ -564,6 +564,8 @@ pub struct ContentConfig {
     pub looped: bool,
     /// A sequence's first number (default 0).
     pub first: Option<usize>,
+    /// `source = "scene"`: move some of its objects, as the demo does (default true).
+    pub animate: Option<bool>,
     /// `source = "stream"`: the shared-memory ring's file (default: beside `api.unix`, or
     /// `/dev/shm/dioptra-<pid>.frames`); `"none"` for `PUT /frame` only.
     pub ring: Option<PathBuf>,
@@ -605,6 +607,7 @@ impl Default for ContentConfig {
             fps: default_content_fps(),
             looped: false,
             first: None,
+            animate: None,
             ring: None,
         }
     }
@@ -886,6 +889,12 @@ impl RigConfig {
                     ));
                 }
             }
+        }
+        if c.animate.is_some() && c.source != ContentSource::Scene {
+            return Err(invalid(
+                "content.animate",
+                "the procedural scene is animated (source = \"scene\"); files and streams move as their frames do",
+            ));
         }
         if c.ring.is_some() && c.source != ContentSource::Stream {
             return Err(invalid(
@@ -1270,6 +1279,19 @@ pub(crate) mod tests {
         let e = err(&fast.replace("driver = \"dlpc350\"", "driver = \"sync\""));
         assert_eq!(e.key(), "devices.sync.video_hz", "{e}");
         assert!(e.to_string().contains("only the dlpc350 driver"), "{e}");
+    }
+
+    #[test]
+    fn content_animate_is_for_the_procedural_scene() {
+        let still = SIM_RIG.to_string() + "\n[content]\nanimate = false\n";
+        assert_eq!(
+            RigConfig::parse(&still).unwrap().content.animate,
+            Some(false)
+        );
+        let e = err(&(SIM_RIG.to_string()
+            + "\n[content]\nsource = \"stream\"\nring = \"none\"\nanimate = true\n"));
+        assert_eq!(e.key(), "content.animate", "{e}");
+        assert!(e.to_string().contains("source = \"scene\""), "{e}");
     }
 
     #[test]

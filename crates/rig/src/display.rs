@@ -6,9 +6,11 @@
 use std::collections::VecDeque;
 use std::path::PathBuf;
 
-use dioptra_core::{Diopters, RgbImage, Timestamp};
+use dioptra_core::{Diopters, Timestamp};
 use serde::Serialize;
 use thiserror::Error;
+
+use crate::render::FrameImage;
 
 #[derive(Debug, Error)]
 pub enum DisplayError {
@@ -34,7 +36,7 @@ pub struct Frame {
     /// The focus it was rendered for.
     pub focus: Diopters,
     /// Shared, so a sink can hand the frame to another thread without copying the images.
-    pub layers: std::sync::Arc<Vec<RgbImage>>,
+    pub layers: std::sync::Arc<Vec<FrameImage>>,
 }
 
 /// When a frame was shown.
@@ -64,7 +66,8 @@ pub trait DisplaySink: Send {
 }
 
 /// Keeps the last frames' timing in memory and writes every `png_every`th frame as PNG
-/// (`frame_000042.png`, or `frame_000042_plane1.png` per multifocal layer).
+/// (`frame_000042.png`, or `frame_000042_plane1.png` per multifocal layer). A frame left in
+/// GPU memory is read back only when it is written.
 #[derive(Debug)]
 pub struct HeadlessSink {
     png_every: u32,
@@ -121,13 +124,13 @@ impl DisplaySink for HeadlessSink {
                         format!("frame_{:06}_plane{i}.png", frame.number)
                     };
                     let path = dir.join(name);
-                    dioptra_render::io::write_color(&path, layer).map_err(|e| {
-                        DisplayError::Write {
-                            frame: frame.number,
-                            path: path.clone(),
-                            detail: e.to_string(),
-                        }
-                    })?;
+                    let failed = |e: dioptra_render::RenderError| DisplayError::Write {
+                        frame: frame.number,
+                        path: path.clone(),
+                        detail: e.to_string(),
+                    };
+                    let pixels = layer.to_host().map_err(failed)?;
+                    dioptra_render::io::write_color(&path, &pixels).map_err(failed)?;
                     self.pngs += 1;
                 }
             }
@@ -187,7 +190,7 @@ mod tests {
             let f = Frame {
                 number: n,
                 focus: Diopters(1.0),
-                layers: vec![RgbImage::new(8, 8, [0.5, 0.25, 0.0])].into(),
+                layers: vec![dioptra_core::RgbImage::new(8, 8, [0.5, 0.25, 0.0]).into()].into(),
             };
             let t = s.present(&f, Timestamp(n * 1000)).unwrap();
             assert_eq!(t, Timestamp(n * 1000));

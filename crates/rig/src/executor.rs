@@ -255,7 +255,9 @@ impl Executor<'_> {
         depth: Arc<dioptra_core::DepthMap>,
         arrival: Option<crate::render::Arrival>,
     ) {
-        self.state.record(now, Rec::Depth(Marker {}));
+        let scene_ns = self.renderer.content_time().map(|t| t.0);
+        self.state
+            .record(now, Rec::Depth(crate::recording::DepthRec { scene_ns }));
         let cmds = engine.step(now, Input::Depth(depth)).unwrap_or_default();
         self.execute(now, cmds, None).await;
         if let Some(a) = arrival {
@@ -661,11 +663,11 @@ impl Executor<'_> {
         }
         if let Some(images) = failure.unblurred {
             lock(&self.state.status).fallback_frames += 1;
-            self.keep_frame(job, images);
+            self.keep_frame(job, images.into_iter().map(Into::into).collect());
         }
     }
 
-    fn keep_frame(&mut self, job: &RenderJob, images: Vec<dioptra_core::RgbImage>) {
+    fn keep_frame(&mut self, job: &RenderJob, images: Vec<crate::render::FrameImage>) {
         if self.frames.len() == FRAMES_KEPT {
             self.frames.pop_front();
         }

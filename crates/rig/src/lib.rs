@@ -19,6 +19,7 @@
 //! parks the lens and waits for it, the sync task stops the sequence), and [`Rig::wait`]
 //! finishes the recording.
 
+pub mod animated;
 pub mod config;
 pub mod content;
 pub mod devices;
@@ -619,10 +620,17 @@ impl Rig {
             Some(r) => r,
             None => {
                 let c = cfg.clone();
-                let r = tokio::task::spawn_blocking(move || scene::SceneRenderer::new(&c))
-                    .await
-                    .map_err(|e| RigError::Task(e.to_string()))?
-                    .map_err(RigError::Scene)?;
+                let pacing = if simulated_time {
+                    animated::Pacing::Simulated
+                } else {
+                    animated::Pacing::RealTime
+                };
+                let r = tokio::task::spawn_blocking(move || {
+                    scene::SceneRenderer::with_pacing(&c, pacing)
+                })
+                .await
+                .map_err(|e| RigError::Task(e.to_string()))?
+                .map_err(RigError::Scene)?;
                 Arc::new(r)
             }
         };

@@ -242,6 +242,15 @@ pub struct FrameRec {
     pub focus_d: Option<f32>,
 }
 
+/// The content's depth was given to the scheduler.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DepthRec {
+    /// The animated scene's time of the frame (a replay renders its depth from it); `None`
+    /// for other content, and in recordings of the still scene.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene_ns: Option<u64>,
+}
+
 /// The content frame of the latest depth: when it arrived and was ready (host ns).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ContentRec {
@@ -357,7 +366,7 @@ pub enum Rec {
     Sync(SyncRec),
     Frame(FrameRec),
     Control(ControlRec),
-    Depth(Marker),
+    Depth(DepthRec),
     Content(ContentRec),
     Tick(Marker),
     Shutdown(Marker),
@@ -415,7 +424,7 @@ topics! {
         format!(r#""frame":{N},"method":{S},"render_ns":{N},"requested_ns":{N},"focus_d":{ON}"#);
     Control => "/control", "dioptra.Control",
         format!(r#""kind":{{"enum":["mode","method","manual_focus"]}},"mode":{S},"method":{S},"diopters":{ON}"#);
-    Depth => "/depth", "dioptra.DepthGiven", "";
+    Depth => "/depth", "dioptra.DepthGiven", format!(r#""scene_ns":{N}"#);
     Content => "/content", "dioptra.ContentArrival",
         format!(r#""arrived_ns":{N},"ready_ns":{N}"#);
     Tick => "/tick", "dioptra.Tick", "";

@@ -1,10 +1,12 @@
 //! The render worker's side of the loop: what makes a frame's images ([`Renderer`]), and the
 //! job and result that travel between the loop and the worker thread.
 
+use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, RgbImage, Timestamp};
+use dioptra_render::gpu::GpuImage;
 use dioptra_render::RenderError;
 
 use crate::config::{Method, Mode};
@@ -25,11 +27,48 @@ pub struct RenderJob {
     pub display_time: Timestamp,
 }
 
+/// One image of a frame, where it was made: on the host, or in the GPU memory of the
+/// render's device (a window on that device shows it without a copy; anything that needs its
+/// pixels on the host reads it back: [`FrameImage::to_host`]).
+#[derive(Debug, Clone)]
+pub enum FrameImage {
+    Host(RgbImage),
+    Gpu(GpuImage),
+}
+
+impl FrameImage {
+    pub fn width(&self) -> usize {
+        match self {
+            FrameImage::Host(i) => i.width(),
+            FrameImage::Gpu(g) => g.width(),
+        }
+    }
+    pub fn height(&self) -> usize {
+        match self {
+            FrameImage::Host(i) => i.height(),
+            FrameImage::Gpu(g) => g.height(),
+        }
+    }
+    /// Its pixels on the host: the image itself, or a copy read back from the GPU.
+    pub fn to_host(&self) -> Result<Cow<'_, RgbImage>, RenderError> {
+        match self {
+            FrameImage::Host(i) => Ok(Cow::Borrowed(i)),
+            FrameImage::Gpu(g) => Ok(Cow::Owned(g.read()?)),
+        }
+    }
+}
+
+impl From<RgbImage> for FrameImage {
+    fn from(i: RgbImage) -> FrameImage {
+        FrameImage::Host(i)
+    }
+}
+
 /// A frame's images, and the planner's choice when it chose.
 #[derive(Debug)]
 pub struct RenderOutput {
     /// One image (varifocal, light field) or one per focal plane (multifocal).
-    pub images: Vec<RgbImage>,
+    pub images: Vec<FrameImage>,
     /// `method = "auto"`: what the planner chose and why.
     pub planned: Option<Planned>,
     /// The time the render counts as having taken. `None`: the wall time it took on this
@@ -62,8 +101,13 @@ pub trait Renderer: Send + Sync + 'static {
     /// reads the fixation depth from it.
     fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>>;
     /// The arrival of the content frame the latest `depth` call took up, once (`None` when
-    /// it took none, or the source does not know: a static scene).
+    /// it took none, or the source does not know: a still scene).
     fn take_arrival(&self) -> Option<Arrival> {
+        None
+    }
+    /// The scene time of the content frame on show, for content that has one (the animated
+    /// procedural scene): recorded with each depth, so a replay renders the same frame.
+    fn content_time(&self) -> Option<Timestamp> {
         None
     }
     /// Renders one frame.

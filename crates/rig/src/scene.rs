@@ -1,10 +1,12 @@
-//! The renderer of the rig's procedural scene: the rig shows a procedural scene (dioptra-sim, seed
-//! `display.scene_seed`) rendered once as RGB-D at the display's size, and each frame is made
-//! from it by the configured method on the CPU backend. The scene is static, so a multifocal
-//! decomposition (which does not depend on the focus) is made once per method and reused, and
-//! so is the light-field panel: 5 x 5 pinhole views of the scene over a 4 mm pupil, resampled
-//! by `dioptra_sched::lenslet` onto a lenslet display of (width / 5) x (height / 5) lenslets of
-//! 5 x 5 pixels (0.25 mm pitch, 0.94 mm gap, 15 mm eye relief).
+//! The renderer of the rig's content: the procedural scene (dioptra-sim, seed
+//! `display.scene_seed`, animated: [`crate::animated`]), a lab's RGB-D files
+//! ([`crate::content`]) or frames an application streams ([`crate::stream`]), each frame made
+//! from the content frame on show by the configured method. A multifocal decomposition (which
+//! does not depend on the focus) is made once per method and content frame, and so is the
+//! light-field panel: 5 x 5 views over a 4 mm pupil (the scene's own pinhole views, or views
+//! synthesised from a file or stream frame's RGB-D), resampled by `dioptra_sched::lenslet`
+//! onto a lenslet display of (width / 5) x (height / 5) lenslets of 5 x 5 pixels (0.25 mm
+//! pitch, 0.94 mm gap, 15 mm eye relief).
 //!
 //! With `method = "auto"` (varifocal mode) each frame's method is chosen here, where frames
 //! are rendered, by `dioptra_render::planner` from the frame's depth around the gaze point
@@ -30,17 +32,19 @@ use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
-use dioptra_render::{Cpu, DefocusMethod, OptimizeParams, RenderError};
+use dioptra_render::views::RgbdView;
+use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError};
 
+use crate::animated::{AnimatedScene, Pacing};
 use crate::config::{ContentSource, Method, Mode, RenderBackend, RigConfig};
-use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
+use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
-/// Renders frames of the rig's content: the static procedural scene, or a lab's RGB-D
-/// files ([`crate::content`]).
+/// Renders frames of the rig's content: the procedural scene, a lab's RGB-D files, or a
+/// stream.
 pub struct SceneRenderer {
     /// The content frame on show.
-    current: Mutex<Arc<Rgbd>>,
+    current: Mutex<OnShow>,
     /// Whether the loop has the current frame's depth.
     depth_given: AtomicBool,
     /// `source = "files"`: the sequence being played.
@@ -51,15 +55,34 @@ pub struct SceneRenderer {
     arrival: Mutex<Option<crate::render::Arrival>>,
     eye: EyeModel,
     planes: Vec<Diopters>,
-    layers: Mutex<Vec<(Method, Arc<Vec<RgbImage>>)>>,
-    /// The procedural scene (`source = "scene"`), for the light-field panel.
-    scene: Option<dioptra_sim::scene::Scene>,
+    /// Multifocal layers per method and content frame.
+    layers: Mutex<Vec<CachedLayers>>,
+    /// `source = "scene"`: the procedural scene.
+    scene: Option<AnimatedScene>,
     cam: dioptra_sim::scene::Camera,
-    panel: Mutex<Option<Arc<RgbImage>>>,
+    /// The light-field panel, made from the content frame numbered with it.
+    panel: Mutex<Option<(u64, Arc<RgbImage>)>>,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
     compute: Mutex<Compute>,
     /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
     nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
+}
+
+/// Multifocal layers one method made from the content frame numbered `frame`.
+struct CachedLayers {
+    frame: u64,
+    method: Method,
+    images: Arc<Vec<FrameImage>>,
+}
+
+/// The content frame on show.
+#[derive(Clone)]
+struct OnShow {
+    frame: Arc<Rgbd>,
+    /// Counts the frames taken up: what the layer and panel caches were made from.
+    number: u64,
+    /// The procedural scene's time of the frame (zero for other content).
+    scene_time: Timestamp,
 }
 
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
@@ -76,7 +99,14 @@ impl std::fmt::Debug for SceneRenderer {
 }
 
 impl SceneRenderer {
+    /// The renderer of `cfg`'s content on the system clock.
     pub fn new(cfg: &RigConfig) -> Result<SceneRenderer, RenderError> {
+        SceneRenderer::with_pacing(cfg, Pacing::RealTime)
+    }
+
+    /// The renderer of `cfg`'s content; `pacing` says whether the loop waits for the animated
+    /// scene's frames (on a simulated clock).
+    pub fn with_pacing(cfg: &RigConfig, pacing: Pacing) -> Result<SceneRenderer, RenderError> {
         let d = &cfg.display;
         let eye = EyeModel {
             pupil_diameter: Millimeters(cfg.eye.pupil_mm),
@@ -89,10 +119,9 @@ impl SceneRenderer {
         let mut stream = None;
         let (input, scene, files) = match cfg.content.source {
             ContentSource::Scene => {
-                let scene = dioptra_sim::scene::Scene::generate(d.scene_seed);
-                let (color, depth) =
-                    dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 2)?;
-                (Rgbd::new(color, depth)?, Some(scene), None)
+                let animate = cfg.content.animate.unwrap_or(true);
+                let scene = AnimatedScene::start(d.scene_seed, cam, animate, pacing)?;
+                ((*scene.current().0).clone(), Some(scene), None)
             }
             ContentSource::Stream => {
                 let ring = cfg.content.ring_path(&cfg.api);
@@ -130,7 +159,11 @@ impl SceneRenderer {
         let compute = Compute::open(cfg, &nets)?;
         Ok(SceneRenderer {
             compute: Mutex::new(compute),
-            current: Mutex::new(Arc::new(input)),
+            current: Mutex::new(OnShow {
+                frame: Arc::new(input),
+                number: 0,
+                scene_time: Timestamp::ZERO,
+            }),
             depth_given: AtomicBool::new(false),
             files,
             stream,
@@ -152,40 +185,45 @@ impl SceneRenderer {
         input: &Rgbd,
         focus: Diopters,
         method: DefocusMethod,
-    ) -> Result<RgbImage, RenderError> {
+    ) -> Result<FrameImage, RenderError> {
         let label = match method {
             DefocusMethod::Gather => "gather".to_string(),
             DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
         };
-        let mut images = self.on_backend(&label, |b| {
-            b.defocus(input, &[focus], &self.eye, method, &|_| {})
-        })?;
-        images
-            .pop()
-            .ok_or_else(|| RenderError::Input(InputError::InvalidValue("no image rendered".into())))
+        self.on_backend(&label, |gpu| match gpu {
+            Some(g) => Ok(FrameImage::Gpu(
+                g.defocus_on_gpu(input, focus, &self.eye, method)?,
+            )),
+            None => Cpu
+                .defocus(input, &[focus], &self.eye, method, &|_| {})?
+                .pop()
+                .map(FrameImage::Host)
+                .ok_or_else(|| {
+                    RenderError::Input(InputError::InvalidValue("no image rendered".into()))
+                }),
+        })
     }
 
-    fn linear(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
-        Ok(self
-            .on_backend("linear", |b| b.linear_blend(input, &self.planes))?
-            .images)
+    fn linear(&self, input: &Rgbd) -> Result<Vec<FrameImage>, RenderError> {
+        self.on_backend("linear", |gpu| match gpu {
+            Some(g) => Ok(on_gpu(g.linear_blend_on_gpu(input, &self.planes)?)),
+            None => Ok(on_host(Cpu.linear_blend(input, &self.planes)?.images)),
+        })
     }
 
-    /// Runs `work` on the rig's backend, timing it on the GPU (`label` in `/status`); a GPU
-    /// failure moves the rig to the CPU (said in the log and `/status`) and reruns it there.
+    /// Runs `work` on the rig's GPU (`Some`) or the CPU (`None`), timing it on the GPU
+    /// (`label` in `/status`); a GPU failure moves the rig to the CPU (said in the log and
+    /// `/status`) and reruns it there.
     fn on_backend<T>(
         &self,
         label: &str,
-        work: impl Fn(&dyn Backend) -> Result<T, RenderError>,
+        work: impl Fn(Option<&Gpu>) -> Result<T, RenderError>,
     ) -> Result<T, RenderError> {
-        let (backend, gpu) = {
-            let c = lock(&self.compute);
-            (c.backend.clone(), c.gpu.clone())
-        };
-        match work(backend.as_ref()) {
+        let gpu = lock(&self.compute).gpu.clone();
+        match work(gpu.as_deref()) {
             Err(RenderError::Gpu(e)) => {
                 lock(&self.compute).fall_back(&e);
-                work(&Cpu)
+                work(None)
             }
             Ok(v) => {
                 if let Some(g) = gpu {
@@ -195,6 +233,15 @@ impl SceneRenderer {
             }
             Err(e) => Err(e),
         }
+    }
+
+    /// The GPU context frames are rendered on and left in, while the rig renders on the GPU
+    /// (a window on its device shows them without a copy).
+    pub fn gpu_context(&self) -> Option<Arc<dioptra_render::gpu::GpuContext>> {
+        lock(&self.compute)
+            .gpu
+            .as_ref()
+            .map(|g| g.context().clone())
     }
 
     /// C1 (varifocal) on the GPU when the rig renders there, else on the CPU.
@@ -262,7 +309,44 @@ impl SceneRenderer {
 
     /// The content frame on show (its depth is what the scheduler looks up at the gaze point).
     pub fn input(&self) -> Arc<Rgbd> {
-        lock(&self.current).clone()
+        lock(&self.current).frame.clone()
+    }
+
+    /// Puts a new content frame on show (of scene time `scene_time` for the procedural
+    /// scene): the loop is given its depth and arrival at its next `depth` call, and what was
+    /// made from the frame before is dropped.
+    fn take_up(
+        &self,
+        frame: Arc<Rgbd>,
+        arrival: Option<crate::render::Arrival>,
+        scene_time: Timestamp,
+    ) {
+        *lock(&self.arrival) = arrival;
+        let (number, old) = {
+            let mut c = lock(&self.current);
+            let next = OnShow {
+                frame,
+                number: c.number + 1,
+                scene_time,
+            };
+            (next.number, std::mem::replace(&mut *c, next).frame)
+        };
+        if let Some(s) = &self.stream {
+            s.recycle(old);
+        }
+        lock(&self.layers).retain(|l| l.frame == number);
+        let mut panel = lock(&self.panel);
+        if panel.as_ref().is_some_and(|(n, _)| *n != number) {
+            *panel = None;
+        }
+        self.depth_given.store(false, Ordering::Release);
+    }
+
+    /// The depth of the procedural scene's frame of scene time `t` (a replay's), rendered now;
+    /// `None` when the content is not the procedural scene.
+    pub fn scene_depth_at(&self, t: Timestamp) -> Option<Result<DepthMap, RenderError>> {
+        let scene = self.scene.as_ref()?;
+        Some(scene.render_at(t).map(|f| f.depth))
     }
 
     /// The images of one frame: one for varifocal and light field, one per plane for
@@ -277,15 +361,15 @@ impl SceneRenderer {
         gaze: Option<[f32; 2]>,
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
-        let input = self.input();
-        let input = input.as_ref();
+        let shown = lock(&self.current).clone();
+        let input = shown.frame.as_ref();
         if auto && mode == Mode::Varifocal {
             let (w, h) = (input.width() as f32, input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
             let stats = FrameStats::from_rgbd(input, gaze, focus, &self.eye);
             let plan = Planner.plan(&stats, &Target::default());
             let image = match plan.choice {
-                Choice::None => input.color.clone(),
+                Choice::None => FrameImage::Host(input.color.clone()),
                 Choice::Gather => self.defocus(input, focus, DefocusMethod::Gather)?,
                 Choice::LightField { views } => self.defocus(
                     input,
@@ -304,7 +388,7 @@ impl SceneRenderer {
             });
         }
         Ok(RenderOutput {
-            images: self.render_fixed(input, mode, method, focus)?,
+            images: self.render_fixed(&shown, mode, method, focus)?,
             planned: None,
             cost: None,
         })
@@ -312,15 +396,16 @@ impl SceneRenderer {
 
     fn render_fixed(
         &self,
-        input: &Rgbd,
+        shown: &OnShow,
         mode: Mode,
         method: Method,
         focus: Diopters,
-    ) -> Result<Vec<RgbImage>, RenderError> {
+    ) -> Result<Vec<FrameImage>, RenderError> {
+        let input = shown.frame.as_ref();
         match (mode, method.0) {
-            (_, RenderMethod::Views) => Ok(vec![self.panel()?.as_ref().clone()]),
-            (Mode::Multifocal, _) => Ok(self.layers(input, method)?.as_ref().clone()),
-            (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?]),
+            (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone().into()]),
+            (Mode::Multifocal, _) => Ok(self.layers(shown, method)?.as_ref().clone()),
+            (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
                 input,
                 focus,
@@ -333,75 +418,115 @@ impl SceneRenderer {
         }
     }
 
-    /// The lenslet panel image of the scene's light field.
-    fn panel(&self) -> Result<Arc<RgbImage>, RenderError> {
-        use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
-        if let Some(p) = lock(&self.panel).as_ref() {
+    /// The lenslet panel image of the light field of the content frame `shown`: the
+    /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
+    fn panel(&self, shown: &OnShow) -> Result<Arc<RgbImage>, RenderError> {
+        if let Some((_, p)) = lock(&self.panel)
+            .as_ref()
+            .filter(|(n, _)| *n == shown.number)
+        {
             return Ok(p.clone());
         }
-        let Some(scene) = &self.scene else {
-            return Err(RenderError::Unsupported {
-                backend: "daemon",
-                method: "views of file content (light-field mode shows the procedural scene's light field)",
-            });
-        };
         let (w, h) = (self.cam.width, self.cam.height);
-        // Views at half size: a panel of 5 px per lenslet cannot show more.
-        let vcam = dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
-        let views = dioptra_sim::scene::render_light_field(scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
-        let images: Vec<RgbImage> = views.into_iter().map(|v| v.color).collect();
-        let grid = ViewGrid {
-            grid: LF_GRID,
-            spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
-            views: &images,
-            pixel_pitch_tan: vcam.eye.pixel_pitch_tan(),
+        let (images, pixel_pitch_tan): (Vec<RgbImage>, f32) = match &self.scene {
+            Some(scene) => {
+                let scene = scene.scene_at(shown.scene_time);
+                // Views at half size: a panel of 5 px per lenslet cannot show more.
+                let vcam =
+                    dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
+                let views =
+                    dioptra_sim::scene::render_light_field(&scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+                let images = views.into_iter().map(|v| v.color).collect();
+                (images, vcam.eye.pixel_pitch_tan())
+            }
+            None => {
+                // The frame as the view from the pupil's centre, warped to each lens position.
+                let input = [RgbdView {
+                    position: [0.0, 0.0],
+                    rgbd: shown.frame.as_ref().clone(),
+                }];
+                let views = self.on_backend("views", |gpu| {
+                    backend_of(gpu).synthesize_light_field(
+                        &input,
+                        LF_GRID,
+                        LF_SPAN_M,
+                        &self.eye,
+                        &|_| {},
+                    )
+                })?;
+                let images = views.into_iter().map(|v| v.image).collect();
+                (images, self.eye.pixel_pitch_tan())
+            }
         };
-        let display = LensletDisplay {
-            lenslets: [(w / 5).max(1), (h / 5).max(1)],
-            pixels_per_lenslet: 5,
-            lenslet_pitch_m: 0.000_25,
-            gap_m: 0.000_94,
-            eye_relief_m: 0.015,
-        };
-        let panel = Arc::new(elemental_images(&grid, &display)?);
-        *lock(&self.panel) = Some(panel.clone());
+        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
+        // Kept unless the content moved on while it was made.
+        if lock(&self.current).number == shown.number {
+            *lock(&self.panel) = Some((shown.number, panel.clone()));
+        }
         Ok(panel)
     }
 
-    fn layers(&self, input: &Rgbd, method: Method) -> Result<Arc<Vec<RgbImage>>, RenderError> {
-        if let Some((_, l)) = lock(&self.layers).iter().find(|(m, _)| *m == method) {
-            return Ok(l.clone());
+    fn layers(&self, shown: &OnShow, method: Method) -> Result<Arc<Vec<FrameImage>>, RenderError> {
+        if let Some(l) = lock(&self.layers)
+            .iter()
+            .find(|l| l.frame == shown.number && l.method == method)
+        {
+            return Ok(l.images.clone());
         }
+        let input = shown.frame.as_ref();
         let images = if method.0 == RenderMethod::Network {
-            self.net_decompose(input)?
+            on_host(self.net_decompose(input)?)
         } else if method.0 == RenderMethod::Optimized {
             // Targets (a gathered focal stack), the linear start and the iterations all on
-            // the rig's backend.
+            // the rig's backend; on the GPU the layers stay there.
             let foci = default_focal_samples();
             let params = OptimizeParams {
                 iterations: 30,
                 ..OptimizeParams::default()
             };
-            self.on_backend("optimized", |b| {
+            self.on_backend("optimized", |gpu| {
+                let b = backend_of(gpu);
                 let linear = b.linear_blend(input, &self.planes)?;
                 let targets = b.defocus(input, &foci, &self.eye, DefocusMethod::Gather, &|_| {})?;
-                b.optimized_blend(
-                    &targets,
-                    &foci,
-                    &self.planes,
-                    &self.eye,
-                    Some(&linear),
-                    params,
-                    &|_| {},
-                )
+                let init = Some(&linear);
+                Ok(match gpu {
+                    Some(g) => on_gpu(
+                        g.optimized_blend_on_gpu(
+                            &targets,
+                            &foci,
+                            &self.planes,
+                            &self.eye,
+                            init,
+                            params,
+                        )?
+                        .0,
+                    ),
+                    None => on_host(
+                        b.optimized_blend(
+                            &targets,
+                            &foci,
+                            &self.planes,
+                            &self.eye,
+                            init,
+                            params,
+                            &|_| {},
+                        )?
+                        .0
+                        .images,
+                    ),
+                })
             })?
-            .0
-            .images
         } else {
             self.linear(input)?
         };
         let images = Arc::new(images);
-        lock(&self.layers).push((method, images.clone()));
+        if lock(&self.current).number == shown.number {
+            lock(&self.layers).push(CachedLayers {
+                frame: shown.number,
+                method,
+                images: images.clone(),
+            });
+        }
         Ok(images)
     }
 }
@@ -411,22 +536,21 @@ impl Renderer for SceneRenderer {
         if let Some(files) = &self.files {
             let (frame, changed) = files.frame_at(now);
             if changed {
-                *lock(&self.arrival) = files.take_arrival();
-                *lock(&self.current) = frame;
-                // Layers were made for the frame before.
-                lock(&self.layers).clear();
-                self.depth_given.store(false, Ordering::Release);
+                self.take_up(frame, files.take_arrival(), Timestamp::ZERO);
             }
         }
         if let Some((frame, arrival)) = self.stream.as_ref().and_then(|s| s.take_new()) {
-            *lock(&self.arrival) = Some(arrival);
-            *lock(&self.current) = frame;
-            lock(&self.layers).clear();
-            self.depth_given.store(false, Ordering::Release);
+            self.take_up(frame, Some(arrival), Timestamp::ZERO);
         }
-        // A static scene's depth once; a sequence's at each new frame.
+        if let Some((frame, arrival)) = self.scene.as_ref().and_then(|s| s.frame_at(now)) {
+            self.take_up(frame, Some(arrival), arrival.arrived);
+        }
+        // The depth at the first call, and again at each new content frame.
         (!self.depth_given.swap(true, Ordering::AcqRel))
             .then(|| Arc::new(self.input().depth.clone()))
+    }
+    fn content_time(&self) -> Option<Timestamp> {
+        self.scene.as_ref().map(|_| lock(&self.current).scene_time)
     }
     fn backend_status(&self) -> serde_json::Value {
         SceneRenderer::backend_status(self)
@@ -435,10 +559,11 @@ impl Renderer for SceneRenderer {
         lock(&self.arrival).take()
     }
     fn content_status(&self) -> serde_json::Value {
-        match (&self.files, &self.stream) {
-            (Some(f), _) => serde_json::to_value(f.status()).unwrap_or_default(),
-            (_, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
-            _ => serde_json::json!({ "source": "scene" }),
+        match (&self.files, &self.stream, &self.scene) {
+            (Some(f), _, _) => serde_json::to_value(f.status()).unwrap_or_default(),
+            (_, Some(s), _) => serde_json::to_value(s.status()).unwrap_or_default(),
+            (_, _, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
+            _ => serde_json::Value::Null,
         }
     }
     fn stream(&self) -> Option<&crate::stream::StreamFrames> {
@@ -471,6 +596,46 @@ impl Renderer for SceneRenderer {
             .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
             .collect()
     }
+}
+
+/// The lenslet display's image of a `LF_GRID` x `LF_GRID` light field of `views` (pixel pitch
+/// `pixel_pitch_tan`) for a `w` x `h` display: (w / 5) x (h / 5) lenslets of 5 x 5 pixels.
+fn lenslet_panel(
+    views: &[RgbImage],
+    pixel_pitch_tan: f32,
+    (w, h): (usize, usize),
+) -> Result<RgbImage, RenderError> {
+    use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
+    let grid = ViewGrid {
+        grid: LF_GRID,
+        spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+        views,
+        pixel_pitch_tan,
+    };
+    let display = LensletDisplay {
+        lenslets: [(w / 5).max(1), (h / 5).max(1)],
+        pixels_per_lenslet: 5,
+        lenslet_pitch_m: 0.000_25,
+        gap_m: 0.000_94,
+        eye_relief_m: 0.015,
+    };
+    Ok(elemental_images(&grid, &display)?)
+}
+
+/// The backend of `on_backend`'s choice: the rig's GPU, or the CPU.
+fn backend_of(gpu: Option<&Gpu>) -> &dyn Backend {
+    match gpu {
+        Some(g) => g,
+        None => &Cpu,
+    }
+}
+
+fn on_gpu(images: Vec<dioptra_render::gpu::GpuImage>) -> Vec<FrameImage> {
+    images.into_iter().map(FrameImage::Gpu).collect()
+}
+
+fn on_host(images: Vec<RgbImage>) -> Vec<FrameImage> {
+    images.into_iter().map(FrameImage::Host).collect()
 }
 
 fn net_error(e: dioptra_net::NetError) -> RenderError {
@@ -517,8 +682,7 @@ type CpuNets = Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>;
 
 /// The render backend and what `/status` says of it.
 struct Compute {
-    backend: Arc<dyn Backend>,
-    /// The same backend when it is the GPU, for its timestamp figures.
+    /// The GPU frames are rendered on (`None`: the CPU).
     gpu: Option<Arc<dioptra_render::Gpu>>,
     /// The networks on the GPU, per mode (or why that mode's runs on the CPU).
     gpu_nets: Vec<(Mode, Result<Arc<dioptra_net::gpu::GpuNet>, String>)>,
@@ -534,7 +698,6 @@ struct Compute {
 impl Compute {
     fn cpu(because: Option<String>) -> Compute {
         Compute {
-            backend: Arc::new(Cpu),
             gpu: None,
             gpu_nets: Vec::new(),
             adapter: None,
@@ -564,7 +727,6 @@ impl Compute {
             .collect();
         Ok(Compute {
             timestamps: gpu.context().has_timestamps(),
-            backend: gpu.clone(),
             gpu: Some(gpu),
             gpu_nets,
             adapter: Some(name),
@@ -653,12 +815,79 @@ impl Compute {
             })
             .collect();
         serde_json::json!({
-            "backend": self.backend.name(),
+            "backend": if self.gpu.is_some() { "gpu" } else { "cpu" },
+            // Frame images left in GPU memory and read back (a PNG written, a window on
+            // another device).
+            "images_read_back": self.gpu.as_ref().map(|g| g.images_read_back()),
             "adapter": self.adapter,
             "cpu_because": self.cpu_because,
             "timestamps": self.timestamps,
             "gpu_time_us": gpu_time,
             "network": network,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::EXAMPLE_SIM_RIG;
+    use crate::stream::{ColorFormat, DepthKind, FrameDesc};
+
+    /// Light-field mode on streamed content: the panel is made from views synthesised from the
+    /// frame on show, and made again when another frame comes.
+    #[test]
+    fn light_field_mode_shows_a_streamed_frames_light_field() {
+        let text = EXAMPLE_SIM_RIG.to_string()
+            + "\n[content]\nsource = \"stream\"\nring = \"none\"\n\n[render]\nbackend = \"cpu\"\n";
+        let r = SceneRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap();
+        let (w, h) = (96, 96);
+        // At optical infinity every view is the frame itself: the panel is the lenslet
+        // resampling of 25 copies of it.
+        let send = |seq: u64, colour: &dyn Fn(usize) -> u8| {
+            let desc = FrameDesc {
+                width: w,
+                height: h,
+                color: ColorFormat::Rgb8,
+                depth: DepthKind::Diopters,
+                near: None,
+                far: None,
+                seq: Some(seq),
+                app_time_ns: None,
+            };
+            let color: Vec<u8> = (0..3 * w * h).map(colour).collect();
+            let depth: Vec<u8> = (0..w * h).flat_map(|_| 0f32.to_le_bytes()).collect();
+            let stream = r.stream.as_ref().unwrap();
+            stream
+                .submit(&desc, &color, &depth, Timestamp(seq))
+                .unwrap();
+            assert!(r.depth(Timestamp(seq)).is_some(), "the frame is taken up");
+        };
+        let panel = || {
+            let out = r
+                .render_frame(
+                    Mode::Lightfield,
+                    Method(RenderMethod::Views),
+                    Diopters(1.0),
+                    None,
+                    false,
+                )
+                .unwrap();
+            out.images[0].to_host().unwrap().into_owned()
+        };
+        send(1, &|i| (i * 7 % 251) as u8);
+        let first = panel();
+        let copies = vec![r.input().color.clone(); LF_GRID * LF_GRID];
+        let want = lenslet_panel(&copies, r.eye.pixel_pitch_tan(), (w, h)).unwrap();
+        assert_eq!(
+            (first.width(), first.height()),
+            (want.width(), want.height())
+        );
+        let p = dioptra_render::metrics::psnr(&first, &want, None).unwrap();
+        assert!(p > 60.0, "{p} dB from the frame's own lenslet image");
+        // The same frame: the panel is kept. Another frame: made again.
+        assert_eq!(panel(), first);
+        send(2, &|i| (i * 13 % 241) as u8);
+        assert_ne!(panel(), first);
     }
 }

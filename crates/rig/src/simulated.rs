@@ -460,7 +460,7 @@ impl Renderer for ScriptedRenderer {
             1
         };
         Ok(RenderOutput {
-            images: vec![RgbImage::new(1, 1, [0.5; 3]); layers],
+            images: vec![RgbImage::new(1, 1, [0.5; 3]).into(); layers],
             planned: None,
             cost: Some((self.cost)(job)),
         })

@@ -7,7 +7,9 @@
 //!   slot is the application's again once the answer arrives. Layout: [`RING_MAGIC`] and the
 //!   constants below; `GET /frame/ring` says it too.
 //! - the slow, simple path, `PUT /frame?width=&height=&color=&depth=[&near=&far=&seq=]` with
-//!   the colour bytes then the depth bytes as the body.
+//!   the colour bytes then the depth bytes as the body; or, with `color=png|exr|pfm` and
+//!   `color_bytes=N`, a colour image file (N bytes) then a depth image file (EXR, PFM or
+//!   16-bit PNG), decoded by `dioptra render`'s readers. One body, so one frame is atomic.
 //!
 //! A frame is refused, with the reason, counted and never shown when: its size is not the
 //! display's, a buffer is shorter or longer than its size says, a depth is NaN or outside its
@@ -21,6 +23,8 @@ use std::sync::{Arc, Mutex};
 
 use dioptra_core::image::srgb_to_linear;
 use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Timestamp};
+use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat};
+use rayon::prelude::*;
 use serde::Serialize;
 
 /// The ring file's first 8 bytes.
@@ -35,7 +39,8 @@ pub const RING_SLOTS: usize = 3;
 /// A slot holds the largest frame: RGB f32 colour and f32 depth, 16 bytes a pixel.
 const SLOT_BYTES_PER_PX: usize = 16;
 
-/// The colour's encoding.
+/// The colour's encoding: raw pixels, or (`PUT /frame` only) an image file, whose frame's
+/// depth is an image file too.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ColorFormat {
@@ -45,28 +50,61 @@ pub enum ColorFormat {
     Rgba8 = 2,
     /// Linear light, 3 little-endian f32 a pixel.
     Rgbf32 = 3,
+    /// A PNG file (8 or 16-bit, sRGB).
+    Png = 4,
+    /// An EXR file (linear light).
+    Exr = 5,
+    /// A PFM file (linear light).
+    Pfm = 6,
 }
 
 impl ColorFormat {
-    pub fn bytes_per_px(self) -> usize {
+    /// Bytes a pixel of raw colour; `None` for an image file.
+    pub fn bytes_per_px(self) -> Option<usize> {
         match self {
-            ColorFormat::Rgb8 => 3,
-            ColorFormat::Rgba8 => 4,
-            ColorFormat::Rgbf32 => 12,
+            ColorFormat::Rgb8 => Some(3),
+            ColorFormat::Rgba8 => Some(4),
+            ColorFormat::Rgbf32 => Some(12),
+            ColorFormat::Png | ColorFormat::Exr | ColorFormat::Pfm => None,
         }
     }
+    /// The image file format of an encoded colour.
+    fn file_format(self) -> Option<ImageFormat> {
+        match self {
+            ColorFormat::Png => Some(ImageFormat::Png),
+            ColorFormat::Exr => Some(ImageFormat::Exr),
+            ColorFormat::Pfm => Some(ImageFormat::Pfm),
+            _ => None,
+        }
+    }
+    /// Its name in `PUT /frame?color=`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ColorFormat::Rgb8 => "rgb8",
+            ColorFormat::Rgba8 => "rgba8",
+            ColorFormat::Rgbf32 => "rgbf32",
+            ColorFormat::Png => "png",
+            ColorFormat::Exr => "exr",
+            ColorFormat::Pfm => "pfm",
+        }
+    }
+    /// A ring slot's colour format (raw pixels only).
     pub fn from_code(c: u32) -> Option<Self> {
         [Self::Rgb8, Self::Rgba8, Self::Rgbf32]
             .into_iter()
             .find(|f| *f as u32 == c)
     }
     pub fn parse(s: &str) -> Option<Self> {
-        match s {
-            "rgb8" => Some(Self::Rgb8),
-            "rgba8" => Some(Self::Rgba8),
-            "rgbf32" => Some(Self::Rgbf32),
-            _ => None,
-        }
+        [
+            Self::Rgb8,
+            Self::Rgba8,
+            Self::Rgbf32,
+            Self::Png,
+            Self::Exr,
+            Self::Pfm,
+        ]
+        .into_iter()
+        .find(|f| f.as_str() == s)
     }
 }
 
@@ -78,6 +116,8 @@ pub enum DepthKind {
     Metres = 1,
     /// Diopters (>= 0).
     Diopters = 2,
+    /// Distance along the view axis, millimetres (> 0; a 16-bit PNG's usual unit).
+    Millimetres = 7,
     /// An OpenGL depth buffer in normalised device coordinates, [-1, 1], -1 at `near`.
     Gl = 3,
     /// The same with reversed Z: 1 at `near`, -1 at `far`.
@@ -93,6 +133,7 @@ impl DepthKind {
         [
             Self::Metres,
             Self::Diopters,
+            Self::Millimetres,
             Self::Gl,
             Self::GlReversed,
             Self::Vulkan,
@@ -104,6 +145,7 @@ impl DepthKind {
     pub fn parse(s: &str) -> Option<Self> {
         match s {
             "m" => Some(Self::Metres),
+            "mm" => Some(Self::Millimetres),
             "D" => Some(Self::Diopters),
             "gl" => Some(Self::Gl),
             "gl-reversed" => Some(Self::GlReversed),
@@ -113,10 +155,11 @@ impl DepthKind {
         }
     }
     fn is_buffer(self) -> bool {
-        !matches!(self, Self::Metres | Self::Diopters)
+        !matches!(self, Self::Metres | Self::Millimetres | Self::Diopters)
     }
 
     /// `v` in diopters, or why it is refused. `near`/`far` in metres (checked by the caller).
+    #[inline(always)]
     fn diopters(self, v: f32, near: f32, far: f32) -> Result<f32, &'static str> {
         if v.is_nan() {
             return Err("NaN");
@@ -137,6 +180,13 @@ impl DepthKind {
                     Ok((1.0 / v64) as f32)
                 } else {
                     Err("not a distance > 0 m")
+                }
+            }
+            Self::Millimetres => {
+                return if v > 0.0 {
+                    Ok((1000.0 / v64) as f32)
+                } else {
+                    Err("not a distance > 0 mm")
                 }
             }
             Self::Gl | Self::GlReversed => {
@@ -219,6 +269,17 @@ pub enum FrameError {
     Stale { seq: u64, newest: u64 },
     #[error("slot {0} was rewritten while the daemon read it (its sequence number changed)")]
     Torn(usize),
+    #[error("the {what}: {detail}")]
+    Encoding { what: &'static str, detail: String },
+    /// A `PUT /frame` request that does not describe a frame (its query or Content-Type).
+    #[error("{0}")]
+    Request(String),
+    #[error("PUT /frame needs Content-Type: application/octet-stream")]
+    MediaType,
+    #[error("the body is larger than a {w}x{h} frame's {max} bytes")]
+    TooLarge { max: usize, w: usize, h: usize },
+    #[error("the frame's body did not arrive within {0} s")]
+    Timeout(u64),
     #[error("the content source is not \"stream\"")]
     NotStreaming,
 }
@@ -233,17 +294,96 @@ impl FrameError {
             FrameError::Invalid(_) => "invalid",
             FrameError::Stale { .. } => "stale",
             FrameError::Torn(_) => "torn",
+            FrameError::Encoding { .. } => "encoding",
+            FrameError::Request(_) | FrameError::MediaType => "request",
+            FrameError::TooLarge { .. } => "too_large",
+            FrameError::Timeout(_) => "timeout",
             FrameError::NotStreaming => "not_streaming",
         }
     }
 }
 
-/// Decodes one frame: 8-bit colour from sRGB to linear light, depth to diopters.
+/// Decodes one frame: colour to linear light (8-bit from sRGB), depth to diopters. Raw
+/// pixels, or (colour an image file) a colour and a depth image file.
 pub fn decode_frame(
     desc: &FrameDesc,
     color: &[u8],
     depth: &[u8],
     display: (usize, usize),
+) -> Result<Rgbd, FrameError> {
+    decode_frame_into(
+        desc,
+        color,
+        depth,
+        display,
+        &Planes::new(display.0 * display.1),
+    )
+}
+
+/// Spare planes of one frame size, reused from frame to frame: a fresh allocation each frame
+/// costs a page fault and the kernel's zeroing per page (a 1920 x 1080 frame is 33 MB).
+struct Planes {
+    len: usize,
+    spare: Mutex<Vec<Vec<f32>>>,
+}
+
+/// Spare planes kept: two frames' worth.
+const SPARE_PLANES: usize = 8;
+
+impl Planes {
+    fn new(len: usize) -> Planes {
+        Planes {
+            len,
+            spare: Mutex::new(Vec::new()),
+        }
+    }
+    /// A plane of `len` values (its contents are to be overwritten).
+    fn take(&self) -> Vec<f32> {
+        lock(&self.spare)
+            .pop()
+            .unwrap_or_else(|| vec![0.0; self.len])
+    }
+    fn give(&self, v: Vec<f32>) {
+        let mut spare = lock(&self.spare);
+        if v.len() == self.len && spare.len() < SPARE_PLANES {
+            spare.push(v);
+        }
+    }
+    /// A frame no one else holds: its planes are kept for the next ones.
+    fn give_frame(&self, frame: Arc<Rgbd>) {
+        if let Ok(Rgbd { color, depth }) = Arc::try_unwrap(frame) {
+            let [r, g, b] = color.channels;
+            for p in [r, g, b, depth.into_plane()] {
+                self.give(p.into_vec());
+            }
+        }
+    }
+}
+
+/// Depth values as stored: little-endian f32 bytes (raw frames) or decoded samples (files).
+#[derive(Clone, Copy)]
+enum DepthValues<'a> {
+    Le(&'a [u8]),
+    Samples(&'a [f32]),
+}
+
+impl DepthValues<'_> {
+    fn at(&self, i: usize) -> f32 {
+        match self {
+            DepthValues::Le(b) => {
+                f32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+            }
+            DepthValues::Samples(s) => s[i],
+        }
+    }
+}
+
+fn decode_frame_into(
+    desc: &FrameDesc,
+    color: &[u8],
+    depth: &[u8],
+    display: (usize, usize),
+    planes: &Planes,
 ) -> Result<Rgbd, FrameError> {
     let (w, h) = (desc.width, desc.height);
     if (w, h) != display {
@@ -254,88 +394,268 @@ pub fn decode_frame(
             want_h: display.1,
         });
     }
-    let n = w * h;
-    for (what, got, want) in [
-        ("colour", color.len(), n * desc.color.bytes_per_px()),
-        ("depth", depth.len(), n * 4),
-    ] {
-        if got != want {
-            return Err(FrameError::Length {
-                what,
-                got,
-                want,
-                w,
-                h,
+    let (near, far) = depth_planes(desc)?;
+    let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
+    let (color, depth) = match desc.color.bytes_per_px() {
+        Some(bpp) => {
+            let n = w * h;
+            for (what, got, want) in [
+                ("colour", color.len(), n * bpp),
+                ("depth", depth.len(), n * 4),
+            ] {
+                if got != want {
+                    return Err(FrameError::Length {
+                        what,
+                        got,
+                        want,
+                        w,
+                        h,
+                    });
+                }
+            }
+            let color = raw_color(desc.color, color, (w, h), planes)?;
+            let depth = to_diopters(
+                desc.depth,
+                (near, far),
+                (w, h),
+                DepthValues::Le(depth),
+                planes,
+            );
+            (color, depth?)
+        }
+        None => {
+            let (color, samples) = decode_files(desc, color, depth)?;
+            let values = DepthValues::Samples(samples.data());
+            (
+                color,
+                to_diopters(desc.depth, (near, far), (w, h), values, planes)?,
+            )
+        }
+    };
+    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, depth).map_err(bad)?).map_err(bad)?;
+    Rgbd::new(color, depth).map_err(bad)
+}
+
+/// The near and far planes of a depth buffer, checked (`(1, 2)`, unused, for distances).
+fn depth_planes(desc: &FrameDesc) -> Result<(f32, f32), FrameError> {
+    if !desc.depth.is_buffer() {
+        return Ok((1.0, 2.0));
+    }
+    match (desc.near, desc.far) {
+        (Some(n), Some(f)) if n > 0.0 && n.is_finite() && f > n => Ok((n, f)),
+        _ => Err(FrameError::Invalid(format!(
+            "a {:?} depth buffer needs near and far planes in metres with 0 < near < far \
+             (far may be infinite): got near {:?}, far {:?}",
+            desc.depth, desc.near, desc.far
+        ))),
+    }
+}
+
+/// 8-bit sRGB to linear light.
+fn srgb_lut() -> &'static [f32; 256] {
+    static LUT: std::sync::OnceLock<[f32; 256]> = std::sync::OnceLock::new();
+    LUT.get_or_init(|| std::array::from_fn(|v| srgb_to_linear(v as f32 / 255.0)))
+}
+
+/// Raw colour pixels in linear light, converted a row per task (rayon).
+fn raw_color(
+    format: ColorFormat,
+    color: &[u8],
+    (w, h): (usize, usize),
+    planes: &Planes,
+) -> Result<RgbImage, FrameError> {
+    let (mut r, mut g, mut b) = (planes.take(), planes.take(), planes.take());
+    let bpp = format.bytes_per_px().unwrap_or(3);
+    let rows = r
+        .par_chunks_mut(w.max(1))
+        .zip(g.par_chunks_mut(w.max(1)))
+        .zip(b.par_chunks_mut(w.max(1)))
+        .zip(color.par_chunks(bpp * w.max(1)));
+    match format {
+        ColorFormat::Rgb8 | ColorFormat::Rgba8 => {
+            let lut = srgb_lut();
+            rows.for_each(|(((r, g), b), src)| {
+                for (((r, g), b), px) in r.iter_mut().zip(g).zip(b).zip(src.chunks_exact(bpp)) {
+                    *r = lut[usize::from(px[0])];
+                    *g = lut[usize::from(px[1])];
+                    *b = lut[usize::from(px[2])];
+                }
             });
         }
-    }
-    let (near, far) = if desc.depth.is_buffer() {
-        match (desc.near, desc.far) {
-            (Some(n), Some(f)) if n > 0.0 && n.is_finite() && f > n => (n, f),
-            _ => {
-                return Err(FrameError::Invalid(format!(
-                    "a {:?} depth buffer needs near and far planes in metres with 0 < near < far \
-                     (far may be infinite): got near {:?}, far {:?}",
-                    desc.depth, desc.near, desc.far
-                )))
-            }
-        }
-    } else {
-        (1.0, 2.0)
-    };
-    let mut planes = [vec![0f32; n], vec![0f32; n], vec![0f32; n]];
-    match desc.color {
-        ColorFormat::Rgb8 | ColorFormat::Rgba8 => {
-            let lut: Vec<f32> = (0..=255u8)
-                .map(|v| srgb_to_linear(f32::from(v) / 255.0))
-                .collect();
-            let step = desc.color.bytes_per_px();
-            for (i, px) in color.chunks_exact(step).enumerate() {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    plane[i] = lut[usize::from(px[c])];
-                }
-            }
-        }
-        ColorFormat::Rgbf32 => {
-            for (i, px) in color.chunks_exact(12).enumerate() {
-                for (c, plane) in planes.iter_mut().enumerate() {
-                    let b = [px[4 * c], px[4 * c + 1], px[4 * c + 2], px[4 * c + 3]];
-                    let v = f32::from_le_bytes(b);
-                    if !v.is_finite() {
-                        return Err(FrameError::Invalid(format!(
-                            "colour at pixel ({}, {}) is {v}",
-                            i % w,
-                            i / w
-                        )));
+        _ => {
+            let value = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            let finite = rows
+                .map(|(((r, g), b), src)| {
+                    let mut ok = true;
+                    for (((r, g), b), px) in r.iter_mut().zip(g).zip(b).zip(src.chunks_exact(12)) {
+                        let v = [value(&px[0..4]), value(&px[4..8]), value(&px[8..12])];
+                        ok &= v.iter().all(|v| v.is_finite());
+                        (*r, *g, *b) = (v[0].max(0.0), v[1].max(0.0), v[2].max(0.0));
                     }
-                    plane[i] = v.max(0.0);
+                    ok
+                })
+                .reduce(|| true, |a, b| a && b);
+            if !finite {
+                for p in [r, g, b] {
+                    planes.give(p);
                 }
+                // Rare: find the first bad value for the error.
+                let (i, v) = color
+                    .chunks_exact(4)
+                    .map(value)
+                    .enumerate()
+                    .find(|(_, v)| !v.is_finite())
+                    .unwrap_or((0, f32::NAN));
+                return Err(FrameError::Invalid(format!(
+                    "colour at pixel ({}, {}) is {v}",
+                    (i / 3) % w,
+                    (i / 3) / w
+                )));
             }
         }
     }
-    let mut d = vec![0f32; n];
-    for (i, b) in depth.chunks_exact(4).enumerate() {
-        let v = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-        d[i] = desc
-            .depth
-            .diopters(v, near, far)
-            .map_err(|why| FrameError::Depth {
-                x: i % w,
-                y: i / w,
-                value: v,
-                why,
-            })?;
-    }
-    let [r, g, b] = planes;
     let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
-    let color = RgbImage::from_planes(
+    RgbImage::from_planes(
         Plane::from_vec(w, h, r).map_err(bad)?,
         Plane::from_vec(w, h, g).map_err(bad)?,
         Plane::from_vec(w, h, b).map_err(bad)?,
     )
-    .map_err(bad)?;
-    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).map_err(bad)?).map_err(bad)?;
-    Rgbd::new(color, depth).map_err(bad)
+    .map_err(bad)
+}
+
+/// A colour and a depth image file: each must be the frame's size (checked from its header,
+/// before its pixels are allocated) and the colour file of the declared format.
+fn decode_files(
+    desc: &FrameDesc,
+    color: &[u8],
+    depth: &[u8],
+) -> Result<(RgbImage, Plane), FrameError> {
+    let (w, h) = (desc.width, desc.height);
+    let encoding = |what: &'static str| {
+        move |e: dioptra_render::RenderError| FrameError::Encoding {
+            what,
+            detail: match e {
+                dioptra_render::RenderError::Format { detail, .. } => detail,
+                other => other.to_string(),
+            },
+        }
+    };
+    let want = desc.color.file_format();
+    if ImageFormat::of_bytes(color) != want {
+        return Err(FrameError::Encoding {
+            what: "colour file",
+            detail: format!(
+                "color={} and the body does not start with one (put the colour file first, \
+                 then the depth file, and say where the colour ends with color_bytes)",
+                desc.color.as_str()
+            ),
+        });
+    }
+    for (what, bytes) in [("colour file", color), ("depth file", depth)] {
+        let (fw, fh) = encoded_size(what, bytes).map_err(encoding(what))?;
+        if (fw, fh) != (w, h) {
+            return Err(FrameError::Encoding {
+                what,
+                detail: format!("it is {fw}x{fh}; the frame is {w}x{h}"),
+            });
+        }
+    }
+    let px = (w * h) as u64;
+    let color = decode_color("colour file", color, px).map_err(encoding("colour file"))?;
+    let depth = decode_samples("depth file", depth, px).map_err(encoding("depth file"))?;
+    Ok((color, depth))
+}
+
+/// Depth values converted to diopters a row per task (rayon), or the first pixel refused.
+fn to_diopters(
+    kind: DepthKind,
+    (near, far): (f32, f32),
+    (w, h): (usize, usize),
+    values: DepthValues,
+    planes: &Planes,
+) -> Result<Vec<f32>, FrameError> {
+    let mut out = planes.take();
+    // One loop per convention, so each compiles to its own conversion with no match inside.
+    let good = match kind {
+        DepthKind::Metres => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Metres.diopters(v, near, far)
+        }),
+        DepthKind::Millimetres => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Millimetres.diopters(v, near, far)
+        }),
+        DepthKind::Diopters => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Diopters.diopters(v, near, far)
+        }),
+        DepthKind::Gl => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Gl.diopters(v, near, far)
+        }),
+        DepthKind::GlReversed => convert_rows(&mut out, w, values, |v| {
+            DepthKind::GlReversed.diopters(v, near, far)
+        }),
+        DepthKind::Vulkan => convert_rows(&mut out, w, values, |v| {
+            DepthKind::Vulkan.diopters(v, near, far)
+        }),
+        DepthKind::VulkanReversed => convert_rows(&mut out, w, values, |v| {
+            DepthKind::VulkanReversed.diopters(v, near, far)
+        }),
+    };
+    if good {
+        return Ok(out);
+    }
+    planes.give(out);
+    // Rare: the first refused pixel, for the error.
+    let refused = (0..w * h).find_map(|i| {
+        let v = values.at(i);
+        kind.diopters(v, near, far).err().map(|why| (i, v, why))
+    });
+    let (i, v, why) = refused.unwrap_or((0, f32::NAN, "refused"));
+    Err(FrameError::Depth {
+        x: i % w.max(1),
+        y: i / w.max(1),
+        value: v,
+        why,
+    })
+}
+
+/// `out`'s rows of `w` converted from `values` by `convert`, a row per task (rayon); whether
+/// every value converted.
+fn convert_rows(
+    out: &mut [f32],
+    w: usize,
+    values: DepthValues,
+    convert: impl Fn(f32) -> Result<f32, &'static str> + Sync,
+) -> bool {
+    let put = |v: f32, d: &mut f32| match convert(v) {
+        Ok(v) => {
+            *d = v;
+            true
+        }
+        Err(_) => false,
+    };
+    out.par_chunks_mut(w.max(1))
+        .enumerate()
+        .map(|(y, row)| {
+            let from = y * w..(y + 1) * w;
+            match values {
+                DepthValues::Le(b) => b[4 * from.start..4 * from.end]
+                    .chunks_exact(4)
+                    .zip(row)
+                    .fold(true, |ok, (v, d)| {
+                        put(f32::from_le_bytes([v[0], v[1], v[2], v[3]]), d) & ok
+                    }),
+                DepthValues::Samples(s) => s[from]
+                    .iter()
+                    .zip(row)
+                    .fold(true, |ok, (&v, d)| put(v, d) & ok),
+            }
+        })
+        .reduce(|| true, |a, b| a && b)
+}
+
+fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
+    *st.refused.entry(e.kind()).or_default() += 1;
+    st.last_error = Some(e.to_string());
+    e
 }
 
 /// What `/status` shows under `content` for a stream.
@@ -454,6 +774,8 @@ pub struct StreamFrames {
     ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
     status: Mutex<StreamStatus>,
+    /// Memory of frames done with, for the next ones.
+    planes: Planes,
 }
 
 impl std::fmt::Debug for StreamFrames {
@@ -478,6 +800,7 @@ impl StreamFrames {
             }),
             ring,
             pending: Mutex::new(None),
+            planes: Planes::new(width * height),
         })
     }
 
@@ -529,9 +852,10 @@ impl StreamFrames {
         now: Timestamp,
     ) -> Result<u64, FrameError> {
         let t0 = std::time::Instant::now();
-        let r = self
-            .check_seq(desc.seq)
-            .and_then(|seq| Ok((seq, decode_frame(desc, color, depth, self.size)?)));
+        let r = self.check_seq(desc.seq).and_then(|seq| {
+            let frame = decode_frame_into(desc, color, depth, self.size, &self.planes)?;
+            Ok((seq, frame))
+        });
         self.accept(r, desc.app_time_ns, now, t0)
     }
 
@@ -544,6 +868,17 @@ impl StreamFrames {
     }
 
     fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
+        self.read_slot_then(slot, seq, || {})
+    }
+
+    /// [`StreamFrames::read_slot`], calling `copied` once the slot's bytes are copied (a test
+    /// rewrites the slot there, as an application that does not wait for the answer might).
+    fn read_slot_then(
+        &self,
+        slot: usize,
+        seq: u64,
+        copied: impl FnOnce(),
+    ) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
         let ring = self.ring.as_ref().ok_or_else(|| {
             FrameError::Invalid("this daemon has no shared-memory ring: use PUT /frame".into())
         })?;
@@ -591,10 +926,11 @@ impl StreamFrames {
         }
         let color_bytes = ring.read(base + SLOT_HEADER, cb);
         let depth_bytes = ring.read(base + SLOT_HEADER + cb, db);
+        copied();
         if ring.seq(slot) != seq {
             return Err(FrameError::Torn(slot));
         }
-        let frame = decode_frame(&desc, &color_bytes, &depth_bytes, self.size)?;
+        let frame = decode_frame_into(&desc, &color_bytes, &depth_bytes, self.size, &self.planes)?;
         Ok((seq, frame, desc.app_time_ns))
     }
 
@@ -622,18 +958,11 @@ impl StreamFrames {
         };
         let mut st = lock(&self.status);
         match r {
-            Err(e) => {
-                *st.refused.entry(e.kind()).or_default() += 1;
-                st.last_error = Some(e.to_string());
-                Err(e)
-            }
+            Err(e) => Err(count_refusal(&mut st, e)),
             Ok((seq, frame)) => {
                 // Two requests may race past check_seq: the newer wins.
                 if let Some(n) = st.newest_seq.filter(|&n| seq <= n) {
-                    let e = FrameError::Stale { seq, newest: n };
-                    *st.refused.entry(e.kind()).or_default() += 1;
-                    st.last_error = Some(e.to_string());
-                    return Err(e);
+                    return Err(count_refusal(&mut st, FrameError::Stale { seq, newest: n }));
                 }
                 st.received += 1;
                 st.newest_seq = Some(seq);
@@ -645,12 +974,25 @@ impl StreamFrames {
                     seq,
                     arrival,
                 });
-                if old.is_some() {
+                if let Some(old) = old {
+                    self.planes.give_frame(old.frame);
                     st.replaced += 1;
                 }
                 Ok(seq)
             }
         }
+    }
+
+    /// A frame the display is done with: its memory is reused for the next ones when no one
+    /// else holds it.
+    pub fn recycle(&self, frame: Arc<Rgbd>) {
+        self.planes.give_frame(frame);
+    }
+
+    /// Counts a frame refused before it was read (a request that does not describe one, or
+    /// one of the wrong size), as [`StreamFrames::submit`] counts its own refusals.
+    pub fn refuse(&self, e: FrameError) -> FrameError {
+        count_refusal(&mut lock(&self.status), e)
     }
 
     /// The newest frame not yet taken up by the display, if any, and when it arrived.
@@ -795,6 +1137,80 @@ mod tests {
     }
 
     #[test]
+    fn image_files_decode_as_dioptra_render_reads_them() {
+        use dioptra_render::io::{read_color, read_depth, write_color, write_depth};
+        let dir = tempfile::tempdir().unwrap();
+        let vals: Vec<f32> = (0..18).map(|i| i as f32 / 17.0).collect();
+        let color = RgbImage::from_interleaved(3, 2, &vals).unwrap();
+        let depth = DepthMap::from_diopters(
+            Plane::from_vec(3, 2, vec![0.5, 1.0, 2.0, 4.0, 0.25, 1.0]).unwrap(),
+        )
+        .unwrap();
+        let file = |name: &str| dir.path().join(name);
+        write_color(&file("c.png"), &color).unwrap();
+        write_color(&file("c.exr"), &color).unwrap();
+        write_depth(&file("d.png"), &depth).unwrap();
+        write_depth(&file("d.exr"), &depth).unwrap();
+        let bytes = |name: &str| std::fs::read(file(name)).unwrap();
+        for (c, fmt, d, kind) in [
+            ("c.png", ColorFormat::Png, "d.png", DepthKind::Millimetres),
+            ("c.exr", ColorFormat::Exr, "d.exr", DepthKind::Metres),
+        ] {
+            let f = decode_frame(&desc(3, 2, fmt, kind), &bytes(c), &bytes(d), (3, 2)).unwrap();
+            assert_eq!(f.color, read_color(&file(c)).unwrap(), "{c}");
+            let want = read_depth(&file(d), None).unwrap();
+            for (a, b) in f.depth.data().iter().zip(want.data()) {
+                assert!((a - b).abs() <= 1e-6 * b.max(1.0), "{d}: {a} vs {b}");
+            }
+        }
+        let png = desc(3, 2, ColorFormat::Png, DepthKind::Millimetres);
+        // The colour part is not the format named.
+        let e = decode_frame(&png, &bytes("c.exr"), &bytes("d.png"), (3, 2)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::Encoding {
+                    what: "colour file",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(e.to_string().contains("color=png"), "{e}");
+        // A file of another size than the frame: refused from its header.
+        write_depth(
+            &file("small.png"),
+            &DepthMap::from_diopters(Plane::new(2, 2, 1.0)).unwrap(),
+        )
+        .unwrap();
+        let e = decode_frame(&png, &bytes("c.png"), &bytes("small.png"), (3, 2)).unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("depth file: it is 2x2; the frame is 3x2"),
+            "{e}"
+        );
+        // A depth file cut short, and NaN depth named by pixel.
+        let cut = bytes("d.png");
+        let e = decode_frame(&png, &bytes("c.png"), &cut[..cut.len() / 2], (3, 2)).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::Encoding {
+                    what: "depth file",
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        // A PFM's rows run bottom to top: its second value is pixel (1, 1).
+        let mut nan_pfm = b"Pf\n3 2\n-1.0\n".to_vec();
+        nan_pfm.extend(f32s(&[1.0, f32::NAN, 1.0, 1.0, 1.0, 1.0]));
+        let metres = desc(3, 2, ColorFormat::Png, DepthKind::Metres);
+        let e = decode_frame(&metres, &bytes("c.png"), &nan_pfm, (3, 2)).unwrap_err();
+        assert!(matches!(e, FrameError::Depth { x: 1, y: 1, .. }), "{e}");
+    }
+
+    #[test]
     fn the_newest_frame_wins_and_every_frame_is_accounted_for() {
         let s = StreamFrames::open(1, 1, None).unwrap();
         let d = FrameDesc {
@@ -818,6 +1234,41 @@ mod tests {
         // Unnumbered frames continue the numbering.
         let auto = FrameDesc { seq: None, ..d };
         assert_eq!(s.submit(&auto, &[0, 0, 0], &depth, Timestamp(13)), Ok(8));
+    }
+
+    /// Frames given back are reused only when no one else holds them: a frame still held
+    /// keeps its pixels whatever comes after it, and reused memory holds the new frame whole.
+    #[test]
+    fn reused_memory_never_changes_a_frame_still_held() {
+        let s = StreamFrames::open(2, 1, None).unwrap();
+        let d = desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let send = |v: u8, depth: f32| {
+            s.submit(&d, &[v; 6], &f32s(&[depth; 2]), Timestamp(0))
+                .unwrap();
+        };
+        send(255, 1.0);
+        let held = s.take_new().unwrap().0;
+        let kept = held.clone();
+        // Given back while `kept` holds it: not reused.
+        s.recycle(held);
+        for (k, v) in [(0u8, 2.0f32), (128, 3.0), (64, 4.0)] {
+            send(k, v);
+            // Replaced before shown: its memory goes to the next frame.
+            send(k / 2, v + 0.5);
+            let f = s.take_new().unwrap().0;
+            assert_eq!(f.depth.data(), &[v + 0.5; 2]);
+            assert_eq!(
+                f.color.channels[0].data()[0],
+                srgb_lut()[usize::from(k / 2)]
+            );
+            s.recycle(f);
+        }
+        assert_eq!(kept.color.channels[0].data(), &[1.0, 1.0]);
+        assert_eq!(kept.depth.data(), &[1.0, 1.0]);
+        assert!(
+            !lock(&s.planes.spare).is_empty(),
+            "frames given back are kept for reuse"
+        );
     }
 
     /// Writes a frame into a ring slot the way a client does: sequence number last.
@@ -867,6 +1318,14 @@ mod tests {
         write_slot(ring, 2, 10, 2, 1, &[0; 6], &f32s(&[1.0]));
         let e = s.submit_slot(2, 10, Timestamp(4)).unwrap_err();
         assert!(matches!(e, FrameError::Length { what: "depth", .. }), "{e}");
+        // A slot rewritten while it was copied out is torn.
+        write_slot(ring, 2, 11, 2, 1, &[0; 6], &f32s(&[1.0, 1.0]));
+        let e = s
+            .read_slot_then(2, 11, || {
+                write_slot(ring, 2, 12, 2, 1, &[1; 6], &f32s(&[2.0, 2.0]))
+            })
+            .unwrap_err();
+        assert_eq!(e, FrameError::Torn(2));
         let st = s.status();
         assert_eq!(st.received, 1);
         assert_eq!(st.refused.values().sum::<u64>(), 4);

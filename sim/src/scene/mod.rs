@@ -9,6 +9,7 @@
 //! x right, y down, z forward; pixel `(x, y)` looks along tangent `((x + 0.5 - W/2) p,
 //! (y + 0.5 - H/2) p)` with `p` the eye's pixel pitch. Depth maps hold z-depth in diopters.
 
+pub mod animation;
 pub mod failure;
 mod geom;
 mod render;

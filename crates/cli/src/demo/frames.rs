@@ -25,7 +25,8 @@ use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
 use dioptra_sched::processing::Angles;
 use dioptra_sched::Mode;
 use dioptra_sim::gaze::generator::{Segment, Target};
-use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, SceneOptions, Shape};
+use dioptra_sim::scene::animation::{centre, Animation};
+use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, SceneOptions};
 
 /// The light field shown in light-field mode: 5 x 5 views over the 4 mm pupil, synthesised
 /// from 5 sparse RGB-D views (centre and corners).
@@ -61,15 +62,6 @@ pub struct Kept {
     pub output: Output,
 }
 
-/// One moving object: index, resting centre, amplitude (m), frequency (Hz), phase.
-struct Mover {
-    index: usize,
-    rest: [f32; 3],
-    amplitude: f32,
-    hz: f32,
-    phase: f32,
-}
-
 /// The scene as it is at one instant: its RGB-D, and the sparse views light-field mode
 /// synthesises from.
 struct Content {
@@ -81,7 +73,7 @@ struct Content {
 pub struct DemoFrames {
     mode: Mode,
     base: Scene,
-    movers: Vec<Mover>,
+    movers: Animation,
     cam: Camera,
     /// Light-field views are made at half size: the lenslet panel (120 px) cannot show more,
     /// and view synthesis is the slow part.
@@ -106,18 +98,6 @@ struct DemoState {
     kept: Vec<Kept>,
     /// `--method auto`: frames per choice so far.
     planned: std::collections::BTreeMap<String, u64>,
-}
-
-fn centre(s: &Shape) -> [f32; 3] {
-    match *s {
-        Shape::Box { center, .. } | Shape::Sphere { center, .. } => center,
-    }
-}
-
-fn set_centre(s: &mut Shape, c: [f32; 3]) {
-    match s {
-        Shape::Box { center, .. } | Shape::Sphere { center, .. } => *center = c,
-    }
 }
 
 /// Gaze angles of a scene point (scene: x right, y down, z forward).
@@ -151,32 +131,15 @@ impl DemoFrames {
             render_pinhole(&base, &cam, [0.0, 0.0], 1).context("cannot render the demo scene")?;
         let targets = pick_targets(&depth, eye.fov_horizontal_deg);
         // Animate objects away from the gaze targets, so the viewer's objects stay put.
-        let movers = base
-            .objects
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| {
-                let a = angles_of(centre(&o.shape));
-                targets.iter().all(|t| {
-                    a.distance_deg(&Angles {
-                        yaw_deg: t.yaw_deg,
-                        pitch_deg: t.pitch_deg,
-                    }) > 5.0
-                })
+        let movers = Animation::pick(&base, 4, |o| {
+            let a = angles_of(centre(&o.shape));
+            targets.iter().all(|t| {
+                a.distance_deg(&Angles {
+                    yaw_deg: t.yaw_deg,
+                    pitch_deg: t.pitch_deg,
+                }) > 5.0
             })
-            .take(4)
-            .enumerate()
-            .map(|(k, (index, o))| {
-                let rest = centre(&o.shape);
-                Mover {
-                    index,
-                    rest,
-                    amplitude: 0.02 * rest[2],
-                    hz: 0.3 + 0.15 * k as f32,
-                    phase: k as f32 * 1.7,
-                }
-            })
-            .collect();
+        });
         let keep_after = [0.3, 0.55, 0.8]
             .iter()
             .map(|f| Timestamp::ZERO + Duration::from_secs_f64(seconds * f))
@@ -221,15 +184,7 @@ impl DemoFrames {
     }
 
     fn scene_at(&self, t: Timestamp) -> Scene {
-        let mut s = self.base.clone();
-        let secs = t.as_secs_f64() as f32;
-        for m in &self.movers {
-            if let Some(o) = s.objects.get_mut(m.index) {
-                let dx = m.amplitude * (std::f32::consts::TAU * m.hz * secs + m.phase).sin();
-                set_centre(&mut o.shape, [m.rest[0] + dx, m.rest[1], m.rest[2]]);
-            }
-        }
-        s
+        self.movers.at(&self.base, t.as_secs_f64())
     }
 
     /// `--method auto`: how many frames the planner gave each method.
@@ -410,9 +365,9 @@ impl Renderer for DemoFrames {
             })?;
         let took = started.elapsed();
         let images = match &output {
-            Output::Image(img) => vec![img.clone()],
-            Output::Layers(l) => l.images.clone(),
-            Output::LightField { panel, .. } => vec![panel.clone()],
+            Output::Image(img) => vec![img.clone().into()],
+            Output::Layers(l) => l.images.iter().cloned().map(Into::into).collect(),
+            Output::LightField { panel, .. } => vec![panel.clone().into()],
         };
         let mut st = lock(&self.state);
         if let Some(&after) = st.keep_after.first() {

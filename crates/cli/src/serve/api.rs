@@ -54,6 +54,10 @@ impl ApiError {
             key: None,
         }
     }
+    /// What the answer says went wrong.
+    pub fn message(&self) -> &str {
+        &self.error
+    }
     fn at(mut self, key: &str) -> Self {
         self.key = Some(key.to_string());
         self

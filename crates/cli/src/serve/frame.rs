@@ -4,13 +4,16 @@
 //! |---|---|---|---|
 //! | GET | `/frame/ring` | | the shared-memory ring's path and layout |
 //! | POST | `/frame` | `{"slot": 0, "seq": 12}` | the frame written into ring slot 0 with sequence number 12 |
-//! | PUT | `/frame?width=&height=&color=&depth=[&near=&far=&seq=&app_time_ns=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
+//! | PUT | `/frame?width=&height=&color=&depth=[&color_bytes=&near=&far=&seq=&app_time_ns=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
 //!
-//! `color` is `rgb8` or `rgba8` (sRGB) or `rgbf32` (linear, little-endian); `depth` is `m`,
-//! `D`, `gl`, `gl-reversed`, `vulkan` (or `d3d`), `vulkan-reversed` (or `d3d-reversed`), as
-//! little-endian f32; a depth buffer needs `near` and `far` (metres; `far=inf` for an infinite
-//! reversed-Z projection). The answer is `{"seq": N}`, or the reason the frame was refused
-//! (422; 409 for a stale sequence number or when the rig does not stream).
+//! `color` is `rgb8` or `rgba8` (sRGB) or `rgbf32` (linear, little-endian), the depth then
+//! little-endian f32; or `png` (sRGB), `exr` or `pfm` (linear): the body is then a colour
+//! image file of `color_bytes` bytes followed by a depth image file (EXR, PFM or 16-bit PNG),
+//! both of the frame's size. `depth` says what the depth values are: `m`, `mm`, `D`, `gl`,
+//! `gl-reversed`, `vulkan` (or `d3d`), `vulkan-reversed` (or `d3d-reversed`); a depth buffer
+//! needs `near` and `far` (metres; `far=inf` for an infinite reversed-Z projection). The
+//! answer is `{"seq": N}`, or the reason the frame was refused (422; 409 for a stale sequence
+//! number or when the rig does not stream).
 
 use std::sync::Arc;
 
@@ -30,6 +33,9 @@ use super::api::ApiError;
 fn refused(e: FrameError) -> ApiError {
     let status = match e {
         FrameError::Stale { .. } | FrameError::NotStreaming => StatusCode::CONFLICT,
+        FrameError::MediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        FrameError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+        FrameError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
         _ => StatusCode::UNPROCESSABLE_ENTITY,
     };
     ApiError::new(status, e.to_string())
@@ -58,8 +64,10 @@ pub async fn from_slot(
     State(s): State<Arc<RigState>>,
     b: axum::body::Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let f: SlotBody = super::api::body(&b)?;
-    s.renderer.stream().ok_or_else(not_streaming)?;
+    let stream = s.renderer.stream().ok_or_else(not_streaming)?;
+    let f: SlotBody = super::api::body(&b).inspect_err(|e| {
+        stream.refuse(FrameError::Request(e.message().to_string()));
+    })?;
     let now = s.clock.now();
     // Copying and converting a frame is CPU work: off the runtime's threads.
     let r = tokio::task::spawn_blocking(move || {
@@ -82,7 +90,13 @@ pub struct FrameQuery {
     far: Option<f32>,
     seq: Option<u64>,
     app_time_ns: Option<u64>,
+    /// With an encoded colour: the colour file's length, where the depth file starts.
+    color_bytes: Option<usize>,
 }
+
+/// An encoded frame's body may hold this much more than the frame's f32 colour and depth
+/// (file headers).
+const ENCODED_SLACK: usize = 64 * 1024;
 
 pub async fn put(
     State(s): State<Arc<RigState>>,
@@ -90,70 +104,105 @@ pub async fn put(
     headers: HeaderMap,
     body: Body,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let Query(q) = query.map_err(|e| {
-        ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            format!(
-                "{}; PUT /frame?width=W&height=H&color=rgb8&depth=m",
-                e.body_text()
-            ),
-        )
-    })?;
-    if s.renderer.stream().is_none() {
+    let Some(stream) = s.renderer.stream() else {
         return Err(not_streaming());
-    }
+    };
+    // Refusals before the frame is read are counted as the stream counts its own.
+    let (desc, color_len, body) = match read_put(&s, query, &headers, body).await {
+        Ok(r) => r,
+        Err(e) => return Err(refused(stream.refuse(e))),
+    };
+    let now = s.clock.now();
+    let r = tokio::task::spawn_blocking(move || {
+        let stream = s.renderer.stream().ok_or(FrameError::NotStreaming)?;
+        // A color_bytes beyond the body leaves the depth file empty: refused as such.
+        let split = color_len.min(body.len());
+        stream.submit(&desc, &body[..split], &body[split..], now)
+    })
+    .await
+    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+    r.map(|seq| Json(json!({ "seq": seq }))).map_err(refused)
+}
+
+/// A `PUT /frame` request's frame: its description, where its colour ends, and its body
+/// (bounded by the frame's size, which must be the display's).
+async fn read_put(
+    s: &RigState,
+    query: Result<Query<FrameQuery>, axum::extract::rejection::QueryRejection>,
+    headers: &HeaderMap,
+    body: Body,
+) -> Result<(FrameDesc, usize, axum::body::Bytes), FrameError> {
+    let Query(q) = query.map_err(|e| {
+        FrameError::Request(format!(
+            "{}; PUT /frame?width=W&height=H&color=rgb8&depth=m (or color=png&color_bytes=N)",
+            e.body_text()
+        ))
+    })?;
     let color = ColorFormat::parse(&q.color).ok_or_else(|| {
-        ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            format!("color={:?}: expected rgb8, rgba8 or rgbf32", q.color),
-        )
+        FrameError::Request(format!(
+            "color={:?}: expected rgb8, rgba8 or rgbf32 (raw pixels), or png, exr or pfm (image files)",
+            q.color
+        ))
     })?;
     let depth = DepthKind::parse(&q.depth).ok_or_else(|| {
-        ApiError::new(
-            StatusCode::UNPROCESSABLE_ENTITY,
-            format!(
-                "depth={:?}: expected m, D, gl, gl-reversed, vulkan (d3d) or vulkan-reversed (d3d-reversed)",
-                q.depth
-            ),
-        )
+        FrameError::Request(format!(
+            "depth={:?}: expected m, mm, D, gl, gl-reversed, vulkan (d3d) or vulkan-reversed (d3d-reversed)",
+            q.depth
+        ))
     })?;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.trim().eq_ignore_ascii_case("application/octet-stream"));
     if !binary {
-        return Err(ApiError::new(
-            StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "PUT /frame needs Content-Type: application/octet-stream",
-        ));
+        return Err(FrameError::MediaType);
     }
     let px = q.width.saturating_mul(q.height);
-    let color_len = px.saturating_mul(color.bytes_per_px());
-    let want = color_len.saturating_add(px.saturating_mul(4));
+    // Raw: exactly the frame's bytes. Files: at most f32 colour and depth and their headers.
+    let (color_len, max) = match (color.bytes_per_px(), q.color_bytes) {
+        (Some(bpp), None) => {
+            let c = px.saturating_mul(bpp);
+            (c, c.saturating_add(px.saturating_mul(4)))
+        }
+        (Some(_), Some(_)) => {
+            return Err(FrameError::Request(format!(
+                "color_bytes is for image files (color=png, exr or pfm), not color={}",
+                q.color
+            )))
+        }
+        (None, Some(c)) => (c, px.saturating_mul(16).saturating_add(ENCODED_SLACK)),
+        (None, None) => {
+            return Err(FrameError::Request(format!(
+                "color={} sends the colour and depth as image files: color_bytes=N says where \
+                 the colour file (its N bytes) ends and the depth file starts",
+                q.color
+            )))
+        }
+    };
     // The frame's own size bounds the body; a frame of the wrong size is refused unread.
     let (dw, dh) = (s.cfg.display.width as usize, s.cfg.display.height as usize);
     if (q.width, q.height) != (dw, dh) {
-        let e = FrameError::WrongSize {
+        return Err(FrameError::WrongSize {
             got_w: q.width,
             got_h: q.height,
             want_w: dw,
             want_h: dh,
-        };
-        return Err(refused(e));
+        });
     }
-    let read = Limited::new(body, want).collect();
-    let bytes = match tokio::time::timeout(super::guard::BODY_TIMEOUT * 4, read).await {
-        Err(_) => {
-            return Err(ApiError::new(
-                StatusCode::REQUEST_TIMEOUT,
-                "the frame did not arrive within 20 s",
-            ))
+    let limit = super::guard::BODY_TIMEOUT * 4;
+    let body = match tokio::time::timeout(limit, Limited::new(body, max).collect()).await {
+        Err(_) => return Err(FrameError::Timeout(limit.as_secs())),
+        Ok(Err(e)) if e.is::<http_body_util::LengthLimitError>() => {
+            return Err(FrameError::TooLarge {
+                max,
+                w: q.width,
+                h: q.height,
+            })
         }
-        Ok(Err(_)) => {
-            return Err(ApiError::new(
-                StatusCode::PAYLOAD_TOO_LARGE,
-                format!("the body is larger than the frame's {want} bytes"),
-            ))
+        Ok(Err(e)) => {
+            return Err(FrameError::Request(format!(
+                "the body could not be read: {e}"
+            )))
         }
         Ok(Ok(c)) => c.to_bytes(),
     };
@@ -167,13 +216,5 @@ pub async fn put(
         seq: q.seq,
         app_time_ns: q.app_time_ns,
     };
-    let now = s.clock.now();
-    let r = tokio::task::spawn_blocking(move || {
-        let stream = s.renderer.stream().ok_or(FrameError::NotStreaming)?;
-        let split = color_len.min(bytes.len());
-        stream.submit(&desc, &bytes[..split], &bytes[split..], now)
-    })
-    .await
-    .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-    r.map(|seq| Json(json!({ "seq": seq }))).map_err(refused)
+    Ok((desc, color_len, body))
 }

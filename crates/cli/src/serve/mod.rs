@@ -24,7 +24,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use dioptra_rig::config::{Listen, RigConfig, SinkKind};
-use dioptra_rig::display::DisplaySink;
+use dioptra_rig::scene::SceneRenderer;
 use dioptra_rig::{Rig, RigSetup, RigState, ShutdownReport};
 use tokio_util::sync::CancellationToken;
 
@@ -66,16 +66,20 @@ fn serve_blocking(
     window: Option<window::WindowReady>,
     stop: CancellationToken,
 ) -> Result<()> {
-    let sink: Option<Box<dyn DisplaySink>> = match window {
-        Some(w) => Some(Box::new(
-            window::WindowSink::new(w.window, w.monitor)
-                .context("cannot draw to the display window")?,
-        )),
-        None => None,
-    };
     runtime()?.block_on(async {
         let mut setup = RigSetup::new(cfg);
-        setup.sink = sink;
+        if let Some(w) = window {
+            // The renderer first: the window draws with its GPU device when it has one.
+            let c = setup.cfg.clone();
+            let renderer = tokio::task::spawn_blocking(move || SceneRenderer::new(&c))
+                .await
+                .context("the renderer's start failed")?
+                .context("cannot start the renderer")?;
+            let sink = window::WindowSink::new(w.window, w.monitor, renderer.gpu_context())
+                .context("cannot draw to the display window")?;
+            setup.sink = Some(Box::new(sink));
+            setup.renderer = Some(Arc::new(renderer));
+        }
         let daemon = Daemon::start(setup).await?;
         match daemon.listening() {
             Listening::Tcp(a) => eprintln!("dioptra serve: API on http://{a}"),

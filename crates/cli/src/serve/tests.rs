@@ -4,6 +4,7 @@
 //! no test asserts how long anything took.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use axum::body::Body;
@@ -63,11 +64,29 @@ async fn eventually<T>(what: &str, mut f: impl FnMut() -> Option<T>) -> T {
 }
 
 async fn call(app: &axum::Router, method: &str, path: &str, body: &str) -> (StatusCode, Value) {
+    call_with(
+        app,
+        method,
+        path,
+        "application/json",
+        body.as_bytes().to_vec(),
+    )
+    .await
+}
+
+/// A request with any body and Content-Type; the answer must be JSON.
+async fn call_with(
+    app: &axum::Router,
+    method: &str,
+    path: &str,
+    content_type: &str,
+    body: Vec<u8>,
+) -> (StatusCode, Value) {
     let req = Request::builder()
         .method(method)
         .uri(path)
-        .header("content-type", "application/json")
-        .body(Body::from(body.to_string()))
+        .header("content-type", content_type)
+        .body(Body::from(body))
         .unwrap();
     let resp = app.clone().oneshot(req).await.unwrap();
     let status = resp.status();
@@ -1060,6 +1079,14 @@ fn network_config(dir: &Path, weights: &Path) -> RigConfig {
     cfg
 }
 
+/// A frame's images on the host (read back when they were left in GPU memory).
+fn on_host(images: Vec<dioptra_rig::render::FrameImage>) -> Vec<dioptra_core::RgbImage> {
+    images
+        .iter()
+        .map(|i| i.to_host().unwrap().into_owned())
+        .collect()
+}
+
 /// What the daemon shows with `method = "network"` is the network's output: C1 at the
 /// frame's focus (varifocal), C4's layers (multifocal).
 #[test]
@@ -1088,6 +1115,7 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
+    let shown = on_host(shown);
     assert_eq!(shown, vec![c1.defocus(&r.input(), focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
@@ -1100,10 +1128,11 @@ fn the_network_renders_what_the_net_computes() {
         )
         .unwrap()
         .images;
+    let other = on_host(other);
     assert_ne!(shown, other);
     let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
-    let layers = r
-        .render_frame(
+    let layers = on_host(
+        r.render_frame(
             dioptra_rig::config::Mode::Multifocal,
             cfg.method,
             focus,
@@ -1111,7 +1140,8 @@ fn the_network_renders_what_the_net_computes() {
             false,
         )
         .unwrap()
-        .images;
+        .images,
+    );
     assert_eq!(layers, c4.decompose(&r.input()).unwrap().images);
     assert_eq!(layers.len(), cfg.optics.planes.len());
 }
@@ -1310,8 +1340,11 @@ async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
     // Back in range: one render panics, then frames render again and the count stops.
     let (s, _) = call(&app, "POST", "/focus", "{\"diopters\": 2}").await;
     assert_eq!(s, StatusCode::OK);
-    let v = after_frames(&d, 5).await;
-    assert_eq!(v["render_errors"]["last"]["kind"], json!("panic"), "{v}");
+    let v = eventually("the panicking render counted", || {
+        let v = status_of(&d);
+        (v["render_errors"]["last"]["kind"] == json!("panic")).then_some(v)
+    })
+    .await;
     let before = v["counts"]["render_errors"].as_u64().unwrap();
     let v = after_frames(&d, 10).await;
     assert_eq!(v["counts"]["render_errors"].as_u64(), Some(before), "{v}");
@@ -1409,9 +1442,44 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         let a = cpu.render_frame(mode, m, q, None, false).unwrap().images;
         let b = gpu.render_frame(mode, m, q, None, false).unwrap().images;
         assert_eq!(a.len(), b.len());
-        for (x, y) in a.iter().zip(&b) {
+        // The GPU's own methods leave their images on the GPU (the network's come back
+        // through dioptra-net); the headless sink reads them back for its PNGs only.
+        let kept = b
+            .iter()
+            .all(|i| matches!(i, dioptra_rig::render::FrameImage::Gpu(_)));
+        assert_eq!(kept, method != "network", "{method}");
+        let png = |images: Vec<dioptra_rig::render::FrameImage>, to: &str| {
+            let out = dir.path().join(format!("{method}-{focus}-{to}"));
+            let mut sink = dioptra_rig::display::HeadlessSink::new(1, Some(out.clone())).unwrap();
+            let n = images.len();
+            let frame = dioptra_rig::display::Frame {
+                number: 0,
+                focus: q,
+                layers: Arc::new(images),
+            };
+            use dioptra_rig::display::DisplaySink as _;
+            sink.present(&frame, dioptra_core::Timestamp::ZERO).unwrap();
+            (0..n)
+                .map(|i| {
+                    let name = if n == 1 {
+                        "frame_000000.png".to_string()
+                    } else {
+                        format!("frame_000000_plane{i}.png")
+                    };
+                    dioptra_render::io::read_color(&out.join(name)).unwrap()
+                })
+                .collect::<Vec<_>>()
+        };
+        let reads = gpu.backend_status()["images_read_back"].as_u64().unwrap();
+        let (x, y) = (png(a, "cpu"), png(b, "gpu"));
+        let read = gpu.backend_status()["images_read_back"].as_u64().unwrap() - reads;
+        assert_eq!(read, if kept { x.len() as u64 } else { 0 }, "{method}");
+        for (x, y) in x.iter().zip(&y) {
             let p = dioptra_render::metrics::psnr(x, y, None).unwrap();
-            assert!(p > 50.0, "{method} at {focus} D: GPU {p} dB from the CPU");
+            assert!(
+                p >= 50.0,
+                "{method} at {focus} D: GPU PNG {p} dB from the CPU's"
+            );
         }
     }
     // The networks ran on the GPU; each method's GPU time is shown when the adapter can
@@ -1427,4 +1495,286 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
             );
         }
     }
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// A daemon on the example sim rig (96 x 96) streaming its content (ring in `dir`), its shared
+/// state and its API.
+async fn stream_daemon(dir: &Path) -> (Daemon, Arc<dioptra_rig::RigState>, axum::Router) {
+    let mut cfg = sim_config(dir, false);
+    cfg.content.source = dioptra_rig::config::ContentSource::Stream;
+    cfg.content.ring = Some(dir.join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    (d, sh, app)
+}
+
+/// The stream's `/frame` endpoints: good frames (raw and PNG files) are accepted and shown;
+/// each bad one is refused with its reason in a JSON error, counted in `/status` under that
+/// reason, and the frame on show stays.
+#[tokio::test(start_paused = true)]
+async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let (d, sh, app) = stream_daemon(dir.path()).await;
+    let (w, h) = (96usize, 96usize);
+    let color = vec![200u8; w * h * 3];
+    let depth = f32_bytes(&vec![0.5; w * h]);
+    let frame = [color.clone(), depth.clone()].concat();
+    let octets = "application/octet-stream";
+    let raw = |q: &str| format!("/frame?width={w}&height={h}&color=rgb8&depth=m{q}");
+    let content = || sh.status_json()["content"].clone();
+    let (s, v) = call_with(&app, "PUT", &raw("&seq=5"), octets, frame.clone()).await;
+    assert_eq!((s, &v["seq"]), (StatusCode::OK, &json!(5)), "{v}");
+    eventually("the frame on show", || {
+        (content()["on_show_seq"] == json!(5)).then_some(())
+    })
+    .await;
+
+    let mut nan_depth = vec![0.5f32; w * h];
+    nan_depth[2 * w + 3] = f32::NAN;
+    let nan = [color.clone(), f32_bytes(&nan_depth)].concat();
+    let short = frame[..frame.len() - 1].to_vec();
+    let long = [frame.clone(), vec![0]].concat();
+    let not_png = vec![7u8; 64];
+    // (method, path, Content-Type, body, status, reason counted, words in the error)
+    type Case<'a> = (
+        &'a str,
+        String,
+        &'a str,
+        Vec<u8>,
+        StatusCode,
+        &'a str,
+        &'a str,
+    );
+    let cases: Vec<Case> = vec![
+        (
+            "PUT",
+            format!("/frame?width=95&height={h}&color=rgb8&depth=m"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "wrong_size",
+            "the frame is 95x96; the display is 96x96",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            short,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "length",
+            "the depth is 36863 bytes; a 96x96 frame's is 36864",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            long,
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "too_large",
+            "larger than a 96x96 frame's 64512 bytes",
+        ),
+        (
+            "PUT",
+            raw(""),
+            octets,
+            nan,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "depth",
+            "depth at pixel (3, 2) is NaN",
+        ),
+        (
+            "PUT",
+            raw("").replace("depth=m", "depth=vulkan"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "needs near and far planes",
+        ),
+        (
+            "PUT",
+            raw("&seq=5"),
+            octets,
+            frame.clone(),
+            StatusCode::CONFLICT,
+            "stale",
+            "sequence number 5 is not newer than 5",
+        ),
+        (
+            "PUT",
+            raw("&color_bytes=32").replace("color=rgb8", "color=png"),
+            octets,
+            not_png,
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "encoding",
+            "color=png and the body does not start with one",
+        ),
+        (
+            "PUT",
+            raw("").replace("color=rgb8", "color=png"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "color_bytes=N says where",
+        ),
+        (
+            "PUT",
+            raw("").replace("color=rgb8", "color=bgr8"),
+            octets,
+            frame.clone(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "color=\"bgr8\": expected rgb8, rgba8 or rgbf32",
+        ),
+        (
+            "PUT",
+            raw(""),
+            "text/plain",
+            frame.clone(),
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "request",
+            "needs Content-Type: application/octet-stream",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": 1, "seq": 9}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "slot 1 holds sequence number 0, not 9",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": 7, "seq": 9}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid",
+            "the ring has slots 0 to 2",
+        ),
+        (
+            "POST",
+            "/frame".into(),
+            "application/json",
+            br#"{"slot": "first"}"#.to_vec(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "request",
+            "invalid type: string",
+        ),
+    ];
+    for (method, path, ctype, body, status, reason, words) in cases {
+        let before = content();
+        let (s, v) = call_with(&app, method, &path, ctype, body).await;
+        assert_eq!(s, status, "{method} {path}: {v}");
+        let msg = v["error"].as_str().unwrap_or_default();
+        assert!(
+            msg.contains(words),
+            "{method} {path}: {msg:?} lacks {words:?}"
+        );
+        let after = content();
+        let count = |c: &Value| c["refused"][reason].as_u64().unwrap_or(0);
+        assert_eq!(count(&after), count(&before) + 1, "{reason}: {after}");
+        assert_eq!(after["last_error"], json!(msg), "{after}");
+        assert_eq!(after["received"], before["received"], "{after}");
+        assert_eq!(
+            after["on_show_seq"],
+            json!(5),
+            "the frame on show stays: {after}"
+        );
+    }
+
+    // A frame as files: a PNG colour image and a 16-bit PNG of millimetres.
+    let png = |name: &str, write: &dyn Fn(&Path)| {
+        let p = dir.path().join(name);
+        write(&p);
+        std::fs::read(&p).unwrap()
+    };
+    let c = png("c.png", &|p| {
+        dioptra_render::io::write_color(p, &dioptra_core::RgbImage::new(w, h, [0.2, 0.4, 0.6]))
+            .unwrap()
+    });
+    let plane = dioptra_core::Plane::new(w, h, 2.0);
+    let dm = png("d.png", &|p| {
+        dioptra_render::io::write_depth(
+            p,
+            &dioptra_core::DepthMap::from_diopters(plane.clone()).unwrap(),
+        )
+        .unwrap()
+    });
+    let path = format!(
+        "/frame?width={w}&height={h}&color=png&color_bytes={}&depth=mm&seq=6",
+        c.len()
+    );
+    let (s, v) = call_with(&app, "PUT", &path, octets, [c, dm].concat()).await;
+    assert_eq!((s, &v["seq"]), (StatusCode::OK, &json!(6)), "{v}");
+    let v = eventually("the PNG frame on show", || {
+        let c = content();
+        (c["on_show_seq"] == json!(6)).then_some(c)
+    })
+    .await;
+    assert_eq!((&v["received"], &v["shown"]), (&json!(2), &json!(2)), "{v}");
+    stop(d).await;
+}
+
+/// On the GPU a headless daemon leaves every frame in GPU memory and reads back only the
+/// frames it writes as PNG: one image per written frame (varifocal), none for the others.
+#[tokio::test(start_paused = true)]
+async fn on_the_gpu_only_the_frames_written_as_png_are_read_back() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
+    cfg.display.png_every = 4;
+    cfg.display.png_dir = Some(dir.path().join("frames"));
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    after_frames(&d, 12).await;
+    stop(d).await;
+    let v = sh.status_json();
+    assert_eq!(v["render"]["backend"], json!("gpu"), "{v}");
+    let shown = v["display"]["shown"].as_u64().unwrap();
+    let pngs = v["display"]["pngs_written"].as_u64().unwrap();
+    assert!(shown >= 12, "{v}");
+    assert_eq!(pngs, shown.div_ceil(4), "{v}");
+    assert_eq!(v["render"]["images_read_back"].as_u64(), Some(pngs), "{v}");
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+}
+
+/// Light-field mode on a stream: the daemon shows the lenslet panel of the streamed frame's
+/// synthesised light field, without render errors.
+#[tokio::test(start_paused = true)]
+async fn light_field_mode_shows_streamed_content() {
+    let dir = tempfile::tempdir().unwrap();
+    let (d, _, app) = stream_daemon(dir.path()).await;
+    let (w, h) = (96usize, 96usize);
+    let color: Vec<u8> = (0..w * h * 3).map(|i| (i % 253) as u8).collect();
+    let depth = f32_bytes(
+        &(0..w * h)
+            .map(|i| 0.5 + (i % w) as f32 / w as f32)
+            .collect::<Vec<_>>(),
+    );
+    let path = format!("/frame?width={w}&height={h}&color=rgb8&depth=m");
+    let body = [color, depth].concat();
+    let (s, v) = call_with(&app, "PUT", &path, "application/octet-stream", body).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let shown = status_of(&d)["counts"]["frames_shown"].as_u64().unwrap();
+    let v = eventually("light-field frames of the stream", || {
+        let v = status_of(&d);
+        (v["counts"]["frames_shown"].as_u64() > Some(shown + 3)).then_some(v)
+    })
+    .await;
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    assert_eq!(v["content"]["on_show_seq"], json!(1), "{v}");
+    stop(d).await;
 }

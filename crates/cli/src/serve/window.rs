@@ -11,11 +11,20 @@
 //! wins: a frame handed over while the previous one still waits for vsync replaces it (counted
 //! in `GET /status` as `replaced`).
 //!
-//! GPU objects are made once: the pipeline, sampler, frame texture (remade only if the frame
-//! size changes) and a staging buffer for the packed pixels. Frames are linear light; they are
-//! packed as 8-bit sRGB into an `Rgba8UnormSrgb` texture (sampling decodes to linear), and the
-//! surface is viewed through an sRGB format, so the hardware encodes on write: what the
-//! monitor gets is the sRGB encoding of the frame, as in the PNGs the headless sink writes.
+//! One device. When the rig renders on the GPU, the window's surface is made from the render's
+//! own wgpu instance and drawn with its device ([`dioptra_render::gpu::GpuContext`]): a frame
+//! left in GPU memory ([`FrameImage::Gpu`]) is drawn straight from the buffer the render wrote,
+//! with no copy to the host. Otherwise (the rig renders on the CPU, or the render's adapter
+//! cannot present to this window) the window opens a device of its own, and a frame in GPU
+//! memory is read back first (counted in `/status` render `images_read_back`).
+//!
+//! GPU objects are made once: the pipelines, sampler, frame texture (remade only if the frame
+//! size changes) and a staging buffer for the packed pixels. Frames are linear light. A frame
+//! on the host is packed as 8-bit sRGB into an `Rgba8UnormSrgb` texture (sampling decodes to
+//! linear); a frame in GPU memory is read by the blit's second fragment shader from its planar
+//! f32 buffer, clamped to [0, 1] as the packing does. The surface is viewed through an sRGB
+//! format, so the hardware encodes on write: what the monitor gets is the sRGB encoding of the
+//! frame, as in the PNGs the headless sink writes.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -23,10 +32,12 @@ use std::time::Instant;
 
 use dioptra_core::image::linear_to_srgb;
 use dioptra_core::{RgbImage, Timestamp};
+use dioptra_render::gpu::{GpuContext, GpuImage};
 
 use thiserror::Error;
 
 use dioptra_rig::display::{DisplayError, DisplaySink, Frame};
+use dioptra_rig::render::FrameImage;
 
 pub use dioptra_rig::config::MonitorChoice;
 
@@ -204,15 +215,21 @@ impl std::fmt::Debug for WindowSink {
 }
 
 impl WindowSink {
-    /// Sets up the GPU surface of `window` and starts the presenter thread.
+    /// Sets up the GPU surface of `window`, on the render's device when `render` is given and
+    /// its adapter can present to the window, and starts the presenter thread.
     pub fn new(
         window: Arc<winit::window::Window>,
         monitor: String,
+        render: Option<Arc<GpuContext>>,
     ) -> Result<WindowSink, WindowError> {
-        let blitter = Blitter::new(window)?;
+        let blitter = Blitter::new(window, render)?;
         let describe = format!(
-            "window on {monitor} ({}, {:?}, {}x{})",
-            blitter.adapter, blitter.config.format, blitter.config.width, blitter.config.height
+            "window on {monitor} ({}, {:?}, {}x{}, {})",
+            blitter.adapter,
+            blitter.config.format,
+            blitter.config.width,
+            blitter.config.height,
+            blitter.device_note
         );
         let mailbox = Arc::new(Mailbox {
             job: Mutex::new((None, false)),
@@ -345,18 +362,51 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
     }
 }
 
-/// The blit: pipeline, sampler, frame texture (remade only when the frame size changes) and
-/// staging bytes, made once; draws into any view of `target_format`.
+/// Where the blit reads the frame it draws.
+enum Source {
+    /// The frame texture: its size and bind group.
+    Texture((u32, u32), wgpu::BindGroup),
+    /// A frame left in GPU memory: its size and the bind group of its buffer and layout.
+    Buffer((u32, u32), wgpu::BindGroup),
+}
+
+/// A [`GpuImage`]'s layout, as `blit.wgsl`'s `Layout` reads it.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct LayoutUniform {
+    width: u32,
+    height: u32,
+    offset: u32,
+    row_pitch: u32,
+    plane_pitch: u32,
+    _pad: [u32; 3],
+}
+
+/// The blit: pipelines, sampler, frame texture (remade only when the frame size changes),
+/// staging bytes and the layout uniform, made once; draws into any view of `target_format`.
 pub struct Blit {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
+    buffer_pipeline: wgpu::RenderPipeline,
+    buffer_layout: wgpu::BindGroupLayout,
     sampler: wgpu::Sampler,
-    /// The frame texture, its size and its bind group.
-    texture: Option<(wgpu::Texture, (u32, u32), wgpu::BindGroup)>,
+    /// The frame texture and its size.
+    texture: Option<(wgpu::Texture, (u32, u32))>,
+    layout_uniform: wgpu::Buffer,
+    source: Option<Source>,
     staging: Vec<u8>,
 }
 
 const FRAME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
+
+fn bind_entry(binding: u32, ty: wgpu::BindingType) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty,
+        count: None,
+    }
+}
 
 impl Blit {
     pub fn new(device: &wgpu::Device, target_format: wgpu::TextureFormat) -> Blit {
@@ -367,71 +417,102 @@ impl Blit {
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("blit"),
             entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Texture {
+                bind_entry(
+                    0,
+                    wgpu::BindingType::Texture {
                         sample_type: wgpu::TextureSampleType::Float { filterable: true },
                         view_dimension: wgpu::TextureViewDimension::D2,
                         multisampled: false,
                     },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
-                    count: None,
-                },
+                ),
+                bind_entry(
+                    1,
+                    wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
+                ),
             ],
         });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("blit"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
+        let buffer_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("blit from a buffer"),
+            entries: &[
+                bind_entry(
+                    2,
+                    wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                ),
+                bind_entry(
+                    3,
+                    wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Storage { read_only: true },
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                ),
+            ],
         });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("blit"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_main"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState::default(),
-            depth_stencil: None,
-            multisample: wgpu::MultisampleState::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_main"),
-                compilation_options: Default::default(),
-                targets: &[Some(target_format.into())],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let pipeline_for = |layout: &wgpu::BindGroupLayout, fragment: &str| {
+            let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("blit"),
+                bind_group_layouts: &[Some(layout)],
+                immediate_size: 0,
+            });
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some("blit"),
+                layout: Some(&pipeline_layout),
+                vertex: wgpu::VertexState {
+                    module: &shader,
+                    entry_point: Some("vs_main"),
+                    compilation_options: Default::default(),
+                    buffers: &[],
+                },
+                primitive: wgpu::PrimitiveState::default(),
+                depth_stencil: None,
+                multisample: wgpu::MultisampleState::default(),
+                fragment: Some(wgpu::FragmentState {
+                    module: &shader,
+                    entry_point: Some(fragment),
+                    compilation_options: Default::default(),
+                    targets: &[Some(target_format.into())],
+                }),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        let pipeline = pipeline_for(&layout, "fs_main");
+        let buffer_pipeline = pipeline_for(&buffer_layout, "fs_buffer");
         // Nearest: a frame shown at the monitor's own size is copied pixel for pixel.
         let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("blit"),
             ..Default::default()
         });
+        let layout_uniform = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("frame layout"),
+            size: std::mem::size_of::<LayoutUniform>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         Blit {
             pipeline,
             layout,
+            buffer_pipeline,
+            buffer_layout,
             sampler,
             texture: None,
+            layout_uniform,
+            source: None,
             staging: Vec::new(),
         }
     }
 
-    /// Packs and uploads `image` into the frame texture.
+    /// Packs and uploads `image` into the frame texture, and draws from it from now on.
     pub fn upload(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, image: &RgbImage) {
         let size = (image.width() as u32, image.height() as u32);
         if self.texture.as_ref().is_none_or(|t| t.1 != size) {
-            self.texture = Some(self.frame_texture(device, size));
+            self.texture = Some((self.frame_texture(device, size), size));
         }
-        let Some((texture, _, _)) = &self.texture else {
+        let Some((texture, _)) = &self.texture else {
             return;
         };
         pack_rgba8_srgb(image, &mut self.staging);
@@ -449,9 +530,56 @@ impl Blit {
                 depth_or_array_layers: 1,
             },
         );
+        let view = texture.create_view(&Default::default());
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(&view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: wgpu::BindingResource::Sampler(&self.sampler),
+                },
+            ],
+        });
+        self.source = Some(Source::Texture(size, bind_group));
     }
 
-    /// Draws the uploaded frame, letterboxed, into `target` (cleared to black).
+    /// Draws from `image`, in GPU memory of this device, from now on: no copy, only its
+    /// layout is written.
+    pub fn show_buffer(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, image: &GpuImage) {
+        let l = image.layout();
+        let u32_of = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
+        let uniform = LayoutUniform {
+            width: u32_of(l.width),
+            height: u32_of(l.height),
+            offset: u32_of(l.offset),
+            row_pitch: u32_of(l.row_pitch),
+            plane_pitch: u32_of(l.plane_pitch),
+            _pad: [0; 3],
+        };
+        queue.write_buffer(&self.layout_uniform, 0, bytemuck::bytes_of(&uniform));
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("frame in GPU memory"),
+            layout: &self.buffer_layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: self.layout_uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: image.buffer().as_entire_binding(),
+                },
+            ],
+        });
+        self.source = Some(Source::Buffer((uniform.width, uniform.height), bind_group));
+    }
+
+    /// Draws the frame, letterboxed, into `target` (cleared to black).
     pub fn encode(
         &self,
         enc: &mut wgpu::CommandEncoder,
@@ -471,22 +599,20 @@ impl Blit {
             })],
             ..Default::default()
         });
-        let Some((_, size, bind_group)) = &self.texture else {
-            return;
+        let (pipeline, size, bind_group) = match &self.source {
+            Some(Source::Texture(size, bg)) => (&self.pipeline, size, bg),
+            Some(Source::Buffer(size, bg)) => (&self.buffer_pipeline, size, bg),
+            None => return,
         };
         let [x, y, w, h] = letterbox(*size, target_size);
         pass.set_viewport(x, y, w, h, 0.0, 1.0);
-        pass.set_pipeline(&self.pipeline);
+        pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         pass.draw(0..3, 0..1);
     }
 
-    fn frame_texture(
-        &self,
-        device: &wgpu::Device,
-        size: (u32, u32),
-    ) -> (wgpu::Texture, (u32, u32), wgpu::BindGroup) {
-        let texture = device.create_texture(&wgpu::TextureDescriptor {
+    fn frame_texture(&self, device: &wgpu::Device, size: (u32, u32)) -> wgpu::Texture {
+        device.create_texture(&wgpu::TextureDescriptor {
             label: Some("frame"),
             size: wgpu::Extent3d {
                 width: size.0,
@@ -499,23 +625,7 @@ impl Blit {
             format: FRAME_FORMAT,
             usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
             view_formats: &[],
-        });
-        let view = texture.create_view(&Default::default());
-        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("frame"),
-            layout: &self.layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: wgpu::BindingResource::TextureView(&view),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: wgpu::BindingResource::Sampler(&self.sampler),
-                },
-            ],
-        });
-        (texture, size, bind_group)
+        })
     }
 }
 
@@ -525,15 +635,53 @@ struct Blitter {
     surface: wgpu::Surface<'static>,
     device: wgpu::Device,
     queue: wgpu::Queue,
+    /// The render's context when the window draws with its device.
+    shared: Option<Arc<GpuContext>>,
     config: wgpu::SurfaceConfiguration,
     view_format: wgpu::TextureFormat,
     blit: Blit,
     adapter: String,
+    /// Which device draws, and why (for `/status`).
+    device_note: String,
 }
 
 impl Blitter {
-    fn new(window: Arc<winit::window::Window>) -> Result<Blitter, WindowError> {
+    /// On the render's device when `render` is given and can present to the window, else on
+    /// a device of the window's own.
+    fn new(
+        window: Arc<winit::window::Window>,
+        render: Option<Arc<GpuContext>>,
+    ) -> Result<Blitter, WindowError> {
         let gpu = |e: &dyn std::fmt::Display| WindowError::Gpu(e.to_string());
+        let mut note = "its own device: the rig renders on the CPU".to_string();
+        if let Some(ctx) = render {
+            let surface = ctx
+                .instance()
+                .create_surface(window.clone())
+                .map_err(|e| gpu(&e))?;
+            let caps = surface.get_capabilities(ctx.wgpu_adapter());
+            if caps.formats.is_empty() {
+                note = format!(
+                    "its own device: the render's adapter {} cannot present to this window, so \
+                     frames are read back",
+                    ctx.adapter().name
+                );
+                tracing::warn!("the window draws on {note}");
+                drop(surface);
+            } else {
+                let (device, queue) = (ctx.device().clone(), ctx.queue().clone());
+                let adapter = ctx.wgpu_adapter().clone();
+                return Blitter::on(
+                    window,
+                    surface,
+                    &adapter,
+                    device,
+                    queue,
+                    Some(ctx),
+                    "the render's device: frames are drawn without a copy".into(),
+                );
+            }
+        }
         let mut desc =
             wgpu::InstanceDescriptor::new_with_display_handle(Box::new(window.clone())).with_env();
         desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
@@ -553,7 +701,21 @@ impl Blitter {
             ..Default::default()
         }))
         .map_err(|e| gpu(&e))?;
-        let caps = surface.get_capabilities(&adapter);
+        Blitter::on(window, surface, &adapter, device, queue, None, note)
+    }
+
+    /// Configures `surface` for vsync through an sRGB view and makes the blit.
+    fn on(
+        window: Arc<winit::window::Window>,
+        surface: wgpu::Surface<'static>,
+        adapter: &wgpu::Adapter,
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        shared: Option<Arc<GpuContext>>,
+        device_note: String,
+    ) -> Result<Blitter, WindowError> {
+        let gpu = |e: &dyn std::fmt::Display| WindowError::Gpu(e.to_string());
+        let caps = surface.get_capabilities(adapter);
         let (format, view_format) = surface_formats(&caps.formats).ok_or_else(|| {
             gpu(&format!(
                 "the surface offers no sRGB format (offers {:?})",
@@ -578,28 +740,55 @@ impl Blitter {
                 vec![view_format]
             },
             ..surface
-                .get_default_config(&adapter, w, h)
+                .get_default_config(adapter, w, h)
                 .ok_or_else(|| gpu(&"the surface is not supported by the adapter"))?
         };
-        surface.configure(&device, &config);
-        let blit = Blit::new(&device, view_format);
+        let blit = scoped(&device, || {
+            surface.configure(&device, &config);
+            Blit::new(&device, view_format)
+        })?;
         let info = adapter.get_info();
         Ok(Blitter {
             window,
             surface,
             device,
             queue,
+            shared,
             config,
             view_format,
             blit,
             adapter: format!("{} ({:?})", info.name, info.backend),
+            device_note,
         })
     }
 
-    /// Uploads `image` and presents it; blocks until a swapchain image is free (vsync).
-    /// `Ok(false)`: skipped this time (window occluded, surface reconfigured).
-    fn draw(&mut self, image: &RgbImage) -> Result<bool, WindowError> {
-        self.blit.upload(&self.device, &self.queue, image);
+    /// Presents `image`; blocks until a swapchain image is free (vsync). `Ok(false)`: skipped
+    /// this time (window occluded, surface reconfigured). Its GPU errors are returned
+    /// ([`scoped`]).
+    fn draw(&mut self, image: &FrameImage) -> Result<bool, WindowError> {
+        let device = self.device.clone();
+        scoped(&device, || self.draw_unscoped(image))?
+    }
+
+    fn draw_unscoped(&mut self, image: &FrameImage) -> Result<bool, WindowError> {
+        match image {
+            FrameImage::Host(i) => self.blit.upload(&self.device, &self.queue, i),
+            FrameImage::Gpu(g)
+                if self
+                    .shared
+                    .as_ref()
+                    .is_some_and(|c| Arc::ptr_eq(c, g.context())) =>
+            {
+                self.blit.show_buffer(&self.device, &self.queue, g)
+            }
+            // Another device's memory: through the host.
+            FrameImage::Gpu(g) => {
+                let pixels = g
+                    .read()
+                    .map_err(|e| WindowError::Gpu(format!("reading the frame back: {e}")))?;
+                self.blit.upload(&self.device, &self.queue, &pixels)
+            }
+        }
         let win = self.window.inner_size();
         if (win.width, win.height) != (self.config.width, self.config.height)
             && win.width > 0
@@ -640,6 +829,22 @@ impl Blitter {
         self.window.pre_present_notify();
         self.queue.present(target);
         Ok(true)
+    }
+}
+
+/// Runs `work` with this thread's GPU errors on `device` caught (validation, out of memory)
+/// and returned, so that on a device shared with the render they never fail a render.
+fn scoped<T>(device: &wgpu::Device, work: impl FnOnce() -> T) -> Result<T, WindowError> {
+    let oom = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+    let invalid = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let out = work();
+    let errors = [
+        pollster::block_on(invalid.pop()),
+        pollster::block_on(oom.pop()),
+    ];
+    match errors.into_iter().flatten().next() {
+        Some(e) => Err(WindowError::Gpu(e.to_string())),
+        None => Ok(out),
     }
 }
 
@@ -952,31 +1157,26 @@ mod tests {
         Some(pollster::block_on(adapter.request_device(&Default::default())).unwrap())
     }
 
-    /// The blit (shader, texture packing, sRGB target) without a window: a frame drawn into an
-    /// sRGB texture of twice its size reads back as the frame's sRGB bytes, pixel-doubled, with
-    /// black bars where the aspect differs.
-    #[test]
-    fn the_blit_draws_the_frame_srgb_encoded_and_letterboxed() {
-        let Some((device, queue)) = headless_device() else {
-            return;
+    /// Draws what `blit` shows into a new `Rgba8UnormSrgb` texture of `size` and reads it back.
+    fn draw_and_read(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        blit: &Blit,
+        size: (u32, u32),
+    ) -> Vec<u8> {
+        let (tw, th) = size;
+        let extent = wgpu::Extent3d {
+            width: tw,
+            height: th,
+            depth_or_array_layers: 1,
         };
-        let format = wgpu::TextureFormat::Rgba8UnormSrgb;
-        let mut blit = Blit::new(&device, format);
-        // A 4 x 2 frame of distinct linear values on a 64 x 64 target: scale 16, bars of 16 rows.
-        let vals: Vec<f32> = (0..24).map(|i| i as f32 / 23.0).collect();
-        let img = RgbImage::from_interleaved(4, 2, &vals).unwrap();
-        let (tw, th) = (64u32, 64u32);
         let target = device.create_texture(&wgpu::TextureDescriptor {
             label: None,
-            size: wgpu::Extent3d {
-                width: tw,
-                height: th,
-                depth_or_array_layers: 1,
-            },
+            size: extent,
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
-            format,
+            format: wgpu::TextureFormat::Rgba8UnormSrgb,
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
@@ -986,40 +1186,48 @@ mod tests {
             usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
             mapped_at_creation: false,
         });
-        // Twice, to check the texture made once is reused and rewritten.
-        for round in 0..2 {
-            let img = if round == 0 {
-                RgbImage::new(4, 2, [1.0, 0.0, 0.0])
-            } else {
-                img.clone()
-            };
-            blit.upload(&device, &queue, &img);
-            let mut enc = device.create_command_encoder(&Default::default());
-            blit.encode(&mut enc, &target.create_view(&Default::default()), (tw, th));
-            enc.copy_texture_to_buffer(
-                target.as_image_copy(),
-                wgpu::TexelCopyBufferInfo {
-                    buffer: &readback,
-                    layout: wgpu::TexelCopyBufferLayout {
-                        offset: 0,
-                        bytes_per_row: Some(tw * 4),
-                        rows_per_image: Some(th),
-                    },
+        let mut enc = device.create_command_encoder(&Default::default());
+        blit.encode(&mut enc, &target.create_view(&Default::default()), size);
+        enc.copy_texture_to_buffer(
+            target.as_image_copy(),
+            wgpu::TexelCopyBufferInfo {
+                buffer: &readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(tw * 4),
+                    rows_per_image: Some(th),
                 },
-                wgpu::Extent3d {
-                    width: tw,
-                    height: th,
-                    depth_or_array_layers: 1,
-                },
-            );
-            queue.submit([enc.finish()]);
-        }
-        assert!(blit.texture.is_some());
+            },
+            extent,
+        );
+        queue.submit([enc.finish()]);
         readback
             .slice(..)
             .map_async(wgpu::MapMode::Read, |r| r.unwrap());
         device.poll(wgpu::PollType::wait_indefinitely()).unwrap();
         let got = readback.slice(..).get_mapped_range().unwrap().to_vec();
+        got
+    }
+
+    /// The blit (shader, texture packing, sRGB target) without a window: a frame drawn into an
+    /// sRGB texture of twice its size reads back as the frame's sRGB bytes, pixel-doubled, with
+    /// black bars where the aspect differs.
+    #[test]
+    fn the_blit_draws_the_frame_srgb_encoded_and_letterboxed() {
+        let Some((device, queue)) = headless_device() else {
+            return;
+        };
+        let mut blit = Blit::new(&device, wgpu::TextureFormat::Rgba8UnormSrgb);
+        // A 4 x 2 frame of distinct linear values on a 64 x 64 target: scale 16, bars of 16 rows.
+        let vals: Vec<f32> = (0..24).map(|i| i as f32 / 23.0).collect();
+        let img = RgbImage::from_interleaved(4, 2, &vals).unwrap();
+        let (tw, th) = (64u32, 64u32);
+        // Twice, to check the texture made once is reused and rewritten.
+        blit.upload(&device, &queue, &RgbImage::new(4, 2, [1.0, 0.0, 0.0]));
+        draw_and_read(&device, &queue, &blit, (tw, th));
+        blit.upload(&device, &queue, &img);
+        let got = draw_and_read(&device, &queue, &blit, (tw, th));
+        assert!(blit.texture.is_some());
         let mut packed = Vec::new();
         pack_rgba8_srgb(&img, &mut packed);
         // Scale 16: the frame fills rows 16..48; rows above and below are black.
@@ -1044,5 +1252,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A frame the renderer left in GPU memory is drawn from its buffer on the render's own
+    /// device as the texture path draws its readback (within one sRGB step), and drawing it
+    /// reads nothing back.
+    #[test]
+    fn a_frame_in_gpu_memory_is_drawn_as_its_readback_is() {
+        let gpu = match dioptra_render::Gpu::new(None) {
+            Ok(g) => g,
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                return;
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        };
+        // One plane at the depth of every pixel: linear blending gives the colour itself,
+        // out-of-range values included (clamped by both paths).
+        let vals: Vec<f32> = (0..30).map(|i| i as f32 / 20.0 - 0.2).collect();
+        let color = RgbImage::from_interleaved(5, 2, &vals).unwrap();
+        let depth =
+            dioptra_core::DepthMap::from_diopters(dioptra_core::Plane::new(5, 2, 1.0)).unwrap();
+        let input = dioptra_core::Rgbd::new(color, depth).unwrap();
+        let kept = gpu
+            .linear_blend_on_gpu(&input, &[dioptra_core::Diopters(1.0)])
+            .unwrap()
+            .remove(0);
+        let ctx = gpu.context();
+        let (device, queue) = (ctx.device(), ctx.queue());
+        let mut blit = Blit::new(device, wgpu::TextureFormat::Rgba8UnormSrgb);
+        let reads = gpu.images_read_back();
+        blit.show_buffer(device, queue, &kept);
+        let from_buffer = draw_and_read(device, queue, &blit, (64, 64));
+        assert_eq!(gpu.images_read_back(), reads, "drawn without a readback");
+        blit.upload(device, queue, &kept.read().unwrap());
+        let from_texture = draw_and_read(device, queue, &blit, (64, 64));
+        assert_eq!(from_buffer.len(), from_texture.len());
+        for (i, (a, b)) in from_buffer.iter().zip(&from_texture).enumerate() {
+            assert!(
+                a.abs_diff(*b) <= 1,
+                "byte {i}: {a} from the buffer, {b} from the texture"
+            );
+        }
+        // Not all black: the frame is there (12 x 12 pixels per frame pixel, centred).
+        assert!(from_buffer.chunks(4).any(|p| p[0] > 200), "no bright pixel");
     }
 }

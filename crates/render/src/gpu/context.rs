@@ -199,6 +199,10 @@ impl Drop for Buf {
 pub type BufRef = Arc<Buf>;
 
 pub struct GpuContext {
+    /// Kept so that a window on this machine can draw with this device (a surface made from
+    /// the same instance and checked against the same adapter).
+    instance: wgpu::Instance,
+    raw_adapter: wgpu::Adapter,
     pub(crate) device: wgpu::Device,
     pub(crate) queue: wgpu::Queue,
     pub(crate) adapter: AdapterSummary,
@@ -363,6 +367,8 @@ impl GpuContext {
             pipelines.insert(k, (p, bgl));
         }
         let ctx = GpuContext {
+            instance,
+            raw_adapter: adapter,
             device,
             queue,
             adapter: summary(&info),
@@ -381,6 +387,21 @@ impl GpuContext {
 
     pub fn adapter(&self) -> &AdapterSummary {
         &self.adapter
+    }
+
+    /// The wgpu instance, adapter, device and queue, for drawing on the same device (a
+    /// window presenting the images kept here).
+    pub fn instance(&self) -> &wgpu::Instance {
+        &self.instance
+    }
+    pub fn wgpu_adapter(&self) -> &wgpu::Adapter {
+        &self.raw_adapter
+    }
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
     }
 
     pub fn has_timestamps(&self) -> bool {
@@ -794,6 +815,12 @@ impl<'c> Frame<'c> {
 
     /// Copies the first `bytes` of `b` back to the host when the frame finishes.
     pub fn read(&mut self, b: &BufRef, bytes: u64) -> Readback {
+        self.read_range(b, 0, bytes)
+    }
+
+    /// Copies `bytes` of `b` from `offset` (a multiple of 4) back to the host when the frame
+    /// finishes.
+    pub fn read_range(&mut self, b: &BufRef, offset: u64, bytes: u64) -> Readback {
         let bytes = bytes.div_ceil(4) * 4;
         let staging = self.ctx.acquire(
             bytes,
@@ -801,7 +828,7 @@ impl<'c> Frame<'c> {
         );
         if bytes > 0 {
             self.encoder
-                .copy_buffer_to_buffer(&b.buffer, 0, &staging.buffer, 0, bytes);
+                .copy_buffer_to_buffer(&b.buffer, offset, &staging.buffer, 0, bytes);
         }
         self.reads.push((staging, bytes));
         self.stats.bytes_read_back += bytes;
@@ -831,7 +858,7 @@ impl<'c> Frame<'c> {
             _ => None,
         };
         let cmd = self.encoder.finish();
-        self.ctx.queue.submit([cmd]);
+        let submitted = self.ctx.queue.submit([cmd]);
         self.stats.submissions += 1;
         let mut all: Vec<(&BufRef, u64)> = self.reads.iter().map(|(b, n)| (b, *n)).collect();
         if let Some(t) = &ts {
@@ -849,9 +876,13 @@ impl<'c> Frame<'c> {
                 }
             });
         }
+        // This frame's work only: a window drawing on the same device submits too.
         self.ctx
             .device
-            .poll(wgpu::PollType::wait_indefinitely())
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(submitted),
+                timeout: None,
+            })
             .map_err(|e| match e {
                 wgpu::PollError::Timeout => GpuError::Validation("GPU wait timed out".into()),
                 _ => GpuError::DeviceLost,

@@ -1,7 +1,10 @@
 //! Host side of each GPU method: the same checks as its CPU twin, uploads, dispatches and
 //! readbacks through one [`Frame`] per output slice (a handful of submissions per call).
 
-use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, WG, WG1};
+use std::sync::Arc;
+
+use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, Readbacks, WG, WG1};
+use super::image::{GpuImage, ImageLayout};
 use super::GpuError;
 use crate::backend::Foveated;
 use crate::backend::Progress;
@@ -39,17 +42,95 @@ fn planar(img: &RgbImage) -> Vec<f32> {
 }
 
 fn image(data: &[f32], w: usize, h: usize) -> Result<RgbImage, RenderError> {
-    let n = w * h;
-    if data.len() < 3 * n {
-        return Err(GpuError::Validation(format!(
-            "readback of {} values, expected {}",
-            data.len(),
-            3 * n
-        ))
-        .into());
+    Ok(ImageLayout::packed(w, h, 0).image(data)?)
+}
+
+/// Where a method leaves its output images: read back to the host, or in GPU memory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Keep {
+    Host,
+    Gpu,
+}
+
+/// An output image, where [`Keep`] put it.
+pub(super) enum Output {
+    Host(RgbImage),
+    Gpu(GpuImage),
+}
+
+/// `count` output images in one buffer, the first at `first`, each `pitch` values after the
+/// one before: read back when they go to the host (recorded in the frame that writes them).
+struct Outputs {
+    dst: BufRef,
+    first: ImageLayout,
+    pitch: usize,
+    count: usize,
+    read: Option<Readback>,
+}
+
+impl Outputs {
+    fn record(
+        f: &mut Frame,
+        keep: Keep,
+        dst: &BufRef,
+        first: ImageLayout,
+        pitch: usize,
+        count: usize,
+    ) -> Outputs {
+        let end = first.offset + count.saturating_sub(1) * pitch + first.span();
+        let read = (keep == Keep::Host).then(|| f.read(dst, 4 * end as u64));
+        Outputs {
+            dst: dst.clone(),
+            first,
+            pitch,
+            count,
+            read,
+        }
     }
-    let p = |c: usize| Plane::from_vec(w, h, data[c * n..(c + 1) * n].to_vec());
-    Ok(RgbImage::from_planes(p(0)?, p(1)?, p(2)?)?)
+
+    /// The images, once the frame has finished.
+    fn take(self, ctx: &Arc<GpuContext>, rb: &Readbacks) -> Result<Vec<Output>, RenderError> {
+        let data = self.read.map(|r| rb.f32s(r));
+        (0..self.count)
+            .map(|k| {
+                let l = ImageLayout {
+                    offset: self.first.offset + k * self.pitch,
+                    ..self.first
+                };
+                Ok(match &data {
+                    Some(d) => Output::Host(l.image(d.get(l.offset..).unwrap_or(&[]))?),
+                    None => Output::Gpu(GpuImage::new(ctx, self.dst.clone(), l)),
+                })
+            })
+            .collect()
+    }
+}
+
+/// Output images as host images (reading back any left in GPU memory).
+pub(super) fn on_host(out: Vec<Output>) -> Result<Vec<RgbImage>, RenderError> {
+    out.into_iter()
+        .map(|o| match o {
+            Output::Host(i) => Ok(i),
+            Output::Gpu(g) => Ok(g.read()?),
+        })
+        .collect()
+}
+
+/// Output images as images in GPU memory (each one kept with [`Keep::Gpu`]), their readbacks
+/// counted in `reads`.
+pub(super) fn on_gpu(
+    out: Vec<Output>,
+    reads: &Arc<std::sync::atomic::AtomicU64>,
+) -> Result<Vec<GpuImage>, RenderError> {
+    out.into_iter()
+        .map(|o| match o {
+            Output::Gpu(g) => Ok(g.counted_by(reads)),
+            Output::Host(_) => Err(GpuError::Validation(
+                "an output image was read back though asked to stay in GPU memory".into(),
+            )
+            .into()),
+        })
+        .collect()
 }
 
 #[repr(C)]
@@ -76,12 +157,13 @@ struct SizeP {
 
 /// Gather blur, one frame per focus; colour and depth are uploaded once.
 pub(super) fn gather(
-    ctx: &GpuContext,
+    ctx: &Arc<GpuContext>,
     input: &Rgbd,
     foci: &[Diopters],
     eye: &EyeModel,
     progress: Progress,
-) -> Out<Vec<RgbImage>> {
+    keep: Keep,
+) -> Out<Vec<Output>> {
     check_rgbd(input)?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
@@ -141,17 +223,22 @@ pub(super) fn gather(
         f.dispatch(Kernel::MaxH, &p, &[&radius, &tmp], g)?;
         f.dispatch(Kernel::MaxV, &p, &[&tmp, &lmax], g)?;
         f.dispatch(Kernel::Gather, &p, &[&tex, &depth, &lmax, &off, &dst], g)?;
-        let r = f.read(&dst, 12 * n);
+        let o = Outputs::record(&mut f, keep, &dst, ImageLayout::packed(w, h, 0), 0, 1);
         let (rb, s) = f.finish()?;
         total.add(&s);
-        out.push(image(&rb.f32s(r), w, h)?);
+        out.extend(o.take(ctx, &rb)?);
         progress(out.len());
     }
     Ok((out, total))
 }
 
-/// Linear blending in one dispatch.
-pub(super) fn linear_blend(ctx: &GpuContext, input: &Rgbd, planes: &[Diopters]) -> Out<Layers> {
+/// Linear blending in one dispatch: one output image per plane.
+pub(super) fn linear_blend(
+    ctx: &Arc<GpuContext>,
+    input: &Rgbd,
+    planes: &[Diopters],
+    keep: Keep,
+) -> Out<Vec<Output>> {
     check_planes(planes)?;
     check_rgbd(input)?;
     let (w, h) = (input.width(), input.height());
@@ -176,20 +263,10 @@ pub(super) fn linear_blend(ctx: &GpuContext, input: &Rgbd, planes: &[Diopters]) 
         &[&color, &depth, &pbuf, &dst],
         groups2(wu, hu, 1),
     )?;
-    let r = f.read(&dst, bytes);
+    let layout = ImageLayout::packed(w, h, 0);
+    let o = Outputs::record(&mut f, keep, &dst, layout, 3 * w * h, np);
     let (rb, s) = f.finish()?;
-    let data = rb.f32s(r);
-    let stride = 3 * w * h;
-    let images = (0..np)
-        .map(|l| image(data.get(l * stride..).unwrap_or(&[]), w, h))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok((
-        Layers {
-            planes: planes.to_vec(),
-            images,
-        },
-        s,
-    ))
+    Ok((o.take(ctx, &rb)?, s))
 }
 
 /// Convolves `layers` (same size) with per-focus, per-layer disk kernels and sums over the
@@ -457,13 +534,14 @@ struct LfP {
 
 /// Light-field depth of field: the pyramid once per call, then one frame per focus.
 pub(super) fn lightfield(
-    ctx: &GpuContext,
+    ctx: &Arc<GpuContext>,
     input: &Rgbd,
     foci: &[Diopters],
     eye: &EyeModel,
     params: LightFieldParams,
     progress: Progress,
-) -> Out<Vec<RgbImage>> {
+    keep: Keep,
+) -> Out<Vec<Output>> {
     crate::lightfield::check_lightfield_inputs(input, &params)?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
@@ -556,10 +634,10 @@ pub(super) fn lightfield(
         }
         let dst = f.scratch("output image", 12 * n)?;
         f.dispatch(Kernel::LfFinish, &p, &[&acc, &color, &dst], g)?;
-        let r = f.read(&dst, 12 * n);
+        let o = Outputs::record(&mut f, keep, &dst, ImageLayout::packed(w, h, 0), 0, 1);
         let (rb, s) = f.finish()?;
         total.add(&s);
-        out.push(image(&rb.f32s(r), w, h)?);
+        out.extend(o.take(ctx, &rb)?);
         progress(out.len());
     }
     Ok((out, total))
@@ -602,7 +680,7 @@ fn sq_sum(f: &mut Frame, p: &OptP, src: &BufRef, len: u64) -> Result<Readback, R
 /// RMS every 10 iterations and one for the 10 iterations themselves.
 #[allow(clippy::too_many_arguments)]
 pub(super) fn optimized_blend(
-    ctx: &GpuContext,
+    ctx: &Arc<GpuContext>,
     targets: &[RgbImage],
     foci: &[Diopters],
     planes: &[Diopters],
@@ -610,7 +688,8 @@ pub(super) fn optimized_blend(
     init: Option<&Layers>,
     params: OptimizeParams,
     progress: Progress,
-) -> Out<(Layers, OptimizeReport)> {
+    keep: Keep,
+) -> Out<(Vec<Output>, OptimizeReport)> {
     let (w, h) = check_optimize_inputs(targets, foci, planes, init, &params)?;
     let eye = eye_for(eye, w)?;
     let (np, nf) = (planes.len(), foci.len());
@@ -762,33 +841,19 @@ pub(super) fn optimized_blend(
     // Final objective at the returned (projected) layers.
     f.dispatch(Kernel::OptResidual, &p, &[&xb, &tb, &kb, &wb, &rb], gres)?;
     let r = sq_sum(&mut f, &p, &rb, rlen)?;
-    let xr = f.read(&xb, 4 * start.len() as u64);
+    // Each layer's planes on the padded grid, the image `margin` in from its corner.
+    let first = ImageLayout {
+        width: w,
+        height: h,
+        offset: conv.margin * pw + conv.margin,
+        row_pitch: pw,
+        plane_pitch: pn,
+    };
+    let o = Outputs::record(&mut f, keep, &xb, first, 3 * pn, np);
     let (res, s) = f.finish()?;
     total.add(&s);
     report.rms.push((report.iterations, rms_of(res.f32s(r))));
-    let x = res.f32s(xr);
-    if x.len() < np * 3 * pn {
-        return Err(GpuError::Validation(format!(
-            "readback of {} layer values, expected {}",
-            x.len(),
-            np * 3 * pn
-        ))
-        .into());
-    }
-    let plane = |i: usize, c: usize| conv.crop(x.get((i * 3 + c) * pn..).unwrap_or(&[]));
-    let images = (0..np)
-        .map(|i| RgbImage::from_planes(plane(i, 0), plane(i, 1), plane(i, 2)))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok((
-        (
-            Layers {
-                planes: planes.to_vec(),
-                images,
-            },
-            report,
-        ),
-        total,
-    ))
+    Ok(((o.take(ctx, &res)?, report), total))
 }
 
 /// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,

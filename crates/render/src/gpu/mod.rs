@@ -3,12 +3,15 @@
 //! the CPU default silently.
 
 mod context;
+mod image;
 mod kernels;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
     GpuContext, Readback, Readbacks, ShaderKernel,
 };
+pub use image::{GpuImage, ImageLayout};
+use kernels::Keep;
 
 use crate::backend::{Backend, DefocusMethod, Foveated, Progress};
 use crate::error::RenderError;
@@ -18,6 +21,7 @@ use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
 use crate::views::RgbdView;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
@@ -52,6 +56,8 @@ pub enum GpuError {
 pub struct Gpu {
     ctx: Arc<GpuContext>,
     last: Mutex<FrameStats>,
+    /// Images this backend left in GPU memory that were read back since.
+    images_read_back: Arc<AtomicU64>,
 }
 
 impl Gpu {
@@ -61,11 +67,17 @@ impl Gpu {
         Ok(Gpu {
             ctx: GpuContext::shared(adapter)?,
             last: Mutex::new(FrameStats::default()),
+            images_read_back: Arc::new(AtomicU64::new(0)),
         })
     }
 
-    pub fn context(&self) -> &GpuContext {
+    pub fn context(&self) -> &Arc<GpuContext> {
         &self.ctx
+    }
+
+    /// How many of the images this backend left in GPU memory were read back to the host.
+    pub fn images_read_back(&self) -> u64 {
+        self.images_read_back.load(Ordering::Relaxed)
     }
 
     /// Dispatches, bytes moved and GPU time of the last call (all its frames together).
@@ -77,6 +89,76 @@ impl Gpu {
         if let Ok(mut l) = self.last.lock() {
             *l = s;
         }
+    }
+
+    fn defocus_to(
+        &self,
+        input: &Rgbd,
+        foci: &[Diopters],
+        eye: &EyeModel,
+        method: DefocusMethod,
+        progress: Progress,
+        keep: Keep,
+    ) -> Result<Vec<kernels::Output>, RenderError> {
+        let (out, s) = match method {
+            DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress, keep)?,
+            DefocusMethod::LightField(p) => {
+                kernels::lightfield(&self.ctx, input, foci, eye, p, progress, keep)?
+            }
+        };
+        self.record(s);
+        Ok(out)
+    }
+
+    /// [`Backend::defocus`] at one focus, the image left in GPU memory.
+    pub fn defocus_on_gpu(
+        &self,
+        input: &Rgbd,
+        focus: Diopters,
+        eye: &EyeModel,
+        method: DefocusMethod,
+    ) -> Result<GpuImage, RenderError> {
+        let out = self.defocus_to(input, &[focus], eye, method, &|_| {}, Keep::Gpu)?;
+        kernels::on_gpu(out, &self.images_read_back)?
+            .pop()
+            .ok_or_else(|| GpuError::Validation("no image rendered".into()).into())
+    }
+
+    /// [`Backend::linear_blend`], one image per plane, left in GPU memory.
+    pub fn linear_blend_on_gpu(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+    ) -> Result<Vec<GpuImage>, RenderError> {
+        let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Gpu)?;
+        self.record(s);
+        kernels::on_gpu(out, &self.images_read_back)
+    }
+
+    /// [`Backend::optimized_blend`], one image per plane, left in GPU memory.
+    #[allow(clippy::too_many_arguments)]
+    pub fn optimized_blend_on_gpu(
+        &self,
+        targets: &[RgbImage],
+        foci: &[Diopters],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        init: Option<&Layers>,
+        params: OptimizeParams,
+    ) -> Result<(Vec<GpuImage>, OptimizeReport), RenderError> {
+        let ((out, report), s) = kernels::optimized_blend(
+            &self.ctx,
+            targets,
+            foci,
+            planes,
+            eye,
+            init,
+            params,
+            &|_| {},
+            Keep::Gpu,
+        )?;
+        self.record(s);
+        Ok((kernels::on_gpu(out, &self.images_read_back)?, report))
     }
 }
 
@@ -93,20 +175,16 @@ impl Backend for Gpu {
         method: DefocusMethod,
         progress: Progress,
     ) -> Result<Vec<RgbImage>, RenderError> {
-        let (out, s) = match method {
-            DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress)?,
-            DefocusMethod::LightField(p) => {
-                kernels::lightfield(&self.ctx, input, foci, eye, p, progress)?
-            }
-        };
-        self.record(s);
-        Ok(out)
+        kernels::on_host(self.defocus_to(input, foci, eye, method, progress, Keep::Host)?)
     }
 
     fn linear_blend(&self, input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {
-        let (out, s) = kernels::linear_blend(&self.ctx, input, planes)?;
+        let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Host)?;
         self.record(s);
-        Ok(out)
+        Ok(Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(out)?,
+        })
     }
 
     fn optimized_blend(
@@ -119,11 +197,23 @@ impl Backend for Gpu {
         params: OptimizeParams,
         progress: Progress,
     ) -> Result<(Layers, OptimizeReport), RenderError> {
-        let (out, s) = kernels::optimized_blend(
-            &self.ctx, targets, foci, planes, eye, init, params, progress,
+        let ((out, report), s) = kernels::optimized_blend(
+            &self.ctx,
+            targets,
+            foci,
+            planes,
+            eye,
+            init,
+            params,
+            progress,
+            Keep::Host,
         )?;
         self.record(s);
-        Ok(out)
+        let layers = Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(out)?,
+        };
+        Ok((layers, report))
     }
 
     fn retina_multifocal(

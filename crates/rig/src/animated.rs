@@ -1,0 +1,461 @@
+//! The rig's procedural scene (`[content] source = "scene"`), animated as the demo's is: four
+//! of its objects slide side to side ([`dioptra_sim::scene::animation`]); `animate = false`
+//! keeps it still.
+//!
+//! Frame k shows the scene as it is at k x [`SCENE_UPDATE`] of rig time, so what is on show
+//! at a given rig time depends on that time alone, and a replay renders the same frame from
+//! its time ([`AnimatedScene::render_at`]). A worker thread ray-casts the next frame ahead of
+//! the loop. On the system clock the loop never waits for it: a frame that is not ready when
+//! due is counted late and the one before stays (or the newest ready one is shown). On a
+//! simulated clock the loop waits for the frame that is due (simulated time stands still
+//! meanwhile), so a run shows the same frames whatever the machine's load.
+
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use dioptra_core::{lock, Rgbd, Timestamp};
+use dioptra_render::RenderError;
+use dioptra_sim::scene::animation::Animation;
+use dioptra_sim::scene::{render_pinhole, Camera, Scene};
+use serde::Serialize;
+
+use crate::render::Arrival;
+
+/// The scene's RGB-D is re-rendered this often (rig time).
+pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
+
+/// Objects that move.
+const MOVERS: usize = 4;
+
+/// Rays per pixel of the scene's pinhole render (anti-aliased edges).
+const SAMPLES: usize = 2;
+
+/// Whether the loop waits for the frame that is due.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Pacing {
+    /// The system clock: never wait; a frame not ready when due is late.
+    RealTime,
+    /// A simulated clock, which stands still while the loop waits: wait for the due frame.
+    Simulated,
+}
+
+/// What `/status` shows under `content` for the procedural scene.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SceneStatus {
+    pub source: &'static str,
+    pub seed: u64,
+    pub animated: bool,
+    /// Frames ray-cast (the first included).
+    pub rendered: u64,
+    /// Frames the display took up (the first included).
+    pub shown: u64,
+    /// Frames not rendered by the time they were due: an older one stayed on show.
+    pub late: u64,
+    /// Frames that failed to render (the one before stayed), and the newest reason.
+    pub failed: u64,
+    pub last_error: Option<String>,
+    /// The scene time of the frame on show, ms of rig time.
+    pub scene_time_ms: f64,
+    /// Host time (ns) the frame on show became current.
+    pub since_ns: u64,
+    /// How long the frame on show has been on show, ms (at the time of asking).
+    pub newest_age_ms: Option<f64>,
+}
+
+struct Shared {
+    state: Mutex<Worker>,
+    /// Wakes the worker: a frame is wanted, or the scene is dropped.
+    wake: Condvar,
+    /// Notified after each render, and when the worker ends.
+    rendered: Condvar,
+}
+
+#[derive(Default)]
+struct Worker {
+    /// The scene time asked for and not started yet.
+    want: Option<Timestamp>,
+    /// The scene time being rendered.
+    busy: Option<Timestamp>,
+    /// The newest render: its scene time and frame (or why it failed).
+    ready: Option<(Timestamp, Result<Arc<Rgbd>, String>)>,
+    rendered: u64,
+    stop: bool,
+    /// The worker thread has ended (stopped, or its render panicked).
+    ended: bool,
+}
+
+/// The frame on show and the counters the loop keeps.
+struct OnShow {
+    time: Timestamp,
+    frame: Arc<Rgbd>,
+    /// The due time last counted late (each counts once).
+    late_at: Option<Timestamp>,
+    status: SceneStatus,
+    since: Instant,
+}
+
+/// The procedural scene and its render worker.
+pub struct AnimatedScene {
+    base: Scene,
+    animation: Animation,
+    cam: Camera,
+    pacing: Pacing,
+    shared: Arc<Shared>,
+    on_show: Mutex<OnShow>,
+}
+
+impl std::fmt::Debug for AnimatedScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AnimatedScene")
+            .field("movers", &self.animation.len())
+            .field("pacing", &self.pacing)
+            .finish_non_exhaustive()
+    }
+}
+
+fn render(base: &Scene, a: &Animation, cam: &Camera, t: Timestamp) -> Result<Rgbd, RenderError> {
+    let scene = a.at(base, t.as_secs_f64());
+    let (color, depth) = render_pinhole(&scene, cam, [0.0, 0.0], SAMPLES)?;
+    Ok(Rgbd::new(color, depth)?)
+}
+
+/// The scene time of the frame due at `now`: the last multiple of [`SCENE_UPDATE`].
+fn due_at(now: Timestamp) -> Timestamp {
+    let step = SCENE_UPDATE.as_nanos() as u64;
+    Timestamp(now.0 / step * step)
+}
+
+/// Ends the worker's state when its thread ends, however it ends, so that a loop waiting for
+/// a frame is not left waiting.
+struct EndGuard(Arc<Shared>);
+
+impl Drop for EndGuard {
+    fn drop(&mut self) {
+        let mut w = lock(&self.0.state);
+        w.ended = true;
+        w.busy = None;
+        self.0.rendered.notify_all();
+    }
+}
+
+impl AnimatedScene {
+    /// The scene of `seed` seen through `cam`, rendered at scene time 0; with `animate`, four
+    /// of its objects (not the floor plate, its first) move and a worker renders ahead.
+    pub fn start(
+        seed: u64,
+        cam: Camera,
+        animate: bool,
+        pacing: Pacing,
+    ) -> Result<AnimatedScene, RenderError> {
+        let base = Scene::generate(seed);
+        let animation = if animate {
+            let floor = base.objects.first().copied();
+            Animation::pick(&base, MOVERS, |o| Some(*o) != floor)
+        } else {
+            Animation::default()
+        };
+        let first = Arc::new(render(&base, &animation, &cam, Timestamp::ZERO)?);
+        let shared = Arc::new(Shared {
+            state: Mutex::new(Worker {
+                rendered: 1,
+                ended: animation.is_empty(),
+                ..Worker::default()
+            }),
+            wake: Condvar::new(),
+            rendered: Condvar::new(),
+        });
+        if !animation.is_empty() {
+            let (b, a, s) = (base.clone(), animation.clone(), shared.clone());
+            std::thread::Builder::new()
+                .name("dioptra-scene".into())
+                .spawn(move || render_ahead(&b, &a, &cam, s))
+                .map_err(|e| {
+                    RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
+                        "cannot start the scene's render thread: {e}"
+                    )))
+                })?;
+        }
+        let status = SceneStatus {
+            source: "scene",
+            seed,
+            animated: !animation.is_empty(),
+            shown: 1,
+            ..SceneStatus::default()
+        };
+        Ok(AnimatedScene {
+            on_show: Mutex::new(OnShow {
+                time: Timestamp::ZERO,
+                frame: first,
+                late_at: None,
+                status,
+                since: Instant::now(),
+            }),
+            base,
+            animation,
+            cam,
+            pacing,
+            shared,
+        })
+    }
+
+    /// The frame on show and its scene time.
+    pub fn current(&self) -> (Arc<Rgbd>, Timestamp) {
+        let on = lock(&self.on_show);
+        (on.frame.clone(), on.time)
+    }
+
+    /// The scene as it is at scene time `t` (what a frame of that time shows).
+    pub fn scene_at(&self, t: Timestamp) -> Scene {
+        self.animation.at(&self.base, t.as_secs_f64())
+    }
+
+    /// The frame of scene time `t`, rendered now on the caller's thread (a replay's depth).
+    pub fn render_at(&self, t: Timestamp) -> Result<Rgbd, RenderError> {
+        render(&self.base, &self.animation, &self.cam, t)
+    }
+
+    /// The frame due at rig time `now` when it is newer than the one on show: the frame, and
+    /// its scene time as its arrival (`ready`: `now`). Asks the worker for the frame after it.
+    pub fn frame_at(&self, now: Timestamp) -> Option<(Arc<Rgbd>, Arrival)> {
+        if self.animation.is_empty() {
+            return None;
+        }
+        let due = due_at(now);
+        let mut on = lock(&self.on_show);
+        let mut w = lock(&self.shared.state);
+        if on.time >= due {
+            self.ask(&mut w, on.time + SCENE_UPDATE);
+            return None;
+        }
+        loop {
+            if let Some((t, _)) = &w.ready {
+                let t = *t;
+                if t > due {
+                    // Rendered ahead: not shown before its time.
+                    return None;
+                }
+                // A frame newer than the one on show and not ahead of its time: the due one,
+                // or (on the system clock) the newest there is.
+                let take =
+                    t > on.time && (t == due || (t < due && self.pacing == Pacing::RealTime));
+                if take {
+                    let (_, r) = w.ready.take()?;
+                    if t < due {
+                        count_late(&mut on, due);
+                    }
+                    self.ask(&mut w, due + SCENE_UPDATE);
+                    return self.take_up(&mut on, t, r, now);
+                }
+                if t <= on.time || t < due {
+                    // Older than the one on show, or (waiting for the due one) stale.
+                    w.ready = None;
+                }
+            }
+            if w.ended {
+                // No worker: the frame on show stays.
+                count_late(&mut on, due);
+                return None;
+            }
+            if w.busy.is_none() && w.ready.is_none() {
+                w.want = Some(due);
+                self.shared.wake.notify_one();
+            }
+            if self.pacing == Pacing::RealTime {
+                count_late(&mut on, due);
+                return None;
+            }
+            w = self
+                .shared
+                .rendered
+                .wait(w)
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+        }
+    }
+
+    /// Asks the worker for the frame of scene time `t` when it has nothing to do.
+    fn ask(&self, w: &mut MutexGuard<'_, Worker>, t: Timestamp) {
+        if w.want.is_none() && w.busy.is_none() && w.ready.is_none() && !w.ended {
+            w.want = Some(t);
+            self.shared.wake.notify_one();
+        }
+    }
+
+    fn take_up(
+        &self,
+        on: &mut OnShow,
+        t: Timestamp,
+        r: Result<Arc<Rgbd>, String>,
+        now: Timestamp,
+    ) -> Option<(Arc<Rgbd>, Arrival)> {
+        // Not tried again either way: the next is due one update later.
+        on.time = t;
+        match r {
+            Ok(frame) => {
+                on.frame = frame.clone();
+                on.since = Instant::now();
+                on.status.shown += 1;
+                on.status.since_ns = now.0;
+                Some((
+                    frame,
+                    Arrival {
+                        arrived: t,
+                        ready: now,
+                    },
+                ))
+            }
+            Err(e) => {
+                if on.status.failed == 0 {
+                    tracing::warn!(error = %e, "the scene did not render; the frame before stays");
+                }
+                on.status.failed += 1;
+                on.status.last_error = Some(e);
+                None
+            }
+        }
+    }
+
+    pub fn status(&self) -> SceneStatus {
+        let on = lock(&self.on_show);
+        let mut st = on.status.clone();
+        st.rendered = lock(&self.shared.state).rendered;
+        st.scene_time_ms = on.time.0 as f64 / 1e6;
+        st.newest_age_ms = Some(on.since.elapsed().as_secs_f64() * 1e3);
+        st
+    }
+
+    /// Blocks until the worker has a frame ready or has ended (tests).
+    #[cfg(test)]
+    fn wait_rendered(&self) {
+        let mut w = lock(&self.shared.state);
+        while w.ready.is_none() && !w.ended {
+            w = self
+                .shared
+                .rendered
+                .wait(w)
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+        }
+    }
+}
+
+fn count_late(on: &mut OnShow, due: Timestamp) {
+    if on.late_at != Some(due) {
+        on.late_at = Some(due);
+        on.status.late += 1;
+    }
+}
+
+impl Drop for AnimatedScene {
+    fn drop(&mut self) {
+        lock(&self.shared.state).stop = true;
+        self.shared.wake.notify_all();
+    }
+}
+
+fn render_ahead(base: &Scene, a: &Animation, cam: &Camera, shared: Arc<Shared>) {
+    let _end = EndGuard(shared.clone());
+    loop {
+        let t = {
+            let mut w = lock(&shared.state);
+            loop {
+                if w.stop {
+                    return;
+                }
+                if let Some(t) = w.want.take() {
+                    w.busy = Some(t);
+                    break t;
+                }
+                w = shared
+                    .wake
+                    .wait(w)
+                    .unwrap_or_else(std::sync::PoisonError::into_inner);
+            }
+        };
+        let r = render(base, a, cam, t)
+            .map(Arc::new)
+            .map_err(|e| e.to_string());
+        let mut w = lock(&shared.state);
+        w.busy = None;
+        w.rendered += 1;
+        w.ready = Some((t, r));
+        shared.rendered.notify_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(pacing: Pacing) -> AnimatedScene {
+        let eye = dioptra_core::EyeModel {
+            width_px: 48,
+            ..Default::default()
+        };
+        AnimatedScene::start(1_000_001, Camera::new(eye, 48, 48), true, pacing).unwrap()
+    }
+
+    fn ms(m: u64) -> Timestamp {
+        Timestamp(m * 1_000_000)
+    }
+
+    #[test]
+    fn on_simulated_time_each_due_frame_is_shown_at_its_time() {
+        let a = scene(Pacing::Simulated);
+        let (f0, t0) = a.current();
+        assert_eq!(t0, ms(0));
+        // Within the first update the first frame stays; the worker renders the next.
+        assert!(a.frame_at(ms(10)).is_none());
+        let (f1, arrival) = a.frame_at(ms(55)).expect("the frame of 50 ms");
+        assert_eq!((arrival.arrived, arrival.ready), (ms(50), ms(55)));
+        assert_ne!(f0.color, f1.color, "the objects moved");
+        assert_eq!(*f1, a.render_at(ms(50)).unwrap(), "what a replay renders");
+        // A call that skips updates waits for the frame due then, not the one rendered ahead.
+        let (f4, arrival) = a.frame_at(ms(230)).expect("the frame of 200 ms");
+        assert_eq!(arrival.arrived, ms(200));
+        assert_eq!(*f4, a.render_at(ms(200)).unwrap());
+        assert_eq!(a.current().1, ms(200));
+        let st = a.status();
+        assert_eq!((st.shown, st.late, st.failed), (3, 0, 0), "{st:?}");
+        assert!(st.animated && st.rendered >= 3, "{st:?}");
+    }
+
+    #[test]
+    fn on_the_system_clock_a_frame_not_ready_is_late_and_the_one_before_stays() {
+        let a = scene(Pacing::RealTime);
+        // Nothing was asked for yet: the frame of 50 ms is late, the first stays.
+        assert!(a.frame_at(ms(60)).is_none());
+        assert_eq!(a.current().1, ms(0));
+        assert_eq!(a.status().late, 1);
+        a.wait_rendered();
+        // Taken up once rendered, though due earlier (counted late once).
+        let (_, arrival) = a.frame_at(ms(80)).expect("the frame of 50 ms");
+        assert_eq!(arrival.arrived, ms(50));
+        assert_eq!(a.status().late, 1);
+        // The next is rendered ahead and shown on time.
+        a.wait_rendered();
+        let (_, arrival) = a.frame_at(ms(100)).expect("the frame of 100 ms");
+        assert_eq!(arrival.arrived, ms(100));
+        // A newer frame than the one due is never shown early.
+        a.wait_rendered();
+        assert!(a.frame_at(ms(120)).is_none());
+        assert_eq!(a.status().late, 1);
+    }
+
+    #[test]
+    fn a_still_scene_never_changes() {
+        let eye = dioptra_core::EyeModel {
+            width_px: 32,
+            ..Default::default()
+        };
+        let a = AnimatedScene::start(
+            1_000_001,
+            Camera::new(eye, 32, 32),
+            false,
+            Pacing::Simulated,
+        )
+        .unwrap();
+        assert!(a.frame_at(ms(500)).is_none());
+        assert_eq!(*a.current().0, a.render_at(ms(500)).unwrap());
+        let st = a.status();
+        assert!(!st.animated && st.rendered == 1 && st.late == 0, "{st:?}");
+    }
+}
