@@ -109,8 +109,8 @@ impl From<Method> for String {
 }
 
 /// The methods the daemon renders.
-pub const RENDERED: &str = "gather, lightfield-defocus or network (varifocal), linear, optimized \
-     or network (multifocal), views (light field)";
+pub const RENDERED: &str = "gather, lightfield-defocus, network or refine (varifocal), linear, \
+     optimized, network or refine (multifocal), views (light field)";
 
 /// Every method's name, for messages.
 pub fn methods() -> String {

@@ -57,7 +57,7 @@ pub fn reason_name(r: dioptra_sched::FocusReason) -> String {
 pub struct Engine {
     sched: Scheduler,
     /// Modes the network cannot render in, and why (its weights did not load).
-    network_missing: Vec<(Mode, String)>,
+    network_missing: Vec<(Mode, RenderMethod, String)>,
 }
 
 impl std::fmt::Debug for Engine {
@@ -118,20 +118,17 @@ impl Engine {
         })
     }
 
-    /// Tells the engine in which modes the network cannot render (from
-    /// [`crate::render::Renderer::unavailable`]), so that the API refuses to switch to it.
-    pub fn set_network_missing(&mut self, missing: Vec<(Mode, String)>) {
+    /// Tells the engine in which modes a net's method cannot render (from
+    /// [`crate::render::Renderer::network_missing`]), so that the API refuses to switch to it.
+    pub fn set_network_missing(&mut self, missing: Vec<(Mode, RenderMethod, String)>) {
         self.network_missing = missing;
     }
 
     fn network_missing(&self, mode: Mode, method: Method) -> Option<String> {
-        if method.0 != RenderMethod::Network {
-            return None;
-        }
         self.network_missing
             .iter()
-            .find(|(m, _)| *m == mode)
-            .map(|(_, why)| why.clone())
+            .find(|(m, r, _)| *m == mode && *r == method.0)
+            .map(|(_, _, why)| why.clone())
     }
 
     pub fn mode(&self) -> Mode {

@@ -64,8 +64,12 @@ pub enum RigError {
     Scene(#[source] dioptra_render::RenderError),
     #[error("cannot start the scheduler: {0}")]
     Scheduler(String),
-    #[error("method = \"network\" in {mode} mode: {why}")]
-    NetworkMissing { mode: &'static str, why: String },
+    #[error("method = \"{method}\" in {mode} mode: {why}")]
+    NetworkMissing {
+        method: &'static str,
+        mode: &'static str,
+        why: String,
+    },
     #[error("cannot start the devices: {0}")]
     Devices(#[source] dioptra_core::DeviceError),
     #[error("the display: {0}")]
@@ -640,13 +644,15 @@ impl Rig {
         }
         .map_err(RigError::Scheduler)?;
         let network_missing = renderer.network_missing();
-        if cfg.method.0 == dioptra_sched::RenderMethod::Network {
-            if let Some((_, why)) = network_missing.iter().find(|(m, _)| *m == cfg.mode) {
-                return Err(RigError::NetworkMissing {
-                    mode: cfg.mode.as_str(),
-                    why: why.clone(),
-                });
-            }
+        if let Some((_, _, why)) = network_missing
+            .iter()
+            .find(|(m, r, _)| *m == cfg.mode && *r == cfg.method.0)
+        {
+            return Err(RigError::NetworkMissing {
+                method: cfg.method.as_str(),
+                mode: cfg.mode.as_str(),
+                why: why.clone(),
+            });
         }
         engine.set_network_missing(network_missing);
         let sink: Box<dyn DisplaySink> = match (sink, cfg.display.kind) {

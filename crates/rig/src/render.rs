@@ -112,9 +112,9 @@ pub trait Renderer: Send + Sync + 'static {
     }
     /// Renders one frame.
     fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError>;
-    /// The modes in which `method = "network"` cannot render, and why (the API refuses a
-    /// switch to them).
-    fn network_missing(&self) -> Vec<(Mode, String)> {
+    /// The modes in which a net's method (`network`, `refine`) cannot render, and why (its
+    /// weights did not load; the API refuses a switch to them).
+    fn network_missing(&self) -> Vec<(Mode, dioptra_sched::RenderMethod, String)> {
         Vec::new()
     }
     /// What is shown when `render` fails, so the display never freezes: the content without

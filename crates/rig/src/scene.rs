@@ -64,8 +64,9 @@ pub struct SceneRenderer {
     panel: Mutex<Option<(u64, Arc<RgbImage>)>>,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
     compute: Mutex<Compute>,
-    /// The network per mode (varifocal: C1, multifocal: C4), or why it did not load.
-    nets: Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>,
+    /// The net of each mode and method (`network`: C1, C4; `refine`: C1R, C4R), or why it
+    /// did not load.
+    nets: CpuNets,
 }
 
 /// Multifocal layers one method made from the content frame numbered `frame`.
@@ -152,10 +153,10 @@ impl SceneRenderer {
                 ((*first).clone(), None, Some(files))
             }
         };
-        let nets = vec![
-            (Mode::Varifocal, load_net(cfg, "c1")),
-            (Mode::Multifocal, load_net(cfg, "c4")),
-        ];
+        let nets = NET_CONFIGS
+            .iter()
+            .map(|&(mode, method, config)| ((mode, method), load_net(cfg, config)))
+            .collect();
         let compute = Compute::open(cfg, &nets)?;
         Ok(SceneRenderer {
             compute: Mutex::new(compute),
@@ -251,7 +252,7 @@ impl SceneRenderer {
         input: &Rgbd,
         focus: Diopters,
     ) -> Result<RgbImage, RenderError> {
-        let gpu_net = lock(&self.compute).gpu_net(mode);
+        let gpu_net = lock(&self.compute).gpu_net((mode, RenderMethod::Network));
         if let Some(g) = gpu_net {
             match g.defocus(input, focus, &self.eye) {
                 Ok(img) => {
@@ -264,14 +265,87 @@ impl SceneRenderer {
                 Err(e) => return Err(net_error(e)),
             }
         }
-        self.net(mode)?
+        self.net((mode, RenderMethod::Network))?
             .defocus(input, focus, &self.eye)
             .map_err(net_error)
     }
 
+    /// C1R (varifocal): its classical render on the rig's backend, refined by the net on the
+    /// GPU when the rig renders there, else on the CPU.
+    fn refine_defocus(&self, input: &Rgbd, focus: Diopters) -> Result<RgbImage, RenderError> {
+        let key = (Mode::Varifocal, RenderMethod::Refine);
+        let cpu = self.net(key)?;
+        let dioptra_net::Task::C1r { classical } = cpu.arch().task else {
+            return Err(net_error(dioptra_net::NetError::WrongConfig {
+                expected: "c1r".into(),
+                asked: cpu.arch().task.name().into(),
+            }));
+        };
+        let base = self.on_backend("refine (classical)", |gpu| {
+            dioptra_net::refine::classical_defocus(
+                backend_of(gpu),
+                classical,
+                input,
+                focus,
+                &self.eye,
+            )
+            .map_err(net_error)
+        })?;
+        let gpu_net = lock(&self.compute).gpu_net(key);
+        let refined = match gpu_net {
+            Some(g) => match g.refine_defocus(input, &base, focus, &self.eye) {
+                Ok(r) => {
+                    lock(&self.compute).timed("refine", g.last_stats().gpu_ns);
+                    Some(r)
+                }
+                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
+                    lock(&self.compute).fall_back(&e);
+                    None
+                }
+                Err(e) => return Err(net_error(e)),
+            },
+            None => None,
+        };
+        let r = match refined {
+            Some(r) => r,
+            None => cpu
+                .refine_defocus(input, &base, focus, &self.eye)
+                .map_err(net_error)?,
+        };
+        lock(&self.compute).refine_tiles = Some(r.tiles.fraction());
+        Ok(r.image)
+    }
+
+    /// C4R (multifocal): linear blending on the rig's backend, refined by the net on the GPU
+    /// when the rig renders there, else on the CPU.
+    fn refine_decompose(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
+        let key = (Mode::Multifocal, RenderMethod::Refine);
+        let cpu = self.net(key)?;
+        let linear = self.on_backend("refine (linear)", |gpu| {
+            backend_of(gpu).linear_blend(input, &self.planes)
+        })?;
+        let gpu_net = lock(&self.compute).gpu_net(key);
+        if let Some(g) = gpu_net {
+            match g.refine_decompose(input, &linear) {
+                Ok(l) => {
+                    lock(&self.compute).timed("refine", g.last_stats().gpu_ns);
+                    return Ok(l.images);
+                }
+                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
+                    lock(&self.compute).fall_back(&e);
+                }
+                Err(e) => return Err(net_error(e)),
+            }
+        }
+        Ok(cpu
+            .refine_decompose(input, &linear)
+            .map_err(net_error)?
+            .images)
+    }
+
     /// C4 (multifocal layers) on the GPU when the rig renders there, else on the CPU.
     fn net_decompose(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
-        let gpu_net = lock(&self.compute).gpu_net(Mode::Multifocal);
+        let gpu_net = lock(&self.compute).gpu_net((Mode::Multifocal, RenderMethod::Network));
         if let Some(g) = gpu_net {
             match g.decompose(input) {
                 Ok(l) => {
@@ -285,7 +359,7 @@ impl SceneRenderer {
             }
         }
         Ok(self
-            .net(Mode::Multifocal)?
+            .net((Mode::Multifocal, RenderMethod::Network))?
             .decompose(input)
             .map_err(net_error)?
             .images)
@@ -296,13 +370,13 @@ impl SceneRenderer {
         lock(&self.compute).status()
     }
 
-    fn net(&self, mode: Mode) -> Result<&dioptra_net::CpuNet, RenderError> {
-        match self.nets.iter().find(|(m, _)| *m == mode) {
+    fn net(&self, key: NetKey) -> Result<&dioptra_net::CpuNet, RenderError> {
+        match self.nets.iter().find(|(k, _)| *k == key) {
             Some((_, Ok(n))) => Ok(n),
             Some((_, Err(why))) => Err(RenderError::Input(InputError::InvalidValue(why.clone()))),
             None => Err(RenderError::Unsupported {
                 backend: "daemon CPU",
-                method: "network (lightfield)",
+                method: "network or refine (lightfield)",
             }),
         }
     }
@@ -406,6 +480,7 @@ impl SceneRenderer {
             (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone().into()]),
             (Mode::Multifocal, _) => Ok(self.layers(shown, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
+            (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
                 input,
                 focus,
@@ -476,6 +551,8 @@ impl SceneRenderer {
         let input = shown.frame.as_ref();
         let images = if method.0 == RenderMethod::Network {
             on_host(self.net_decompose(input)?)
+        } else if method.0 == RenderMethod::Refine {
+            on_host(self.refine_decompose(input)?)
         } else if method.0 == RenderMethod::Optimized {
             // Targets (a gathered focal stack), the linear start and the iterations all on
             // the rig's backend; on the GPU the layers stay there.
@@ -590,10 +667,10 @@ impl Renderer for SceneRenderer {
             _ => vec![color.clone()],
         })
     }
-    fn network_missing(&self) -> Vec<(Mode, String)> {
+    fn network_missing(&self) -> Vec<(Mode, RenderMethod, String)> {
         self.nets
             .iter()
-            .filter_map(|(m, n)| n.as_ref().err().map(|e| (*m, e.clone())))
+            .filter_map(|((m, r), n)| n.as_ref().err().map(|e| (*m, *r, e.clone())))
             .collect()
     }
 }
@@ -642,13 +719,26 @@ fn net_error(e: dioptra_net::NetError) -> RenderError {
     RenderError::Input(InputError::InvalidValue(format!("network: {e}")))
 }
 
-/// Loads the network of `config` (`c1`, `c4`) from `render.weights`, checking that a C4
-/// network's planes are the rig's `optics.planes`.
+/// The nets the daemon loads: which mode and method each serves, and its configuration.
+const NET_CONFIGS: [(Mode, RenderMethod, &str); 4] = [
+    (Mode::Varifocal, RenderMethod::Network, "c1"),
+    (Mode::Multifocal, RenderMethod::Network, "c4"),
+    (Mode::Varifocal, RenderMethod::Refine, "c1r"),
+    (Mode::Multifocal, RenderMethod::Refine, "c4r"),
+];
+
+/// A net's mode and method.
+type NetKey = (Mode, RenderMethod);
+
+/// Loads the net of `config` (`c1`, `c4`, `c1r`, `c4r`) from `render.weights`, checking that
+/// a multifocal net's planes are the rig's `optics.planes`.
 fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, String> {
     let path = cfg.render.weights_file(config);
     let what = match config {
         "c1" => "varifocal mode's network (C1)",
-        _ => "multifocal mode's network (C4)",
+        "c4" => "multifocal mode's network (C4)",
+        "c1r" => "varifocal mode's refinement net (C1R)",
+        _ => "multifocal mode's refinement net (C4R)",
     };
     if !path.exists() {
         return Err(format!(
@@ -660,7 +750,7 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
     }
     let net = dioptra_net::load_net(Some(&path), config)
         .map_err(|e| format!("render.weights: {}: {e}", path.display()))?;
-    if let dioptra_net::Task::C4 { planes, .. } = &net.arch().task {
+    if let Some(planes) = net.arch().task.planes() {
         let same = planes.len() == cfg.optics.planes.len()
             && planes
                 .iter()
@@ -677,15 +767,17 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
     Ok(Arc::new(net))
 }
 
-/// The network of each mode, loaded for the CPU (or why not).
-type CpuNets = Vec<(Mode, Result<Arc<dioptra_net::CpuNet>, String>)>;
+/// The net of each mode and method, loaded for the CPU (or why not).
+type CpuNets = Vec<(NetKey, Result<Arc<dioptra_net::CpuNet>, String>)>;
 
 /// The render backend and what `/status` says of it.
 struct Compute {
     /// The GPU frames are rendered on (`None`: the CPU).
     gpu: Option<Arc<dioptra_render::Gpu>>,
-    /// The networks on the GPU, per mode (or why that mode's runs on the CPU).
-    gpu_nets: Vec<(Mode, Result<Arc<dioptra_net::gpu::GpuNet>, String>)>,
+    /// The nets on the GPU, per mode and method (or why that one runs on the CPU).
+    gpu_nets: Vec<(NetKey, Result<Arc<dioptra_net::gpu::GpuNet>, String>)>,
+    /// The fraction of the error map's tiles C1R's net ran on in the newest refined frame.
+    refine_tiles: Option<f64>,
     adapter: Option<String>,
     /// Whether the adapter has timestamp queries (GPU time per method in `/status`).
     timestamps: bool,
@@ -700,6 +792,7 @@ impl Compute {
         Compute {
             gpu: None,
             gpu_nets: Vec::new(),
+            refine_tiles: None,
             adapter: None,
             timestamps: false,
             gpu_time: Default::default(),
@@ -714,21 +807,22 @@ impl Compute {
         // The same weights the CPU loaded, uploaded once to the render's device.
         let gpu_nets = nets
             .iter()
-            .filter_map(|(m, n)| {
+            .filter_map(|((m, r), n)| {
                 let n = n.as_ref().ok()?;
                 let g = dioptra_net::gpu::GpuNet::on(ctx.clone(), n.weights().clone())
                     .map(Arc::new)
                     .map_err(|e| {
-                        tracing::warn!(mode = m.as_str(), error = %e, "the network runs on the CPU");
+                        tracing::warn!(mode = m.as_str(), method = r.as_str(), error = %e, "the net runs on the CPU");
                         e.to_string()
                     });
-                Some((*m, g))
+                Some(((*m, *r), g))
             })
             .collect();
         Ok(Compute {
             timestamps: gpu.context().has_timestamps(),
             gpu: Some(gpu),
             gpu_nets,
+            refine_tiles: None,
             adapter: Some(name),
             gpu_time: Default::default(),
             cpu_because: None,
@@ -757,10 +851,10 @@ impl Compute {
         }
     }
 
-    fn gpu_net(&self, mode: Mode) -> Option<Arc<dioptra_net::gpu::GpuNet>> {
+    fn gpu_net(&self, key: NetKey) -> Option<Arc<dioptra_net::gpu::GpuNet>> {
         self.gpu_nets
             .iter()
-            .find(|(m, _)| *m == mode)
+            .find(|(k, _)| *k == key)
             .and_then(|(_, n)| n.as_ref().ok().cloned())
     }
 
@@ -801,19 +895,21 @@ impl Compute {
                 )
             })
             .collect();
-        let network: serde_json::Map<String, serde_json::Value> = self
-            .gpu_nets
-            .iter()
-            .map(|(m, n)| {
-                (
-                    m.as_str().to_string(),
-                    match n {
-                        Ok(_) => serde_json::json!("gpu"),
-                        Err(e) => serde_json::json!(format!("cpu: {e}")),
-                    },
-                )
-            })
-            .collect();
+        let nets_of = |method: RenderMethod| -> serde_json::Map<String, serde_json::Value> {
+            self.gpu_nets
+                .iter()
+                .filter(|((_, r), _)| *r == method)
+                .map(|((m, _), n)| {
+                    (
+                        m.as_str().to_string(),
+                        match n {
+                            Ok(_) => serde_json::json!("gpu"),
+                            Err(e) => serde_json::json!(format!("cpu: {e}")),
+                        },
+                    )
+                })
+                .collect()
+        };
         serde_json::json!({
             "backend": if self.gpu.is_some() { "gpu" } else { "cpu" },
             // Frame images left in GPU memory and read back (a PNG written, a window on
@@ -823,7 +919,9 @@ impl Compute {
             "cpu_because": self.cpu_because,
             "timestamps": self.timestamps,
             "gpu_time_us": gpu_time,
-            "network": network,
+            "network": nets_of(RenderMethod::Network),
+            "refine": nets_of(RenderMethod::Refine),
+            "refine_tiles_run": self.refine_tiles,
         })
     }
 }

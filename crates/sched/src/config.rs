@@ -63,16 +63,20 @@ pub enum RenderMethod {
     Optimized,
     /// Light-field views resampled into elemental images (light field).
     Views,
+    /// A classical result corrected by a refinement net (varifocal: C1R on its classical
+    /// render; multifocal: C4R on linear blending).
+    Refine,
 }
 
 impl RenderMethod {
-    pub const ALL: [RenderMethod; 6] = [
+    pub const ALL: [RenderMethod; 7] = [
         RenderMethod::Gather,
         RenderMethod::LightFieldDefocus,
         RenderMethod::Network,
         RenderMethod::Linear,
         RenderMethod::Optimized,
         RenderMethod::Views,
+        RenderMethod::Refine,
     ];
 
     pub fn as_str(self) -> &'static str {
@@ -83,6 +87,7 @@ impl RenderMethod {
             RenderMethod::Linear => "linear",
             RenderMethod::Optimized => "optimized",
             RenderMethod::Views => "views",
+            RenderMethod::Refine => "refine",
         }
     }
 
@@ -90,8 +95,8 @@ impl RenderMethod {
     pub fn suits(self, mode: Mode) -> bool {
         use RenderMethod::*;
         match mode {
-            Mode::Varifocal => matches!(self, Gather | LightFieldDefocus | Network),
-            Mode::Multifocal => matches!(self, Linear | Optimized | Network),
+            Mode::Varifocal => matches!(self, Gather | LightFieldDefocus | Network | Refine),
+            Mode::Multifocal => matches!(self, Linear | Optimized | Network | Refine),
             Mode::LightField => matches!(self, Views | Network),
         }
     }

@@ -1063,12 +1063,17 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
 /// Random (untrained) C1 and C4 weights in `dir`, as `render.weights` expects them.
 fn random_weights(dir: &Path) {
     std::fs::create_dir_all(dir).unwrap();
-    for (config, seed) in [("c1", 11), ("c4", 12)] {
+    for (config, seed) in [("c1", 11), ("c4", 12), ("c1r", 13), ("c4r", 14)] {
         let arch = dioptra_net::Arch::preset(config).unwrap();
-        dioptra_net::Weights::random(&arch, seed)
-            .unwrap()
-            .save(&dir.join(format!("{config}.safetensors")))
-            .unwrap();
+        let mut w = dioptra_net::Weights::random(&arch, seed).unwrap();
+        // A refinement net's last layer starts at zero; give it weights, so it corrects.
+        let mut r = dioptra_net::weights::SplitMix(seed);
+        for v in w.convs.iter_mut().flat_map(|c| c.weight.iter_mut()) {
+            if *v == 0.0 {
+                *v = 0.02 * r.uniform();
+            }
+        }
+        w.save(&dir.join(format!("{config}.safetensors"))).unwrap();
     }
 }
 
@@ -1155,13 +1160,90 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     cfg.optics.planes = vec![0.5, 1.5];
     let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
     let missing = r.network_missing();
-    assert_eq!(missing.len(), 1, "{missing:?}");
-    assert_eq!(missing[0].0, dioptra_rig::config::Mode::Multifocal);
+    // C4 and C4R, both made for other planes.
+    assert_eq!(missing.len(), 2, "{missing:?}");
+    for (mode, method, why) in &missing {
+        assert_eq!(*mode, dioptra_rig::config::Mode::Multifocal);
+        assert!(
+            matches!(
+                method,
+                dioptra_sched::RenderMethod::Network | dioptra_sched::RenderMethod::Refine
+            ),
+            "{method:?}"
+        );
+        assert!(
+            why.contains("planes [0.2, 0.8, 1.4, 2.0] D")
+                && why.contains("optics.planes is [0.5, 1.5] D"),
+            "{why}"
+        );
+    }
+}
+
+/// What the daemon shows with `method = "refine"` is the refinement nets' output: C1R on its
+/// classical render at the frame's focus (varifocal), C4R on linear blending (multifocal).
+#[test]
+fn refine_renders_what_the_refinement_nets_compute() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    let mut cfg = network_config(dir.path(), &weights);
+    cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Refine);
+    cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
+    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    assert!(r.network_missing().is_empty());
+    let eye = dioptra_core::EyeModel {
+        pupil_diameter: dioptra_core::Millimeters(cfg.eye.pupil_mm),
+        fov_horizontal_deg: cfg.eye.fov_deg,
+        width_px: cfg.display.width,
+        ..Default::default()
+    };
+    let focus = dioptra_core::Diopters(0.2);
+    let render = |mode| {
+        on_host(
+            r.render_frame(mode, cfg.method, focus, None, false)
+                .unwrap()
+                .images,
+        )
+    };
+    let shown = render(dioptra_rig::config::Mode::Varifocal);
+    let c1r = dioptra_net::load_net(Some(&weights.join("c1r.safetensors")), "c1r").unwrap();
+    let dioptra_net::Task::C1r { classical } = c1r.arch().task else {
+        panic!("not c1r");
+    };
+    let input = r.input();
+    let base = dioptra_net::refine::classical_defocus(
+        &dioptra_render::Cpu,
+        classical,
+        &input,
+        focus,
+        &eye,
+    )
+    .unwrap();
+    let want = c1r.refine_defocus(&input, &base, focus, &eye).unwrap();
     assert!(
-        missing[0].1.contains("planes [0.2, 0.8, 1.4, 2.0] D")
-            && missing[0].1.contains("optics.planes is [0.5, 1.5] D"),
-        "{}",
-        missing[0].1
+        want.tiles.fraction() > 0.0,
+        "the scene has depth edges in the blur"
+    );
+    assert_ne!(want.image, base, "the net corrects the classical render");
+    assert_eq!(shown, vec![want.image]);
+    let status = r.backend_status();
+    assert_eq!(
+        status["refine_tiles_run"].as_f64(),
+        Some(want.tiles.fraction()),
+        "{status}"
+    );
+    let layers = render(dioptra_rig::config::Mode::Multifocal);
+    let c4r = dioptra_net::load_net(Some(&weights.join("c4r.safetensors")), "c4r").unwrap();
+    let planes: Vec<dioptra_core::Diopters> = cfg
+        .optics
+        .planes
+        .iter()
+        .map(|&p| dioptra_core::Diopters(p))
+        .collect();
+    let linear = dioptra_render::multifocal::linear_blend(&input, &planes).unwrap();
+    assert_eq!(
+        layers,
+        c4r.refine_decompose(&input, &linear).unwrap().images
     );
 }
 
