@@ -23,7 +23,8 @@ pub const TILE: usize = 16;
 /// single-layer assumption holds.
 pub const EDGE_BLUR_PX: f32 = 1.0;
 
-/// Which tiles of an image the refinement net runs on.
+/// Which tiles of an image the refinement net runs on, and which of their pixels take its
+/// correction.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TileMap {
     pub width: usize,
@@ -33,6 +34,10 @@ pub struct TileMap {
     pub rows: usize,
     /// Row-major, `rows * cols`.
     pub on: Vec<bool>,
+    /// Per pixel, row-major: whether the correction applies (always inside a tile that runs).
+    /// A pixel the classical methods render exactly (a sharp occluder's own pixels beside a
+    /// blurred background) keeps the classical value even inside a tile.
+    pub pixels: Vec<bool>,
 }
 
 impl TileMap {
@@ -44,12 +49,14 @@ impl TileMap {
             cols,
             rows,
             on: vec![false; cols * rows],
+            pixels: vec![false; width * height],
         }
     }
 
     pub fn all(width: usize, height: usize) -> TileMap {
         let mut t = TileMap::none(width, height);
         t.on.fill(true);
+        t.pixels.fill(true);
         t
     }
 
@@ -67,6 +74,16 @@ impl TileMap {
             .get((y / TILE) * self.cols + x / TILE)
             .copied()
             .unwrap_or(false)
+    }
+
+    /// Whether pixel `(x, y)` takes the net's correction.
+    pub fn corrects(&self, x: usize, y: usize) -> bool {
+        x < self.width
+            && self
+                .pixels
+                .get(y * self.width + x)
+                .copied()
+                .unwrap_or(false)
     }
 
     /// 1 on the pixels of tiles that run, 0 elsewhere.
@@ -95,6 +112,11 @@ impl TileMap {
 /// depths differ by at least [`EDGE_BLUR_PX`] of blur; it affects every pixel the more blurred
 /// side's disk reaches (radius CoC / 2, plus one pixel), and nothing when neither side blurs
 /// by half a pixel.
+///
+/// Per pixel the map is one-sided: the nearer side's blur spreads over both sides, but the
+/// farther side's blur only over its own pixels (behind a sharp occluder the occluder's
+/// pixels are what a single view and the thin lens both see), so a pixel reached only by the
+/// farther side's disk and nearer than the step's middle keeps its classical value.
 pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
     let (w, h) = (depth.width(), depth.height());
     let eye = eye_for(eye, w)?;
@@ -102,6 +124,10 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
     let d = depth.data();
     let q = focus.0;
     let mut map = TileMap::none(w, h);
+    // Per pixel: reached by a nearer side's disk; the largest step middle (D) among the
+    // farther sides' disks reaching it.
+    let mut near_reach = vec![false; w * h];
+    let mut far_middle = vec![f32::NEG_INFINITY; w * h];
     for y in 0..h {
         for x in 0..w {
             let a = d[y * w + x];
@@ -113,17 +139,56 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
                 if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
                     continue;
                 }
-                let radius = 0.5 * (a - q).abs().max((b - q).abs()) * px_per_d;
-                if radius < 0.5 {
+                // Diopters: the nearer side is the larger.
+                let (near, far) = (a.max(b), a.min(b));
+                let r_near = 0.5 * (near - q).abs() * px_per_d;
+                let r_far = 0.5 * (far - q).abs() * px_per_d;
+                if r_near.max(r_far) < 0.5 {
                     continue;
                 }
-                let r = radius.ceil() as isize + 1;
                 let (x, y) = (x as isize, y as isize);
+                let r = r_near.max(r_far).ceil() as isize + 1;
                 map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
+                if r_near >= 0.5 {
+                    let r = r_near.ceil() as isize + 1;
+                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                        near_reach[row].fill(true)
+                    });
+                }
+                if r_far >= 0.5 {
+                    let middle = 0.5 * (near + far);
+                    let r = r_far.ceil() as isize + 1;
+                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                        for m in &mut far_middle[row] {
+                            *m = m.max(middle);
+                        }
+                    });
+                }
             }
         }
     }
+    for (i, p) in map.pixels.iter_mut().enumerate() {
+        *p = near_reach[i] || d[i] < far_middle[i];
+    }
     Ok(map)
+}
+
+/// Calls `f` with the index range of each row of the pixel box `[x0, x1] x [y0, y1]`
+/// (inclusive, clamped to the image).
+fn for_box(
+    w: usize,
+    h: usize,
+    x0: isize,
+    y0: isize,
+    x1: isize,
+    y1: isize,
+    mut f: impl FnMut(std::ops::Range<usize>),
+) {
+    let clamp = |v: isize, max: usize| v.clamp(0, max as isize - 1) as usize;
+    let (x0, x1) = (clamp(x0, w), clamp(x1, w));
+    for y in clamp(y0, h)..=clamp(y1, h) {
+        f(y * w + x0..y * w + x1 + 1);
+    }
 }
 
 /// The classical render a C1R net refines.
@@ -217,7 +282,7 @@ fn corrected(
     let mut out = base.clone();
     for (o, f) in out.channels.iter_mut().zip(&fix.channels) {
         for (i, (v, &c)) in o.data_mut().iter_mut().zip(f.data()).enumerate() {
-            if only.is_none_or(|t| t.covers(i % w, i / w)) {
+            if only.is_none_or(|t| t.corrects(i % w, i / w)) {
                 *v = (*v + c).clamp(0.0, 1.0);
             }
         }
@@ -226,8 +291,8 @@ fn corrected(
     Ok(out)
 }
 
-/// The refined image: the classical render with the net's correction on the tiles of
-/// `tiles` (the net's output `y`, channels 0..3).
+/// The refined image: the classical render with the net's correction on the pixels `tiles`
+/// corrects (the net's output `y`, channels 0..3).
 pub fn compose_defocus(
     classical: &RgbImage,
     y: &Act,
@@ -363,6 +428,23 @@ mod tests {
             assert_eq!(map.on[t], near, "tile {t} ({x0}..{x1}), reach {reach}");
         }
         assert!(map.fraction() > 0.0 && map.fraction() < 1.0);
+        // The near side (columns < 64) blurs: its disk covers both sides within `reach`.
+        for x in 0..w {
+            let want = x + reach >= 63 && x <= 64 + reach;
+            assert_eq!(map.corrects(x, 10), want, "column {x}, reach {reach}");
+        }
+        // Focus on the near side: only the far side blurs, and only its pixels are corrected
+        // (the sharp occluder is what every view sees), though the same tiles run.
+        let sharp_near = error_tiles(&s.depth, Diopters(2.0), &e).unwrap();
+        assert_eq!(sharp_near.on, map.on);
+        for x in 0..w {
+            let want = x >= 64 && x <= 64 + reach;
+            assert_eq!(
+                sharp_near.corrects(x, 10),
+                want,
+                "column {x}, reach {reach}"
+            );
+        }
         // Nothing blurs at a focus between... a step with both sides sharp: none.
         let flat = step_scene(w, h, 64, 1.0, 1.0, 2);
         assert!(!error_tiles(&flat.depth, Diopters(3.0), &e)
@@ -451,7 +533,13 @@ mod tests {
         let y = Act::new(h, w, 3, [0.3f32, 0.1, -0.2].repeat(w * h)).unwrap();
         let mut tiles = TileMap::none(w, h);
         tiles.on[1] = true;
+        for (i, p) in tiles.pixels.iter_mut().enumerate() {
+            *p = (TILE..2 * TILE).contains(&(i % w)) && i / w < TILE;
+        }
+        // A pixel of a running tile that the map keeps classical.
+        tiles.pixels[6 * w + 21] = false;
         let out = compose_defocus(&base, &y, &tiles).unwrap();
+        assert_eq!(out.pixel(21, 6), Some([0.9, 0.5, 0.05]));
         assert_eq!(out.pixel(20, 5), Some([1.0, 0.6, 0.0]));
         assert_eq!(out.pixel(5, 5), Some([0.9, 0.5, 0.05]));
     }

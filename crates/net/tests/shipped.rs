@@ -1,9 +1,11 @@
-//! The shipped C1 and C4 weights (`crates/net/weights/`): they load with their provenance, and
-//! their accuracy on simulator test seeds is held against the classical methods on the same
-//! scenes. The regression guards pin what the shipped weights measured (a margin below it);
-//! the issue's targets (C1 >= gather + 4 dB, C4 >= linear + 6 dB) are the ignored tests, which
-//! fail until weights that meet them are shipped: `cargo test -p dioptra-net --test shipped
-//! -- --include-ignored`.
+//! The shipped C1, C4, C1R and C4R weights (`crates/net/weights/`): they load with their
+//! provenance, and their accuracy on simulator test seeds is held against the classical
+//! methods on the same scenes. The regression guards pin what the shipped weights measured (a
+//! margin below it); the issues' targets (issue 7: C1 >= gather + 4 dB, C4 >= linear + 6 dB;
+//! issue 21: C1R >= the 36-view light field + 0.5 dB and never below its input on a failure
+//! case, C4R >= optimized blending with 10 iterations) are the ignored tests, which fail until
+//! weights that meet them are shipped: `cargo test --release -p dioptra-net --test shipped --
+//! --include-ignored`.
 
 use dioptra_core::{Diopters, EyeModel, Millimeters, RgbImage, Rgbd};
 use dioptra_net::{load_net, CpuNet, Task};
@@ -77,7 +79,7 @@ fn c4_vs_linear(net: &CpuNet, scenes: u64, size: usize, rays: u32) -> (f64, f64)
 
 #[test]
 fn shipped_weights_load_with_their_provenance() {
-    for config in ["c1", "c4"] {
+    for config in ["c1", "c4", "c1r", "c4r"] {
         let net = load_net(None, config).unwrap();
         assert_eq!(net.arch().task.name(), config);
         let w = dioptra_net::Weights::load(&dioptra_net::shipped_weights(config)).unwrap();
@@ -128,4 +130,294 @@ fn c1_beats_gather_by_4_db() {
 fn c4_beats_linear_by_6_db() {
     let (n, l) = c4_vs_linear(&load_net(None, "c4").unwrap(), 2, 256, 64);
     assert!(n >= l + 6.0, "network {n:.2} dB, linear {l:.2} dB");
+}
+
+/// The foci `dioptra eval` scores varifocal methods at.
+const EVAL_FOCI: [f32; 7] = [0.1, 0.5, 1.0, 1.5, 2.2, 3.0, 4.0];
+
+/// The shipped C1R and its classical method.
+fn c1r() -> (CpuNet, dioptra_net::Classical) {
+    let net = load_net(None, "c1r").unwrap();
+    let Task::C1r { classical } = net.arch().task else {
+        panic!("not a c1r net");
+    };
+    (net, classical)
+}
+
+/// (classical, refined) for one input.
+fn c1r_pair(
+    net: &CpuNet,
+    c: dioptra_net::Classical,
+    rgbd: &Rgbd,
+    q: Diopters,
+    e: &EyeModel,
+) -> (RgbImage, RgbImage) {
+    let base = dioptra_net::refine::classical_defocus(&dioptra_render::Cpu, c, rgbd, q, e).unwrap();
+    let refined = net.refine_defocus(rgbd, &base, q, e).unwrap().image;
+    (base, refined)
+}
+
+/// Every test scene of `dioptra eval` at every focus it scores, at 256 px (as eval renders
+/// them: 4 x 4 supersampled colour, 64 rays of ground truth): (label, classical dB, refined
+/// dB, the focus, the thin-lens truth, the input).
+fn c1r_on_test_scenes() -> Vec<(String, f64, f64, Diopters, RgbImage, Rgbd)> {
+    let (net, classical) = c1r();
+    let e = eye(256);
+    let mut out = Vec::new();
+    for i in 0..2 {
+        let scene = Scene::generate(Split::Test.seed(i));
+        let cam = Camera::square(e, 256);
+        let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 4).unwrap();
+        let rgbd = Rgbd::new(color, depth).unwrap();
+        for q in EVAL_FOCI.map(Diopters) {
+            let truth = render_thin_lens(&scene, &cam, q, 64).unwrap();
+            let (base, refined) = c1r_pair(&net, classical, &rgbd, q, &e);
+            let (b, r) = (psnr(&base, &truth), psnr(&refined, &truth));
+            let label = format!("test scene {i} at {:.1} D", q.0);
+            eprintln!(
+                "{label}: {} {b:.2} dB, refined {r:.2} dB",
+                classical.label()
+            );
+            out.push((label, b, r, q, truth, rgbd.clone()));
+        }
+    }
+    out
+}
+
+/// One failure case's scores (dB), whole image and inside its region.
+struct CaseScores {
+    name: String,
+    classical: f64,
+    refined: f64,
+    classical_region: f64,
+    refined_region: f64,
+    gather_region: f64,
+}
+
+/// Every failure case of `dioptra eval` (192 px, 48 rays).
+fn c1r_on_failure_cases() -> Vec<CaseScores> {
+    let (net, classical) = c1r();
+    let mut out = Vec::new();
+    for case in dioptra_sim::scene::failure::failure_cases(192).unwrap() {
+        let (color, depth) = case.input(&case.scene).unwrap();
+        let rgbd = Rgbd::new(color, depth).unwrap();
+        let truth = render_thin_lens(&case.scene, &case.camera, case.focus, 48).unwrap();
+        let (base, refined) = c1r_pair(&net, classical, &rgbd, case.focus, &case.camera.eye);
+        let region = |img: &RgbImage| quality(img, &truth, Some(&case.mask)).unwrap().psnr;
+        let g = gather(&rgbd, case.focus, &case.camera.eye).unwrap();
+        let s = CaseScores {
+            name: case.name.to_string(),
+            classical: psnr(&base, &truth),
+            refined: psnr(&refined, &truth),
+            classical_region: region(&base),
+            refined_region: region(&refined),
+            gather_region: region(&g),
+        };
+        eprintln!(
+            "{}: {:.2} -> {:.2} dB, region {:.2} -> {:.2} dB (gather {:.2})",
+            s.name, s.classical, s.refined, s.classical_region, s.refined_region, s.gather_region
+        );
+        out.push(s);
+    }
+    out
+}
+
+/// Issue 21: never below the classical input on any test scene.
+#[test]
+fn shipped_c1r_is_never_below_its_classical_input_on_the_test_scenes() {
+    let below: Vec<String> = c1r_on_test_scenes()
+        .into_iter()
+        .filter(|(_, b, r, ..)| r < b)
+        .map(|(l, b, r, ..)| format!("{l}: refined {r:.2} dB < {b:.2} dB"))
+        .collect();
+    assert!(below.is_empty(), "{below:#?}");
+}
+
+/// Guard: on the failure cases the shipped C1R measured at worst 0.23 dB below its classical
+/// input (thin occluders; issue 21's target, never below, is the ignored test after this).
+#[test]
+fn shipped_c1r_is_within_half_a_db_of_its_classical_input_on_every_failure_case() {
+    let cases = c1r_on_failure_cases();
+    assert_eq!(cases.len(), 12, "the failure suite changed");
+    for c in &cases {
+        assert!(
+            c.refined >= c.classical - 0.5,
+            "{}: {:.2} -> {:.2} dB",
+            c.name,
+            c.classical,
+            c.refined
+        );
+        assert!(
+            c.refined_region >= c.classical_region - 0.5,
+            "{} region: {:.2} -> {:.2} dB",
+            c.name,
+            c.classical_region,
+            c.refined_region
+        );
+    }
+    // Where the net is meant to help it does: the blurred occluder's side of Yu et al.'s
+    // far-focus case (measured +1.5 dB).
+    let yu = cases
+        .iter()
+        .find(|c| c.name == "yu-focus-far-point-near")
+        .unwrap();
+    assert!(
+        yu.refined_region >= yu.classical_region + 1.0,
+        "{:.2} -> {:.2} dB",
+        yu.classical_region,
+        yu.refined_region
+    );
+}
+
+/// Issue 21's target: never below the classical input on any failure case, overall or in
+/// its region. Fails with the shipped weights (thin occluders, the sharp background beside
+/// a blurred occluder, large disocclusions).
+#[test]
+#[ignore = "issue 21 target, not met by the shipped C1R"]
+fn c1r_is_never_below_its_classical_input_on_the_failure_cases() {
+    let mut below = Vec::new();
+    for c in c1r_on_failure_cases() {
+        if c.refined < c.classical {
+            below.push(format!(
+                "{}: {:.2} < {:.2} dB",
+                c.name, c.refined, c.classical
+            ));
+        }
+        if c.refined_region < c.classical_region {
+            below.push(format!(
+                "{} region: {:.2} < {:.2} dB",
+                c.name, c.refined_region, c.classical_region
+            ));
+        }
+    }
+    assert!(below.is_empty(), "{below:#?}");
+}
+
+/// Issue 21's targets: the 36-view light field + 0.5 dB over the test scenes at 256 px, and
+/// gather + 2 dB inside the regions of Yu et al.'s four occlusion cases.
+#[test]
+#[ignore = "issue 21 target, not met by the shipped C1R"]
+fn c1r_beats_the_36_view_light_field_and_gather_in_the_occlusion_regions() {
+    use dioptra_render::{Backend, Cpu, DefocusMethod, LightFieldParams};
+    let lf36 = DefocusMethod::LightField(LightFieldParams {
+        views: 36,
+        mip: true,
+    });
+    let e = eye(256);
+    let scenes = c1r_on_test_scenes();
+    let n = scenes.len() as f64;
+    let (mut refined, mut light_field) = (0.0, 0.0);
+    for (_, _, r, q, truth, rgbd) in &scenes {
+        refined += r / n;
+        let img = Cpu
+            .defocus(rgbd, &[*q], &e, lf36, &|_| {})
+            .unwrap()
+            .remove(0);
+        light_field += psnr(&img, truth) / n;
+    }
+    let mut misses = Vec::new();
+    if refined < light_field + 0.5 {
+        misses.push(format!(
+            "refined {refined:.2} dB < light field 36 views {light_field:.2} + 0.5 dB"
+        ));
+    }
+    for c in c1r_on_failure_cases()
+        .iter()
+        .filter(|c| c.name.starts_with("yu-"))
+    {
+        if c.refined_region < c.gather_region + 2.0 {
+            misses.push(format!(
+                "{} region: refined {:.2} dB < gather {:.2} + 2 dB",
+                c.name, c.refined_region, c.gather_region
+            ));
+        }
+    }
+    assert!(misses.is_empty(), "{misses:#?}");
+}
+
+/// Retinal PSNR (mean over the net's foci, 32 rays of truth) of a test scene at 256 px:
+/// (linear, refined, optimized with 10 iterations), and the refined layers.
+fn c4r_on_test_scene(net: &CpuNet, i: u64, optimized: bool) -> (f64, f64, f64, Vec<RgbImage>) {
+    let Task::C4r { planes, foci } = &net.arch().task else {
+        panic!("not a c4r net");
+    };
+    let planes: Vec<Diopters> = planes.iter().copied().map(Diopters).collect();
+    let foci: Vec<Diopters> = foci.iter().copied().map(Diopters).collect();
+    let e = eye(256);
+    let (scene, cam, rgbd) = test_scene(i, 256);
+    let truth: Vec<RgbImage> = foci
+        .iter()
+        .map(|&q| render_thin_lens(&scene, &cam, q, 32).unwrap())
+        .collect();
+    let score = |layers: &dioptra_render::Layers| {
+        let seen = retina_multifocal(layers, &foci, &e).unwrap();
+        seen.iter()
+            .zip(&truth)
+            .map(|(s, t)| psnr(s, t))
+            .sum::<f64>()
+            / foci.len() as f64
+    };
+    let linear = linear_blend(&rgbd, &planes).unwrap();
+    let refined = net.refine_decompose(&rgbd, &linear).unwrap();
+    let opt = if optimized {
+        let params = dioptra_render::OptimizeParams {
+            iterations: 10,
+            tolerance: 0.0,
+        };
+        let (l, _) = dioptra_render::multifocal::optimized_blend(
+            &truth,
+            &foci,
+            &planes,
+            &e,
+            Some(&linear),
+            params,
+            |_| {},
+        )
+        .unwrap();
+        score(&l)
+    } else {
+        f64::NAN
+    };
+    let (l, r) = (score(&linear), score(&refined));
+    eprintln!("test scene {i}: linear {l:.2} dB, refined {r:.2} dB, optimized 10 it {opt:.2} dB (retinal, mean of {} foci)", foci.len());
+    (l, r, opt, refined.images)
+}
+
+/// Issue 21: C4R never below linear blending on a test scene, its layers within [0, 1].
+#[test]
+fn shipped_c4r_is_never_below_linear_blending() {
+    let net = load_net(None, "c4r").unwrap();
+    for i in 0..2 {
+        let (l, r, _, layers) = c4r_on_test_scene(&net, i, false);
+        assert!(
+            layers
+                .iter()
+                .flat_map(|l| l.channels.iter().flat_map(|p| p.data()))
+                .all(|v| (0.0..=1.0).contains(v)),
+            "layers outside the display's [0, 1]"
+        );
+        assert!(
+            r >= l,
+            "test scene {i}: refined {r:.2} dB < linear {l:.2} dB"
+        );
+        // Guard: the shipped C4R measured +3.4 and +2.5 dB.
+        assert!(
+            r >= l + 1.5,
+            "test scene {i}: refined {r:.2} dB, linear {l:.2} dB"
+        );
+    }
+}
+
+/// Issue 21's target: C4R's retinal PSNR at least optimized blending's with 10 iterations.
+#[test]
+#[ignore = "issue 21 target, not met by the shipped C4R"]
+fn c4r_matches_optimized_blending_with_10_iterations() {
+    let net = load_net(None, "c4r").unwrap();
+    for i in 0..2 {
+        let (_, r, opt, _) = c4r_on_test_scene(&net, i, true);
+        assert!(
+            r >= opt,
+            "test scene {i}: refined {r:.2} dB < optimized 10 it {opt:.2} dB"
+        );
+    }
 }

@@ -1518,18 +1518,20 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         (Mode::Varifocal, "network", 1.2),
         (Mode::Multifocal, "network", 1.0),
         (Mode::Multifocal, "optimized", 1.0),
+        (Mode::Varifocal, "refine", 2.2),
+        (Mode::Multifocal, "refine", 1.0),
     ] {
         let m = Method::parse(method).unwrap();
         let q = dioptra_core::Diopters(focus);
         let a = cpu.render_frame(mode, m, q, None, false).unwrap().images;
         let b = gpu.render_frame(mode, m, q, None, false).unwrap().images;
         assert_eq!(a.len(), b.len());
-        // The GPU's own methods leave their images on the GPU (the network's come back
-        // through dioptra-net); the headless sink reads them back for its PNGs only.
+        // The GPU's own methods leave their images on the GPU (the nets' come back through
+        // dioptra-net); the headless sink reads them back for its PNGs only.
         let kept = b
             .iter()
             .all(|i| matches!(i, dioptra_rig::render::FrameImage::Gpu(_)));
-        assert_eq!(kept, method != "network", "{method}");
+        assert_eq!(kept, !matches!(method, "network" | "refine"), "{method}");
         let png = |images: Vec<dioptra_rig::render::FrameImage>, to: &str| {
             let out = dir.path().join(format!("{method}-{focus}-{to}"));
             let mut sink = dioptra_rig::display::HeadlessSink::new(1, Some(out.clone())).unwrap();
@@ -1569,8 +1571,18 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     let status = gpu.backend_status();
     assert_eq!(status["network"]["varifocal"], json!("gpu"), "{status}");
     assert_eq!(status["network"]["multifocal"], json!("gpu"), "{status}");
+    assert_eq!(status["refine"]["varifocal"], json!("gpu"), "{status}");
+    assert_eq!(status["refine"]["multifocal"], json!("gpu"), "{status}");
+    assert!(status["refine_tiles_run"].as_f64() > Some(0.0), "{status}");
     if status["timestamps"] == json!(true) {
-        for m in ["gather", "lightfield-16", "linear", "network", "optimized"] {
+        for m in [
+            "gather",
+            "lightfield-16",
+            "linear",
+            "network",
+            "optimized",
+            "refine",
+        ] {
             assert!(
                 status["gpu_time_us"][m]["count"].as_u64() >= Some(1),
                 "{m}: {status}"

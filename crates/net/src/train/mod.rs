@@ -10,7 +10,7 @@
 //! so late training is not starved of gradient. C4 is trained through the retinal model
 //! ([`retina`]): the loss is on the focal stack its layers produce, never on the layers.
 
-mod conv;
+pub mod conv;
 pub mod data;
 pub mod model;
 pub mod refine_data;

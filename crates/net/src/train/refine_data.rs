@@ -5,7 +5,8 @@
 //! ([`crate::refine::error_tiles`], the same map inference uses). Patches are drawn around
 //! tiles that run, a set fraction of them in proportion to the classical render's squared
 //! error there against the thin-lens target (the "where the classical method errs")
-//! and the rest uniformly; the loss covers only those tiles' pixels. C4R: linear blending's layers, and
+//! and the rest uniformly; the loss covers the pixels of those tiles the map corrects (its
+//! one-sided pixel gate, as inference composes). C4R: linear blending's layers, and
 //! optimized blending's layers (fitting the thin-lens focal stack, 100 iterations from linear)
 //! to distil before fine-tuning through the retina; the optimized layers are cached on disk.
 
@@ -331,7 +332,9 @@ pub fn sample_c1r_batch(
         for py in 0..patch {
             for px in 0..patch {
                 let inside = (xa..xb).contains(&px) && (ya..yb).contains(&py);
-                mask.push(f32::from(u8::from(inside && map.covers(x0 + px, y0 + py))));
+                mask.push(f32::from(u8::from(
+                    inside && map.corrects(x0 + px, y0 + py),
+                )));
             }
         }
     }

@@ -509,7 +509,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             p.insert(
                 "refines".into(),
                 format!(
-                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the error map's tiles, patches centred on them ({:.0} % drawn by the classical error there, the rest uniformly)",
+                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
                     classical.label(),
                     100.0 * cfg.error_weighted
                 ),
