@@ -252,20 +252,11 @@ impl SceneRenderer {
         input: &Rgbd,
         focus: Diopters,
     ) -> Result<RgbImage, RenderError> {
-        let gpu_net = lock(&self.compute).gpu_net((mode, RenderMethod::Network));
-        if let Some(g) = gpu_net {
-            match g.defocus(input, focus, &self.eye) {
-                Ok(img) => {
-                    lock(&self.compute).timed("network", g.last_stats().gpu_ns);
-                    return Ok(img);
-                }
-                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
-                    lock(&self.compute).fall_back(&e);
-                }
-                Err(e) => return Err(net_error(e)),
-            }
+        let key = (mode, RenderMethod::Network);
+        if let Some(img) = self.on_gpu_net(key, |g| g.defocus(input, focus, &self.eye))? {
+            return Ok(img);
         }
-        self.net((mode, RenderMethod::Network))?
+        self.net(key)?
             .defocus(input, focus, &self.eye)
             .map_err(net_error)
     }
@@ -291,21 +282,7 @@ impl SceneRenderer {
             )
             .map_err(net_error)
         })?;
-        let gpu_net = lock(&self.compute).gpu_net(key);
-        let refined = match gpu_net {
-            Some(g) => match g.refine_defocus(input, &base, focus, &self.eye) {
-                Ok(r) => {
-                    lock(&self.compute).timed("refine", g.last_stats().gpu_ns);
-                    Some(r)
-                }
-                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
-                    lock(&self.compute).fall_back(&e);
-                    None
-                }
-                Err(e) => return Err(net_error(e)),
-            },
-            None => None,
-        };
+        let refined = self.on_gpu_net(key, |g| g.refine_defocus(input, &base, focus, &self.eye))?;
         let r = match refined {
             Some(r) => r,
             None => cpu
@@ -324,18 +301,8 @@ impl SceneRenderer {
         let linear = self.on_backend("refine (linear)", |gpu| {
             backend_of(gpu).linear_blend(input, &self.planes)
         })?;
-        let gpu_net = lock(&self.compute).gpu_net(key);
-        if let Some(g) = gpu_net {
-            match g.refine_decompose(input, &linear) {
-                Ok(l) => {
-                    lock(&self.compute).timed("refine", g.last_stats().gpu_ns);
-                    return Ok(l.images);
-                }
-                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
-                    lock(&self.compute).fall_back(&e);
-                }
-                Err(e) => return Err(net_error(e)),
-            }
+        if let Some(l) = self.on_gpu_net(key, |g| g.refine_decompose(input, &linear))? {
+            return Ok(l.images);
         }
         Ok(cpu
             .refine_decompose(input, &linear)
@@ -343,20 +310,35 @@ impl SceneRenderer {
             .images)
     }
 
+    /// `run` on the GPU copy of the net `key` when the rig renders there (its GPU time shown
+    /// under the method's name): `None` when there is none, or when the GPU failed and the
+    /// rig fell back to the CPU, for the caller to run the CPU net.
+    fn on_gpu_net<T>(
+        &self,
+        key: NetKey,
+        run: impl FnOnce(&dioptra_net::gpu::GpuNet) -> Result<T, dioptra_net::NetError>,
+    ) -> Result<Option<T>, RenderError> {
+        let Some(g) = lock(&self.compute).gpu_net(key) else {
+            return Ok(None);
+        };
+        match run(&g) {
+            Ok(out) => {
+                lock(&self.compute).timed(key.1.as_str(), g.last_stats().gpu_ns);
+                Ok(Some(out))
+            }
+            Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
+                lock(&self.compute).fall_back(&e);
+                Ok(None)
+            }
+            Err(e) => Err(net_error(e)),
+        }
+    }
+
     /// C4 (multifocal layers) on the GPU when the rig renders there, else on the CPU.
     fn net_decompose(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
-        let gpu_net = lock(&self.compute).gpu_net((Mode::Multifocal, RenderMethod::Network));
-        if let Some(g) = gpu_net {
-            match g.decompose(input) {
-                Ok(l) => {
-                    lock(&self.compute).timed("network", g.last_stats().gpu_ns);
-                    return Ok(l.images);
-                }
-                Err(dioptra_net::NetError::Render(RenderError::Gpu(e))) => {
-                    lock(&self.compute).fall_back(&e);
-                }
-                Err(e) => return Err(net_error(e)),
-            }
+        let key = (Mode::Multifocal, RenderMethod::Network);
+        if let Some(l) = self.on_gpu_net(key, |g| g.decompose(input))? {
+            return Ok(l.images);
         }
         Ok(self
             .net((Mode::Multifocal, RenderMethod::Network))?
