@@ -125,6 +125,7 @@ fn quiet_broken_pipes() {
 
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    dioptra_render::alloc::keep_freed_memory();
     if !matches!(cli.command, Command::Serve(_) | Command::Hil(_)) {
         quiet_broken_pipes();
     }

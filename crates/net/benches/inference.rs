@@ -6,6 +6,8 @@ use dioptra_net::weights::SplitMix;
 use dioptra_net::{Act, Arch, CpuNet, Weights};
 
 fn bench(c: &mut Criterion) {
+    // As the dioptra binary runs (see dioptra_render::alloc).
+    dioptra_render::alloc::keep_freed_memory();
     let mut g = c.benchmark_group("cpu_inference_512");
     g.sample_size(10);
     let mut rng = SplitMix(1);

@@ -21,6 +21,8 @@ fn net(config: &str) -> CpuNet {
 }
 
 fn bench(c: &mut Criterion) {
+    // As the dioptra binary runs (see dioptra_render::alloc).
+    dioptra_render::alloc::keep_freed_memory();
     let size = 512;
     let eye = EyeModel::default().with_width(size as u32);
     let cam = Camera::square(eye, size);
@@ -62,6 +64,9 @@ fn bench(c: &mut Criterion) {
         });
         g.bench_function(format!("c1r_net_on_tiles_{tag}"), |b| {
             b.iter(|| c1r.forward_tiles(&x, &tiles).expect("net"))
+        });
+        g.bench_function(format!("c1r_net_whole_image_{tag}"), |b| {
+            b.iter(|| c1r.forward(&x).expect("net"))
         });
         g.bench_function(format!("c1r_refine_{tag}"), |b| {
             b.iter(|| c1r.refine_defocus(&rgbd, &base, q, &eye).expect("refine"))

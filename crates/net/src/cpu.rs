@@ -164,9 +164,41 @@ fn conv3x3(x: &Act, k: &Packed, elu: bool) -> Result<Act, NetError> {
     }
 }
 
+thread_local! {
+    /// The padded input of this thread's last convolution, kept for the next: a fresh
+    /// buffer of megabytes per layer costs more in page faults than the copy itself.
+    static PADDED: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Padded inputs up to this many values are kept between convolutions (64 MB).
+const KEEP_PADDED: usize = 16 << 20;
+
 fn conv3x3_direct(x: &Act, k: &DirectWeights, elu: bool, spans: Option<&Spans>) -> Act {
+    // A thread waiting inside rayon may run another convolution: that one gets its own buffer.
+    let kept = PADDED.with(|p| p.try_borrow_mut().map(|mut p| std::mem::take(&mut *p)));
+    let mut padded = kept.unwrap_or_default();
+    direct::pad_zero_into(&x.data, x.h, x.w, x.c, &mut padded);
+    let out = conv3x3_direct_padded(x, &padded, k, elu, spans);
+    if padded.len() <= KEEP_PADDED {
+        PADDED.with(|p| {
+            if let Ok(mut p) = p.try_borrow_mut() {
+                if p.capacity() < padded.capacity() {
+                    *p = padded;
+                }
+            }
+        });
+    }
+    out
+}
+
+fn conv3x3_direct_padded(
+    x: &Act,
+    padded: &[f32],
+    k: &DirectWeights,
+    elu: bool,
+    spans: Option<&Spans>,
+) -> Act {
     let (h, w, cout) = (x.h, x.w, k.cout);
-    let padded = direct::pad_zero(&x.data, h, w, x.c);
     let mut out = vec![0.0f32; h * w * cout];
     let whole = [(0, w)];
     out.par_chunks_mut(w * cout)
@@ -179,10 +211,10 @@ fn conv3x3_direct(x: &Act, k: &DirectWeights, elu: bool, spans: Option<&Spans>) 
                 // (h + 2) x (w + 2) x cin border copy, y < h, `row` is w x cout and every
                 // span lies within 0..w (`Spans::dilated` clamps them).
                 unsafe {
-                    direct::conv_span(&padded, w, y, x0, x1, k, elu, row)
+                    direct::conv_span(padded, w, y, x0, x1, k, elu, row)
                 }
                 #[cfg(not(target_arch = "x86_64"))]
-                let _ = (y, x0, x1, &row, elu, &padded);
+                let _ = (y, x0, x1, &row, elu, padded);
             }
         });
     Act {

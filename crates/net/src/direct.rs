@@ -183,14 +183,19 @@ unsafe fn elu8(v: std::arch::x86_64::__m256) -> std::arch::x86_64::__m256 {
     _mm256_blendv_ps(v, em1, negative)
 }
 
-/// The input with a one-pixel zero border, `(h + 2) x (w + 2) x c`.
-pub fn pad_zero(data: &[f32], h: usize, w: usize, c: usize) -> Vec<f32> {
-    let pw = w + 2;
-    let mut out = vec![0.0; (h + 2) * pw * c];
+/// The input with a one-pixel zero border, `(h + 2) x (w + 2) x c`, written into `out`
+/// (resized; the border zeroed, the interior copied: no value of its past use survives).
+pub fn pad_zero_into(data: &[f32], h: usize, w: usize, c: usize, out: &mut Vec<f32>) {
+    let (pw, row) = (w + 2, (w + 2) * c);
+    out.resize((h + 2) * row, 0.0);
+    out[..row].fill(0.0);
+    out[(h + 1) * row..].fill(0.0);
     for y in 0..h {
-        out[((y + 1) * pw + 1) * c..][..w * c].copy_from_slice(&data[y * w * c..][..w * c]);
+        let dst = &mut out[(y + 1) * row..][..row];
+        dst[..c].fill(0.0);
+        dst[(pw - 1) * c..].fill(0.0);
+        dst[c..(w + 1) * c].copy_from_slice(&data[y * w * c..][..w * c]);
     }
-    out
 }
 
 #[cfg(all(test, target_arch = "x86_64"))]

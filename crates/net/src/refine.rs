@@ -11,9 +11,10 @@
 use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
-use crate::tasks::{eye_for, rgb_at};
+use crate::tasks::eye_for;
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use dioptra_render::{Backend, DefocusMethod, Layers, LightFieldParams};
+use rayon::prelude::*;
 
 /// Side of an error-map tile, pixels (a multiple of every interleave rate).
 pub const TILE: usize = 16;
@@ -123,72 +124,97 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
     let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
     let d = depth.data();
     let q = focus.0;
-    let mut map = TileMap::none(w, h);
-    // Per pixel: reached by a nearer side's disk; the largest step middle (D) among the
-    // farther sides' disks reaching it.
-    let mut near_reach = vec![false; w * h];
-    let mut far_middle = vec![f32::NEG_INFINITY; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let a = d[y * w + x];
-            for (nx, ny) in [(x + 1, y), (x, y + 1)] {
-                if nx >= w || ny >= h {
-                    continue;
-                }
-                let b = d[ny * w + nx];
-                if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
-                    continue;
-                }
-                // Diopters: the nearer side is the larger.
-                let (near, far) = (a.max(b), a.min(b));
-                let r_near = 0.5 * (near - q).abs() * px_per_d;
-                let r_far = 0.5 * (far - q).abs() * px_per_d;
-                if r_near.max(r_far) < 0.5 {
-                    continue;
-                }
-                let (x, y) = (x as isize, y as isize);
-                let r = r_near.max(r_far).ceil() as isize + 1;
-                map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
-                if r_near >= 0.5 {
-                    let r = r_near.ceil() as isize + 1;
-                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
-                        near_reach[row].fill(true)
-                    });
-                }
-                if r_far >= 0.5 {
-                    let middle = 0.5 * (near + far);
-                    let r = r_far.ceil() as isize + 1;
-                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
-                        for m in &mut far_middle[row] {
-                            *m = m.max(middle);
-                        }
+    // Pass 1, rows in parallel: the steps from each pixel to its right and lower neighbours
+    // that blur by half a pixel or more.
+    let steps: Vec<Vec<Step>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let mut row = Vec::new();
+            for x in 0..w {
+                let a = d[y * w + x];
+                for (nx, ny) in [(x + 1, y), (x, y + 1)] {
+                    if nx >= w || ny >= h {
+                        continue;
+                    }
+                    let b = d[ny * w + nx];
+                    if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
+                        continue;
+                    }
+                    // Diopters: the nearer side is the larger.
+                    let (near, far) = (a.max(b), a.min(b));
+                    let r_near = 0.5 * (near - q).abs() * px_per_d;
+                    let r_far = 0.5 * (far - q).abs() * px_per_d;
+                    if r_near.max(r_far) < 0.5 {
+                        continue;
+                    }
+                    let reach = |r: f32| (r >= 0.5).then(|| r.ceil() as usize + 1);
+                    row.push(Step {
+                        x,
+                        near: reach(r_near),
+                        far: reach(r_far),
+                        middle: 0.5 * (near + far),
+                        tiles: r_near.max(r_far).ceil() as usize + 1,
                     });
                 }
             }
+            row
+        })
+        .collect();
+    let mut map = TileMap::none(w, h);
+    let mut reach_max = 0;
+    for (y, row) in steps.iter().enumerate() {
+        for s in row {
+            let (x, y, r) = (s.x as isize, y as isize, s.tiles as isize);
+            map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
+            reach_max = reach_max.max(s.near.max(s.far).unwrap_or(0));
         }
     }
-    for (i, p) in map.pixels.iter_mut().enumerate() {
-        *p = near_reach[i] || d[i] < far_middle[i];
-    }
+    // Pass 2, output rows in parallel: a pixel is corrected when a nearer side's disk reaches
+    // it, or a farther side's disk does and the pixel lies behind that step's middle. A step
+    // at (x, sy) with reach r covers the box [x - r, x + 1 + r] x [sy - r, sy + 1 + r].
+    map.pixels
+        .par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(y, out)| {
+            let mut near_reach = vec![false; w];
+            let mut far_middle = vec![f32::NEG_INFINITY; w];
+            let span = |x: usize, r: usize| x.saturating_sub(r)..(x + 2 + r).min(w);
+            for (sy, row) in steps
+                .iter()
+                .enumerate()
+                .take(y + reach_max + 1)
+                .skip(y.saturating_sub(reach_max + 1))
+            {
+                let covers = |r: usize| y + r >= sy && y <= sy + 1 + r;
+                for s in row {
+                    if let Some(r) = s.near.filter(|&r| covers(r)) {
+                        near_reach[span(s.x, r)].fill(true);
+                    }
+                    if let Some(r) = s.far.filter(|&r| covers(r)) {
+                        for m in &mut far_middle[span(s.x, r)] {
+                            *m = m.max(s.middle);
+                        }
+                    }
+                }
+            }
+            for (x, p) in out.iter_mut().enumerate() {
+                *p = near_reach[x] || d[y * w + x] < far_middle[x];
+            }
+        });
     Ok(map)
 }
 
-/// Calls `f` with the index range of each row of the pixel box `[x0, x1] x [y0, y1]`
-/// (inclusive, clamped to the image).
-fn for_box(
-    w: usize,
-    h: usize,
-    x0: isize,
-    y0: isize,
-    x1: isize,
-    y1: isize,
-    mut f: impl FnMut(std::ops::Range<usize>),
-) {
-    let clamp = |v: isize, max: usize| v.clamp(0, max as isize - 1) as usize;
-    let (x0, x1) = (clamp(x0, w), clamp(x1, w));
-    for y in clamp(y0, h)..=clamp(y1, h) {
-        f(y * w + x0..y * w + x1 + 1);
-    }
+/// A depth step from a pixel to its right or lower neighbour (see [`error_tiles`]).
+struct Step {
+    x: usize,
+    /// Reach (pixels) of the nearer side's blur, when it blurs by half a pixel or more.
+    near: Option<usize>,
+    /// Reach of the farther side's blur, likewise.
+    far: Option<usize>,
+    /// The step's middle, diopters.
+    middle: f32,
+    /// Reach of the tiles it marks (the more blurred side's).
+    tiles: usize,
 }
 
 /// The classical render a C1R net refines.
@@ -230,19 +256,22 @@ pub fn refine_defocus_input(
     let c = rgbd.color.channels.each_ref().map(|p| p.data());
     let k = classical.channels.each_ref().map(|p| p.data());
     let d = rgbd.depth.data();
-    let mut data = Vec::with_capacity(w * h * 8);
-    for i in 0..w * h {
-        data.extend_from_slice(&[
-            c[0][i],
-            c[1][i],
-            c[2][i],
-            d[i] / DEPTH_NORM,
-            eye.coc_px(Diopters(d[i]), focus) / COC_NORM,
-            k[0][i],
-            k[1][i],
-            k[2][i],
-        ]);
-    }
+    let mut data = vec![0.0; w * h * 8];
+    data.par_chunks_mut(w * 8).enumerate().for_each(|(y, row)| {
+        for (x, px) in row.chunks_exact_mut(8).enumerate() {
+            let i = y * w + x;
+            px.copy_from_slice(&[
+                c[0][i],
+                c[1][i],
+                c[2][i],
+                d[i] / DEPTH_NORM,
+                eye.coc_px(Diopters(d[i]), focus) / COC_NORM,
+                k[0][i],
+                k[1][i],
+                k[2][i],
+            ]);
+        }
+    });
     Act::new(h, w, 8, data)
 }
 
@@ -277,15 +306,35 @@ fn corrected(
     k: usize,
     only: Option<&TileMap>,
 ) -> Result<RgbImage, NetError> {
-    let fix = rgb_at(y, k)?;
     let (w, h) = (base.width(), base.height());
-    let mut out = base.clone();
-    for (o, f) in out.channels.iter_mut().zip(&fix.channels) {
-        for (i, (v, &c)) in o.data_mut().iter_mut().zip(f.data()).enumerate() {
-            if only.is_none_or(|t| t.corrects(i % w, i / w)) {
-                *v = (*v + c).clamp(0.0, 1.0);
-            }
+    if 3 * k + 3 > y.c || (y.w, y.h) != (w, h) {
+        return Err(input(format!(
+            "no RGB correction {k} for a {w}x{h} image in a {}x{}x{} output",
+            y.w, y.h, y.c
+        )));
+    }
+    if let Some(t) = only {
+        if (t.width, t.height) != (w, h) || t.pixels.len() != w * h {
+            return Err(input(format!(
+                "a {}x{} tile map for a {w}x{h} image",
+                t.width, t.height
+            )));
         }
+    }
+    let mut out = base.clone();
+    for (j, o) in out.channels.iter_mut().enumerate() {
+        o.data_mut()
+            .par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(row, values)| {
+                let fix = &y.data[row * w * y.c..][..w * y.c];
+                let gate = only.map(|t| &t.pixels[row * w..][..w]);
+                for (x, v) in values.iter_mut().enumerate() {
+                    if gate.is_none_or(|g| g[x]) {
+                        *v = (*v + fix[x * y.c + 3 * k + j]).clamp(0.0, 1.0);
+                    }
+                }
+            });
     }
     debug_assert_eq!((out.width(), out.height()), (w, h));
     Ok(out)
@@ -380,6 +429,86 @@ mod tests {
         EyeModel::default().with_width(w as u32)
     }
 
+    /// The error map as first written: serial, one box fill per step (the reference the
+    /// parallel [`error_tiles`] must equal).
+    fn error_tiles_reference(
+        depth: &DepthMap,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> Result<TileMap, NetError> {
+        let (w, h) = (depth.width(), depth.height());
+        let eye = eye_for(eye, w)?;
+        let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
+        let d = depth.data();
+        let q = focus.0;
+        let mut map = TileMap::none(w, h);
+        // Per pixel: reached by a nearer side's disk; the largest step middle (D) among the
+        // farther sides' disks reaching it.
+        let mut near_reach = vec![false; w * h];
+        let mut far_middle = vec![f32::NEG_INFINITY; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let a = d[y * w + x];
+                for (nx, ny) in [(x + 1, y), (x, y + 1)] {
+                    if nx >= w || ny >= h {
+                        continue;
+                    }
+                    let b = d[ny * w + nx];
+                    if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
+                        continue;
+                    }
+                    // Diopters: the nearer side is the larger.
+                    let (near, far) = (a.max(b), a.min(b));
+                    let r_near = 0.5 * (near - q).abs() * px_per_d;
+                    let r_far = 0.5 * (far - q).abs() * px_per_d;
+                    if r_near.max(r_far) < 0.5 {
+                        continue;
+                    }
+                    let (x, y) = (x as isize, y as isize);
+                    let r = r_near.max(r_far).ceil() as isize + 1;
+                    map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
+                    if r_near >= 0.5 {
+                        let r = r_near.ceil() as isize + 1;
+                        for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                            near_reach[row].fill(true)
+                        });
+                    }
+                    if r_far >= 0.5 {
+                        let middle = 0.5 * (near + far);
+                        let r = r_far.ceil() as isize + 1;
+                        for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                            for m in &mut far_middle[row] {
+                                *m = m.max(middle);
+                            }
+                        });
+                    }
+                }
+            }
+        }
+        for (i, p) in map.pixels.iter_mut().enumerate() {
+            *p = near_reach[i] || d[i] < far_middle[i];
+        }
+        Ok(map)
+    }
+
+    /// Calls `f` with the index range of each row of the pixel box `[x0, x1] x [y0, y1]`
+    /// (inclusive, clamped to the image).
+    fn for_box(
+        w: usize,
+        h: usize,
+        x0: isize,
+        y0: isize,
+        x1: isize,
+        y1: isize,
+        mut f: impl FnMut(std::ops::Range<usize>),
+    ) {
+        let clamp = |v: isize, max: usize| v.clamp(0, max as isize - 1) as usize;
+        let (x0, x1) = (clamp(x0, w), clamp(x1, w));
+        for y in clamp(y0, h)..=clamp(y1, h) {
+            f(y * w + x0..y * w + x1 + 1);
+        }
+    }
+
     /// Depth `near` D on the left `split` columns, `far` D on the rest; colour random.
     fn step_scene(w: usize, h: usize, split: usize, near: f32, far: f32, seed: u64) -> Rgbd {
         let mut r = SplitMix(seed);
@@ -409,6 +538,35 @@ mod tests {
             }
         }
         CpuNet::new(w).unwrap()
+    }
+
+    #[test]
+    fn the_parallel_error_map_equals_the_reference() {
+        // Random rectangles of random depth (0.1-4 D) over a far wall, 97 x 61 so rows and
+        // tiles do not divide evenly.
+        let (w, h) = (97, 61);
+        let mut r = SplitMix(7);
+        // uniform() is in [-1, 1).
+        let mut u = || 0.5 + 0.5 * r.uniform();
+        let mut d = vec![0.2f32; w * h];
+        for _ in 0..25 {
+            let (x0, y0) = ((u() * w as f32) as usize, (u() * h as f32) as usize);
+            let (bw, bh) = (1 + (u() * 20.0) as usize, 1 + (u() * 20.0) as usize);
+            let depth = 0.1 + 3.9 * u();
+            for y in y0..(y0 + bh).min(h) {
+                d[y * w + x0..y * w + (x0 + bw).min(w)].fill(depth);
+            }
+        }
+        let depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap();
+        for q in [0.1, 0.2, 1.0, 2.5, 4.0] {
+            let (a, b) = (
+                error_tiles(&depth, Diopters(q), &eye(w)).unwrap(),
+                error_tiles_reference(&depth, Diopters(q), &eye(w)).unwrap(),
+            );
+            assert_eq!(a.on, b.on, "tiles at {q} D");
+            assert_eq!(a.pixels, b.pixels, "pixels at {q} D");
+            assert!(a.pixels.contains(&true), "nothing corrected at {q} D");
+        }
     }
 
     #[test]

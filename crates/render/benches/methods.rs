@@ -18,6 +18,8 @@ fn input() -> Rgbd {
 }
 
 fn benches(c: &mut Criterion) {
+    // As the dioptra binary runs (see dioptra_render::alloc).
+    dioptra_render::alloc::keep_freed_memory();
     let eye = EyeModel::default();
     let cpu = backend("cpu").expect("cpu backend");
     let input = input();

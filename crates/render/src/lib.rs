@@ -2,6 +2,7 @@
 //! foveation, metrics) behind a [`Backend`] seam, with the CPU backend as the reference.
 //! All colour maths is in linear light; sRGB appears only in [`io`] and in the metrics.
 
+pub mod alloc;
 pub mod backend;
 mod common;
 pub mod error;
