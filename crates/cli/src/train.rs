@@ -86,6 +86,14 @@ pub struct Args {
     /// over the tiles the net runs on).
     #[arg(long, default_value_t = 0.5)]
     error_weighted: f64,
+    /// c1r: weight of a penalty on patches the net makes worse than its classical input
+    /// (their relative rise in squared error; 0: off).
+    #[arg(long, default_value_t = 0.0)]
+    no_worse: f64,
+    /// Training scenes of the occluder family (thin rods and large boxes before a far
+    /// wall, training seeds), after the --scenes random ones.
+    #[arg(long, default_value_t = 0)]
+    occluder_scenes: u64,
 }
 
 /// `gather` or `lightfield:N`.
@@ -148,6 +156,19 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--error-weighted {}: expected 0 to 1", a.error_weighted);
     }
     cfg.error_weighted = a.error_weighted;
+    if !(a.no_worse.is_finite() && a.no_worse >= 0.0) {
+        bail!("--no-worse {}: expected a weight of 0 or more", a.no_worse);
+    }
+    if a.no_worse > 0.0 && !arch_task_is_c1r {
+        bail!("--no-worse applies to c1r only");
+    }
+    cfg.no_worse = a.no_worse;
+    if a.occluder_scenes > 0 && matches!(cfg.arch.task, Task::C5 { .. } | Task::Fv { .. }) {
+        bail!(
+            "--occluder-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)"
+        );
+    }
+    cfg.occluder_scenes = a.occluder_scenes;
     cfg.fovs = match (&a.fovs, &arch_task_is_c1r) {
         (Some(f), _) => f.clone(),
         (None, true) => vec![20.0, 10.0],
@@ -172,7 +193,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(c) = a.cache {
         cfg.cache = c;
     }
-    let data_bar = ProgressBar::new(cfg.scenes);
+    let data_bar = ProgressBar::new(cfg.total_scenes());
     data_bar.set_style(
         ProgressStyle::with_template("scenes [{bar:40}] {pos}/{len} {elapsed_precise}")?
             .progress_chars("=> "),
@@ -195,7 +216,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         TrainEvent::Data { done, .. } => {
             data_bar.set_position(done);
-            if done == cfg.scenes {
+            if done == cfg.total_scenes() {
                 data_bar.finish();
             }
         }

@@ -27,6 +27,9 @@ pub struct DataSpec {
     pub samples: u32,
     pub fov_deg: f32,
     pub pupil_mm: f32,
+    /// Render [`Scene::generate_occluders`]'s scene for the seed instead of
+    /// [`Scene::generate`]'s.
+    pub occluders: bool,
 }
 
 impl Default for DataSpec {
@@ -37,6 +40,7 @@ impl Default for DataSpec {
             samples: 64,
             fov_deg: 20.0,
             pupil_mm: 4.0,
+            occluders: false,
         }
     }
 }
@@ -93,8 +97,11 @@ fn cache_path(dir: &Path, seed: u64, foci: &[f32], spec: &DataSpec) -> PathBuf {
         .chain(&[spec.fov_deg, spec.pupil_mm])
         .flat_map(|f| f.to_le_bytes()));
     dir.join(format!(
-        "scene-{seed}-{}px-{}ss-{}spp-{key:016x}.safetensors",
-        spec.size, spec.supersample, spec.samples
+        "{}-{seed}-{}px-{}ss-{}spp-{key:016x}.safetensors",
+        if spec.occluders { "occluders" } else { "scene" },
+        spec.size,
+        spec.supersample,
+        spec.samples
     ))
 }
 
@@ -211,7 +218,11 @@ pub fn load_or_render(
         }
     }
     let cam = Camera::square(spec.eye()?, spec.size);
-    let scene = Scene::generate(seed);
+    let scene = if spec.occluders {
+        Scene::generate_occluders(seed)
+    } else {
+        Scene::generate(seed)
+    };
     let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], spec.supersample)?;
     let stack = foci
         .iter()

@@ -53,6 +53,12 @@ pub struct TrainConfig {
     /// C1R: the fraction of patches centred on tiles drawn by the classical render's error
     /// there (the rest uniformly over the tiles that run).
     pub error_weighted: f64,
+    /// C1R: weight of the "no worse than classical" term: per patch, the relative rise of
+    /// the masked MSE over the classical render's, where it rises (0: off).
+    pub no_worse: f64,
+    /// Scenes of the occluder family ([`dioptra_sim::scene::Scene::generate_occluders`],
+    /// seeds `first_seed ..`) after the `scenes` random ones.
+    pub occluder_scenes: u64,
 }
 
 impl TrainConfig {
@@ -75,6 +81,8 @@ impl TrainConfig {
             distill_steps: 0,
             lr_final: None,
             error_weighted: 0.5,
+            no_worse: 0.0,
+            occluder_scenes: 0,
         }
     }
 
@@ -89,9 +97,15 @@ impl TrainConfig {
         }
     }
 
+    /// Random scenes plus occluder scenes.
+    pub fn total_scenes(&self) -> u64 {
+        self.scenes + self.occluder_scenes
+    }
+
     /// The render settings of training scene `i` (its field of view from `fovs`).
     pub fn spec_of(&self, i: u64) -> DataSpec {
         let mut spec = self.data.clone();
+        spec.occluders = i >= self.scenes;
         if !self.fovs.is_empty() {
             spec.fov_deg = self.fovs[(i % self.fovs.len() as u64) as usize];
         }
@@ -196,9 +210,12 @@ pub fn load_scenes(
     cfg: &TrainConfig,
     on: &mut dyn FnMut(TrainEvent),
 ) -> Result<Vec<SceneData>, NetError> {
-    (0..cfg.scenes)
+    let total = cfg.total_scenes();
+    (0..total)
         .map(|i| {
-            let seed = cfg.first_seed + i;
+            // The occluder family numbers its seeds from `first_seed` too: a different
+            // generator, so no scene repeats.
+            let seed = cfg.first_seed + if i < cfg.scenes { i } else { i - cfg.scenes };
             let spec = cfg.spec_of(i);
             let s = match &cfg.arch.task {
                 Task::C5 { grid, .. } | Task::Fv { grid, .. } => {
@@ -209,10 +226,7 @@ pub fn load_scenes(
                     load_or_render(&cfg.cache, seed, &foci, &spec)
                 }
             };
-            on(TrainEvent::Data {
-                done: i + 1,
-                total: cfg.scenes,
-            });
+            on(TrainEvent::Data { done: i + 1, total });
             s
         })
         .collect()
@@ -236,6 +250,7 @@ fn batch_loss(
     retina: Option<&Retina>,
     b: &Batch,
     distilling: bool,
+    no_worse: f64,
     dev: &Device,
 ) -> Result<Tensor, NetError> {
     let shape = |c: usize| (b.n, c, b.patch, b.patch);
@@ -249,7 +264,14 @@ fn batch_loss(
                 Some(m) => Some(Tensor::from_vec(m.clone(), shape(1), dev)?),
                 None => None,
             };
-            log_mse(&srgb(&pred)?, &srgb(&t)?, mask.as_ref())?
+            let (pred, t) = (srgb(&pred)?, srgb(&t)?);
+            let l = log_mse(&pred, &t, mask.as_ref())?;
+            if no_worse > 0.0 {
+                let base = srgb(&x.narrow(1, 5, 3)?.clamp(0f32, 1f32)?)?;
+                (l + (no_worse_penalty(&pred, &base, &t, mask.as_ref())? * no_worse)?)?
+            } else {
+                l
+            }
         }
         Task::C4r { planes, .. } => {
             let m3 = 3 * planes.len();
@@ -288,6 +310,36 @@ fn batch_loss(
             }
         }
     })
+}
+
+/// Mean over the batch's 16 x 16 tiles (the error map's; whole patches when their side is
+/// not a multiple) of `max(0, mse(pred) / mse(base) - 1)`, each tile's squared error over
+/// its masked pixels (all pixels without a mask): how much worse than its classical input
+/// the refinement makes a tile, relatively. Tiles it improves add nothing, so the term only
+/// pushes back where the net does harm, and a gain elsewhere in the patch cannot pay for it.
+fn no_worse_penalty(
+    pred: &Tensor,
+    base: &Tensor,
+    target: &Tensor,
+    mask: Option<&Tensor>,
+) -> candle_core::Result<Tensor> {
+    let (n, c, h, w) = pred.dims4()?;
+    let per_tile = |img: &Tensor| -> candle_core::Result<Tensor> {
+        let e2 = (img - target)?.sqr()?;
+        let e2 = match mask {
+            Some(m) => e2.broadcast_mul(m)?,
+            None => e2,
+        };
+        if h % TILE == 0 && w % TILE == 0 {
+            e2.reshape((n, c, h / TILE, TILE, w / TILE, TILE))?
+                .sum((1, 3, 5))
+        } else {
+            e2.sum((1, 2, 3))
+        }
+    };
+    let (p, b) = (per_tile(pred)?, per_tile(base)?);
+    // Sums over the same pixels, so their ratio is the ratio of the MSEs.
+    ((p - &b)? / (b + 1e-6)?)?.relu()?.mean_all()
 }
 
 /// Trains (or resumes training in `cfg.out`) and exports `<config>.safetensors` there.
@@ -431,7 +483,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         };
         let t1 = Instant::now();
         let distilling = step < cfg.distill_steps;
-        let l = batch_loss(&net, retina.as_ref(), &b, distilling, &dev)?;
+        let l = batch_loss(&net, retina.as_ref(), &b, distilling, cfg.no_worse, &dev)?;
         let lv = l.to_scalar::<f32>()?;
         if !lv.is_finite() {
             return Err(NetError::Data(format!(
@@ -468,6 +520,16 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         "train_seeds".into(),
         format!("{}..{}", cfg.first_seed, cfg.first_seed + cfg.scenes),
     );
+    if cfg.occluder_scenes > 0 {
+        p.insert(
+            "train_occluder_seeds".into(),
+            format!(
+                "{}..{} (Scene::generate_occluders)",
+                cfg.first_seed,
+                cfg.first_seed + cfg.occluder_scenes
+            ),
+        );
+    }
     let data = match &cfg.arch.task {
         Task::C5 { grid, .. } | Task::Fv { grid, .. } => format!(
             "{}px pinhole views on a {grid}x{grid} grid over the {} mm pupil, {}x{} supersampled, fov {} deg{}",
@@ -509,8 +571,13 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             p.insert(
                 "refines".into(),
                 format!(
-                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
+                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects{}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
                     classical.label(),
+                    if cfg.no_worse > 0.0 {
+                        format!(", plus {} x the mean relative rise of a 16 x 16 tile's error over the classical render's where it rises", cfg.no_worse)
+                    } else {
+                        String::new()
+                    },
                     100.0 * cfg.error_weighted
                 ),
             );
@@ -550,4 +617,61 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
     w.save(&path)?;
     on(TrainEvent::Exported { path });
     Ok(w)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(v: &[f32]) -> Tensor {
+        Tensor::from_slice(v, (v.len() / 4, 1, 2, 2), &Device::Cpu).unwrap()
+    }
+
+    #[test]
+    fn no_worse_penalty_counts_only_tiles_made_worse() {
+        let target = t(&[0.5; 8]);
+        // Patch 0: classical off by 0.1 everywhere, refined off by 0.2 (4x the squared
+        // error: a rise of 3). Patch 1: refined exact, better than classical (adds nothing).
+        let base = t(&[0.6, 0.6, 0.6, 0.6, 0.4, 0.4, 0.4, 0.4]);
+        let pred = t(&[0.7, 0.7, 0.7, 0.7, 0.5, 0.5, 0.5, 0.5]);
+        let p = no_worse_penalty(&pred, &base, &target, None)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!((p - 1.5).abs() < 1e-3, "{p}");
+        // Equal to the classical render: nothing.
+        let p = no_worse_penalty(&base, &base, &target, None)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert_eq!(p, 0.0);
+        // A mask restricts each patch to its pixels: patch 0 worse only outside the mask.
+        let pred = t(&[0.6, 0.6, 0.6, 0.9, 0.4, 0.4, 0.4, 0.4]);
+        let mask = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 1.0, 1.0, 1.0]);
+        let p = no_worse_penalty(&pred, &base, &target, Some(&mask))
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert_eq!(p, 0.0);
+        // A 32 x 32 patch is four tiles: one made 4x worse, three made exact. The patch as a
+        // whole improves, yet the worse tile counts: 3 / 4.
+        let size = 2 * TILE;
+        let target = Tensor::full(0.5f32, (1, 1, size, size), &Device::Cpu).unwrap();
+        let base = Tensor::full(0.6f32, (1, 1, size, size), &Device::Cpu).unwrap();
+        let pred: Vec<f32> = (0..size * size)
+            .map(|i| {
+                if i / size < TILE && i % size < TILE {
+                    0.7
+                } else {
+                    0.5
+                }
+            })
+            .collect();
+        let pred = Tensor::from_vec(pred, (1, 1, size, size), &Device::Cpu).unwrap();
+        let p = no_worse_penalty(&pred, &base, &target, None)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!((p - 0.75).abs() < 1e-3, "{p}");
+    }
 }
