@@ -352,6 +352,10 @@ fn c1r_training_lowers_the_loss_from_the_classical_render() {
     // Large blur on the tiny renders (as 512 px), the halo (3 layers x r 2) inside the patch.
     cfg.fovs = vec![5.0];
     cfg.patch = 32;
+    // One scene of the occluder family, and the penalty on tiles made worse (both 16 x 16
+    // tiles of a 32 px patch).
+    cfg.occluder_scenes = 1;
+    cfg.no_worse = 1.0;
     let (w, losses, _) = run(&cfg);
     let first: f32 = losses[..5].iter().sum::<f32>() / 5.0;
     let last: f32 = losses[35..].iter().sum::<f32>() / 5.0;
@@ -360,6 +364,16 @@ fn c1r_training_lowers_the_loss_from_the_classical_render() {
     assert_eq!(back.convs, w.convs);
     assert!(back.provenance["refines"].contains("gather"));
     assert!(back.provenance["fovs"].contains("5.0"));
+    assert!(back.provenance["refines"].contains("16 x 16 tile's error"));
+    assert!(back.provenance["train_occluder_seeds"].contains("generate_occluders"));
+    let occluder_cache = std::fs::read_dir(&cfg.cache)
+        .unwrap()
+        .filter(|e| {
+            let name = e.as_ref().unwrap().file_name();
+            name.to_string_lossy().starts_with("occluders-")
+        })
+        .count();
+    assert_eq!(occluder_cache, 1, "the occluder scene is cached under its own name");
     // A patch that cannot hold a tile inside the halo is refused, saying the size needed.
     cfg.patch = 24;
     let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
