@@ -423,8 +423,9 @@ impl CpuNet {
 }
 
 impl CpuNet {
-    /// [`CpuNet::forward`] computed only where `tiles` needs it: each layer on the tiles that
-    /// run, grown by the receptive field still ahead of it, so on those tiles the output
+    /// [`CpuNet::forward`] computed only where `tiles` needs it: the last layer on the
+    /// pixels the map corrects ([`TileMap::corrects`], the only ones composed), each earlier
+    /// layer on those grown by the receptive field still ahead of it, so there the output
     /// equals a full-image pass (the same kernel over the same values); elsewhere it is
     /// unspecified. Falls back to a full pass without the direct kernel or with a U-Net.
     pub fn forward_tiles(&self, x: &Act, tiles: &TileMap) -> Result<Act, NetError> {
@@ -447,7 +448,8 @@ impl CpuNet {
         let mut last = vec![false; hp * wp];
         for (y, row) in last.chunks_mut(wp).enumerate() {
             for (xx, v) in row.iter_mut().enumerate() {
-                *v = tiles.covers(xx * r, y * r);
+                // An interleaved pixel holds r x r pixels of the image.
+                *v = (0..r).any(|dy| (0..r).any(|dx| tiles.corrects(xx * r + dx, y * r + dy)));
             }
         }
         let needed = (0..arch.layers)
