@@ -519,6 +519,34 @@ async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
     assert!(served.ok() && simulated.ok(), "{served:?} {simulated:?}");
 }
 
+/// The scene renderer with a fixed render cost on the rig's clock. Without one a frame counts
+/// as taking its wall time, so on a loaded machine renders slow enough to skip a scene step
+/// made this test fail (shown 19 of 20).
+struct FixedCost(SceneRenderer);
+
+impl dioptra_rig::render::Renderer for FixedCost {
+    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>> {
+        self.0.depth(now)
+    }
+    fn take_arrival(&self) -> Option<dioptra_rig::render::Arrival> {
+        self.0.take_arrival()
+    }
+    fn content_time(&self) -> Option<Timestamp> {
+        self.0.content_time()
+    }
+    fn render(
+        &self,
+        job: &dioptra_rig::render::RenderJob,
+    ) -> Result<dioptra_rig::render::RenderOutput, dioptra_render::RenderError> {
+        let mut out = self.0.render(job)?;
+        out.cost = Some(Duration::from_millis(8));
+        Ok(out)
+    }
+    fn content_status(&self) -> serde_json::Value {
+        self.0.content_status()
+    }
+}
+
 /// The daemon's procedural scene moves with the rig's clock: on simulated time each frame it
 /// shows is the scene at the last 50 ms step before the frame was asked for, none late, and
 /// the recording holds each frame's scene time (what a replay renders).
@@ -530,7 +558,7 @@ async fn the_procedural_scene_moves_with_rig_time() {
         t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
             .replace("start = false", "start = true")
     });
-    let renderer = SceneRenderer::with_pacing(&cfg, Pacing::Simulated).unwrap();
+    let renderer = FixedCost(SceneRenderer::with_pacing(&cfg, Pacing::Simulated).unwrap());
     let r = SimRun::new(cfg, Duration::from_secs(1))
         .unwrap()
         .run(Arc::new(renderer), None)
