@@ -373,7 +373,10 @@ fn c1r_training_lowers_the_loss_from_the_classical_render() {
             name.to_string_lossy().starts_with("occluders-")
         })
         .count();
-    assert_eq!(occluder_cache, 1, "the occluder scene is cached under its own name");
+    assert_eq!(
+        occluder_cache, 1,
+        "the occluder scene is cached under its own name"
+    );
     // A patch that cannot hold a tile inside the halo is refused, saying the size needed.
     cfg.patch = 24;
     let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
