@@ -312,11 +312,13 @@ fn batch_loss(
     })
 }
 
-/// Mean over the batch's 16 x 16 tiles (the error map's; whole patches when their side is
-/// not a multiple) of `max(0, mse(pred) / mse(base) - 1)`, each tile's squared error over
-/// its masked pixels (all pixels without a mask): how much worse than its classical input
-/// the refinement makes a tile, relatively. Tiles it improves add nothing, so the term only
-/// pushes back where the net does harm, and a gain elsewhere in the patch cannot pay for it.
+/// How much error the refinement adds where it does harm, relative to the classical error:
+/// over the batch's 16 x 16 tiles (the error map's; whole patches when their side is not a
+/// multiple), `sum max(0, e(pred) - e(base)) / sum e(base)`, each tile's `e` its summed
+/// squared error over its masked pixels (all pixels without a mask). Tiles it improves add
+/// nothing, so a gain elsewhere cannot pay for a tile made worse; the harm is weighed in
+/// absolute terms (a tile the classical render already gets right weighs no more than its
+/// error), so the net is not pushed to give up the tiles where it helps.
 fn no_worse_penalty(
     pred: &Tensor,
     base: &Tensor,
@@ -338,8 +340,7 @@ fn no_worse_penalty(
         }
     };
     let (p, b) = (per_tile(pred)?, per_tile(base)?);
-    // Sums over the same pixels, so their ratio is the ratio of the MSEs.
-    ((p - &b)? / (b + 1e-6)?)?.relu()?.mean_all()
+    (p - &b)?.relu()?.sum_all()? / (b.sum_all()? + 1e-6)?
 }
 
 /// Trains (or resumes training in `cfg.out`) and exports `<config>.safetensors` there.
@@ -574,7 +575,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
                     "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects{}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
                     classical.label(),
                     if cfg.no_worse > 0.0 {
-                        format!(", plus {} x the mean relative rise of a 16 x 16 tile's error over the classical render's where it rises", cfg.no_worse)
+                        format!(", plus {} x the error added in the 16 x 16 tiles made worse, over the classical error", cfg.no_worse)
                     } else {
                         String::new()
                     },
@@ -630,8 +631,9 @@ mod tests {
     #[test]
     fn no_worse_penalty_counts_only_tiles_made_worse() {
         let target = t(&[0.5; 8]);
-        // Patch 0: classical off by 0.1 everywhere, refined off by 0.2 (4x the squared
-        // error: a rise of 3). Patch 1: refined exact, better than classical (adds nothing).
+        // Patch 0: classical off by 0.1 everywhere (squared error 0.04 per patch), refined off
+        // by 0.2 (0.16: a rise of 0.12). Patch 1: refined exact, better than classical (adds
+        // nothing, and does not pay for patch 0). Classical error over both: 0.08.
         let base = t(&[0.6, 0.6, 0.6, 0.6, 0.4, 0.4, 0.4, 0.4]);
         let pred = t(&[0.7, 0.7, 0.7, 0.7, 0.5, 0.5, 0.5, 0.5]);
         let p = no_worse_penalty(&pred, &base, &target, None)
@@ -653,8 +655,9 @@ mod tests {
             .to_scalar::<f32>()
             .unwrap();
         assert_eq!(p, 0.0);
-        // A 32 x 32 patch is four tiles: one made 4x worse, three made exact. The patch as a
-        // whole improves, yet the worse tile counts: 3 / 4.
+        // A 32 x 32 patch is four tiles of equal classical error: one made 4x worse (a rise
+        // of 3 tiles' worth), three made exact. The patch as a whole improves, yet the worse
+        // tile counts: 3 / 4 of the classical error.
         let size = 2 * TILE;
         let target = Tensor::full(0.5f32, (1, 1, size, size), &Device::Cpu).unwrap();
         let base = Tensor::full(0.6f32, (1, 1, size, size), &Device::Cpu).unwrap();
