@@ -95,17 +95,6 @@ impl TileMap {
         Plane::from_vec(self.width, self.height, data)
             .unwrap_or_else(|_| Plane::new(self.width, self.height, 0.0))
     }
-
-    /// Marks every tile that the pixel box `[x0, x1] x [y0, y1]` (inclusive, clamped to the
-    /// image) touches.
-    fn mark(&mut self, x0: isize, y0: isize, x1: isize, y1: isize) {
-        let clamp = |v: isize, max: usize| v.clamp(0, max as isize - 1) as usize;
-        let (tx0, tx1) = (clamp(x0, self.width) / TILE, clamp(x1, self.width) / TILE);
-        let (ty0, ty1) = (clamp(y0, self.height) / TILE, clamp(y1, self.height) / TILE);
-        for ty in ty0..=ty1 {
-            self.on[ty * self.cols + tx0..=ty * self.cols + tx1].fill(true);
-        }
-    }
 }
 
 /// The error map (BokehMe's, from depth alone): the tiles within the blur radius of a depth
@@ -114,10 +103,14 @@ impl TileMap {
 /// side's disk reaches (radius CoC / 2, plus one pixel), and nothing when neither side blurs
 /// by half a pixel.
 ///
-/// Per pixel the map is one-sided: the nearer side's blur spreads over both sides, but the
-/// farther side's blur only over its own pixels (behind a sharp occluder the occluder's
-/// pixels are what a single view and the thin lens both see), so a pixel reached only by the
-/// farther side's disk and nearer than the step's middle keeps its classical value.
+/// Per pixel the map keeps only what a single view lacks. The farther side's blur corrects
+/// only its own pixels: behind a sharp occluder the occluder's pixels are what a single view
+/// and the thin lens both see. The nearer side's blur corrects both sides when the farther
+/// side blurs too, but only its own pixels when the farther side is sharp: a sharp pixel
+/// beside a blurred occluder sees itself and the occluder along every ray through the pupil,
+/// both in the image, so the classical render lacks nothing there (the light field's only
+/// error is its sampling of the pupil), while the occluder's own pixels hide the background
+/// its blur uncovers. A tile runs when any of its pixels is corrected.
 pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
     let (w, h) = (depth.width(), depth.height());
     let eye = eye_for(eye, w)?;
@@ -153,7 +146,6 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
                         near: reach(r_near),
                         far: reach(r_far),
                         middle: 0.5 * (near + far),
-                        tiles: r_near.max(r_far).ceil() as usize + 1,
                     });
                 }
             }
@@ -161,22 +153,22 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
         })
         .collect();
     let mut map = TileMap::none(w, h);
-    let mut reach_max = 0;
-    for (y, row) in steps.iter().enumerate() {
-        for s in row {
-            let (x, y, r) = (s.x as isize, y as isize, s.tiles as isize);
-            map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
-            reach_max = reach_max.max(s.near.max(s.far).unwrap_or(0));
-        }
-    }
+    let reach_max = steps
+        .iter()
+        .flatten()
+        .map(|s| s.near.max(s.far).unwrap_or(0))
+        .max()
+        .unwrap_or(0);
     // Pass 2, output rows in parallel: a pixel is corrected when a nearer side's disk reaches
-    // it, or a farther side's disk does and the pixel lies behind that step's middle. A step
-    // at (x, sy) with reach r covers the box [x - r, x + 1 + r] x [sy - r, sy + 1 + r].
+    // it and either that step's farther side blurs or the pixel lies before its middle, or a
+    // farther side's disk reaches it and the pixel lies behind that step's middle. A step at
+    // (x, sy) with reach r covers the box [x - r, x + 1 + r] x [sy - r, sy + 1 + r].
     map.pixels
         .par_chunks_mut(w)
         .enumerate()
         .for_each(|(y, out)| {
             let mut near_reach = vec![false; w];
+            let mut near_middle = vec![f32::INFINITY; w];
             let mut far_middle = vec![f32::NEG_INFINITY; w];
             let span = |x: usize, r: usize| x.saturating_sub(r)..(x + 2 + r).min(w);
             for (sy, row) in steps
@@ -188,7 +180,13 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
                 let covers = |r: usize| y + r >= sy && y <= sy + 1 + r;
                 for s in row {
                     if let Some(r) = s.near.filter(|&r| covers(r)) {
-                        near_reach[span(s.x, r)].fill(true);
+                        if s.far.is_some() {
+                            near_reach[span(s.x, r)].fill(true);
+                        } else {
+                            for m in &mut near_middle[span(s.x, r)] {
+                                *m = m.min(s.middle);
+                            }
+                        }
                     }
                     if let Some(r) = s.far.filter(|&r| covers(r)) {
                         for m in &mut far_middle[span(s.x, r)] {
@@ -198,9 +196,17 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
                 }
             }
             for (x, p) in out.iter_mut().enumerate() {
-                *p = near_reach[x] || d[y * w + x] < far_middle[x];
+                let v = d[y * w + x];
+                *p = near_reach[x] || v > near_middle[x] || v < far_middle[x];
             }
         });
+    for (y, row) in map.pixels.chunks(w).enumerate() {
+        for (tx, tile) in row.chunks(TILE).enumerate() {
+            if tile.contains(&true) {
+                map.on[(y / TILE) * map.cols + tx] = true;
+            }
+        }
+    }
     Ok(map)
 }
 
@@ -213,8 +219,6 @@ struct Step {
     far: Option<usize>,
     /// The step's middle, diopters.
     middle: f32,
-    /// Reach of the tiles it marks (the more blurred side's).
-    tiles: usize,
 }
 
 /// The classical render a C1R net refines.
@@ -429,7 +433,7 @@ mod tests {
         EyeModel::default().with_width(w as u32)
     }
 
-    /// The error map as first written: serial, one box fill per step (the reference the
+    /// The error map written plainly: serial, one box fill per step (the reference the
     /// parallel [`error_tiles`] must equal).
     fn error_tiles_reference(
         depth: &DepthMap,
@@ -442,9 +446,11 @@ mod tests {
         let d = depth.data();
         let q = focus.0;
         let mut map = TileMap::none(w, h);
-        // Per pixel: reached by a nearer side's disk; the largest step middle (D) among the
-        // farther sides' disks reaching it.
+        // Per pixel: reached by the disk of a nearer side whose farther side blurs too; the
+        // smallest step middle (D) among the nearer sides' disks with a sharp farther side
+        // reaching it; the largest among the farther sides' disks reaching it.
         let mut near_reach = vec![false; w * h];
+        let mut near_middle = vec![f32::INFINITY; w * h];
         let mut far_middle = vec![f32::NEG_INFINITY; w * h];
         for y in 0..h {
             for x in 0..w {
@@ -465,16 +471,20 @@ mod tests {
                         continue;
                     }
                     let (x, y) = (x as isize, y as isize);
-                    let r = r_near.max(r_far).ceil() as isize + 1;
-                    map.mark(x - r, y - r, x + 1 + r, y + 1 + r);
+                    let middle = 0.5 * (near + far);
                     if r_near >= 0.5 {
                         let r = r_near.ceil() as isize + 1;
                         for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
-                            near_reach[row].fill(true)
+                            if r_far >= 0.5 {
+                                near_reach[row].fill(true)
+                            } else {
+                                for m in &mut near_middle[row] {
+                                    *m = m.min(middle);
+                                }
+                            }
                         });
                     }
                     if r_far >= 0.5 {
-                        let middle = 0.5 * (near + far);
                         let r = r_far.ceil() as isize + 1;
                         for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
                             for m in &mut far_middle[row] {
@@ -486,7 +496,10 @@ mod tests {
             }
         }
         for (i, p) in map.pixels.iter_mut().enumerate() {
-            *p = near_reach[i] || d[i] < far_middle[i];
+            *p = near_reach[i] || d[i] > near_middle[i] || d[i] < far_middle[i];
+            if *p {
+                map.on[(i / w / TILE) * map.cols + (i % w) / TILE] = true;
+            }
         }
         Ok(map)
     }
@@ -573,36 +586,45 @@ mod tests {
     fn the_error_map_selects_tiles_within_the_blur_of_a_depth_step_only() {
         let (w, h) = (128, 48);
         let e = eye(w);
-        // 1 D step at column 64; focus on the far side: the near side blurs by
-        // coc(2 D - 1 D) = 1 D of blur, about 2.9 px at 128 px / 20 degrees... times 2.
+        // 1 D step between columns 63 (2 D) and 64 (1 D); each side, out of focus by 1 D,
+        // blurs with a disk of radius `r` and reaches `reach` pixels.
         let s = step_scene(w, h, 64, 2.0, 1.0, 1);
-        let map = error_tiles(&s.depth, Diopters(1.0), &e).unwrap();
         let r = 0.5 * e.with_width(w as u32).coc_px(Diopters(2.0), Diopters(1.0));
         let reach = r.ceil() as usize + 1;
-        for t in 0..map.on.len() {
-            let (x0, x1) = ((t % map.cols) * TILE, (t % map.cols + 1) * TILE);
-            // Tiles whose columns come within `reach` of the step at x = 63.5 run.
-            let near = x0 <= 64 + reach && x1 + reach >= 64;
-            assert_eq!(map.on[t], near, "tile {t} ({x0}..{x1}), reach {reach}");
-        }
-        assert!(map.fraction() > 0.0 && map.fraction() < 1.0);
-        // The near side (columns < 64) blurs: its disk covers both sides within `reach`.
-        for x in 0..w {
-            let want = x + reach >= 63 && x <= 64 + reach;
-            assert_eq!(map.corrects(x, 10), want, "column {x}, reach {reach}");
-        }
+        let tiles_over = |cols: std::ops::RangeInclusive<usize>| -> Vec<bool> {
+            (0..h.div_ceil(TILE) * w.div_ceil(TILE))
+                .map(|t| {
+                    let x0 = (t % w.div_ceil(TILE)) * TILE;
+                    x0 <= *cols.end() && x0 + TILE > *cols.start()
+                })
+                .collect()
+        };
+        let check = |map: &TileMap, cols: std::ops::RangeInclusive<usize>, what: &str| {
+            for x in 0..w {
+                assert_eq!(map.corrects(x, 10), cols.contains(&x), "{what}: column {x}");
+            }
+            assert_eq!(map.on, tiles_over(cols), "{what}: tiles");
+            assert!(map.fraction() > 0.0 && map.fraction() < 1.0, "{what}");
+        };
+        // Focus on the far side: the blurred near side's disk covers the sharp far side too,
+        // but a sharp pixel beside a blurred occluder lacks nothing, so only the near side's
+        // own pixels are corrected, and only the tiles holding them run.
+        let far_focus = error_tiles(&s.depth, Diopters(1.0), &e).unwrap();
+        check(&far_focus, 63 - reach..=63, "focus on the far side");
         // Focus on the near side: only the far side blurs, and only its pixels are corrected
-        // (the sharp occluder is what every view sees), though the same tiles run.
-        let sharp_near = error_tiles(&s.depth, Diopters(2.0), &e).unwrap();
-        assert_eq!(sharp_near.on, map.on);
-        for x in 0..w {
-            let want = x >= 64 && x <= 64 + reach;
-            assert_eq!(
-                sharp_near.corrects(x, 10),
-                want,
-                "column {x}, reach {reach}"
-            );
-        }
+        // (the sharp occluder is what every view sees).
+        let near_focus = error_tiles(&s.depth, Diopters(2.0), &e).unwrap();
+        check(&near_focus, 64..=64 + reach, "focus on the near side");
+        // Focus beyond both (at infinity): both blur, and the near side's larger disk (2 D of
+        // blur) covers both sides.
+        let beyond = error_tiles(&s.depth, Diopters(0.0), &e).unwrap();
+        let r_near = 0.5 * e.with_width(w as u32).coc_px(Diopters(2.0), Diopters(0.0));
+        let reach_near = r_near.ceil() as usize + 1;
+        check(
+            &beyond,
+            63 - reach_near..=64 + reach_near,
+            "focus beyond both",
+        );
         // Nothing blurs at a focus between... a step with both sides sharp: none.
         let flat = step_scene(w, h, 64, 1.0, 1.0, 2);
         assert!(!error_tiles(&flat.depth, Diopters(3.0), &e)

@@ -6,7 +6,7 @@
 //! tiles that run, a set fraction of them in proportion to the classical render's squared
 //! error there against the thin-lens target (the "where the classical method errs")
 //! and the rest uniformly; the loss covers the pixels of those tiles the map corrects (its
-//! one-sided pixel gate, as inference composes). C4R: linear blending's layers, and
+//! pixel gate, as inference composes). C4R: linear blending's layers, and
 //! optimized blending's layers (fitting the thin-lens focal stack, 100 iterations from linear)
 //! to distil before fine-tuning through the retina; the optimized layers are cached on disk.
 
