@@ -233,22 +233,24 @@ fn shipped_c1r_is_never_below_its_classical_input_on_the_test_scenes() {
     assert!(below.is_empty(), "{below:#?}");
 }
 
-/// Guard: on the failure cases the shipped C1R measured at worst 0.23 dB below its classical
-/// input (thin occluders; issue 21's target, never below, is the ignored test after this).
+/// Guard: on the failure cases the shipped C1R measured at worst 0.02 dB below its classical
+/// input (thin occluders, whole image and region) and never below it on the other eleven;
+/// issue 21's target, never below on all twelve, is the ignored test after this.
 #[test]
-fn shipped_c1r_is_within_half_a_db_of_its_classical_input_on_every_failure_case() {
+fn shipped_c1r_is_never_below_its_classical_input_on_the_failure_cases_but_the_fence() {
     let cases = c1r_on_failure_cases();
     assert_eq!(cases.len(), 12, "the failure suite changed");
     for c in &cases {
+        let margin = if c.name == "thin-occluders" { 0.1 } else { 0.0 };
         assert!(
-            c.refined >= c.classical - 0.5,
+            c.refined >= c.classical - margin,
             "{}: {:.2} -> {:.2} dB",
             c.name,
             c.classical,
             c.refined
         );
         assert!(
-            c.refined_region >= c.classical_region - 0.5,
+            c.refined_region >= c.classical_region - margin,
             "{} region: {:.2} -> {:.2} dB",
             c.name,
             c.classical_region,
@@ -270,8 +272,8 @@ fn shipped_c1r_is_within_half_a_db_of_its_classical_input_on_every_failure_case(
 }
 
 /// Issue 21's target: never below the classical input on any failure case, overall or in
-/// its region. Fails with the shipped weights (thin occluders, the sharp background beside
-/// a blurred occluder, large disocclusions).
+/// its region. Fails with the shipped weights on one case: the thin occluders (-0.02 dB,
+/// the rods' own pixels).
 #[test]
 #[ignore = "issue 21 target, not met by the shipped C1R"]
 fn c1r_is_never_below_its_classical_input_on_the_failure_cases() {

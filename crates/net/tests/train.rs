@@ -364,7 +364,7 @@ fn c1r_training_lowers_the_loss_from_the_classical_render() {
     assert_eq!(back.convs, w.convs);
     assert!(back.provenance["refines"].contains("gather"));
     assert!(back.provenance["fovs"].contains("5.0"));
-    assert!(back.provenance["refines"].contains("16 x 16 tile's error"));
+    assert!(back.provenance["refines"].contains("16 x 16 tiles made worse"));
     assert!(back.provenance["train_occluder_seeds"].contains("generate_occluders"));
     let occluder_cache = std::fs::read_dir(&cfg.cache)
         .unwrap()
