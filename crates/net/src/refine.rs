@@ -36,8 +36,9 @@ pub struct TileMap {
     /// Row-major, `rows * cols`.
     pub on: Vec<bool>,
     /// Per pixel, row-major: whether the correction applies (always inside a tile that runs).
-    /// A pixel the classical methods render exactly (a sharp occluder's own pixels beside a
-    /// blurred background) keeps the classical value even inside a tile.
+    /// A pixel a single view already sees right (a sharp occluder's own pixels beside a
+    /// blurred background, a sharp pixel beside a blurred occluder) keeps the classical value
+    /// even inside a tile.
     pub pixels: Vec<bool>,
 }
 
@@ -99,9 +100,9 @@ impl TileMap {
 
 /// The error map (BokehMe's, from depth alone): the tiles within the blur radius of a depth
 /// discontinuity at focus `focus`. A pair of neighbouring pixels is a discontinuity when their
-/// depths differ by at least [`EDGE_BLUR_PX`] of blur; it affects every pixel the more blurred
-/// side's disk reaches (radius CoC / 2, plus one pixel), and nothing when neither side blurs
-/// by half a pixel.
+/// depths differ by at least [`EDGE_BLUR_PX`] of blur; it can affect the pixels its sides'
+/// blur disks reach (radius CoC / 2, plus one pixel), and nothing when neither side blurs by
+/// half a pixel.
 ///
 /// Per pixel the map keeps only what a single view lacks. The farther side's blur corrects
 /// only its own pixels: behind a sharp occluder the occluder's pixels are what a single view
