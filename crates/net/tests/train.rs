@@ -377,6 +377,16 @@ fn c1r_training_lowers_the_loss_from_the_classical_render() {
         occluder_cache, 1,
         "the occluder scene is cached under its own name"
     );
+    // One of its foci is its wall's (looking through the occluders), the random scene's not.
+    let scenes = dioptra_net::train::trainer::load_scenes(&cfg, &mut |_| {}).unwrap();
+    let wall = |s: &dioptra_net::train::data::SceneData| {
+        let d = 1.0 / dioptra_sim::scene::Scene::generate_occluders(s.seed).wall_depth;
+        s.foci.contains(&d)
+    };
+    let (occluders, random) = scenes.split_last().unwrap();
+    assert_eq!(random.len() as u64, cfg.scenes);
+    assert!(wall(occluders), "{:?}", occluders.foci);
+    assert!(!random.iter().any(wall));
     // A patch that cannot hold a tile inside the halo is refused, saying the size needed.
     cfg.patch = 24;
     let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();

@@ -15,6 +15,7 @@ use crate::error::NetError;
 use crate::refine::TILE;
 use crate::weights::{SplitMix, Weights};
 use candle_core::{Device, Tensor};
+use dioptra_sim::scene::Scene;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -53,11 +54,12 @@ pub struct TrainConfig {
     /// C1R: the fraction of patches centred on tiles drawn by the classical render's error
     /// there (the rest uniformly over the tiles that run).
     pub error_weighted: f64,
-    /// C1R: weight of the "no worse than classical" term: per patch, the relative rise of
-    /// the masked MSE over the classical render's, where it rises (0: off).
+    /// C1R: weight of the "no worse than classical" term: the squared error added in the
+    /// 16 x 16 tiles the net made worse, over the batch's classical error (0: off).
     pub no_worse: f64,
     /// Scenes of the occluder family ([`dioptra_sim::scene::Scene::generate_occluders`],
-    /// seeds `first_seed ..`) after the `scenes` random ones.
+    /// seeds `first_seed ..`) after the `scenes` random ones; for C1 and C1R one focus of
+    /// each is its wall's.
     pub occluder_scenes: u64,
 }
 
@@ -222,7 +224,16 @@ pub fn load_scenes(
                     load_or_render_views(&cfg.cache, seed, *grid, &spec)
                 }
                 task => {
-                    let foci = scene_foci(task, seed, cfg.foci_per_scene);
+                    let mut foci = scene_foci(task, seed, cfg.foci_per_scene);
+                    if spec.occluders && matches!(task, Task::C1 | Task::C1r { .. }) {
+                        // Looking through the occluders at the wall behind them (a fence, a
+                        // grid) is the commonest way to meet them and the hardest for C1R, so
+                        // one focus of each such scene is its wall's; the rest stay random.
+                        if let Some(f) = foci.first_mut() {
+                            *f = 1.0 / Scene::generate_occluders(seed).wall_depth;
+                        }
+                        foci.sort_by(f32::total_cmp);
+                    }
                     load_or_render(&cfg.cache, seed, &foci, &spec)
                 }
             };
@@ -525,7 +536,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         p.insert(
             "train_occluder_seeds".into(),
             format!(
-                "{}..{} (Scene::generate_occluders)",
+                "{}..{} (Scene::generate_occluders, one focus at the wall)",
                 cfg.first_seed,
                 cfg.first_seed + cfg.occluder_scenes
             ),
