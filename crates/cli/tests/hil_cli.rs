@@ -132,7 +132,10 @@ fn hil_on_a_stream_rig_measures_content_to_presented() {
     // a render and a frame period's lead from arrival to display.
     let shown = m["content_to_presented"]["count"].as_u64().unwrap();
     assert!((15..=30).contains(&shown), "{js}");
-    assert_eq!(m["content_received"]["count"], shown, "{js}");
+    // Every shown frame was received; the last one or two taken up may not have reached the
+    // display when the run stops (a loaded machine renders slower: seen 26 received, 24 shown).
+    let received = m["content_received"]["count"].as_u64().unwrap();
+    assert!((shown..=shown + 2).contains(&received), "{js}");
     assert!(
         m["content_to_presented"]["p50_us"].as_u64().unwrap() > 1000,
         "{js}"
