@@ -59,9 +59,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let t = Instant::now();
             let r = net.refine_defocus(&rgbd, &base, q, &eye)?;
             let tr = ms(t);
-            let (pc, pr) = (psnr(&base, &truth, None)?, psnr(&r.image, &truth, None)?);
+            let (pc, pr) = (psnr(&r.classical, &truth, None)?, psnr(&r.image, &truth, None)?);
             println!(
-                "seed {seed} focus {:.1} D: {} {pc:.2} dB -> refined {pr:.2} dB ({:+.2}), tiles {:.0}%, {tc:.1} + {tr:.1} ms",
+                "seed {seed} focus {:.1} D: {} (gather where smooth) {pc:.2} dB -> refined {pr:.2} dB ({:+.2}), tiles {:.0}%, {tc:.1} + {tr:.1} ms",
                 q.0,
                 classical.label(),
                 pr - pc,
@@ -77,7 +77,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
     }
     println!(
-        "mean over {n} images at {size}x{size}: {} {:.2} dB, refined {:.2} dB ({:+.2}, worst {worst:+.2}); tiles run {:.0}%; time {:.1} ms classical + {:.1} ms refinement",
+        "mean over {n} images at {size}x{size}: {} + gather where smooth {:.2} dB, refined {:.2} dB ({:+.2}, worst {worst:+.2}); tiles run {:.0}%; time {:.1} ms classical + {:.1} ms refinement",
         classical.label(),
         sum_c / n,
         sum_r / n,
@@ -102,7 +102,8 @@ fn failure_cases(
         let truth = render_thin_lens(&case.scene, &case.camera, case.focus, 48)?;
         let e = &case.camera.eye;
         let base = classical_defocus(&Cpu, classical, &rgbd, case.focus, e)?;
-        let refined = net.refine_defocus(&rgbd, &base, case.focus, e)?.image;
+        let r = net.refine_defocus(&rgbd, &base, case.focus, e)?;
+        let (base, refined) = (r.classical, r.image);
         let g = dioptra_render::gather::gather(&rgbd, case.focus, e)?;
         let (c, r) = (psnr(&base, &truth, None)?, psnr(&refined, &truth, None)?);
         let region = |img| psnr(img, &truth, Some(&case.mask));

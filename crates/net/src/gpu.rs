@@ -8,8 +8,8 @@ use crate::cpu::Act;
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
 use crate::refine::{
-    check_planes, compose_defocus, compose_layers, error_tiles, refine_defocus_input,
-    refine_layers_input, Refined,
+    check_planes, classical_composite, compose_defocus, compose_layers, error_tiles,
+    refine_defocus_input, refine_layers_input, Refined,
 };
 use crate::tasks::{defocus_input, rgb_at, rgbd_input};
 use crate::weights::Weights;
@@ -263,8 +263,9 @@ impl GpuNet {
 
 impl GpuNet {
     /// C1R on the GPU: the net runs on the whole image and its correction is kept on the
-    /// tiles the error map selects, so the result equals [`crate::CpuNet::refine_defocus`]
-    /// (which evaluates only those tiles).
+    /// pixels the error map corrects, so the result equals [`crate::CpuNet::refine_defocus`]
+    /// (which evaluates only those tiles). The classical composite's smooth part
+    /// ([`classical_composite`]) is computed on the CPU, as the map is.
     pub fn refine_defocus(
         &self,
         rgbd: &Rgbd,
@@ -274,16 +275,19 @@ impl GpuNet {
     ) -> Result<Refined, NetError> {
         self.arch().expect_task("c1r")?;
         let tiles = error_tiles(&rgbd.depth, focus, eye)?;
+        let base = classical_composite(rgbd, classical, &tiles, focus, eye)?;
         if !tiles.on.contains(&true) {
             return Ok(Refined {
-                image: classical.clone(),
+                image: base.clone(),
                 tiles,
+                classical: base,
             });
         }
         let y = self.forward(&refine_defocus_input(rgbd, classical, focus, eye)?)?;
         Ok(Refined {
-            image: compose_defocus(classical, &y, &tiles)?,
+            image: compose_defocus(&base, &y, &tiles)?,
             tiles,
+            classical: base,
         })
     }
 

@@ -153,8 +153,8 @@ fn c1r_pair(
     e: &EyeModel,
 ) -> (RgbImage, RgbImage) {
     let base = dioptra_net::refine::classical_defocus(&dioptra_render::Cpu, c, rgbd, q, e).unwrap();
-    let refined = net.refine_defocus(rgbd, &base, q, e).unwrap().image;
-    (base, refined)
+    let r = net.refine_defocus(rgbd, &base, q, e).unwrap();
+    (r.classical, r.image)
 }
 
 /// Every test scene of `dioptra eval` at every focus it scores, at 256 px (as eval renders

@@ -107,3 +107,194 @@ fn max_filter(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     });
     out
 }
+
+/// [`gather`] where depth is smooth: each pixel in `want` the mean of the colour over its own
+/// CoC disk, with gather's antialiased edge. Where every neighbour within reach shares the
+/// pixel's blur this is what gather computes, in O(radius) per pixel (per-row prefix sums)
+/// instead of O(radius^2); across a depth step it is wrong (no neighbour's disk spreads over
+/// the pixel), so C1R uses it only where its error map finds no blurred step within reach.
+/// Pixels outside `want` are black.
+pub fn gather_smooth(
+    input: &Rgbd,
+    focus: Diopters,
+    eye: &EyeModel,
+    want: &[bool],
+) -> Result<RgbImage, RenderError> {
+    check_rgbd(input)?;
+    check_focus(focus)?;
+    let eye = eye_for(eye, input.width())?;
+    let (w, h) = (input.width(), input.height());
+    if want.len() != w * h {
+        return Err(crate::error::invalid(format!(
+            "the pixel mask has {} entries for a {w}x{h} image",
+            want.len()
+        )));
+    }
+    let ch = input.color.channels.each_ref().map(|p| p.data());
+    let radius: Vec<f32> = input
+        .depth
+        .data()
+        .par_iter()
+        .map(|&d| 0.5 * eye.coc_px(Diopters(d), focus))
+        .collect();
+    // Per row, w + 1 running sums: the sum over [a, b) is p[b] - p[a].
+    let mut prefix = vec![[0.0f32; 3]; h * (w + 1)];
+    prefix
+        .par_chunks_mut(w + 1)
+        .enumerate()
+        .for_each(|(y, row)| {
+            for x in 0..w {
+                row[x + 1] = [0, 1, 2].map(|c| row[x][c] + ch[c][y * w + x]);
+            }
+        });
+    let mut out = vec![[0.0f32; 3]; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let r_row = &radius[y * w..(y + 1) * w];
+        let want_row = &want[y * w..(y + 1) * w];
+        let Some(reach) = r_row
+            .iter()
+            .zip(want_row)
+            .filter(|(_, &k)| k)
+            .map(|(r, _)| (r + 0.5).floor() as usize)
+            .max()
+        else {
+            return;
+        };
+        let mut acc = vec![[0.0f32; 3]; w];
+        let mut wsum = vec![0.0f32; w];
+        // Source row by source row, so each is read in order.
+        for sy in y.saturating_sub(reach)..(y + reach + 1).min(h) {
+            let dy = sy.abs_diff(y) as f32;
+            let pre = &prefix[sy * (w + 1)..(sy + 1) * (w + 1)];
+            let src = ch.map(|c| &c[sy * w..(sy + 1) * w]);
+            for x in 0..w {
+                let outer = r_row[x] + 0.5;
+                if !want_row[x] || dy > outer {
+                    continue;
+                }
+                let (a, ws) = (&mut acc[x], &mut wsum[x]);
+                // Gather's weight: clamp(r + 0.5 - distance, 0, 1). Full weight out to
+                // distance outer - 1 (a prefix-sum span), the ramp beyond pixel by pixel.
+                let inner = (outer - 1.0).max(0.0).powi(2) - dy * dy;
+                let mut k = 0;
+                if outer >= 1.0 && inner >= 0.0 {
+                    let f = inner.sqrt().floor() as usize;
+                    let (lo, hi) = (x.saturating_sub(f), (x + f + 1).min(w));
+                    for c in 0..3 {
+                        a[c] += pre[hi][c] - pre[lo][c];
+                    }
+                    *ws += (hi - lo) as f32;
+                    k = f + 1;
+                }
+                loop {
+                    let wt = (outer - ((k * k) as f32 + dy * dy).sqrt()).min(1.0);
+                    if wt <= 0.0 {
+                        break;
+                    }
+                    let pair = if k == 0 {
+                        [Some(x), None]
+                    } else {
+                        [x.checked_sub(k), Some(x + k).filter(|&v| v < w)]
+                    };
+                    for sx in pair.into_iter().flatten() {
+                        for c in 0..3 {
+                            a[c] += wt * src[c][sx];
+                        }
+                        *ws += wt;
+                    }
+                    k += 1;
+                }
+            }
+        }
+        for (x, o) in row.iter_mut().enumerate() {
+            // The centre pixel weighs at least 1/2 (outer >= 1/2 at distance 0).
+            if want_row[x] {
+                *o = acc[x].map(|v| v / wsum[x]);
+            }
+        }
+    });
+    let planes: [Plane; 3] = [0, 1, 2].map(|c| {
+        Plane::from_vec(w, h, out.iter().map(|p| p[c]).collect())
+            .unwrap_or_else(|_| Plane::new(w, h, 0.0))
+    });
+    let [r, g, b] = planes;
+    Ok(RgbImage::from_planes(r, g, b)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dioptra_core::DepthMap;
+
+    fn noise_rgbd(w: usize, h: usize, depth: f32) -> Rgbd {
+        // A fixed hash per pixel and channel: texture at every scale.
+        let v = |i: usize, c: usize| {
+            let x = (i * 3 + c) as u32;
+            (x.wrapping_mul(2_654_435_761) >> 8) as f32 / (1u32 << 24) as f32
+        };
+        let plane = |c: usize| Plane::from_vec(w, h, (0..w * h).map(|i| v(i, c)).collect());
+        let color =
+            RgbImage::from_planes(plane(0).unwrap(), plane(1).unwrap(), plane(2).unwrap()).unwrap();
+        Rgbd::new(
+            color,
+            DepthMap::from_diopters(Plane::new(w, h, depth)).unwrap(),
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn gather_smooth_equals_gather_where_depth_is_constant() {
+        let (w, h) = (48, 40);
+        // A narrow field of view: blur disks of up to 20 px on a small image.
+        let eye = EyeModel {
+            fov_horizontal_deg: 1.0,
+            ..EyeModel::default()
+        }
+        .with_width(w as u32);
+        let rgbd = noise_rgbd(w, h, 1.0);
+        // Sharp, sub-pixel, a few pixels, and a disk reaching past the image's borders.
+        let mut widest: f32 = 0.0;
+        for q in [1.0f32, 1.1, 1.6, 3.5] {
+            let r = 0.5 * eye_for(&eye, w).unwrap().coc_px(Diopters(1.0), Diopters(q));
+            widest = widest.max(r);
+            let g = gather(&rgbd, Diopters(q), &eye).unwrap();
+            let s = gather_smooth(&rgbd, Diopters(q), &eye, &vec![true; w * h]).unwrap();
+            for c in 0..3 {
+                for (i, (a, b)) in g.channels[c]
+                    .data()
+                    .iter()
+                    .zip(s.channels[c].data())
+                    .enumerate()
+                {
+                    assert!(
+                        (a - b).abs() < 1e-5,
+                        "focus {q} (radius {r:.1} px), pixel {i}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+        assert!(widest > 12.0, "the widest disk is {widest} px");
+    }
+
+    #[test]
+    fn gather_smooth_fills_only_the_pixels_asked_for() {
+        let (w, h) = (20, 12);
+        let eye = EyeModel::default().with_width(w as u32);
+        let rgbd = noise_rgbd(w, h, 2.0);
+        let want: Vec<bool> = (0..w * h).map(|i| i % 3 == 0).collect();
+        let all = gather_smooth(&rgbd, Diopters(0.5), &eye, &vec![true; w * h]).unwrap();
+        let some = gather_smooth(&rgbd, Diopters(0.5), &eye, &want).unwrap();
+        for c in 0..3 {
+            for i in 0..w * h {
+                let want_v = if want[i] {
+                    all.channels[c].data()[i]
+                } else {
+                    0.0
+                };
+                assert_eq!(some.channels[c].data()[i], want_v, "pixel {i}");
+            }
+        }
+        let e = gather_smooth(&rgbd, Diopters(0.5), &eye, &want[1..]).unwrap_err();
+        assert!(e.to_string().contains("239 entries for a 20x12"), "{e}");
+    }
+}
