@@ -59,7 +59,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let t = Instant::now();
             let r = net.refine_defocus(&rgbd, &base, q, &eye)?;
             let tr = ms(t);
-            let (pc, pr) = (psnr(&r.classical, &truth, None)?, psnr(&r.image, &truth, None)?);
+            let (pc, pr) = (
+                psnr(&r.classical, &truth, None)?,
+                psnr(&r.image, &truth, None)?,
+            );
             println!(
                 "seed {seed} focus {:.1} D: {} (gather where smooth) {pc:.2} dB -> refined {pr:.2} dB ({:+.2}), tiles {:.0}%, {tc:.1} + {tr:.1} ms",
                 q.0,

@@ -285,8 +285,8 @@ mod tests {
         let all = gather_smooth(&rgbd, Diopters(0.5), &eye, &vec![true; w * h]).unwrap();
         let some = gather_smooth(&rgbd, Diopters(0.5), &eye, &want).unwrap();
         for c in 0..3 {
-            for i in 0..w * h {
-                let want_v = if want[i] {
+            for (i, &wanted) in want.iter().enumerate() {
+                let want_v = if wanted {
                     all.channels[c].data()[i]
                 } else {
                     0.0
