@@ -156,12 +156,7 @@ pub fn interpolate(img: &RgbImage, mask: &Plane) -> Result<RgbImage, RenderError
             acc.map(|v| v / wsum)
         })
         .collect();
-    let planes = [0, 1, 2].map(|c| {
-        Plane::from_vec(w, h, out.iter().map(|p| p[c]).collect())
-            .unwrap_or_else(|_| Plane::new(w, h, 0.0))
-    });
-    let [r, g, b] = planes;
-    Ok(RgbImage::from_planes(r, g, b)?)
+    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
 }
 
 #[cfg(test)]

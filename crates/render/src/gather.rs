@@ -9,7 +9,7 @@
 
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::RenderError;
-use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use rayon::prelude::*;
 
 /// Gather-blur `input` as seen by `eye` focused at `focus`.
@@ -77,12 +77,7 @@ pub fn gather(input: &Rgbd, focus: Diopters, eye: &EyeModel) -> Result<RgbImage,
             *o = acc.map(|v| v / wsum);
         }
     });
-    let planes: [Plane; 3] = [0, 1, 2].map(|c| {
-        Plane::from_vec(w, h, out.iter().map(|p| p[c]).collect())
-            .unwrap_or_else(|_| Plane::new(w, h, 0.0))
-    });
-    let [r, g, b] = planes;
-    Ok(RgbImage::from_planes(r, g, b)?)
+    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
 }
 
 /// Maximum over the (2r+1) x (2r+1) window around each pixel, rows then columns.
@@ -213,18 +208,13 @@ pub fn gather_smooth(
             }
         }
     });
-    let planes: [Plane; 3] = [0, 1, 2].map(|c| {
-        Plane::from_vec(w, h, out.iter().map(|p| p[c]).collect())
-            .unwrap_or_else(|_| Plane::new(w, h, 0.0))
-    });
-    let [r, g, b] = planes;
-    Ok(RgbImage::from_planes(r, g, b)?)
+    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dioptra_core::DepthMap;
+    use dioptra_core::{DepthMap, Plane};
 
     fn noise_rgbd(w: usize, h: usize, depth: f32) -> Rgbd {
         // A fixed hash per pixel and channel: texture at every scale.

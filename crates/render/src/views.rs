@@ -6,7 +6,7 @@ use crate::common::eye_for;
 use crate::error::{invalid, mismatch, RenderError};
 use crate::lightfield::{resolve, splat};
 use crate::retina::{bilinear, LfView};
-use dioptra_core::{EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_core::{EyeModel, RgbImage, Rgbd};
 use rayon::prelude::*;
 
 /// An input view: a pinhole RGB-D image seen from `position` (metres in the eye's lens
@@ -104,12 +104,7 @@ pub fn synthesize_view(
         })
         .collect();
     let filled = fill_holes(&px, w, h);
-    let planes = [0, 1, 2].map(|c| {
-        Plane::from_vec(w, h, filled.iter().map(|p| p[c]).collect())
-            .unwrap_or_else(|_| Plane::new(w, h, 0.0))
-    });
-    let [r, g, b] = planes;
-    Ok(RgbImage::from_planes(r, g, b)?)
+    Ok(RgbImage::from_interleaved(w, h, filled.as_flattened())?)
 }
 
 /// Fills each hole with the farther (background) of the nearest valid pixels to its left and
