@@ -25,6 +25,12 @@ pub const TILE: usize = 16;
 /// single-layer assumption holds.
 pub const EDGE_BLUR_PX: f32 = 1.0;
 
+/// A pixel whose own blur (CoC diameter, pixels) is below this keeps the classical value even
+/// where a blurred step reaches it: it sees itself along nearly every ray through the pupil,
+/// so a single view lacks little there and the net's correction was measured to add more
+/// error than it removes (validation seeds, not test seeds: see `crates/net/README.md`).
+pub const MIN_OWN_BLUR_PX: f32 = 2.0;
+
 /// Which tiles of an image the refinement net runs on, and which of their pixels take its
 /// correction.
 #[derive(Debug, Clone, PartialEq)]
@@ -38,8 +44,8 @@ pub struct TileMap {
     pub on: Vec<bool>,
     /// Per pixel, row-major: whether the correction applies (always inside a tile that runs).
     /// A pixel a single view already sees right (a sharp occluder's own pixels beside a
-    /// blurred background, a sharp pixel beside a blurred occluder) keeps the classical value
-    /// even inside a tile.
+    /// blurred background, a sharp pixel beside a blurred occluder, any pixel blurred by less
+    /// than [`MIN_OWN_BLUR_PX`]) keeps the classical value even inside a tile.
     pub pixels: Vec<bool>,
     /// Per pixel: whether a blurred depth step's disk reaches it (every corrected pixel is).
     /// The others keep no light-field value: depth is smooth within their blur, so
@@ -119,7 +125,8 @@ impl TileMap {
 /// beside a blurred occluder sees itself and the occluder along every ray through the pupil,
 /// both in the image, so the classical render lacks nothing there (the light field's only
 /// error is its sampling of the pupil), while the occluder's own pixels hide the background
-/// its blur uncovers. A tile runs when any of its pixels is corrected.
+/// its blur uncovers. A pixel blurred by less than [`MIN_OWN_BLUR_PX`] itself is never
+/// corrected. A tile runs when any of its pixels is corrected.
 pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
     let (w, h) = (depth.width(), depth.height());
     let eye = eye_for(eye, w)?;
@@ -207,7 +214,8 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
             }
             for (x, (p, r)) in out.iter_mut().zip(reached.iter_mut()).enumerate() {
                 let v = d[y * w + x];
-                *p = near_reach[x] || v > near_middle[x] || v < far_middle[x];
+                *p = (near_reach[x] || v > near_middle[x] || v < far_middle[x])
+                    && (v - q).abs() * px_per_d >= MIN_OWN_BLUR_PX;
                 *r = near_reach[x] || near_middle[x].is_finite() || far_middle[x].is_finite();
             }
         });
@@ -485,8 +493,14 @@ mod tests {
     use dioptra_core::Plane;
     use dioptra_render::multifocal::linear_blend;
 
+    /// The default eye with a 5 degree field of view: these small test images then blur by
+    /// about 3 px per diopter at 64 px (6 at 128), above [`MIN_OWN_BLUR_PX`].
     fn eye(w: usize) -> EyeModel {
-        EyeModel::default().with_width(w as u32)
+        EyeModel {
+            fov_horizontal_deg: 5.0,
+            ..EyeModel::default()
+        }
+        .with_width(w as u32)
     }
 
     /// The error map written plainly: serial, one box fill per step (the reference the
@@ -555,7 +569,8 @@ mod tests {
             map.reached[i] = near_reach[i]
                 || near_middle[i] < f32::INFINITY
                 || far_middle[i] > f32::NEG_INFINITY;
-            *p = near_reach[i] || d[i] > near_middle[i] || d[i] < far_middle[i];
+            *p = (near_reach[i] || d[i] > near_middle[i] || d[i] < far_middle[i])
+                && (d[i] - q).abs() * px_per_d >= MIN_OWN_BLUR_PX;
             if *p {
                 map.on[(i / w / TILE) * map.cols + (i % w) / TILE] = true;
             }
@@ -698,6 +713,18 @@ mod tests {
             .unwrap()
             .on
             .contains(&true));
+        // A step that counts (its sides' blurs differ by over a pixel) beside a sharp far
+        // side, its near side blurred by less than MIN_OWN_BLUR_PX: its disk reaches pixels,
+        // but no pixel is corrected and no tile runs.
+        let slight = 1.0
+            + 0.9 * MIN_OWN_BLUR_PX / e.with_width(w as u32).coc_px(Diopters(1.0), Diopters(0.0));
+        let s = step_scene(w, h, 64, slight, 1.0, 4);
+        let map = error_tiles(&s.depth, Diopters(1.0), &e).unwrap();
+        assert!(
+            map.reached.contains(&true),
+            "the slight step reaches nothing"
+        );
+        assert!(!map.pixels.contains(&true) && !map.on.contains(&true));
     }
 
     #[test]
