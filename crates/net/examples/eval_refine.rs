@@ -1,16 +1,20 @@
 //! C1R or C4R accuracy and time on simulator test seeds, beside the classical result it refines:
-//! `cargo run --release -p dioptra-net --example eval_refine -- WEIGHTS [SCENES] [SIZE] [SAMPLES] [train|occluders]`
+//! `cargo run --release -p dioptra-net --example eval_refine -- WEIGHTS [SCENES] [SIZE] [SAMPLES] [train|occluders|gate]`
 //! (`train`: training seeds 0.. instead, to tell fitting from generalising; `occluders`: C1R
 //! on the occluder family, `Scene::generate_occluders`, seeds 5000.. of the training range,
-//! which no shipped net trained on, each focused at its wall and at one other focus)
+//! which no shipped net trained on, each focused at its wall and at one other focus; `gate`:
+//! C1R's gain under each own-blur threshold of the error map on those validation seeds, how
+//! `refine::MIN_OWN_BLUR_PX` was chosen)
 //! Each test scene is rendered (pinhole colour 4x4 supersampled, as `dioptra eval`; thin-lens
 //! ground truth at SAMPLES rays per pixel). C1R is scored at `dioptra eval`'s foci: per focus
 //! the classical and refined PSNR (sRGB), the fraction of tiles the net ran on and the times.
 //! C4R is scored by the retinal images of its layers at the net's foci, beside linear blending
 //! and optimized blending with 10 iterations (fitting the thin-lens stack, as `dioptra eval`).
 
-use dioptra_core::{Diopters, EyeModel, Rgbd};
-use dioptra_net::refine::classical_defocus;
+use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_net::refine::{
+    classical_composite, classical_defocus, compose_defocus, error_tiles_with, refine_defocus_input,
+};
 use dioptra_net::{load_net, CpuNet, Task};
 use dioptra_render::metrics::psnr;
 use dioptra_render::multifocal::{linear_blend, optimized_blend};
@@ -43,8 +47,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let Task::C1r { classical } = net.arch().task else {
         return Err("not a c1r net".into());
     };
-    if mode == Some("occluders") {
-        return occluders(&net, classical, scenes, size, samples);
+    match mode {
+        Some("occluders") => return occluders(&net, classical, scenes, size, samples),
+        Some("gate") => return own_blur_gate(&net, classical, scenes, size, samples),
+        _ => {}
     }
     let eye = EyeModel::default().with_width(size as u32);
     let cam = Camera::square(eye, size);
@@ -119,8 +125,10 @@ fn occluders(
         let scene = Scene::generate_occluders(seed);
         let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 4)?;
         let rgbd = Rgbd::new(color, depth)?;
-        let other = 0.6 + 3.4 * (seed.wrapping_mul(2_654_435_761) % 1000) as f32 / 1000.0;
-        for (k, q) in [1.0 / scene.wall_depth, other].into_iter().enumerate() {
+        for (k, q) in [1.0 / scene.wall_depth, other_focus(seed)]
+            .into_iter()
+            .enumerate()
+        {
             let q = Diopters(q);
             let truth = render_thin_lens(&scene, &cam, q, samples)?;
             let base = classical_defocus(&Cpu, classical, &rgbd, q, &eye)?;
@@ -150,6 +158,78 @@ fn occluders(
             r - c
         );
     }
+    Ok(())
+}
+
+/// Own-blur thresholds (CoC diameter, pixels) `gate` compares; 0 is the map without one.
+const GATES: [f32; 7] = [0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0];
+
+/// The focus `occluders` and `gate` give an occluder scene besides its wall's: 0.6-4 D from
+/// the seed.
+fn other_focus(seed: u64) -> f32 {
+    0.6 + 3.4 * (seed.wrapping_mul(2_654_435_761) % 1000) as f32 / 1000.0
+}
+
+/// C1R's mean gain over its classical input under each of [`GATES`], on validation seeds
+/// (never trained on, never the test seeds): `Scene::generate` from [`OCCLUDER_SEEDS`] at
+/// eval's foci, and occluder scenes from the same seed at their wall's and another focus.
+/// The net runs once per image; each gate only changes which of its pixels count.
+fn own_blur_gate(
+    net: &CpuNet,
+    classical: dioptra_net::Classical,
+    scenes: u64,
+    size: usize,
+    samples: u32,
+) -> Result<(), Box<dyn std::error::Error>> {
+    let eye = EyeModel::default().with_width(size as u32);
+    let cam = Camera::square(eye, size);
+    // Per image, per gate: refined PSNR minus the classical input's.
+    let gains = |scene: &Scene, q: Diopters| -> Result<Vec<f64>, Box<dyn std::error::Error>> {
+        let (color, depth) = render_pinhole(scene, &cam, [0.0, 0.0], 4)?;
+        let rgbd = Rgbd::new(color, depth)?;
+        let truth = render_thin_lens(scene, &cam, q, samples)?;
+        let light = classical_defocus(&Cpu, classical, &rgbd, q, &eye)?;
+        let y = net.forward(&refine_defocus_input(&rgbd, &light, q, &eye)?)?;
+        let score = |img: &RgbImage| psnr(img, &truth, None);
+        let mut out = Vec::with_capacity(GATES.len());
+        for gate in GATES {
+            let tiles = error_tiles_with(&rgbd.depth, q, &eye, gate)?;
+            let base = classical_composite(&rgbd, &light, &tiles, q, &eye)?;
+            out.push(score(&compose_defocus(&base, &y, &tiles)?)? - score(&base)?);
+        }
+        Ok(out)
+    };
+    let report = |what: &str, rows: &[Vec<f64>]| {
+        let n = rows.len() as f64;
+        let cells: Vec<String> = GATES
+            .iter()
+            .enumerate()
+            .map(|(k, g)| {
+                let mean = rows.iter().map(|r| r[k]).sum::<f64>() / n;
+                let worst = rows.iter().map(|r| r[k]).fold(f64::INFINITY, f64::min);
+                format!("{g} px {mean:+.3} (worst {worst:+.2})")
+            })
+            .collect();
+        println!("{what}, {} images: {}", rows.len(), cells.join(" | "));
+    };
+    let mut random = Vec::new();
+    for seed in OCCLUDER_SEEDS..OCCLUDER_SEEDS + scenes {
+        let scene = Scene::generate(seed);
+        for q in [0.1f32, 0.5, 1.0, 1.5, 2.2, 3.0, 4.0].map(Diopters) {
+            random.push(gains(&scene, q)?);
+        }
+        eprintln!("random scene {seed} done");
+    }
+    let (mut wall, mut other) = (Vec::new(), Vec::new());
+    for seed in OCCLUDER_SEEDS..OCCLUDER_SEEDS + 3 * scenes {
+        let scene = Scene::generate_occluders(seed);
+        wall.push(gains(&scene, Diopters(1.0 / scene.wall_depth))?);
+        other.push(gains(&scene, Diopters(other_focus(seed)))?);
+    }
+    println!("gain over the classical input at {size}x{size} under each own-blur threshold:");
+    report("random scenes at eval's foci", &random);
+    report("occluder scenes at their wall", &wall);
+    report("occluder scenes elsewhere", &other);
     Ok(())
 }
 

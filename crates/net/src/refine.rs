@@ -128,6 +128,23 @@ impl TileMap {
 /// its blur uncovers. A pixel blurred by less than [`MIN_OWN_BLUR_PX`] itself is never
 /// corrected. A tile runs when any of its pixels is corrected.
 pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
+    error_tiles_with(depth, focus, eye, MIN_OWN_BLUR_PX)
+}
+
+/// [`error_tiles`] with another own-blur threshold (CoC diameter, pixels; 0 corrects every
+/// pixel a blurred step reaches where a single view lacks something): how the threshold was
+/// chosen (`eval_refine ... gate`).
+pub fn error_tiles_with(
+    depth: &DepthMap,
+    focus: Diopters,
+    eye: &EyeModel,
+    min_own_blur_px: f32,
+) -> Result<TileMap, NetError> {
+    if !(min_own_blur_px.is_finite() && min_own_blur_px >= 0.0) {
+        return Err(input(format!(
+            "the own-blur threshold must be a finite number of pixels >= 0, not {min_own_blur_px}"
+        )));
+    }
     let (w, h) = (depth.width(), depth.height());
     let eye = eye_for(eye, w)?;
     let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
@@ -215,7 +232,7 @@ pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<
             for (x, (p, r)) in out.iter_mut().zip(reached.iter_mut()).enumerate() {
                 let v = d[y * w + x];
                 *p = (near_reach[x] || v > near_middle[x] || v < far_middle[x])
-                    && (v - q).abs() * px_per_d >= MIN_OWN_BLUR_PX;
+                    && (v - q).abs() * px_per_d >= min_own_blur_px;
                 *r = near_reach[x] || near_middle[x].is_finite() || far_middle[x].is_finite();
             }
         });
@@ -725,6 +742,13 @@ mod tests {
             "the slight step reaches nothing"
         );
         assert!(!map.pixels.contains(&true) && !map.on.contains(&true));
+        // Without the own-blur threshold the same step's near side is corrected; a threshold
+        // that is not a number of pixels is refused.
+        let ungated = error_tiles_with(&s.depth, Diopters(1.0), &e, 0.0).unwrap();
+        assert!(ungated.pixels.contains(&true) && ungated.on.contains(&true));
+        for bad in [-1.0, f32::NAN, f32::INFINITY] {
+            assert!(error_tiles_with(&s.depth, Diopters(1.0), &e, bad).is_err());
+        }
     }
 
     #[test]
