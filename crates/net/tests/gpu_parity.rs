@@ -249,7 +249,12 @@ fn refinement_nets_match_cpu() {
         .map(|i| if i % w < 20 { 3.0 } else { 0.5 })
         .collect();
     input.depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap();
-    let eye = EyeModel::default();
+    // A 5 degree field: the far side blurs by about 6 px at this width, past the map's
+    // own-blur threshold (refine::MIN_OWN_BLUR_PX).
+    let eye = EyeModel {
+        fov_horizontal_deg: 5.0,
+        ..EyeModel::default()
+    };
     let q = Diopters(3.0);
     let arch = Arch {
         rate: 4,
