@@ -104,8 +104,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     failure_cases(&net, classical)
 }
 
-/// The first occluder-family seed scored: training used seeds from 0 (at most 96 of them).
-const OCCLUDER_SEEDS: u64 = 5000;
+/// The first validation seed, random and occluder-family scenes alike: training used seeds
+/// from 0 (64 random scenes, at most 96 occluder scenes), the test seeds are 1000000..
+const VALIDATION_SEEDS: u64 = 5000;
 
 /// C1R on `scenes` occluder-family scenes (rods and boxes before a textured wall) that no net
 /// trained on: per scene at its wall's focus (looking through the fence) and at one focus
@@ -121,7 +122,7 @@ fn occluders(
     let cam = Camera::square(eye, size);
     // [at the wall, elsewhere]: (sum classical, sum refined, below, worst)
     let mut acc = [(0.0f64, 0.0f64, 0usize, f64::INFINITY); 2];
-    for seed in OCCLUDER_SEEDS..OCCLUDER_SEEDS + scenes {
+    for seed in VALIDATION_SEEDS..VALIDATION_SEEDS + scenes {
         let scene = Scene::generate_occluders(seed);
         let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 4)?;
         let rgbd = Rgbd::new(color, depth)?;
@@ -171,7 +172,7 @@ fn other_focus(seed: u64) -> f32 {
 }
 
 /// C1R's mean gain over its classical input under each of [`GATES`], on validation seeds
-/// (never trained on, never the test seeds): `Scene::generate` from [`OCCLUDER_SEEDS`] at
+/// (never trained on, never the test seeds): `Scene::generate` from [`VALIDATION_SEEDS`] at
 /// eval's foci, and occluder scenes from the same seed at their wall's and another focus.
 /// The net runs once per image; each gate only changes which of its pixels count.
 fn own_blur_gate(
@@ -213,7 +214,7 @@ fn own_blur_gate(
         println!("{what}, {} images: {}", rows.len(), cells.join(" | "));
     };
     let mut random = Vec::new();
-    for seed in OCCLUDER_SEEDS..OCCLUDER_SEEDS + scenes {
+    for seed in VALIDATION_SEEDS..VALIDATION_SEEDS + scenes {
         let scene = Scene::generate(seed);
         for q in [0.1f32, 0.5, 1.0, 1.5, 2.2, 3.0, 4.0].map(Diopters) {
             random.push(gains(&scene, q)?);
@@ -221,7 +222,7 @@ fn own_blur_gate(
         eprintln!("random scene {seed} done");
     }
     let (mut wall, mut other) = (Vec::new(), Vec::new());
-    for seed in OCCLUDER_SEEDS..OCCLUDER_SEEDS + 3 * scenes {
+    for seed in VALIDATION_SEEDS..VALIDATION_SEEDS + 3 * scenes {
         let scene = Scene::generate_occluders(seed);
         wall.push(gains(&scene, Diopters(1.0 / scene.wall_depth))?);
         other.push(gains(&scene, Diopters(other_focus(seed)))?);
