@@ -1482,11 +1482,14 @@ async fn a_recording_takes_the_experiments_names() {
     stop(d).await;
 }
 
-/// A GPU to test on: `None` (skipped) when there is none, unless DIOPTRA_REQUIRE_GPU is set.
+/// Whether there is a GPU to test on; none fails the test under DIOPTRA_REQUIRE_GPU=1 (as CI).
 fn gpu_available() -> bool {
     let ok = !dioptra_render::gpu::list_adapters().is_empty();
-    if !ok && std::env::var_os("DIOPTRA_REQUIRE_GPU").is_some() {
-        panic!("DIOPTRA_REQUIRE_GPU is set and there is no GPU adapter");
+    if !ok && std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() == Ok("1") {
+        panic!("DIOPTRA_REQUIRE_GPU=1 and there is no GPU adapter");
+    }
+    if !ok {
+        eprintln!("skipped: no GPU adapter");
     }
     ok
 }
