@@ -192,11 +192,14 @@ fn own_blur_gate(
         let light = classical_defocus(&Cpu, classical, &rgbd, q, &eye)?;
         let y = net.forward(&refine_defocus_input(&rgbd, &light, q, &eye)?)?;
         let score = |img: &RgbImage| psnr(img, &truth, None);
+        // The composite depends on which pixels a blurred step reaches, not on the threshold.
+        let reach = error_tiles_with(&rgbd.depth, q, &eye, 0.0)?;
+        let base = classical_composite(&rgbd, &light, &reach, q, &eye)?;
+        let base_psnr = score(&base)?;
         let mut out = Vec::with_capacity(GATES.len());
         for gate in GATES {
             let tiles = error_tiles_with(&rgbd.depth, q, &eye, gate)?;
-            let base = classical_composite(&rgbd, &light, &tiles, q, &eye)?;
-            out.push(score(&compose_defocus(&base, &y, &tiles)?)? - score(&base)?);
+            out.push(score(&compose_defocus(&base, &y, &tiles)?)? - base_psnr);
         }
         Ok(out)
     };
