@@ -233,15 +233,15 @@ fn shipped_c1r_is_never_below_its_classical_input_on_the_test_scenes() {
     assert!(below.is_empty(), "{below:#?}");
 }
 
-/// Guard: on the failure cases the shipped C1R measured at worst 0.02 dB below its classical
-/// input (thin occluders, whole image and region) and never below it on the other eleven;
-/// issue 21's target, never below on all twelve, is the ignored test after this.
+/// Guard: on the failure cases the shipped C1R measured at worst 0.01 dB below its classical
+/// input (depth noise, its region only: 30.04 -> 30.03 dB) and never below it on the other
+/// eleven; issue 21's target, never below on all twelve, is the ignored test after this.
 #[test]
-fn shipped_c1r_is_never_below_its_classical_input_on_the_failure_cases_but_the_fence() {
+fn shipped_c1r_is_never_below_its_classical_input_on_the_failure_cases_but_depth_noise() {
     let cases = c1r_on_failure_cases();
     assert_eq!(cases.len(), 12, "the failure suite changed");
     for c in &cases {
-        let margin = if c.name == "thin-occluders" { 0.1 } else { 0.0 };
+        let margin = if c.name == "depth-noise" { 0.05 } else { 0.0 };
         assert!(
             c.refined >= c.classical - margin,
             "{}: {:.2} -> {:.2} dB",
@@ -258,7 +258,7 @@ fn shipped_c1r_is_never_below_its_classical_input_on_the_failure_cases_but_the_f
         );
     }
     // Where the net is meant to help it does: the blurred occluder's side of Yu et al.'s
-    // far-focus case (measured +1.5 dB).
+    // far-focus case (measured +2.0 dB).
     let yu = cases
         .iter()
         .find(|c| c.name == "yu-focus-far-point-near")
@@ -272,8 +272,7 @@ fn shipped_c1r_is_never_below_its_classical_input_on_the_failure_cases_but_the_f
 }
 
 /// Issue 21's target: never below the classical input on any failure case, overall or in
-/// its region. Fails with the shipped weights on one case: the thin occluders (-0.02 dB,
-/// the rods' own pixels).
+/// its region. Fails with the shipped weights on one case: depth noise's region (-0.01 dB).
 #[test]
 #[ignore = "issue 21 target, not met by the shipped C1R"]
 fn c1r_is_never_below_its_classical_input_on_the_failure_cases() {
