@@ -86,6 +86,10 @@ pub struct Args {
     /// over the tiles the net runs on).
     #[arg(long, default_value_t = 0.5)]
     error_weighted: f64,
+    /// c1r: the error map's own-blur threshold for training, CoC diameter in pixels (default:
+    /// the one inference uses; the shipped C1R trained under 2 px).
+    #[arg(long)]
+    own_blur_px: Option<f32>,
     /// c1r: weight of a penalty on patches the net makes worse than its classical input
     /// (their relative rise in squared error; 0: off).
     #[arg(long, default_value_t = 0.0)]
@@ -156,6 +160,15 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--error-weighted {}: expected 0 to 1", a.error_weighted);
     }
     cfg.error_weighted = a.error_weighted;
+    if let Some(px) = a.own_blur_px {
+        if !(px.is_finite() && (0.0..=64.0).contains(&px)) {
+            bail!("--own-blur-px {px}: expected 0 to 64 pixels");
+        }
+        if !arch_task_is_c1r {
+            bail!("--own-blur-px applies to c1r only");
+        }
+        cfg.own_blur_px = px;
+    }
     if !(a.no_worse.is_finite() && a.no_worse >= 0.0) {
         bail!("--no-worse {}: expected a weight of 0 or more", a.no_worse);
     }
@@ -265,4 +278,37 @@ pub fn run(a: Args) -> Result<()> {
         w.arch.to_json()
     );
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    fn refused(extra: &[&str]) -> String {
+        let mut argv = vec!["train", "--out", "/nonexistent/dioptra-train-test"];
+        argv.extend_from_slice(extra);
+        let a = Cli::try_parse_from(argv).expect("parses").args;
+        run(a).expect_err("refused").to_string()
+    }
+
+    #[test]
+    fn a_bad_own_blur_threshold_is_refused_before_any_work() {
+        for px in ["-1", "NaN", "100"] {
+            let flag = format!("--own-blur-px={px}");
+            let e = refused(&["--config", "c1r", &flag]);
+            assert!(
+                e.contains("--own-blur-px") && e.contains("0 to 64"),
+                "{px}: {e}"
+            );
+        }
+        let e = refused(&["--config", "c1", "--own-blur-px", "2"]);
+        assert!(e.contains("c1r only"), "{e}");
+    }
 }

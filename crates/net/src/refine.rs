@@ -29,7 +29,7 @@ pub const EDGE_BLUR_PX: f32 = 1.0;
 /// where a blurred step reaches it: it sees itself along nearly every ray through the pupil,
 /// so a single view lacks little there and the net's correction was measured to add more
 /// error than it removes (validation seeds, not test seeds: see `crates/net/README.md`).
-pub const MIN_OWN_BLUR_PX: f32 = 2.0;
+pub const MIN_OWN_BLUR_PX: f32 = 3.0;
 
 /// Which tiles of an image the refinement net runs on, and which of their pixels take its
 /// correction.
@@ -511,7 +511,7 @@ mod tests {
     use dioptra_render::multifocal::linear_blend;
 
     /// The default eye with a 5 degree field of view: these small test images then blur by
-    /// about 3 px per diopter at 64 px (6 at 128), above [`MIN_OWN_BLUR_PX`].
+    /// about 3 px per diopter at 64 px (6 at 128).
     fn eye(w: usize) -> EyeModel {
         EyeModel {
             fov_horizontal_deg: 5.0,

@@ -2,7 +2,8 @@
 //! computed once per scene and focus, and where to sample patches.
 //!
 //! C1R: the classical render at every training focus, and the error map's tiles
-//! ([`crate::refine::error_tiles`], the same map inference uses). Patches are drawn around
+//! ([`crate::refine::error_tiles_with`], the map inference uses, at the trainer's own-blur
+//! threshold). Patches are drawn around
 //! tiles that run, a set fraction of them in proportion to the classical render's squared
 //! error there against the thin-lens target (the "where the classical method errs")
 //! and the rest uniformly; the loss covers the pixels of those tiles the map corrects (its
@@ -13,7 +14,7 @@
 use super::data::{Batch, SceneData};
 use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
 use crate::error::NetError;
-use crate::refine::{classical_defocus, error_tiles, TileMap, TILE};
+use crate::refine::{classical_defocus, error_tiles_with, TileMap, TILE};
 use crate::weights::SplitMix;
 use dioptra_core::image::linear_to_srgb;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
@@ -78,6 +79,7 @@ pub fn prepare_c1r(
     scenes: Vec<(SceneData, EyeModel)>,
     classical: Classical,
     error_weighted: f64,
+    own_blur_px: f32,
     on: &mut dyn FnMut(usize, usize),
 ) -> Result<(Vec<RefineScene>, TileSampler), NetError> {
     let total = scenes.len();
@@ -88,7 +90,7 @@ pub fn prepare_c1r(
         let mut tiles = Vec::with_capacity(data.foci.len());
         for (k, &q) in data.foci.iter().enumerate() {
             let img = classical_defocus(&Cpu, classical, &data.rgbd, Diopters(q), &eye)?;
-            let map = error_tiles(&data.rgbd.depth, Diopters(q), &eye)?;
+            let map = error_tiles_with(&data.rgbd.depth, Diopters(q), &eye, own_blur_px)?;
             for (t, _) in map.on.iter().enumerate().filter(|(_, &on)| on) {
                 let (tx, ty) = ((t % map.cols) * TILE, (t / map.cols) * TILE);
                 let (x1, y1) = ((tx + TILE).min(map.width), (ty + TILE).min(map.height));

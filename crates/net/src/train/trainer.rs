@@ -54,6 +54,10 @@ pub struct TrainConfig {
     /// C1R: the fraction of patches centred on tiles drawn by the classical render's error
     /// there (the rest uniformly over the tiles that run).
     pub error_weighted: f64,
+    /// C1R: the error map's own-blur threshold (CoC diameter, pixels) for the training
+    /// patches and loss ([`crate::refine::error_tiles_with`]; inference uses
+    /// [`crate::refine::MIN_OWN_BLUR_PX`], the default).
+    pub own_blur_px: f32,
     /// C1R: weight of the "no worse than classical" term: the squared error added in the
     /// 16 x 16 tiles the net made worse, over the batch's classical error (0: off).
     pub no_worse: f64,
@@ -83,6 +87,7 @@ impl TrainConfig {
             distill_steps: 0,
             lr_final: None,
             error_weighted: 0.5,
+            own_blur_px: crate::refine::MIN_OWN_BLUR_PX,
             no_worse: 0.0,
             occluder_scenes: 0,
         }
@@ -406,6 +411,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
                 with_eyes(scenes)?,
                 *classical,
                 cfg.error_weighted,
+                cfg.own_blur_px,
                 &mut prep,
             )?;
             Data::C1r(s, sampler)
@@ -583,8 +589,9 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             p.insert(
                 "refines".into(),
                 format!(
-                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects{}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
+                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects (own-blur threshold {} px){}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
                     classical.label(),
+                    cfg.own_blur_px,
                     if cfg.no_worse > 0.0 {
                         format!(", plus {} x the error added in the 16 x 16 tiles made worse, over the classical error", cfg.no_worse)
                     } else {
