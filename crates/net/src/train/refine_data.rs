@@ -3,13 +3,13 @@
 //!
 //! C1R: the classical render at every training focus, and the error map's tiles
 //! ([`crate::refine::error_tiles_with`], the map inference uses, at the trainer's own-blur
-//! threshold). Patches are drawn around
-//! tiles that run, a set fraction of them in proportion to the classical render's squared
-//! error there against the thin-lens target (the "where the classical method errs")
-//! and the rest uniformly; the loss covers the pixels of those tiles the map corrects (its
-//! pixel gate, as inference composes). C4R: linear blending's layers, and
-//! optimized blending's layers (fitting the thin-lens focal stack, 100 iterations from linear)
-//! to distil before fine-tuning through the retina; the optimized layers are cached on disk.
+//! threshold). Patches are drawn around tiles that run, a set fraction of them in proportion
+//! to the classical render's squared error there against the thin-lens target (the issue's
+//! "where the classical method errs") and the rest uniformly; the loss covers the pixels of
+//! those tiles the map corrects (its pixel gate, as inference composes). C4R: linear
+//! blending's layers, and optimized blending's layers (fitting the thin-lens focal stack, 100
+//! iterations from linear) to distil before fine-tuning through the retina; the optimized
+//! layers are cached on disk.
 
 use super::data::{Batch, SceneData};
 use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
