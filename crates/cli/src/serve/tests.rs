@@ -1521,7 +1521,10 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         (Mode::Varifocal, "network", 1.2),
         (Mode::Multifocal, "network", 1.0),
         (Mode::Multifocal, "optimized", 1.0),
+        // 2.2 D: no depth step blurs past the error map's threshold, so C1R runs on no tile;
+        // 0.2 D, last, runs it on some (checked in /status below).
         (Mode::Varifocal, "refine", 2.2),
+        (Mode::Varifocal, "refine", 0.2),
         (Mode::Multifocal, "refine", 1.0),
     ] {
         let m = Method::parse(method).unwrap();
@@ -1576,6 +1579,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     assert_eq!(status["network"]["multifocal"], json!("gpu"), "{status}");
     assert_eq!(status["refine"]["varifocal"], json!("gpu"), "{status}");
     assert_eq!(status["refine"]["multifocal"], json!("gpu"), "{status}");
+    // The fraction is the last varifocal refine's (0.2 D).
     assert!(status["refine_tiles_run"].as_f64() > Some(0.0), "{status}");
     if status["timestamps"] == json!(true) {
         for m in [
