@@ -296,6 +296,8 @@ pub fn refine_defocus_input(
     let c = rgbd.color.channels.each_ref().map(|p| p.data());
     let k = classical.channels.each_ref().map(|p| p.data());
     let d = rgbd.depth.data();
+    // CoC per diopter of defocus, once (coc_px evaluates a tangent per call).
+    let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
     let mut data = vec![0.0; w * h * 8];
     data.par_chunks_mut(w * 8).enumerate().for_each(|(y, row)| {
         for (x, px) in row.chunks_exact_mut(8).enumerate() {
@@ -305,7 +307,7 @@ pub fn refine_defocus_input(
                 c[1][i],
                 c[2][i],
                 d[i] / DEPTH_NORM,
-                eye.coc_px(Diopters(d[i]), focus) / COC_NORM,
+                px_per_d * (d[i] - focus.0).abs() / COC_NORM,
                 k[0][i],
                 k[1][i],
                 k[2][i],

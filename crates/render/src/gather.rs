@@ -126,11 +126,13 @@ pub fn gather_smooth(
         )));
     }
     let ch = input.color.channels.each_ref().map(|p| p.data());
+    // CoC radius per diopter of defocus, once (coc_px evaluates a tangent per call).
+    let half_px_per_d = 0.5 * eye.coc_px(Diopters(1.0), Diopters(0.0));
     let radius: Vec<f32> = input
         .depth
         .data()
         .par_iter()
-        .map(|&d| 0.5 * eye.coc_px(Diopters(d), focus))
+        .map(|&d| half_px_per_d * (d - focus.0).abs())
         .collect();
     // Per row, w + 1 running sums: the sum over [a, b) is p[b] - p[a].
     let mut prefix = vec![[0.0f32; 3]; h * (w + 1)];
@@ -146,43 +148,37 @@ pub fn gather_smooth(
     out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         let r_row = &radius[y * w..(y + 1) * w];
         let want_row = &want[y * w..(y + 1) * w];
-        let Some(reach) = r_row
-            .iter()
-            .zip(want_row)
-            .filter(|(_, &k)| k)
-            .map(|(r, _)| (r + 0.5).floor() as usize)
-            .max()
-        else {
-            return;
-        };
-        let mut acc = vec![[0.0f32; 3]; w];
-        let mut wsum = vec![0.0f32; w];
-        // Source row by source row, so each is read in order.
-        for sy in y.saturating_sub(reach)..(y + reach + 1).min(h) {
-            let dy = sy.abs_diff(y) as f32;
-            let pre = &prefix[sy * (w + 1)..(sy + 1) * (w + 1)];
-            let src = ch.map(|c| &c[sy * w..(sy + 1) * w]);
-            for x in 0..w {
-                let outer = r_row[x] + 0.5;
-                if !want_row[x] || dy > outer {
+        for (x, o) in row.iter_mut().enumerate() {
+            if !want_row[x] {
+                continue;
+            }
+            let outer = r_row[x] + 0.5;
+            let (mut a, mut ws) = ([0.0f32; 3], 0.0f32);
+            // Rows y - dy and y + dy share their span and ramp weights (computed once).
+            for dy in 0..=outer.floor() as usize {
+                let rows = [y.checked_sub(dy), Some(y + dy).filter(|&v| dy > 0 && v < h)];
+                if rows == [None, None] {
                     continue;
                 }
-                let (a, ws) = (&mut acc[x], &mut wsum[x]);
+                let dyf = dy as f32;
                 // Gather's weight: clamp(r + 0.5 - distance, 0, 1). Full weight out to
                 // distance outer - 1 (a prefix-sum span), the ramp beyond pixel by pixel.
-                let inner = (outer - 1.0).max(0.0).powi(2) - dy * dy;
+                let inner = (outer - 1.0).max(0.0).powi(2) - dyf * dyf;
                 let mut k = 0;
                 if outer >= 1.0 && inner >= 0.0 {
                     let f = inner.sqrt().floor() as usize;
                     let (lo, hi) = (x.saturating_sub(f), (x + f + 1).min(w));
-                    for c in 0..3 {
-                        a[c] += pre[hi][c] - pre[lo][c];
+                    for sy in rows.into_iter().flatten() {
+                        let pre = &prefix[sy * (w + 1)..(sy + 1) * (w + 1)];
+                        for c in 0..3 {
+                            a[c] += pre[hi][c] - pre[lo][c];
+                        }
+                        ws += (hi - lo) as f32;
                     }
-                    *ws += (hi - lo) as f32;
                     k = f + 1;
                 }
                 loop {
-                    let wt = (outer - ((k * k) as f32 + dy * dy).sqrt()).min(1.0);
+                    let wt = (outer - ((k * k) as f32 + dyf * dyf).sqrt()).min(1.0);
                     if wt <= 0.0 {
                         break;
                     }
@@ -191,21 +187,19 @@ pub fn gather_smooth(
                     } else {
                         [x.checked_sub(k), Some(x + k).filter(|&v| v < w)]
                     };
-                    for sx in pair.into_iter().flatten() {
-                        for c in 0..3 {
-                            a[c] += wt * src[c][sx];
+                    for sy in rows.into_iter().flatten() {
+                        for sx in pair.into_iter().flatten() {
+                            for c in 0..3 {
+                                a[c] += wt * ch[c][sy * w + sx];
+                            }
+                            ws += wt;
                         }
-                        *ws += wt;
                     }
                     k += 1;
                 }
             }
-        }
-        for (x, o) in row.iter_mut().enumerate() {
             // The centre pixel weighs at least 1/2 (outer >= 1/2 at distance 0).
-            if want_row[x] {
-                *o = acc[x].map(|v| v / wsum[x]);
-            }
+            *o = a.map(|v| v / ws);
         }
     });
     Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
