@@ -21,7 +21,15 @@ pub enum Method {
         rate: usize,
     },
     Linear,
+    /// Optimized blending fitted to the ground-truth focal stack (its best case: an oracle
+    /// no rig has).
     Optimized {
+        iterations: usize,
+    },
+    /// Optimized blending as a rig runs it: fitted to a focal stack gathered from the RGB-D,
+    /// from linear blending (the daemon's `method = "optimized"`, and `decompose --method
+    /// optimized` without `--targets`). Its time includes the stack and the linear start.
+    OptimizedGather {
         iterations: usize,
     },
     NetworkC4,
@@ -39,6 +47,7 @@ impl Method {
             Method::NetworkC1 { .. } => "network-c1",
             Method::Linear => "linear",
             Method::Optimized { .. } => "optimized",
+            Method::OptimizedGather { .. } => "optimized-gather",
             Method::NetworkC4 => "network-c4",
             Method::RefineC1 => "refine-c1r",
             Method::RefineC4 => "refine-c4r",
@@ -50,7 +59,9 @@ impl Method {
             Method::Gather | Method::Linear | Method::RefineC1 | Method::RefineC4 => String::new(),
             Method::LightField { views } => format!("{views} views"),
             Method::NetworkC1 { rate } => format!("r={rate}"),
-            Method::Optimized { iterations } => format!("{iterations} it"),
+            Method::Optimized { iterations } | Method::OptimizedGather { iterations } => {
+                format!("{iterations} it")
+            }
             Method::NetworkC4 => "r=2".into(),
         }
     }
@@ -70,7 +81,11 @@ impl Method {
     pub fn multifocal(&self) -> bool {
         matches!(
             self,
-            Method::Linear | Method::Optimized { .. } | Method::NetworkC4 | Method::RefineC4
+            Method::Linear
+                | Method::Optimized { .. }
+                | Method::OptimizedGather { .. }
+                | Method::NetworkC4
+                | Method::RefineC4
         )
     }
 
@@ -79,7 +94,9 @@ impl Method {
     pub fn relative_cost(&self) -> f64 {
         match *self {
             Method::LightField { views } => views as f64,
-            Method::Optimized { iterations } => iterations as f64,
+            Method::Optimized { iterations } | Method::OptimizedGather { iterations } => {
+                iterations as f64
+            }
             Method::NetworkC1 { rate } => 1.0 / (rate * rate) as f64,
             _ => 1.0,
         }
@@ -330,6 +347,25 @@ pub fn decompose(
                 &|_| {},
             )?
             .0),
+        Method::OptimizedGather { iterations } => {
+            let stack =
+                backend.defocus(input, targets.foci, eye, DefocusMethod::Gather, &|_| {})?;
+            let linear = backend.linear_blend(input, &planes)?;
+            Ok(backend
+                .optimized_blend(
+                    &stack,
+                    targets.foci,
+                    &planes,
+                    eye,
+                    Some(&linear),
+                    OptimizeParams {
+                        iterations,
+                        tolerance: 0.0,
+                    },
+                    &|_| {},
+                )?
+                .0)
+        }
         Method::NetworkC4 => {
             let net = net.ok_or_else(|| anyhow!("network-c4 needs a net"))?;
             net.decompose(input)
