@@ -35,9 +35,10 @@ pub enum Chart<'a> {
         title: &'a str,
         series: &'a [Series],
     },
+    /// One panel per group of methods (varifocal, multifocal): each its own colours.
     PsnrByFocus {
         title: &'a str,
-        series: &'a [Series],
+        panels: &'a [(String, Vec<Series>)],
     },
     Dots {
         title: &'a str,
@@ -55,7 +56,7 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, chart: &Chart) -> Res
     root.fill(&WHITE).map_err(err)?;
     match chart {
         Chart::SpeedAccuracy { title, series } => speed_accuracy(root, title, series)?,
-        Chart::PsnrByFocus { title, series } => psnr_by_focus(root, title, series)?,
+        Chart::PsnrByFocus { title, panels } => psnr_by_focus(root, title, panels)?,
         Chart::Dots {
             title,
             x_desc,
@@ -84,6 +85,87 @@ pub struct Series {
     pub points: Vec<(f64, f64)>,
     /// Short text beside each point (a setting), or empty.
     pub tags: Vec<String>,
+    /// Drawn with hollow markers: on the speed chart, the GPU backend's points of the method
+    /// `name`, which shares its colour with the CPU's filled ones.
+    pub hollow: bool,
+}
+
+impl Series {
+    pub fn new(name: impl Into<String>) -> Series {
+        Series {
+            name: name.into(),
+            points: Vec::new(),
+            tags: Vec::new(),
+            hollow: false,
+        }
+    }
+}
+
+/// Each series' colour: one per distinct name in order of first appearance, so a method's
+/// filled (CPU) and hollow (GPU) series share it and distinct methods differ while there are
+/// no more than the palette's dozen.
+pub fn colours_by_name(series: &[Series]) -> Vec<RGBColor> {
+    let mut names: Vec<&str> = Vec::new();
+    series
+        .iter()
+        .map(|s| {
+            let i = match names.iter().position(|n| *n == s.name) {
+                Some(i) => i,
+                None => {
+                    names.push(&s.name);
+                    names.len() - 1
+                }
+            };
+            colour(i)
+        })
+        .collect()
+}
+
+/// What a legend row shows before its text.
+enum Key {
+    Dot(RGBColor, bool),
+    Line(RGBColor),
+    Dashed,
+}
+
+/// A legend drawn in its own area beside a plot, so it hides no data.
+fn legend_beside<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    top: i32,
+    rows: &[(String, Key)],
+) -> Result<()> {
+    let font = ("sans-serif", 13).into_font();
+    for (i, (text, key)) in rows.iter().enumerate() {
+        let y = top + 18 * i as i32;
+        match *key {
+            Key::Dot(c, hollow) => area.draw(&dot((14, y), 5, c, hollow)).map_err(err)?,
+            Key::Line(c) => area
+                .draw(&PathElement::new(vec![(4, y), (24, y)], c.stroke_width(2)))
+                .map_err(err)?,
+            Key::Dashed => {
+                for x in [4, 14] {
+                    area.draw(&PathElement::new(vec![(x, y), (x + 6, y)], BLACK))
+                        .map_err(err)?;
+                }
+            }
+        }
+        area.draw(&Text::new(text.clone(), (32, y - 7), font.clone()))
+            .map_err(err)?;
+    }
+    Ok(())
+}
+
+/// A round marker, filled or (hollow) a ring.
+fn dot<C>(at: C, r: i32, c: RGBColor, hollow: bool) -> Circle<C, i32> {
+    Circle::new(
+        at,
+        r,
+        if hollow {
+            c.stroke_width(2)
+        } else {
+            c.filled()
+        },
+    )
 }
 
 /// The lower-left Pareto frontier of `points` (time, accuracy): the points no other point is
@@ -120,18 +202,23 @@ fn range(vals: impl Iterator<Item = f64>, pad: f64) -> (f64, f64) {
     (lo - p, hi + p)
 }
 
-/// Time per frame (log x) against PSNR, one marker series per method, the Pareto frontier of
-/// all points drawn as a dashed step line.
+/// Time per frame (log x) against PSNR: a colour per method, filled markers for the CPU and
+/// hollow for the GPU, the Pareto frontier of all points drawn as a dashed step line, the
+/// legend beside the plot.
 fn speed_accuracy<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
     series: &[Series],
 ) -> Result<()> {
+    let root = root
+        .margin(6, 0, 0, 0)
+        .titled(title, ("sans-serif", 22))
+        .map_err(err)?;
+    let (plot, side) = root.split_horizontally(root.dim_in_pixel().0.saturating_sub(190));
     let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.clone()).collect();
     let (tlo, thi) = range(all.iter().map(|p| p.0.max(1e-3).log10()), 0.08);
     let (ylo, yhi) = range(all.iter().map(|p| p.1), 0.08);
-    let mut chart = ChartBuilder::on(root)
-        .caption(title, ("sans-serif", 22))
+    let mut chart = ChartBuilder::on(&plot)
         .margin(14)
         .x_label_area_size(44)
         .y_label_area_size(60)
@@ -150,6 +237,7 @@ fn speed_accuracy<DB: DrawingBackend>(
         })
         .draw()
         .map_err(err)?;
+    let mut legend: Vec<(String, Key)> = Vec::new();
     let front = pareto(&all);
     if front.len() > 1 {
         // A step line: each frontier point holds until the next, faster-and-better one.
@@ -161,75 +249,86 @@ fn speed_accuracy<DB: DrawingBackend>(
         steps.push(*front.last().unwrap_or(&front[0]));
         chart
             .draw_series(DashedLineSeries::new(steps, 6, 4, BLACK.stroke_width(1)))
-            .map_err(err)?
-            .label("Pareto frontier")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+            .map_err(err)?;
+        legend.push(("Pareto frontier".into(), Key::Dashed));
     }
-    for (i, s) in series.iter().enumerate() {
-        let c = colour(i);
+    let colours = colours_by_name(series);
+    for (s, &c) in series.iter().zip(&colours) {
+        let hollow = s.hollow;
         chart
-            .draw_series(s.points.iter().map(move |&p| Circle::new(p, 5, c.filled())))
-            .map_err(err)?
-            .label(s.name.clone())
-            .legend(move |(x, y)| Circle::new((x + 10, y), 5, c.filled()));
+            .draw_series(s.points.iter().map(move |&p| dot(p, 5, c, hollow)))
+            .map_err(err)?;
         chart
             .draw_series(s.points.iter().zip(&s.tags).map(|(&p, tag)| {
                 EmptyElement::at(p) + Text::new(tag.clone(), (7, -16), ("sans-serif", 13))
             }))
             .map_err(err)?;
+        if !legend.iter().any(|(n, _)| *n == s.name) {
+            legend.push((s.name.clone(), Key::Dot(c, false)));
+        }
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(err)?;
-    Ok(())
+    if series.iter().any(|s| s.hollow) {
+        legend.push(("filled: CPU".into(), Key::Dot(BLACK, false)));
+        legend.push(("hollow: GPU".into(), Key::Dot(BLACK, true)));
+    }
+    legend_beside(&side, 30, &legend)
 }
 
-/// PSNR against focus distance, one line per method.
+/// PSNR against focus distance, one line per method, a panel per group of methods side by
+/// side, each with its legend below the plot.
 fn psnr_by_focus<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
-    series: &[Series],
+    panels: &[(String, Vec<Series>)],
 ) -> Result<()> {
-    let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.clone()).collect();
-    let (xlo, xhi) = range(all.iter().map(|p| p.0), 0.03);
-    let (ylo, yhi) = range(all.iter().map(|p| p.1), 0.08);
-    let mut chart = ChartBuilder::on(root)
-        .caption(title, ("sans-serif", 22))
-        .margin(14)
-        .x_label_area_size(44)
-        .y_label_area_size(60)
-        .build_cartesian_2d(xlo..xhi, ylo..yhi)
+    let root = root
+        .margin(6, 0, 0, 0)
+        .titled(title, ("sans-serif", 22))
         .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc("focus distance (diopters)")
-        .y_desc("PSNR (dB)")
-        .draw()
-        .map_err(err)?;
-    for (i, s) in series.iter().enumerate() {
-        let c = colour(i);
-        let mut pts = s.points.clone();
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        chart
-            .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
-            .map_err(err)?
-            .label(s.name.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        chart
-            .draw_series(pts.into_iter().map(move |p| Circle::new(p, 3, c.filled())))
+    let areas = root.split_evenly((1, panels.len().max(1)));
+    for ((name, series), area) in panels.iter().zip(areas.iter()) {
+        let rows = series.len() as u32;
+        let (plot, side) = area.split_vertically(
+            area.dim_in_pixel()
+                .1
+                .saturating_sub(18 * rows.div_ceil(2) + 12),
+        );
+        let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.clone()).collect();
+        let (xlo, xhi) = range(all.iter().map(|p| p.0), 0.03);
+        let (ylo, yhi) = range(all.iter().map(|p| p.1), 0.08);
+        let mut chart = ChartBuilder::on(&plot)
+            .caption(name, ("sans-serif", 16))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(56)
+            .build_cartesian_2d(xlo..xhi, ylo..yhi)
             .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("focus distance (diopters)")
+            .y_desc("PSNR (dB)")
+            .draw()
+            .map_err(err)?;
+        let mut legend = Vec::new();
+        for (i, s) in series.iter().enumerate() {
+            let c = colour(i);
+            let mut pts = s.points.clone();
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+            chart
+                .draw_series(LineSeries::new(pts.clone(), c.stroke_width(2)))
+                .map_err(err)?;
+            chart
+                .draw_series(pts.into_iter().map(move |p| Circle::new(p, 3, c.filled())))
+                .map_err(err)?;
+            legend.push((s.name.clone(), Key::Line(c)));
+        }
+        // Two columns of legend rows under the plot.
+        let half = legend.len().div_ceil(2);
+        let cols = side.split_evenly((1, 2));
+        let right = legend.split_off(half);
+        legend_beside(&cols[0].margin(0, 0, 60, 0), 6, &legend)?;
+        legend_beside(&cols[1], 6, &right)?;
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::LowerLeft)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(err)?;
     Ok(())
 }
 
@@ -360,5 +459,22 @@ mod tests {
         ];
         assert_eq!(pareto(&p), vec![(1.0, 30.0), (3.0, 35.0), (20.0, 40.0)]);
         assert!(pareto(&[(f64::NAN, 1.0)]).is_empty());
+    }
+
+    #[test]
+    fn a_method_keeps_one_colour_across_backends_and_methods_differ() {
+        let mut gpu = Series::new("gather");
+        gpu.hollow = true;
+        let s = [
+            Series::new("gather"),
+            Series::new("lightfield"),
+            gpu,
+            Series::new("linear"),
+        ];
+        let c = colours_by_name(&s);
+        assert_eq!(c[0], c[2], "gather on the CPU and the GPU");
+        assert_ne!(c[0], c[1]);
+        assert_ne!(c[1], c[3]);
+        assert_ne!(c[0], c[3]);
     }
 }

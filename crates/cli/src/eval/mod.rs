@@ -361,14 +361,14 @@ fn speed_charts(a: &Args, plan: &speed::SpeedPlan, rows: &[speed::SpeedRow]) -> 
             let (method, setting) = r.label.split_once(' ').unwrap_or((&r.label, ""));
             push_tagged(
                 &mut series,
-                &format!("{method} ({})", r.backend),
+                (method, r.backend == "gpu"),
                 (t, p),
                 Some(setting.replace(" views", "")),
             );
         }
         charts::write(
             &a.out.join(format!("speed_accuracy_{size}")),
-            (1000, 650),
+            (1150, 650),
             &Chart::SpeedAccuracy {
                 title: &format!(
                     "time per frame against PSNR, {size} x {size} (mean over scenes and foci)"
@@ -376,27 +376,32 @@ fn speed_charts(a: &Args, plan: &speed::SpeedPlan, rows: &[speed::SpeedRow]) -> 
                 series: &series,
             },
         )?;
-        // PSNR by focus: CPU rows, each method and setting, mean over scenes.
-        let mut by_focus: Vec<Series> = Vec::new();
+        // PSNR by focus: CPU rows, each method and setting, mean over scenes; varifocal and
+        // multifocal methods in panels of their own (they are scored on different foci).
+        let mut panels: Vec<(String, Vec<Series>)> = vec![
+            ("varifocal: the image at each focus".into(), Vec::new()),
+            (
+                "multifocal: the retinal image of the layers".into(),
+                Vec::new(),
+            ),
+        ];
         for r in rows.iter().filter(|r| r.size == size && r.backend == "cpu") {
             let (Some(f), Some(p)) = (r.focus, r.psnr) else {
                 continue;
             };
             let name = r.method.label();
-            let s = match by_focus.iter_mut().position(|s| s.name == name) {
-                Some(i) => &mut by_focus[i],
+            let group = &mut panels[usize::from(r.method.multifocal())].1;
+            let s = match group.iter().position(|s| s.name == name) {
+                Some(i) => &mut group[i],
                 None => {
-                    by_focus.push(Series {
-                        name,
-                        points: Vec::new(),
-                        tags: Vec::new(),
-                    });
-                    by_focus.last_mut().unwrap_or_else(|| unreachable!())
+                    group.push(Series::new(name));
+                    group.last_mut().unwrap_or_else(|| unreachable!())
                 }
             };
             s.points.push((f64::from(f), p));
         }
-        for s in &mut by_focus {
+        panels.retain(|p| !p.1.is_empty());
+        for s in panels.iter_mut().flat_map(|p| p.1.iter_mut()) {
             // Mean over scenes at each focus.
             let mut acc: Vec<(f64, f64, usize)> = Vec::new();
             for &(f, p) in &s.points {
@@ -412,12 +417,12 @@ fn speed_charts(a: &Args, plan: &speed::SpeedPlan, rows: &[speed::SpeedRow]) -> 
         }
         charts::write(
             &a.out.join(format!("psnr_by_focus_{size}")),
-            (1000, 650),
+            (1300, 700),
             &Chart::PsnrByFocus {
                 title: &format!(
                     "PSNR against focus distance, {size} x {size}, CPU (mean over scenes)"
                 ),
-                series: &by_focus,
+                panels: &panels,
             },
         )?;
     }
@@ -540,18 +545,21 @@ fn failure_charts(
 }
 
 fn push_point(series: &mut Vec<Series>, name: &str, p: (f64, f64)) {
-    push_tagged(series, name, p, None);
+    push_tagged(series, (name, false), p, None);
 }
 
-fn push_tagged(series: &mut Vec<Series>, name: &str, p: (f64, f64), tag: Option<String>) {
-    let i = match series.iter().position(|s| s.name == name) {
+/// Adds point `p` to the series named `key.0` (hollow markers when `key.1`), making it if new.
+fn push_tagged(series: &mut Vec<Series>, key: (&str, bool), p: (f64, f64), tag: Option<String>) {
+    let (name, hollow) = key;
+    let i = match series
+        .iter()
+        .position(|s| s.name == name && s.hollow == hollow)
+    {
         Some(i) => i,
         None => {
-            series.push(Series {
-                name: name.to_string(),
-                points: Vec::new(),
-                tags: Vec::new(),
-            });
+            let mut s = Series::new(name);
+            s.hollow = hollow;
+            series.push(s);
             series.len() - 1
         }
     };
@@ -658,10 +666,9 @@ fn loop_chart(a: &Args, results: &[loop_faults::LoopResult]) -> Result<()> {
             (
                 r.fault.name().to_string(),
                 vec![Series {
-                    name: "focus error".into(),
-                    tags: Vec::new(),
                     // Every 5th probe (5 ms) keeps the SVG small.
                     points: r.error.iter().step_by(5).copied().collect(),
+                    ..Series::new("focus error")
                 }],
             )
         })
