@@ -332,7 +332,8 @@ fn psnr_by_focus<DB: DrawingBackend>(
     Ok(())
 }
 
-/// A dot plot: one row per category (named on the y axis), one marker series per method.
+/// A dot plot: one row per category (named on the y axis), one marker series per method, the
+/// legend beside the plot.
 fn dots_by_category<DB: DrawingBackend>(
     root: &DrawingArea<DB, Shift>,
     title: &str,
@@ -346,8 +347,12 @@ fn dots_by_category<DB: DrawingBackend>(
     );
     let n = categories.len().max(1) as f64;
     let cats = categories.to_vec();
-    let mut chart = ChartBuilder::on(root)
-        .caption(title, ("sans-serif", 22))
+    let root = root
+        .margin(6, 0, 0, 0)
+        .titled(title, ("sans-serif", 22))
+        .map_err(err)?;
+    let (plot, side) = root.split_horizontally(root.dim_in_pixel().0.saturating_sub(190));
+    let mut chart = ChartBuilder::on(&plot)
         .margin(14)
         .x_label_area_size(44)
         .y_label_area_size(230)
@@ -368,6 +373,7 @@ fn dots_by_category<DB: DrawingBackend>(
         .draw()
         .map_err(err)?;
     let k = series.len().max(1) as f64;
+    let mut legend = Vec::new();
     for (i, s) in series.iter().enumerate() {
         let c = colour(i);
         // Spread series vertically inside each row so markers do not hide each other.
@@ -378,18 +384,10 @@ fn dots_by_category<DB: DrawingBackend>(
                     .iter()
                     .map(move |&(x, row)| Circle::new((x, row + off), 5, c.filled())),
             )
-            .map_err(err)?
-            .label(s.name.clone())
-            .legend(move |(x, y)| Circle::new((x + 10, y), 5, c.filled()));
+            .map_err(err)?;
+        legend.push((s.name.clone(), Key::Dot(c, false)));
     }
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .draw()
-        .map_err(err)?;
-    Ok(())
+    legend_beside(&side, 30, &legend)
 }
 
 /// Stacked panels of lines over time: one panel per name, each with its own series.

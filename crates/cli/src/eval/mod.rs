@@ -524,7 +524,7 @@ fn failure_charts(
     }
     charts::write(
         &a.out.join("failure_region_psnr"),
-        (1100, 700),
+        (1250, 700),
         &Chart::Dots {
             title: "PSNR inside each failure region",
             x_desc: "PSNR inside the failure region (dB)",
@@ -534,7 +534,7 @@ fn failure_charts(
     )?;
     charts::write(
         &a.out.join("failure_temporal"),
-        (1100, 700),
+        (1250, 700),
         &Chart::Dots {
             title: "temporal error over the animated sequence (relative to the truth's own change)",
             x_desc: "mean |output change - truth change| / mean |truth change|",
