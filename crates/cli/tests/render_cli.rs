@@ -14,6 +14,51 @@ fn dioptra(args: &[&str]) -> (bool, String) {
     (out.status.success(), text)
 }
 
+/// `dioptra sim scene` of test seed `seed` into `dir`: `size` px, one slice, a 2 x 2 light field.
+fn sim_scene(dir: &Path, seed: &str, size: &str) {
+    let out = dir.display().to_string();
+    let (ok, text) = dioptra(&[
+        "sim",
+        "scene",
+        "--seed",
+        seed,
+        "--size",
+        size,
+        "--slices",
+        "1",
+        "--samples",
+        "4",
+        "--lf-grid",
+        "2",
+        "--out",
+        &out,
+    ]);
+    assert!(ok, "{text}");
+}
+
+/// Whether a GPU run failed for want of an adapter: the test then skips, unless
+/// `DIOPTRA_REQUIRE_GPU=1` (CI), where that fails it.
+fn no_gpu(ok: bool, text: &str) -> bool {
+    if ok || !text.contains("no GPU adapter") {
+        return false;
+    }
+    assert!(
+        std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1"),
+        "DIOPTRA_REQUIRE_GPU=1 but: {text}"
+    );
+    eprintln!("skipped: no GPU adapter");
+    true
+}
+
+/// PSNR of image `a` against image `b` (`inf` when equal), from `dioptra metrics`.
+fn psnr(a: &str, b: &str) -> f64 {
+    let (ok, text) = dioptra(&["metrics", "--a", a, "--b", b]);
+    assert!(ok, "{text}");
+    text.lines()
+        .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
+        .unwrap_or_else(|| panic!("no PSNR in: {text}"))
+}
+
 #[test]
 fn scene_render_metrics_round_trip() {
     let dir = std::env::temp_dir().join(format!("dioptra-cli-render-{}", std::process::id()));
@@ -119,23 +164,7 @@ fn scene_render_metrics_round_trip() {
 fn gpu_backend_matches_cpu_through_the_binary() {
     let dir = std::env::temp_dir().join(format!("dioptra-cli-gpu-{}", std::process::id()));
     let d = |p: &str| dir.join(p).display().to_string();
-    let (ok, text) = dioptra(&[
-        "sim",
-        "scene",
-        "--seed",
-        "1000002",
-        "--size",
-        "48",
-        "--slices",
-        "1",
-        "--samples",
-        "4",
-        "--lf-grid",
-        "2",
-        "--out",
-        &d(""),
-    ]);
-    assert!(ok, "{text}");
+    sim_scene(&dir, "1000002", "48");
     let render = |backend: &str, out: &str| {
         dioptra(&[
             "render",
@@ -156,25 +185,14 @@ fn gpu_backend_matches_cpu_through_the_binary() {
         ])
     };
     let (ok, text) = render("gpu", "gpu.exr");
-    if !ok && text.contains("no GPU adapter") {
-        assert!(
-            std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1"),
-            "DIOPTRA_REQUIRE_GPU=1 but: {text}"
-        );
-        eprintln!("skipped: no GPU adapter");
+    if no_gpu(ok, &text) {
         std::fs::remove_dir_all(&dir).ok();
         return;
     }
     assert!(ok, "{text}");
     let (ok, text) = render("cpu", "cpu.exr");
     assert!(ok, "{text}");
-    let (ok, text) = dioptra(&["metrics", "--a", &d("gpu.exr"), "--b", &d("cpu.exr")]);
-    assert!(ok, "{text}");
-    let psnr: f64 = text
-        .lines()
-        .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
-        .unwrap_or(f64::INFINITY);
-    assert!(psnr > 90.0, "{text}");
+    assert!(psnr(&d("gpu.exr"), &d("cpu.exr")) > 90.0);
     // An adapter that does not exist is an error naming the ones that do.
     let (ok, text) = dioptra(&[
         "render",
@@ -200,23 +218,7 @@ fn gpu_backend_matches_cpu_through_the_binary() {
 fn network_and_foveate_run_on_the_gpu_through_the_binary() {
     let dir = std::env::temp_dir().join(format!("dioptra-cli-gpu-net-{}", std::process::id()));
     let d = |p: &str| dir.join(p).display().to_string();
-    let (ok, text) = dioptra(&[
-        "sim",
-        "scene",
-        "--seed",
-        "1000003",
-        "--size",
-        "40",
-        "--slices",
-        "1",
-        "--samples",
-        "4",
-        "--lf-grid",
-        "2",
-        "--out",
-        &d(""),
-    ]);
-    assert!(ok, "{text}");
+    sim_scene(&dir, "1000003", "40");
     // Random C1 and C4 weights: the shipped ones may not exist in this tree.
     for (name, arch) in [
         ("c1", dioptra_net::Arch::c1_small()),
@@ -249,26 +251,15 @@ fn network_and_foveate_run_on_the_gpu_through_the_binary() {
         ])
     };
     let (ok, text) = net("gpu", "gpu.exr");
-    if !ok && text.contains("no GPU adapter") {
-        assert!(
-            std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1"),
-            "DIOPTRA_REQUIRE_GPU=1 but: {text}"
-        );
-        eprintln!("skipped: no GPU adapter");
+    if no_gpu(ok, &text) {
         std::fs::remove_dir_all(&dir).ok();
         return;
     }
     assert!(ok, "{text}");
     let (ok, text) = net("cpu", "cpu.exr");
     assert!(ok, "{text}");
-    let psnr = |a: &str, b: &str| -> f64 {
-        let (ok, text) = dioptra(&["metrics", "--a", &d(a), "--b", &d(b)]);
-        assert!(ok, "{text}");
-        text.lines()
-            .find_map(|l| l.strip_prefix("PSNR ")?.strip_suffix(" dB")?.parse().ok())
-            .unwrap_or(f64::INFINITY)
-    };
-    assert!(psnr("gpu.exr", "cpu.exr") > 60.0);
+    let psnr_in = |a: &str, b: &str| psnr(&d(a), &d(b));
+    assert!(psnr_in("gpu.exr", "cpu.exr") > 60.0);
     for backend in ["gpu", "cpu"] {
         let (ok, text) = dioptra(&[
             "decompose",
@@ -287,7 +278,7 @@ fn network_and_foveate_run_on_the_gpu_through_the_binary() {
         ]);
         assert!(ok, "{text}");
     }
-    assert!(psnr("layers_gpu/layer_0.80D.exr", "layers_cpu/layer_0.80D.exr") > 60.0);
+    assert!(psnr_in("layers_gpu/layer_0.80D.exr", "layers_cpu/layer_0.80D.exr") > 60.0);
     for backend in ["gpu", "cpu"] {
         let (ok, text) = dioptra(&[
             "foveate",
@@ -305,6 +296,70 @@ fn network_and_foveate_run_on_the_gpu_through_the_binary() {
             "{text}"
         );
     }
-    assert!(psnr("fov_gpu.exr", "fov_cpu.exr") > 60.0);
+    assert!(psnr_in("fov_gpu.exr", "fov_cpu.exr") > 60.0);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `render --method refine` (C1R) and `decompose --method refine` (C4R) with the shipped
+/// weights, on the GPU and the CPU: the same images, and C1R's net ran on some tiles.
+#[test]
+fn refine_runs_with_the_shipped_weights_on_both_backends() {
+    let dir = std::env::temp_dir().join(format!("dioptra-cli-refine-{}", std::process::id()));
+    let d = |p: &str| dir.join(p).display().to_string();
+    sim_scene(&dir, "1000004", "96");
+    let render = |backend: &str| {
+        dioptra(&[
+            "render",
+            "--color",
+            &d("color.png"),
+            "--depth",
+            &d("depth.exr"),
+            "--focus",
+            "0.1",
+            "--method",
+            "refine",
+            "--backend",
+            backend,
+            "--out",
+            &d(&format!("c1r_{backend}.exr")),
+        ])
+    };
+    let (ok, text) = render("gpu");
+    if no_gpu(ok, &text) {
+        std::fs::remove_dir_all(&dir).ok();
+        return;
+    }
+    assert!(ok, "{text}");
+    let (ok, cpu_text) = render("cpu");
+    assert!(ok, "{cpu_text}");
+    // "... refined on N % of the tiles": the net ran, so the comparison covers it.
+    let tiles: f64 = cpu_text
+        .split("refined on ")
+        .nth(1)
+        .and_then(|t| t.split(" %").next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no tile fraction in: {cpu_text}"));
+    assert!(tiles > 0.0, "{cpu_text}");
+    let psnr_in = |a: &str, b: &str| psnr(&d(a), &d(b));
+    assert!(psnr_in("c1r_gpu.exr", "c1r_cpu.exr") > 60.0);
+    for backend in ["gpu", "cpu"] {
+        let (ok, text) = dioptra(&[
+            "decompose",
+            "--color",
+            &d("color.png"),
+            "--depth",
+            &d("depth.exr"),
+            "--method",
+            "refine",
+            "--backend",
+            backend,
+            "--out",
+            &d(&format!("c4r_{backend}")),
+        ]);
+        assert!(ok, "{text}");
+    }
+    for plane in ["0.20", "0.80", "1.40", "2.00"] {
+        let f = |b: &str| format!("c4r_{b}/layer_{plane}D.exr");
+        assert!(psnr_in(&f("gpu"), &f("cpu")) > 60.0, "layer {plane} D");
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
