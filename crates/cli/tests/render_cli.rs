@@ -36,6 +36,15 @@ fn sim_scene(dir: &Path, seed: &str, size: &str) {
     assert!(ok, "{text}");
 }
 
+/// `dioptra CMD --color DIR/color.png --depth DIR/depth.exr ARGS...` on a `sim_scene` output.
+fn on_scene(dir: &Path, args: &[&str]) -> (bool, String) {
+    let (color, depth) = (dir.join("color.png"), dir.join("depth.exr"));
+    let (color, depth) = (color.display().to_string(), depth.display().to_string());
+    let mut all = vec![args[0], "--color", &color, "--depth", &depth];
+    all.extend_from_slice(&args[1..]);
+    dioptra(&all)
+}
+
 /// Whether a GPU run failed for want of an adapter: the test then skips, unless
 /// `DIOPTRA_REQUIRE_GPU=1` (CI), where that fails it.
 fn no_gpu(ok: bool, text: &str) -> bool {
@@ -93,21 +102,20 @@ fn scene_render_metrics_round_trip() {
     ] {
         assert!(Path::new(&d(f)).exists(), "{f} missing");
     }
-    let (ok, text) = dioptra(&[
-        "render",
-        "--color",
-        &d("color.png"),
-        "--depth",
-        &d("depth.exr"),
-        "--focus",
-        "2.0",
-        "--method",
-        "lightfield",
-        "--views",
-        "16",
-        "--out",
-        &d("o.png"),
-    ]);
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "render",
+            "--focus",
+            "2.0",
+            "--method",
+            "lightfield",
+            "--views",
+            "16",
+            "--out",
+            &d("o.png"),
+        ],
+    );
     assert!(ok, "{text}");
     let (ok, text) = dioptra(&[
         "metrics",
@@ -143,19 +151,18 @@ fn scene_render_metrics_round_trip() {
     std::fs::write(d("bad.png"), b"not a png").unwrap();
     let (ok, text) = dioptra(&["metrics", "--a", &d("color.png"), "--b", &d("bad.png")]);
     assert!(!ok && text.contains("bad.png"), "{text}");
-    let (ok, text) = dioptra(&[
-        "render",
-        "--color",
-        &d("color.png"),
-        "--depth",
-        &d("depth.exr"),
-        "--focus",
-        "1",
-        "--backend",
-        "vulkan",
-        "--out",
-        &d("x.png"),
-    ]);
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "render",
+            "--focus",
+            "1",
+            "--backend",
+            "vulkan",
+            "--out",
+            &d("x.png"),
+        ],
+    );
     assert!(!ok && text.contains("backend"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -166,23 +173,22 @@ fn gpu_backend_matches_cpu_through_the_binary() {
     let d = |p: &str| dir.join(p).display().to_string();
     sim_scene(&dir, "1000002", "48");
     let render = |backend: &str, out: &str| {
-        dioptra(&[
-            "render",
-            "--color",
-            &d("color.png"),
-            "--depth",
-            &d("depth.exr"),
-            "--focus",
-            "1.5",
-            "--method",
-            "lightfield",
-            "--views",
-            "16",
-            "--backend",
-            backend,
-            "--out",
-            &d(out),
-        ])
+        on_scene(
+            &dir,
+            &[
+                "render",
+                "--focus",
+                "1.5",
+                "--method",
+                "lightfield",
+                "--views",
+                "16",
+                "--backend",
+                backend,
+                "--out",
+                &d(out),
+            ],
+        )
     };
     let (ok, text) = render("gpu", "gpu.exr");
     if no_gpu(ok, &text) {
@@ -194,19 +200,18 @@ fn gpu_backend_matches_cpu_through_the_binary() {
     assert!(ok, "{text}");
     assert!(psnr(&d("gpu.exr"), &d("cpu.exr")) > 90.0);
     // An adapter that does not exist is an error naming the ones that do.
-    let (ok, text) = dioptra(&[
-        "render",
-        "--color",
-        &d("color.png"),
-        "--depth",
-        &d("depth.exr"),
-        "--focus",
-        "1",
-        "--adapter",
-        "no-such-adapter-xyz",
-        "--out",
-        &d("x.png"),
-    ]);
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "render",
+            "--focus",
+            "1",
+            "--adapter",
+            "no-such-adapter-xyz",
+            "--out",
+            &d("x.png"),
+        ],
+    );
     assert!(
         !ok && text.contains("no-such-adapter-xyz") && text.contains("available"),
         "{text}"
@@ -232,23 +237,22 @@ fn network_and_foveate_run_on_the_gpu_through_the_binary() {
         .unwrap();
     }
     let net = |backend: &str, out: &str| {
-        dioptra(&[
-            "render",
-            "--color",
-            &d("color.png"),
-            "--depth",
-            &d("depth.exr"),
-            "--focus",
-            "1.0",
-            "--method",
-            "network",
-            "--weights",
-            &d("c1.safetensors"),
-            "--backend",
-            backend,
-            "--out",
-            &d(out),
-        ])
+        on_scene(
+            &dir,
+            &[
+                "render",
+                "--focus",
+                "1.0",
+                "--method",
+                "network",
+                "--weights",
+                &d("c1.safetensors"),
+                "--backend",
+                backend,
+                "--out",
+                &d(out),
+            ],
+        )
     };
     let (ok, text) = net("gpu", "gpu.exr");
     if no_gpu(ok, &text) {
@@ -261,21 +265,20 @@ fn network_and_foveate_run_on_the_gpu_through_the_binary() {
     let psnr_in = |a: &str, b: &str| psnr(&d(a), &d(b));
     assert!(psnr_in("gpu.exr", "cpu.exr") > 60.0);
     for backend in ["gpu", "cpu"] {
-        let (ok, text) = dioptra(&[
-            "decompose",
-            "--color",
-            &d("color.png"),
-            "--depth",
-            &d("depth.exr"),
-            "--method",
-            "network",
-            "--weights",
-            &d("c4.safetensors"),
-            "--backend",
-            backend,
-            "--out",
-            &d(&format!("layers_{backend}")),
-        ]);
+        let (ok, text) = on_scene(
+            &dir,
+            &[
+                "decompose",
+                "--method",
+                "network",
+                "--weights",
+                &d("c4.safetensors"),
+                "--backend",
+                backend,
+                "--out",
+                &d(&format!("layers_{backend}")),
+            ],
+        );
         assert!(ok, "{text}");
     }
     assert!(psnr_in("layers_gpu/layer_0.80D.exr", "layers_cpu/layer_0.80D.exr") > 60.0);
@@ -308,21 +311,20 @@ fn refine_runs_with_the_shipped_weights_on_both_backends() {
     let d = |p: &str| dir.join(p).display().to_string();
     sim_scene(&dir, "1000004", "96");
     let render = |backend: &str| {
-        dioptra(&[
-            "render",
-            "--color",
-            &d("color.png"),
-            "--depth",
-            &d("depth.exr"),
-            "--focus",
-            "0.1",
-            "--method",
-            "refine",
-            "--backend",
-            backend,
-            "--out",
-            &d(&format!("c1r_{backend}.exr")),
-        ])
+        on_scene(
+            &dir,
+            &[
+                "render",
+                "--focus",
+                "0.1",
+                "--method",
+                "refine",
+                "--backend",
+                backend,
+                "--out",
+                &d(&format!("c1r_{backend}.exr")),
+            ],
+        )
     };
     let (ok, text) = render("gpu");
     if no_gpu(ok, &text) {
@@ -342,19 +344,18 @@ fn refine_runs_with_the_shipped_weights_on_both_backends() {
     let psnr_in = |a: &str, b: &str| psnr(&d(a), &d(b));
     assert!(psnr_in("c1r_gpu.exr", "c1r_cpu.exr") > 60.0);
     for backend in ["gpu", "cpu"] {
-        let (ok, text) = dioptra(&[
-            "decompose",
-            "--color",
-            &d("color.png"),
-            "--depth",
-            &d("depth.exr"),
-            "--method",
-            "refine",
-            "--backend",
-            backend,
-            "--out",
-            &d(&format!("c4r_{backend}")),
-        ]);
+        let (ok, text) = on_scene(
+            &dir,
+            &[
+                "decompose",
+                "--method",
+                "refine",
+                "--backend",
+                backend,
+                "--out",
+                &d(&format!("c4r_{backend}")),
+            ],
+        );
         assert!(ok, "{text}");
     }
     for plane in ["0.20", "0.80", "1.40", "2.00"] {

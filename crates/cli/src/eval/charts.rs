@@ -121,6 +121,16 @@ pub fn colours_by_name(series: &[Series]) -> Vec<RGBColor> {
         .collect()
 }
 
+/// `root` below its title (the area a chart with its legend beside it splits).
+fn titled<DB: DrawingBackend>(
+    root: &DrawingArea<DB, Shift>,
+    title: &str,
+) -> Result<DrawingArea<DB, Shift>> {
+    root.margin(6, 0, 0, 0)
+        .titled(title, ("sans-serif", 22))
+        .map_err(err)
+}
+
 /// What a legend row shows before its text.
 enum Key {
     Dot(RGBColor, bool),
@@ -210,10 +220,7 @@ fn speed_accuracy<DB: DrawingBackend>(
     title: &str,
     series: &[Series],
 ) -> Result<()> {
-    let root = root
-        .margin(6, 0, 0, 0)
-        .titled(title, ("sans-serif", 22))
-        .map_err(err)?;
+    let root = titled(root, title)?;
     let (plot, side) = root.split_horizontally(root.dim_in_pixel().0.saturating_sub(190));
     let all: Vec<(f64, f64)> = series.iter().flat_map(|s| s.points.clone()).collect();
     let (tlo, thi) = range(all.iter().map(|p| p.0.max(1e-3).log10()), 0.08);
@@ -281,11 +288,7 @@ fn psnr_by_focus<DB: DrawingBackend>(
     title: &str,
     panels: &[(String, Vec<Series>)],
 ) -> Result<()> {
-    let root = root
-        .margin(6, 0, 0, 0)
-        .titled(title, ("sans-serif", 22))
-        .map_err(err)?;
-    let areas = root.split_evenly((1, panels.len().max(1)));
+    let areas = titled(root, title)?.split_evenly((1, panels.len().max(1)));
     for ((name, series), area) in panels.iter().zip(areas.iter()) {
         let rows = series.len() as u32;
         let (plot, side) = area.split_vertically(
@@ -347,10 +350,7 @@ fn dots_by_category<DB: DrawingBackend>(
     );
     let n = categories.len().max(1) as f64;
     let cats = categories.to_vec();
-    let root = root
-        .margin(6, 0, 0, 0)
-        .titled(title, ("sans-serif", 22))
-        .map_err(err)?;
+    let root = titled(root, title)?;
     let (plot, side) = root.split_horizontally(root.dim_in_pixel().0.saturating_sub(190));
     let mut chart = ChartBuilder::on(&plot)
         .margin(14)
