@@ -6,6 +6,7 @@ pub mod device;
 pub mod error;
 pub mod image;
 pub mod optics;
+pub mod optics_map;
 pub mod sampling;
 pub mod sync;
 pub mod time;
@@ -19,6 +20,7 @@ pub use device::{
 pub use error::{DeviceError, InputError, LinkError};
 pub use image::{DepthMap, Plane, RgbImage, Rgbd};
 pub use optics::EyeModel;
+pub use optics_map::OpticsMap;
 pub use sync::lock;
 pub use time::{Clock, SimClock, SystemClock, Timestamp};
 pub use units::{Diopters, Meters, Millimeters, PowerRange};
