@@ -7,11 +7,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
-use dioptra_rig::animated::Pacing;
 use dioptra_rig::config::{Mode, RigConfig, EXAMPLE_SIM_RIG};
 use dioptra_rig::recording::Rec;
-use dioptra_rig::scene::SceneRenderer;
-use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
+use dioptra_rig::render::rgbd::RgbdRenderer;
+use dioptra_rig::simulated_rig::{Action, Run, ScriptedRenderer, SimRun};
 use dioptra_rig::{Rig, RigSetup};
 use dioptra_sched::{Command, FocusReason, LinkStatus};
 use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
@@ -75,8 +74,11 @@ fn options(mode: Mode, scene: Scene, seconds: f64) -> SimRun {
 
 async fn go(opts: SimRun, render: Duration) -> Run {
     let planes = opts.cfg.optics.planes.len();
-    let renderer = ScriptedRenderer::new(split_depth(), planes, move |_| render);
-    opts.run(Arc::new(renderer), None).await.unwrap()
+    let renderer = ScriptedRenderer::new(planes, move |_| render);
+    let content = ScriptedRenderer::still(&split_depth());
+    opts.run(Some(content), Arc::new(renderer), None)
+        .await
+        .unwrap()
 }
 
 /// True saccades as (start, landing) times, µs, with the depth of the target landed on.
@@ -487,9 +489,8 @@ async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
     let simulated = SimRun::new(recording_to("sim"), Duration::from_millis(500))
         .unwrap()
         .run(
-            Arc::new(ScriptedRenderer::new(split_depth(), 4, |_| {
-                Duration::from_millis(4)
-            })),
+            Some(ScriptedRenderer::still(&split_depth())),
+            Arc::new(ScriptedRenderer::new(4, |_| Duration::from_millis(4))),
             None,
         )
         .await
@@ -519,31 +520,20 @@ async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
     assert!(served.ok() && simulated.ok(), "{served:?} {simulated:?}");
 }
 
-/// The scene renderer with a fixed render cost on the rig's clock. Without one a frame counts
+/// The rig's renderer with a fixed render cost on the rig's clock. Without one a frame counts
 /// as taking its wall time, so on a loaded machine renders slow enough to skip a scene step
 /// made this test fail (shown 19 of 20).
-struct FixedCost(SceneRenderer);
+struct FixedCost(RgbdRenderer);
 
 impl dioptra_rig::render::Renderer for FixedCost {
-    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>> {
-        self.0.depth(now)
-    }
-    fn take_arrival(&self) -> Option<dioptra_rig::render::Arrival> {
-        self.0.take_arrival()
-    }
-    fn content_time(&self) -> Option<Timestamp> {
-        self.0.content_time()
-    }
     fn render(
         &self,
         job: &dioptra_rig::render::RenderJob,
+        content: &dioptra_rig::content::ContentFrame,
     ) -> Result<dioptra_rig::render::RenderOutput, dioptra_render::RenderError> {
-        let mut out = self.0.render(job)?;
+        let mut out = self.0.render(job, content)?;
         out.cost = Some(Duration::from_millis(8));
         Ok(out)
-    }
-    fn content_status(&self) -> serde_json::Value {
-        self.0.content_status()
     }
 }
 
@@ -558,10 +548,10 @@ async fn the_procedural_scene_moves_with_rig_time() {
         t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
             .replace("start = false", "start = true")
     });
-    let renderer = FixedCost(SceneRenderer::with_pacing(&cfg, Pacing::Simulated).unwrap());
+    let renderer = FixedCost(RgbdRenderer::new(&cfg).unwrap());
     let r = SimRun::new(cfg, Duration::from_secs(1))
         .unwrap()
-        .run(Arc::new(renderer), None)
+        .run(None, Arc::new(renderer), None)
         .await
         .unwrap();
     assert!(r.report.ok(), "{:?}", r.report);

@@ -185,7 +185,12 @@ enum Seen {
 struct Forward(mpsc::UnboundedSender<Seen>);
 
 impl LoopHook for Forward {
-    fn input(&mut self, _now: Timestamp, input: &DeviceInput) {
+    fn input(
+        &mut self,
+        _now: Timestamp,
+        input: &DeviceInput,
+        _engine: &dioptra_rig::engine::Engine,
+    ) {
         let _ = self.0.send(Seen::Input(input.clone()));
     }
     fn command(&mut self, now: Timestamp, cmd: &Command) {
@@ -207,7 +212,7 @@ async fn push_stream_frames(
     n: usize,
     hz: f64,
 ) -> usize {
-    use dioptra_rig::stream::{ColorFormat, DepthKind, FrameDesc};
+    use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc};
     let d = &state.cfg.display;
     let (w, h) = (d.width as usize, d.height as usize);
     let desc = FrameDesc {
@@ -240,8 +245,8 @@ async fn push_stream_frames(
         let st = state.clone();
         let now = state.clock.now();
         let ok = tokio::task::spawn_blocking(move || {
-            st.renderer
-                .stream()
+            st.content
+                .frame_ingest()
                 .is_some_and(|s| s.submit(&desc, &color, &depth, now).is_ok())
         })
         .await

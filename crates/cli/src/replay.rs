@@ -16,13 +16,11 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{DepthMap, Diopters, Timestamp};
 use serde::Serialize;
 
-use dioptra_rig::animated::Pacing;
 use dioptra_rig::config::{ContentSource, Method, Mode, RigConfig};
+use dioptra_rig::content::scene::{self, AnimatedScene, Pacing};
 use dioptra_rig::devices::DeviceInput;
 use dioptra_rig::engine::{Command, Engine, Input};
 use dioptra_rig::recording::{self, ControlRec, Rec, Recorded};
-use dioptra_rig::render::Renderer;
-use dioptra_rig::scene::SceneRenderer;
 use dioptra_rig::Control;
 
 #[derive(clap::Args, Debug)]
@@ -302,21 +300,42 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
     if !animated && cfg.content.source == ContentSource::Scene {
         cfg.content.animate = Some(false);
     }
-    let renderer = SceneRenderer::with_pacing(&cfg, Pacing::Simulated)
-        .context("cannot render the recorded rig's scene")?;
+    // The procedural scene renders the depth of any scene time a /depth message names.
+    let scene = match cfg.content.source {
+        ContentSource::Scene => Some(
+            AnimatedScene::start(
+                cfg.display.scene_seed,
+                scene::camera(&cfg).context("the recorded rig's eye and display")?,
+                cfg.content.animate.unwrap_or(true),
+                Pacing::Simulated,
+            )
+            .context("cannot render the recorded rig's scene")?,
+        ),
+        _ => None,
+    };
     // The depth the daemon gave at its start: what a /depth message without a scene time
-    // stands for (a still scene). The animated scene's is rendered from the time recorded.
-    let depth = renderer
-        .depth(*t0)
-        .context("the recorded rig's scene has no depth")?;
+    // stands for (a still frame).
+    let depth = match &scene {
+        Some(s) => {
+            let frame = s.frame_at(*t0).map_or_else(|| s.current().0, |(f, _)| f);
+            Arc::new(frame.depth.clone())
+        }
+        None => dioptra_rig::content::open(&cfg, Pacing::Simulated)
+            .context("cannot open the recorded rig's content")?
+            .poll(*t0)
+            .context("the recorded rig's content has no frame")?
+            .depth(),
+    };
     let depth_at = |scene_ns: Option<u64>| -> Result<Arc<DepthMap>> {
         let Some(t) = scene_ns else {
             return Ok(depth.clone());
         };
-        match renderer.scene_depth_at(Timestamp(t)) {
-            Some(d) => Ok(Arc::new(d.with_context(|| {
-                format!("cannot render the scene at {} ms", t / 1_000_000)
-            })?)),
+        match &scene {
+            Some(s) => Ok(Arc::new(
+                s.render_at(Timestamp(t))
+                    .with_context(|| format!("cannot render the scene at {} ms", t / 1_000_000))?
+                    .depth,
+            )),
             None => bail!("the recording has scene times, and its config's content is not the procedural scene"),
         }
     };
@@ -359,7 +378,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
                 render_time: Duration::from_nanos(f.render_ns),
             },
             Rec::Depth(d) => Input::Depth(depth_at(d.scene_ns)?),
-            Rec::Content(c) => Input::Content(dioptra_rig::render::Arrival {
+            Rec::Content(c) => Input::Content(dioptra_rig::content::Arrival {
                 arrived: Timestamp(c.arrived_ns),
                 ready: Timestamp(c.ready_ns),
             }),

@@ -6,7 +6,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use dioptra_core::Timestamp;
-use dioptra_rig::stream::{ColorFormat, DepthKind, FrameDesc, StreamFrames};
+use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, StreamFrames};
 
 fn ingest(c: &mut Criterion) {
     for (w, h) in [(512usize, 512usize), (1920, 1080)] {

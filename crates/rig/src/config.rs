@@ -133,7 +133,7 @@ impl Method {
         self.0.suits(mode.sched())
     }
     /// Why the daemon cannot render with this method in `mode`, if it cannot (the network's
-    /// weights are checked when the daemon starts: [`crate::scene::SceneRenderer::new`]).
+    /// weights are checked when the daemon starts: [`crate::render::rgbd::RgbdRenderer::new`]).
     pub fn unavailable(self, mode: Mode) -> Option<String> {
         match (self.0, mode) {
             (RenderMethod::Network, Mode::Lightfield) => Some(format!(
@@ -726,6 +726,17 @@ fn resolve_auto(text: &str) -> Result<(std::borrow::Cow<'_, str>, bool), ConfigE
 }
 
 impl RigConfig {
+    /// The eye the rig renders for and looks up depth with: `[eye]`'s pupil and field over
+    /// the display's width (not validated: [`RigConfig::validate`] checks it).
+    pub fn eye_model(&self) -> dioptra_core::EyeModel {
+        dioptra_core::EyeModel {
+            pupil_diameter: dioptra_core::Millimeters(self.eye.pupil_mm),
+            fov_horizontal_deg: self.eye.fov_deg,
+            width_px: self.display.width,
+            ..Default::default()
+        }
+    }
+
     /// The multifocal schedule the sync hardware runs: `optics.planes` at `optics.subframe_hz`,
     /// dark for the first quarter of each sub-frame while the lens settles.
     pub fn plane_schedule(&self) -> Result<dioptra_core::PlaneSchedule, ConfigError> {

@@ -7,9 +7,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dioptra_core::{
-    DepthMap, Diopters, EyeModel, Millimeters, PlaneSchedule, PowerRange, Timestamp,
-};
+use dioptra_core::{DepthMap, Diopters, PlaneSchedule, PowerRange, Timestamp};
 use dioptra_sched::{
     CommandId, DisplayTiming, Event, FrameId, LensDynamics, LinkStatus, RenderMethod, Scheduler,
     SchedulerConfig,
@@ -30,7 +28,7 @@ pub enum Input {
     /// The depth map of the content being shown (diopters), read at the gaze point.
     Depth(Arc<DepthMap>),
     /// The content frame of the latest depth arrived and was ready then.
-    Content(crate::render::Arrival),
+    Content(crate::content::Arrival),
     RenderFinished {
         frame: u64,
         method: Method,
@@ -70,12 +68,7 @@ impl std::fmt::Debug for Engine {
 pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     let mut s = SchedulerConfig::new(cfg.mode.sched());
     s.method = cfg.method.0;
-    s.eye = EyeModel {
-        pupil_diameter: Millimeters(cfg.eye.pupil_mm),
-        fov_horizontal_deg: cfg.eye.fov_deg,
-        width_px: cfg.display.width,
-        ..EyeModel::default()
-    };
+    s.eye = cfg.eye_model();
     let r = cfg.optics.lens_range;
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;

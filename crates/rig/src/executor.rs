@@ -1,35 +1,56 @@
-//! The loop: feeds device inputs, API commands, finished renders and timers to the scheduler
-//! (through [`Engine`]), records each input before it is given and each command as it comes
-//! out, and carries the commands out: lens commands to the lens task first, renders to the
-//! render worker, frames to the display sink. [`LoopHook`]s see all of it as it happens.
+//! The loop: feeds device inputs, API commands, new content frames, finished renders and
+//! timers to the scheduler (through [`Engine`]) and carries its commands out: lens commands to
+//! the lens task first, renders to the render worker, frames to the display sink. It does
+//! nothing else: the recording, `/status`, the WebSocket and LSL are [`LoopHook`]s
+//! ([`crate::observers`]) that see all of it as it happens, as the simulated rig's ground
+//! truth and `dioptra hil` do.
+//!
+//! A content frame is an event of its own: the loop polls the content source when a frame
+//! arrives (a stream's [`Content::arrivals`]), when one falls due on the source's clock
+//! ([`Content::next_due`]) and before every other step, so the scheduler always has the
+//! newest frame's depth before it asks for a render, and each render job carries the frame
+//! whose depth the scheduler has.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use dioptra_core::{lock, Diopters, Timestamp};
-use serde_json::json;
+use dioptra_core::{Diopters, Timestamp};
 use tokio::sync::mpsc;
 
 use crate::config::{Method, Mode};
+use crate::content::{Content, ContentFrame};
 use crate::devices::{DeviceInput, DeviceLinks, LensOrder};
 use crate::display::{DisplaySink, Frame};
-use crate::engine::{self, Command, Engine, Input};
-use crate::recording::{
-    FrameRec, LensCommandRec, LensLinkRec, LensWireRec, Marker, PresentRec, Rec, RenderRec,
-};
-use crate::render::{RenderJob, Renderer};
+use crate::engine::{Command, Engine, Input};
+use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use crate::{Control, ControlMsg, RigState};
 
-/// Sees what the loop does, on the loop's task: keep it quick. The simulated-rig builder
+/// Sees what the loop does, on the loop's task: keep it quick. The rig's recording, status,
+/// WebSocket and LSL outlets are hooks ([`crate::observers`]); the simulated-rig builder
 /// records ground truth through one; `dioptra hil` measures through one.
 pub trait LoopHook: Send {
-    /// A device input, before the scheduler gets it.
-    fn input(&mut self, _now: Timestamp, _input: &DeviceInput) {}
+    /// The loop starts, with the scheduler and the display as they are.
+    fn started(&mut self, _now: Timestamp, _engine: &Engine, _sink: &dyn DisplaySink) {}
+    /// A device input, as the scheduler has just taken it (`engine` holds its reading of it;
+    /// the commands it caused come next).
+    fn input(&mut self, _now: Timestamp, _input: &DeviceInput, _engine: &Engine) {}
+    /// An API command the scheduler took (a refused one changed nothing and is not seen).
+    fn control(&mut self, _now: Timestamp, _cmd: &Control, _engine: &Engine) {}
+    /// A new content frame: the scheduler has its depth and arrival.
+    fn content(&mut self, _now: Timestamp, _frame: &ContentFrame) {}
+    /// The scheduler's timer is due and it is about to step.
+    fn tick(&mut self, _now: Timestamp) {}
     /// A command the scheduler gave, as it is carried out.
     fn command(&mut self, _now: Timestamp, _cmd: &Command) {}
-    /// A render finished (`ok`: it made its images).
-    fn rendered(&mut self, _now: Timestamp, _frame: u64, _took: Duration, _ok: bool) {}
+    /// A render came back (made, or failed).
+    fn rendered(&mut self, _now: Timestamp, _report: &RenderReport<'_>) {}
+    /// A frame (multifocal: a layer) went to the display.
+    fn presented(&mut self, _now: Timestamp, _shown: &Presented, _sink: &dyn DisplaySink) {}
+    /// The loop finished a turn (the scheduler stepped and its commands were carried out).
+    fn stepped(&mut self, _now: Timestamp, _engine: &Engine) {}
+    /// The scheduler's shutdown is next.
+    fn shutdown(&mut self, _now: Timestamp) {}
     /// When the hook wants [`LoopHook::wake`] called.
     fn next_wakeup(&self) -> Option<Timestamp> {
         None
@@ -39,26 +60,74 @@ pub trait LoopHook: Send {
     fn stopped(&mut self, _now: Timestamp, _engine: &Engine) {}
 }
 
+/// A render that came back, as hooks see it.
+#[derive(Debug)]
+pub struct RenderReport<'a> {
+    pub job: &'a RenderJob,
+    /// The focus the scheduler asked for (`None`: it gave none).
+    pub focus: Option<Diopters>,
+    pub requested: Timestamp,
+    /// What the render counts as having taken.
+    pub took: Duration,
+    /// Made (with the planner's choice, where it chose), or why not.
+    pub outcome: Result<Option<&'a Planned>, &'a RenderFailure>,
+}
+
+impl RenderReport<'_> {
+    /// What the render took, ns.
+    pub fn render_ns(&self) -> u64 {
+        u64::try_from(self.took.as_nanos()).unwrap_or(u64::MAX)
+    }
+}
+
+/// Why a frame did not render.
+#[derive(Debug)]
+pub struct RenderFailure {
+    pub kind: &'static str,
+    pub message: String,
+    /// The content was shown unblurred in its place ([`crate::render::unblurred`]).
+    pub fallback: bool,
+}
+
+/// A frame (or a multifocal layer) the display took.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Presented {
+    pub frame: u64,
+    pub layer: Option<u8>,
+    /// The focus it was rendered for.
+    pub focus: Diopters,
+    /// When it is on screen.
+    pub shown: Timestamp,
+    /// The scheduler showed it again (no newer frame was ready).
+    pub repeat: bool,
+}
+
 /// A finished render.
 struct Rendered {
     job: RenderJob,
     /// The focus the scheduler asked for (`None`: it gave none).
     focus: Option<Diopters>,
     requested: Timestamp,
-    result: Result<crate::render::RenderOutput, RenderFailure>,
+    result: Result<RenderOutput, (RenderFailure, Option<Vec<dioptra_core::RgbImage>>)>,
     took: Duration,
 }
 
-/// Why a frame did not render, and what is shown instead.
-struct RenderFailure {
+/// A failed render, and the unblurred content shown in its place.
+fn failure(
     kind: &'static str,
     message: String,
-    /// The renderer's unblurred frame ([`Renderer::unblurred`]).
-    unblurred: Option<Vec<dioptra_core::RgbImage>>,
+    job: &RenderJob,
+    content: &ContentFrame,
+    planes: usize,
+) -> (RenderFailure, Option<Vec<dioptra_core::RgbImage>>) {
+    let unblurred = crate::render::unblurred(job.mode, content, planes);
+    let failure = RenderFailure {
+        kind,
+        message,
+        fallback: unblurred.is_some(),
+    };
+    (failure, unblurred)
 }
-
-/// A kind of render error (method and kind) is logged at most once per this long.
-const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
 
 /// Finished frames kept for the scheduler to present (it shows the newest ready one).
 const FRAMES_KEPT: usize = 4;
@@ -66,6 +135,7 @@ const FRAMES_KEPT: usize = 4;
 pub(crate) struct LoopParts {
     pub state: Arc<RigState>,
     pub engine: Engine,
+    pub content: Arc<dyn Content>,
     pub renderer: Arc<dyn Renderer>,
     pub sink: Box<dyn DisplaySink>,
     pub links: DeviceLinks,
@@ -76,10 +146,22 @@ pub(crate) struct LoopParts {
     pub devices_stop: tokio_util::sync::CancellationToken,
 }
 
+/// What woke the loop.
+enum Woke {
+    Control(ControlMsg),
+    Rendered(Box<Rendered>),
+    Input(DeviceInput),
+    /// A content frame arrived or fell due.
+    Content,
+    /// A timer: the scheduler's or a hook's.
+    Timer,
+}
+
 pub(crate) async fn run_loop(parts: LoopParts) {
     let LoopParts {
         state,
         mut engine,
+        content,
         renderer,
         sink,
         links,
@@ -90,7 +172,9 @@ pub(crate) async fn run_loop(parts: LoopParts) {
     } = parts;
     let cancel = state.cancel.clone();
     let clock = state.clock.clone();
+    let arrivals = content.arrivals();
     let (done_tx, mut done_rx) = mpsc::channel::<Rendered>(4);
+    let now = clock.now();
     let mut ex = Executor {
         state: &state,
         links: &links,
@@ -101,19 +185,17 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         rendering: false,
         pending: None,
         hooks,
-        new_depth: None,
-        error_log: std::collections::HashMap::new(),
+        on_show: None,
     };
-    ex.sync_status(&engine);
-    let now = clock.now();
-    if let Some(d) = renderer.depth(now) {
-        let arrival = renderer.take_arrival();
-        ex.give_content(&mut engine, now, d, arrival).await;
+    for h in &mut ex.hooks {
+        h.started(now, &engine, ex.sink.as_ref());
     }
+    ex.take_content(&mut engine, content.as_ref(), now).await;
     loop {
         let wake = [
             engine.next_wakeup(),
             ex.hooks.iter().filter_map(|h| h.next_wakeup()).min(),
+            content.next_due(),
         ]
         .into_iter()
         .flatten()
@@ -121,27 +203,33 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         let sleep = wake.map_or(Duration::from_secs(3600), |t| {
             t.saturating_since(clock.now())
         });
-        let now;
-        // The wall time a gaze sample arrived, for the lens command it causes.
-        let mut cause = None;
-        let cmds = tokio::select! {
+        let woke = tokio::select! {
             biased;
             _ = cancel.cancelled() => break,
-            Some(msg) = controls.recv() => {
-                now = clock.now();
+            Some(msg) = controls.recv() => Woke::Control(msg),
+            Some(done) = done_rx.recv() => Woke::Rendered(Box::new(done)),
+            Some(input) = inputs.recv() => Woke::Input(input),
+            _ = async { arrivals.as_ref()?.notified().await; Some(()) }, if arrivals.is_some() => {
+                Woke::Content
+            }
+            _ = tokio::time::sleep(sleep), if wake.is_some() => Woke::Timer,
+        };
+        let now = clock.now();
+        // The newest content first: a render the scheduler asks for now shows it.
+        ex.take_content(&mut engine, content.as_ref(), now).await;
+        // The wall time a gaze sample arrived, for the lens command it causes.
+        let mut cause = None;
+        let cmds = match woke {
+            Woke::Control(msg) => {
                 let cmd = msg.cmd;
                 match engine.step(now, Input::Control(cmd.clone())) {
                     Ok(cmds) => {
-                        // Recorded only when applied: a refused command changed nothing.
-                        let rec = cmd.rec();
-                        if let Some(l) = &state.lsl {
-                            l.marker(now, "control", serde_json::to_value(&rec).unwrap_or_default());
-                        }
-                        state.record(now, Rec::Control(rec));
                         if let Control::Mode(_) = cmd {
                             let _ = links.multifocal.send(engine.mode() == Mode::Multifocal);
                         }
-                        ex.sync_status(&engine);
+                        for h in &mut ex.hooks {
+                            h.control(now, &cmd, &engine);
+                        }
                         let _ = msg.reply.send(Ok(()));
                         cmds
                     }
@@ -151,38 +239,33 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                     }
                 }
             }
-            Some(done) = done_rx.recv() => {
-                now = clock.now();
-                let input = ex.finished(done, now);
+            Woke::Rendered(done) => {
+                let input = ex.finished(*done, now);
                 engine.step(now, input).unwrap_or_default()
             }
-            Some(input) = inputs.recv() => {
-                now = clock.now();
+            Woke::Input(input) => {
                 if let DeviceInput::Gaze(_, at) = &input {
                     cause = Some(*at);
                 }
-                ex.device_input(&input, now);
-                let gaze = match (&state.lsl, &input) {
-                    (Some(_), DeviceInput::Gaze(g, _)) => Some(*g),
-                    _ => None,
-                };
-                let cmds = engine.step(now, Input::Device(input)).unwrap_or_default();
-                // With the scheduler's reading of it: eye phase and fused vergence.
-                if let (Some(l), Some(g)) = (&state.lsl, gaze) {
-                    let st = engine.scheduler().status();
-                    l.gaze(&g, st.phase.as_str(), st.vergence_d);
+                let cmds = engine
+                    .step(now, Input::Device(input.clone()))
+                    .unwrap_or_default();
+                for h in &mut ex.hooks {
+                    h.input(now, &input, &engine);
                 }
                 cmds
             }
-            _ = tokio::time::sleep(sleep), if wake.is_some() => {
-                now = clock.now();
+            Woke::Content => Vec::new(),
+            Woke::Timer => {
                 for h in &mut ex.hooks {
                     if h.next_wakeup().is_some_and(|t| t <= now) {
                         h.wake(now, &engine);
                     }
                 }
                 if engine.next_wakeup().is_some_and(|t| t <= now) {
-                    state.record(now, Rec::Tick(Marker {}));
+                    for h in &mut ex.hooks {
+                        h.tick(now);
+                    }
                     engine.step(now, Input::Tick).unwrap_or_default()
                 } else {
                     continue;
@@ -190,17 +273,16 @@ pub(crate) async fn run_loop(parts: LoopParts) {
             }
         };
         ex.execute(now, cmds, cause).await;
-        // A frame was asked for and the content had moved on: the scheduler reads the new
-        // depth.
-        if let Some((d, arrival)) = ex.new_depth.take() {
-            ex.give_content(&mut engine, now, d, arrival).await;
+        for h in &mut ex.hooks {
+            h.stepped(now, &engine);
         }
-        lock(&state.status).scheduler = engine.status();
     }
     // The scheduler's own shutdown: its park command (and sequencer stop), recorded and sent
     // before the device tasks are told to stop, so the lens task sends it first.
     let now = clock.now();
-    state.record(now, Rec::Shutdown(Marker {}));
+    for h in &mut ex.hooks {
+        h.shutdown(now);
+    }
     let cmds = engine.step(now, Input::Shutdown).unwrap_or_default();
     ex.execute(now, cmds, None).await;
     devices_stop.cancel();
@@ -210,15 +292,16 @@ pub(crate) async fn run_loop(parts: LoopParts) {
     let drain = async {
         while let Some(input) = inputs.recv().await {
             let now = clock.now();
-            ex.device_input(&input, now);
-            let _ = engine.step(now, Input::Device(input));
+            let _ = engine.step(now, Input::Device(input.clone()));
+            for h in &mut ex.hooks {
+                h.input(now, &input, &engine);
+            }
         }
     };
     if tokio::time::timeout(DRAIN_LIMIT, drain).await.is_err() {
         tracing::warn!("a device task did not stop within {DRAIN_LIMIT:?} of shutdown");
     }
     let now = clock.now();
-    lock(&state.status).scheduler = engine.status();
     for h in &mut ex.hooks {
         h.stopped(now, &engine);
     }
@@ -240,135 +323,28 @@ struct Executor<'a> {
     /// A render asked for while another was still running.
     pending: Option<(RenderJob, Option<Diopters>, Timestamp)>,
     hooks: Vec<Box<dyn LoopHook>>,
-    /// The content's depth when it changed at a frame request, for the scheduler.
-    new_depth: Option<(Arc<dioptra_core::DepthMap>, Option<crate::render::Arrival>)>,
-    /// Per (method, error kind): when it was last logged, and how many since.
-    error_log: std::collections::HashMap<(String, &'static str), (Timestamp, u64)>,
+    /// The content frame whose depth the scheduler has: what a render job shows.
+    on_show: Option<ContentFrame>,
 }
 
 impl Executor<'_> {
-    /// Gives the scheduler the content's new depth, and when that content frame arrived.
-    async fn give_content(
-        &mut self,
-        engine: &mut Engine,
-        now: Timestamp,
-        depth: Arc<dioptra_core::DepthMap>,
-        arrival: Option<crate::render::Arrival>,
-    ) {
-        let scene_ns = self.renderer.content_time().map(|t| t.0);
-        self.state
-            .record(now, Rec::Depth(crate::recording::DepthRec { scene_ns }));
-        let cmds = engine.step(now, Input::Depth(depth)).unwrap_or_default();
-        self.execute(now, cmds, None).await;
-        if let Some(a) = arrival {
-            self.state.record(
-                now,
-                Rec::Content(crate::recording::ContentRec {
-                    arrived_ns: a.arrived.0,
-                    ready_ns: a.ready.0,
-                }),
-            );
-            let cmds = engine.step(now, Input::Content(a)).unwrap_or_default();
-            self.execute(now, cmds, None).await;
+    /// Polls the content source; a new frame's depth (and when it arrived) goes to the
+    /// scheduler.
+    async fn take_content(&mut self, engine: &mut Engine, content: &dyn Content, now: Timestamp) {
+        let Some(frame) = content.poll(now) else {
+            return;
+        };
+        let mut cmds = engine
+            .step(now, Input::Depth(frame.depth()))
+            .unwrap_or_default();
+        if let Some(a) = frame.arrival {
+            cmds.extend(engine.step(now, Input::Content(a)).unwrap_or_default());
         }
-    }
-
-    fn sync_status(&self, engine: &Engine) {
-        let mut st = lock(&self.state.status);
-        st.mode = Some(engine.mode());
-        st.method = Some(engine.method());
-        st.manual_focus_d = engine.scheduler().status().manual_focus.map(|d| d.0);
-        st.display = self.sink.status();
-    }
-
-    fn device_input(&mut self, input: &DeviceInput, now: Timestamp) {
         for h in &mut self.hooks {
-            h.input(now, input);
+            h.content(now, &frame);
         }
-        let sh = self.state;
-        match input {
-            DeviceInput::Gaze(g, _) => {
-                sh.record(now, Rec::Gaze(g.into()));
-                lock(&sh.status).gaze_samples += 1;
-                sh.publish(|| {
-                    json!({
-                        "type": "gaze",
-                        "host_ns": g.host_time.0,
-                        "left": { "direction": g.left.direction, "valid": g.left.valid },
-                        "right": { "direction": g.right.direction, "valid": g.right.valid },
-                    })
-                });
-            }
-            DeviceInput::LensState(s) => {
-                sh.record(now, Rec::LensState(s.into()));
-                let commanded = {
-                    let mut st = lock(&sh.status);
-                    st.lens_power_d = Some(s.power.0);
-                    st.commanded_focus_d
-                };
-                if let Some(l) = &sh.lsl {
-                    l.lens_state(s, commanded);
-                }
-                sh.publish(
-                    || json!({ "type": "lens", "host_ns": s.host_time.0, "power_d": s.power.0 }),
-                );
-            }
-            DeviceInput::LensWire {
-                id,
-                requested,
-                wire_time,
-                ..
-            } => {
-                if let Some(l) = &sh.lsl {
-                    l.lens_wire(*wire_time, requested.0);
-                }
-                sh.record(
-                    now,
-                    Rec::LensWire(LensWireRec {
-                        id: *id,
-                        requested_d: requested.0,
-                        wire_ns: wire_time.0,
-                    }),
-                )
-            }
-            DeviceInput::LensLink(up) => sh.record(now, Rec::LensLink(LensLinkRec { up: *up })),
-            DeviceInput::Sync(e) => {
-                sh.record(now, Rec::Sync(e.into()));
-                let mut st = lock(&sh.status);
-                st.sync_events += 1;
-                match e {
-                    dioptra_core::SequencerEvent::SubframeStart {
-                        frame,
-                        plane_index,
-                        lens_power,
-                        host_time,
-                        ..
-                    } => {
-                        st.subframes += 1;
-                        let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
-                        if let Some(l) = &sh.lsl {
-                            l.marker(
-                                *host_time,
-                                "subframe",
-                                json!({
-                                    "frame": frame,
-                                    "plane": plane_index,
-                                    "plane_d": plane,
-                                    "lens_d": lens_power.map(|d| d.0),
-                                }),
-                            );
-                        }
-                        if let (Some(p), Some(l)) = (plane, lens_power) {
-                            st.subframes_measured += 1;
-                            if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
-                                st.subframes_off_target += 1;
-                            }
-                        }
-                    }
-                    dioptra_core::SequencerEvent::Fault { .. } => st.subframe_faults += 1,
-                }
-            }
-        }
+        self.on_show = Some(frame);
+        self.execute(now, cmds, None).await;
     }
 
     async fn execute(&mut self, now: Timestamp, cmds: Vec<Command>, cause: Option<Instant>) {
@@ -388,59 +364,14 @@ impl Executor<'_> {
             // Let the lens task write it before this task goes on.
             tokio::task::yield_now().await;
         }
-        let sh = self.state;
         for c in cmds {
             for h in &mut self.hooks {
                 h.command(now, &c);
             }
             match c {
-                Command::SetLensPower {
-                    id,
-                    power,
-                    apply_at,
-                    reason,
-                } => {
-                    sh.record(
-                        now,
-                        Rec::LensCommand(LensCommandRec {
-                            id: id.0,
-                            power_d: power.0,
-                            apply_at_ns: apply_at.0,
-                            reason: engine::reason_name(reason),
-                        }),
-                    );
-                    {
-                        let mut st = lock(&sh.status);
-                        st.commanded_focus_d = Some(power.0);
-                        st.lens_commands += 1;
-                    }
-                    sh.publish(|| {
-                        json!({
-                            "type": "focus",
-                            "host_ns": now.0,
-                            "commanded_d": power.0,
-                            "reason": engine::reason_name(reason),
-                        })
-                    });
-                }
+                Command::SetLensPower { .. } => {}
                 Command::RenderFrame(req) => {
-                    let mode = Mode::from_sched(req.mode);
-                    let method = Method(req.method);
-                    sh.record(
-                        now,
-                        Rec::Render(RenderRec {
-                            frame: req.frame.0,
-                            mode: mode.as_str().into(),
-                            method: method.as_str().into(),
-                            focus_d: req.focus.map(|d| d.0),
-                            display_ns: req.display_time.0,
-                        }),
-                    );
-                    lock(&sh.status).frames_requested += 1;
-                    // The frame shows the content as it is now.
-                    if let Some(d) = self.renderer.depth(now) {
-                        self.new_depth = Some((d, self.renderer.take_arrival()));
-                    }
+                    let sh = self.state;
                     let d = &sh.cfg.display;
                     let gaze = req.gaze.and_then(|a| {
                         let (x, y) = dioptra_sched::depth::pixel_of(
@@ -455,8 +386,8 @@ impl Executor<'_> {
                     });
                     let job = RenderJob {
                         frame: req.frame.0,
-                        mode,
-                        method,
+                        mode: Mode::from_sched(req.mode),
+                        method: Method(req.method),
                         focus: req
                             .focus
                             .unwrap_or(Diopters(sh.cfg.devices.lens.park_power)),
@@ -491,7 +422,6 @@ impl Executor<'_> {
                     ..
                 } => self.present(now, frame.0, Some(layer), start, repeat),
                 Command::StopSequencer => {
-                    sh.record(now, Rec::StopSequencer(Marker {}));
                     let _ = self.links.multifocal.send(false);
                 }
                 other => {
@@ -501,26 +431,37 @@ impl Executor<'_> {
         }
     }
 
-    /// Renders on a blocking thread. The frame counts as finished at its start plus its cost
-    /// on the rig's clock: on the system clock that is when the render returns; on a
-    /// simulated clock (frozen while the blocking thread works) the worker sleeps the cost.
+    /// Renders on a blocking thread, from the content frame on show. The frame counts as
+    /// finished at its start plus its cost on the rig's clock: on the system clock that is
+    /// when the render returns; on a simulated clock (frozen while the blocking thread works)
+    /// the worker sleeps the cost.
     fn start_render(&mut self, job: RenderJob, focus: Option<Diopters>, requested: Timestamp) {
+        let Some(content) = self.on_show.clone() else {
+            // Never: the loop takes the first content frame before anything else.
+            tracing::error!(frame = job.frame, "no content to render");
+            return;
+        };
         self.rendering = true;
         let (renderer, tx, clock) = (
             self.renderer.clone(),
             self.done_tx.clone(),
             self.state.clock.clone(),
         );
+        let planes = self.state.cfg.optics.planes.len();
         tokio::spawn(async move {
             let started = clock.now();
             let job_kept = job.clone();
-            let worker = renderer.clone();
+            let content_kept = content.clone();
             let r = tokio::task::spawn_blocking(move || {
                 let t0 = Instant::now();
-                let result = worker.render(&job).map_err(|e| RenderFailure {
-                    kind: crate::render::error_kind(&e),
-                    message: e.to_string(),
-                    unblurred: worker.unblurred(&job),
+                let result = renderer.render(&job, &content).map_err(|e| {
+                    failure(
+                        crate::render::error_kind(&e),
+                        e.to_string(),
+                        &job,
+                        &content,
+                        planes,
+                    )
                 });
                 let took = match &result {
                     Ok(out) => out.cost.unwrap_or_else(|| t0.elapsed()),
@@ -532,13 +473,14 @@ impl Executor<'_> {
             // A renderer that panics fails its frame like any error: the loop must hear back,
             // or it would wait for this frame forever.
             let (job, result, took) = r.unwrap_or_else(|e| {
-                let unblurred = renderer.unblurred(&job_kept);
-                let failure = RenderFailure {
-                    kind: "panic",
-                    message: format!("the render thread failed: {e}"),
-                    unblurred,
-                };
-                (job_kept, Err(failure), Duration::ZERO)
+                let f = failure(
+                    "panic",
+                    format!("the render thread failed: {e}"),
+                    &job_kept,
+                    &content_kept,
+                    planes,
+                );
+                (job_kept, Err(f), Duration::ZERO)
             });
             let finish = started + took;
             tokio::time::sleep(finish.saturating_since(clock.now())).await;
@@ -562,16 +504,6 @@ impl Executor<'_> {
         at: Timestamp,
         repeat: bool,
     ) {
-        let sh = self.state;
-        sh.record(
-            now,
-            Rec::Present(PresentRec {
-                frame,
-                layer,
-                at_ns: at.0,
-                repeat,
-            }),
-        );
         let Some(f) = self.frames.iter().find(|f| f.number == frame) else {
             tracing::warn!(frame, "asked to present a frame that is not rendered");
             return;
@@ -582,88 +514,18 @@ impl Executor<'_> {
         };
         match shown {
             Ok(t) => {
-                if let Some(l) = &sh.lsl {
-                    l.marker(
-                        t,
-                        "frame",
-                        json!({
-                            "frame": frame,
-                            "layer": layer,
-                            "focus_d": f.focus.0,
-                            "repeat": repeat,
-                        }),
-                    );
+                let p = Presented {
+                    frame,
+                    layer,
+                    focus: f.focus,
+                    shown: t,
+                    repeat,
+                };
+                for h in &mut self.hooks {
+                    h.presented(now, &p, self.sink.as_ref());
                 }
-                sh.publish(|| {
-                    json!({
-                        "type": "frame",
-                        "frame": frame,
-                        "layer": layer,
-                        "focus_d": f.focus.0,
-                        "shown_ns": t.0,
-                        "repeat": repeat,
-                    })
-                })
             }
             Err(e) => tracing::warn!(error = %e, "display failed"),
-        }
-        let mut st = lock(&sh.status);
-        st.frames_shown = self.sink.shown();
-        st.display = self.sink.status();
-    }
-
-    /// Counts a failed render, logs it (once per kind and [`RENDER_ERROR_LOG_EVERY`]) and keeps
-    /// the unblurred frame in its place. The scheduler is told the frame finished all the
-    /// same: its slot is free again, and the display goes on.
-    fn render_failed(&mut self, now: Timestamp, job: &RenderJob, failure: RenderFailure) {
-        let method = job.method.as_str().to_string();
-        {
-            let mut st = lock(&self.state.status);
-            st.render_errors += 1;
-            *st.render_errors_by_method
-                .entry(method.clone())
-                .or_default() += 1;
-            st.last_render_error = Some(crate::RenderErrorNote {
-                frame: job.frame,
-                method: method.clone(),
-                kind: failure.kind,
-                error: failure.message.clone(),
-                focus_d: job.focus.0,
-            });
-        }
-        let key = (method.clone(), failure.kind);
-        let entry = self.error_log.entry(key);
-        let log = match entry {
-            std::collections::hash_map::Entry::Vacant(v) => {
-                v.insert((now, 0));
-                Some(0)
-            }
-            std::collections::hash_map::Entry::Occupied(mut o) => {
-                let (last, since) = o.get_mut();
-                if now.saturating_since(*last) >= RENDER_ERROR_LOG_EVERY {
-                    let n = *since;
-                    *last = now;
-                    *since = 0;
-                    Some(n)
-                } else {
-                    *since += 1;
-                    None
-                }
-            }
-        };
-        if let Some(more) = log {
-            tracing::warn!(
-                frame = job.frame,
-                method = %method,
-                focus_d = job.focus.0,
-                suppressed_since_last = more,
-                error = %failure.message,
-                "render failed; showing the unblurred frame (more of this kind are logged at most every 10 s)"
-            );
-        }
-        if let Some(images) = failure.unblurred {
-            lock(&self.state.status).fallback_frames += 1;
-            self.keep_frame(job, images.into_iter().map(Into::into).collect());
         }
     }
 
@@ -678,41 +540,189 @@ impl Executor<'_> {
         });
     }
 
-    /// A render came back: keeps its frame and returns the scheduler's input for it.
+    /// A render came back: keeps its frame (or, when it failed, the unblurred content in its
+    /// place: the scheduler is told the frame finished all the same, so its slot is free
+    /// again and the display goes on) and returns the scheduler's input for it.
     fn finished(&mut self, done: Rendered, now: Timestamp) -> Input {
         self.rendering = false;
         if let Some((job, focus, requested)) = self.pending.take() {
             self.start_render(job, focus, requested);
         }
-        let sh = self.state;
-        lock(&sh.status).last_render_ms = Some(done.took.as_secs_f64() * 1e3);
+        let Rendered {
+            job,
+            focus,
+            requested,
+            result,
+            took,
+        } = done;
+        let (images, planned, failure) = match result {
+            Ok(out) => (Some(out.images), out.planned, None),
+            Err((failure, unblurred)) => (
+                unblurred.map(|i| i.into_iter().map(Into::into).collect()),
+                None,
+                Some(failure),
+            ),
+        };
+        let report = RenderReport {
+            job: &job,
+            focus,
+            requested,
+            took,
+            outcome: match &failure {
+                None => Ok(planned.as_ref()),
+                Some(f) => Err(f),
+            },
+        };
         for h in &mut self.hooks {
-            h.rendered(now, done.job.frame, done.took, done.result.is_ok());
+            h.rendered(now, &report);
         }
-        match done.result {
-            Ok(rendered) => {
-                if rendered.planned.is_some() {
-                    lock(&sh.status).planned = rendered.planned;
-                }
-                self.keep_frame(&done.job, rendered.images);
-            }
-            Err(failure) => self.render_failed(now, &done.job, failure),
+        let render_time = Duration::from_nanos(report.render_ns());
+        if let Some(images) = images {
+            self.keep_frame(&job, images);
         }
-        let render_ns = u64::try_from(done.took.as_nanos()).unwrap_or(u64::MAX);
-        sh.record(
-            now,
-            Rec::Frame(FrameRec {
-                frame: done.job.frame,
-                method: done.job.method.as_str().into(),
-                render_ns,
-                requested_ns: done.requested.0,
-                focus_d: done.focus.map(|d| d.0),
-            }),
-        );
         Input::RenderFinished {
-            frame: done.job.frame,
-            method: done.job.method,
-            render_time: Duration::from_nanos(render_ns),
+            frame: job.frame,
+            method: job.method,
+            render_time,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Mutex;
+
+    use super::*;
+    use crate::config::RigConfig;
+    use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
+    use crate::render::RenderOutput;
+    use crate::{Rig, RigSetup};
+
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum Seen {
+        /// A content frame reached the scheduler: its number and its depth (one value).
+        Content(u64, f32),
+        /// The scheduler asked for a render.
+        Request(u64),
+        /// A render job ran on a content frame.
+        Rendered(u64, u64),
+    }
+
+    type Log = Arc<Mutex<Vec<(Timestamp, Seen)>>>;
+
+    struct Watch(Log);
+
+    impl LoopHook for Watch {
+        fn content(&mut self, now: Timestamp, frame: &ContentFrame) {
+            let d = frame.rgbd.depth.data()[0];
+            self.0
+                .lock()
+                .unwrap()
+                .push((now, Seen::Content(frame.number, d)));
+        }
+        fn command(&mut self, now: Timestamp, cmd: &Command) {
+            if let Command::RenderFrame(r) = cmd {
+                self.0.lock().unwrap().push((now, Seen::Request(r.frame.0)));
+            }
+        }
+    }
+
+    /// 1 x 1 images in 2 ms of simulated time, noting which content frame each job showed.
+    struct Tiny(Log, Arc<dyn crate::Clock>);
+
+    impl Renderer for Tiny {
+        fn render(
+            &self,
+            job: &RenderJob,
+            content: &ContentFrame,
+        ) -> Result<RenderOutput, dioptra_render::RenderError> {
+            let now = self.1.now();
+            let seen = Seen::Rendered(job.frame, content.number);
+            self.0.lock().unwrap().push((now, seen));
+            Ok(RenderOutput {
+                images: vec![dioptra_core::RgbImage::new(1, 1, [0.5; 3]).into()],
+                planned: None,
+                cost: Some(Duration::from_millis(2)),
+            })
+        }
+    }
+
+    /// A frame an application pushes is an event of its own: its depth reaches the scheduler
+    /// when it arrives, before the next render request, and that request's job renders it.
+    #[tokio::test(start_paused = true)]
+    async fn a_pushed_frames_depth_reaches_the_scheduler_before_the_next_render_request() {
+        let text = crate::config::EXAMPLE_SIM_RIG.to_string()
+            + "\n[content]\nsource = \"stream\"\nring = \"none\"\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let log = Log::default();
+        let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let mut setup = RigSetup::new(cfg);
+        setup.simulated_time = true;
+        setup.clock = Some(clock.clone());
+        setup.content = Some(content.clone());
+        setup.renderer = Some(Arc::new(Tiny(log.clone(), clock.clone())));
+        setup.hooks.push(Box::new(Watch(log.clone())));
+        let rig = Rig::start(setup).await.unwrap();
+        // Frames are requested every 16.7 ms (at 101 and 117 ms here); push between two.
+        tokio::time::sleep(Duration::from_millis(105)).await;
+        let last_request = log
+            .lock()
+            .unwrap()
+            .iter()
+            .rev()
+            .find_map(|(t, s)| matches!(s, Seen::Request(_)).then_some(*t))
+            .expect("frames were requested");
+        let pushed = clock.now();
+        assert!(pushed > last_request);
+        let (w, h) = (96, 96);
+        let desc = FrameDesc {
+            width: w,
+            height: h,
+            color: ColorFormat::Rgb8,
+            depth: DepthKind::Diopters,
+            near: None,
+            far: None,
+            seq: Some(1),
+            app_time_ns: None,
+        };
+        let depth: Vec<u8> = (0..w * h).flat_map(|_| 2.0f32.to_le_bytes()).collect();
+        content
+            .frame_ingest()
+            .unwrap()
+            .submit(&desc, &vec![128; 3 * w * h], &depth, pushed)
+            .unwrap();
+        tokio::time::sleep(Duration::from_millis(40)).await;
+        rig.state().cancel.cancel();
+        assert!(rig.wait().await.ok());
+        let log = log.lock().unwrap().clone();
+        // The placeholder (black at 0 D) first, then the pushed frame at the time it came.
+        let (i, (t, _)) = log
+            .iter()
+            .enumerate()
+            .find(|(_, (_, s))| *s == Seen::Content(2, 2.0))
+            .expect("the pushed frame reached the scheduler");
+        assert_eq!(*t, pushed, "{log:?}");
+        assert_eq!(log[0].1, Seen::Content(1, 0.0), "{log:?}");
+        // No request between the last one before the push and the frame's arrival; the next
+        // one comes after it, and its job renders the pushed frame.
+        assert!(
+            !log[..i]
+                .iter()
+                .any(|(t, s)| matches!(s, Seen::Request(_)) && *t > last_request),
+            "{log:?}"
+        );
+        let next = log[i..]
+            .iter()
+            .find_map(|(t, s)| match s {
+                Seen::Request(f) => Some((*t, *f)),
+                _ => None,
+            })
+            .expect("a frame was requested after the push");
+        assert!(next.0 > pushed, "{log:?}");
+        assert!(
+            log.iter().any(|(_, s)| *s == Seen::Rendered(next.1, 2)),
+            "the next frame renders the pushed content: {log:?}"
+        );
     }
 }

@@ -6,20 +6,25 @@
 //! - [`devices`]: one task per device (lens, gaze, sync), opened through the drivers' table
 //!   ([`devices::open`]), with one policy for lost links and backoff.
 //! - [`executor`]: the loop that steps the scheduler ([`engine`]) and carries out its commands;
-//!   [`executor::LoopHook`]s see what it does.
-//! - [`render`]: the render worker's [`render::Renderer`] (the procedural scene: [`scene`]).
+//!   [`executor::LoopHook`]s see what it does: the recording, `/status`, the WebSocket and LSL
+//!   among them ([`observers`]).
+//! - [`content`]: what the rig shows ([`content::Content`]: the procedural scene, a lab's
+//!   files, a stream), apart from how it is rendered; the loop hears of each frame when it
+//!   arrives.
+//! - [`render`]: the render worker's [`render::Renderer`], which renders a job from a content
+//!   frame ([`render::rgbd::RgbdRenderer`], the rig's own).
 //! - [`display`]: where frames go ([`display::DisplaySink`]; headless here, the window in the
 //!   binary).
 //! - [`recording`]: MCAP recordings.
-//! - [`sim`]: the simulated devices of `port = "sim"`; [`simulated`] (feature `simulated`):
-//!   a whole rig on simulated devices and tokio's paused clock, recording ground truth.
+//! - [`devices::simulators`]: the simulated devices of `port = "sim"`; [`simulated_rig`]
+//!   (feature `simulated`): a whole rig on simulated devices and tokio's paused clock,
+//!   recording ground truth.
 //!
 //! Everything stops through one [`CancellationToken`] ([`RigState::cancel`]): the loop carries
 //! out the scheduler's shutdown (its park command), then the device tasks stop (the lens task
 //! parks the lens and waits for it, the sync task stops the sequence), and [`Rig::wait`]
 //! finishes the recording.
 
-pub mod animated;
 pub mod config;
 pub mod content;
 pub mod devices;
@@ -27,13 +32,11 @@ pub mod display;
 pub mod engine;
 pub mod executor;
 pub mod lsl;
+pub mod observers;
 pub mod recording;
 pub mod render;
-pub mod scene;
-pub mod sim;
 #[cfg(feature = "simulated")]
-pub mod simulated;
-pub mod stream;
+pub mod simulated_rig;
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, OnceLock};
@@ -47,21 +50,24 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use config::{ConfigError, Method, Mode, RigConfig};
+use content::Content;
+use devices::simulators::{SimDevices, SimSpec};
 use devices::{DeviceInput, DeviceSettings, ParkReport, Registry};
 use display::{DisplaySink, HeadlessSink};
 use engine::Engine;
 use executor::LoopHook;
 use recording::{ControlRec, Rec, Recorder, RecordingStats, StartRec};
 use render::Renderer;
-use sim::{SimDevices, SimSpec};
 
 /// Why a rig did not start.
 #[derive(Debug, Error)]
 pub enum RigError {
     #[error(transparent)]
     Config(#[from] ConfigError),
-    #[error("cannot render the scene the display shows: {0}")]
-    Scene(#[source] dioptra_render::RenderError),
+    #[error(transparent)]
+    Content(#[from] content::ContentError),
+    #[error("cannot start the renderer: {0}")]
+    Renderer(#[source] dioptra_render::RenderError),
     #[error("cannot start the scheduler: {0}")]
     Scheduler(String),
     #[error("method = \"{method}\" in {mode} mode: {why}")]
@@ -249,8 +255,8 @@ pub struct RigState {
     pub registry: Arc<Registry>,
     pub settings: DeviceSettings,
     pub status: Mutex<LoopStatus>,
-    /// JSON text messages for the API's `/stream`.
-    pub stream: broadcast::Sender<Arc<str>>,
+    /// JSON text messages for the API's WebSocket (`GET /stream`).
+    pub websocket: broadcast::Sender<Arc<str>>,
     pub recording: Mutex<Option<Recorder>>,
     pub cancel: CancellationToken,
     /// The wall-clock time (UTC, ns since the Unix epoch) of the host timeline's zero, read
@@ -258,7 +264,9 @@ pub struct RigState {
     pub wall_zero_ns: Option<u64>,
     /// What the host timeline counts.
     pub clock_source: &'static str,
-    /// What makes the frames (for `/status`'s `content`).
+    /// What the rig shows (`/status`'s `content`; the API's frame endpoints).
+    pub content: Arc<dyn Content>,
+    /// What renders the frames (`/status`'s `render`).
     pub renderer: Arc<dyn Renderer>,
     /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
     pub auto_method: std::sync::atomic::AtomicBool,
@@ -301,7 +309,7 @@ impl RigState {
                 "lens_d": status.lens_power_d,
                 "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
             },
-            "content": self.renderer.content_status(),
+            "content": self.content.status(),
             "render": self.renderer.backend_status(),
             "clock": {
                 "source": self.clock_source,
@@ -370,7 +378,7 @@ impl RigState {
     /// Sends a `/stream` message, stamped with the host time and (on a real clock) the
     /// wall-clock time it was sent.
     pub(crate) fn publish(&self, msg: impl FnOnce() -> serde_json::Value) {
-        if self.stream.receiver_count() > 0 {
+        if self.websocket.receiver_count() > 0 {
             let mut m = msg();
             if let Some(o) = m.as_object_mut() {
                 o.insert("host_ns".into(), json!(self.clock.now().0));
@@ -379,7 +387,7 @@ impl RigState {
                     json!(self.wall_zero_ns.is_some().then(wall_ns)),
                 );
             }
-            let _ = self.stream.send(Arc::from(m.to_string()));
+            let _ = self.websocket.send(Arc::from(m.to_string()));
         }
     }
 
@@ -484,7 +492,10 @@ pub struct RigSetup {
     pub cfg: RigConfig,
     /// The rig's clock (default tokio's: wall time, or simulated time under a paused runtime).
     pub clock: Option<Arc<dyn Clock>>,
-    /// Default: the procedural scene of `display.scene_seed`.
+    /// Default: the content `[content]` describes (the procedural scene of
+    /// `display.scene_seed` without one).
+    pub content: Option<Arc<dyn Content>>,
+    /// Default: [`render::rgbd::RgbdRenderer`] of the config.
     pub renderer: Option<Arc<dyn Renderer>>,
     /// Default: the headless sink (`display.kind = "window"` needs the binary's window sink).
     pub sink: Option<Box<dyn DisplaySink>>,
@@ -505,6 +516,7 @@ impl RigSetup {
         RigSetup {
             cfg,
             clock: None,
+            content: None,
             renderer: None,
             sink: None,
             sim: None,
@@ -594,6 +606,7 @@ impl Rig {
         let RigSetup {
             cfg,
             clock,
+            content,
             renderer,
             sink,
             sim,
@@ -620,21 +633,28 @@ impl Rig {
             }
             None => None,
         };
+        let content: Arc<dyn Content> = match content {
+            Some(c) => c,
+            None => {
+                let c = cfg.clone();
+                let pacing = if simulated_time {
+                    content::scene::Pacing::Simulated
+                } else {
+                    content::scene::Pacing::RealTime
+                };
+                tokio::task::spawn_blocking(move || content::open(&c, pacing))
+                    .await
+                    .map_err(|e| RigError::Task(e.to_string()))??
+            }
+        };
         let renderer: Arc<dyn Renderer> = match renderer {
             Some(r) => r,
             None => {
                 let c = cfg.clone();
-                let pacing = if simulated_time {
-                    animated::Pacing::Simulated
-                } else {
-                    animated::Pacing::RealTime
-                };
-                let r = tokio::task::spawn_blocking(move || {
-                    scene::SceneRenderer::with_pacing(&c, pacing)
-                })
-                .await
-                .map_err(|e| RigError::Task(e.to_string()))?
-                .map_err(RigError::Scene)?;
+                let r = tokio::task::spawn_blocking(move || render::rgbd::RgbdRenderer::new(&c))
+                    .await
+                    .map_err(|e| RigError::Task(e.to_string()))?
+                    .map_err(RigError::Renderer)?;
                 Arc::new(r)
             }
         };
@@ -669,7 +689,7 @@ impl Rig {
         };
         let settings = DeviceSettings::from_config(&cfg);
         let (controls_tx, controls_rx) = mpsc::channel(64);
-        let (stream, _) = broadcast::channel(1024);
+        let (websocket, _) = broadcast::channel(1024);
         let registry = Arc::new(Registry::default());
         let state = Arc::new(RigState {
             registry: registry.clone(),
@@ -680,11 +700,12 @@ impl Rig {
             }),
             sims: OnceLock::new(),
             lsl,
-            stream,
+            websocket,
             recording: Mutex::new(None),
             cancel: CancellationToken::new(),
             lens_parked: CancellationToken::new(),
             auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
+            content: content.clone(),
             renderer: renderer.clone(),
             wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
             clock_source: if simulated_time {
@@ -716,12 +737,16 @@ impl Rig {
         let looper = tokio::spawn(executor::run_loop(executor::LoopParts {
             state: state.clone(),
             engine,
+            content,
             renderer,
             sink,
             links,
             inputs: dev_rx,
             controls: controls_rx,
-            hooks,
+            hooks: observers::standard(&state)
+                .into_iter()
+                .chain(hooks)
+                .collect(),
             devices_stop: devices_stop.clone(),
         }));
         let (lens_task, parked) = (dtasks.lens, state.lens_parked.clone());

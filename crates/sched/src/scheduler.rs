@@ -61,8 +61,9 @@ pub enum Event {
     /// model's horizontal field. Fixation depth is read from the latest one.
     Depth(Arc<DepthMap>),
     /// The content frame whose depth came last arrived at `arrived` (a stream frame's request,
-    /// a file frame's due time) and was ready to render at `ready`. The frame being rendered
-    /// (or, with none in flight, the next one requested) shows it.
+    /// a file frame's due time) and was ready to render at `ready`. The executor gives it when
+    /// it arrives, before the frame that shows it is requested: the next frame requested shows
+    /// it (a newer arrival before that request replaces it).
     Content {
         arrived: Timestamp,
         ready: Timestamp,
@@ -772,12 +773,9 @@ impl Scheduler {
             self.latency
                 .record(Stage::ContentReceived, since(ready, arrived));
         }
-        // The executor takes content up when a frame is requested: that frame shows it. A
-        // newer arrival replaces an older one that no frame showed.
-        match &mut self.in_flight {
-            Some(f) => f.content_time = Some(arrived),
-            None => self.content_new = Some(arrived),
-        }
+        // Given before the request of the frame that shows it. A newer arrival replaces an
+        // older one that no frame showed.
+        self.content_new = Some(arrived);
     }
 
     fn on_render_finished(

@@ -1,7 +1,7 @@
-//! The demo's renderer: an animated procedural scene, its RGB-D frames, the CPU render
-//! methods per mode, and the few frames kept for scoring against ground truth. It is the rig
-//! runtime's [`Renderer`]: the rig asks it for the content's depth when a frame is requested,
-//! and renders on its worker thread. With `--method auto` (varifocal) each frame's method is
+//! The demo's content and renderer: an animated procedural scene, its RGB-D frames, the CPU
+//! render methods per mode, and the few frames kept for scoring against ground truth. It is
+//! the rig runtime's [`Content`] (the loop polls it for the scene as it is now, at most every
+//! 50 ms) and its [`Renderer`] (the rig renders on its worker thread). With `--method auto` (varifocal) each frame's method is
 //! chosen here, where it is rendered, by `dioptra_render::planner` from the frame's depth
 //! around the gaze point and its focus.
 
@@ -19,6 +19,7 @@ use dioptra_render::LightFieldParams;
 use dioptra_render::RenderError;
 use dioptra_render::{gather::gather, Layers};
 use dioptra_rig::config::Mode as RigMode;
+use dioptra_rig::content::{Content, ContentFrame};
 use dioptra_rig::render::{RenderJob, RenderOutput, Renderer};
 use dioptra_sched::depth::{window_depth, DepthWindow};
 use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
@@ -64,11 +65,17 @@ pub struct Kept {
 
 /// The scene as it is at one instant: its RGB-D, and the sparse views light-field mode
 /// synthesises from.
-struct Content {
+struct SceneFrame {
+    /// The content frame's number.
+    number: u64,
     scene: Scene,
-    rgbd: Rgbd,
+    rgbd: Arc<Rgbd>,
     sparse: Vec<RgbdView>,
 }
+
+/// Scene frames kept for renders still to come (a render may show a frame the loop has
+/// already moved past).
+const FRAMES_KEPT: usize = 4;
 
 pub struct DemoFrames {
     mode: Mode,
@@ -92,8 +99,11 @@ pub struct DemoFrames {
 #[derive(Default)]
 struct DemoState {
     printed_second: u64,
-    current: Option<Arc<Content>>,
+    /// The newest scene frames, oldest first.
+    recent: std::collections::VecDeque<Arc<SceneFrame>>,
     current_at: Option<Timestamp>,
+    /// Content frames handed to the loop.
+    given: u64,
     keep_after: Vec<Timestamp>,
     kept: Vec<Kept>,
     /// `--method auto`: frames per choice so far.
@@ -299,10 +309,10 @@ impl DemoFrames {
 
 impl DemoFrames {
     /// The scene at `t` rendered as the renderer's input.
-    fn content_at(&self, t: Timestamp) -> Option<Content> {
+    fn content_at(&self, t: Timestamp, number: u64) -> Option<SceneFrame> {
         let scene = self.scene_at(t);
         let (color, depth) = render_pinhole(&scene, &self.cam, [0.0, 0.0], 1).ok()?;
-        let rgbd = Rgbd::new(color, depth).ok()?;
+        let rgbd = Arc::new(Rgbd::new(color, depth).ok()?);
         let mut sparse = Vec::new();
         if self.mode == Mode::LightField {
             let h = LF_SPAN_M * 0.5;
@@ -314,7 +324,8 @@ impl DemoFrames {
                 });
             }
         }
-        Some(Content {
+        Some(SceneFrame {
+            number,
             scene,
             rgbd,
             sparse,
@@ -322,8 +333,8 @@ impl DemoFrames {
     }
 }
 
-impl Renderer for DemoFrames {
-    fn depth(&self, t: Timestamp) -> Option<Arc<DepthMap>> {
+impl Content for DemoFrames {
+    fn poll(&self, t: Timestamp) -> Option<ContentFrame> {
         {
             let mut st = lock(&self.state);
             let second = t.as_secs_f64() as u64;
@@ -343,18 +354,32 @@ impl Renderer for DemoFrames {
             }
             st.current_at = Some(t);
         }
-        let content = self.content_at(t)?;
-        let depth = Arc::new(content.rgbd.depth.clone());
-        lock(&self.state).current = Some(Arc::new(content));
-        Some(depth)
+        let number = lock(&self.state).given + 1;
+        let content = Arc::new(self.content_at(t, number)?);
+        let frame = ContentFrame::new(number, content.rgbd.clone());
+        let mut st = lock(&self.state);
+        st.given = number;
+        if st.recent.len() == FRAMES_KEPT {
+            st.recent.pop_front();
+        }
+        st.recent.push_back(content);
+        Some(frame)
     }
+}
 
-    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
-        let content = lock(&self.state).current.clone().ok_or_else(|| {
-            RenderError::Input(dioptra_core::InputError::InvalidValue(
-                "the demo scene was not rendered yet".into(),
-            ))
-        })?;
+impl Renderer for DemoFrames {
+    fn render(&self, job: &RenderJob, frame: &ContentFrame) -> Result<RenderOutput, RenderError> {
+        let content = lock(&self.state)
+            .recent
+            .iter()
+            .find(|c| c.number == frame.number)
+            .cloned()
+            .ok_or_else(|| {
+                RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
+                    "the demo's scene frame {} is no longer kept",
+                    frame.number
+                )))
+            })?;
         let started = Instant::now();
         let output = self
             .render_output(job, &content.rgbd, &content.sparse)
@@ -377,7 +402,7 @@ impl Renderer for DemoFrames {
                     frame: job.frame,
                     display_time: job.display_time,
                     scene: content.scene.clone(),
-                    input: content.rgbd.clone(),
+                    input: content.rgbd.as_ref().clone(),
                     output,
                 });
             }

@@ -6,7 +6,7 @@ use std::sync::Once;
 
 use anyhow::{anyhow, Result};
 #[cfg(feature = "simulated")]
-use dioptra_rig::simulated::Run;
+use dioptra_rig::simulated_rig::Run;
 use dioptra_sched::{Mode, Stage};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
@@ -117,7 +117,7 @@ pub fn focus(path: &Path, r: &Run, mode: Mode) -> Result<()> {
         .y_desc("diopters")
         .draw()
         .map_err(err)?;
-    type Pick = fn(&dioptra_rig::simulated::Probe) -> Option<f64>;
+    type Pick = fn(&dioptra_rig::simulated_rig::Probe) -> Option<f64>;
     let series: [(&str, RGBColor, Pick); 4] = [
         ("depth looked at (truth)", RGBColor(120, 120, 120), |q| {
             q.gaze_target_d

@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{Diopters, RgbImage, Timestamp};
 use dioptra_render::metrics;
 use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_RIG};
-use dioptra_rig::simulated::{percentile, Run, SimRun};
+use dioptra_rig::simulated_rig::{percentile, Run, SimRun};
 use dioptra_sched::{Mode, Stage};
 use hdrhistogram::Histogram;
 
@@ -68,7 +68,7 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
     sim.spec.gaze_scene = frames.gaze_scene();
     println!("running the loop (simulated devices; progress every simulated second)...");
     let r: Run = sim
-        .run_paused(frames.clone(), None)
+        .run_paused(Some(frames.clone()), frames.clone(), None)
         .context("the simulated rig failed")?;
     println!(
         "\nran {:.1} s of simulated time in {:.1} s of wall time ({:.1}x real time)",
@@ -211,7 +211,7 @@ fn summary(r: &Run, mode: Mode) {
 }
 
 /// The probe nearest `t`.
-fn probe_at(r: &Run, t: Timestamp) -> Option<&dioptra_rig::simulated::Probe> {
+fn probe_at(r: &Run, t: Timestamp) -> Option<&dioptra_rig::simulated_rig::Probe> {
     r.log
         .probes
         .iter()

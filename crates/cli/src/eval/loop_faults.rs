@@ -11,7 +11,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use dioptra_core::{DepthMap, Plane, Timestamp};
 use dioptra_rig::config::Mode;
-use dioptra_rig::simulated::{Action, Run, ScriptedRenderer, SimRun};
+use dioptra_rig::simulated_rig::{Action, Run, ScriptedRenderer, SimRun};
 use dioptra_sim::gaze::generator::{Segment, Target, TruePhase};
 use dioptra_sim::gaze::Scene;
 
@@ -149,7 +149,7 @@ fn options(fault: Fault, seconds: f64) -> Result<(SimRun, ScriptedRenderer)> {
     }
     let planes = o.cfg.optics.planes.len();
     let count = std::sync::atomic::AtomicU64::new(0);
-    let renderer = ScriptedRenderer::new(split_depth(), planes, move |_| {
+    let renderer = ScriptedRenderer::new(planes, move |_| {
         let n = count.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         match slow_every {
             Some(every) if n.is_multiple_of(every) => slow,
@@ -266,7 +266,11 @@ pub fn run_all(seconds: f64, mut progress: impl FnMut(Fault)) -> Result<Vec<Loop
         progress(fault);
         let (opts, renderer) = options(fault, seconds)?;
         let r = opts
-            .run_paused(Arc::new(renderer), None)
+            .run_paused(
+                Some(ScriptedRenderer::still(&split_depth())),
+                Arc::new(renderer),
+                None,
+            )
             .with_context(|| format!("the simulated rig failed ({})", fault.name()))?;
         out.push(measure(fault, &r, seconds));
     }

@@ -142,7 +142,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/recording/stop", post(recording_stop))
         .route("/shutdown", post(shutdown))
         .route("/sim/{device}/{action}", post(sim_plug))
-        .route("/stream", get(stream))
+        .route("/stream", get(websocket))
         .route(
             "/frame",
             post(super::frame::from_slot).put(super::frame::put),
@@ -366,8 +366,8 @@ async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json:
     )
 }
 
-async fn stream(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {
-    let rx = s.stream.subscribe();
+async fn websocket(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {
+    let rx = s.websocket.subscribe();
     let cancel = s.cancel.clone();
     ws.on_upgrade(move |socket| forward(socket, rx, cancel))
 }

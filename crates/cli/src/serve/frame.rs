@@ -25,7 +25,7 @@ use http_body_util::{BodyExt, Limited};
 use serde::Deserialize;
 use serde_json::json;
 
-use dioptra_rig::stream::{ColorFormat, DepthKind, FrameDesc, FrameError};
+use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, FrameError};
 use dioptra_rig::RigState;
 
 use super::api::ApiError;
@@ -49,7 +49,7 @@ fn not_streaming() -> ApiError {
 }
 
 pub async fn ring(State(s): State<Arc<RigState>>) -> Result<Json<serde_json::Value>, ApiError> {
-    let stream = s.renderer.stream().ok_or_else(not_streaming)?;
+    let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
     Ok(Json(stream.ring_json()))
 }
 
@@ -64,14 +64,14 @@ pub async fn from_slot(
     State(s): State<Arc<RigState>>,
     b: axum::body::Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let stream = s.renderer.stream().ok_or_else(not_streaming)?;
+    let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
     let f: SlotBody = super::api::body(&b).inspect_err(|e| {
         stream.refuse(FrameError::Request(e.message().to_string()));
     })?;
     let now = s.clock.now();
     // Copying and converting a frame is CPU work: off the runtime's threads.
     let r = tokio::task::spawn_blocking(move || {
-        let stream = s.renderer.stream().ok_or(FrameError::NotStreaming)?;
+        let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
         stream.submit_slot(f.slot, f.seq, now)
     })
     .await
@@ -104,7 +104,7 @@ pub async fn put(
     headers: HeaderMap,
     body: Body,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let Some(stream) = s.renderer.stream() else {
+    let Some(stream) = s.content.frame_ingest() else {
         return Err(not_streaming());
     };
     // Refusals before the frame is read are counted as the stream counts its own.
@@ -114,7 +114,7 @@ pub async fn put(
     };
     let now = s.clock.now();
     let r = tokio::task::spawn_blocking(move || {
-        let stream = s.renderer.stream().ok_or(FrameError::NotStreaming)?;
+        let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
         // A color_bytes beyond the body leaves the depth file empty: refused as such.
         let split = color_len.min(body.len());
         stream.submit(&desc, &body[..split], &body[split..], now)

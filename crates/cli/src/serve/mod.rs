@@ -24,7 +24,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use dioptra_rig::config::{Listen, RigConfig, SinkKind};
-use dioptra_rig::scene::SceneRenderer;
+use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_rig::{Rig, RigSetup, RigState, ShutdownReport};
 use tokio_util::sync::CancellationToken;
 
@@ -71,7 +71,7 @@ fn serve_blocking(
         if let Some(w) = window {
             // The renderer first: the window draws with its GPU device when it has one.
             let c = setup.cfg.clone();
-            let renderer = tokio::task::spawn_blocking(move || SceneRenderer::new(&c))
+            let renderer = tokio::task::spawn_blocking(move || RgbdRenderer::new(&c))
                 .await
                 .context("the renderer's start failed")?
                 .context("cannot start the renderer")?;

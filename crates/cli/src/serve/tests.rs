@@ -19,6 +19,13 @@ use dioptra_rig::render::Renderer as _;
 
 use super::{api, Daemon, Listening};
 
+/// The first frame of `cfg`'s content (the procedural scene of the example rig).
+fn scene_frame(cfg: &RigConfig) -> dioptra_rig::content::ContentFrame {
+    let content =
+        dioptra_rig::content::open(cfg, dioptra_rig::content::scene::Pacing::RealTime).unwrap();
+    content.poll(dioptra_core::Timestamp::ZERO).unwrap()
+}
+
 /// The example sim rig on an ephemeral port, recording into `dir` (from the start if `record`).
 fn sim_config(dir: &Path, record: bool) -> RigConfig {
     let text = SIM_RIG
@@ -1100,7 +1107,8 @@ fn the_network_renders_what_the_net_computes() {
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let cfg = network_config(dir.path(), &weights);
-    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let frame = scene_frame(&cfg);
     assert!(r.network_missing().is_empty());
     let c1 = dioptra_net::load_net(Some(&weights.join("c1.safetensors")), "c1").unwrap();
     let eye = dioptra_core::EyeModel {
@@ -1112,6 +1120,7 @@ fn the_network_renders_what_the_net_computes() {
     let focus = dioptra_core::Diopters(1.5);
     let shown = r
         .render_frame(
+            &frame,
             dioptra_rig::config::Mode::Varifocal,
             cfg.method,
             focus,
@@ -1121,10 +1130,11 @@ fn the_network_renders_what_the_net_computes() {
         .unwrap()
         .images;
     let shown = on_host(shown);
-    assert_eq!(shown, vec![c1.defocus(&r.input(), focus, &eye).unwrap()]);
+    assert_eq!(shown, vec![c1.defocus(&frame.rgbd, focus, &eye).unwrap()]);
     // The focus reaches the net: another focus, another image.
     let other = r
         .render_frame(
+            &frame,
             dioptra_rig::config::Mode::Varifocal,
             cfg.method,
             dioptra_core::Diopters(0.1),
@@ -1138,6 +1148,7 @@ fn the_network_renders_what_the_net_computes() {
     let c4 = dioptra_net::load_net(Some(&weights.join("c4.safetensors")), "c4").unwrap();
     let layers = on_host(
         r.render_frame(
+            &frame,
             dioptra_rig::config::Mode::Multifocal,
             cfg.method,
             focus,
@@ -1147,7 +1158,7 @@ fn the_network_renders_what_the_net_computes() {
         .unwrap()
         .images,
     );
-    assert_eq!(layers, c4.decompose(&r.input()).unwrap().images);
+    assert_eq!(layers, c4.decompose(&frame.rgbd).unwrap().images);
     assert_eq!(layers.len(), cfg.optics.planes.len());
 }
 
@@ -1158,7 +1169,7 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
     cfg.optics.planes = vec![0.5, 1.5];
-    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
     let missing = r.network_missing();
     // C4 and C4R, both made for other planes.
     assert_eq!(missing.len(), 2, "{missing:?}");
@@ -1189,7 +1200,8 @@ fn refine_renders_what_the_refinement_nets_compute() {
     let mut cfg = network_config(dir.path(), &weights);
     cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Refine);
     cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
-    let r = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let frame = scene_frame(&cfg);
     assert!(r.network_missing().is_empty());
     let eye = dioptra_core::EyeModel {
         pupil_diameter: dioptra_core::Millimeters(cfg.eye.pupil_mm),
@@ -1200,7 +1212,7 @@ fn refine_renders_what_the_refinement_nets_compute() {
     let focus = dioptra_core::Diopters(0.2);
     let render = |mode| {
         on_host(
-            r.render_frame(mode, cfg.method, focus, None, false)
+            r.render_frame(&frame, mode, cfg.method, focus, None, false)
                 .unwrap()
                 .images,
         )
@@ -1210,7 +1222,7 @@ fn refine_renders_what_the_refinement_nets_compute() {
     let dioptra_net::Task::C1r { classical } = c1r.arch().task else {
         panic!("not c1r");
     };
-    let input = r.input();
+    let input = frame.rgbd.clone();
     let base = dioptra_net::refine::classical_defocus(
         &dioptra_render::Cpu,
         classical,
@@ -1348,23 +1360,18 @@ async fn focus_at_and_beyond_optical_infinity_renders() {
     stop(d).await;
 }
 
-/// The scene, but every render at a focus below 1 D fails, and the first at 2 D or more
-/// panics.
+/// The rig's renderer, but every render at a focus below 1 D fails, and the first at 2 D or
+/// more panics.
 struct FailingBelow1D(
-    dioptra_rig::scene::SceneRenderer,
+    dioptra_rig::render::rgbd::RgbdRenderer,
     std::sync::atomic::AtomicBool,
 );
 
 impl dioptra_rig::render::Renderer for FailingBelow1D {
-    fn depth(
-        &self,
-        now: dioptra_core::Timestamp,
-    ) -> Option<std::sync::Arc<dioptra_core::DepthMap>> {
-        self.0.depth(now)
-    }
     fn render(
         &self,
         job: &dioptra_rig::render::RenderJob,
+        content: &dioptra_rig::content::ContentFrame,
     ) -> Result<dioptra_rig::render::RenderOutput, dioptra_render::RenderError> {
         if job.focus.0 >= 2.0 && !self.1.swap(true, std::sync::atomic::Ordering::SeqCst) {
             panic!("a renderer bug");
@@ -1375,13 +1382,7 @@ impl dioptra_rig::render::Renderer for FailingBelow1D {
                 method: "focus below 1 D",
             });
         }
-        self.0.render(job)
-    }
-    fn unblurred(
-        &self,
-        job: &dioptra_rig::render::RenderJob,
-    ) -> Option<Vec<dioptra_core::RgbImage>> {
-        self.0.unblurred(job)
+        self.0.render(job, content)
     }
 }
 
@@ -1389,7 +1390,7 @@ impl dioptra_rig::render::Renderer for FailingBelow1D {
 async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = sim_config(dir.path(), false);
-    let scene = dioptra_rig::scene::SceneRenderer::new(&cfg).unwrap();
+    let scene = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
     let mut setup = dioptra_rig::RigSetup::new(cfg);
     setup.renderer = Some(std::sync::Arc::new(FailingBelow1D(
         scene,
@@ -1506,8 +1507,9 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     cpu_cfg.render.weights = None;
     let mut gpu_cfg = cpu_cfg.clone();
     gpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
-    let cpu = dioptra_rig::scene::SceneRenderer::new(&cpu_cfg).unwrap();
-    let gpu = dioptra_rig::scene::SceneRenderer::new(&gpu_cfg).unwrap();
+    let cpu = dioptra_rig::render::rgbd::RgbdRenderer::new(&cpu_cfg).unwrap();
+    let gpu = dioptra_rig::render::rgbd::RgbdRenderer::new(&gpu_cfg).unwrap();
+    let frame = scene_frame(&cpu_cfg);
     let status = gpu.backend_status();
     assert_eq!(status["backend"], json!("gpu"), "{status}");
     assert!(status["adapter"].is_string(), "{status}");
@@ -1529,8 +1531,14 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     ] {
         let m = Method::parse(method).unwrap();
         let q = dioptra_core::Diopters(focus);
-        let a = cpu.render_frame(mode, m, q, None, false).unwrap().images;
-        let b = gpu.render_frame(mode, m, q, None, false).unwrap().images;
+        let a = cpu
+            .render_frame(&frame, mode, m, q, None, false)
+            .unwrap()
+            .images;
+        let b = gpu
+            .render_frame(&frame, mode, m, q, None, false)
+            .unwrap()
+            .images;
         assert_eq!(a.len(), b.len());
         // The GPU's own methods leave their images on the GPU (the nets' come back through
         // dioptra-net); the headless sink reads them back for its PNGs only.

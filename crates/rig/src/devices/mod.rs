@@ -12,6 +12,7 @@ mod boxed;
 mod gaze;
 mod lens;
 pub mod open;
+pub mod simulators;
 mod sync;
 
 use std::collections::BTreeMap;
@@ -30,7 +31,7 @@ pub use boxed::{BoxGaze, BoxLens, BoxSequencer};
 pub use lens::ParkReport;
 
 use crate::config::{Port, RigConfig};
-use crate::sim::{SimDevices, SimSpec};
+use crate::devices::simulators::{SimDevices, SimSpec};
 
 /// A device's connection state, as the API shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]

@@ -16,7 +16,7 @@ use dioptra_transport::{AnyByteLink, AnyHidLink};
 
 use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxSequencer};
 use crate::config::{GazeDriver, LensDriver, Port, RigConfig, SyncDriver};
-use crate::sim::{
+use crate::devices::simulators::{
     byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
     SimPupilCapture, SimSlot, SimSpec,
 };

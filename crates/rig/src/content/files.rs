@@ -16,18 +16,11 @@ use dioptra_core::{lock, Rgbd, Timestamp};
 use dioptra_render::io::{read_color, read_depth, DepthUnits};
 use serde::Serialize;
 
+use super::{Arrival, Content, ContentError, ContentFrame};
 use crate::config::{ContentConfig, RigConfig};
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
-
-#[derive(Debug, thiserror::Error)]
-pub enum ContentError {
-    #[error("content: {0}")]
-    Config(String),
-    #[error("content: {path}: {reason}")]
-    File { path: PathBuf, reason: String },
-}
 
 /// What `/status` shows under `content`.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -137,7 +130,9 @@ pub struct FileFrames {
     late_index: Mutex<Option<usize>>,
     status: Mutex<ContentStatus>,
     /// The due time of the frame taken up last, and when it was, until the loop asks.
-    arrival: Mutex<Option<crate::render::Arrival>>,
+    arrival: Mutex<Option<Arrival>>,
+    /// Frames handed to the loop, and the latest poll ([`Content::poll`]).
+    polled: Mutex<(u64, Option<Timestamp>)>,
 }
 
 impl std::fmt::Debug for FileFrames {
@@ -209,11 +204,12 @@ impl FileFrames {
             on_show: Mutex::new((None, 0, first_frame)),
             late_index: Mutex::new(None),
             arrival: Mutex::new(None),
+            polled: Mutex::new((0, None)),
         })
     }
 
     /// The due time of the frame the latest [`FileFrames::frame_at`] took up, once.
-    pub fn take_arrival(&self) -> Option<crate::render::Arrival> {
+    pub fn take_arrival(&self) -> Option<Arrival> {
         lock(&self.arrival).take()
     }
 
@@ -254,7 +250,7 @@ impl FileFrames {
                 st.since_ns = now.0;
                 // Its due time: where the sequence's clock put it (late if decoding lagged).
                 let shown = if self.looped { count } else { k };
-                *lock(&self.arrival) = Some(crate::render::Arrival {
+                *lock(&self.arrival) = Some(Arrival {
                     arrived: start + Duration::from_secs_f64(shown as f64 / self.fps),
                     ready: now,
                 });
@@ -286,6 +282,37 @@ impl FileFrames {
         let mut st = lock(&self.status).clone();
         st.decoded = lock(&self.shared.state).decoded;
         st
+    }
+}
+
+impl Content for FileFrames {
+    fn poll(&self, now: Timestamp) -> Option<ContentFrame> {
+        let (frame, changed) = self.frame_at(now);
+        let mut polled = lock(&self.polled);
+        polled.1 = Some(now);
+        if !changed && polled.0 > 0 {
+            return None;
+        }
+        polled.0 += 1;
+        Some(ContentFrame {
+            arrival: self.take_arrival(),
+            ..ContentFrame::new(polled.0, frame)
+        })
+    }
+    fn next_due(&self) -> Option<Timestamp> {
+        let n = self.pairs.len();
+        let at = lock(&self.polled).1?;
+        let start = lock(&self.on_show).0?;
+        let count = (at.saturating_since(start).as_secs_f64() * self.fps) as usize;
+        if n == 1 || (!self.looped && count + 1 >= n) {
+            return None;
+        }
+        let due = start + Duration::from_nanos(((count + 1) as f64 * 1e9 / self.fps).ceil() as u64);
+        // Never at or before the latest poll, whatever the rounding: the loop would spin.
+        Some(due.max(at + Duration::from_nanos(1)))
+    }
+    fn status(&self) -> serde_json::Value {
+        serde_json::to_value(FileFrames::status(self)).unwrap_or_default()
     }
 }
 

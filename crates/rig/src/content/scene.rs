@@ -19,7 +19,8 @@ use dioptra_sim::scene::animation::Animation;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use serde::Serialize;
 
-use crate::render::Arrival;
+use super::{Arrival, Content, ContentFrame};
+use crate::config::RigConfig;
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -102,6 +103,24 @@ pub struct AnimatedScene {
     pacing: Pacing,
     shared: Arc<Shared>,
     on_show: Mutex<OnShow>,
+    polled: Mutex<Polled>,
+}
+
+/// What the loop has taken up ([`Content::poll`]).
+#[derive(Default)]
+struct Polled {
+    /// Frames handed to the loop (the first included).
+    given: u64,
+    /// The latest poll.
+    at: Option<Timestamp>,
+}
+
+/// The camera the rig's scene is seen through: the eye model of `cfg` over the display's
+/// pixels.
+pub fn camera(cfg: &RigConfig) -> Result<Camera, RenderError> {
+    let d = &cfg.display;
+    let eye = cfg.eye_model().validated()?;
+    Ok(Camera::new(eye, d.width as usize, d.height as usize))
 }
 
 impl std::fmt::Debug for AnimatedScene {
@@ -195,6 +214,7 @@ impl AnimatedScene {
             cam,
             pacing,
             shared,
+            polled: Mutex::default(),
         })
     }
 
@@ -334,6 +354,43 @@ impl AnimatedScene {
                 .wait(w)
                 .unwrap_or_else(std::sync::PoisonError::into_inner);
         }
+    }
+}
+
+impl Content for AnimatedScene {
+    fn poll(&self, now: Timestamp) -> Option<ContentFrame> {
+        let first = {
+            let mut p = lock(&self.polled);
+            p.at = Some(now);
+            p.given == 0
+        };
+        let (rgbd, arrival) = match self.frame_at(now) {
+            Some((frame, arrival)) => (frame, Some(arrival)),
+            None if first => (self.current().0, None),
+            None => return None,
+        };
+        let time = lock(&self.on_show).time;
+        let number = {
+            let mut p = lock(&self.polled);
+            p.given += 1;
+            p.given
+        };
+        Some(ContentFrame {
+            number,
+            rgbd,
+            arrival,
+            scene_time: Some(time),
+            scene: Some(Arc::new(self.scene_at(time))),
+        })
+    }
+    fn next_due(&self) -> Option<Timestamp> {
+        // The update after the latest poll's: a frame late on the system clock is taken up
+        // by the polls before the loop's other steps, not by waking again at once.
+        let at = lock(&self.polled).at?;
+        (!self.animation.is_empty()).then(|| due_at(at) + SCENE_UPDATE)
+    }
+    fn status(&self) -> serde_json::Value {
+        serde_json::to_value(AnimatedScene::status(self)).unwrap_or_default()
     }
 }
 

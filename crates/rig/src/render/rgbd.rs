@@ -1,7 +1,6 @@
-//! The renderer of the rig's content: the procedural scene (dioptra-sim, seed
-//! `display.scene_seed`, animated: [`crate::animated`]), a lab's RGB-D files
-//! ([`crate::content`]) or frames an application streams ([`crate::stream`]), each frame made
-//! from the content frame on show by the configured method. A multifocal decomposition (which
+//! The rig's renderer of RGB-D content (the procedural scene, a lab's files, a stream: each
+//! job brings its [`ContentFrame`]), each frame made by the job's method on the rig's backend.
+//! A multifocal decomposition (which
 //! does not depend on the focus) is made once per method and content frame, and so is the
 //! light-field panel: 5 x 5 views over a 4 mm pupil (the scene's own pinhole views, or views
 //! synthesised from a file or stream frame's RGB-D), resampled by `dioptra_sched::lenslet`
@@ -22,12 +21,10 @@
 //! configured mode's must load (else the daemon does not start, naming the file), the other's
 //! absence only refuses a switch to it.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{
-    lock, DepthMap, Diopters, EyeModel, InputError, Millimeters, RgbImage, Rgbd, Timestamp,
-};
+use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd};
 use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
@@ -35,31 +32,22 @@ use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError};
 
-use crate::animated::{AnimatedScene, Pacing};
-use crate::config::{ContentSource, Method, Mode, RenderBackend, RigConfig};
+use crate::config::{Method, Mode, RenderBackend, RigConfig};
+use crate::content::ContentFrame;
 use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
-/// Renders frames of the rig's content: the procedural scene, a lab's RGB-D files, or a
-/// stream.
-pub struct SceneRenderer {
-    /// The content frame on show.
-    current: Mutex<OnShow>,
-    /// Whether the loop has the current frame's depth.
-    depth_given: AtomicBool,
-    /// `source = "files"`: the sequence being played.
-    files: Option<crate::content::FileFrames>,
-    /// `source = "stream"`: frames an application pushes.
-    stream: Option<crate::stream::StreamFrames>,
-    /// When the content frame taken up last arrived, until the loop asks.
-    arrival: Mutex<Option<crate::render::Arrival>>,
+/// Renders frames of RGB-D content (the procedural scene, a lab's files, a stream) by the
+/// job's method on the rig's backend.
+pub struct RgbdRenderer {
     eye: EyeModel,
     planes: Vec<Diopters>,
+    /// The display's size: a light-field panel's lenslets cover it.
+    size: (usize, usize),
+    /// The newest content frame rendered: what the caches below may hold.
+    newest: AtomicU64,
     /// Multifocal layers per method and content frame.
     layers: Mutex<Vec<CachedLayers>>,
-    /// `source = "scene"`: the procedural scene.
-    scene: Option<AnimatedScene>,
-    cam: dioptra_sim::scene::Camera,
     /// The light-field panel, made from the content frame numbered with it.
     panel: Mutex<Option<(u64, Arc<RgbImage>)>>,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
@@ -76,104 +64,37 @@ struct CachedLayers {
     images: Arc<Vec<FrameImage>>,
 }
 
-/// The content frame on show.
-#[derive(Clone)]
-struct OnShow {
-    frame: Arc<Rgbd>,
-    /// Counts the frames taken up: what the layer and panel caches were made from.
-    number: u64,
-    /// The procedural scene's time of the frame (zero for other content).
-    scene_time: Timestamp,
-}
-
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
 const LF_GRID: usize = 5;
 const LF_SPAN_M: f32 = 0.004;
 
-impl std::fmt::Debug for SceneRenderer {
+impl std::fmt::Debug for RgbdRenderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Renderer")
-            .field("width", &self.input().width())
-            .field("height", &self.input().height())
+        f.debug_struct("RgbdRenderer")
+            .field("width", &self.size.0)
+            .field("height", &self.size.1)
             .finish_non_exhaustive()
     }
 }
 
-impl SceneRenderer {
-    /// The renderer of `cfg`'s content on the system clock.
-    pub fn new(cfg: &RigConfig) -> Result<SceneRenderer, RenderError> {
-        SceneRenderer::with_pacing(cfg, Pacing::RealTime)
-    }
-
-    /// The renderer of `cfg`'s content; `pacing` says whether the loop waits for the animated
-    /// scene's frames (on a simulated clock).
-    pub fn with_pacing(cfg: &RigConfig, pacing: Pacing) -> Result<SceneRenderer, RenderError> {
+impl RgbdRenderer {
+    /// The renderer of `cfg`'s display, eye and method settings: its backend opened and its
+    /// nets loaded (the configured mode's must load: [`crate::Rig::start`] checks).
+    pub fn new(cfg: &RigConfig) -> Result<RgbdRenderer, RenderError> {
         let d = &cfg.display;
-        let eye = EyeModel {
-            pupil_diameter: Millimeters(cfg.eye.pupil_mm),
-            fov_horizontal_deg: cfg.eye.fov_deg,
-            width_px: d.width,
-            ..EyeModel::default()
-        }
-        .validated()?;
-        let cam = dioptra_sim::scene::Camera::new(eye, d.width as usize, d.height as usize);
-        let mut stream = None;
-        let (input, scene, files) = match cfg.content.source {
-            ContentSource::Scene => {
-                let animate = cfg.content.animate.unwrap_or(true);
-                let scene = AnimatedScene::start(d.scene_seed, cam, animate, pacing)?;
-                ((*scene.current().0).clone(), Some(scene), None)
-            }
-            ContentSource::Stream => {
-                let ring = cfg.content.ring_path(&cfg.api);
-                let s = crate::stream::StreamFrames::open(
-                    d.width as usize,
-                    d.height as usize,
-                    ring.as_deref(),
-                )
-                .map_err(|e| RenderError::Format {
-                    path: ring
-                        .as_ref()
-                        .map_or_else(|| "content.ring".into(), |p| p.display().to_string()),
-                    detail: format!("cannot create the shared-memory ring: {e}"),
-                })?;
-                let first = s.placeholder();
-                stream = Some(s);
-                (first, None, None)
-            }
-            ContentSource::Files => {
-                let files = crate::content::FileFrames::open(cfg).map_err(|e| match e {
-                    crate::content::ContentError::File { path, reason } => RenderError::Format {
-                        path: path.display().to_string(),
-                        detail: reason,
-                    },
-                    other => RenderError::Input(InputError::InvalidValue(other.to_string())),
-                })?;
-                let first = files.current();
-                ((*first).clone(), None, Some(files))
-            }
-        };
+        let eye = cfg.eye_model().validated()?;
         let nets = NET_CONFIGS
             .iter()
             .map(|&(mode, method, config)| ((mode, method), load_net(cfg, config)))
             .collect();
         let compute = Compute::open(cfg, &nets)?;
-        Ok(SceneRenderer {
+        Ok(RgbdRenderer {
             compute: Mutex::new(compute),
-            current: Mutex::new(OnShow {
-                frame: Arc::new(input),
-                number: 0,
-                scene_time: Timestamp::ZERO,
-            }),
-            depth_given: AtomicBool::new(false),
-            files,
-            stream,
-            arrival: Mutex::new(None),
             eye,
             planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
+            size: (d.width as usize, d.height as usize),
+            newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
-            scene,
-            cam,
             panel: Mutex::new(None),
             nets,
         })
@@ -363,46 +284,22 @@ impl SceneRenderer {
         }
     }
 
-    /// The content frame on show (its depth is what the scheduler looks up at the gaze point).
-    pub fn input(&self) -> Arc<Rgbd> {
-        lock(&self.current).frame.clone()
+    /// Notes `content` as the newest frame rendered: what was made from older frames is
+    /// dropped.
+    fn take_up(&self, content: &ContentFrame) {
+        let n = content.number;
+        if self.newest.fetch_max(n, Ordering::AcqRel) < n {
+            lock(&self.layers).retain(|l| l.frame >= n);
+            let mut panel = lock(&self.panel);
+            if panel.as_ref().is_some_and(|(k, _)| *k < n) {
+                *panel = None;
+            }
+        }
     }
 
-    /// Puts a new content frame on show (of scene time `scene_time` for the procedural
-    /// scene): the loop is given its depth and arrival at its next `depth` call, and what was
-    /// made from the frame before is dropped.
-    fn take_up(
-        &self,
-        frame: Arc<Rgbd>,
-        arrival: Option<crate::render::Arrival>,
-        scene_time: Timestamp,
-    ) {
-        *lock(&self.arrival) = arrival;
-        let (number, old) = {
-            let mut c = lock(&self.current);
-            let next = OnShow {
-                frame,
-                number: c.number + 1,
-                scene_time,
-            };
-            (next.number, std::mem::replace(&mut *c, next).frame)
-        };
-        if let Some(s) = &self.stream {
-            s.recycle(old);
-        }
-        lock(&self.layers).retain(|l| l.frame == number);
-        let mut panel = lock(&self.panel);
-        if panel.as_ref().is_some_and(|(n, _)| *n != number) {
-            *panel = None;
-        }
-        self.depth_given.store(false, Ordering::Release);
-    }
-
-    /// The depth of the procedural scene's frame of scene time `t` (a replay's), rendered now;
-    /// `None` when the content is not the procedural scene.
-    pub fn scene_depth_at(&self, t: Timestamp) -> Option<Result<DepthMap, RenderError>> {
-        let scene = self.scene.as_ref()?;
-        Some(scene.render_at(t).map(|f| f.depth))
+    /// Whether what is made from `content` may be kept: no newer frame was rendered since.
+    fn keeps(&self, content: &ContentFrame) -> bool {
+        self.newest.load(Ordering::Acquire) == content.number
     }
 
     /// The images of one frame: one for varifocal and light field, one per plane for
@@ -411,14 +308,15 @@ impl SceneRenderer {
     /// work: call it from a blocking thread.
     pub fn render_frame(
         &self,
+        content: &ContentFrame,
         mode: Mode,
         method: Method,
         focus: Diopters,
         gaze: Option<[f32; 2]>,
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
-        let shown = lock(&self.current).clone();
-        let input = shown.frame.as_ref();
+        self.take_up(content);
+        let input = content.rgbd.as_ref();
         if auto && mode == Mode::Varifocal {
             let (w, h) = (input.width() as f32, input.height() as f32);
             let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
@@ -444,7 +342,7 @@ impl SceneRenderer {
             });
         }
         Ok(RenderOutput {
-            images: self.render_fixed(&shown, mode, method, focus)?,
+            images: self.render_fixed(content, mode, method, focus)?,
             planned: None,
             cost: None,
         })
@@ -452,15 +350,15 @@ impl SceneRenderer {
 
     fn render_fixed(
         &self,
-        shown: &OnShow,
+        content: &ContentFrame,
         mode: Mode,
         method: Method,
         focus: Diopters,
     ) -> Result<Vec<FrameImage>, RenderError> {
-        let input = shown.frame.as_ref();
+        let input = content.rgbd.as_ref();
         match (mode, method.0) {
-            (_, RenderMethod::Views) => Ok(vec![self.panel(shown)?.as_ref().clone().into()]),
-            (Mode::Multifocal, _) => Ok(self.layers(shown, method)?.as_ref().clone()),
+            (_, RenderMethod::Views) => Ok(vec![self.panel(content)?.as_ref().clone().into()]),
+            (Mode::Multifocal, _) => Ok(self.layers(content, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
@@ -477,22 +375,21 @@ impl SceneRenderer {
 
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
-    fn panel(&self, shown: &OnShow) -> Result<Arc<RgbImage>, RenderError> {
+    fn panel(&self, content: &ContentFrame) -> Result<Arc<RgbImage>, RenderError> {
         if let Some((_, p)) = lock(&self.panel)
             .as_ref()
-            .filter(|(n, _)| *n == shown.number)
+            .filter(|(n, _)| *n == content.number)
         {
             return Ok(p.clone());
         }
-        let (w, h) = (self.cam.width, self.cam.height);
-        let (images, pixel_pitch_tan): (Vec<RgbImage>, f32) = match &self.scene {
+        let (w, h) = self.size;
+        let (images, pixel_pitch_tan): (Vec<RgbImage>, f32) = match &content.scene {
             Some(scene) => {
-                let scene = scene.scene_at(shown.scene_time);
                 // Views at half size: a panel of 5 px per lenslet cannot show more.
                 let vcam =
-                    dioptra_sim::scene::Camera::new(self.cam.eye, (w / 2).max(8), (h / 2).max(8));
+                    dioptra_sim::scene::Camera::new(self.eye, (w / 2).max(8), (h / 2).max(8));
                 let views =
-                    dioptra_sim::scene::render_light_field(&scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
+                    dioptra_sim::scene::render_light_field(scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
                 let images = views.into_iter().map(|v| v.color).collect();
                 (images, vcam.eye.pixel_pitch_tan())
             }
@@ -500,7 +397,7 @@ impl SceneRenderer {
                 // The frame as the view from the pupil's centre, warped to each lens position.
                 let input = [RgbdView {
                     position: [0.0, 0.0],
-                    rgbd: shown.frame.as_ref().clone(),
+                    rgbd: content.rgbd.as_ref().clone(),
                 }];
                 let views = self.on_backend("views", |gpu| {
                     backend_of(gpu).synthesize_light_field(
@@ -517,20 +414,24 @@ impl SceneRenderer {
         };
         let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
         // Kept unless the content moved on while it was made.
-        if lock(&self.current).number == shown.number {
-            *lock(&self.panel) = Some((shown.number, panel.clone()));
+        if self.keeps(content) {
+            *lock(&self.panel) = Some((content.number, panel.clone()));
         }
         Ok(panel)
     }
 
-    fn layers(&self, shown: &OnShow, method: Method) -> Result<Arc<Vec<FrameImage>>, RenderError> {
+    fn layers(
+        &self,
+        content: &ContentFrame,
+        method: Method,
+    ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
         if let Some(l) = lock(&self.layers)
             .iter()
-            .find(|l| l.frame == shown.number && l.method == method)
+            .find(|l| l.frame == content.number && l.method == method)
         {
             return Ok(l.images.clone());
         }
-        let input = shown.frame.as_ref();
+        let input = content.rgbd.as_ref();
         let images = if method.0 == RenderMethod::Network {
             on_host(self.net_decompose(input)?)
         } else if method.0 == RenderMethod::Refine {
@@ -579,9 +480,9 @@ impl SceneRenderer {
             self.linear(input)?
         };
         let images = Arc::new(images);
-        if lock(&self.current).number == shown.number {
+        if self.keeps(content) {
             lock(&self.layers).push(CachedLayers {
-                frame: shown.number,
+                frame: content.number,
                 method,
                 images: images.clone(),
             });
@@ -590,64 +491,12 @@ impl SceneRenderer {
     }
 }
 
-impl Renderer for SceneRenderer {
-    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>> {
-        if let Some(files) = &self.files {
-            let (frame, changed) = files.frame_at(now);
-            if changed {
-                self.take_up(frame, files.take_arrival(), Timestamp::ZERO);
-            }
-        }
-        if let Some((frame, arrival)) = self.stream.as_ref().and_then(|s| s.take_new()) {
-            self.take_up(frame, Some(arrival), Timestamp::ZERO);
-        }
-        if let Some((frame, arrival)) = self.scene.as_ref().and_then(|s| s.frame_at(now)) {
-            self.take_up(frame, Some(arrival), arrival.arrived);
-        }
-        // The depth at the first call, and again at each new content frame.
-        (!self.depth_given.swap(true, Ordering::AcqRel))
-            .then(|| Arc::new(self.input().depth.clone()))
-    }
-    fn content_time(&self) -> Option<Timestamp> {
-        self.scene.as_ref().map(|_| lock(&self.current).scene_time)
+impl Renderer for RgbdRenderer {
+    fn render(&self, job: &RenderJob, content: &ContentFrame) -> Result<RenderOutput, RenderError> {
+        self.render_frame(content, job.mode, job.method, job.focus, job.gaze, job.auto)
     }
     fn backend_status(&self) -> serde_json::Value {
-        SceneRenderer::backend_status(self)
-    }
-    fn take_arrival(&self) -> Option<crate::render::Arrival> {
-        lock(&self.arrival).take()
-    }
-    fn content_status(&self) -> serde_json::Value {
-        match (&self.files, &self.stream, &self.scene) {
-            (Some(f), _, _) => serde_json::to_value(f.status()).unwrap_or_default(),
-            (_, Some(s), _) => serde_json::to_value(s.status()).unwrap_or_default(),
-            (_, _, Some(s)) => serde_json::to_value(s.status()).unwrap_or_default(),
-            _ => serde_json::Value::Null,
-        }
-    }
-    fn stream(&self) -> Option<&crate::stream::StreamFrames> {
-        self.stream.as_ref()
-    }
-    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
-        self.render_frame(job.mode, job.method, job.focus, job.gaze, job.auto)
-    }
-    fn unblurred(&self, job: &RenderJob) -> Option<Vec<RgbImage>> {
-        let input = self.input();
-        let color = &input.color;
-        Some(match job.mode {
-            Mode::Multifocal => {
-                let n = self.planes.len().max(1);
-                let share = 1.0 / n as f32;
-                let planes = color.channels.each_ref().map(|p| {
-                    let d = p.data().iter().map(|v| v * share).collect();
-                    dioptra_core::Plane::from_vec(p.width(), p.height(), d)
-                });
-                let [r, g, b] = planes;
-                let layer = RgbImage::from_planes(r.ok()?, g.ok()?, b.ok()?).ok()?;
-                vec![layer; n]
-            }
-            _ => vec![color.clone()],
-        })
+        RgbdRenderer::backend_status(self)
     }
     fn network_missing(&self) -> Vec<(Mode, RenderMethod, String)> {
         self.nets
@@ -912,7 +761,8 @@ impl Compute {
 mod tests {
     use super::*;
     use crate::config::EXAMPLE_SIM_RIG;
-    use crate::stream::{ColorFormat, DepthKind, FrameDesc};
+    use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
+    use dioptra_core::Timestamp;
 
     /// Light-field mode on streamed content: the panel is made from views synthesised from the
     /// frame on show, and made again when another frame comes.
@@ -920,7 +770,9 @@ mod tests {
     fn light_field_mode_shows_a_streamed_frames_light_field() {
         let text = EXAMPLE_SIM_RIG.to_string()
             + "\n[content]\nsource = \"stream\"\nring = \"none\"\n\n[render]\nbackend = \"cpu\"\n";
-        let r = SceneRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap();
+        let cfg = RigConfig::parse(&text).unwrap();
+        let r = RgbdRenderer::new(&cfg).unwrap();
+        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
         let (w, h) = (96, 96);
         // At optical infinity every view is the frame itself: the panel is the lenslet
         // resampling of 25 copies of it.
@@ -937,15 +789,16 @@ mod tests {
             };
             let color: Vec<u8> = (0..3 * w * h).map(colour).collect();
             let depth: Vec<u8> = (0..w * h).flat_map(|_| 0f32.to_le_bytes()).collect();
-            let stream = r.stream.as_ref().unwrap();
+            let stream = content.frame_ingest().unwrap();
             stream
                 .submit(&desc, &color, &depth, Timestamp(seq))
                 .unwrap();
-            assert!(r.depth(Timestamp(seq)).is_some(), "the frame is taken up");
+            content.poll(Timestamp(seq)).expect("the frame is taken up")
         };
-        let panel = || {
+        let panel = |frame: &ContentFrame| {
             let out = r
                 .render_frame(
+                    frame,
                     Mode::Lightfield,
                     Method(RenderMethod::Views),
                     Diopters(1.0),
@@ -955,9 +808,9 @@ mod tests {
                 .unwrap();
             out.images[0].to_host().unwrap().into_owned()
         };
-        send(1, &|i| (i * 7 % 251) as u8);
-        let first = panel();
-        let copies = vec![r.input().color.clone(); LF_GRID * LF_GRID];
+        let one = send(1, &|i| (i * 7 % 251) as u8);
+        let first = panel(&one);
+        let copies = vec![one.rgbd.color.clone(); LF_GRID * LF_GRID];
         let want = lenslet_panel(&copies, r.eye.pixel_pitch_tan(), (w, h)).unwrap();
         assert_eq!(
             (first.width(), first.height()),
@@ -966,8 +819,8 @@ mod tests {
         let p = dioptra_render::metrics::psnr(&first, &want, None).unwrap();
         assert!(p > 60.0, "{p} dB from the frame's own lenslet image");
         // The same frame: the panel is kept. Another frame: made again.
-        assert_eq!(panel(), first);
-        send(2, &|i| (i * 13 % 241) as u8);
-        assert_ne!(panel(), first);
+        assert_eq!(panel(&one), first);
+        let two = send(2, &|i| (i * 13 % 241) as u8);
+        assert_ne!(panel(&two), first);
     }
 }

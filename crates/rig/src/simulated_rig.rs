@@ -3,7 +3,7 @@
 //! in-memory link. Run it inside a tokio runtime with paused time (`#[tokio::test(start_paused
 //! = true)]`, or [`SimRun::run_paused`]) and it runs as fast as the host computes it, in
 //! simulated time: a frame's render counts the time its [`Renderer`] says, or the wall time
-//! it really took.
+//! it really took. What it shows is a [`Content`] of its own (the config's by default).
 //!
 //! Ground truth is recorded beside what the rig did: the gaze generator's true eye movements,
 //! and, every [`SimRun::probe`], where the simulated lens really is.
@@ -11,19 +11,20 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant as WallInstant};
 
-use dioptra_core::{lock, Clock, DepthMap, Diopters, RgbImage, Timestamp};
+use dioptra_core::{lock, Clock, Diopters, RgbImage, Timestamp};
 use dioptra_render::RenderError;
 use dioptra_sched::processing::EyePhase;
 use dioptra_sched::{Command, CommandId, FocusReason, FrameRequest, LinkStatus, SchedulerConfig};
 use dioptra_sim::gaze::generator::TruthSample;
 
 use crate::config::{Mode, Port, RigConfig};
+use crate::content::{Content, ContentFrame};
+use crate::devices::simulators::{SimDevices, SimSpec};
 use crate::devices::DeviceInput;
 use crate::display::DisplaySink;
 use crate::engine::{sched_config, Engine};
 use crate::executor::LoopHook;
 use crate::render::{RenderJob, RenderOutput, Renderer};
-use crate::sim::{SimDevices, SimSpec};
 use crate::{Control, Rig, RigError, RigSetup, RigState, ShutdownReport};
 
 /// Something scripted to happen during a run, at a time after its start.
@@ -101,6 +102,7 @@ impl SimRun {
     /// Runs on a new single-threaded runtime with paused time.
     pub fn run_paused(
         self,
+        content: Option<Arc<dyn Content>>,
         renderer: Arc<dyn Renderer>,
         sink: Option<Box<dyn DisplaySink>>,
     ) -> Result<Run, RigError> {
@@ -109,13 +111,15 @@ impl SimRun {
             .start_paused(true)
             .build()
             .map_err(|e| RigError::Task(format!("cannot start a runtime: {e}")))?;
-        rt.block_on(self.run(renderer, sink))
+        rt.block_on(self.run(content, renderer, sink))
     }
 
-    /// Starts the rig, carries out the actions, stops it after `duration` and returns what it
-    /// recorded. Needs a tokio runtime (paused time for a fast, deterministic run).
+    /// Starts the rig with `content` (`None`: the config's) rendered by `renderer`, carries
+    /// out the actions, stops it after `duration` and returns what it recorded. Needs a tokio
+    /// runtime (paused time for a fast, deterministic run).
     pub async fn run(
         self,
+        content: Option<Arc<dyn Content>>,
         renderer: Arc<dyn Renderer>,
         sink: Option<Box<dyn DisplaySink>>,
     ) -> Result<Run, RigError> {
@@ -134,6 +138,7 @@ impl SimRun {
         let mut setup = RigSetup::new(self.cfg);
         setup.simulated_time = true;
         setup.clock = Some(clock.clone());
+        setup.content = content;
         setup.renderer = Some(renderer);
         setup.sink = sink;
         setup.sim = Some(self.spec);
@@ -346,7 +351,7 @@ impl TruthRecorder {
 }
 
 impl LoopHook for TruthRecorder {
-    fn input(&mut self, now: Timestamp, input: &DeviceInput) {
+    fn input(&mut self, now: Timestamp, input: &DeviceInput, _engine: &Engine) {
         let mut log = lock(&self.log);
         match input {
             DeviceInput::Gaze(..) => log.gaze_samples += 1,
@@ -427,33 +432,37 @@ impl LoopHook for TruthRecorder {
     }
 }
 
-/// A renderer for loop tests: the content's depth map once, and every frame taking the
-/// simulated time `cost` gives (its images are 1 x 1 pixels: nothing looks at them).
+/// A renderer for loop tests: every frame takes the simulated time `cost` gives (its images
+/// are 1 x 1 pixels: nothing looks at them). The content they show is a still frame of a
+/// depth map: [`ScriptedRenderer::still`].
 pub struct ScriptedRenderer {
-    depth: Mutex<Option<Arc<DepthMap>>>,
     planes: usize,
     cost: Box<dyn Fn(&RenderJob) -> Duration + Send + Sync>,
 }
 
 impl ScriptedRenderer {
     pub fn new(
-        depth: Arc<DepthMap>,
         planes: usize,
         cost: impl Fn(&RenderJob) -> Duration + Send + Sync + 'static,
     ) -> Self {
         ScriptedRenderer {
-            depth: Mutex::new(Some(depth)),
             planes,
             cost: Box::new(cost),
         }
     }
+
+    /// One still frame of `depth` (black): the content loop tests show.
+    pub fn still(depth: &dioptra_core::DepthMap) -> Arc<dyn Content> {
+        Arc::new(crate::content::Still::of_depth(depth))
+    }
 }
 
 impl Renderer for ScriptedRenderer {
-    fn depth(&self, _now: Timestamp) -> Option<Arc<DepthMap>> {
-        lock(&self.depth).take()
-    }
-    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError> {
+    fn render(
+        &self,
+        job: &RenderJob,
+        _content: &ContentFrame,
+    ) -> Result<RenderOutput, RenderError> {
         let layers = if job.mode == Mode::Multifocal {
             self.planes
         } else {

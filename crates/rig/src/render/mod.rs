@@ -1,15 +1,18 @@
-//! The render worker's side of the loop: what makes a frame's images ([`Renderer`]), and the
-//! job and result that travel between the loop and the worker thread.
+//! The render worker's side of the loop: what makes a frame's images from a content frame
+//! ([`Renderer`]; the rig's own is [`rgbd::RgbdRenderer`]), and the job and result that travel
+//! between the loop and the worker thread.
+
+pub mod rgbd;
 
 use std::borrow::Cow;
-use std::sync::Arc;
 use std::time::Duration;
 
-use dioptra_core::{DepthMap, Diopters, RgbImage, Timestamp};
+use dioptra_core::{Diopters, RgbImage, Timestamp};
 use dioptra_render::gpu::GpuImage;
 use dioptra_render::RenderError;
 
 use crate::config::{Method, Mode};
+use crate::content::ContentFrame;
 
 /// A frame to render.
 #[derive(Debug, Clone, PartialEq)]
@@ -85,56 +88,39 @@ pub struct Planned {
     pub why: String,
 }
 
-/// When a content frame arrived (a stream frame's request, a file frame's due time) and when it
-/// was ready to render, on the rig's clock.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Arrival {
-    pub arrived: Timestamp,
-    pub ready: Timestamp,
-}
-
-/// Makes frames from the rig's content. Called from the render worker's blocking thread
-/// (`render`) and from the loop (`depth`), so it is shared and takes `&self`.
+/// Renders jobs. Called from the render worker's blocking thread, so it is shared and takes
+/// `&self`; it knows nothing of where content comes from: each job brings its content frame.
 pub trait Renderer: Send + Sync + 'static {
-    /// The depth map (diopters, spanning the eye's field) of the content at `now`, when it
-    /// differs from the one returned last; always `Some` at the first call. The scheduler
-    /// reads the fixation depth from it.
-    fn depth(&self, now: Timestamp) -> Option<Arc<DepthMap>>;
-    /// The arrival of the content frame the latest `depth` call took up, once (`None` when
-    /// it took none, or the source does not know: a still scene).
-    fn take_arrival(&self) -> Option<Arrival> {
-        None
-    }
-    /// The scene time of the content frame on show, for content that has one (the animated
-    /// procedural scene): recorded with each depth, so a replay renders the same frame.
-    fn content_time(&self) -> Option<Timestamp> {
-        None
-    }
-    /// Renders one frame.
-    fn render(&self, job: &RenderJob) -> Result<RenderOutput, RenderError>;
+    /// Renders one frame of `content`.
+    fn render(&self, job: &RenderJob, content: &ContentFrame) -> Result<RenderOutput, RenderError>;
     /// The modes in which a net's method (`network`, `refine`) cannot render, and why (its
     /// weights did not load; the API refuses a switch to them).
     fn network_missing(&self) -> Vec<(Mode, dioptra_sched::RenderMethod, String)> {
         Vec::new()
     }
-    /// What is shown when `render` fails, so the display never freezes: the content without
-    /// blur (in multifocal mode spread evenly over the planes, which add up to it). `None`:
-    /// nothing (the previous frame stays up).
-    fn unblurred(&self, _job: &RenderJob) -> Option<Vec<RgbImage>> {
-        None
-    }
-    /// What `/status` shows under `content`: the source and its counters.
-    fn content_status(&self) -> serde_json::Value {
-        serde_json::Value::Null
-    }
     /// What `/status` shows under `render`: the backend frames are rendered on.
     fn backend_status(&self) -> serde_json::Value {
         serde_json::Value::Null
     }
-    /// `source = "stream"`: where the API hands an application's frames.
-    fn stream(&self) -> Option<&crate::stream::StreamFrames> {
-        None
-    }
+}
+
+/// What is shown when a render fails, so the display never freezes: the content without
+/// blur (in multifocal mode spread evenly over the `planes`, which add up to it).
+pub fn unblurred(mode: Mode, content: &ContentFrame, planes: usize) -> Option<Vec<RgbImage>> {
+    let color = &content.rgbd.color;
+    Some(match mode {
+        Mode::Multifocal => {
+            let n = planes.max(1);
+            let share = 1.0 / n as f32;
+            let [r, g, b] = color.channels.each_ref().map(|p| {
+                let d = p.data().iter().map(|v| v * share).collect();
+                dioptra_core::Plane::from_vec(p.width(), p.height(), d)
+            });
+            let layer = RgbImage::from_planes(r.ok()?, g.ok()?, b.ok()?).ok()?;
+            vec![layer; n]
+        }
+        _ => vec![color.clone()],
+    })
 }
 
 /// The kind of a render error, for counting and rate-limited logging.

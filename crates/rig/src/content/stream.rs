@@ -27,6 +27,8 @@ use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat
 use rayon::prelude::*;
 use serde::Serialize;
 
+use super::{Arrival, Content, ContentFrame};
+
 /// The ring file's first 8 bytes.
 pub const RING_MAGIC: &[u8; 8] = b"DIOPTRA1";
 pub const RING_VERSION: u32 = 1;
@@ -687,7 +689,7 @@ pub struct StreamStatus {
 struct Pending {
     frame: Arc<Rgbd>,
     seq: u64,
-    arrival: crate::render::Arrival,
+    arrival: Arrival,
 }
 
 /// The shared-memory ring: the file and its mapping.
@@ -776,6 +778,11 @@ pub struct StreamFrames {
     status: Mutex<StreamStatus>,
     /// Memory of frames done with, for the next ones.
     planes: Planes,
+    /// Notified at each accepted frame: the loop takes it up then.
+    arrivals: Arc<tokio::sync::Notify>,
+    /// The frame on show (given back for reuse when the next is taken up), and how many
+    /// frames the loop has been handed.
+    on_show: Mutex<(Option<Arc<Rgbd>>, u64)>,
 }
 
 impl std::fmt::Debug for StreamFrames {
@@ -801,6 +808,8 @@ impl StreamFrames {
             ring,
             pending: Mutex::new(None),
             planes: Planes::new(width * height),
+            arrivals: Arc::new(tokio::sync::Notify::new()),
+            on_show: Mutex::new((None, 0)),
         })
     }
 
@@ -952,7 +961,7 @@ impl StreamFrames {
         started: std::time::Instant,
     ) -> Result<u64, FrameError> {
         // Ready once copied and converted: the request's arrival plus that work.
-        let arrival = crate::render::Arrival {
+        let arrival = Arrival {
             arrived: now,
             ready: now + started.elapsed(),
         };
@@ -978,6 +987,7 @@ impl StreamFrames {
                     self.planes.give_frame(old.frame);
                     st.replaced += 1;
                 }
+                self.arrivals.notify_one();
                 Ok(seq)
             }
         }
@@ -996,7 +1006,7 @@ impl StreamFrames {
     }
 
     /// The newest frame not yet taken up by the display, if any, and when it arrived.
-    pub fn take_new(&self) -> Option<(Arc<Rgbd>, crate::render::Arrival)> {
+    pub fn take_new(&self) -> Option<(Arc<Rgbd>, Arrival)> {
         let p = lock(&self.pending).take()?;
         let mut st = lock(&self.status);
         st.shown += 1;
@@ -1008,6 +1018,36 @@ impl StreamFrames {
         let mut st = lock(&self.status).clone();
         st.newest_age_ms = st.newest_at.map(|t| t.elapsed().as_secs_f64() * 1e3);
         st
+    }
+}
+
+impl Content for StreamFrames {
+    /// The newest accepted frame not taken up yet; at the first call, the black placeholder if
+    /// none arrived. The frame it replaces is given back for reuse.
+    fn poll(&self, _now: Timestamp) -> Option<ContentFrame> {
+        let mut on_show = lock(&self.on_show);
+        let (frame, arrival) = match self.take_new() {
+            Some((f, a)) => (f, Some(a)),
+            None if on_show.1 == 0 => (Arc::new(self.placeholder()), None),
+            None => return None,
+        };
+        if let Some(old) = on_show.0.replace(frame.clone()) {
+            self.recycle(old);
+        }
+        on_show.1 += 1;
+        Some(ContentFrame {
+            arrival,
+            ..ContentFrame::new(on_show.1, frame)
+        })
+    }
+    fn arrivals(&self) -> Option<Arc<tokio::sync::Notify>> {
+        Some(self.arrivals.clone())
+    }
+    fn status(&self) -> serde_json::Value {
+        serde_json::to_value(StreamFrames::status(self)).unwrap_or_default()
+    }
+    fn frame_ingest(&self) -> Option<&StreamFrames> {
+        Some(self)
     }
 }
 

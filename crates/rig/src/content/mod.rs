@@ -1,0 +1,165 @@
+//! What the rig shows, apart from how it is rendered: a content source makes RGB-D frames and
+//! the loop hears of each one when it arrives ([`Content::poll`], woken by
+//! [`Content::next_due`] and [`Content::arrivals`]); the scheduler gets the frame's depth then,
+//! and the renderer ([`crate::render::Renderer`]) is handed the frame with each job.
+//!
+//! - [`scene`]: the procedural scene, animated on the rig's clock;
+//! - [`files`]: a lab's RGB-D files, one frame or a numbered sequence;
+//! - [`stream`]: frames an application pushes (shared-memory ring or `PUT /frame`);
+//! - [`Still`]: one fixed frame (loop tests).
+
+pub mod files;
+pub mod scene;
+pub mod stream;
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use dioptra_core::{DepthMap, RgbImage, Rgbd, Timestamp};
+
+use crate::config::{ContentSource, RigConfig};
+
+/// When a content frame arrived (a stream frame's request, a file frame's due time, the
+/// scene's frame time) and when it was ready to show, on the rig's clock.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Arrival {
+    pub arrived: Timestamp,
+    pub ready: Timestamp,
+}
+
+/// One frame of content, as the loop takes it up.
+#[derive(Debug, Clone)]
+pub struct ContentFrame {
+    /// Counts the frames the source put on show, from 1; what is made from a frame (layers,
+    /// a light-field panel) is kept under its number.
+    pub number: u64,
+    /// Colour (linear) and depth (diopters), spanning the eye's field.
+    pub rgbd: Arc<Rgbd>,
+    /// When it arrived (`None`: a still frame, or a source that does not know).
+    pub arrival: Option<Arrival>,
+    /// The procedural scene's time of the frame: recorded with its depth, so a replay renders
+    /// the same frame.
+    pub scene_time: Option<Timestamp>,
+    /// The procedural scene as this frame shows it: light-field mode ray casts its own views
+    /// from it instead of synthesising them from the RGB-D.
+    pub scene: Option<Arc<dioptra_sim::scene::Scene>>,
+}
+
+impl ContentFrame {
+    /// A frame with only its pixels (no arrival, no scene).
+    pub fn new(number: u64, rgbd: Arc<Rgbd>) -> ContentFrame {
+        ContentFrame {
+            number,
+            rgbd,
+            arrival: None,
+            scene_time: None,
+            scene: None,
+        }
+    }
+
+    /// Its depth map, for the scheduler.
+    pub fn depth(&self) -> Arc<DepthMap> {
+        Arc::new(self.rgbd.depth.clone())
+    }
+}
+
+/// A content source. Shared by the loop (which polls it), the API (status, frame ingest) and
+/// the source's own worker threads, so it takes `&self`.
+pub trait Content: Send + Sync + 'static {
+    /// The frame to show at `now` when it is not the one returned last; always `Some` at the
+    /// first call (which starts a sequence's clock).
+    fn poll(&self, now: Timestamp) -> Option<ContentFrame>;
+    /// When the next frame falls due on the source's own clock (a sequence, the animated
+    /// scene): the loop polls then. `None`: no frame is due (a still frame, a stream).
+    fn next_due(&self) -> Option<Timestamp> {
+        None
+    }
+    /// Notified when a frame arrives from outside the loop (a stream's frame): the loop polls
+    /// then.
+    fn arrivals(&self) -> Option<Arc<tokio::sync::Notify>> {
+        None
+    }
+    /// What `/status` shows under `content`: the source and its counters.
+    fn status(&self) -> serde_json::Value {
+        serde_json::Value::Null
+    }
+    /// `source = "stream"`: where the API hands an application's frames.
+    fn frame_ingest(&self) -> Option<&stream::StreamFrames> {
+        None
+    }
+}
+
+/// Why a content source did not open.
+#[derive(Debug, thiserror::Error)]
+pub enum ContentError {
+    #[error("content: {0}")]
+    Config(String),
+    #[error("content: {path}: {reason}")]
+    File {
+        path: std::path::PathBuf,
+        reason: String,
+    },
+    #[error("cannot render the scene the display shows: {0}")]
+    Scene(#[source] dioptra_render::RenderError),
+}
+
+/// The content source `cfg` describes; `pacing` says whether the loop waits for the animated
+/// scene's frames (on a simulated clock). CPU work (the scene's first frame is ray cast, the
+/// first file decoded): call it from a blocking thread.
+pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, ContentError> {
+    let d = &cfg.display;
+    Ok(match cfg.content.source {
+        ContentSource::Scene => {
+            let animate = cfg.content.animate.unwrap_or(true);
+            let cam = scene::camera(cfg).map_err(ContentError::Scene)?;
+            Arc::new(
+                scene::AnimatedScene::start(d.scene_seed, cam, animate, pacing)
+                    .map_err(ContentError::Scene)?,
+            )
+        }
+        ContentSource::Files => Arc::new(files::FileFrames::open(cfg)?),
+        ContentSource::Stream => {
+            let ring = cfg.content.ring_path(&cfg.api);
+            let s =
+                stream::StreamFrames::open(d.width as usize, d.height as usize, ring.as_deref())
+                    .map_err(|e| ContentError::File {
+                        path: ring.clone().unwrap_or_else(|| "content.ring".into()),
+                        reason: format!("cannot create the shared-memory ring: {e}"),
+                    })?;
+            Arc::new(s)
+        }
+    })
+}
+
+/// One fixed frame: given once, then never changes.
+#[derive(Debug)]
+pub struct Still {
+    frame: ContentFrame,
+    given: AtomicBool,
+}
+
+impl Still {
+    pub fn new(rgbd: Rgbd) -> Still {
+        Still {
+            frame: ContentFrame::new(1, Arc::new(rgbd)),
+            given: AtomicBool::new(false),
+        }
+    }
+
+    /// A black frame of `depth` (loop tests, where only the depth matters).
+    pub fn of_depth(depth: &DepthMap) -> Still {
+        Still::new(Rgbd {
+            color: RgbImage::new(depth.width(), depth.height(), [0.0; 3]),
+            depth: depth.clone(),
+        })
+    }
+}
+
+impl Content for Still {
+    fn poll(&self, _now: Timestamp) -> Option<ContentFrame> {
+        (!self.given.swap(true, Ordering::AcqRel)).then(|| self.frame.clone())
+    }
+    fn status(&self) -> serde_json::Value {
+        serde_json::json!({ "source": "still" })
+    }
+}

@@ -1,0 +1,429 @@
+//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages
+//! and the Lab Streaming Layer outlets, each a [`LoopHook`] the loop calls as it goes. The
+//! loop itself ([`crate::executor`]) only steps the scheduler and carries out its commands.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use dioptra_core::{lock, Timestamp};
+use serde_json::json;
+
+use crate::config::{Method, Mode};
+use crate::content::ContentFrame;
+use crate::devices::DeviceInput;
+use crate::display::DisplaySink;
+use crate::engine::{self, Command, Engine};
+use crate::executor::{LoopHook, Presented, RenderReport};
+use crate::recording::{
+    ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensWireRec, Marker, PresentRec,
+    Rec, RenderRec,
+};
+use crate::{Control, RigState};
+
+/// The observers every rig has, in the order the loop calls them.
+pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
+    let mut hooks: Vec<Box<dyn LoopHook>> = vec![
+        Box::new(Recording(state.clone())),
+        Box::new(Status {
+            state: state.clone(),
+            error_log: HashMap::new(),
+        }),
+        Box::new(WebSocket(state.clone())),
+    ];
+    if state.lsl.is_some() {
+        hooks.push(Box::new(Lsl {
+            state: state.clone(),
+            commanded: None,
+        }));
+    }
+    hooks
+}
+
+/// Writes what the scheduler got and what it commanded into the recording in progress
+/// (none: nothing), in the order the loop handled it, which `dioptra replay` follows.
+struct Recording(Arc<RigState>);
+
+impl LoopHook for Recording {
+    fn input(&mut self, now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+        let rec = match input {
+            DeviceInput::Gaze(g, _) => Rec::Gaze(g.into()),
+            DeviceInput::LensState(s) => Rec::LensState(s.into()),
+            DeviceInput::LensWire {
+                id,
+                requested,
+                wire_time,
+                ..
+            } => Rec::LensWire(LensWireRec {
+                id: *id,
+                requested_d: requested.0,
+                wire_ns: wire_time.0,
+            }),
+            DeviceInput::LensLink(up) => Rec::LensLink(LensLinkRec { up: *up }),
+            DeviceInput::Sync(e) => Rec::Sync(e.into()),
+        };
+        self.0.record(now, rec);
+    }
+    fn control(&mut self, now: Timestamp, cmd: &Control, _engine: &Engine) {
+        self.0.record(now, Rec::Control(cmd.rec()));
+    }
+    fn content(&mut self, now: Timestamp, frame: &ContentFrame) {
+        let scene_ns = frame.scene_time.map(|t| t.0);
+        self.0.record(now, Rec::Depth(DepthRec { scene_ns }));
+        if let Some(a) = frame.arrival {
+            self.0.record(
+                now,
+                Rec::Content(ContentRec {
+                    arrived_ns: a.arrived.0,
+                    ready_ns: a.ready.0,
+                }),
+            );
+        }
+    }
+    fn tick(&mut self, now: Timestamp) {
+        self.0.record(now, Rec::Tick(Marker {}));
+    }
+    fn command(&mut self, now: Timestamp, cmd: &Command) {
+        let rec = match *cmd {
+            Command::SetLensPower {
+                id,
+                power,
+                apply_at,
+                reason,
+            } => Rec::LensCommand(LensCommandRec {
+                id: id.0,
+                power_d: power.0,
+                apply_at_ns: apply_at.0,
+                reason: engine::reason_name(reason),
+            }),
+            Command::RenderFrame(req) => Rec::Render(RenderRec {
+                frame: req.frame.0,
+                mode: Mode::from_sched(req.mode).as_str().into(),
+                method: Method(req.method).as_str().into(),
+                focus_d: req.focus.map(|d| d.0),
+                display_ns: req.display_time.0,
+            }),
+            Command::Present {
+                frame,
+                vsync,
+                repeat,
+                ..
+            } => Rec::Present(PresentRec {
+                frame: frame.0,
+                layer: None,
+                at_ns: vsync.0,
+                repeat,
+            }),
+            Command::PresentLayer {
+                frame,
+                layer,
+                start,
+                repeat,
+                ..
+            } => Rec::Present(PresentRec {
+                frame: frame.0,
+                layer: Some(layer),
+                at_ns: start.0,
+                repeat,
+            }),
+            Command::StopSequencer => Rec::StopSequencer(Marker {}),
+            _ => return,
+        };
+        self.0.record(now, rec);
+    }
+    fn rendered(&mut self, now: Timestamp, r: &RenderReport<'_>) {
+        self.0.record(
+            now,
+            Rec::Frame(FrameRec {
+                frame: r.job.frame,
+                method: r.job.method.as_str().into(),
+                render_ns: r.render_ns(),
+                requested_ns: r.requested.0,
+                focus_d: r.focus.map(|d| d.0),
+            }),
+        );
+    }
+    fn shutdown(&mut self, now: Timestamp) {
+        self.0.record(now, Rec::Shutdown(Marker {}));
+    }
+}
+
+/// A kind of render error (method and kind) is logged at most once per this long.
+const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// Keeps [`crate::LoopStatus`] (what `/status` shows of the loop) and logs failed renders.
+struct Status {
+    state: Arc<RigState>,
+    /// Per (method, error kind): when it was last logged, and how many since.
+    error_log: HashMap<(String, &'static str), (Timestamp, u64)>,
+}
+
+impl Status {
+    fn modes(&self, engine: &Engine) {
+        let mut st = lock(&self.state.status);
+        st.mode = Some(engine.mode());
+        st.method = Some(engine.method());
+        st.manual_focus_d = engine.scheduler().status().manual_focus.map(|d| d.0);
+    }
+
+    /// Logs a failed render once per method and kind and [`RENDER_ERROR_LOG_EVERY`].
+    fn log_failure(
+        &mut self,
+        now: Timestamp,
+        r: &RenderReport<'_>,
+        kind: &'static str,
+        message: &str,
+    ) {
+        let method = r.job.method.as_str().to_string();
+        let log = match self.error_log.entry((method.clone(), kind)) {
+            std::collections::hash_map::Entry::Vacant(v) => {
+                v.insert((now, 0));
+                Some(0)
+            }
+            std::collections::hash_map::Entry::Occupied(mut o) => {
+                let (last, since) = o.get_mut();
+                if now.saturating_since(*last) >= RENDER_ERROR_LOG_EVERY {
+                    let n = *since;
+                    *last = now;
+                    *since = 0;
+                    Some(n)
+                } else {
+                    *since += 1;
+                    None
+                }
+            }
+        };
+        if let Some(more) = log {
+            tracing::warn!(
+                frame = r.job.frame,
+                method = %method,
+                focus_d = r.job.focus.0,
+                suppressed_since_last = more,
+                error = %message,
+                "render failed; showing the unblurred frame (more of this kind are logged at most every 10 s)"
+            );
+        }
+    }
+}
+
+impl LoopHook for Status {
+    fn started(&mut self, _now: Timestamp, engine: &Engine, sink: &dyn DisplaySink) {
+        self.modes(engine);
+        lock(&self.state.status).display = sink.status();
+    }
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+        let sh = &self.state;
+        let mut st = lock(&sh.status);
+        match input {
+            DeviceInput::Gaze(..) => st.gaze_samples += 1,
+            DeviceInput::LensState(s) => st.lens_power_d = Some(s.power.0),
+            DeviceInput::Sync(e) => {
+                st.sync_events += 1;
+                match e {
+                    dioptra_core::SequencerEvent::SubframeStart {
+                        plane_index,
+                        lens_power,
+                        ..
+                    } => {
+                        st.subframes += 1;
+                        let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
+                        if let (Some(p), Some(l)) = (plane, lens_power) {
+                            st.subframes_measured += 1;
+                            if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
+                                st.subframes_off_target += 1;
+                            }
+                        }
+                    }
+                    dioptra_core::SequencerEvent::Fault { .. } => st.subframe_faults += 1,
+                }
+            }
+            DeviceInput::LensWire { .. } | DeviceInput::LensLink(_) => {}
+        }
+    }
+    fn control(&mut self, _now: Timestamp, _cmd: &Control, engine: &Engine) {
+        self.modes(engine);
+    }
+    fn command(&mut self, _now: Timestamp, cmd: &Command) {
+        let mut st = lock(&self.state.status);
+        match cmd {
+            Command::SetLensPower { power, .. } => {
+                st.commanded_focus_d = Some(power.0);
+                st.lens_commands += 1;
+            }
+            Command::RenderFrame(_) => st.frames_requested += 1,
+            _ => {}
+        }
+    }
+    fn rendered(&mut self, now: Timestamp, r: &RenderReport<'_>) {
+        {
+            let mut st = lock(&self.state.status);
+            st.last_render_ms = Some(r.took.as_secs_f64() * 1e3);
+            match &r.outcome {
+                Ok(planned) => {
+                    if let Some(p) = planned {
+                        st.planned = Some((*p).clone());
+                    }
+                }
+                Err(f) => {
+                    let method = r.job.method.as_str().to_string();
+                    st.render_errors += 1;
+                    *st.render_errors_by_method
+                        .entry(method.clone())
+                        .or_default() += 1;
+                    st.last_render_error = Some(crate::RenderErrorNote {
+                        frame: r.job.frame,
+                        method,
+                        kind: f.kind,
+                        error: f.message.clone(),
+                        focus_d: r.job.focus.0,
+                    });
+                    if f.fallback {
+                        st.fallback_frames += 1;
+                    }
+                }
+            }
+        }
+        if let Err(f) = &r.outcome {
+            self.log_failure(now, r, f.kind, &f.message);
+        }
+    }
+    fn presented(&mut self, _now: Timestamp, _p: &Presented, sink: &dyn DisplaySink) {
+        let mut st = lock(&self.state.status);
+        st.frames_shown = sink.shown();
+        st.display = sink.status();
+    }
+    fn stepped(&mut self, _now: Timestamp, engine: &Engine) {
+        lock(&self.state.status).scheduler = engine.status();
+    }
+    fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
+        lock(&self.state.status).scheduler = engine.status();
+    }
+}
+
+/// The WebSocket's messages (`GET /stream`): gaze, lens read-backs, focus commands and frames
+/// shown, made only while someone listens.
+struct WebSocket(Arc<RigState>);
+
+impl LoopHook for WebSocket {
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+        match input {
+            DeviceInput::Gaze(g, _) => self.0.publish(|| {
+                json!({
+                    "type": "gaze",
+                    "host_ns": g.host_time.0,
+                    "left": { "direction": g.left.direction, "valid": g.left.valid },
+                    "right": { "direction": g.right.direction, "valid": g.right.valid },
+                })
+            }),
+            DeviceInput::LensState(s) => self.0.publish(
+                || json!({ "type": "lens", "host_ns": s.host_time.0, "power_d": s.power.0 }),
+            ),
+            _ => {}
+        }
+    }
+    fn command(&mut self, now: Timestamp, cmd: &Command) {
+        if let Command::SetLensPower { power, reason, .. } = *cmd {
+            self.0.publish(|| {
+                json!({
+                    "type": "focus",
+                    "host_ns": now.0,
+                    "commanded_d": power.0,
+                    "reason": engine::reason_name(reason),
+                })
+            });
+        }
+    }
+    fn presented(&mut self, _now: Timestamp, p: &Presented, _sink: &dyn DisplaySink) {
+        self.0.publish(|| {
+            json!({
+                "type": "frame",
+                "frame": p.frame,
+                "layer": p.layer,
+                "focus_d": p.focus.0,
+                "shown_ns": p.shown.0,
+                "repeat": p.repeat,
+            })
+        });
+    }
+}
+
+/// The Lab Streaming Layer outlets (`[lsl] enabled = true`): gaze with the scheduler's reading
+/// of it, lens commands on the wire and read-backs, and markers.
+struct Lsl {
+    state: Arc<RigState>,
+    /// The newest lens power commanded (the lens outlet's read-backs carry it).
+    commanded: Option<f32>,
+}
+
+impl Lsl {
+    fn outlets(&self) -> Option<&crate::lsl::LslOutlets> {
+        self.state.lsl.as_ref()
+    }
+}
+
+impl LoopHook for Lsl {
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, engine: &Engine) {
+        let Some(l) = self.outlets() else { return };
+        match input {
+            DeviceInput::Gaze(g, _) => {
+                // With the scheduler's reading of it: eye phase and fused vergence.
+                let st = engine.scheduler().status();
+                l.gaze(g, st.phase.as_str(), st.vergence_d);
+            }
+            DeviceInput::LensState(s) => l.lens_state(s, self.commanded),
+            DeviceInput::LensWire {
+                requested,
+                wire_time,
+                ..
+            } => l.lens_wire(*wire_time, requested.0),
+            DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
+                frame,
+                plane_index,
+                lens_power,
+                host_time,
+                ..
+            }) => {
+                let plane = self.state.cfg.optics.planes.get(usize::from(*plane_index));
+                l.marker(
+                    *host_time,
+                    "subframe",
+                    json!({
+                        "frame": frame,
+                        "plane": plane_index,
+                        "plane_d": plane,
+                        "lens_d": lens_power.map(|d| d.0),
+                    }),
+                );
+            }
+            _ => {}
+        }
+    }
+    fn control(&mut self, now: Timestamp, cmd: &Control, _engine: &Engine) {
+        if let Some(l) = self.outlets() {
+            l.marker(
+                now,
+                "control",
+                serde_json::to_value(cmd.rec()).unwrap_or_default(),
+            );
+        }
+    }
+    fn command(&mut self, _now: Timestamp, cmd: &Command) {
+        if let Command::SetLensPower { power, .. } = cmd {
+            self.commanded = Some(power.0);
+        }
+    }
+    fn presented(&mut self, _now: Timestamp, p: &Presented, _sink: &dyn DisplaySink) {
+        if let Some(l) = self.outlets() {
+            l.marker(
+                p.shown,
+                "frame",
+                json!({
+                    "frame": p.frame,
+                    "layer": p.layer,
+                    "focus_d": p.focus.0,
+                    "repeat": p.repeat,
+                }),
+            );
+        }
+    }
+}
