@@ -16,6 +16,8 @@ use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::ids::{DIOPTRA_TRACKER_PID, DIOPTRA_VID};
 use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
 use dioptra_protocol::{BinocularSample, EyeSample};
+use dioptra_rig::config::GazeDriver;
+use dioptra_rig::devices::open;
 use dioptra_sched::processing::{Angles, GazeProcessor, ProcessorConfig};
 use dioptra_sim::gaze::generator::SampleSource;
 use dioptra_sim::gaze::{csv, dioptra_tracker as sim_dioptra, hid_tracker as sim_hid};
@@ -23,10 +25,13 @@ use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene, SCENARIOS};
 use dioptra_transport::hid::HidapiLink;
 use dioptra_transport::HidLink;
 
+use crate::device_spec;
+
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// sim:SCENARIO or sim:TRACE.csv (simulated dioptra tracker, in-process),
-    /// sim-hid:SCENARIO (simulated usage page 0x12 tracker), hid:VID:PID or hid:/dev/hidrawN,
+    /// sim-hid:SCENARIO (simulated usage page 0x12 tracker), or the rig config's driver and
+    /// port: hid:VID:PID or hid:/dev/hidrawN, dioptra-tracker:VID:PID (or its hidraw path),
     /// pupil:HOST:PORT (Pupil Capture's Pupil Remote, e.g. pupil:127.0.0.1:50020).
     /// Scenarios: saccades, fixation, pursuit, vergence, blinks.
     #[arg(long)]
@@ -143,44 +148,59 @@ async fn run_async(args: Args) -> Result<()> {
             let what = format!("simulated: {rest}");
             hid12(link, &args.action, clock, what, args.noise_deg).await
         }
-        "hid" => {
-            if let Some((vid, pid)) = parse_vid_pid(rest) {
-                let link = HidapiLink::open(vid, pid, None)?;
-                if (vid, pid) == (DIOPTRA_VID, DIOPTRA_TRACKER_PID) {
-                    let t = DioptraTracker::connect(link, DioptraTrackerConfig::default(), clock)
-                        .await?;
+        _ => {
+            // The dioptra tracker by its VID:PID is the dioptra-tracker driver's, whichever
+            // name it is given.
+            let spec = match (kind, parse_vid_pid(rest)) {
+                ("hid", Some(id)) if id == (DIOPTRA_VID, DIOPTRA_TRACKER_PID) => {
+                    format!("dioptra-tracker:{rest}")
+                }
+                _ => device.to_string(),
+            };
+            let (row, port) = device_spec::parse(
+                &spec,
+                &open::GAZE,
+                "device kind (sim, sim-hid, or a driver)",
+            )?;
+            let link = device_spec::link(row, &port).await?;
+            match row.driver {
+                GazeDriver::DioptraTracker => {
+                    let t = DioptraTracker::connect(
+                        link.hid(row.what)?,
+                        DioptraTrackerConfig::default(),
+                        clock,
+                    )
+                    .await?;
                     let info = format!("driver dioptra-tracker\ndevice {}", t.describe());
                     act(t, &args.action, info, HARDWARE_NOISE_DEG).await
-                } else {
-                    let what = format!("{vid:04x}:{pid:04x}");
-                    hid12(link, &args.action, clock, what, HARDWARE_NOISE_DEG).await
                 }
-            } else {
-                let link = HidapiLink::open_path(rest)?;
-                hid12(
-                    link,
-                    &args.action,
-                    clock,
-                    rest.to_string(),
-                    HARDWARE_NOISE_DEG,
-                )
-                .await
+                GazeDriver::Hid => {
+                    let link = link.hid(row.what)?;
+                    hid12(
+                        link,
+                        &args.action,
+                        clock,
+                        port.to_string(),
+                        HARDWARE_NOISE_DEG,
+                    )
+                    .await
+                }
+                GazeDriver::Pupil => {
+                    let addr = link.net(row.what)?;
+                    let t = PupilCapture::connect(PupilConfig::new(&addr), clock).await?;
+                    let o = t.clock_offset();
+                    let info = format!(
+                        "driver pupil\ndevice Pupil Capture {} at {addr} (IPC publisher port {})\nclock offset {:.6} s (Pupil minus host; sd {:.1} us over {} requests)",
+                        t.version(),
+                        t.sub_port(),
+                        o.mean_s,
+                        o.std_s * 1e6,
+                        o.samples
+                    );
+                    act(t, &args.action, info, HARDWARE_NOISE_DEG).await
+                }
             }
         }
-        "pupil" => {
-            let t = PupilCapture::connect(PupilConfig::new(rest), clock).await?;
-            let o = t.clock_offset();
-            let info = format!(
-                "driver pupil\ndevice Pupil Capture {} at {rest} (IPC publisher port {})\nclock offset {:.6} s (Pupil minus host; sd {:.1} us over {} requests)",
-                t.version(),
-                t.sub_port(),
-                o.mean_s,
-                o.std_s * 1e6,
-                o.samples
-            );
-            act(t, &args.action, info, HARDWARE_NOISE_DEG).await
-        }
-        other => bail!("unknown device kind {other:?}: use sim, sim-hid, hid or pupil"),
     }
 }
 

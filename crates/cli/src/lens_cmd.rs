@@ -1,4 +1,5 @@
-//! `dioptra lens --device DRIVER:PATH info|get|set|sweep|temp`: talk to one varifocal lens.
+//! `dioptra lens --device DRIVER:PORT info|get|set|sweep|temp`: talk to one varifocal lens,
+//! opened through the rig's drivers' table (`crate::device_spec`).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -6,19 +7,21 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use dioptra_core::{Clock, Diopters, LensState, PowerRange, SystemClock, Timestamp, VarifocalLens};
-use dioptra_lens::ids::{DIOPTRA_LENS_PID, DIOPTRA_VID};
-use dioptra_lens::optotune::{self, protocol::Status};
+use dioptra_lens::optotune::protocol::Status;
 use dioptra_lens::{
     ControllerConfig, LensController, LensLimits, Opener, Optotune, OptotuneConfig, OutOfRange,
 };
-use dioptra_transport::serial::{SerialLink, SerialSettings};
-use dioptra_transport::usb::{UsbBulkLink, UsbSelector};
-use dioptra_transport::{ByteLink, LinkError};
+use dioptra_rig::config::LensDriver;
+use dioptra_rig::devices::open;
+use dioptra_transport::ByteLink;
+
+use crate::device_spec;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// DRIVER:PATH: optotune:/dev/ttyACM0, lens:/dev/ttyACM1 (CDC-ACM) or lens:usb[:SERIAL]
-    /// (USB bulk endpoints).
+    /// DRIVER:PORT, the rig config's driver and port: optotune:/dev/ttyACM0, lens:/dev/ttyACM1
+    /// (CDC-ACM), lens:usb[:SERIAL] (USB bulk endpoints), or a USB serial device by VID:PID
+    /// (lens:1209:d10b).
     #[arg(long)]
     device: String,
     /// Lowest power the rig allows, diopters (narrowed further to what the lens reaches).
@@ -66,10 +69,7 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 async fn run_async(args: Args) -> Result<()> {
-    let (driver, path) = args
-        .device
-        .split_once(':')
-        .context("--device must be DRIVER:PATH, e.g. optotune:/dev/ttyACM0")?;
+    let (row, port) = device_spec::parse(&args.device, &open::LENS, "lens driver")?;
     let power = PowerRange::new(Diopters(args.min_d), Diopters(args.max_d))
         .context("--min-d must not exceed --max-d, and both must be finite")?;
     let policy = if args.refuse {
@@ -79,13 +79,13 @@ async fn run_async(args: Args) -> Result<()> {
     };
     let limits = LensLimits::new(power).with_policy(policy);
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    match driver {
-        "optotune" => {
-            let opener = serial_opener(path, optotune::BAUD);
+    let opener = device_spec::byte_opener(row, port.clone());
+    match row.driver {
+        LensDriver::Optotune => {
             let mut d = Optotune::connect_with(opener, OptotuneConfig::new(limits), clock.clone())
                 .await
                 .with_context(|| {
-                    format!("cannot start an Optotune Lens Driver 4 session on {path}")
+                    format!("cannot start an Optotune Lens Driver 4 session on {port}")
                 })?;
             match &args.action {
                 Action::Info => optotune_info(&mut d).await,
@@ -99,37 +99,10 @@ async fn run_async(args: Args) -> Result<()> {
                 action => common(&mut d, action, &*clock).await,
             }
         }
-        "lens" => {
-            let cfg = ControllerConfig::new(limits);
-            if let Some(rest) = path.strip_prefix("usb") {
-                let mut sel = UsbSelector::new(DIOPTRA_VID, DIOPTRA_LENS_PID);
-                if let Some(serial) = rest.strip_prefix(':').filter(|s| !s.is_empty()) {
-                    sel = sel.serial(serial);
-                }
-                let opener = Opener::new(move || {
-                    let sel = sel.clone();
-                    async move {
-                        tokio::task::spawn_blocking(move || UsbBulkLink::open(&sel))
-                            .await
-                            .map_err(|e| LinkError::Io(e.to_string()))?
-                    }
-                });
-                controller(opener, cfg, &args.action, clock).await
-            } else {
-                controller(serial_opener(path, 115_200), cfg, &args.action, clock).await
-            }
+        LensDriver::Lens => {
+            controller(opener, ControllerConfig::new(limits), &args.action, clock).await
         }
-        other => bail!("unknown lens driver {other:?}: use optotune:PATH or lens:PATH"),
     }
-}
-
-/// Reopens the same serial port after an unplug.
-fn serial_opener(path: &str, baud: u32) -> Opener<SerialLink> {
-    let path = path.to_string();
-    Opener::new(move || {
-        let r = SerialLink::open(&path, SerialSettings::baud(baud));
-        async move { r }
-    })
 }
 
 async fn controller<L: ByteLink + 'static>(

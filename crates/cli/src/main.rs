@@ -6,6 +6,7 @@
 //! add a variant to [`Command`] and a module beside this file.
 
 mod demo;
+mod device_spec;
 mod devices;
 mod eval;
 mod gaze_cmd;

@@ -9,18 +9,20 @@ use clap::Subcommand;
 use dioptra_core::{
     Clock, Diopters, PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault, SystemClock,
 };
+use dioptra_rig::config::{Port, SyncDriver};
+use dioptra_rig::devices::open;
 use dioptra_sync::board::SyncBoard;
 use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
 use dioptra_sync::ids::{DLPC350_PID, TI_VID};
-use dioptra_transport::hid::HidapiLink;
-use dioptra_transport::serial::{SerialLink, SerialSettings};
-use dioptra_transport::HidLink;
+use dioptra_transport::{AnyByteLink, HidLink};
+
+use crate::device_spec;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// DRIVER:PATH: sync:/dev/ttyACM0 (the sync board, or a `dioptra sim sync --pty` path),
-    /// dlpc350:sim (in-process simulator), dlpc350:hid (the first 0451:6401) or
-    /// dlpc350:/dev/hidrawN.
+    /// DRIVER:PORT, the rig config's driver and port: sync:/dev/ttyACM0 (the sync board, or a
+    /// `dioptra sim sync --pty` path), dlpc350:0451:6401 (the first; also dlpc350:hid) or
+    /// dlpc350:/dev/hidrawN; dlpc350:sim runs an in-process simulator.
     #[arg(long)]
     device: String,
     /// DLPC350: VSYNC rate of the video the projector receives, Hz.
@@ -91,19 +93,72 @@ pub fn run(args: Args) -> Result<()> {
 }
 
 async fn run_async(args: Args) -> Result<()> {
-    let (driver, path) = args
-        .device
-        .split_once(':')
-        .context("--device must be DRIVER:PATH, e.g. sync:/dev/ttyACM0 or dlpc350:sim")?;
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    match driver {
-        "sync" => {
-            let path = path.to_string();
+    let dlpc350 = || -> Result<Dlpc350Config> {
+        if !(args.video_hz.is_finite() && args.video_hz >= 1.0) {
+            bail!("--video-hz must be at least 1");
+        }
+        Ok(Dlpc350Config {
+            vsync_hz: args.video_hz,
+            ..Default::default()
+        })
+    };
+    // The in-process simulator, and the first DLPC350 by its VID:PID.
+    let spec = match args.device.as_str() {
+        "dlpc350:sim" => {
+            let cfg = dlpc350()?;
+            let (link, sim) = dioptra_sim::dlpc350::new(dioptra_sim::dlpc350::Dlpc350SimConfig {
+                vsync_hz: args.video_hz,
+                ..Default::default()
+            });
+            let mut d = Dlpc350::new(link, clock.clone(), cfg);
+            let show_log = matches!(args.action, Action::Program(_));
+            // What the simulated projector does, beside what the driver predicts.
+            let mut patterns = sim.subscribe();
+            let printer = tokio::spawn(async move {
+                use tokio::sync::broadcast::error::RecvError;
+                loop {
+                    match patterns.recv().await {
+                        Ok(p) => println!(
+                            "    projector: pattern {} (LUT {}, {}-bit, {} us){}{}",
+                            p.pattern,
+                            p.lut_index,
+                            p.bit_depth,
+                            p.exposure_us,
+                            if p.trig_out1 { "  TRIG_OUT_1" } else { "" },
+                            if p.trig_out2 {
+                                "  TRIG_OUT_2 (sweep start)"
+                            } else {
+                                ""
+                            },
+                        ),
+                        Err(RecvError::Lagged(_)) => continue,
+                        Err(RecvError::Closed) => break,
+                    }
+                }
+            });
+            let result = dlpc350_action(&mut d, args.action, clock.as_ref()).await;
+            printer.abort();
+            result?;
+            if show_log {
+                println!("commands the simulated DLPC350 received:");
+                for l in sim.log() {
+                    println!("  {l}");
+                }
+            }
+            return Ok(());
+        }
+        "dlpc350:hid" => format!("dlpc350:{TI_VID:04x}:{DLPC350_PID:04x}"),
+        other => other.to_string(),
+    };
+    let (row, port) = device_spec::parse(&spec, &open::SYNC, "sync driver")?;
+    match row.driver {
+        SyncDriver::Sync => {
             let falling = match &args.action {
                 Action::Program(s) | Action::Events { schedule: s, .. } => s.falling,
                 _ => false,
             };
-            let mut board = SyncBoard::connect(open_board(&path)?, clock.clone())
+            let mut board = SyncBoard::connect(open_board(row, &port).await?, clock.clone())
                 .await?
                 .with_trigger_rising(!falling);
             if let Action::Status = args.action {
@@ -128,12 +183,12 @@ async fn run_async(args: Args) -> Result<()> {
                 return Ok(());
             }
             sequencer_action(&mut board, args.action, clock.as_ref(), move |b| {
-                let path = path.clone();
+                let port = port.clone();
                 Box::pin(async move {
                     // Unplugged: wait for the port to come back and restore the session.
                     loop {
                         tokio::time::sleep(Duration::from_millis(500)).await;
-                        if let Ok(link) = open_board(&path) {
+                        if let Ok(link) = open_board(row, &port).await {
                             match b.reconnect(link).await {
                                 Ok(()) => return Ok(()),
                                 Err(e) if e.needs_reconnect() => continue,
@@ -145,87 +200,28 @@ async fn run_async(args: Args) -> Result<()> {
             })
             .await
         }
-        "dlpc350" => {
-            if !(args.video_hz.is_finite() && args.video_hz >= 1.0) {
-                bail!("--video-hz must be at least 1");
-            }
-            let cfg = Dlpc350Config {
-                vsync_hz: args.video_hz,
-                ..Default::default()
-            };
-            match path {
-                "sim" => {
-                    let (link, sim) =
-                        dioptra_sim::dlpc350::new(dioptra_sim::dlpc350::Dlpc350SimConfig {
-                            vsync_hz: args.video_hz,
-                            ..Default::default()
-                        });
-                    let mut d = Dlpc350::new(link, clock.clone(), cfg);
-                    let show_log = matches!(args.action, Action::Program(_));
-                    // What the simulated projector does, beside what the driver predicts.
-                    let mut patterns = sim.subscribe();
-                    let printer = tokio::spawn(async move {
-                        use tokio::sync::broadcast::error::RecvError;
-                        loop {
-                            match patterns.recv().await {
-                                Ok(p) => println!(
-                                    "    projector: pattern {} (LUT {}, {}-bit, {} us){}{}",
-                                    p.pattern,
-                                    p.lut_index,
-                                    p.bit_depth,
-                                    p.exposure_us,
-                                    if p.trig_out1 { "  TRIG_OUT_1" } else { "" },
-                                    if p.trig_out2 {
-                                        "  TRIG_OUT_2 (sweep start)"
-                                    } else {
-                                        ""
-                                    },
-                                ),
-                                Err(RecvError::Lagged(_)) => continue,
-                                Err(RecvError::Closed) => break,
-                            }
-                        }
-                    });
-                    let result = dlpc350_action(&mut d, args.action, clock.as_ref()).await;
-                    printer.abort();
-                    result?;
-                    if show_log {
-                        println!("commands the simulated DLPC350 received:");
-                        for l in sim.log() {
-                            println!("  {l}");
-                        }
-                    }
-                    Ok(())
-                }
-                "hid" => {
-                    let link = HidapiLink::open(TI_VID, DLPC350_PID, None)?;
-                    dlpc350_action(
-                        &mut Dlpc350::new(link, clock.clone(), cfg),
-                        args.action,
-                        clock.as_ref(),
-                    )
-                    .await
-                }
-                hidraw => {
-                    let link = HidapiLink::open_path(hidraw)?;
-                    dlpc350_action(
-                        &mut Dlpc350::new(link, clock.clone(), cfg),
-                        args.action,
-                        clock.as_ref(),
-                    )
-                    .await
-                }
-            }
-        }
-        other => {
-            bail!("unknown sync driver `{other}`: use sync:PATH or dlpc350:sim|hid|/dev/hidrawN")
+        SyncDriver::Dlpc350 => {
+            let cfg = dlpc350()?;
+            let link = device_spec::link(row, &port).await?.hid(row.what)?;
+            dlpc350_action(
+                &mut Dlpc350::new(link, clock.clone(), cfg),
+                args.action,
+                clock.as_ref(),
+            )
+            .await
         }
     }
 }
 
-fn open_board(path: &str) -> Result<SerialLink> {
-    SerialLink::open(path, SerialSettings::baud(115_200))
-        .with_context(|| format!("cannot open the sync board at {path}"))
+/// The sync board's serial link, through the drivers' table.
+async fn open_board(
+    row: &'static open::Row<SyncDriver, dioptra_rig::devices::BoxSequencer>,
+    port: &Port,
+) -> Result<AnyByteLink> {
+    let link = device_spec::link(row, port)
+        .await
+        .and_then(|l| l.byte(row.what));
+    link.with_context(|| format!("cannot open the sync board at {port}"))
 }
 
 async fn dlpc350_action<H: HidLink>(

@@ -84,6 +84,27 @@ fn lens_controller_simulator_set_then_get() {
     set_then_get("lens", "lens", false);
 }
 
+/// The sync board through the drivers' table, as a rig config names it (`sync` on a path).
+#[test]
+fn sync_board_simulator_programs_and_reports() {
+    let (_sim, path) = start_sim("sync");
+    let sync = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+            .args(["sync", "--device", &format!("sync:{path}")])
+            .args(args)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).to_string()
+            + &String::from_utf8_lossy(&out.stderr);
+        (out.status.success(), text)
+    };
+    let (ok, out) = sync(&["status"]);
+    assert!(ok && out.contains("dioptra sync board"), "{out}");
+    let (ok, out) = sync(&["events", "--count", "8"]);
+    assert!(ok, "{out}");
+    assert!(out.contains("plane"), "{out}");
+}
+
 #[test]
 fn bad_device_specs_say_what_is_accepted() {
     let (ok, out) = lens("nonsense", &["get"]);
@@ -92,6 +113,11 @@ fn bad_device_specs_say_what_is_accepted() {
     assert!(!ok && out.contains("unknown lens driver"), "{out}");
     let (ok, out) = lens("optotune:/dev/ttyACM_dioptra_absent", &["get"]);
     assert!(!ok && out.contains("no serial port"), "{out}");
+    // The rig config's ports: the Lens Driver 4 has no USB bulk interface; "sim" is for rigs.
+    let (ok, out) = lens("optotune:usb", &["get"]);
+    assert!(!ok && out.contains("cannot be reached at usb"), "{out}");
+    let (ok, out) = lens("lens:sim", &["get"]);
+    assert!(!ok && out.contains("dioptra sim"), "{out}");
 }
 
 fn gaze_inspect(args: &[&str]) -> (bool, String) {

@@ -155,14 +155,17 @@ impl Method {
     }
 }
 
-/// Where a device is: simulated in-process, a device path, a USB/HID VID:PID, or a network
-/// address (Pupil Capture's Pupil Remote).
+/// Where a device is: simulated in-process, a device path, a USB/HID VID:PID, a USB device's
+/// bulk endpoints, or a network address (Pupil Capture's Pupil Remote).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(try_from = "String", into = "String")]
 pub enum Port {
     Sim,
     Path(PathBuf),
     VidPid(u16, u16),
+    /// "usb" or "usb:SERIAL": the driver's USB device over its bulk endpoints (the dioptra lens
+    /// controller), the one plugged in or the one with that serial number.
+    Usb(Option<String>),
     /// "host:port": an IP literal (IPv6 in brackets), "localhost", or a host name with a dot.
     Net(String),
 }
@@ -176,6 +179,17 @@ impl TryFrom<String> for Port {
         if s.starts_with('/') {
             return Ok(Port::Path(PathBuf::from(s)));
         }
+        if s == "usb" {
+            return Ok(Port::Usb(None));
+        }
+        if let Some(serial) = s.strip_prefix("usb:") {
+            if serial.is_empty() || !serial.bytes().all(|b| b.is_ascii_graphic()) {
+                return Err(format!(
+                    "invalid port {s:?}: \"usb\" takes the device's serial number after a colon, \"usb:SERIAL\""
+                ));
+            }
+            return Ok(Port::Usb(Some(serial.to_string())));
+        }
         if let Some((v, p)) = s.split_once(':') {
             let hex = |x: &str| (x.len() == 4).then(|| u16::from_str_radix(x, 16).ok())?;
             if let (Some(v), Some(p)) = (hex(v), hex(p)) {
@@ -187,8 +201,9 @@ impl TryFrom<String> for Port {
         }
         Err(format!(
             "invalid port {s:?}: expected \"sim\", a device path such as \"/dev/ttyACM0\", \
-             a USB VID:PID in hex such as \"1209:d10a\", or a network address host:port such \
-             as \"127.0.0.1:50020\" or \"localhost:50020\""
+             a USB VID:PID in hex such as \"1209:d10a\", \"usb\" or \"usb:SERIAL\" (USB bulk \
+             endpoints), or a network address host:port such as \"127.0.0.1:50020\" or \
+             \"localhost:50020\""
         ))
     }
 }
@@ -223,6 +238,8 @@ impl From<Port> for String {
             Port::Sim => "sim".into(),
             Port::Path(p) => p.display().to_string(),
             Port::VidPid(v, p) => format!("{v:04x}:{p:04x}"),
+            Port::Usb(None) => "usb".into(),
+            Port::Usb(Some(serial)) => format!("usb:{serial}"),
             Port::Net(a) => a,
         }
     }
@@ -814,6 +831,44 @@ impl RigConfig {
         Ok(())
     }
 
+    /// A `port = "usb"` only for a driver that talks over USB bulk endpoints (the drivers'
+    /// table says which).
+    fn check_usb_ports(&self) -> Result<(), ConfigError> {
+        use crate::devices::open::{row, GAZE, LENS, SYNC};
+        let d = &self.devices;
+        let usb = [
+            (
+                "devices.lens.port",
+                &d.lens.port,
+                row(&LENS, d.lens.driver).map(|r| (r.what, r.usb.is_some())),
+            ),
+            (
+                "devices.gaze.port",
+                &d.gaze.port,
+                row(&GAZE, d.gaze.driver).map(|r| (r.what, r.usb.is_some())),
+            ),
+        ]
+        .into_iter()
+        .chain(d.sync.as_ref().map(|s| {
+            (
+                "devices.sync.port",
+                &s.port,
+                row(&SYNC, s.driver).map(|r| (r.what, r.usb.is_some())),
+            )
+        }));
+        for (key, port, found) in usb {
+            if let (Port::Usb(_), Ok((what, false))) = (port, found) {
+                return Err(invalid(
+                    key,
+                    format!(
+                        "{port}: the {what} is not reached over USB bulk endpoints; give its device path (e.g. /dev/ttyACM0 or /dev/hidraw0), its USB VID:PID or \"sim\""
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Reads and validates a rig config file.
     pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
@@ -1045,6 +1100,7 @@ impl RigConfig {
             }
             _ => {}
         }
+        self.check_usb_ports()?;
         if let Port::Net(a) = &self.devices.lens.port {
             return Err(invalid(
                 "devices.lens.port",
@@ -1364,6 +1420,39 @@ pub(crate) mod tests {
         ))
         .unwrap();
         assert_eq!(ok.devices.lens.port, Port::Path("/dev/ttyACM0".into()));
+    }
+
+    /// The lens controller's USB bulk endpoints, which `dioptra lens --device lens:usb`
+    /// reaches, can be named in a rig config; a driver without them is refused naming the key.
+    #[test]
+    fn a_usb_bulk_port_is_for_drivers_that_have_one() {
+        let port = |s: &str| Port::try_from(s.to_string());
+        assert_eq!(port("usb"), Ok(Port::Usb(None)));
+        assert_eq!(port("usb:A1B2"), Ok(Port::Usb(Some("A1B2".into()))));
+        assert_eq!(String::from(Port::Usb(Some("A1B2".into()))), "usb:A1B2");
+        assert!(port("usb:").unwrap_err().contains("usb:SERIAL"));
+        let lens = SIM_RIG
+            .replace("driver = \"optotune\"", "driver = \"lens\"")
+            .replace(
+                "port = \"sim\"\npark_power",
+                "port = \"usb:A1B2\"\npark_power",
+            );
+        let c = RigConfig::parse(&lens).unwrap();
+        assert_eq!(c.devices.lens.port, Port::Usb(Some("A1B2".into())));
+        let optotune = SIM_RIG.replace("port = \"sim\"\npark_power", "port = \"usb\"\npark_power");
+        let e = err(&optotune);
+        assert_eq!(e.key(), "devices.lens.port", "{e}");
+        assert!(
+            e.to_string()
+                .contains("Lens Driver 4 is not reached over USB bulk"),
+            "{e}"
+        );
+        let gaze = SIM_RIG.replace(
+            "port = \"sim\"                # pupil",
+            "port = \"usb\"                # pupil",
+        );
+        assert_ne!(gaze, SIM_RIG);
+        assert_eq!(err(&gaze).key(), "devices.gaze.port");
     }
 
     #[test]

@@ -1,7 +1,10 @@
 //! The drivers' table: for each device kind, one row per driver the rig config can name,
-//! saying how its device is reached (serial or HID), how its simulator is made for
-//! `port = "sim"`, and how the driver connects over a link. A device is opened by looking up
-//! its row; the port then decides only where the link comes from.
+//! saying how its device is reached (serial, HID, the network; USB bulk endpoints for a driver
+//! that has them), how its simulator is made for `port = "sim"`, and how the driver connects
+//! over a link. A device is opened by looking up its row; the port then decides only where the
+//! link comes from. The device commands (`dioptra lens|gaze|sync --device DRIVER:PORT`) open
+//! their links through the same rows and ports ([`row_named`], [`device_link`]), so whatever
+//! the command line reaches a rig config can name.
 
 use std::sync::{Arc, Mutex};
 
@@ -48,7 +51,8 @@ impl Link {
             Link::Net(_) => "a network address",
         }
     }
-    fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
+    /// The byte link, or an error naming `what` (the driver) and the link it was given.
+    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
         match self {
             Link::Byte(l) => Ok(l),
             other => Err(DeviceError::Invalid(format!(
@@ -57,7 +61,8 @@ impl Link {
             ))),
         }
     }
-    fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
+    /// The HID link, or an error naming `what` and the link it was given.
+    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
         match self {
             Link::Hid(l) => Ok(l),
             other => Err(DeviceError::Invalid(format!(
@@ -66,7 +71,8 @@ impl Link {
             ))),
         }
     }
-    fn net(self, what: &str) -> Result<String, DeviceError> {
+    /// The network address, or an error naming `what` and the link it was given.
+    pub fn net(self, what: &str) -> Result<String, DeviceError> {
         match self {
             Link::Net(a) => Ok(a),
             other => Err(DeviceError::Invalid(format!(
@@ -95,6 +101,9 @@ pub struct Row<K: 'static, D: 'static> {
     /// The device, for messages ("Lens Driver 4").
     pub what: &'static str,
     pub transport: Transport,
+    /// The VID and PID of the device's USB bulk interface, for a driver that also talks over
+    /// one (`port = "usb"` or `"usb:SERIAL"`).
+    pub usb: Option<(u16, u16)>,
     pub(crate) sim: MakeSim,
     pub(crate) connect: Connect<D>,
 }
@@ -105,6 +114,7 @@ pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
         name: "optotune",
         what: "Lens Driver 4",
         transport: Transport::Serial,
+        usb: None,
         sim: sim_optotune,
         connect: connect_optotune,
     },
@@ -113,6 +123,10 @@ pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
         name: "lens",
         what: "lens controller",
         transport: Transport::Serial,
+        usb: Some((
+            dioptra_lens::ids::DIOPTRA_VID,
+            dioptra_lens::ids::DIOPTRA_LENS_PID,
+        )),
         sim: sim_lens_controller,
         connect: connect_lens_controller,
     },
@@ -124,6 +138,7 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
         name: "dioptra-tracker",
         what: "dioptra eye tracker",
         transport: Transport::Hid,
+        usb: None,
         sim: sim_dioptra_tracker,
         connect: connect_dioptra_tracker,
     },
@@ -132,6 +147,7 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
         name: "hid",
         what: "HID eye tracker",
         transport: Transport::Hid,
+        usb: None,
         sim: sim_hid_tracker,
         connect: connect_hid_tracker,
     },
@@ -140,6 +156,7 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
         name: "pupil",
         what: "Pupil Capture",
         transport: Transport::Net,
+        usb: None,
         sim: sim_pupil_capture,
         connect: connect_pupil,
     },
@@ -151,6 +168,7 @@ pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
         name: "sync",
         what: "sync board",
         transport: Transport::Serial,
+        usb: None,
         sim: sim_sync_board,
         connect: connect_sync_board,
     },
@@ -159,6 +177,7 @@ pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
         name: "dlpc350",
         what: "DLPC350",
         transport: Transport::Hid,
+        usb: None,
         sim: sim_dlpc350,
         connect: connect_dlpc350,
     },
@@ -174,9 +193,46 @@ pub fn row<K: PartialEq + std::fmt::Debug, D>(
         .ok_or_else(|| DeviceError::Invalid(format!("no driver is registered for {driver:?}")))
 }
 
+/// The row of the driver named `name` (its name in the rig config and in `--device
+/// DRIVER:PORT`).
+pub fn row_named<K, D>(rows: &'static [Row<K, D>], name: &str) -> Option<&'static Row<K, D>> {
+    rows.iter().find(|r| r.name == name)
+}
+
+/// The names of `rows`' drivers, for messages ("optotune, lens").
+pub fn names<K, D>(rows: &'static [Row<K, D>]) -> String {
+    rows.iter().map(|r| r.name).collect::<Vec<_>>().join(", ")
+}
+
+/// The link to `row`'s real device at `port`: a serial port (by path, or the one USB serial
+/// port with a VID:PID), a HID device (by hidraw path or VID:PID), the device's USB bulk
+/// endpoints (`usb`, `usb:SERIAL`) or a network address. Blocking (a USB or serial open).
+/// Not for `port = "sim"`, whose link the device task makes from the simulator.
+pub fn device_link<K, D>(row: &Row<K, D>, port: &Port) -> Result<Link, DeviceError> {
+    let what = row.what;
+    match (port, row.transport) {
+        (Port::Usb(serial), _) => {
+            let Some((vid, pid)) = row.usb else {
+                return Err(unsupported_port(what, port));
+            };
+            let mut sel = dioptra_transport::usb::UsbSelector::new(vid, pid);
+            if let Some(s) = serial {
+                sel = sel.serial(s.clone());
+            }
+            let link = dioptra_transport::usb::UsbBulkLink::open(&sel).map_err(|e| {
+                DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
+            })?;
+            Ok(Link::Byte(link.into()))
+        }
+        (_, Transport::Serial) => Ok(Link::Byte(serial_at(what, port)?.into())),
+        (_, Transport::Hid) => Ok(Link::Hid(hid_at(what, port)?.into())),
+        (_, Transport::Net) => net_at(what, port).map(Link::Net),
+    }
+}
+
 /// The connect function a device task retries: opens the link `port` names (a new link to the
 /// simulator for `port = "sim"`, whose handles go into `slot`) and connects `row`'s driver.
-pub(crate) fn device_connector<K, D: Send + 'static>(
+pub(crate) fn device_connector<K: Sync, D: Send + 'static>(
     row: &'static Row<K, D>,
     port: &Port,
     ctx: Context,
@@ -207,12 +263,8 @@ pub(crate) fn device_connector<K, D: Send + 'static>(
             })
         }
         port => {
-            let (port, what, transport) = (port.clone(), row.what, row.transport);
-            Box::new(move || match transport {
-                Transport::Serial => Ok(Link::Byte(serial_at(what, &port)?.into())),
-                Transport::Hid => Ok(Link::Hid(hid_at(what, &port)?.into())),
-                Transport::Net => net_at(what, &port).map(Link::Net),
-            })
+            let port = port.clone();
+            Box::new(move || device_link(row, &port))
         }
     };
     let connect = row.connect;
@@ -244,7 +296,7 @@ fn hid_at(what: &str, port: &Port) -> Result<dioptra_transport::hid::HidapiLink,
     Ok(match port {
         Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, None)?,
         Port::Path(p) => dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?,
-        Port::Sim | Port::Net(_) => return Err(unsupported_port(what, port)),
+        Port::Sim | Port::Net(_) | Port::Usb(_) => return Err(unsupported_port(what, port)),
     })
 }
 
@@ -262,7 +314,7 @@ pub(crate) fn serial_at(
                     DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
                 })?
         }
-        Port::Sim | Port::Net(_) => return Err(unsupported_port(what, port)),
+        Port::Sim | Port::Net(_) | Port::Usb(_) => return Err(unsupported_port(what, port)),
     };
     Ok(dioptra_transport::serial::SerialLink::open(
         &path,
