@@ -121,6 +121,9 @@ pub fn run(args: Args) -> Result<()> {
     }
     let cfg = RigConfig::load(&args.config)
         .with_context(|| format!("rig config {}", args.config.display()))?;
+    for note in cfg.notices() {
+        eprintln!("dioptra hil: note: {note}");
+    }
     let devices = devices_of(&cfg);
     // A device path that does not exist is absent: say so before opening anything.
     for (name, key, port) in &devices {

@@ -13,6 +13,7 @@ mod gaze_cmd;
 mod hil;
 mod lens_cmd;
 mod lsl_cmd;
+mod optics_cmd;
 mod recording_cmd;
 mod render_cmd;
 mod replay;
@@ -45,6 +46,8 @@ enum Command {
     Udev(udev::Args),
     /// Talk to one varifocal lens: info, get, set, sweep, temp.
     Lens(lens_cmd::Args),
+    /// An eye's optics map both ways: the lens command for a focus, the focus of a command.
+    Optics(optics_cmd::Args),
     /// Talk to one eye tracker: info, stream (`--device sim:saccades` runs a simulated one).
     Gaze(gaze_cmd::Args),
     /// Simulators: devices on a pty (`optotune`, `lens`, `sync`) and procedural scenes (`scene`).
@@ -135,6 +138,7 @@ fn main() -> std::process::ExitCode {
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
         Command::Lens(args) => lens_cmd::run(args),
+        Command::Optics(args) => optics_cmd::run(args),
         Command::Gaze(args) => gaze_cmd::run(args),
         Command::Sim(args) => sim_cmd::run(args),
         Command::Sync(args) => sync_cmd::run(args),

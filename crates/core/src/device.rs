@@ -33,6 +33,29 @@ pub trait VarifocalLens: Send {
     fn state(&mut self) -> impl Future<Output = Result<LensState, DeviceError>> + Send;
 }
 
+/// Which eye.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Side {
+    Left,
+    Right,
+}
+
+impl Side {
+    pub const BOTH: [Side; 2] = [Side::Left, Side::Right];
+
+    /// `left` or `right`, as configs, the API and recordings spell it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Side::Left => "left",
+            Side::Right => "right",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Side> {
+        Side::BOTH.into_iter().find(|e| e.as_str() == s)
+    }
+}
+
 /// One eye's gaze ray in the head frame.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct EyeRay {

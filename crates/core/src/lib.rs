@@ -15,7 +15,7 @@ pub mod units;
 pub use clock_sync::ClockMapper;
 pub use device::{
     EyeRay, GazeSample, GazeSource, LensState, PlaneSchedule, PlaneSequencer, SequencerEvent,
-    SequencerFault, VarifocalLens,
+    SequencerFault, Side, VarifocalLens,
 };
 pub use error::{DeviceError, InputError, LinkError};
 pub use image::{DepthMap, Plane, RgbImage, Rgbd};

@@ -5,6 +5,10 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
+use dioptra_core::optics_map::{
+    CalibrationTable, OpticsError, OpticsMap, Prescription, ThinLensLayout,
+};
+use dioptra_core::{Diopters, PowerRange, Side};
 use dioptra_sched::RenderMethod;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -290,12 +294,31 @@ pub struct LensDevice {
     /// Settle time of the simulated lens, ms (sim only).
     #[serde(default = "default_settle_ms")]
     pub sim_settle_ms: f64,
+    /// How long the lens takes to settle after a step, ms: the scheduler's model of the lens
+    /// (its predicted power, which the renderer's focus follows). Default: `sim_settle_ms`
+    /// for a simulated lens, [`LensDevice::DEFAULT_SETTLE_MS`] for a real one.
+    pub settle_ms: Option<f64>,
     /// How often the lens is read back, ms.
     #[serde(default = "default_lens_poll_ms")]
     pub poll_ms: f64,
     /// Optotune only: the lens's temperature limits `[lower, upper]`, °C, sent at every
     /// connect (`PwTA`); the device's focal-power range follows from them. Default 20-40 °C.
     pub temperature_limits_c: Option<[f32; 2]>,
+}
+
+impl LensDevice {
+    /// A real lens's settle time when `settle_ms` is not given: the Optotune EL-10-30's
+    /// datasheet settling time (hardware.md); measure yours (`dioptra lens set D --watch-ms`).
+    pub const DEFAULT_SETTLE_MS: f64 = 15.0;
+
+    /// The settle time the scheduler models this lens with, ms.
+    pub fn model_settle_ms(&self) -> f64 {
+        self.settle_ms.unwrap_or(if self.port == Port::Sim {
+            self.sim_settle_ms
+        } else {
+            Self::DEFAULT_SETTLE_MS
+        })
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -366,8 +389,6 @@ pub struct Range {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Optics {
-    /// Distance from the eye to the display's virtual image with the lens at 0 D, metres.
-    pub display_distance_m: f32,
     /// Powers the rig may drive the lens to, diopters.
     pub lens_range: Range,
     /// Multifocal plane powers in display order, diopters.
@@ -376,6 +397,108 @@ pub struct Optics {
     /// Multifocal sub-frame rate, Hz (one plane per sub-frame).
     #[serde(default = "default_subframe_hz")]
     pub subframe_hz: f64,
+    /// Where `[optics.layout]`'s `display_distance_m` was before the optics map: it was read
+    /// nowhere. Still accepted (and ignored, with a notice at start) so old configs load.
+    pub display_distance_m: Option<f32>,
+    /// Both eyes' thin-lens layout, unless an eye's section has its own.
+    pub layout: Option<Layout>,
+    /// Both eyes' calibration table (`dioptra lens calibrate` writes it), relative to the
+    /// config file.
+    pub calibration: Option<PathBuf>,
+    /// Both eyes' spectacle sphere, diopters (a myope's is negative).
+    pub prescription_sphere_d: Option<f64>,
+    /// Refused unless 0: a spherical lens cannot correct astigmatism.
+    pub prescription_cylinder_d: Option<f64>,
+    /// The vertex distance the prescription was written for, mm (default 12).
+    pub prescription_vertex_mm: Option<f64>,
+    /// The left eye's own settings, each overriding the shared one.
+    pub left: Option<EyeOptics>,
+    pub right: Option<EyeOptics>,
+}
+
+/// `[optics.layout]`: where the display, the tunable lens and the eye's pupil are, as thin
+/// lenses (the demand is `A = (1/d - P) / (1 + s (1/d - P))`, P = fixed + tunable power).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Layout {
+    /// Display to the tunable lens, metres.
+    pub display_distance_m: f64,
+    /// Tunable lens to the eye's pupil, metres (0: the lens at the pupil, or imaged onto it).
+    pub eye_relief_m: f64,
+    /// A fixed lens (an eyepiece) at the tunable lens, diopters.
+    #[serde(default)]
+    pub fixed_power_d: f64,
+}
+
+/// `[optics.left]` / `[optics.right]`: one eye's optics, each key overriding `[optics]`'s.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EyeOptics {
+    pub layout: Option<Layout>,
+    pub calibration: Option<PathBuf>,
+    pub prescription_sphere_d: Option<f64>,
+    pub prescription_cylinder_d: Option<f64>,
+    pub prescription_vertex_mm: Option<f64>,
+}
+
+/// One eye's optics settings with where each came from (`optics` or `optics.left`...).
+struct ResolvedOptics<'a> {
+    layout: Option<(&'a Layout, &'static str)>,
+    calibration: Option<(&'a PathBuf, &'static str)>,
+    sphere: Option<(f64, &'static str)>,
+    cylinder: Option<(f64, &'static str)>,
+    vertex_mm: Option<(f64, &'static str)>,
+}
+
+impl Optics {
+    /// `[optics]`'s own eye settings.
+    fn shared(&self) -> EyeOptics {
+        EyeOptics {
+            layout: self.layout,
+            calibration: self.calibration.clone(),
+            prescription_sphere_d: self.prescription_sphere_d,
+            prescription_cylinder_d: self.prescription_cylinder_d,
+            prescription_vertex_mm: self.prescription_vertex_mm,
+        }
+    }
+
+    fn eye(&self, side: Side) -> Option<&EyeOptics> {
+        match side {
+            Side::Left => self.left.as_ref(),
+            Side::Right => self.right.as_ref(),
+        }
+    }
+
+    /// The eye whose section stands for a one-lens rig's lens: the one per-eye section given
+    /// (a monocular bench), or none (the shared settings).
+    pub fn one_lens_eye(&self) -> Option<Side> {
+        match (&self.left, &self.right) {
+            (Some(_), None) => Some(Side::Left),
+            (None, Some(_)) => Some(Side::Right),
+            _ => None,
+        }
+    }
+}
+
+fn resolve<'a>(
+    shared: &'a EyeOptics,
+    eye: Option<(&'a EyeOptics, &'static str)>,
+) -> ResolvedOptics<'a> {
+    fn pick<'a, T>(
+        eye: Option<(&'a EyeOptics, &'static str)>,
+        shared: &'a EyeOptics,
+        get: impl Fn(&'a EyeOptics) -> Option<T>,
+    ) -> Option<(T, &'static str)> {
+        eye.and_then(|(e, key)| get(e).map(|v| (v, key)))
+            .or_else(|| get(shared).map(|v| (v, "optics")))
+    }
+    ResolvedOptics {
+        layout: pick(eye, shared, |e| e.layout.as_ref()),
+        calibration: pick(eye, shared, |e| e.calibration.as_ref()),
+        sphere: pick(eye, shared, |e| e.prescription_sphere_d),
+        cylinder: pick(eye, shared, |e| e.prescription_cylinder_d),
+        vertex_mm: pick(eye, shared, |e| e.prescription_vertex_mm),
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -546,6 +669,10 @@ pub struct RigConfig {
     /// Lab Streaming Layer outlets.
     #[serde(default)]
     pub lsl: crate::lsl::LslConfig,
+    /// The folder of the config file, which its relative paths (calibration tables) are read
+    /// from; `None` (config text without a file): the working directory.
+    #[serde(skip)]
+    pub config_dir: Option<PathBuf>,
 }
 
 /// What the rig shows.
@@ -869,17 +996,23 @@ impl RigConfig {
         Ok(())
     }
 
-    /// Reads and validates a rig config file.
+    /// Reads and validates a rig config file; its relative paths are read from its folder.
     pub fn load(path: &Path) -> Result<RigConfig, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
             path: path.to_path_buf(),
             source,
         })?;
-        Self::parse(&text)
+        let dir = path.parent().unwrap_or(Path::new("")).to_path_buf();
+        Self::parse_in(&text, Some(dir))
     }
 
-    /// Parses and validates rig config text.
+    /// Parses and validates rig config text (relative paths from the working directory).
     pub fn parse(text: &str) -> Result<RigConfig, ConfigError> {
+        Self::parse_in(text, None)
+    }
+
+    /// Parses and validates rig config text whose relative paths are in `config_dir`.
+    pub fn parse_in(text: &str, config_dir: Option<PathBuf>) -> Result<RigConfig, ConfigError> {
         let (text, auto_method) = resolve_auto(text)?;
         let text = text.as_ref();
         let de = toml::Deserializer::parse(text).map_err(|e| ConfigError::Parse {
@@ -896,9 +1029,110 @@ impl RigConfig {
             }
             ConfigError::Parse { key, message }
         })?;
-        let cfg = RigConfig { auto_method, ..cfg };
+        let cfg = RigConfig {
+            auto_method,
+            config_dir,
+            ..cfg
+        };
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// A path given in the config, as it is read: relative ones from the config's folder.
+    pub fn config_path(&self, p: &Path) -> PathBuf {
+        match &self.config_dir {
+            Some(dir) if p.is_relative() => dir.join(p),
+            _ => p.to_path_buf(),
+        }
+    }
+
+    /// The optics map of an eye (`None`: the rig's one lens, see
+    /// [`Optics::one_lens_eye`]): its layout or calibration table (read now) and the viewer's
+    /// prescription, for the lens range. Errors name the key, the file and the points.
+    pub fn optics_map(&self, side: Option<Side>) -> Result<OpticsMap, ConfigError> {
+        let o = &self.optics;
+        let shared = o.shared();
+        let side = side.or_else(|| o.one_lens_eye());
+        let section = side.map(|s| match s {
+            Side::Left => "optics.left",
+            Side::Right => "optics.right",
+        });
+        let eye = side.and_then(|s| o.eye(s)).zip(section);
+        let r = resolve(&shared, eye);
+        let key = |section: &str, name: &str| format!("{section}.{name}");
+        let layout = match r.layout {
+            Some((l, section)) => Some(
+                ThinLensLayout::new(l.display_distance_m, l.eye_relief_m, l.fixed_power_d)
+                    .map_err(|e| optics_error(e, &format!("{section}.layout")))?,
+            ),
+            None => None,
+        };
+        let table = match r.calibration {
+            Some((file, section)) => {
+                let path = self.config_path(file);
+                let text = std::fs::read_to_string(&path).map_err(|e| {
+                    invalid(
+                        &key(section, "calibration"),
+                        format!(
+                            "cannot read the calibration table {} ({}): {e}",
+                            path.display(),
+                            if file.is_relative() {
+                                "relative paths are read from the config file's folder"
+                            } else {
+                                "as given"
+                            }
+                        ),
+                    )
+                })?;
+                Some(
+                    CalibrationTable::parse_csv(&path.display().to_string(), &text)
+                        .map_err(|e| optics_error(e, &key(section, "calibration")))?,
+                )
+            }
+            None => None,
+        };
+        // The prescription's keys may come from different sections: name the sphere's.
+        let rx_section = r.sphere.or(r.cylinder).map_or("optics", |v| v.1);
+        let prescription = Prescription::new(
+            r.sphere.map_or(0.0, |v| v.0),
+            r.cylinder.map_or(0.0, |v| v.0),
+            r.vertex_mm
+                .map_or(dioptra_core::optics_map::DEFAULT_VERTEX_M, |v| v.0 / 1000.0),
+        )
+        .map_err(|e| optics_error(e, rx_section))?;
+        let range = PowerRange::new(Diopters(o.lens_range.min), Diopters(o.lens_range.max))
+            .ok_or_else(|| invalid("optics.lens_range", "min must be below max"))?;
+        let section = r
+            .calibration
+            .map(|c| key(c.1, "calibration"))
+            .or(r.layout.map(|l| format!("{}.layout", l.1)))
+            .unwrap_or_else(|| "optics".into());
+        OpticsMap::new(layout, table, prescription, range).map_err(|e| optics_error(e, &section))
+    }
+
+    /// Things worth saying at start that are not errors: keys that no longer do anything,
+    /// defaults a real rig should set.
+    pub fn notices(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.optics.display_distance_m.is_some() {
+            out.push(
+                "optics.display_distance_m is no longer read (it never was used): the display's \
+                 distance from the tunable lens is [optics.layout] display_distance_m, with \
+                 eye_relief_m and fixed_power_d; without a layout or calibration the lens \
+                 command is the focus (the identity map)"
+                    .to_string(),
+            );
+        }
+        let l = &self.devices.lens;
+        if l.port != Port::Sim && l.settle_ms.is_none() {
+            out.push(format!(
+                "devices.lens.settle_ms is not set: the scheduler models the lens as settling \
+                 in {} ms (the EL-10-30's datasheet); measure yours with `dioptra lens set D \
+                 --watch-ms 100` and set it",
+                LensDevice::DEFAULT_SETTLE_MS
+            ));
+        }
+        out
     }
 
     /// Range and consistency checks serde cannot express.
@@ -991,13 +1225,11 @@ impl RigConfig {
                 "expected powers within -20..20 D",
             ));
         }
-        if !(o.display_distance_m.is_finite() && o.display_distance_m > 0.0) {
+        if o.display_distance_m.is_some() && o.layout.is_some() {
             return Err(invalid(
                 "optics.display_distance_m",
-                format!(
-                    "expected a positive distance in metres, e.g. 1.0 (got {})",
-                    o.display_distance_m
-                ),
+                "this key moved to [optics.layout] display_distance_m (the display's distance \
+                 from the tunable lens): remove it from [optics]",
             ));
         }
         if o.planes.is_empty() || o.planes.len() > dioptra_core::device::MAX_PLANES {
@@ -1058,6 +1290,14 @@ impl RigConfig {
                 "devices.lens.sim_settle_ms",
                 "expected a settle time of 0 to 1000 ms",
             ));
+        }
+        if let Some(settle) = self.devices.lens.settle_ms {
+            if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
+                return Err(invalid(
+                    "devices.lens.settle_ms",
+                    format!("expected the lens's settle time, more than 0 and at most 1000 ms (got {settle})"),
+                ));
+            }
         }
         let poll = self.devices.lens.poll_ms;
         if !(poll.is_finite() && (1.0..=1000.0).contains(&poll)) {
@@ -1185,6 +1425,15 @@ impl RigConfig {
                 "display.png_every is set: give a directory for the PNGs",
             ));
         }
+        if self.optics.left.is_some() && self.optics.right.is_some() {
+            return Err(invalid(
+                "optics.right",
+                "[optics.left] and [optics.right] are both given, but this rig has one lens \
+                 ([devices.lens]): put that lens's optics in [optics] (or in the one eye's \
+                 section of a monocular bench); per-eye maps need a lens per eye",
+            ));
+        }
+        self.optics_map(None)?;
         self.listen()?;
         self.api_token()?;
         Ok(())
@@ -1268,6 +1517,15 @@ impl RigConfig {
             ));
         }
         Ok(Some(token))
+    }
+}
+
+/// An optics error under the config key it is about (`section` is where the setting was).
+fn optics_error(e: OpticsError, section: &str) -> ConfigError {
+    match e {
+        OpticsError::Invalid { key, message } if key == "layout" => invalid(section, message),
+        OpticsError::Invalid { key, message } => invalid(&format!("{section}.{key}"), message),
+        e @ OpticsError::Table { .. } => invalid(section, e.to_string()),
     }
 }
 
@@ -1367,7 +1625,7 @@ pub(crate) mod tests {
         assert_eq!(e.key(), "optics.focal_lenght", "{e}");
         let s = e.to_string();
         assert!(s.contains("unknown field `focal_lenght`"), "{s}");
-        assert!(s.contains("expected one of `display_distance_m`"), "{s}");
+        assert!(s.contains("expected one of `lens_range`"), "{s}");
     }
 
     #[test]
@@ -1640,6 +1898,197 @@ pub(crate) mod tests {
         let c =
             RigConfig::parse(&SIM_RIG.replace("kind = \"headless\"", "sink = \"window\"")).unwrap();
         assert_eq!(c.display.kind, SinkKind::Window);
+    }
+
+    /// `text` with `extra` added to the end of its `[optics]` section.
+    fn with_optics(text: &str, extra: &str) -> String {
+        text.replace(
+            "subframe_hz = 240.0\n",
+            &format!("subframe_hz = 240.0\n{extra}\n"),
+        )
+    }
+
+    #[test]
+    fn old_configs_with_display_distance_still_load_and_say_where_it_moved() {
+        assert!(!SIM_RIG.contains("\ndisplay_distance_m"));
+        let old = SIM_RIG.replace("[optics]\n", "[optics]\ndisplay_distance_m = 1.0\n");
+        assert_ne!(old, SIM_RIG);
+        let c = RigConfig::parse(&old).unwrap();
+        assert!(c.optics_map(None).unwrap().is_identity());
+        let notes = c.notices().join("\n");
+        assert!(
+            notes.contains("optics.display_distance_m is no longer read")
+                && notes.contains("[optics.layout] display_distance_m"),
+            "{notes}"
+        );
+        assert!(RigConfig::parse(SIM_RIG).unwrap().notices().is_empty());
+        // Beside a layout it is a mistake.
+        let e = err(&with_optics(
+            &old,
+            "[optics.layout]\ndisplay_distance_m = 0.05\neye_relief_m = 0.0",
+        ));
+        assert_eq!(e.key(), "optics.display_distance_m", "{e}");
+        assert!(e.to_string().contains("moved to [optics.layout]"), "{e}");
+    }
+
+    #[test]
+    fn nothing_configured_is_the_identity_map() {
+        let c = RigConfig::parse(SIM_RIG).unwrap();
+        for side in [None, Some(Side::Left), Some(Side::Right)] {
+            let m = c.optics_map(side).unwrap();
+            assert!(m.is_identity());
+            assert_eq!(m.command_for(Diopters(1.5)), Diopters(1.5));
+        }
+    }
+
+    #[test]
+    fn optics_layouts_tables_and_prescriptions_resolve_per_eye() {
+        let dir = tempfile::tempdir().unwrap();
+        // A table measured on the left eye: demand 2 - command, every 0.5 D over the range.
+        let rows: String = (0..=10)
+            .map(|k| {
+                let c = -1.0 + 0.5 * f64::from(k);
+                format!("{c},{}\n", 2.0 - c)
+            })
+            .collect();
+        std::fs::create_dir(dir.path().join("cal")).unwrap();
+        std::fs::write(
+            dir.path().join("cal/left.csv"),
+            format!("# test\ncommand_d,demand_d\n{rows}"),
+        )
+        .unwrap();
+        let text = with_optics(
+            SIM_RIG,
+            "prescription_sphere_d = -1.0\nprescription_vertex_mm = 0.0\n\
+             [optics.layout]\ndisplay_distance_m = 0.05\neye_relief_m = 0.02\nfixed_power_d = 18.0\n\
+             [optics.left]\ncalibration = \"cal/left.csv\"\nprescription_sphere_d = 0.5",
+        );
+        let path = dir.path().join("rig.toml");
+        std::fs::write(&path, &text).unwrap();
+        // Loaded from another working directory: the table is found beside the config.
+        let c = RigConfig::load(&path).unwrap();
+        let left = c.optics_map(Some(Side::Left)).unwrap();
+        assert_eq!(left.source_name(), "calibration");
+        // Focus 1 D, Rx +0.5 at 0 mm: presented 0.5 D; the table gives command 1.5 D.
+        assert!((left.command_for(Diopters(1.0)).0 - 1.5).abs() < 1e-5);
+        // The layout still gives the magnification.
+        assert!(left.magnification(Diopters(0.0)).is_some());
+        // The right eye has the shared layout and prescription: focus 1 D with Rx -1 at 0 mm
+        // is presented at 2 D; X = 2 / (1 - 0.04), command = 20 - 18 - X = -0.083333.
+        let right = c.optics_map(Some(Side::Right)).unwrap();
+        assert_eq!(right.source_name(), "layout");
+        assert!((right.command_for(Diopters(1.0)).0 + 0.083333).abs() < 1e-5);
+        // The one lens of this rig is the left eye's (the one per-eye section).
+        assert_eq!(c.optics_map(None).unwrap(), left);
+        // Parsed without a file, the relative path is read from the working directory.
+        let e = err(&text);
+        assert_eq!(e.key(), "optics.left.calibration", "{e}");
+        assert!(
+            e.to_string()
+                .contains("relative paths are read from the config file's folder"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn bad_optics_settings_name_the_key_the_file_and_the_points() {
+        let dir = tempfile::tempdir().unwrap();
+        let load = |extra: &str| {
+            let path = dir.path().join("rig.toml");
+            std::fs::write(&path, with_optics(SIM_RIG, extra)).unwrap();
+            RigConfig::load(&path)
+        };
+        let e =
+            load("[optics.layout]\ndisplay_distance_m = 0.05\neye_relief_m = -0.01").unwrap_err();
+        assert_eq!(e.key(), "optics.layout.eye_relief_m", "{e}");
+        let e = load("[optics.layout]\ndisplay_distance_m = 0.05").unwrap_err();
+        assert_eq!(e.key(), "optics.layout", "{e}");
+        assert!(
+            e.to_string().contains("missing field `eye_relief_m`"),
+            "{e}"
+        );
+        // The image would reach the eye inside the lens range.
+        let e = load(
+            "[optics.layout]\ndisplay_distance_m = 0.05\neye_relief_m = 0.05\nfixed_power_d = 38.0",
+        )
+        .unwrap_err();
+        assert_eq!(e.key(), "optics.layout", "{e}");
+        let e =
+            load("[optics.right]\nprescription_sphere_d = -2.0\nprescription_cylinder_d = -0.5")
+                .unwrap_err();
+        assert_eq!(e.key(), "optics.right.prescription_cylinder_d", "{e}");
+        assert!(e.to_string().contains("spherical equivalent"), "{e}");
+        let e = load("calibration = \"nope.csv\"").unwrap_err();
+        assert_eq!(e.key(), "optics.calibration", "{e}");
+        assert!(
+            e.to_string()
+                .contains(&dir.path().join("nope.csv").display().to_string()),
+            "{e}"
+        );
+        std::fs::write(
+            dir.path().join("bent.csv"),
+            "command_d,demand_d\n-1,3\n0,2\n1,2.2\n2,0\n3,-1\n4,-2\n",
+        )
+        .unwrap();
+        let e = load("calibration = \"bent.csv\"").unwrap_err();
+        assert_eq!(e.key(), "optics.calibration", "{e}");
+        let s = e.to_string();
+        assert!(s.contains("bent.csv") && s.contains("not monotonic"), "{s}");
+        assert!(
+            s.contains(
+                "(command 0 D, demand 2 D) (line 3) -> (command 1 D, demand 2.2 D) (line 4)"
+            ),
+            "{s}"
+        );
+        std::fs::write(
+            dir.path().join("short.csv"),
+            "command_d,demand_d\n-1,3\n0,2\n1,1\n2,0\n",
+        )
+        .unwrap();
+        let e = load("calibration = \"short.csv\"").unwrap_err();
+        assert!(
+            e.to_string().contains("span -1..2 D") && e.to_string().contains("-1..4 D"),
+            "{e}"
+        );
+        let e = load("[optics.left]\nprescription_sphere_d = -1.0\n[optics.right]\nprescription_sphere_d = -2.0").unwrap_err();
+        assert_eq!(e.key(), "optics.right", "{e}");
+        assert!(e.to_string().contains("one lens"), "{e}");
+        let e = load("[optics.left]\nfocal_power = 1").unwrap_err();
+        assert_eq!(e.key(), "optics.left.focal_power", "{e}");
+    }
+
+    #[test]
+    fn the_lens_model_settles_as_the_lens_does() {
+        let c = RigConfig::parse(SIM_RIG).unwrap();
+        assert_eq!(c.devices.lens.model_settle_ms(), 15.0);
+        let slow =
+            RigConfig::parse(&SIM_RIG.replace("sim_settle_ms = 15.0", "sim_settle_ms = 40.0"))
+                .unwrap();
+        assert_eq!(slow.devices.lens.model_settle_ms(), 40.0);
+        // A real lens: its own settle_ms, not the simulator's.
+        let real = SIM_RIG.replace(
+            "port = \"sim\"\npark_power",
+            "port = \"/dev/ttyACM0\"\npark_power",
+        );
+        assert_ne!(real, SIM_RIG);
+        let c = RigConfig::parse(&real.replace("sim_settle_ms = 15.0", "sim_settle_ms = 40.0"))
+            .unwrap();
+        assert_eq!(
+            c.devices.lens.model_settle_ms(),
+            LensDevice::DEFAULT_SETTLE_MS
+        );
+        assert!(c
+            .notices()
+            .join(" ")
+            .contains("devices.lens.settle_ms is not set"));
+        let c = RigConfig::parse(
+            &real.replace("park_power = 0.5", "park_power = 0.5\nsettle_ms = 8.0"),
+        )
+        .unwrap();
+        assert_eq!(c.devices.lens.model_settle_ms(), 8.0);
+        assert!(c.notices().is_empty());
+        let e = err(&real.replace("park_power = 0.5", "park_power = 0.5\nsettle_ms = 0.0"));
+        assert_eq!(e.key(), "devices.lens.settle_ms", "{e}");
     }
 
     #[test]

@@ -73,7 +73,7 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;
     s.lens = LensDynamics {
-        settle_time: Duration::from_secs_f64(cfg.devices.lens.sim_settle_ms / 1000.0),
+        settle_time: Duration::from_secs_f64(cfg.devices.lens.model_settle_ms() / 1000.0),
         ..LensDynamics::default()
     };
     s.park_power = Diopters(cfg.devices.lens.park_power);

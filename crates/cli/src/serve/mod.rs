@@ -38,6 +38,9 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let cfg = RigConfig::load(&args.config)
         .with_context(|| format!("in the rig config {}", args.config.display()))?;
+    for note in cfg.notices() {
+        eprintln!("dioptra serve: note: {note}");
+    }
     let stop = CancellationToken::new();
     match cfg.display.kind {
         SinkKind::Headless => serve_blocking(cfg, None, stop),
