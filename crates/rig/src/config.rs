@@ -1523,7 +1523,10 @@ impl RigConfig {
 /// An optics error under the config key it is about (`section` is where the setting was).
 fn optics_error(e: OpticsError, section: &str) -> ConfigError {
     match e {
-        OpticsError::Invalid { key, message } if key == "layout" => invalid(section, message),
+        OpticsError::Invalid {
+            key: "layout",
+            message,
+        } => invalid(section, message),
         OpticsError::Invalid { key, message } => invalid(&format!("{section}.{key}"), message),
         e @ OpticsError::Table { .. } => invalid(section, e.to_string()),
     }
