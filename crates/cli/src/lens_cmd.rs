@@ -1,5 +1,6 @@
-//! `dioptra lens --device DRIVER:PORT info|get|set|sweep|temp`: talk to one varifocal lens,
-//! opened through the rig's drivers' table (`crate::device_spec`).
+//! `dioptra lens --device DRIVER:PORT info|get|set|sweep|temp|calibrate`: talk to one
+//! varifocal lens, opened through the rig's drivers' table (`crate::device_spec`);
+//! `calibrate` is in [`crate::lens_calibrate`].
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -62,6 +63,9 @@ enum Action {
     },
     /// Lens temperature (and, on an Optotune, the status bits).
     Temp,
+    /// Measure the accommodation demand at each of a range of commands and write the rig's
+    /// calibration table (`optics.calibration`).
+    Calibrate(crate::lens_calibrate::CalibrateArgs),
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -89,6 +93,21 @@ async fn run_async(args: Args) -> Result<()> {
                 })?;
             match &args.action {
                 Action::Info => optotune_info(&mut d).await,
+                Action::Calibrate(c) => {
+                    let who = d.info().map_or("Optotune Lens Driver 4".into(), |i| {
+                        format!(
+                            "Optotune Lens Driver 4, serial {}, firmware type {} version {}",
+                            i.serial_number,
+                            char::from(i.firmware_type),
+                            i.firmware_version
+                        )
+                    });
+                    let who = crate::lens_calibrate::LensIdentity {
+                        description: who,
+                        device: args.device.clone(),
+                    };
+                    crate::lens_calibrate::run(&mut d, c, &who).await
+                }
                 Action::Temp => {
                     let t = d.temperature_c().await?;
                     let s = d.status().await?;
@@ -99,22 +118,20 @@ async fn run_async(args: Args) -> Result<()> {
                 action => common(&mut d, action, &*clock).await,
             }
         }
-        LensDriver::Lens => {
-            controller(opener, ControllerConfig::new(limits), &args.action, clock).await
-        }
+        LensDriver::Lens => controller(opener, ControllerConfig::new(limits), &args, clock).await,
     }
 }
 
 async fn controller<L: ByteLink + 'static>(
     opener: Opener<L>,
     cfg: ControllerConfig,
-    action: &Action,
+    args: &Args,
     clock: Arc<dyn Clock>,
 ) -> Result<()> {
     let mut d = LensController::connect_with(opener, cfg, clock.clone())
         .await
         .context("cannot start a dioptra lens controller session")?;
-    match action {
+    match &args.action {
         Action::Info => {
             if let Some(i) = d.info() {
                 let v = i.firmware_version;
@@ -135,6 +152,19 @@ async fn controller<L: ByteLink + 'static>(
             let r = d.power_range();
             println!("driving range {:.3} .. {:.3} D", r.min.0, r.max.0);
             Ok(())
+        }
+        Action::Calibrate(c) => {
+            let who = crate::lens_calibrate::LensIdentity {
+                description: d.info().map_or("dioptra lens controller".into(), |i| {
+                    let v = i.firmware_version;
+                    format!(
+                        "dioptra lens controller ({:?}), serial {}, firmware {}.{}.{}",
+                        i.kind, i.serial, v.major, v.minor, v.patch
+                    )
+                }),
+                device: args.device.clone(),
+            };
+            crate::lens_calibrate::run(&mut d, c, &who).await
         }
         Action::Temp => {
             let s = d.state().await?;
@@ -232,7 +262,9 @@ async fn common<V: VarifocalLens>(d: &mut V, action: &Action, clock: &dyn Clock)
                 );
             }
         }
-        Action::Info | Action::Temp => bail!("{action:?} is handled by each driver"),
+        Action::Info | Action::Temp | Action::Calibrate(_) => {
+            bail!("{action:?} is handled by each driver")
+        }
     }
     Ok(())
 }

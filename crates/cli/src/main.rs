@@ -11,6 +11,7 @@ mod devices;
 mod eval;
 mod gaze_cmd;
 mod hil;
+mod lens_calibrate;
 mod lens_cmd;
 mod lsl_cmd;
 mod optics_cmd;
@@ -44,7 +45,7 @@ enum Command {
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
     Udev(udev::Args),
-    /// Talk to one varifocal lens: info, get, set, sweep, temp.
+    /// Talk to one varifocal lens: info, get, set, sweep, temp, calibrate.
     Lens(lens_cmd::Args),
     /// An eye's optics map both ways: the lens command for a focus, the focus of a command.
     Optics(optics_cmd::Args),

@@ -184,3 +184,220 @@ fn gaze_inspect_reads_the_reference_descriptors_and_names_what_is_missing() {
     let (ok, out) = gaze_inspect(&["--device", "hid:/dev/not_a_node"]);
     assert!(!ok && out.contains("hidrawN"), "{out}");
 }
+
+/// `dioptra lens ... calibrate` with `input` on its stdin.
+fn lens_with_input(device: &str, args: &[&str], input: &str) -> (bool, String) {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["lens", "--device", device])
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(input.as_bytes())
+        .unwrap();
+    let out = child.wait_with_output().unwrap();
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text)
+}
+
+/// The map the scripted measurement reports: the thin-lens layout of an 18 D eyepiece with the
+/// display 5 cm in front and the pupil 2 cm behind (X = 2 - p, A = X / (1 + 0.02 X)), plus a
+/// lens nonlinearity of 0.03 D per D squared.
+fn true_demand(p: f64) -> f64 {
+    let x = 2.0 - p;
+    x / (1.0 + 0.02 * x) + 0.03 * p * p
+}
+
+/// `true_demand` of the commanded power plus up to ±0.015 D of noise, as a camera sweep or
+/// an autorefractor script would print it.
+const MEASURE: &str = r#"awk -v p="$DIOPTRA_LENS_POWER_D" 'BEGIN { x = 2 - p; printf "%.4f\n", x / (1 + 0.02 * x) + 0.03 * p * p + 0.015 * sin(37.1 * p + 0.3) }'"#;
+
+#[test]
+fn calibrate_against_the_simulator_reproduces_a_nonlinear_map_through_noise() {
+    let (_sim, path) = start_sim("optotune");
+    let device = format!("optotune:{path}");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cal.csv");
+    let out_s = out.to_str().unwrap();
+    let args = [
+        "calibrate",
+        "--powers=-1:4:0.25",
+        "--settle-ms",
+        "20",
+        "--measure-cmd",
+        MEASURE,
+        "--out",
+        out_s,
+    ];
+    let (ok, text) = lens(&device, &args);
+    assert!(ok, "{text}");
+    assert_eq!(
+        text.lines().filter(|l| l.starts_with("step ")).count(),
+        21,
+        "{text}"
+    );
+    assert!(text.contains("residuals: rms"), "{text}");
+    let table = std::fs::read_to_string(&out).unwrap();
+    for want in [
+        "# date: ",
+        "# lens: Optotune Lens Driver 4, serial ",
+        "# device: optotune:/dev/pts/",
+        "# lens temperature: ",
+        "# measured by: the command `awk",
+        "command_d,demand_d,measured_d,readback_d,temperature_c\n",
+    ] {
+        assert!(table.contains(want), "{want:?} in\n{table}");
+    }
+    // The written table against the true map, everywhere over the range.
+    let t = dioptra_core::optics_map::CalibrationTable::parse_csv("cal.csv", &table).unwrap();
+    for k in 0..=500 {
+        let c = -1.0 + 0.01 * f64::from(k);
+        let err = (t.demand_at(c) - true_demand(c)).abs();
+        assert!(
+            err < 0.03,
+            "{c} D: table {} vs {}",
+            t.demand_at(c),
+            true_demand(c)
+        );
+    }
+    // The rig reads it: `dioptra optics` gives the true focus of a command.
+    let rig = std::fs::read_to_string(format!(
+        "{}/examples/rig-sim.toml",
+        env!("CARGO_MANIFEST_DIR")
+    ))
+    .unwrap()
+    .replace("[optics]\n", "[optics]\ncalibration = \"cal.csv\"\n");
+    std::fs::write(dir.path().join("rig.toml"), rig).unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["optics", "--config"])
+        .arg(dir.path().join("rig.toml"))
+        .args(["--command", "1.3", "--json"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{o:?}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(
+        (v["focus_d"].as_f64().unwrap() - true_demand(1.3)).abs() < 0.03,
+        "{v}"
+    );
+    // An existing table is not replaced without --force.
+    let (ok, text) = lens(&device, &args);
+    assert!(!ok && text.contains("--force"), "{text}");
+}
+
+#[test]
+fn calibrate_refuses_what_it_cannot_trust_and_writes_nothing() {
+    let (_sim, path) = start_sim("optotune");
+    let device = format!("optotune:{path}");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cal.csv");
+    let out_s = out.to_str().unwrap();
+    let calibrate = |powers: &str, cmd: &str| {
+        lens(
+            &device,
+            &[
+                "calibrate",
+                powers,
+                "--settle-ms",
+                "5",
+                "--measure-cmd",
+                cmd,
+                "--out",
+                out_s,
+            ],
+        )
+    };
+    // Up, then down again: a parabola over the commands.
+    let (ok, text) = calibrate(
+        "--powers=0:3:0.25",
+        r#"awk -v p="$DIOPTRA_LENS_POWER_D" 'BEGIN { printf "%.4f\n", 2 - (p - 1.5) * (p - 1.5) }'"#,
+    );
+    assert!(!ok && text.contains("not monotonic"), "{text}");
+    // Too few points, refused before the lens moves.
+    let (ok, text) = calibrate("--powers=0:1:0.5", MEASURE);
+    assert!(!ok && text.contains("at least 5"), "{text}");
+    assert!(!text.contains("step "), "{text}");
+    // A measure command that fails: its status and stderr, at the command it failed on.
+    let (ok, text) = calibrate("--powers=-1:1:0.25", "echo camera not found >&2; exit 3");
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("failed at command -1 D") && text.contains("camera not found"),
+        "{text}"
+    );
+    // One that prints no number.
+    let (ok, text) = calibrate("--powers=-1:1:0.25", "echo blurry");
+    assert!(!ok && text.contains("printed \"blurry\""), "{text}");
+    // Noise of ±0.1 D: too noisy.
+    let (ok, text) = calibrate(
+        "--powers=-1:2:0.25",
+        r#"awk -v p="$DIOPTRA_LENS_POWER_D" 'BEGIN { k = int((p + 1) * 4 + 0.5); printf "%.4f\n", 2 - p + (k % 2 ? 0.1 : -0.1) }'"#,
+    );
+    assert!(!ok && text.contains("too noisy"), "{text}");
+    // Too sparse a step, and a range beyond the lens's.
+    let (ok, text) = calibrate("--powers=0:4:1.5", MEASURE);
+    assert!(!ok && text.contains("at most 1 D"), "{text}");
+    let (ok, text) = calibrate("--powers=0:40:0.5", MEASURE);
+    assert!(
+        !ok && text.contains("outside the range this lens is driven within"),
+        "{text}"
+    );
+    assert!(
+        !out.exists(),
+        "a refused calibration wrote {}",
+        out.display()
+    );
+}
+
+#[test]
+fn calibrate_takes_measurements_from_the_operator_or_a_csv() {
+    let (_sim, path) = start_sim("optotune");
+    let device = format!("optotune:{path}");
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("cal.csv");
+    let out_s = out.to_str().unwrap();
+    // `calibrate` into `out` (replacing it) with `args`, `input` on stdin.
+    let calibrate = |args: &[&str], input: &str| {
+        let mut all = vec!["calibrate", "--settle-ms", "5", "--out", out_s, "--force"];
+        all.extend_from_slice(args);
+        lens_with_input(&device, &all, input)
+    };
+    // At a prompt: a demand of 2 - p at each of 0, 0.25, ..., 1.5, one skipped, one typo.
+    let answers = "2\n1.75\nnot sure\n1.5\nskip\n1.0\n0.75\n0.5\n";
+    let (ok, text) = calibrate(&["--powers=0:1.5:0.25", "--prompt"], answers);
+    assert!(ok, "{text}");
+    assert!(text.contains("\"not sure\" is not a number"), "{text}");
+    let written = std::fs::read_to_string(&out).unwrap();
+    let t = dioptra_core::optics_map::CalibrationTable::parse_csv("cal.csv", &written).unwrap();
+    assert_eq!(t.len(), 6);
+    assert!(
+        (t.demand_at(0.75) - 1.25).abs() < 1e-3,
+        "{}",
+        t.demand_at(0.75)
+    );
+    // Input that ends early stops it.
+    let (ok, text) = calibrate(&["--powers=0:1.5:0.25", "--prompt"], "2\n1.75\n");
+    assert!(!ok && text.contains("input ended at step 3"), "{text}");
+    // From a CSV (e.g. an autorefractor's readings typed into a spreadsheet).
+    let csv = dir.path().join("readings.csv");
+    std::fs::write(
+        &csv,
+        "# autorefractor, 2 readings averaged\ncommand_d,measured_d\n0,2.01\n0.5,1.49\n1,1.0\n1.5,0.51\n2,0.0\n",
+    )
+    .unwrap();
+    let csv = csv.to_str().unwrap();
+    let (ok, text) = calibrate(&["--powers=0:2:0.5", "--from-csv", csv], "");
+    assert!(ok, "{text}");
+    assert!(std::fs::read_to_string(&out)
+        .unwrap()
+        .contains("# measured by: the file"));
+    let (ok, text) = calibrate(&["--powers=0:2.5:0.5", "--from-csv", csv], "");
+    assert!(!ok && text.contains("no row for command 2.5 D"), "{text}");
+}
