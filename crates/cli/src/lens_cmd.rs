@@ -115,7 +115,7 @@ async fn run_async(args: Args) -> Result<()> {
                     println!("status {:#010x}{}", s.0, describe_status(s));
                     Ok(())
                 }
-                action => common(&mut d, action, &*clock).await,
+                action => common(&mut d, action, &limits, &*clock).await,
             }
         }
         LensDriver::Lens => controller(opener, ControllerConfig::new(limits), &args, clock).await,
@@ -128,6 +128,7 @@ async fn controller<L: ByteLink + 'static>(
     args: &Args,
     clock: Arc<dyn Clock>,
 ) -> Result<()> {
+    let limits = cfg.limits;
     let mut d = LensController::connect_with(opener, cfg, clock.clone())
         .await
         .context("cannot start a dioptra lens controller session")?;
@@ -174,7 +175,7 @@ async fn controller<L: ByteLink + 'static>(
             }
             Ok(())
         }
-        action => common(&mut d, action, &*clock).await,
+        action => common(&mut d, action, &limits, &*clock).await,
     }
 }
 
@@ -220,15 +221,22 @@ fn describe_status(s: Status) -> String {
     }
 }
 
-/// get, set and sweep: the same for every driver.
-async fn common<V: VarifocalLens>(d: &mut V, action: &Action, clock: &dyn Clock) -> Result<()> {
+/// get, set and sweep: the same for every driver. `limits` are the driver's, so what is
+/// printed as sent is what the driver sent.
+async fn common<V: VarifocalLens>(
+    d: &mut V,
+    action: &Action,
+    limits: &LensLimits,
+    clock: &dyn Clock,
+) -> Result<()> {
     let start = clock.now();
     match action {
         Action::Get => println!("{}", line(&d.state().await?)),
         Action::Set { diopters, watch_ms } => {
             let sent = d.set_power(Diopters(*diopters)).await?;
             println!(
-                "set {diopters:.3} D (on the wire {:.3} ms after start)",
+                "{} (on the wire {:.3} ms after start)",
+                what_went_out(*diopters, limits, d.power_range()),
                 ms(sent, start)
             );
             let mut next = tokio::time::Instant::now();
@@ -253,10 +261,12 @@ async fn common<V: VarifocalLens>(d: &mut V, action: &Action, clock: &dyn Clock)
             for k in 0..=n {
                 let p = from + (to - from).signum() * *step * k as f32;
                 let sent = d.set_power(Diopters(p)).await?;
+                let out = sent_power(p, limits, d.power_range());
                 tokio::time::sleep(Duration::from_millis(*dwell_ms)).await;
                 let s = d.state().await?;
+                let clamped = if out == p { "" } else { " (clamped)" };
                 println!(
-                    "{:8.1} ms  set {p:7.3} D  ->  {}",
+                    "{:8.1} ms  set {out:7.3} D{clamped}  ->  {}",
                     ms(sent, start),
                     line(&s)
                 );
@@ -267,6 +277,27 @@ async fn common<V: VarifocalLens>(d: &mut V, action: &Action, clock: &dyn Clock)
         }
     }
     Ok(())
+}
+
+/// The power the driver sent for a request of `asked` (it clamps with the same limits and
+/// range; a refused request never gets here).
+fn sent_power(asked: f32, limits: &LensLimits, range: PowerRange) -> f32 {
+    limits
+        .check_power(Diopters(asked), range)
+        .map_or(asked, |p| p.0)
+}
+
+/// `set`'s line: the power that went out, and the request when it was clamped.
+fn what_went_out(asked: f32, limits: &LensLimits, range: PowerRange) -> String {
+    let out = sent_power(asked, limits, range);
+    if out == asked {
+        format!("set {out:.3} D")
+    } else {
+        format!(
+            "set {out:.3} D (asked {asked:.3} D, clamped to the driving range {:.3} .. {:.3} D)",
+            range.min.0, range.max.0
+        )
+    }
 }
 
 fn parse_range(s: &str) -> Result<(f32, f32)> {
@@ -313,6 +344,18 @@ mod tests {
             describe_status(s),
             " (error: no temperature limits received, temperature outside the user's limits)"
         );
+    }
+
+    #[test]
+    fn set_says_what_went_out() {
+        let range = PowerRange::new(Diopters(-1.9000001), Diopters(6.4849997)).unwrap();
+        let limits = LensLimits::new(range);
+        assert_eq!(what_went_out(2.5, &limits, range), "set 2.500 D");
+        assert_eq!(
+            what_went_out(9.0, &limits, range),
+            "set 6.485 D (asked 9.000 D, clamped to the driving range -1.900 .. 6.485 D)"
+        );
+        assert_eq!(sent_power(-3.0, &limits, range), -1.9000001);
     }
 
     #[test]

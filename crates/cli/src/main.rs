@@ -128,8 +128,28 @@ fn quiet_broken_pipes() {
     }
 }
 
+/// On a machine with no Wayland session (`XDG_RUNTIME_DIR` unset: a headless rig PC, CI, an
+/// ssh login), Mesa's Vulkan device-selection layer still asks libwayland for a display while
+/// wgpu lists adapters, and libwayland prints `error: XDG_RUNTIME_DIR is invalid or not set in
+/// the environment.` on every instance, which reads as a failure of ours. The layer only
+/// orders GPUs by the session's display, and there is none; it is left on when the user picks
+/// a GPU through it (`MESA_VK_DEVICE_SELECT`, `DRI_PRIME`) or says either way
+/// (`NODEVICE_SELECT`).
+fn device_select_layer_is_moot(var: impl Fn(&str) -> Option<std::ffi::OsString>) -> bool {
+    let set = |k: &str| var(k).is_some_and(|v| !v.is_empty());
+    !set("XDG_RUNTIME_DIR")
+        && !set("WAYLAND_DISPLAY")
+        && !set("MESA_VK_DEVICE_SELECT")
+        && !set("DRI_PRIME")
+        && var("NODEVICE_SELECT").is_none()
+}
+
 fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
+    if device_select_layer_is_moot(|k| std::env::var_os(k)) {
+        // Before any thread is started (the render worker reads the environment later).
+        std::env::set_var("NODEVICE_SELECT", "1");
+    }
     dioptra_render::alloc::keep_freed_memory();
     if !matches!(cli.command, Command::Serve(_) | Command::Hil(_)) {
         quiet_broken_pipes();
@@ -167,5 +187,39 @@ fn main() -> std::process::ExitCode {
                 None => std::process::ExitCode::FAILURE,
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::device_select_layer_is_moot;
+    use std::ffi::OsString;
+
+    fn env<'a>(vars: &'a [(&str, &str)]) -> impl Fn(&str) -> Option<OsString> + 'a {
+        move |k| {
+            vars.iter()
+                .find(|(name, _)| *name == k)
+                .map(|(_, v)| OsString::from(v))
+        }
+    }
+
+    #[test]
+    fn the_device_select_layer_is_off_only_without_a_session() {
+        assert!(device_select_layer_is_moot(env(&[])));
+        assert!(device_select_layer_is_moot(env(&[("XDG_RUNTIME_DIR", "")])));
+        assert!(!device_select_layer_is_moot(env(&[(
+            "XDG_RUNTIME_DIR",
+            "/run/user/1000"
+        )])));
+        assert!(!device_select_layer_is_moot(env(&[("DRI_PRIME", "1")])));
+        assert!(!device_select_layer_is_moot(env(&[(
+            "MESA_VK_DEVICE_SELECT",
+            "10de:2684"
+        )])));
+        // The user's own choice stands, either way.
+        assert!(!device_select_layer_is_moot(env(&[(
+            "NODEVICE_SELECT",
+            "0"
+        )])));
     }
 }

@@ -227,9 +227,10 @@ pub struct SyncSimArgs {
     /// Serve on a new pseudo-terminal; its path is the first line of stdout.
     #[arg(long)]
     pty: bool,
-    /// Time for the lens to settle within 2 %, ms (EL-10-30: about 15; it then settles late
-    /// at 240 Hz sub-frames).
-    #[arg(long, default_value_t = 15.0)]
+    /// Time for the multifocal lens to settle within 2 %, ms: the rig's default
+    /// (`devices.sync.sim_settle_ms`), within a 240 Hz sub-frame's 1.04 ms dark quarter. A
+    /// varifocal lens such as the EL-10-30 (about 15 ms) settles late on every sub-frame.
+    #[arg(long, default_value_t = dioptra_rig::config::SyncDevice::DEFAULT_SIM_SETTLE_MS)]
     settle_ms: f64,
     /// Display refresh, Hz (default: the loaded schedule's sub-frame rate).
     #[arg(long)]

@@ -68,6 +68,23 @@ fn set_then_get(driver: &str, sim: &str, handshake_resets: bool) {
     );
     let (ok, out) = lens(&device, &["--refuse", "--max-d", "2", "set", "2.5"]);
     assert!(!ok && out.contains("nothing was sent"), "{out}");
+    // A clamped request: the line says what went out, and the lens gets there.
+    let (ok, out) = lens(
+        &device,
+        &["--max-d", "2", "set", "2.5", "--watch-ms", "100"],
+    );
+    assert!(ok, "{out}");
+    assert!(
+        out.lines()
+            .next()
+            .unwrap()
+            .starts_with("set 2.000 D (asked 2.500 D, clamped to the driving range"),
+        "{out}"
+    );
+    assert!(
+        out.lines().last().unwrap().contains("power 2.000 D"),
+        "{out}"
+    );
     let (ok, out) = lens(&device, &["info"]);
     assert!(ok, "{out}");
     let (ok, out) = lens(&device, &["temp"]);
@@ -103,6 +120,31 @@ fn sync_board_simulator_programs_and_reports() {
     let (ok, out) = sync(&["events", "--count", "8"]);
     assert!(ok, "{out}");
     assert!(out.contains("plane"), "{out}");
+}
+
+/// README's `sim sync` then `sync ... events` example, as written: with the default settle
+/// time every sub-frame reaches its plane (issue 39, item 11: it faulted on each).
+#[test]
+fn sync_simulator_as_readme_runs_it_reaches_every_plane() {
+    let (_sim, path) = start_sim("sync");
+    let device = format!("sync:{path}");
+    let sync = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+            .args(["sync", "--device", &device])
+            .args(args)
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).to_string()
+            + &String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success(), "{text}");
+        text
+    };
+    sync(&["program", "--planes", "0.2,0.8,1.4,2.0", "--rate", "240"]);
+    sync(&["start"]);
+    let events = sync(&["events", "--count", "16"]);
+    assert_eq!(events.lines().count(), 16, "{events}");
+    assert!(!events.contains("FAULT"), "{events}");
+    assert!(events.lines().all(|l| l.contains("lens ")), "{events}");
 }
 
 #[test]

@@ -199,6 +199,26 @@ fn gpu_backend_matches_cpu_through_the_binary() {
     let (ok, text) = render("cpu", "cpu.exr");
     assert!(ok, "{text}");
     assert!(psnr(&d("gpu.exr"), &d("cpu.exr")) > 90.0);
+    // Headless (no session, as in CI or over ssh): no libwayland complaint from Mesa's
+    // device-selection layer on stderr (issue 39, item 10).
+    let (color, depth) = (d("color.png"), d("depth.exr"));
+    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args([
+            "render", "--color", &color, "--depth", &depth, "--focus", "1",
+        ])
+        .args(["--backend", "gpu", "--out", &d("headless.png")])
+        .env_remove("XDG_RUNTIME_DIR")
+        .env_remove("WAYLAND_DISPLAY")
+        .env_remove("NODEVICE_SELECT")
+        .env_remove("DRI_PRIME")
+        .env_remove("MESA_VK_DEVICE_SELECT")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && !stderr.contains("XDG_RUNTIME_DIR"),
+        "{stderr}"
+    );
     // An adapter that does not exist is an error naming the ones that do.
     let (ok, text) = on_scene(
         &dir,

@@ -96,13 +96,16 @@ fn check(
     max: f32,
     policy: OutOfRange,
 ) -> Result<f32, DeviceError> {
-    // Through the f32's shortest decimal form, so that 1.9 prints as 1.9, not 1.900000095.
+    // The request through the f32's shortest decimal form, so that 1.9 prints as 1.9, not
+    // 1.900000095; the bounds (often computed in f32, e.g. a device's range: 6.4849997) to
+    // 4 decimals, finer than any lens resolves.
     let wide = |x: f32| x.to_string().parse::<f64>().unwrap_or(f64::NAN);
+    let bound = |x: f32| format!("{x:.4}").parse::<f64>().unwrap_or(f64::NAN);
     let refuse = || DeviceError::OutOfRange {
         what,
         requested: wide(v),
-        min: wide(min),
-        max: wide(max),
+        min: bound(min),
+        max: bound(max),
     };
     if !v.is_finite() || min.partial_cmp(&max).is_none_or(|o| o.is_gt()) {
         return Err(refuse());
@@ -134,6 +137,13 @@ mod tests {
         assert_eq!(refuse.check_power(Diopters(2.0), r), Ok(Diopters(2.0)));
         let e = refuse.check_power(Diopters(4.0), r).unwrap_err();
         assert!(e.to_string().contains("nothing was sent"), "{e}");
+        // A range computed in f32 reads as the lens's figures.
+        let device = range(-1.9000001, 6.4849997);
+        let e = refuse.check_power(Diopters(9.0), device).unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "focal power (D) 9 is outside the allowed range -1.9..=6.485; nothing was sent"
+        );
         // NaN is never clamped into range.
         assert!(clamp.check_power(Diopters(f32::NAN), r).is_err());
     }

@@ -902,7 +902,10 @@ impl RigConfig {
         if !(s.sim_settle_ms.is_finite() && s.sim_settle_ms > 0.0 && s.sim_settle_ms <= 1000.0) {
             return Err(invalid(
                 "devices.sync.sim_settle_ms",
-                "expected a settle time of 0 to 1000 ms",
+                format!(
+                    "expected a settle time above 0 and at most 1000 ms (got {})",
+                    s.sim_settle_ms
+                ),
             ));
         }
         // The board measures the lens when a sub-frame's dark quarter ends: a simulated lens
@@ -1288,7 +1291,7 @@ impl RigConfig {
         if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
             return Err(invalid(
                 "devices.lens.sim_settle_ms",
-                "expected a settle time of 0 to 1000 ms",
+                format!("expected a settle time above 0 and at most 1000 ms (got {settle})"),
             ));
         }
         if let Some(settle) = self.devices.lens.settle_ms {
@@ -1393,6 +1396,16 @@ impl RigConfig {
             return Err(invalid("method", why));
         }
         let e = &self.eye;
+        // A human pupil: about 2 mm in bright light to 8 mm dark-adapted.
+        if !(e.pupil_mm.is_finite() && (1.0..=10.0).contains(&e.pupil_mm)) {
+            return Err(invalid(
+                "eye.pupil_mm",
+                format!(
+                    "expected a pupil diameter of 1 to 10 mm (got {}; DeepFocus's eye: 4)",
+                    e.pupil_mm
+                ),
+            ));
+        }
         dioptra_core::EyeModel {
             pupil_diameter: dioptra_core::Millimeters(e.pupil_mm),
             fov_horizontal_deg: e.fov_deg,
@@ -1808,6 +1821,25 @@ pub(crate) mod tests {
         assert!(e.to_string().contains("linear, optimized"), "{e}");
         let ok = RigConfig::parse(&text.replace("method = \"gather\"", "method = \"linear\""));
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    #[test]
+    fn pupil_and_settle_times_are_checked_as_their_messages_say() {
+        let e = err(&SIM_RIG.replace("pupil_mm = 4.0", "pupil_mm = 40.0"));
+        assert_eq!(e.key(), "eye.pupil_mm", "{e}");
+        assert!(e.to_string().contains("1 to 10 mm (got 40"), "{e}");
+        assert!(RigConfig::parse(&SIM_RIG.replace("pupil_mm = 4.0", "pupil_mm = 8.0")).is_ok());
+        // 0 is refused, and the message says so.
+        let e = err(&SIM_RIG.replace("sim_settle_ms = 0.8", "sim_settle_ms = 0.0"));
+        assert_eq!(e.key(), "devices.sync.sim_settle_ms", "{e}");
+        assert!(
+            e.to_string()
+                .contains("above 0 and at most 1000 ms (got 0)"),
+            "{e}"
+        );
+        let e = err(&SIM_RIG.replace("sim_settle_ms = 15.0", "sim_settle_ms = 0.0"));
+        assert_eq!(e.key(), "devices.lens.sim_settle_ms", "{e}");
+        assert!(e.to_string().contains("above 0 and at most 1000 ms"), "{e}");
     }
 
     #[test]
