@@ -14,10 +14,10 @@ pub mod failure;
 mod geom;
 mod render;
 
-pub use geom::{Pattern, Rot, Shape, Texture};
+pub use geom::{Pattern, RayBundle, Rot, Shape, Texture};
 pub use render::{
-    render_light_field, render_pinhole, render_thin_lens, render_thin_lens_scrambled,
-    render_thin_lens_stack, Camera, LightFieldView,
+    light_field_positions, render_light_field, render_light_field_view, render_pinhole,
+    render_thin_lens, render_thin_lens_scrambled, render_thin_lens_stack, Camera, LightFieldView,
 };
 
 use std::ops::Range;
@@ -316,6 +316,18 @@ impl Scene {
     /// Colour and z-depth (metres) of the first surface along `o + t d` (with `d.z = 1`),
     /// compositing semi-transparent surfaces front to back.
     pub fn trace(&self, o: [f32; 3], d: [f32; 3]) -> ([f32; 3], f32) {
+        self.trace_among(o, d, self.objects.iter())
+    }
+
+    /// [`Scene::trace`] testing only `objects` (in the scene's order), which must hold every
+    /// object the ray can meet: the renders pass those a pixel's bundle of rays can meet
+    /// ([`RayBundle`]), so a ray tests a few objects instead of all.
+    pub fn trace_among<'a>(
+        &'a self,
+        o: [f32; 3],
+        d: [f32; 3],
+        objects: impl Iterator<Item = &'a Object> + Clone,
+    ) -> ([f32; 3], f32) {
         let mut colour = [0.0f32; 3];
         let mut transmit = 1.0f32;
         let mut first_z = None;
@@ -323,14 +335,19 @@ impl Scene {
         // A few layers of transparency are enough; the loop always ends at the wall.
         for _ in 0..6 {
             let mut best: Option<(geom::Hit, &Object)> = None;
-            for obj in &self.objects {
+            let wall_t = self.wall_depth - o[2];
+            for obj in objects.clone() {
+                // Only a hit nearer than the best so far and the wall can change the result.
+                let t_max = best.as_ref().map_or(wall_t, |(b, _)| b.t.min(wall_t));
+                if !obj.shape.may_hit(o, d, t_min, t_max) {
+                    continue;
+                }
                 if let Some(h) = obj.shape.intersect(o, d, t_min) {
                     if best.as_ref().is_none_or(|(b, _)| h.t < b.t) {
                         best = Some((h, obj));
                     }
                 }
             }
-            let wall_t = self.wall_depth - o[2];
             match best {
                 Some((h, obj)) if h.t < wall_t => {
                     let ndl = glam::Vec3::from(h.normal)

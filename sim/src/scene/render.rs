@@ -127,10 +127,13 @@ pub fn render_pinhole(
         .into_par_iter()
         .flat_map_iter(|y| {
             (0..cam.width).map(move |x| {
+                let objects = pixel_objects(scene, cam, pitch, x, y, position, 0.0, 0.0);
+                let trace =
+                    |t: [f32; 2]| scene.trace_among(o, [t[0], t[1], 1.0], objects.iter().copied());
                 let mut acc = [0.0f32; 3];
                 if n == 1 {
                     let t = cam.tangent(pitch, x as f32 + 0.5, y as f32 + 0.5);
-                    acc = scene.trace(o, [t[0], t[1], 1.0]).0;
+                    acc = trace(t).0;
                 } else {
                     // Own scramble keys: independent of the thin-lens reference's samples.
                     let off = [pixel_hash(x, y, 1_000_001), pixel_hash(x, y, 1_000_002)];
@@ -138,7 +141,7 @@ pub fn render_pinhole(
                         let jx = (radical_inverse(i + 1, 5) + off[0]).fract();
                         let jy = (radical_inverse(i + 1, 7) + off[1]).fract();
                         let t = cam.tangent(pitch, x as f32 + jx, y as f32 + jy);
-                        let (c, _) = scene.trace(o, [t[0], t[1], 1.0]);
+                        let (c, _) = trace(t);
                         for k in 0..3 {
                             acc[k] += c[k];
                         }
@@ -146,7 +149,7 @@ pub fn render_pinhole(
                     acc = acc.map(|v| v / n as f32);
                 }
                 let t = cam.tangent(pitch, x as f32 + 0.5, y as f32 + 0.5);
-                let (_, z) = scene.trace(o, [t[0], t[1], 1.0]);
+                let (_, z) = trace(t);
                 (acc, 1.0 / z)
             })
         })
@@ -185,20 +188,30 @@ pub fn render_thin_lens_scrambled(
     }
     let radius = 0.5 * cam.eye.pupil_diameter.to_meters().0;
     let q = focus.0;
+    // The same quasi-random sequence for every pixel (each rotates it by its own offsets).
+    let halton: Vec<[f32; 4]> = (1..=samples)
+        .map(|i| [2, 3, 5, 7].map(|base| radical_inverse(i, base)))
+        .collect();
+    let halton = &halton;
     let px: Vec<[f32; 3]> = (0..cam.height)
         .into_par_iter()
         .flat_map_iter(|y| {
             (0..cam.width).map(move |x| {
                 let off = [0, 1, 2, 3].map(|k| pixel_hash(x, y, k + 4 * scramble));
+                let objects = pixel_objects(scene, cam, pitch, x, y, [0.0; 2], radius, q);
                 let mut acc = [0.0f32; 3];
-                for i in 0..samples {
-                    let r = |base: u32, k: usize| (radical_inverse(i + 1, base) + off[k]).fract();
-                    let l = concentric_disk(r(2, 0), r(3, 1));
+                for h in halton {
+                    let r = |k: usize| (h[k] + off[k]).fract();
+                    let l = concentric_disk(r(0), r(1));
                     let (lx, ly) = (l[0] * radius, l[1] * radius);
-                    let t = cam.tangent(pitch, x as f32 + r(5, 2), y as f32 + r(7, 3));
+                    let t = cam.tangent(pitch, x as f32 + r(2), y as f32 + r(3));
                     // The ray from lens point L through the point the pixel's chief ray meets
                     // on the focal plane z = 1/q: direction t - q L (z component 1).
-                    let (c, _) = scene.trace([lx, ly, 0.0], [t[0] - q * lx, t[1] - q * ly, 1.0]);
+                    let (c, _) = scene.trace_among(
+                        [lx, ly, 0.0],
+                        [t[0] - q * lx, t[1] - q * ly, 1.0],
+                        objects.iter().copied(),
+                    );
                     for k in 0..3 {
                         acc[k] += c[k];
                     }
@@ -208,6 +221,34 @@ pub fn render_thin_lens_scrambled(
         })
         .collect();
     to_planes(cam.width, cam.height, px)
+}
+
+/// The objects that some ray of pixel (x, y) can meet, in the scene's order: the pixel's
+/// rays leave a disk of `lens_radius` around `origin` and meet on the focal plane at
+/// `focus_d` (a pinhole: radius 0, any focus).
+#[allow(clippy::too_many_arguments)]
+fn pixel_objects<'a>(
+    scene: &'a Scene,
+    cam: &Camera,
+    pitch: f32,
+    x: usize,
+    y: usize,
+    origin: [f32; 2],
+    lens_radius: f32,
+    focus_d: f32,
+) -> Vec<&'a super::Object> {
+    let bundle = super::RayBundle {
+        origin,
+        lens_radius,
+        focus_d,
+        t_lo: cam.tangent(pitch, x as f32, y as f32),
+        t_hi: cam.tangent(pitch, x as f32 + 1.0, y as f32 + 1.0),
+    };
+    scene
+        .objects
+        .iter()
+        .filter(|o| bundle.may_meet(&o.shape))
+        .collect()
 }
 
 /// Thin-lens ground truth at each focus in `foci`; `progress` is called after each slice.
@@ -235,6 +276,14 @@ pub fn render_light_field(
     span: f32,
     supersample: usize,
 ) -> Result<Vec<LightFieldView>, InputError> {
+    light_field_positions(grid, span)?
+        .into_iter()
+        .map(|position| render_light_field_view(scene, cam, position, supersample))
+        .collect()
+}
+
+/// The view positions of [`render_light_field`], row-major from the top-left.
+pub fn light_field_positions(grid: usize, span: f32) -> Result<Vec<[f32; 2]>, InputError> {
     if grid == 0 || grid > 64 || !(span.is_finite() && span >= 0.0) {
         return Err(InputError::InvalidValue(format!(
             "light field grid {grid} (expected 1..=64) or span {span} m is invalid"
@@ -245,22 +294,25 @@ pub fn render_light_field(
     } else {
         0.0
     };
-    let mut views = Vec::with_capacity(grid * grid);
-    for j in 0..grid {
-        for i in 0..grid {
-            let position = [
-                (i as f32 - (grid - 1) as f32 * 0.5) * step,
-                (j as f32 - (grid - 1) as f32 * 0.5) * step,
-            ];
-            let (color, depth) = render_pinhole(scene, cam, position, supersample)?;
-            views.push(LightFieldView {
-                position,
-                color,
-                depth,
-            });
-        }
-    }
-    Ok(views)
+    let at = |k: usize| (k as f32 - (grid - 1) as f32 * 0.5) * step;
+    Ok((0..grid)
+        .flat_map(|j| (0..grid).map(move |i| [at(i), at(j)]))
+        .collect())
+}
+
+/// One view of [`render_light_field`], at `position` (one of [`light_field_positions`]).
+pub fn render_light_field_view(
+    scene: &Scene,
+    cam: &Camera,
+    position: [f32; 2],
+    supersample: usize,
+) -> Result<LightFieldView, InputError> {
+    let (color, depth) = render_pinhole(scene, cam, position, supersample)?;
+    Ok(LightFieldView {
+        position,
+        color,
+        depth,
+    })
 }
 
 #[cfg(test)]
@@ -300,6 +352,52 @@ mod tests {
             let p = concentric_disk(radical_inverse(i, 2), radical_inverse(i, 3));
             assert!(p[0] * p[0] + p[1] * p[1] <= 1.0 + 1e-5);
         }
+    }
+
+    /// A pixel's rays find the same colour and depth among the objects its bundle may meet
+    /// as among all: random rays of random pixels (lens disk, pixel area, the edges of both
+    /// included), scenes with semi-transparent surfaces, near and far foci, an 8 mm pupil.
+    #[test]
+    fn culling_objects_per_pixel_changes_no_ray() {
+        let opts = crate::scene::SceneOptions {
+            semi_transparent: true,
+            ..Default::default()
+        };
+        let mut checked = 0usize;
+        let mut culled = 0usize;
+        for seed in [1_000_000u64, 1_000_001, 42] {
+            let scene = Scene::generate_with(seed, &opts);
+            for (pupil_mm, q) in [(4.0f32, 0.1f32), (8.0, 2.5), (4.0, 6.0)] {
+                let eye = EyeModel {
+                    pupil_diameter: dioptra_core::Millimeters(pupil_mm),
+                    ..EyeModel::default()
+                };
+                let cam = Camera::square(eye, 64);
+                let pitch = cam.check().unwrap();
+                let radius = 0.5 * eye.pupil_diameter.to_meters().0;
+                for p in 0..400u32 {
+                    let (x, y) = ((p * 37 % 64) as usize, (p * 11 % 64) as usize);
+                    let objects = pixel_objects(&scene, &cam, pitch, x, y, [0.0; 2], radius, q);
+                    culled += scene.objects.len() - objects.len();
+                    for i in 0..8u32 {
+                        let u = |k: u32| pixel_hash(x, y, 100 + 8 * i + k);
+                        // Lens points out to the rim, pixel points out to the edges.
+                        let rim = if i == 0 { 1.0 } else { u(4).sqrt() };
+                        let l = concentric_disk(u(0), u(1)).map(|v| v * rim);
+                        let (lx, ly) = (l[0] * radius, l[1] * radius);
+                        let edge = |v: f32| if i == 1 { v.round() } else { v };
+                        let t = cam.tangent(pitch, x as f32 + edge(u(2)), y as f32 + edge(u(3)));
+                        let (o, d) = ([lx, ly, 0.0], [t[0] - q * lx, t[1] - q * ly, 1.0]);
+                        let all = scene.trace(o, d);
+                        let some = scene.trace_among(o, d, objects.iter().copied());
+                        assert_eq!(all, some, "seed {seed} pixel ({x}, {y}) ray {i}");
+                        checked += 1;
+                    }
+                }
+            }
+        }
+        // Culling happened (most objects are far from most pixels).
+        assert!(culled > checked, "{culled} culled over {checked} rays");
     }
 
     #[test]
