@@ -5,10 +5,12 @@
 //!
 //! - [`scene`]: the procedural scene, animated on the rig's clock;
 //! - [`files`]: a lab's RGB-D files, one frame or a numbered sequence;
-//! - [`stream`]: frames an application pushes (shared-memory ring or `PUT /frame`);
+//! - [`stream`]: frames an application pushes (shared-memory ring or `PUT /frame`), the
+//!   ring's byte layout in [`ring`];
 //! - [`Still`]: one fixed frame (loop tests).
 
 pub mod files;
+pub mod ring;
 pub mod scene;
 pub mod stream;
 

@@ -4,8 +4,8 @@
 //! - the fast path, a shared-memory ring of frame slots: a file (0600) the daemon creates and
 //!   maps, which the application maps too, writes a frame into a slot and names it with
 //!   `POST /frame {"slot", "seq"}`. The daemon copies the slot out before it answers, so the
-//!   slot is the application's again once the answer arrives. Layout: [`RING_MAGIC`] and the
-//!   constants below; `GET /frame/ring` says it too.
+//!   slot is the application's again once the answer arrives. Layout: [`super::ring`] (spec:
+//!   RING.md); `GET /frame/ring` says it too.
 //! - the slow, simple path, `PUT /frame?width=&height=&color=&depth=[&near=&far=&seq=]` with
 //!   the colour bytes then the depth bytes as the body; or, with `color=png|exr|pfm` and
 //!   `color_bytes=N`, a colour image file (N bytes) then a depth image file (EXR, PFM or
@@ -27,19 +27,9 @@ use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat
 use rayon::prelude::*;
 use serde::Serialize;
 
+use super::ring::{RingHeader, SlotHeader};
+pub use super::ring::{RING_HEADER, RING_MAGIC, RING_SLOTS, RING_VERSION, SLOT_HEADER};
 use super::{Arrival, Content, ContentFrame};
-
-/// The ring file's first 8 bytes.
-pub const RING_MAGIC: &[u8; 8] = b"DIOPTRA1";
-pub const RING_VERSION: u32 = 1;
-/// The ring header's size; slot `i` starts at `RING_HEADER + i * slot_bytes`.
-pub const RING_HEADER: usize = 64;
-/// A slot's header size; its colour bytes follow it, then its depth bytes.
-pub const SLOT_HEADER: usize = 64;
-/// Slots in the ring.
-pub const RING_SLOTS: usize = 3;
-/// A slot holds the largest frame: RGB f32 colour and f32 depth, 16 bytes a pixel.
-const SLOT_BYTES_PER_PX: usize = 16;
 
 /// The colour's encoding: raw pixels, or (`PUT /frame` only) an image file, whose frame's
 /// depth is an image file too.
@@ -702,7 +692,8 @@ struct Ring {
 impl Ring {
     fn create(path: &Path, width: usize, height: usize) -> std::io::Result<Ring> {
         use std::os::unix::fs::OpenOptionsExt;
-        let slot_bytes = SLOT_HEADER + width * height * SLOT_BYTES_PER_PX;
+        let header = RingHeader::for_frames(width, height);
+        let slot_bytes = header.slot_bytes as usize;
         if let Ok(meta) = std::fs::symlink_metadata(path) {
             if !meta.file_type().is_file() {
                 return Err(std::io::Error::other(format!(
@@ -720,16 +711,7 @@ impl Ring {
             .mode(0o600)
             .custom_flags(libc_o_nofollow())
             .open(path)?;
-        let mut header = [0u8; RING_HEADER];
-        header[0..8].copy_from_slice(RING_MAGIC);
-        header[8..12].copy_from_slice(&RING_VERSION.to_le_bytes());
-        header[12..16].copy_from_slice(&(RING_SLOTS as u32).to_le_bytes());
-        header[16..20].copy_from_slice(&(width as u32).to_le_bytes());
-        header[20..24].copy_from_slice(&(height as u32).to_le_bytes());
-        header[24..32].copy_from_slice(&(slot_bytes as u64).to_le_bytes());
-        header[32..36].copy_from_slice(&(RING_HEADER as u32).to_le_bytes());
-        header[36..40].copy_from_slice(&(SLOT_HEADER as u32).to_le_bytes());
-        f.write_all(&header)?;
+        f.write_all(&header.encode())?;
         f.set_len((RING_HEADER + RING_SLOTS * slot_bytes) as u64)?;
         let map = memmap2::MmapOptions::new().map_raw(&f)?;
         Ok(Ring {
@@ -842,12 +824,7 @@ impl StreamFrames {
                 "header_bytes": RING_HEADER,
                 "slot_header_bytes": SLOT_HEADER,
                 "slot_bytes": r.slot_bytes,
-                "slot_header": {
-                    "seq": [0, "u64"], "color_format": [8, "u32"], "depth_kind": [12, "u32"],
-                    "near": [16, "f32"], "far": [20, "f32"], "width": [24, "u32"],
-                    "height": [28, "u32"], "app_time_ns": [32, "u64"],
-                    "color_bytes": [40, "u64"], "depth_bytes": [48, "u64"],
-                },
+                "slot_header": super::ring::layout_json(super::ring::SLOT_FIELDS),
             }),
         }
     }
@@ -906,27 +883,29 @@ impl StreamFrames {
             )));
         }
         let seq = self.check_seq(Some(seq))?;
-        let h = ring.read(base, SLOT_HEADER);
-        let u32_at = |o: usize| u32::from_le_bytes([h[o], h[o + 1], h[o + 2], h[o + 3]]);
-        let u64_at = |o: usize| u64::from_le_bytes(h[o..o + 8].try_into().unwrap_or([0; 8]));
-        let f32_at = |o: usize| f32::from_bits(u32_at(o));
-        let color = ColorFormat::from_code(u32_at(8)).ok_or_else(|| {
-            FrameError::Invalid(format!("slot {slot}: unknown colour format {}", u32_at(8)))
+        let mut bytes = [0u8; SLOT_HEADER];
+        bytes.copy_from_slice(&ring.read(base, SLOT_HEADER));
+        let h = SlotHeader::decode(&bytes);
+        let color = ColorFormat::from_code(h.color_format).ok_or_else(|| {
+            FrameError::Invalid(format!(
+                "slot {slot}: unknown colour format {}",
+                h.color_format
+            ))
         })?;
-        let depth = DepthKind::from_code(u32_at(12)).ok_or_else(|| {
-            FrameError::Invalid(format!("slot {slot}: unknown depth kind {}", u32_at(12)))
+        let depth = DepthKind::from_code(h.depth_kind).ok_or_else(|| {
+            FrameError::Invalid(format!("slot {slot}: unknown depth kind {}", h.depth_kind))
         })?;
         let desc = FrameDesc {
-            width: u32_at(24) as usize,
-            height: u32_at(28) as usize,
+            width: h.width as usize,
+            height: h.height as usize,
             color,
             depth,
-            near: Some(f32_at(16)),
-            far: Some(f32_at(20)),
+            near: Some(h.near),
+            far: Some(h.far),
             seq: Some(seq),
-            app_time_ns: Some(u64_at(32)).filter(|&t| t != 0),
+            app_time_ns: Some(h.app_time_ns).filter(|&t| t != 0),
         };
-        let (cb, db) = (u64_at(40) as usize, u64_at(48) as usize);
+        let (cb, db) = (h.color_bytes as usize, h.depth_bytes as usize);
         let room = ring.slot_bytes - SLOT_HEADER;
         if cb.checked_add(db).is_none_or(|total| total > room) {
             return Err(FrameError::Invalid(format!(
@@ -1314,14 +1293,19 @@ mod tests {
     /// Writes a frame into a ring slot the way a client does: sequence number last.
     fn write_slot(ring: &Ring, slot: usize, seq: u64, w: u32, h: u32, color: &[u8], depth: &[u8]) {
         let base = RING_HEADER + slot * ring.slot_bytes;
-        let mut head = vec![0u8; SLOT_HEADER];
-        head[8..12].copy_from_slice(&1u32.to_le_bytes());
-        head[12..16].copy_from_slice(&2u32.to_le_bytes());
-        head[24..28].copy_from_slice(&w.to_le_bytes());
-        head[28..32].copy_from_slice(&h.to_le_bytes());
-        head[40..48].copy_from_slice(&(color.len() as u64).to_le_bytes());
-        head[48..56].copy_from_slice(&(depth.len() as u64).to_le_bytes());
-        let mut bytes = head;
+        let head = SlotHeader {
+            seq,
+            color_format: ColorFormat::Rgb8 as u32,
+            depth_kind: DepthKind::Diopters as u32,
+            near: f32::NAN,
+            far: f32::NAN,
+            width: w,
+            height: h,
+            app_time_ns: 0,
+            color_bytes: color.len() as u64,
+            depth_bytes: depth.len() as u64,
+        };
+        let mut bytes = head.encode().to_vec();
         bytes.extend_from_slice(color);
         bytes.extend_from_slice(depth);
         let f = std::fs::OpenOptions::new()
