@@ -17,53 +17,27 @@ Exit code 0 when nothing was dropped and no render failed.
 
 import argparse
 import json
-import os
 import pathlib
-import re
-import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-import urllib.request
 
 import websocket  # websocket-client
 from mcap.reader import NonSeekingReader, make_reader
 
+from dioptra_client.daemon import Daemon, rig_config
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
-def config(tmp: pathlib.Path, record: bool) -> pathlib.Path:
-    text = (ROOT / "crates/cli/examples/rig-sim.toml").read_text()
-    text = text.replace("127.0.0.1:7420", "127.0.0.1:0")
-    text = text.replace("sim_rate_hz = 250.0", "sim_rate_hz = 1000.0")
-    text = text.replace('dir = "recordings"', f'dir = "{tmp / "rec"}"')
-    text = text.replace("start = false", f"start = {'true' if record else 'false'}")
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
-
-
-def start(binary: str, cfg: pathlib.Path):
-    p = subprocess.Popen([binary, "serve", "--config", str(cfg)],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    # The GPU probe may print the Vulkan loader's own lines before the API line.
-    for line in p.stderr:
-        m = re.search(r"API on http://(\S+)", line)
-        if m:
-            return p, m.group(1)
-    p.kill()
-    sys.exit("serve ended before it listened")
-
-
-def call(addr: str, path: str, body=None):
-    req = urllib.request.Request(
-        f"http://{addr}{path}", method="POST" if body is not None else "GET",
-        data=None if body is None else json.dumps(body).encode(),
-        headers={"Content-Type": "application/json"})
-    with urllib.request.urlopen(req, timeout=10) as r:
-        return json.load(r)
+def start(binary: str, tmp: pathlib.Path, record: bool) -> Daemon:
+    """The example rig with its tracker at 1 kHz, recording from the start if `record`."""
+    cfg = rig_config(tmp / "rig.toml", (ROOT / "crates/cli/examples/rig-sim.toml").read_text(),
+                     replace={"sim_rate_hz = 250.0": "sim_rate_hz = 1000.0",
+                              "start = false": f"start = {'true' if record else 'false'}"})
+    return Daemon(binary, cfg).start()
 
 
 def rss_kib(pid: int) -> int:
@@ -73,9 +47,9 @@ def rss_kib(pid: int) -> int:
     return -1
 
 
-def wait_ok(addr: str):
+def wait_ok(d):
     for _ in range(600):
-        s = call(addr, "/status")
+        s = d.status()
         if all(s["devices"][d]["state"] == "ok" for d in ("lens", "gaze", "sync")):
             return s
         time.sleep(0.1)
@@ -84,12 +58,14 @@ def wait_ok(addr: str):
 
 def soak(binary: str, seconds: float) -> bool:
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="dioptra-soak-"))
-    p, addr = start(binary, config(tmp, record=True))
+    rig = start(binary, tmp, record=True)
+    d = rig.client()
     stream = {"messages": 0, "gaze": 0, "lagged_skipped": 0, "errors": 0}
     stop = threading.Event()
 
     def reader():
-        ws = websocket.create_connection(f"ws://{addr}/stream", timeout=10)
+        ws = websocket.create_connection(rig.url.replace("http://", "ws://") + "/stream",
+                                         timeout=10)
         while not stop.is_set():
             try:
                 m = json.loads(ws.recv())
@@ -103,26 +79,26 @@ def soak(binary: str, seconds: float) -> bool:
                 stream["lagged_skipped"] += m["skipped"]
         ws.close()
 
-    wait_ok(addr)
+    wait_ok(d)
     time.sleep(5)  # past start-up allocations
-    first = call(addr, "/status")
-    rss0 = rss_kib(p.pid)
+    first = d.status()
+    rss0 = rss_kib(rig.pid)
     t = threading.Thread(target=reader, daemon=True)
     t.start()
     polls, t_end = 0, time.monotonic() + seconds
     while time.monotonic() < t_end:
-        call(addr, "/status")
+        d.status()
         polls += 1
         time.sleep(0.1)
-    last = call(addr, "/status")
-    rss1 = rss_kib(p.pid)
+    last = d.status()
+    rss1 = rss_kib(rig.pid)
     stop.set()
-    rec = call(addr, "/recording/stop", {})
-    call(addr, "/shutdown", {})
-    p.wait(timeout=60)
+    rec = d.stop_recording()
+    d.shutdown()
+    code = rig.wait(timeout=60)
     span = last["uptime_s"] - first["uptime_s"]
     samples = last["counts"]["gaze_samples"] - first["counts"]["gaze_samples"]
-    print(f"soak: {span:.0f} s, {polls} status polls, exit {p.returncode}")
+    print(f"soak: {span:.0f} s, {polls} status polls, exit {code}")
     print(f"  RSS {rss0} KiB at start, {rss1} KiB at end ({rss1 - rss0:+d} KiB)")
     print(f"  gaze samples {samples} ({samples / span:.1f} Hz; the tracker sends 1000 Hz)")
     print(f"  stream: {stream['messages']} messages, {stream['gaze']} gaze, "
@@ -131,19 +107,19 @@ def soak(binary: str, seconds: float) -> bool:
     print(f"  render errors {last['counts']['render_errors']}, "
           f"frames shown {last['counts']['frames_shown']}")
     ok = (rec["dropped"] == 0 and stream["lagged_skipped"] == 0
-          and last["counts"]["render_errors"] == 0 and p.returncode == 0
+          and last["counts"]["render_errors"] == 0 and code == 0
           and abs(samples / span - 1000.0) < 10.0)
     return ok
 
 
 def killed(binary: str, after: float) -> bool:
     tmp = pathlib.Path(tempfile.mkdtemp(prefix="dioptra-kill-"))
-    p, addr = start(binary, config(tmp, record=True))
-    wait_ok(addr)
+    rig = start(binary, tmp, record=True)
+    d = rig.client()
+    wait_ok(d)
     time.sleep(after)
-    sent = call(addr, "/status")["recording"]
-    os.kill(p.pid, signal.SIGKILL)
-    p.wait()
+    sent = d.status()["recording"]
+    rig.kill()
     files = list((tmp / "rec").glob("*.mcap"))
     f = files[0]
 

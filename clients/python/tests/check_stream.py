@@ -21,20 +21,18 @@ The second argument is the daemon's `[render] backend` (default cpu; gpu takes a
 a software one included).
 """
 
-import json
 import pathlib
-import re
 import signal
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
 
-from dioptra_client import Dioptra, FrameRefused
+from dioptra_client import FrameRefused
+from dioptra_client.daemon import Daemon, rig_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[3]
 failures = []
@@ -47,13 +45,8 @@ def check(ok, what):
 
 
 def config(tmp: pathlib.Path, backend: str) -> pathlib.Path:
-    text = (ROOT / "crates/cli/examples/rig-sim.toml").read_text()
-    text = text.replace("127.0.0.1:7420", "127.0.0.1:0")
-    text = text.replace('dir = "recordings"', f'dir = "{tmp / "rec"}"')
-    text += f'\n[content]\nsource = "stream"\n\n[render]\nbackend = "{backend}"\n'
-    path = tmp / "rig.toml"
-    path.write_text(text)
-    return path
+    return rig_config(tmp / "rig.toml", (ROOT / "crates/cli/examples/rig-sim.toml").read_text(),
+                      append=f'[content]\nsource = "stream"\n\n[render]\nbackend = "{backend}"\n')
 
 
 def frame(d, k):
@@ -94,21 +87,10 @@ def main():
     if backend not in ("cpu", "gpu"):
         sys.exit(f"backend {backend!r}: expected cpu or gpu")
     tmp = pathlib.Path(tempfile.mkdtemp())
-    p = subprocess.Popen([binary, "serve", "--config", str(config(tmp, backend))],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    addr = None
-    for line in p.stderr:
-        m = re.search(r"API on http://(\S+)", line)
-        if m:
-            addr = m.group(1)
-            break
-    if addr is None:
-        sys.exit(f"serve ended before it listened (exit {p.wait()})")
-    log = []
-    threading.Thread(target=lambda: log.extend(p.stderr), daemon=True).start()
-    url = f"http://{addr}"
+    rig = Daemon(binary, config(tmp, backend)).start()
+    url = rig.url
     try:
-        d = Dioptra(url)
+        d = rig.client()
         render = d.status()["render"]
         check(render["backend"] == backend,
               f"the daemon renders on the {render['backend']} ({render.get('adapter')})")
@@ -126,7 +108,7 @@ def main():
         print(f"     ring ingest at {d.width}x{d.height}: p50 {statistics.median(ms):.2f} ms, "
               f"p99 {ms[int(0.99 * len(ms))]:.2f} ms (client write to the daemon's answer)")
 
-        put = Dioptra(url, use_ring=False)
+        put = rig.client(use_ring=False)
         check(not put.uses_ring, "a client without the ring uses PUT /frame")
         before = put.status()["content"]
         ok2, refused2, times2 = stream(put, 300, 90.0)
@@ -156,7 +138,7 @@ def main():
 
         # Refusals: each counted under its reason, the frame on show unchanged. (The ring
         # client goes on after the PUT client's numbers, as a new client would.)
-        d._seq = put._seq
+        d.seq = put.seq
         on_show = after["on_show_seq"]
         color, depth = frame(put, 1)
         bad = [
@@ -174,7 +156,7 @@ def main():
                 n = d.status()["content"]["refused"].get(kind, 0)
                 check(n == before_n + 1, f"a {kind} frame is refused and counted: {e.message}")
         # A stale sequence number: a client that starts over from 0.
-        d._seq = 0
+        d.seq = 0
         try:
             d.send_rgbd(color, depth)
             check(False, "a stale sequence number is refused")
@@ -211,15 +193,10 @@ while True:
         d.close()
         put.close()
     finally:
-        p.send_signal(signal.SIGTERM)
-        try:
-            code = p.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            code = "killed after 30 s"
+        code = rig.stop()
     check(code == 0, f"serve exited {code} on SIGTERM")
     if failures:
-        print("".join(log[-20:]), file=sys.stderr)
+        print("".join(rig.log[-20:]), file=sys.stderr)
         sys.exit(f"{len(failures)} check(s) failed")
     print("all stream checks passed")
 

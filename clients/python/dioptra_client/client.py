@@ -1,0 +1,195 @@
+"""The daemon's whole API from Python: :class:`Dioptra`."""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Dict, Iterable, Optional, Type, Union
+
+from ._http import Http
+from .errors import DioptraError, NotSettled
+from .events import Event, EventStream, LensEvent
+from .frames import FrameSender
+
+
+class Dioptra:
+    """A connection to one ``dioptra serve``.
+
+    ``url`` is ``http://host:port`` (the config's ``api.listen``) or ``unix:/path/to.sock``
+    (``api.unix``). ``token`` (or ``token_file``, a file holding it) is the config's
+    ``api.token``, needed when it sets one. Every call raises :class:`DioptraError` with the
+    daemon's reason when the daemon refuses it. Works whatever the rig's content; the frame
+    calls (:meth:`send_rgbd`, :attr:`width`, :attr:`height`) need ``[content] source =
+    "stream"`` and use the shared-memory ring when the daemon is on this machine
+    (``use_ring``), else ``PUT /frame``.
+
+        with Dioptra("http://127.0.0.1:7420") as d:
+            d.set_focus(1.5)
+            d.wait_settled(timeout=1.0)
+            d.marker({"event": "stimulus_on", "trial": 3})
+    """
+
+    def __init__(self, url: str = "http://127.0.0.1:7420", token: Optional[str] = None, *,
+                 token_file: Optional[str] = None, use_ring: bool = True,
+                 timeout: float = 10.0):
+        if token is None and token_file is not None:
+            with open(token_file, encoding="utf-8") as f:
+                token = f.read().strip()
+        self._http = Http(url, token, timeout)
+        self._use_ring = use_ring
+        self._frames: Optional[FrameSender] = None
+        # Fails here, with the reason, when no daemon answers at `url`.
+        self.status()
+
+    # The rig.
+
+    def status(self) -> Dict[str, Any]:
+        """``GET /status``: mode, method, focus, devices, counters, latency, recording."""
+        return self._http.request("GET", "/status")
+
+    def set_focus(self, diopters: float) -> float:
+        """Manual focus: the lens goes to ``diopters`` (within ``optics.lens_range``) and
+        stays there whatever the gaze does, until :meth:`release_focus`. Returns the focus
+        the daemon took."""
+        r = self._http.request("POST", "/focus", {"diopters": float(diopters)})
+        return float(r["manual_focus_d"])
+
+    def release_focus(self) -> None:
+        """Hands focus back to gaze (ends :meth:`set_focus`)."""
+        self._http.request("POST", "/focus", {"diopters": None})
+
+    def set_mode(self, mode: str) -> str:
+        """``varifocal``, ``multifocal`` (needs a sync board) or ``lightfield``."""
+        return self._http.request("POST", "/mode", {"mode": mode})["mode"]
+
+    def set_method(self, method: str) -> str:
+        """A render method that fits the mode (``gather``, ``lightfield-defocus``,
+        ``linear``, ``optimized``, ``views``, ``network``, ``refine``) or ``auto``."""
+        return self._http.request("POST", "/method", {"method": method})["method"]
+
+    def start_recording(self, name: Optional[str] = None, subject: Optional[str] = None,
+                        trial: Union[int, str, None] = None) -> str:
+        """Starts an MCAP recording in the config's ``recording.dir``; its file name carries
+        ``name``, ``subject`` and ``trial`` (letters, digits, ``-``, ``_``, ``.``; a trial may
+        be a number). Returns the file's path."""
+        body = {k: v for k, v in (("name", name), ("subject", subject), ("trial", trial))
+                if v is not None}
+        return self._http.request("POST", "/recording/start", body)["recording"]
+
+    def stop_recording(self) -> Dict[str, Any]:
+        """Finishes the recording: ``{"path", "messages", "dropped"}``."""
+        return self._http.request("POST", "/recording/stop", {})
+
+    def marker(self, marker: Union[str, Dict[str, Any]]) -> int:
+        """Marks this moment (a trial's onset, a response): ``marker`` (text, or a JSON
+        object) goes into the recording, onto ``/stream`` and to LSL's marker outlet, stamped
+        with the daemon's host time when it arrived, which this returns (ns)."""
+        if not isinstance(marker, (str, dict)):
+            raise TypeError("a marker is a str or a dict")
+        return int(self._http.request("POST", "/marker", {"marker": marker})["host_ns"])
+
+    def shutdown(self) -> None:
+        """Stops the daemon: parks the lens, finishes files, exits."""
+        self._http.request("POST", "/shutdown", {})
+
+    # Events.
+
+    def events(self, types: Optional[Iterable[Union[str, Type[Event]]]] = None,
+               timeout: Optional[float] = None) -> EventStream:
+        """The daemon's live events from now on, as typed objects (:mod:`.events`):
+        ``types`` picks some (``"gaze"`` or :class:`GazeEvent`, ...); iterating waits
+        ``timeout`` seconds at most for each (``TimeoutError``). Needs websocket-client.
+
+            with d.events(["gaze"]) as ev:
+                samples = [next(ev) for _ in range(250)]
+        """
+        return EventStream(self._http, types, timeout)
+
+    def wait_settled(self, timeout: float = 2.0, target_d: Optional[float] = None,
+                     tolerance_d: float = 1e-3) -> LensEvent:
+        """Returns the first lens read-back from now on that reports the lens settled at its
+        target (at ``target_d``, within ``tolerance_d``, when given); raises
+        :class:`NotSettled` after ``timeout`` seconds without one."""
+        deadline = time.monotonic() + timeout
+        last = None
+        with self.events(["lens"]) as ev:
+            while True:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                try:
+                    e = ev.next(left)
+                except TimeoutError:
+                    break
+                last = e
+                if e.settled and e.target_d is not None and (
+                        target_d is None or abs(e.target_d - target_d) <= tolerance_d):
+                    return e
+        where = "" if target_d is None else f" at {target_d} D"
+        seen = "" if last is None else (f"; last read-back {last.power_d:.3f} D, target "
+                                        f"{last.target_d}, settled {last.settled}")
+        raise NotSettled(f"the lens did not report settled{where} within {timeout} s{seen}",
+                         last)
+
+    # Frames (a streaming rig).
+
+    def _sender(self) -> FrameSender:
+        if self._frames is None:
+            self._frames = FrameSender(self._http, self._use_ring)
+        return self._frames
+
+    @property
+    def width(self) -> int:
+        """The display's width: every frame must be this wide."""
+        return self._sender().width
+
+    @property
+    def height(self) -> int:
+        """The display's height."""
+        return self._sender().height
+
+    @property
+    def uses_ring(self) -> bool:
+        """Whether frames go through shared memory (else ``PUT /frame``)."""
+        return self._sender().ring is not None
+
+    @property
+    def seq(self) -> int:
+        """The sequence number of the newest frame this client sent (or of the newest the
+        daemon had accepted when the client first sent)."""
+        return self._sender().seq
+
+    @seq.setter
+    def seq(self, value: int):
+        self._sender().seq = int(value)
+
+    def send_rgbd(self, color, depth, depth_units: str = "m", near: Optional[float] = None,
+                  far: Optional[float] = None, app_time_ns: Optional[int] = None,
+                  encoding: str = "raw") -> int:
+        """Shows one frame; returns its sequence number, or raises :class:`FrameRefused`
+        with the daemon's reason (the frame on show stays).
+
+        ``color``: H x W x 3 or 4 ``uint8`` (sRGB), or H x W x 3 float (linear light).
+        ``depth``: H x W in ``depth_units`` (see ``DEPTH_UNITS``); a depth buffer (``gl``,
+        ``vulkan``, ...) needs ``near`` and ``far`` in metres (``far=float("inf")`` for an
+        infinite reversed-Z projection). H x W must be the display's size. ``encoding="png"``
+        (``uint8`` colour, depth in ``m`` or ``mm``) sends PNG files through ``PUT /frame``,
+        depth in whole millimetres from 1 mm to 65.535 m (farther is sent as 65.535 m).
+        """
+        return self._sender().send(color, depth, depth_units, near, far, app_time_ns,
+                                   encoding)
+
+    def close(self) -> None:
+        """Closes the connection and unmaps the ring."""
+        self._http.close()
+        if self._frames is not None:
+            self._frames.close()
+            self._frames = None
+
+    def __enter__(self) -> "Dioptra":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ["Dioptra", "DioptraError", "NotSettled"]

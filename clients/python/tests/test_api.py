@@ -1,0 +1,152 @@
+"""Every call of the client against a real daemon on the example (simulated) rig, the errors
+it raises with the daemon's reasons, and token and Unix-socket connections."""
+
+import pathlib
+import time
+
+import pytest
+
+from dioptra_client import (Dioptra, DioptraError, FocusEvent, FrameEvent, GazeEvent,
+                            LensEvent)
+
+
+def eventually(what, check, timeout=20.0):
+    """Polls ``check`` until it returns something true; fails naming ``what`` after
+    ``timeout`` s (a deadline for a real daemon, not a timing assertion)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        v = check()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout} s (last {v!r})")
+        time.sleep(0.05)
+
+
+def test_status(client):
+    s = client.status()
+    assert s["mode"] == "varifocal"
+    assert s["content"]["source"] == "scene"
+    assert s["devices"]["lens"]["state"] in ("connecting", "ok")
+
+
+def test_manual_focus_and_back_to_gaze(client):
+    assert client.set_focus(1.5) == 1.5
+    assert client.status()["focus"]["manual_d"] == 1.5
+    eventually("the lens commanded to 1.5 D",
+               lambda: abs((client.status()["focus"]["commanded_d"] or 0) - 1.5) < 1e-4)
+    client.release_focus()
+    assert client.status()["focus"]["manual_d"] is None
+
+
+def test_refusals_carry_the_daemons_reason_and_key(client):
+    with pytest.raises(DioptraError) as e:
+        client.set_focus(40.0)
+    assert e.value.status == 422 and e.value.key == "diopters"
+    assert "optics.lens_range" in e.value.message
+    with pytest.raises(DioptraError) as e:
+        client.set_mode("holographic")
+    assert e.value.status == 422 and e.value.key == "mode"
+    with pytest.raises(DioptraError) as e:
+        client.set_method("linear")  # a multifocal method in varifocal mode
+    assert e.value.status == 409
+    with pytest.raises(DioptraError) as e:
+        client.start_recording(subject="s 01")
+    assert e.value.status == 422 and e.value.key == "subject"
+    with pytest.raises(DioptraError) as e:
+        client.stop_recording()
+    assert e.value.status == 409 and "not recording" in e.value.message
+    with pytest.raises(TypeError):
+        client.marker(3)
+
+
+def test_modes_and_methods(client):
+    try:
+        assert client.set_mode("lightfield") == "lightfield"
+        assert client.set_method("views") == "views"
+        assert client.set_mode("varifocal") == "varifocal"
+        assert client.set_method("lightfield-defocus") == "lightfield-defocus"
+        assert client.set_method("auto") == "auto"
+        assert client.status()["method"] == "auto"
+    finally:
+        client.set_mode("varifocal")
+        client.set_method("gather")
+
+
+def test_a_recording_per_trial(client):
+    path = client.start_recording(name="accommodation", subject="s01", trial=3)
+    assert path.endswith("-accommodation-sub-s01-trial-3.mcap"), path
+    time.sleep(0.3)
+    stats = client.stop_recording()
+    assert stats["path"] == path and stats["messages"] > 0
+    assert pathlib.Path(path).stat().st_size > 0
+
+
+def test_live_events_are_typed(client):
+    with client.events(timeout=10.0) as ev:
+        seen = {}
+        for e in ev:
+            seen.setdefault(type(e), e)
+            if {GazeEvent, LensEvent, FrameEvent} <= set(seen):
+                break
+        g = seen[GazeEvent]
+        assert isinstance(g.host_ns, int) and len(g.left.direction) == 3
+        assert isinstance(g.left.valid, bool)
+        assert isinstance(seen[LensEvent].power_d, float)
+    with client.events([FocusEvent], timeout=10.0) as ev:
+        client.set_focus(2.0)
+        f = next(ev)
+        assert isinstance(f, FocusEvent) and abs(f.commanded_d - 2.0) < 1e-4
+    client.release_focus()
+    with client.events(["frame"], timeout=10.0) as ev:
+        f = next(ev)
+        assert isinstance(f, FrameEvent) and f.frame >= 0 and f.focus_d is not None
+
+
+def test_frame_calls_need_a_streaming_rig(client):
+    with pytest.raises(DioptraError) as e:
+        client.width
+    assert e.value.status == 409 and 'source = "stream"' in e.value.message
+
+
+def test_no_daemon_is_a_clear_error():
+    with pytest.raises(DioptraError) as e:
+        Dioptra("http://127.0.0.1:9", timeout=2.0)
+    assert e.value.status is None and "127.0.0.1:9" in str(e.value)
+    with pytest.raises(ValueError):
+        Dioptra("ftp://example.org")
+
+
+TOKEN = "0123456789abcdef0123"
+
+
+def test_a_token(rigs, tmp_path):
+    rig = rigs.start(replace={'listen = "127.0.0.1:0"':
+                              f'listen = "127.0.0.1:0"\ntoken = "{TOKEN}"'})
+    with pytest.raises(DioptraError) as e:
+        rig.client()
+    assert e.value.status == 401
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    for d in (rig.client(token=TOKEN), rig.client(token_file=str(token_file))):
+        with d:
+            assert d.status()["mode"] == "varifocal"
+            with d.events(["gaze"], timeout=10.0) as ev:
+                assert isinstance(next(ev), GazeEvent)
+
+
+def test_a_unix_socket(rigs, tmp_path):
+    sock = tmp_path / "dioptra.sock"
+    rig = rigs.start(content="stream",
+                     replace={'listen = "127.0.0.1:0"': f'unix = "{sock}"'})
+    assert rig.url == f"unix:{sock}"
+    with rig.client() as d:
+        assert d.status()["content"]["source"] == "stream"
+        with d.events(["gaze"], timeout=10.0) as ev:
+            assert isinstance(next(ev), GazeEvent)
+        # The ring lies beside the socket; frames go through it.
+        assert d.uses_ring
+        import numpy as np
+        seq = d.send_rgbd(np.zeros((d.height, d.width, 3), np.uint8),
+                          np.ones((d.height, d.width), np.float32))
+        assert seq >= 1

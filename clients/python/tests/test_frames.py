@@ -1,0 +1,83 @@
+"""Frames to a streaming rig: through the ring, PUT /frame and PNG files, and each refusal
+with its reason (the frame on show stays)."""
+
+import numpy as np
+import pytest
+
+from dioptra_client import FrameRefused
+
+
+def frame(d, k):
+    return (np.full((d.height, d.width, 3), k % 256, np.uint8),
+            np.full((d.height, d.width), 0.25 + (k % 8) * 0.25, np.float32))
+
+
+@pytest.fixture
+def ring_client(stream_rig):
+    with stream_rig.client() as d:
+        yield d
+
+
+@pytest.fixture
+def put_client(stream_rig):
+    with stream_rig.client(use_ring=False) as d:
+        yield d
+
+
+def test_frames_through_the_ring(ring_client):
+    d = ring_client
+    assert d.uses_ring
+    before = d.status()["content"]["received"]
+    seqs = [d.send_rgbd(*frame(d, k)) for k in range(20)]
+    assert seqs == sorted(seqs) and len(set(seqs)) == 20
+    st = d.status()["content"]
+    assert st["received"] == before + 20 and st["newest_seq"] == seqs[-1]
+
+
+def test_frames_through_put_raw_and_png(put_client, ring_client):
+    d = put_client
+    assert not d.uses_ring
+    d.seq = ring_client.status()["content"]["newest_seq"]
+    a = d.send_rgbd(*frame(d, 1))
+    color, depth = frame(d, 2)
+    b = d.send_rgbd(color, depth, encoding="png")
+    c = d.send_rgbd(color.astype(np.float32) / 255.0, 1.0 / depth, depth_units="D")
+    assert a < b < c == d.status()["content"]["newest_seq"]
+
+
+def test_refusals_are_counted_and_leave_the_frame_on_show(ring_client):
+    d = ring_client
+    color, depth = frame(d, 3)
+    d.send_rgbd(color, depth)
+    newest = d.status()["content"]["newest_seq"]
+    cases = [
+        ("wrong_size", 422, lambda: d.send_rgbd(color[:-1], depth[:-1])),
+        ("depth", 422, lambda: d.send_rgbd(color, np.where(depth > 0, np.nan, depth))),
+        ("invalid", 422, lambda: d.send_rgbd(color, depth * 0 + 0.5, depth_units="vulkan")),
+        ("depth", 422, lambda: d.send_rgbd(color, -depth)),
+    ]
+    for kind, status, send in cases:
+        n = d.status()["content"]["refused"].get(kind, 0)
+        with pytest.raises(FrameRefused) as e:
+            send()
+        assert e.value.status == status and e.value.message
+        assert d.status()["content"]["refused"].get(kind, 0) == n + 1, kind
+    # A client that starts its numbers over.
+    d.seq = 0
+    with pytest.raises(FrameRefused) as e:
+        d.send_rgbd(color, depth)
+    assert e.value.status == 409 and "not newer" in e.value.message
+    assert d.status()["content"]["newest_seq"] == newest
+
+
+def test_bad_arrays_are_refused_before_sending(ring_client):
+    d = ring_client
+    color, depth = frame(d, 4)
+    with pytest.raises(ValueError):
+        d.send_rgbd(color[:, :, :2], depth)
+    with pytest.raises(ValueError):
+        d.send_rgbd(color, depth, depth_units="furlongs")
+    with pytest.raises(ValueError):
+        d.send_rgbd(color, depth, encoding="jpeg")
+    with pytest.raises(ValueError):
+        d.send_rgbd(color, depth, depth_units="D", encoding="png")
