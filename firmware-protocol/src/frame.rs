@@ -4,7 +4,8 @@ use crate::message::{ErrorCode, Message, MESSAGE_VARIANT_COUNT};
 use crate::stream::FrameDecoder;
 
 /// Version of this protocol, sent in every frame's first body byte and in `Hello`/`DeviceInfo`.
-pub const PROTOCOL_VERSION: u8 = 1;
+/// Version 2 added the photodiode messages (PROTOCOL.md, section 5).
+pub const PROTOCOL_VERSION: u8 = 2;
 
 /// Bytes before the message: version (1) and request id (2, little-endian).
 pub const HEADER_LEN: usize = 3;

@@ -38,8 +38,8 @@ pub use frame::{
 };
 pub use message::{
     truncated, BinocularSample, Capabilities, DeviceInfo, DeviceKind, ErrorCode, ErrorDetail,
-    EyeSample, Fault, FaultKind, FirmwareVersion, LensState, Limits, Message, PlaneSchedule,
-    ScheduleError, Serial, SubframeEvent, UnknownErrorCode, ERROR_DETAIL_LEN, MAX_APPLY_AHEAD_US,
-    MAX_PLANES, SERIAL_LEN,
+    EyeSample, Fault, FaultKind, FirmwareVersion, LensState, Limits, Message, PhotodiodeConfig,
+    PhotodiodeConfigError, PhotodiodeEdge, PlaneSchedule, ScheduleError, Serial, SubframeEvent,
+    UnknownErrorCode, ERROR_DETAIL_LEN, MAX_APPLY_AHEAD_US, MAX_PLANES, SERIAL_LEN,
 };
 pub use stream::{FrameDecoder, Frames};

@@ -86,10 +86,16 @@ pub enum Message {
     Fault(Fault),
     /// 16, event (eye tracker): one binocular gaze sample.
     BinocularSample(BinocularSample),
+    /// 17, request (sync board, since version 2): switches the photodiode input on or off and
+    /// sets its threshold. Reply: [`Message::Ack`].
+    PhotodiodeConfig(PhotodiodeConfig),
+    /// 18, event (sync board, since version 2): the light on the photodiode crossed the
+    /// threshold.
+    PhotodiodeEdge(PhotodiodeEdge),
 }
 
 /// Number of `Message` variants; a discriminant at or above it is an unknown message.
-pub(crate) const MESSAGE_VARIANT_COUNT: u32 = 17;
+pub(crate) const MESSAGE_VARIANT_COUNT: u32 = 19;
 
 impl Message {
     /// A [`Message::Error`] with `detail` cut to [`ERROR_DETAIL_LEN`] bytes at a char boundary.
@@ -154,6 +160,8 @@ impl Capabilities {
     pub const PUPIL_SIZE: Self = Self(1 << 5);
     /// Answers `TimeSyncPing`.
     pub const TIME_SYNC: Self = Self(1 << 6);
+    /// Has a photodiode input: answers `PhotodiodeConfig`, sends `PhotodiodeEdge`s.
+    pub const PHOTODIODE: Self = Self(1 << 7);
 
     /// Whether every bit of `other` is set in `self`.
     pub const fn contains(self, other: Self) -> bool {
@@ -357,6 +365,62 @@ pub struct BinocularSample {
     pub left: EyeSample,
     /// Right eye.
     pub right: EyeSample,
+}
+
+/// The photodiode input's comparator: levels are fractions of the sensor's full scale, 0 (dark)
+/// to 65535 (full scale). The light counts as on once the level rises above
+/// `threshold + hysteresis` and as off once it falls below `threshold - hysteresis`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PhotodiodeConfig {
+    /// Whether the board reports edges. Enabling (again) restarts the edge counter at 0.
+    pub enabled: bool,
+    /// Middle of the comparator's band.
+    pub threshold: u16,
+    /// Half width of the band; keeps a noisy level near the threshold from chattering.
+    pub hysteresis: u16,
+}
+
+/// Why a [`PhotodiodeConfig`] is unusable. A device replies [`ErrorCode::OutOfRange`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum PhotodiodeConfigError {
+    /// The band reaches 0 or full scale, so one of the edges could never happen.
+    #[error("threshold {threshold} +/- hysteresis {hysteresis} must lie strictly inside 0..65535")]
+    BandOutsideRange {
+        /// Threshold given.
+        threshold: u16,
+        /// Hysteresis given.
+        hysteresis: u16,
+    },
+}
+
+impl PhotodiodeConfig {
+    /// Checks that both edges can happen: `hysteresis < threshold` and
+    /// `threshold + hysteresis < 65535`. Devices call this on every received config.
+    pub fn validate(&self) -> Result<(), PhotodiodeConfigError> {
+        let top = u32::from(self.threshold) + u32::from(self.hysteresis);
+        if self.hysteresis >= self.threshold || top >= u32::from(u16::MAX) {
+            return Err(PhotodiodeConfigError::BandOutsideRange {
+                threshold: self.threshold,
+                hysteresis: self.hysteresis,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The light on the photodiode crossed the comparator's band.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PhotodiodeEdge {
+    /// Index of this edge since the input was enabled (the first is 0); wraps. A gap between
+    /// consecutive edges means the board dropped edges it could not send.
+    pub edge: u32,
+    /// Device time of the crossing.
+    pub device_time_us: u64,
+    /// The light came on (true) or went off (false).
+    pub rising: bool,
+    /// Sensor level just after the crossing, 0 to 65535 of full scale (a board that only has a
+    /// comparator sends 65535 for a rising edge and 0 for a falling one).
+    pub level: u16,
 }
 
 /// Why a device refused a request. On the wire the numeric code below, as a varint u16.

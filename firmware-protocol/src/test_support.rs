@@ -126,6 +126,23 @@ pub(crate) fn examples() -> Vec<(u16, Message)> {
                 right,
             }),
         ),
+        (
+            8,
+            Message::PhotodiodeConfig(PhotodiodeConfig {
+                enabled: true,
+                threshold: 32_768,
+                hysteresis: 2_000,
+            }),
+        ),
+        (
+            0,
+            Message::PhotodiodeEdge(PhotodiodeEdge {
+                edge: 300,
+                device_time_us: 124_011_111,
+                rising: true,
+                level: 51_234,
+            }),
+        ),
     ]
 }
 
@@ -176,6 +193,17 @@ pub(crate) fn largest_messages() -> Vec<Message> {
             device_time_us: u64::MAX,
             left: eye,
             right: eye,
+        }),
+        Message::PhotodiodeConfig(PhotodiodeConfig {
+            enabled: true,
+            threshold: u16::MAX,
+            hysteresis: u16::MAX,
+        }),
+        Message::PhotodiodeEdge(PhotodiodeEdge {
+            edge: u32::MAX,
+            device_time_us: u64::MAX,
+            rising: true,
+            level: u16::MAX,
         }),
     ]
 }
@@ -326,5 +354,22 @@ pub(crate) fn any_message() -> impl Strategy<Value = Message> {
                 right,
             })
         }),
+        (any::<bool>(), any::<u16>(), any::<u16>()).prop_map(|(enabled, threshold, hysteresis)| {
+            Message::PhotodiodeConfig(PhotodiodeConfig {
+                enabled,
+                threshold,
+                hysteresis,
+            })
+        }),
+        (any::<u32>(), any::<u64>(), any::<bool>(), any::<u16>()).prop_map(
+            |(edge, device_time_us, rising, level)| {
+                Message::PhotodiodeEdge(PhotodiodeEdge {
+                    edge,
+                    device_time_us,
+                    rising,
+                    level,
+                })
+            }
+        ),
     ]
 }

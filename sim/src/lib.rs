@@ -3,15 +3,17 @@
 //!
 //! - Devices: [`optotune`] (Optotune Lens Driver 4), [`lens_controller`], [`sync_board`],
 //!   [`dlpc350`] (TI DLPC350 over the in-memory HID link), [`gaze`] (eye-movement generator and
-//!   simulated HID trackers). Byte-speaking devices run on any link through [`serve::serve`].
-//! - Shared models: [`lens_model`] (tunable-lens physics), [`protocol_device`] (the device side
-//!   of dioptra-protocol), [`tokio_clock`].
+//!   simulated HID trackers). Byte-speaking devices run on any link
+//!   through [`serve::serve`].
+//! - Shared models: [`lens_model`] (tunable-lens physics), [`light`] (light on a photodiode and
+//!   its comparator), [`protocol_device`] (the device side of dioptra-protocol), [`tokio_clock`].
 //! - Ground truth: [`scene`] (procedural scenes, pinhole, thin-lens and light-field renders).
 
 pub mod dlpc350;
 pub mod gaze;
 pub mod lens_controller;
 pub mod lens_model;
+pub mod light;
 pub mod optotune;
 pub mod protocol_device;
 pub mod scene;

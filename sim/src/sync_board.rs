@@ -11,18 +11,27 @@
 //! measures where the question "did it settle in time" is answered. An edge that does not come
 //! within 1.5 sub-frame periods is a `MissedVsync` fault, and that sub-frame is skipped.
 //!
+//! Its photodiode input ([`SyncBoardSim::with_light`]: the light of a simulated panel's
+//! marker patch, or a script) runs through a [`Comparator`] with the band the host configures
+//! (`PhotodiodeConfig`); while enabled, each crossing is a `PhotodiodeEdge` stamped with the
+//! crossing's device time. Without a light attached the input sees darkness. At most
+//! [`SyncBoardSimConfig::photodiode_queue`] edges go out per step of the board's loop; the rest
+//! are dropped and counted, as a board whose queue overflows does.
+//!
 //! Sans-IO like the other simulators: bytes in, bytes out, host time passed in; [`serve`]
 //! runs it on a link with a clock (wall time on a pty, tokio's paused clock in tests).
 
+use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{Diopters, Timestamp};
 use dioptra_protocol::{
     truncated, Capabilities, DeviceInfo, DeviceKind, ErrorCode, Fault, FaultKind, FirmwareVersion,
-    Message, PlaneSchedule, SubframeEvent, PROTOCOL_VERSION,
+    Message, PhotodiodeEdge, PlaneSchedule, SubframeEvent, PROTOCOL_VERSION,
 };
 
 use crate::lens_model::{LensModel, LensModelConfig, SETTLED_TOLERANCE_D};
+use crate::light::{Comparator, LightSource};
 use crate::protocol_device::ProtocolDevice;
 use crate::serve::ByteDevice;
 
@@ -45,6 +54,10 @@ pub struct SyncBoardSimConfig {
     pub clock_offset_us: u64,
     /// Device clock rate error, parts per million.
     pub drift_ppm: f64,
+    /// The photodiode's response (sensor and amplifier delay), µs.
+    pub photodiode_response_us: u64,
+    /// Photodiode edges the board sends per step of its loop; more are dropped (and counted).
+    pub photodiode_queue: usize,
 }
 
 impl Default for SyncBoardSimConfig {
@@ -59,6 +72,8 @@ impl Default for SyncBoardSimConfig {
             serial: "DSB-SIM-0001".into(),
             clock_offset_us: 7_000_000,
             drift_ppm: -20.0,
+            photodiode_response_us: 5,
+            photodiode_queue: 64,
         }
     }
 }
@@ -74,7 +89,6 @@ struct Run {
 }
 
 /// A simulated sync board.
-#[derive(Debug)]
 pub struct SyncBoardSim {
     cfg: SyncBoardSimConfig,
     lens: LensModel,
@@ -84,12 +98,30 @@ pub struct SyncBoardSim {
     schedule: Option<PlaneSchedule>,
     run: Option<Run>,
     rng: u64,
+    light: Option<Arc<dyn LightSource>>,
+    comparator: Comparator,
+    /// The edge counter while the photodiode input is enabled.
+    photodiode: Option<u32>,
+    edges_dropped: u64,
+}
+
+impl std::fmt::Debug for SyncBoardSim {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SyncBoardSim")
+            .field("cfg", &self.cfg)
+            .field("now", &self.now)
+            .field("running", &self.run.is_some())
+            .field("photodiode", &self.photodiode)
+            .finish_non_exhaustive()
+    }
 }
 
 impl SyncBoardSim {
     pub fn new(cfg: SyncBoardSimConfig) -> Self {
         let lens = LensModel::new(cfg.lens);
         let rng = cfg.seed | 1;
+        let comparator =
+            Comparator::new(0.5, 0.0, Duration::from_micros(cfg.photodiode_response_us));
         SyncBoardSim {
             cfg,
             lens,
@@ -98,7 +130,22 @@ impl SyncBoardSim {
             schedule: None,
             run: None,
             rng,
+            light: None,
+            comparator,
+            photodiode: None,
+            edges_dropped: 0,
         }
+    }
+
+    /// Connects `light` to the photodiode input.
+    pub fn with_light(mut self, light: Arc<dyn LightSource>) -> Self {
+        self.light = Some(light);
+        self
+    }
+
+    /// Photodiode edges the board could not send (its queue overflowed).
+    pub fn photodiode_edges_dropped(&self) -> u64 {
+        self.edges_dropped
     }
 
     pub fn lens(&self) -> &LensModel {
@@ -119,11 +166,24 @@ impl SyncBoardSim {
         self.cfg.clock_offset_us.saturating_add(us.max(0.0) as u64)
     }
 
-    /// Host time of the next thing the board will do by itself, if running.
-    pub fn next_due(&self) -> Option<Timestamp> {
+    /// Host time of the running schedule's next sub-frame work.
+    fn run_due(&self) -> Option<Timestamp> {
         let run = self.run.as_ref()?;
         let edge = run.next_edge_ns;
         Some(Timestamp(run.pending.map_or(edge, |(m, ..)| m.min(edge))))
+    }
+
+    /// Host time of the next thing the board will do by itself: sub-frame work while
+    /// running, a change of the light on its photodiode.
+    pub fn next_due(&self) -> Option<Timestamp> {
+        let light = self
+            .light
+            .as_deref()
+            .and_then(|l| self.comparator.next_due(l));
+        match (self.run_due(), light) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// Takes the host's bytes received at host time `now` (after [`Self::advance_to`]).
@@ -149,7 +209,9 @@ impl SyncBoardSim {
                         patch: 0,
                     },
                     serial: truncated(&self.cfg.serial),
-                    capabilities: Capabilities::PLANE_SCHEDULE.with(Capabilities::TIME_SYNC),
+                    capabilities: Capabilities::PLANE_SCHEDULE
+                        .with(Capabilities::TIME_SYNC)
+                        .with(Capabilities::PHOTODIODE),
                 })
             }
             Message::Hello { .. } => Message::error(
@@ -213,6 +275,20 @@ impl SyncBoardSim {
                 self.run = None;
                 Message::Ack
             }
+            Message::PhotodiodeConfig(c) => {
+                if let Err(e) = c.validate() {
+                    return Message::error(ErrorCode::OutOfRange, &e.to_string());
+                }
+                // Levels the host has not seen yet belong to the old config: take them now.
+                self.sense_light(self.now, &mut Vec::new());
+                let scale = f32::from(u16::MAX);
+                self.comparator.set_band(
+                    f32::from(c.threshold) / scale,
+                    f32::from(c.hysteresis) / scale,
+                );
+                self.photodiode = c.enabled.then_some(0);
+                Message::Ack
+            }
             _ => Message::error(ErrorCode::NotSupported, "not a sync board request"),
         }
     }
@@ -253,9 +329,41 @@ impl SyncBoardSim {
         }
     }
 
+    /// Runs the photodiode's comparator up to host time `now`; while the input is enabled,
+    /// its crossings go to `out` as edges (up to the queue's size).
+    fn sense_light(&mut self, now: Timestamp, out: &mut Vec<u8>) {
+        let Some(light) = self.light.clone() else {
+            return;
+        };
+        let crossings = self.comparator.sense(light.as_ref(), now);
+        let Some(mut counter) = self.photodiode else {
+            return;
+        };
+        for (i, c) in crossings.iter().enumerate() {
+            let edge = counter;
+            counter = counter.wrapping_add(1);
+            if i >= self.cfg.photodiode_queue {
+                self.edges_dropped += 1;
+                continue;
+            }
+            let device_time_us = self.device_time_us(c.at);
+            ProtocolDevice::event(
+                out,
+                &Message::PhotodiodeEdge(PhotodiodeEdge {
+                    edge,
+                    device_time_us,
+                    rising: c.rising,
+                    level: (c.level.clamp(0.0, 1.0) * f32::from(u16::MAX)).round() as u16,
+                }),
+            );
+        }
+        self.photodiode = Some(counter);
+    }
+
     /// Runs the display and the lens up to host time `now`, appending events to `out`.
     pub fn advance_to(&mut self, now: Timestamp, out: &mut Vec<u8>) {
-        while let (Some(due), Some(schedule)) = (self.next_due(), self.schedule.clone()) {
+        self.sense_light(now, out);
+        while let (Some(due), Some(schedule)) = (self.run_due(), self.schedule.clone()) {
             if due > now {
                 break;
             }
@@ -629,13 +737,138 @@ mod tests {
             &mut sim,
             9,
             &Message::Hello {
-                protocol_version: 1,
+                protocol_version: PROTOCOL_VERSION.into(),
             },
         );
         assert!(
             matches!(r.last(), Some((9, Message::DeviceInfo(_)))),
             "{r:?}"
         );
+    }
+
+    fn photodiode(threshold: u16, hysteresis: u16) -> Message {
+        Message::PhotodiodeConfig(dioptra_protocol::PhotodiodeConfig {
+            enabled: true,
+            threshold,
+            hysteresis,
+        })
+    }
+
+    fn edges(events: &[Message]) -> Vec<PhotodiodeEdge> {
+        events
+            .iter()
+            .filter_map(|m| match m {
+                Message::PhotodiodeEdge(e) => Some(*e),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn photodiode_edges_carry_the_crossings_device_time_with_or_without_a_schedule() {
+        use crate::light::ScriptedLight;
+        let light = ScriptedLight::new();
+        // A white patch (0.9) for 2 ms every 11.1 ms, black (0.02) otherwise.
+        let starts: Vec<Timestamp> = (0..4)
+            .map(|k| Timestamp::from_micros(3_000 + k * 11_100))
+            .collect();
+        light.pulses(starts.clone(), Duration::from_millis(2), 0.9, 0.02);
+        let cfg = SyncBoardSimConfig {
+            clock_offset_us: 1_000_000,
+            ..quiet(LensModelConfig::default())
+        };
+        let mut sim = SyncBoardSim::new(cfg).with_light(Arc::new(light));
+        let Message::DeviceInfo(info) = send(
+            &mut sim,
+            1,
+            &Message::Hello {
+                protocol_version: PROTOCOL_VERSION.into(),
+            },
+        )[0]
+        .1
+        .clone() else {
+            panic!("no DeviceInfo");
+        };
+        assert!(info.capabilities.contains(Capabilities::PHOTODIODE));
+        // Off until the host enables it: the first pulse goes unreported.
+        assert!(edges(&run_for(&mut sim, Timestamp::ZERO, 10)).is_empty());
+        assert_eq!(
+            send(&mut sim, 2, &photodiode(32_768, 3_000)),
+            vec![(2, Message::Ack)]
+        );
+        // A schedule running meanwhile changes nothing about the edges.
+        send(&mut sim, 3, &schedule(4166, 1000));
+        send(&mut sim, 4, &Message::Start);
+        let events = run_for(&mut sim, Timestamp::from_millis(10), 40);
+        let subframes = events
+            .iter()
+            .filter(|m| matches!(m, Message::SubframeEvent(_)))
+            .count();
+        assert!(subframes >= 8, "{subframes} sub-frames");
+        let got = edges(&events);
+        let want: Vec<(u32, u64, bool)> = starts[1..]
+            .iter()
+            .enumerate()
+            .flat_map(|(k, t)| {
+                let on = 1_000_000 + t.as_micros() + 5;
+                [
+                    (2 * k as u32, on, true),
+                    (2 * k as u32 + 1, on + 2_000, false),
+                ]
+            })
+            .collect();
+        let seen: Vec<(u32, u64, bool)> = got
+            .iter()
+            .map(|e| (e.edge, e.device_time_us, e.rising))
+            .collect();
+        assert_eq!(seen, want);
+        assert_eq!(got[0].level, (0.9f32 * 65_535.0).round() as u16);
+        assert_eq!(got[1].level, (0.02f32 * 65_535.0).round() as u16);
+    }
+
+    #[test]
+    fn photodiode_config_is_checked_and_a_full_queue_leaves_a_gap() {
+        use crate::light::ScriptedLight;
+        let light = ScriptedLight::new();
+        let starts = (0..5).map(|k| Timestamp::from_micros(1_000 + k * 100));
+        light.pulses(starts, Duration::from_micros(50), 1.0, 0.0);
+        let cfg = SyncBoardSimConfig {
+            photodiode_queue: 4,
+            ..quiet(LensModelConfig::default())
+        };
+        let mut sim = SyncBoardSim::new(cfg).with_light(Arc::new(light));
+        for (id, bad) in [(1, photodiode(100, 100)), (2, photodiode(65_000, 600))] {
+            assert!(matches!(
+                send(&mut sim, id, &bad)[..],
+                [(
+                    _,
+                    Message::Error {
+                        code: ErrorCode::OutOfRange,
+                        ..
+                    }
+                )]
+            ));
+        }
+        assert_eq!(
+            send(&mut sim, 3, &photodiode(30_000, 1_000)),
+            vec![(3, Message::Ack)]
+        );
+        // Ten edges within one step of the loop: four go out, six are dropped and counted.
+        let mut out = Vec::new();
+        sim.advance_to(Timestamp::from_millis(3), &mut out);
+        let got: Vec<u32> = edges(&frames(&out).into_iter().map(|f| f.1).collect::<Vec<_>>())
+            .iter()
+            .map(|e| e.edge)
+            .collect();
+        assert_eq!(got, [0, 1, 2, 3]);
+        assert_eq!(sim.photodiode_edges_dropped(), 6);
+        // Switching it off stops the edges.
+        let off = Message::PhotodiodeConfig(dioptra_protocol::PhotodiodeConfig {
+            enabled: false,
+            threshold: 30_000,
+            hysteresis: 1_000,
+        });
+        assert_eq!(send(&mut sim, 4, &off), vec![(4, Message::Ack)]);
     }
 
     #[test]

@@ -186,9 +186,161 @@ pub trait PlaneSequencer: Send {
     fn next_event(&mut self) -> impl Future<Output = Result<SequencerEvent, DeviceError>> + Send;
 }
 
+/// The light on a photodiode crossed its threshold: the moment light left (or stopped leaving)
+/// the patch of display the sensor watches.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LightEdge {
+    /// The device's own clock.
+    pub device_time: Timestamp,
+    /// When the host received the report.
+    pub host_receive_time: Timestamp,
+    /// The device time mapped onto the host timeline by the driver's clock-offset estimate.
+    pub host_time: Timestamp,
+    /// The light came on (true) or went off (false).
+    pub rising: bool,
+    /// Sensor level just after the edge, 0 to 1 of full scale, when the device measures one.
+    pub level: Option<f32>,
+}
+
+/// What a photodiode reports, in order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LightEvent {
+    Edge(LightEdge),
+    /// The device could not report `count` edges (its queue overflowed, or an edge went
+    /// missing between two of the same direction): the light between the edges around this
+    /// is unknown.
+    Lost {
+        count: u64,
+        host_time: Timestamp,
+    },
+}
+
+impl LightEvent {
+    /// Host time of the edge, or of the report of the loss.
+    pub fn host_time(&self) -> Timestamp {
+        match self {
+            LightEvent::Edge(e) => e.host_time,
+            LightEvent::Lost { host_time, .. } => *host_time,
+        }
+    }
+}
+
+/// Light events read and not yet taken, at most `capacity` of them: when it is full, the
+/// oldest make way for one [`LightEvent::Lost`] in their place, so a reader that falls behind
+/// learns how many edges it missed and where.
+#[derive(Debug, Clone)]
+pub struct LightQueue {
+    events: std::collections::VecDeque<LightEvent>,
+    capacity: usize,
+    dropped: u64,
+}
+
+impl LightQueue {
+    /// A queue of at least 2 events.
+    pub fn new(capacity: usize) -> Self {
+        LightQueue {
+            events: std::collections::VecDeque::new(),
+            capacity: capacity.max(2),
+            dropped: 0,
+        }
+    }
+
+    pub fn push(&mut self, event: LightEvent) {
+        self.events.push_back(event);
+        if self.events.len() <= self.capacity {
+            return;
+        }
+        let (mut count, mut host_time) = (0, event.host_time());
+        while self.events.len() >= self.capacity {
+            match self.events.pop_front() {
+                Some(LightEvent::Edge(e)) => {
+                    count += 1;
+                    self.dropped += 1;
+                    host_time = e.host_time;
+                }
+                Some(LightEvent::Lost {
+                    count: c,
+                    host_time: t,
+                }) => {
+                    count += c;
+                    host_time = t;
+                }
+                None => break,
+            }
+        }
+        match self.events.front_mut() {
+            Some(LightEvent::Lost { count: c, .. }) => *c += count,
+            _ => self
+                .events
+                .push_front(LightEvent::Lost { count, host_time }),
+        }
+    }
+
+    pub fn pop(&mut self) -> Option<LightEvent> {
+        self.events.pop_front()
+    }
+
+    pub fn clear(&mut self) {
+        self.events.clear();
+    }
+
+    pub fn len(&self) -> usize {
+        self.events.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.events.is_empty()
+    }
+
+    /// Edges dropped for lack of room so far.
+    pub fn dropped(&self) -> u64 {
+        self.dropped
+    }
+}
+
+/// A light sensor that timestamps the edges of the light it sees (a photodiode and a
+/// comparator on a microcontroller or on the sync board).
+pub trait Photodiode: Send {
+    /// Waits for the next edge (or loss report). Silence is normal while the light does not
+    /// change: implementations check their link meanwhile and fail only when it breaks.
+    fn next_light(&mut self) -> impl Future<Output = Result<LightEvent, DeviceError>> + Send;
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_full_light_queue_reports_what_it_dropped_in_its_place() {
+        let edge = |us: u64, rising| {
+            LightEvent::Edge(LightEdge {
+                device_time: Timestamp::from_micros(us),
+                host_receive_time: Timestamp::from_micros(us),
+                host_time: Timestamp::from_micros(us),
+                rising,
+                level: None,
+            })
+        };
+        let mut q = LightQueue::new(4);
+        for k in 0..10 {
+            q.push(edge(k, k % 2 == 0));
+        }
+        // Room for 4: one Lost in front of the newest 3.
+        assert_eq!(q.len(), 4);
+        assert_eq!(
+            q.pop(),
+            Some(LightEvent::Lost {
+                count: 7,
+                host_time: Timestamp::from_micros(6)
+            })
+        );
+        let rest: Vec<u64> = std::iter::from_fn(|| q.pop())
+            .map(|e| e.host_time().as_micros())
+            .collect();
+        assert_eq!(rest, [7, 8, 9]);
+        assert_eq!(q.dropped(), 7);
+        assert!(q.is_empty());
+    }
 
     #[test]
     fn plane_schedule_validation() {

@@ -1,19 +1,26 @@
-//! The dioptra multifocal sync board over dioptra-protocol, as a [`PlaneSequencer`].
+//! The dioptra multifocal sync board over dioptra-protocol, as a [`PlaneSequencer`] and, for a
+//! board with a photodiode input, a [`Photodiode`].
 //!
 //! Session: `Hello` (the device must be a sync board that runs plane schedules), then a burst
 //! of time-sync pings; one more ping per second while events are read keeps the device-to-host
-//! mapping (with drift) current. Events carry device time; [`to_sequencer_event`] maps them.
+//! mapping (with drift) current. Events carry device time; [`to_sequencer_event`] and
+//! [`to_light_edge`] map them.
+//!
+//! Sub-frame events and photodiode edges share the link. Whichever interface reads keeps what
+//! belongs to the other in a bounded queue, and [`SyncBoard::next_board_event`] returns both
+//! kinds in arrival order for a caller that wants both.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{
-    Clock, ClockMapper, DeviceError, Diopters, PlaneSchedule, PlaneSequencer, SequencerEvent,
-    SequencerFault, Timestamp,
+    Clock, ClockMapper, DeviceError, Diopters, LightEdge, LightEvent, LightQueue, LinkError,
+    Photodiode, PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault, Timestamp,
 };
 use dioptra_protocol::{
-    Capabilities, DeviceInfo, DeviceKind, ErrorCode, FaultKind, Message,
-    PlaneSchedule as WireSchedule,
+    Capabilities, DeviceInfo, DeviceKind, ErrorCode, FaultKind, Message, PhotodiodeConfig,
+    PhotodiodeEdge, PlaneSchedule as WireSchedule,
 };
 use dioptra_transport::protocol_client::ProtocolClient;
 use dioptra_transport::ByteLink;
@@ -24,6 +31,80 @@ const SYNC_BURST: usize = 8;
 const RESYNC_EVERY: Duration = Duration::from_secs(1);
 /// Silence while running longer than this is an error (a board sends hundreds of events/s).
 pub const DEFAULT_EVENT_TIMEOUT: Duration = Duration::from_secs(2);
+/// Most events of one kind kept for the other interface's reader; the oldest go first.
+const MAX_QUEUED: usize = 4096;
+
+/// The photodiode input's comparator band, in fractions of the sensor's full scale: the light
+/// is on above `threshold + hysteresis`, off below `threshold - hysteresis`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PhotodiodeBand {
+    pub threshold: f32,
+    pub hysteresis: f32,
+}
+
+impl Default for PhotodiodeBand {
+    /// Half scale, with 5 % of the scale either side: a white patch on any panel reads far
+    /// above it, black far below.
+    fn default() -> Self {
+        PhotodiodeBand {
+            threshold: 0.5,
+            hysteresis: 0.05,
+        }
+    }
+}
+
+/// The wire config for `band` (`None`: input off), or why the board cannot take it.
+pub fn wire_photodiode_config(
+    band: Option<PhotodiodeBand>,
+) -> Result<PhotodiodeConfig, DeviceError> {
+    let Some(band) = band else {
+        return Ok(PhotodiodeConfig {
+            enabled: false,
+            threshold: 1,
+            hysteresis: 0,
+        });
+    };
+    let scale = f32::from(u16::MAX);
+    let (t, h) = (band.threshold, band.hysteresis);
+    // The band must lie strictly inside the scale or one edge could never happen.
+    if !(t.is_finite() && h.is_finite() && h >= 0.0 && t - h > 0.0 && t + h < 1.0) {
+        return Err(DeviceError::Invalid(format!(
+            "photodiode threshold {t} +/- hysteresis {h} must lie strictly inside 0..1 of the sensor's scale"
+        )));
+    }
+    let config = PhotodiodeConfig {
+        enabled: true,
+        threshold: (t * scale).round() as u16,
+        hysteresis: (h * scale).round() as u16,
+    };
+    config
+        .validate()
+        .map_err(|e| DeviceError::Invalid(format!("photodiode band: {e}")))?;
+    Ok(config)
+}
+
+/// A board edge as a [`LightEdge`], its device time mapped to host time (`received`, the host
+/// time the frame arrived, until the clocks are synchronised).
+pub fn to_light_edge(
+    edge: &PhotodiodeEdge,
+    received: Timestamp,
+    mapper: &ClockMapper,
+) -> LightEdge {
+    LightEdge {
+        device_time: Timestamp::from_micros(edge.device_time_us),
+        host_receive_time: received,
+        host_time: mapper.to_host(edge.device_time_us).unwrap_or(received),
+        rising: edge.rising,
+        level: Some(f32::from(edge.level) / f32::from(u16::MAX)),
+    }
+}
+
+/// What the board reports: sub-frames and faults, or light on its photodiode.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum BoardEvent {
+    Sequencer(SequencerEvent),
+    Light(LightEvent),
+}
 
 /// What the driver knows about the board.
 #[derive(Debug, Clone, PartialEq)]
@@ -33,6 +114,11 @@ pub struct BoardStatus {
     pub running: bool,
     /// Frames from the board that failed to decode.
     pub garbled_frames: u64,
+    /// The photodiode input's band while it reports.
+    pub photodiode: Option<PhotodiodeBand>,
+    /// Photodiode edges the board reported lost (gaps in its edge counter), and ones this
+    /// driver dropped because nobody read them.
+    pub light_edges_lost: u64,
 }
 
 /// A dioptra sync board on any [`ByteLink`] (its USB serial port, a pty, an in-memory pair).
@@ -47,6 +133,15 @@ pub struct SyncBoard<L: ByteLink> {
     started_at: Timestamp,
     last_sync: Timestamp,
     event_timeout: Duration,
+    photodiode: Option<PhotodiodeBand>,
+    /// The board's counter value the next edge should carry.
+    next_edge: u32,
+    light_lost: u64,
+    /// Read for the other interface's reader, in arrival order.
+    light_queue: LightQueue,
+    sequencer_queue: VecDeque<SequencerEvent>,
+    /// An edge read after a gap, returned after the gap's `Lost` report.
+    held_edge: Option<LightEvent>,
 }
 
 /// The wire schedule for `schedule`, or why it cannot be sent.
@@ -120,6 +215,12 @@ impl<L: ByteLink> SyncBoard<L> {
             started_at: Timestamp::ZERO,
             last_sync: Timestamp::ZERO,
             event_timeout: DEFAULT_EVENT_TIMEOUT,
+            photodiode: None,
+            next_edge: 0,
+            light_lost: 0,
+            light_queue: LightQueue::new(MAX_QUEUED),
+            sequencer_queue: VecDeque::new(),
+            held_edge: None,
         };
         board.open_session().await?;
         Ok(board)
@@ -162,6 +263,123 @@ impl<L: ByteLink> SyncBoard<L> {
             schedule: self.schedule.clone(),
             running: self.running,
             garbled_frames: self.client.garbled_frames(),
+            photodiode: self.photodiode,
+            light_edges_lost: self.light_lost + self.light_queue.dropped(),
+        }
+    }
+
+    /// Whether the board has a photodiode input (its `PHOTODIODE` capability).
+    pub fn has_photodiode(&self) -> bool {
+        self.client
+            .device_info()
+            .is_some_and(|i| i.capabilities.contains(Capabilities::PHOTODIODE))
+    }
+
+    /// Switches the photodiode input on with `band`, or off with `None`. Edges then arrive
+    /// whether or not a schedule runs.
+    pub async fn set_photodiode(
+        &mut self,
+        band: Option<PhotodiodeBand>,
+    ) -> Result<(), DeviceError> {
+        let config = wire_photodiode_config(band)?;
+        if band.is_none() && !self.has_photodiode() {
+            self.photodiode = None;
+            return Ok(()); // no input, nothing to switch off
+        }
+        if !self.has_photodiode() {
+            return Err(DeviceError::Invalid(format!(
+                "the sync board on {} has no photodiode input (its firmware does not announce PHOTODIODE)",
+                self.client.link().describe()
+            )));
+        }
+        self.expect_ack(&Message::PhotodiodeConfig(config)).await?;
+        // The board restarts its counter; edges of the last config still queued are stale.
+        self.photodiode = band;
+        self.next_edge = 0;
+        self.held_edge = None;
+        self.light_queue.clear();
+        Ok(())
+    }
+
+    /// The next event of either kind: first those kept while one interface read, then in the
+    /// order the board sent them. Sub-frame events come
+    /// while a schedule runs, light events while the photodiode input is on; with neither
+    /// there is nothing to wait for and this is an error.
+    pub async fn next_board_event(&mut self) -> Result<BoardEvent, DeviceError> {
+        if let Some(e) = self.sequencer_queue.pop_front() {
+            return Ok(BoardEvent::Sequencer(e));
+        }
+        if let Some(e) = self.light_queue.pop() {
+            return Ok(BoardEvent::Light(e));
+        }
+        self.read_board_event().await
+    }
+
+    /// Reads the link for the next event (resynchronising the clocks once a second).
+    async fn read_board_event(&mut self) -> Result<BoardEvent, DeviceError> {
+        if let Some(e) = self.held_edge.take() {
+            return Ok(BoardEvent::Light(e));
+        }
+        if !self.running && self.photodiode.is_none() {
+            return Err(DeviceError::Invalid(
+                "the board is neither running a schedule nor reporting its photodiode: start it or switch the photodiode on first".into(),
+            ));
+        }
+        loop {
+            let now = self.clock.now();
+            let since_sync = now.saturating_since(self.last_sync);
+            if since_sync >= RESYNC_EVERY {
+                // Events that arrive meanwhile are queued by the client, not lost. The ping
+                // also proves the link alive while a quiet photodiode sends nothing.
+                self.client.sync_time(1).await?;
+                self.last_sync = now;
+                continue;
+            }
+            // Sub-frames come every few ms, so silence while running is a fault; the light on
+            // a photodiode may not change for minutes, so then only the next ping is due.
+            let wait = if self.running {
+                self.event_timeout
+            } else {
+                RESYNC_EVERY - since_sync
+            };
+            let r = match self.client.next_event(wait).await {
+                Ok(r) => r,
+                Err(DeviceError::Link(LinkError::Timeout { .. })) if !self.running => continue,
+                Err(e) => return Err(e),
+            };
+            if let Message::PhotodiodeEdge(edge) = &r.message {
+                if self.photodiode.is_none() {
+                    tracing::debug!(?edge, "sync board: photodiode edge while off, skipped");
+                    continue;
+                }
+                let light =
+                    LightEvent::Edge(to_light_edge(edge, r.host_time, self.client.clock_mapper()));
+                // A gap in the board's counter: it dropped edges it could not send.
+                let gap = edge.edge.wrapping_sub(self.next_edge);
+                self.next_edge = edge.edge.wrapping_add(1);
+                if gap > 0 {
+                    self.light_lost += u64::from(gap);
+                    self.held_edge = Some(light);
+                    return Ok(BoardEvent::Light(LightEvent::Lost {
+                        count: u64::from(gap),
+                        host_time: r.host_time,
+                    }));
+                }
+                return Ok(BoardEvent::Light(light));
+            }
+            match to_sequencer_event(&r.message, r.host_time, self.client.clock_mapper()) {
+                Some(ev) if self.running && event_host_time(&ev) >= self.started_at => {
+                    return Ok(BoardEvent::Sequencer(ev))
+                }
+                _ => tracing::debug!(message = ?r.message, "sync board: event skipped"),
+            }
+        }
+    }
+
+    fn keep_sequencer(&mut self, event: SequencerEvent) {
+        self.sequencer_queue.push_back(event);
+        if self.sequencer_queue.len() > MAX_QUEUED {
+            self.sequencer_queue.pop_front();
         }
     }
 
@@ -176,6 +394,9 @@ impl<L: ByteLink> SyncBoard<L> {
         self.client.reset_session(link);
         let was_running = std::mem::take(&mut self.running);
         self.open_session().await?;
+        if let Some(band) = self.photodiode {
+            self.set_photodiode(Some(band)).await?;
+        }
         if let Some(schedule) = self.schedule.clone() {
             self.program(&schedule).await?;
             if was_running {
@@ -225,23 +446,42 @@ impl<L: ByteLink> PlaneSequencer for SyncBoard<L> {
         self.expect_ack(&Message::Stop).await
     }
 
+    /// The next sub-frame event or fault; photodiode edges read meanwhile are kept for
+    /// [`Photodiode::next_light`].
     async fn next_event(&mut self) -> Result<SequencerEvent, DeviceError> {
+        if let Some(e) = self.sequencer_queue.pop_front() {
+            return Ok(e);
+        }
         if !self.running {
             return Err(DeviceError::Invalid(
                 "the board is not running: start it first".into(),
             ));
         }
         loop {
-            let now = self.clock.now();
-            if now.saturating_since(self.last_sync) >= RESYNC_EVERY {
-                // Events that arrive meanwhile are queued by the client, not lost.
-                self.client.sync_time(1).await?;
-                self.last_sync = now;
+            match self.read_board_event().await? {
+                BoardEvent::Sequencer(e) => return Ok(e),
+                BoardEvent::Light(e) => self.light_queue.push(e),
             }
-            let r = self.client.next_event(self.event_timeout).await?;
-            match to_sequencer_event(&r.message, r.host_time, self.client.clock_mapper()) {
-                Some(ev) if event_host_time(&ev) >= self.started_at => return Ok(ev),
-                _ => tracing::debug!(message = ?r.message, "sync board: event skipped"),
+        }
+    }
+}
+
+impl<L: ByteLink> Photodiode for SyncBoard<L> {
+    /// The next photodiode edge (switch the input on with [`SyncBoard::set_photodiode`]);
+    /// sub-frame events read meanwhile are kept for [`PlaneSequencer::next_event`].
+    async fn next_light(&mut self) -> Result<LightEvent, DeviceError> {
+        if let Some(e) = self.light_queue.pop() {
+            return Ok(e);
+        }
+        if self.photodiode.is_none() {
+            return Err(DeviceError::Invalid(
+                "the board's photodiode input is off: switch it on first".into(),
+            ));
+        }
+        loop {
+            match self.read_board_event().await? {
+                BoardEvent::Light(e) => return Ok(e),
+                BoardEvent::Sequencer(e) => self.keep_sequencer(e),
             }
         }
     }

@@ -6,14 +6,15 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{
-    Clock, DeviceError, Diopters, LinkError, PlaneSchedule, PlaneSequencer, SequencerEvent,
-    SequencerFault,
+    Clock, DeviceError, Diopters, LightEvent, LinkError, Photodiode, PlaneSchedule, PlaneSequencer,
+    SequencerEvent, SequencerFault, Timestamp,
 };
 use dioptra_protocol::ErrorCode;
 use dioptra_sim::lens_model::LensModelConfig;
+use dioptra_sim::light::ScriptedLight;
 use dioptra_sim::sync_board::{self, SyncBoardSim, SyncBoardSimConfig};
 use dioptra_sim::tokio_clock::TokioClock;
-use dioptra_sync::board::SyncBoard;
+use dioptra_sync::board::{BoardEvent, PhotodiodeBand, SyncBoard};
 use dioptra_transport::memory::{self, Faults, MemoryLink};
 use dioptra_transport::ByteLink;
 
@@ -29,12 +30,37 @@ fn fast_lens() -> SyncBoardSimConfig {
 
 /// Serves a simulated board on one end of a pair; returns the other end.
 fn board_link(cfg: SyncBoardSimConfig, clock: TokioClock) -> MemoryLink {
+    serve_board(SyncBoardSim::new(cfg), clock)
+}
+
+fn serve_board(mut sim: SyncBoardSim, clock: TokioClock) -> MemoryLink {
     let (host, mut dev) = memory::pair(8192);
     tokio::spawn(async move {
-        let mut sim = SyncBoardSim::new(cfg);
         let _ = sync_board::serve(&mut dev, &mut sim, &clock).await;
     });
     host
+}
+
+/// A board whose photodiode sees `light`.
+fn board_with_light(
+    cfg: SyncBoardSimConfig,
+    light: &ScriptedLight,
+    clock: TokioClock,
+) -> MemoryLink {
+    serve_board(
+        SyncBoardSim::new(cfg).with_light(Arc::new(light.clone())),
+        clock,
+    )
+}
+
+/// The light's true host times: `starts`, each on for `high`, as the sensor sees them
+/// (5 µs response, the simulator's default).
+fn true_edges(starts: &[Timestamp], high: Duration) -> Vec<(Timestamp, bool)> {
+    let response = Duration::from_micros(5);
+    starts
+        .iter()
+        .flat_map(|t| [(*t + response, true), (*t + high + response, false)])
+        .collect()
 }
 
 fn schedule(period_us: u64, settle_us: u64) -> PlaneSchedule {
@@ -283,4 +309,176 @@ async fn over_a_pty() {
     assert_eq!((got[0].0, got[0].1), (0, 0), "{got:?}");
     b.stop().await.unwrap();
     server.abort();
+}
+
+#[tokio::test(start_paused = true)]
+async fn photodiode_edges_come_at_the_host_time_the_light_changed() {
+    let clock = TokioClock::new();
+    let light = ScriptedLight::new();
+    // A 90 Hz patch, white for 2 ms of each refresh, from 0.5 s on.
+    let starts: Vec<Timestamp> = (0..100)
+        .map(|k| Timestamp::from_micros(500_000 + k * 11_111))
+        .collect();
+    let high = Duration::from_millis(2);
+    light.pulses(starts.clone(), high, 0.9, 0.02);
+    let link = board_with_light(fast_lens(), &light, clock);
+    let mut b = SyncBoard::connect(link, Arc::new(clock)).await.unwrap();
+    assert!(b.has_photodiode());
+    b.set_photodiode(Some(PhotodiodeBand::default()))
+        .await
+        .unwrap();
+    let want = true_edges(&starts, high);
+    let mut worst_us = 0i64;
+    for (at, rising) in &want {
+        let LightEvent::Edge(e) = b.next_light().await.unwrap() else {
+            panic!("a loss on a quiet link");
+        };
+        assert_eq!(e.rising, *rising);
+        // The board's clock is 7 s ahead and runs 20 ppm slow; mapped back to the host's.
+        worst_us = worst_us.max((e.host_time.as_micros() as i64 - at.as_micros() as i64).abs());
+        let level = e.level.unwrap();
+        assert!(
+            (level - if *rising { 0.9 } else { 0.02 }).abs() < 1e-4,
+            "{level}"
+        );
+        assert!(e.host_receive_time >= *at);
+    }
+    assert!(worst_us <= 30, "host times off by up to {worst_us} us");
+    assert_eq!(b.status().light_edges_lost, 0);
+    assert_eq!(b.status().photodiode, Some(PhotodiodeBand::default()));
+}
+
+#[tokio::test(start_paused = true)]
+async fn sub_frames_and_light_share_the_link_and_neither_is_lost() {
+    let clock = TokioClock::new();
+    let light = ScriptedLight::new();
+    let starts: Vec<Timestamp> = (0..40)
+        .map(|k| Timestamp::from_micros(20_000 + k * 4_166))
+        .collect();
+    let high = Duration::from_millis(1);
+    light.pulses(starts.clone(), high, 0.9, 0.02);
+    let link = board_with_light(fast_lens(), &light, clock);
+    let mut b = SyncBoard::connect(link, Arc::new(clock)).await.unwrap();
+    b.set_photodiode(Some(PhotodiodeBand::default()))
+        .await
+        .unwrap();
+    b.program(&schedule(4166, 1500)).await.unwrap();
+    b.start().await.unwrap();
+    // The sequencer's reader keeps the edges it reads for the photodiode's.
+    let got = subframes(&mut b, 40).await;
+    assert_eq!(got.len(), 40);
+    let want = true_edges(&starts, high);
+    let mut edges = Vec::new();
+    while edges.len() < want.len() {
+        match b.next_light().await.unwrap() {
+            LightEvent::Edge(e) => edges.push((e.host_time, e.rising)),
+            lost => panic!("{lost:?}"),
+        }
+    }
+    for ((t, rising), (want_t, want_rising)) in edges.iter().zip(&want) {
+        assert_eq!(rising, want_rising);
+        assert!(
+            t.as_micros().abs_diff(want_t.as_micros()) <= 30,
+            "{t:?} vs {want_t:?}"
+        );
+    }
+    // And both kinds in arrival order from one reader.
+    let mut kinds = (0, 0);
+    for _ in 0..30 {
+        match b.next_board_event().await.unwrap() {
+            BoardEvent::Sequencer(_) => kinds.0 += 1,
+            BoardEvent::Light(_) => kinds.1 += 1,
+        }
+    }
+    assert!(
+        kinds.0 > 0 && kinds.1 == 0,
+        "{kinds:?}: the light has stopped by now"
+    );
+}
+
+#[tokio::test(start_paused = true)]
+async fn edges_the_board_dropped_are_reported_as_lost() {
+    let clock = TokioClock::new();
+    let light = ScriptedLight::new();
+    // Flicker too fast for a board that sends one edge per step of its loop.
+    let starts: Vec<Timestamp> = (0..100)
+        .map(|k| Timestamp::from_micros(100_000 + k * 40))
+        .collect();
+    light.pulses(starts, Duration::from_micros(20), 1.0, 0.0);
+    light.pulses(
+        [Timestamp::from_millis(300)],
+        Duration::from_millis(10),
+        1.0,
+        0.0,
+    );
+    let cfg = SyncBoardSimConfig {
+        photodiode_queue: 1,
+        ..fast_lens()
+    };
+    let mut b = SyncBoard::connect(board_with_light(cfg, &light, clock), Arc::new(clock))
+        .await
+        .unwrap();
+    b.set_photodiode(Some(PhotodiodeBand::default()))
+        .await
+        .unwrap();
+    // The board's counter shows a gap only with the next edge it sends: the slow pulse at
+    // 300 ms (both of whose edges go out) reveals edges dropped at the end of the flicker.
+    let (mut edges, mut lost) = (0u64, 0u64);
+    let read = async {
+        while edges + lost < 202 {
+            match b.next_light().await.unwrap() {
+                LightEvent::Edge(_) => edges += 1,
+                LightEvent::Lost { count, .. } => lost += count,
+            }
+        }
+    };
+    // Simulated time: a miscount would wait for ever without this.
+    tokio::time::timeout(Duration::from_secs(5), read)
+        .await
+        .expect("every edge seen or reported lost within 5 s");
+    assert_eq!(edges + lost, 202);
+    assert!(lost > 0 && edges > 0, "{edges} edges, {lost} lost");
+    assert_eq!(b.status().light_edges_lost, lost);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_dark_photodiode_keeps_the_link_checked_and_waits() {
+    let clock = TokioClock::new();
+    let light = ScriptedLight::new();
+    light.pulses(
+        [Timestamp::from_millis(8_000)],
+        Duration::from_millis(5),
+        0.9,
+        0.0,
+    );
+    let link = board_with_light(fast_lens(), &light, clock);
+    let mut b = SyncBoard::connect(link, Arc::new(clock)).await.unwrap();
+    // Nothing to wait for yet, and a band that does not fit the scale: refused here.
+    assert!(matches!(b.next_light().await, Err(DeviceError::Invalid(_))));
+    let bad = PhotodiodeBand {
+        threshold: 0.98,
+        hysteresis: 0.05,
+    };
+    assert!(matches!(
+        b.set_photodiode(Some(bad)).await,
+        Err(DeviceError::Invalid(_))
+    ));
+    b.set_photodiode(Some(PhotodiodeBand::default()))
+        .await
+        .unwrap();
+    // Seven quiet seconds are no error.
+    let quiet = tokio::time::timeout(Duration::from_secs(7), b.next_light()).await;
+    assert!(quiet.is_err(), "{quiet:?}");
+    let LightEvent::Edge(e) = b.next_light().await.unwrap() else {
+        panic!("expected the edge at 8 s");
+    };
+    assert!(e.rising);
+    assert!(
+        e.host_time.as_micros().abs_diff(8_000_005) <= 200,
+        "{:?}",
+        e.host_time
+    );
+    // Switched off, the light's falling edge never comes.
+    b.set_photodiode(None).await.unwrap();
+    assert!(matches!(b.next_light().await, Err(DeviceError::Invalid(_))));
 }

@@ -1,9 +1,11 @@
 //! Arbitrary bytes through the decoders. Nothing may panic, and every frame they accept must
-//! re-encode to bytes that decode to the same message again.
+//! re-encode to bytes that decode to the same message again; the checks a device runs on a
+//! received schedule or photodiode config must not panic either. Seeds: `fuzz/seeds/
+//! stream_decoder/`, one golden frame per message (vectors/vectors.txt) behind a chunk byte.
 #![no_main]
 
 use dioptra_protocol::{
-    decode_frame, encode_frame, Frame, FrameDecoder, CRC_LEN, FRAME_CRC, MAX_BODY_LEN,
+    decode_frame, encode_frame, Frame, FrameDecoder, Message, CRC_LEN, FRAME_CRC, MAX_BODY_LEN,
     MAX_FRAME_LEN,
 };
 use libfuzzer_sys::fuzz_target;
@@ -37,6 +39,20 @@ fuzz_target!(|data: &[u8]| {
 });
 
 fn check_round_trip(frame: &Frame) {
+    // What a device checks on every received config must not panic on any decoded value.
+    match &frame.message {
+        Message::PlaneSchedule(s) => {
+            let _ = s.validate();
+        }
+        Message::PhotodiodeConfig(c) => {
+            if c.validate().is_ok() {
+                assert!(
+                    c.hysteresis < c.threshold && c.threshold.checked_add(c.hysteresis).is_some()
+                );
+            }
+        }
+        _ => {}
+    }
     let mut wire = [0u8; MAX_FRAME_LEN];
     let len = encode_frame(frame.request_id, &frame.message, &mut wire)
         .expect("a decoded message re-encodes");
