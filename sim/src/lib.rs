@@ -3,8 +3,8 @@
 //!
 //! - Devices: [`optotune`] (Optotune Lens Driver 4), [`lens_controller`], [`sync_board`],
 //!   [`dlpc350`] (TI DLPC350 over the in-memory HID link), [`gaze`] (eye-movement generator and
-//!   simulated HID trackers). Byte-speaking devices run on any link
-//!   through [`serve::serve`].
+//!   simulated HID trackers), [`photodiode`] (the serial-line photodiode). Byte-speaking
+//!   devices run on any link through [`serve::serve`].
 //! - Shared models: [`lens_model`] (tunable-lens physics), [`light`] (light on a photodiode and
 //!   its comparator), [`protocol_device`] (the device side of dioptra-protocol), [`tokio_clock`].
 //! - Ground truth: [`scene`] (procedural scenes, pinhole, thin-lens and light-field renders).
@@ -15,6 +15,7 @@ pub mod lens_controller;
 pub mod lens_model;
 pub mod light;
 pub mod optotune;
+pub mod photodiode;
 pub mod protocol_device;
 pub mod scene;
 pub mod serve;
