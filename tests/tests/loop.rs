@@ -582,3 +582,81 @@ async fn the_procedural_scene_moves_with_rig_time() {
     }
     assert_eq!(depths.len(), 20);
 }
+
+/// The example rig with the simulated lens in a thin-lens layout (display 25 cm from the lens,
+/// the pupil 15 mm behind it: demand = X / (1 + 0.015 X), X = 4 - lens power) and, if given, a
+/// calibration table the rig believes (its text, as a recording would carry it).
+fn through_optics(table: Option<String>) -> SimRun {
+    let mut text = EXAMPLE_SIM_RIG
+        .replace("sim_rate_hz = 250.0", "sim_rate_hz = 500.0")
+        .replace(
+            "subframe_hz = 240.0\n",
+            "subframe_hz = 240.0\n[optics.layout]\ndisplay_distance_m = 0.25\neye_relief_m = 0.015\n",
+        );
+    let mut tables = std::collections::BTreeMap::new();
+    if let Some(t) = table {
+        text = text.replace("[optics]\n", "[optics]\ncalibration = \"cal.csv\"\n");
+        tables.insert("cal.csv".into(), t);
+    }
+    let cfg = RigConfig::parse_with_tables(&text, tables).unwrap();
+    let mut o = SimRun::new(cfg, Duration::from_secs_f64(3.2)).unwrap();
+    o.spec.gaze_scene = near_far(500);
+    o.spec.gaze.blink_rate_hz = 0.0;
+    o
+}
+
+/// A table of the layout's demand every 0.25 D over the lens range, `offset_d` added.
+fn layout_table(offset_d: f64) -> String {
+    let mut t = String::from("command_d,demand_d\n");
+    for k in 0..=20 {
+        let c = -1.0 + 0.25 * f64::from(k);
+        let x = 4.0 - c;
+        t += &format!("{c},{}\n", x / (1.0 + 0.015 * x) + offset_d);
+    }
+    t
+}
+
+/// The median of |where the eye must focus - the depth looked at| while fixating.
+fn median_focus_error(r: &Run) -> f64 {
+    let mut e: Vec<f64> = r
+        .log
+        .probes
+        .iter()
+        .filter(|p| p.phase == dioptra_sched::processing::EyePhase::Fixation)
+        .filter_map(|p| Some((f64::from(p.eye_focus?.0) - p.gaze_target_d?).abs()))
+        .collect();
+    assert!(e.len() > 1000, "{} fixation probes", e.len());
+    e.sort_by(f64::total_cmp);
+    e[e.len() / 2]
+}
+
+#[tokio::test(start_paused = true)]
+async fn through_the_optics_the_eye_sees_what_it_looks_at_and_a_wrong_calibration_shows() {
+    let render = Duration::from_millis(4);
+    // The layout as the rig's map: the lens goes where the formula says.
+    let r = go(through_optics(None), render).await;
+    assert_eq!(r.state.optics.source_name(), "layout");
+    // Near (2 D) by hand: X = 2 / (1 - 0.03) = 2.061856, command 4 - X = 1.938144 D.
+    assert!(
+        r.log
+            .lens_commands
+            .iter()
+            .any(|c| (c.power.0 - 1.938144).abs() < 1e-4),
+        "{:?}",
+        r.log.lens_commands
+    );
+    let layout = median_focus_error(&r);
+    assert!(layout < 0.02, "{layout} D through the layout");
+    // A table measured on the same optics: the same.
+    let r = go(through_optics(Some(layout_table(0.0))), render).await;
+    assert_eq!(r.state.optics.source_name(), "calibration");
+    let calibrated = median_focus_error(&r);
+    assert!(calibrated < 0.02, "{calibrated} D with a good table");
+    // A table 0.5 D off (measured with the display moved): the eye is 0.5 D out of focus.
+    let r = go(through_optics(Some(layout_table(0.5))), render).await;
+    let wrong = median_focus_error(&r);
+    assert!(
+        (wrong - 0.5).abs() < 0.03,
+        "{wrong} D with a table 0.5 D off"
+    );
+}

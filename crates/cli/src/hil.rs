@@ -380,12 +380,14 @@ async fn measure(
     );
     let mut unsettled = 0usize;
     for i in 0..args.trials {
+        // The lens power to reach, asked for as the focus it gives through the optics map.
         let p = if i % 2 == 0 { hi } else { lo };
+        let focus = state.optics.focus_of(dioptra_core::Diopters(p)).0;
         while rx.try_recv().is_ok() {}
         state
-            .control(Control::ManualFocus(Some(p)))
+            .control(Control::ManualFocus(Some(focus)))
             .await
-            .map_err(|e| anyhow::anyhow!("manual focus {p} D was refused: {e}"))?;
+            .map_err(|e| anyhow::anyhow!("manual focus {focus} D was refused: {e}"))?;
         let end = tokio::time::Instant::now() + STEP_TIMEOUT;
         let mut command: Option<(u64, Timestamp)> = None;
         let mut wired = false;
@@ -426,8 +428,9 @@ async fn measure(
     }
     let _ = state.control(Control::ManualFocus(None)).await;
     settled.note = format!(
-        "{} steps between {lo:.2} and {hi:.2} D (manual focus through the rig's loop); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
+        "{} steps between lens powers {lo:.2} and {hi:.2} D (manual focus through the rig's loop and its optics map: {}); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
         args.trials,
+        state.optics.describe(),
         state.settings.lens_poll.as_millis(),
         STEP_TIMEOUT.as_millis()
     );

@@ -286,7 +286,14 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
     let Some((t0, Rec::Start(start))) = rec.messages.first() else {
         bail!("the recording does not begin with a /start message; was it written by `dioptra serve`?");
     };
-    let mut cfg = RigConfig::parse(&start.config).context("the rig config in the recording")?;
+    // With the calibration tables the run read, as they were then.
+    let tables = start
+        .calibration_tables
+        .iter()
+        .map(|(p, t)| (std::path::PathBuf::from(p), t.clone()))
+        .collect();
+    let mut cfg = RigConfig::parse_with_tables(&start.config, tables)
+        .context("the rig config in the recording")?;
     cfg.mode = Mode::parse(&start.mode)
         .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
     cfg.method = Method::parse(&start.method)

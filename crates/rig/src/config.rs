@@ -673,6 +673,10 @@ pub struct RigConfig {
     /// from; `None` (config text without a file): the working directory.
     #[serde(skip)]
     pub config_dir: Option<PathBuf>,
+    /// The calibration tables' text, read once when the config is (keyed by the path as the
+    /// config gives it), so a run and its recording use the tables as they were at start.
+    #[serde(skip)]
+    pub calibration_tables: std::collections::BTreeMap<PathBuf, String>,
 }
 
 /// What the rig shows.
@@ -1016,6 +1020,24 @@ impl RigConfig {
 
     /// Parses and validates rig config text whose relative paths are in `config_dir`.
     pub fn parse_in(text: &str, config_dir: Option<PathBuf>) -> Result<RigConfig, ConfigError> {
+        Self::parse_with(text, config_dir, Default::default())
+    }
+
+    /// Parses and validates rig config text with its calibration tables given (a recording's:
+    /// `dioptra replay` runs with the tables the run had); a table not given is read from
+    /// its file.
+    pub fn parse_with_tables(
+        text: &str,
+        tables: std::collections::BTreeMap<PathBuf, String>,
+    ) -> Result<RigConfig, ConfigError> {
+        Self::parse_with(text, None, tables)
+    }
+
+    fn parse_with(
+        text: &str,
+        config_dir: Option<PathBuf>,
+        tables: std::collections::BTreeMap<PathBuf, String>,
+    ) -> Result<RigConfig, ConfigError> {
         let (text, auto_method) = resolve_auto(text)?;
         let text = text.as_ref();
         let de = toml::Deserializer::parse(text).map_err(|e| ConfigError::Parse {
@@ -1032,13 +1054,56 @@ impl RigConfig {
             }
             ConfigError::Parse { key, message }
         })?;
-        let cfg = RigConfig {
+        let mut cfg = RigConfig {
             auto_method,
             config_dir,
+            calibration_tables: tables,
             ..cfg
         };
+        cfg.read_calibration_tables()?;
         cfg.validate()?;
         Ok(cfg)
+    }
+
+    /// Reads every calibration table the optics settings name and does not hold yet.
+    fn read_calibration_tables(&mut self) -> Result<(), ConfigError> {
+        let o = &self.optics;
+        let named = [
+            ("optics", o.calibration.as_ref()),
+            (
+                "optics.left",
+                o.left.as_ref().and_then(|e| e.calibration.as_ref()),
+            ),
+            (
+                "optics.right",
+                o.right.as_ref().and_then(|e| e.calibration.as_ref()),
+            ),
+        ];
+        let mut read = Vec::new();
+        for (section, file) in named {
+            let Some(file) = file else { continue };
+            if self.calibration_tables.contains_key(file) {
+                continue;
+            }
+            let path = self.config_path(file);
+            let text = std::fs::read_to_string(&path).map_err(|e| {
+                invalid(
+                    &format!("{section}.calibration"),
+                    format!(
+                        "cannot read the calibration table {} ({}): {e}",
+                        path.display(),
+                        if file.is_relative() {
+                            "relative paths are read from the config file's folder"
+                        } else {
+                            "as given"
+                        }
+                    ),
+                )
+            })?;
+            read.push((file.clone(), text));
+        }
+        self.calibration_tables.extend(read);
+        Ok(())
     }
 
     /// A path given in the config, as it is read: relative ones from the config's folder.
@@ -1053,6 +1118,21 @@ impl RigConfig {
     /// [`Optics::one_lens_eye`]): its layout or calibration table (read now) and the viewer's
     /// prescription, for the lens range. Errors name the key, the file and the points.
     pub fn optics_map(&self, side: Option<Side>) -> Result<OpticsMap, ConfigError> {
+        self.optics_map_from(side, true)
+    }
+
+    /// The optics a simulated lens sits in: `[optics.layout]` and the viewer's prescription,
+    /// without the calibration table (which is what the rig believes, not the physics), so a
+    /// simulated rig whose table is wrong shows the focus error it would have.
+    pub fn simulated_optics(&self, side: Option<Side>) -> Result<OpticsMap, ConfigError> {
+        self.optics_map_from(side, false)
+    }
+
+    fn optics_map_from(
+        &self,
+        side: Option<Side>,
+        with_table: bool,
+    ) -> Result<OpticsMap, ConfigError> {
         let o = &self.optics;
         let shared = o.shared();
         let side = side.or_else(|| o.one_lens_eye());
@@ -1070,25 +1150,17 @@ impl RigConfig {
             ),
             None => None,
         };
-        let table = match r.calibration {
+        let table = match r.calibration.filter(|_| with_table) {
             Some((file, section)) => {
-                let path = self.config_path(file);
-                let text = std::fs::read_to_string(&path).map_err(|e| {
+                let text = self.calibration_tables.get(file).ok_or_else(|| {
                     invalid(
                         &key(section, "calibration"),
-                        format!(
-                            "cannot read the calibration table {} ({}): {e}",
-                            path.display(),
-                            if file.is_relative() {
-                                "relative paths are read from the config file's folder"
-                            } else {
-                                "as given"
-                            }
-                        ),
+                        format!("{} was not read with the config", file.display()),
                     )
                 })?;
+                let name = self.config_path(file).display().to_string();
                 Some(
-                    CalibrationTable::parse_csv(&path.display().to_string(), &text)
+                    CalibrationTable::parse_csv(&name, text)
                         .map_err(|e| optics_error(e, &key(section, "calibration")))?,
                 )
             }
@@ -1107,6 +1179,7 @@ impl RigConfig {
             .ok_or_else(|| invalid("optics.lens_range", "min must be below max"))?;
         let section = r
             .calibration
+            .filter(|_| with_table)
             .map(|c| key(c.1, "calibration"))
             .or(r.layout.map(|l| format!("{}.layout", l.1)))
             .unwrap_or_else(|| "optics".into());

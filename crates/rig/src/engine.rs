@@ -72,6 +72,8 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     let r = cfg.optics.lens_range;
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;
+    // One map for the rig's one lens (per-eye maps come with a lens per eye).
+    s.optics = cfg.optics_map(None).map_err(|e| e.to_string())?;
     s.lens = LensDynamics {
         settle_time: Duration::from_secs_f64(cfg.devices.lens.model_settle_ms() / 1000.0),
         ..LensDynamics::default()
@@ -243,6 +245,9 @@ impl Engine {
             "vergence_d": s.vergence_d,
             "fixation_depth_d": s.fixation_depth.map(|d| d.0),
             "commanded_d": s.commanded_power.map(|d| d.0),
+            "commanded_focus_d": s
+                .commanded_power
+                .map(|p| self.sched.config().optics.focus_of(p).0),
             "lens_link": format!("{:?}", s.lens_link).to_lowercase(),
             "last_settle_ms": s.last_settle.map(|d| d.as_secs_f64() * 1e3),
             "shown_frame": s.shown_frame.map(|f| f.0),

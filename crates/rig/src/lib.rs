@@ -142,7 +142,7 @@ pub struct LoopStatus {
     pub method: Option<Method>,
     pub manual_focus_d: Option<f32>,
     /// The newest lens power the scheduler commanded.
-    pub commanded_focus_d: Option<f32>,
+    pub commanded_power_d: Option<f32>,
     /// The newest lens power the lens reported.
     pub lens_power_d: Option<f32>,
     pub gaze_samples: u64,
@@ -278,12 +278,23 @@ pub struct RigState {
     pub sims: OnceLock<SimDevices>,
     /// Lab Streaming Layer outlets (`[lsl] enabled = true`).
     pub lsl: Option<lsl::LslOutlets>,
+    /// Focus <-> lens command for the rig's lens: the scheduler's map (`/status`, recordings,
+    /// the WebSocket and LSL say what focus a lens power gives through it).
+    pub optics: dioptra_core::OpticsMap,
     controls: mpsc::Sender<ControlMsg>,
     started: Timestamp,
 }
 
 impl RigState {
+    /// The focus range the lens range gives through the optics map, nearest last.
+    pub fn focus_range_d(&self) -> [f32; 2] {
+        let r = self.optics.range();
+        let (a, b) = (self.optics.focus_of(r.min).0, self.optics.focus_of(r.max).0);
+        [a.min(b), a.max(b)]
+    }
+
     pub fn status_json(&self) -> serde_json::Value {
+        let focus_of = |p: f32| self.optics.focus_of(dioptra_core::Diopters(p)).0;
         let now = self.clock.now();
         let status = lock(&self.status).clone();
         let recording = lock(&self.recording)
@@ -305,9 +316,20 @@ impl RigState {
             })),
             "focus": {
                 "manual_d": status.manual_focus_d,
-                "commanded_d": status.commanded_focus_d,
+                "commanded_d": status.commanded_power_d,
+                "commanded_focus_d": status.commanded_power_d.map(focus_of),
                 "lens_d": status.lens_power_d,
+                "lens_focus_d": status.lens_power_d.map(focus_of),
                 "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
+                "focus_range_d": self.focus_range_d(),
+            },
+            "optics": {
+                "source": self.optics.source_name(),
+                "map": self.optics.describe(),
+                "magnification": status
+                    .lens_power_d
+                    .and_then(|p| self.optics.magnification(dioptra_core::Diopters(p))),
+                "eyes": "one map: this rig has one lens ([devices.lens])",
             },
             "content": self.content.status(),
             "render": self.renderer.backend_status(),
@@ -446,6 +468,12 @@ impl RigState {
                 device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
                 wall_zero_ns: self.wall_zero_ns,
                 clock: self.clock_source.into(),
+                calibration_tables: self
+                    .cfg
+                    .calibration_tables
+                    .iter()
+                    .map(|(p, t)| (p.display().to_string(), t.clone()))
+                    .collect(),
                 name: meta.name.clone(),
                 subject: meta.subject.clone(),
                 trial: meta.trial.clone(),
@@ -692,6 +720,7 @@ impl Rig {
         let (websocket, _) = broadcast::channel(1024);
         let registry = Arc::new(Registry::default());
         let state = Arc::new(RigState {
+            optics: engine.scheduler().config().optics.clone(),
             registry: registry.clone(),
             settings,
             status: Mutex::new(LoopStatus {

@@ -15,7 +15,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{lock, Clock, GazeSample, LensState, Timestamp};
+use dioptra_core::{lock, Clock, Diopters, GazeSample, LensState, OpticsMap, Timestamp};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
@@ -133,12 +133,15 @@ pub const GAZE_CHANNELS: [ChannelSpec; 24] = [
     ch("host_time", "both", "HostTime", "s"),
 ];
 
-/// The lens stream's channels (see [`LslOutlets::lens_wire`] and [`LslOutlets::lens_state`]).
-pub const LENS_CHANNELS: [ChannelSpec; 4] = [
+/// The lens stream's channels (see [`LslOutlets::lens_wire`] and [`LslOutlets::lens_state`]):
+/// lens powers, and the focus each gives through the rig's optics map.
+pub const LENS_CHANNELS: [ChannelSpec; 6] = [
     ch("event", "", "Event", "code"),
     ch("commanded_power", "", "Power", "diopters"),
     ch("actual_power", "", "Power", "diopters"),
     ch("settled", "", "Flag", "boolean"),
+    ch("commanded_focus", "", "Focus", "diopters"),
+    ch("actual_focus", "", "Focus", "diopters"),
 ];
 
 /// Lens stream `event` codes.
@@ -273,27 +276,32 @@ impl LslOutlets {
     }
 
     /// A lens command on the wire at `wire_time`.
-    pub fn lens_wire(&self, wire_time: Timestamp, commanded_d: f32) {
+    pub fn lens_wire(&self, wire_time: Timestamp, commanded: Diopters, optics: &OpticsMap) {
         self.send(LslSample::Lens {
             t: wire_time,
             values: vec![
                 LENS_EVENT_COMMANDED,
-                f64::from(commanded_d),
+                f64::from(commanded.0),
                 f64::NAN,
+                f64::NAN,
+                f64::from(optics.focus_of(commanded).0),
                 f64::NAN,
             ],
         });
     }
 
     /// A lens read-back, with the power last commanded.
-    pub fn lens_state(&self, s: &LensState, commanded_d: Option<f32>) {
+    pub fn lens_state(&self, s: &LensState, commanded: Option<Diopters>, optics: &OpticsMap) {
+        let focus = |p: Diopters| f64::from(optics.focus_of(p).0);
         self.send(LslSample::Lens {
             t: s.host_time,
             values: vec![
                 LENS_EVENT_READ_BACK,
-                commanded_d.map_or(f64::NAN, f64::from),
+                commanded.map_or(f64::NAN, |c| f64::from(c.0)),
                 f64::from(s.power.0),
                 s.settled.map_or(f64::NAN, |b| f64::from(u8::from(b))),
+                commanded.map_or(f64::NAN, focus),
+                focus(s.power),
             ],
         });
     }
@@ -682,9 +690,10 @@ mod tests {
         assert!(gaze.iter().any(|(_, v)| v[phase] == 1.0));
         // Commands on the wire and read-backs, the manual 2 D among the commands.
         assert!(lens.iter().all(|(_, v)| v.len() == LENS_CHANNELS.len()));
+        // The example rig's map is the identity: the focus channels equal the powers.
         assert!(lens
             .iter()
-            .any(|(_, v)| v[0] == LENS_EVENT_COMMANDED && v[1] == 2.0));
+            .any(|(_, v)| v[0] == LENS_EVENT_COMMANDED && v[1] == 2.0 && v[4] == 2.0));
         assert!(lens
             .iter()
             .any(|(_, v)| v[0] == LENS_EVENT_READ_BACK && v[2].is_finite()));

@@ -95,6 +95,7 @@ impl LoopHook for Recording {
                 power_d: power.0,
                 apply_at_ns: apply_at.0,
                 reason: engine::reason_name(reason),
+                focus_d: Some(self.0.optics.focus_of(power).0),
             }),
             Command::RenderFrame(req) => Rec::Render(RenderRec {
                 frame: req.frame.0,
@@ -247,7 +248,7 @@ impl LoopHook for Status {
         let mut st = lock(&self.state.status);
         match cmd {
             Command::SetLensPower { power, .. } => {
-                st.commanded_focus_d = Some(power.0);
+                st.commanded_power_d = Some(power.0);
                 st.lens_commands += 1;
             }
             Command::RenderFrame(_) => st.frames_requested += 1,
@@ -315,9 +316,14 @@ impl LoopHook for WebSocket {
                     "right": { "direction": g.right.direction, "valid": g.right.valid },
                 })
             }),
-            DeviceInput::LensState(s) => self.0.publish(
-                || json!({ "type": "lens", "host_ns": s.host_time.0, "power_d": s.power.0 }),
-            ),
+            DeviceInput::LensState(s) => self.0.publish(|| {
+                json!({
+                    "type": "lens",
+                    "host_ns": s.host_time.0,
+                    "power_d": s.power.0,
+                    "focus_d": self.0.optics.focus_of(s.power).0,
+                })
+            }),
             _ => {}
         }
     }
@@ -328,6 +334,7 @@ impl LoopHook for WebSocket {
                     "type": "focus",
                     "host_ns": now.0,
                     "commanded_d": power.0,
+                    "focus_d": self.0.optics.focus_of(power).0,
                     "reason": engine::reason_name(reason),
                 })
             });
@@ -352,7 +359,7 @@ impl LoopHook for WebSocket {
 struct Lsl {
     state: Arc<RigState>,
     /// The newest lens power commanded (the lens outlet's read-backs carry it).
-    commanded: Option<f32>,
+    commanded: Option<dioptra_core::Diopters>,
 }
 
 impl Lsl {
@@ -370,12 +377,12 @@ impl LoopHook for Lsl {
                 let st = engine.scheduler().status();
                 l.gaze(g, st.phase.as_str(), st.vergence_d);
             }
-            DeviceInput::LensState(s) => l.lens_state(s, self.commanded),
+            DeviceInput::LensState(s) => l.lens_state(s, self.commanded, &self.state.optics),
             DeviceInput::LensWire {
                 requested,
                 wire_time,
                 ..
-            } => l.lens_wire(*wire_time, requested.0),
+            } => l.lens_wire(*wire_time, *requested, &self.state.optics),
             DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
                 frame,
                 plane_index,
@@ -409,7 +416,7 @@ impl LoopHook for Lsl {
     }
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
         if let Command::SetLensPower { power, .. } = cmd {
-            self.commanded = Some(power.0);
+            self.commanded = Some(*power);
         }
     }
     fn presented(&mut self, _now: Timestamp, p: &Presented, _sink: &dyn DisplaySink) {

@@ -295,6 +295,9 @@ pub struct LensCommandRec {
     pub power_d: f32,
     pub apply_at_ns: u64,
     pub reason: String,
+    /// The focus the command gives through the rig's optics map (absent in older recordings).
+    #[serde(default)]
+    pub focus_d: Option<f32>,
 }
 
 /// A frame the scheduler asked the renderer for.
@@ -344,6 +347,10 @@ pub struct StartRec {
     /// What the host times count.
     #[serde(default)]
     pub clock: String,
+    /// The calibration tables the run read (path as the config gives it -> the file's text),
+    /// so a replay uses them as they were.
+    #[serde(default)]
+    pub calibration_tables: std::collections::BTreeMap<String, String>,
     /// The experiment's names for this recording (`POST /recording/start`).
     #[serde(default)]
     pub name: Option<String>,
@@ -410,7 +417,7 @@ const EYE_SCHEMA: &str = r#"{"type":"object","properties":{"origin_mm":{"type":"
 
 topics! {
     Start => "/start", "dioptra.Start",
-        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S},"name":{OS},"subject":{OS},"trial":{OS}"#);
+        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S},"calibration_tables":{{"type":"object"}},"name":{OS},"subject":{OS},"trial":{OS}"#);
     Gaze => "/gaze", "dioptra.Gaze",
         format!(r#""device_ns":{N},"host_receive_ns":{N},"host_ns":{N},"left":{EYE_SCHEMA},"right":{EYE_SCHEMA}"#);
     LensState => "/lens/state", "dioptra.LensState",
@@ -430,7 +437,7 @@ topics! {
     Tick => "/tick", "dioptra.Tick", "";
     Shutdown => "/shutdown", "dioptra.Shutdown", "";
     LensCommand => "/lens/command", "dioptra.LensCommand",
-        format!(r#""id":{N},"power_d":{N},"apply_at_ns":{N},"reason":{S}"#);
+        format!(r#""id":{N},"power_d":{N},"apply_at_ns":{N},"reason":{S},"focus_d":{ON}"#);
     Render => "/render", "dioptra.RenderRequest",
         format!(r#""frame":{N},"mode":{S},"method":{S},"focus_d":{ON},"display_ns":{N}"#);
     Present => "/present", "dioptra.Present",
@@ -860,6 +867,11 @@ mod tests {
                     device_tasks: serde_json::Value::Null,
                     wall_zero_ns: Some(1_764_000_000_000_000_000),
                     clock: "test".into(),
+                    calibration_tables: [(
+                        "cal.csv".to_string(),
+                        "command_d,demand_d\n".to_string(),
+                    )]
+                    .into(),
                     name: Some("vergence".into()),
                     subject: None,
                     trial: Some("3".into()),
@@ -874,6 +886,7 @@ mod tests {
                     power_d: 1.3,
                     apply_at_ns: 3,
                     reason: "fixation".into(),
+                    focus_d: Some(1.25),
                 }),
             ),
             (Timestamp(2), Rec::Sync(SyncRec::from(&ev))),

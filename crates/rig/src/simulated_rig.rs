@@ -128,7 +128,9 @@ impl SimRun {
         let start = clock.now();
         let log = Arc::new(Mutex::new(Log::default()));
         let sims = Arc::new(std::sync::OnceLock::<SimDevices>::new());
+        let optics = self.spec.optics.clone();
         let hook = TruthRecorder {
+            optics: optics.clone(),
             log: log.clone(),
             sims: sims.clone(),
             probe: self.probe,
@@ -177,9 +179,11 @@ impl SimRun {
             log.probes.push(Probe {
                 t: now,
                 lens_power,
+                eye_focus: lens_power.map(|p| optics.focus_of(p)),
                 lens_target,
                 predicted: None,
                 commanded: end.status.commanded_power,
+                commanded_focus: end.status.commanded_power.map(|c| state.optics.focus_of(c)),
                 gaze_target_d: None,
                 vergence_d: None,
                 phase: end.status.phase,
@@ -265,10 +269,16 @@ pub struct Probe {
     pub t: Timestamp,
     /// The simulated lens's true power and the power it heads to.
     pub lens_power: Option<Diopters>,
+    /// Where the eye must focus to see the display sharp at the lens's true power: through
+    /// the simulated optics ([`SimSpec::optics`]), the focus a corrected eye would have. The
+    /// identity map makes it the lens power.
+    pub eye_focus: Option<Diopters>,
     pub lens_target: Option<Diopters>,
     /// The scheduler's model of the lens.
     pub predicted: Option<Diopters>,
     pub commanded: Option<Diopters>,
+    /// The focus the rig's optics map says the command gives (what the rig aimed at).
+    pub commanded_focus: Option<Diopters>,
     /// The depth of what the viewer really looks at, and the eyes' vergence, diopters.
     pub gaze_target_d: Option<f64>,
     pub vergence_d: Option<f64>,
@@ -329,6 +339,8 @@ pub struct Run {
 
 /// The hook that records the run.
 struct TruthRecorder {
+    /// The simulated optics: lens power -> where the eye must focus.
+    optics: dioptra_core::OpticsMap,
     log: Arc<Mutex<Log>>,
     sims: Arc<std::sync::OnceLock<SimDevices>>,
     probe: Option<Duration>,
@@ -413,9 +425,13 @@ impl LoopHook for TruthRecorder {
         lock(&self.log).probes.push(Probe {
             t: now,
             lens_power,
+            eye_focus: lens_power.map(|p| self.optics.focus_of(p)),
             lens_target,
             predicted: engine.scheduler().predicted_lens_power(now),
             commanded: st.commanded_power,
+            commanded_focus: st
+                .commanded_power
+                .map(|c| engine.scheduler().config().optics.focus_of(c)),
             gaze_target_d: truth.map(|s| s.target_diopters),
             vergence_d: truth.map(|s| s.diopters),
             phase: st.phase,

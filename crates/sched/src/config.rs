@@ -4,7 +4,7 @@
 use std::str::FromStr;
 use std::time::Duration;
 
-use dioptra_core::{Diopters, EyeModel, PlaneSchedule, PowerRange};
+use dioptra_core::{Diopters, EyeModel, OpticsMap, PlaneSchedule, PowerRange};
 use thiserror::Error;
 
 use crate::depth::DepthWindow;
@@ -161,33 +161,6 @@ impl Default for FocusPolicy {
     }
 }
 
-/// Maps lens power to the focal distance it gives the display's image:
-/// `focus = offset + gain * power` (identity by default: the lens's power is the image's
-/// vergence, as in the simulated rig).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct FocusMap {
-    pub offset_d: f32,
-    pub gain: f32,
-}
-
-impl Default for FocusMap {
-    fn default() -> Self {
-        FocusMap {
-            offset_d: 0.0,
-            gain: 1.0,
-        }
-    }
-}
-
-impl FocusMap {
-    pub fn focus_of(&self, power: Diopters) -> Diopters {
-        Diopters(self.offset_d + self.gain * power.0)
-    }
-    pub fn power_for(&self, focus: Diopters) -> Diopters {
-        Diopters((focus.0 - self.offset_d) / self.gain)
-    }
-}
-
 /// Display timing for whole-frame modes (varifocal, light field). Multifocal frames follow the
 /// sync hardware's events instead.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -219,7 +192,10 @@ pub struct SchedulerConfig {
     /// The lens powers the scheduler may command (drivers enforce their own limits too).
     pub lens_range: PowerRange,
     pub lens: LensDynamics,
-    pub focus_map: FocusMap,
+    /// Focus (the accommodation demand the content asks of the eye) <-> lens command: the
+    /// rig's optics and the viewer's prescription. Made for `lens_range`; the identity by
+    /// default (the lens's power is the image's vergence, as in the simulated rig).
+    pub optics: OpticsMap,
     /// The lens is left here on shutdown.
     pub park_power: Diopters,
     pub focus: FocusPolicy,
@@ -247,16 +223,17 @@ impl SchedulerConfig {
                 .ok()
             })
             .flatten();
+        let lens_range = PowerRange {
+            min: Diopters(0.0),
+            max: Diopters(4.0),
+        };
         SchedulerConfig {
             mode,
             method: RenderMethod::default_for(mode),
             eye: EyeModel::default(),
-            lens_range: PowerRange {
-                min: Diopters(0.0),
-                max: Diopters(4.0),
-            },
+            lens_range,
             lens: LensDynamics::default(),
-            focus_map: FocusMap::default(),
+            optics: OpticsMap::identity(lens_range),
             park_power: Diopters(0.0),
             focus: FocusPolicy::default(),
             gaze: ProcessorConfig::default(),
@@ -308,13 +285,15 @@ impl SchedulerConfig {
                 "settle_time must be > 0 and damping > 0 (e.g. 15 ms, 0.7)",
             ));
         }
-        if !(self.focus_map.gain.is_finite()
-            && self.focus_map.gain != 0.0
-            && self.focus_map.offset_d.is_finite())
-        {
+        if self.optics.range() != self.lens_range {
+            let r = self.optics.range();
             return Err(ConfigError::invalid(
-                "focus_map",
-                "gain must be finite and non-zero, offset finite",
+                "optics",
+                format!(
+                    "the optics map was made for a lens range of {}..{} D, and lens_range is \
+                     {}..{} D: make the map for the range the scheduler drives",
+                    r.min.0, r.max.0, self.lens_range.min.0, self.lens_range.max.0
+                ),
             ));
         }
         let f = &self.focus;

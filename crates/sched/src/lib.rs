@@ -59,9 +59,7 @@ pub mod lenslet;
 pub mod processing;
 mod scheduler;
 
-pub use config::{
-    ConfigError, DisplayTiming, FocusMap, FocusPolicy, Mode, RenderMethod, SchedulerConfig,
-};
+pub use config::{ConfigError, DisplayTiming, FocusPolicy, Mode, RenderMethod, SchedulerConfig};
 pub use latency::{Latency, Stage};
 pub use lens::{LensDynamics, LensPredictor};
 pub use scheduler::{

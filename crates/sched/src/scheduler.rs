@@ -522,16 +522,15 @@ impl Scheduler {
         s: &GazeSample,
         out: &mut Vec<Command>,
     ) {
-        let band = self.cfg.focus.deadband_d;
         if self
             .commanded
-            .is_some_and(|c| (c.0 - target.0).abs() <= band)
+            .is_some_and(|c| self.within_deadband(c, target))
         {
             self.pending = None;
             return;
         }
         match self.pending {
-            Some((t0, p)) if (p.0 - target.0).abs() <= band => {
+            Some((t0, p)) if self.within_deadband(p, target) => {
                 let confirmed = since(now, t0) >= self.cfg.focus.confirm;
                 let spaced = self
                     .last_command_at
@@ -566,7 +565,7 @@ impl Scheduler {
                 .map(|v| Diopters(v.0.max(0.0) as f32))
         })?;
         self.fixation_depth = Some(depth);
-        let power = self.cfg.focus_map.power_for(depth);
+        let power = self.cfg.optics.command_for(depth);
         power.is_finite().then(|| self.cfg.lens_range.clamp(power))
     }
 
@@ -578,14 +577,20 @@ impl Scheduler {
         trigger: Option<&GazeSample>,
         out: &mut Vec<Command>,
     ) {
-        let band = self.cfg.focus.deadband_d;
         if self
             .commanded
-            .is_some_and(|c| (c.0 - power.0).abs() <= band)
+            .is_some_and(|c| self.within_deadband(c, power))
         {
             return;
         }
         self.command(now, power, reason, trigger, out);
+    }
+
+    /// Whether two lens commands put the image within the deadband of each other: compared
+    /// as the focus they give, since the deadband is the eye's depth of field.
+    fn within_deadband(&self, a: Diopters, b: Diopters) -> bool {
+        let o = &self.cfg.optics;
+        (o.focus_of(a).0 - o.focus_of(b).0).abs() <= self.cfg.focus.deadband_d
     }
 
     fn command(
@@ -691,7 +696,7 @@ impl Scheduler {
                 self.manual = Some(f);
                 self.pending = None;
                 self.fixation_depth = Some(f);
-                let p = self.cfg.focus_map.power_for(f);
+                let p = self.cfg.optics.command_for(f);
                 if p.is_finite() {
                     self.command(now, p, FocusReason::Manual, None, out);
                 }
@@ -745,7 +750,7 @@ impl Scheduler {
                 .power_at(display_time)
                 .or(self.commanded)
                 .unwrap_or(self.cfg.park_power);
-            (Some(self.cfg.focus_map.focus_of(p)), Some(p))
+            (Some(self.cfg.optics.focus_of(p)), Some(p))
         } else {
             (None, None)
         };

@@ -593,3 +593,72 @@ fn content_latency_runs_from_arrival_to_the_first_frame_showing_it() {
         );
     }
 }
+
+#[test]
+fn focus_becomes_a_lens_command_through_the_optics_map_and_back_for_the_render() {
+    use dioptra_core::optics_map::{Prescription, ThinLensLayout};
+    use dioptra_core::{OpticsMap, PowerRange};
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    cfg.lens_range = PowerRange::new(Diopters(-2.0), Diopters(2.0)).unwrap();
+    cfg.park_power = Diopters(0.0);
+    // Display 5 cm from the lens, an 18 D eyepiece, the pupil 2 cm behind; a -1 D myope
+    // (0 mm vertex). Looking at 2 D: shown 3 D; X = 3 / (1 - 0.06) = 3.191489; the command
+    // is 20 - 18 - X = -1.191489 D.
+    cfg.optics = OpticsMap::new(
+        Some(ThinLensLayout::new(0.05, 0.02, 18.0).unwrap()),
+        None,
+        Prescription::new(-1.0, 0.0, 0.0).unwrap(),
+        cfg.lens_range,
+    )
+    .unwrap();
+    let mut wrong = cfg.clone();
+    wrong.lens_range = PowerRange::new(Diopters(-1.0), Diopters(2.0)).unwrap();
+    let e = Scheduler::new(wrong).unwrap_err().to_string();
+    assert!(e.contains("optics") && e.contains("-2..2 D"), "{e}");
+    let mut s = Scheduler::new(cfg).unwrap();
+    // Steps `ev`, keeps its lens commands and frame requests, and renders each frame at once.
+    let (mut cmds, mut frames) = (Vec::new(), Vec::new());
+    let mut step = |s: &mut Scheduler, now: Timestamp, ev: Event| {
+        let mut out = Vec::new();
+        s.step(now, ev, &mut out);
+        cmds.extend(lens_commands(&out));
+        for c in out {
+            if let Command::RenderFrame(r) = c {
+                frames.push((r.display_time, r.focus));
+                let done = Event::RenderFinished {
+                    frame: r.frame,
+                    method: r.method,
+                    render_time: Duration::from_millis(1),
+                };
+                s.step(now, done, &mut Vec::new());
+            }
+        }
+    };
+    step(&mut s, Timestamp::ZERO, Event::Depth(split_depth()));
+    // 400 ms of fixation on the near object, a gaze sample every 2 ms and ticks between.
+    for t_us in (1000..400_000u64).step_by(1000) {
+        if t_us % 2000 == 0 {
+            let g = sample(t_us, -5.0, 0.0, 2.0, true);
+            step(&mut s, g.host_receive_time, Event::Gaze(g));
+        } else {
+            step(&mut s, Timestamp::from_micros(t_us), Event::Tick);
+        }
+    }
+    assert_eq!(cmds.len(), 1, "{cmds:?}");
+    assert!((cmds[0].0 .0 + 1.191489).abs() < 1e-5, "{cmds:?}");
+    // Frames shown once the lens model has settled render at the eye's focus, 2 D.
+    let settled: Vec<_> = frames
+        .iter()
+        .filter(|f| f.0 > Timestamp::from_millis(200))
+        .collect();
+    assert!(!settled.is_empty(), "{frames:?}");
+    for (_, f) in settled {
+        assert!((f.unwrap().0 - 2.0).abs() < 1e-3, "{f:?}");
+    }
+    let now = Timestamp::from_millis(400);
+    // Manual focus goes through the map too: 1 D is shown at 2 D, X = 2 / 0.96.
+    let mut out = Vec::new();
+    s.step(now, Event::ManualFocus(Some(Diopters(1.0))), &mut out);
+    let c = lens_commands(&out);
+    assert!((c[0].0 .0 - (2.0 - 2.0 / 0.96)).abs() < 1e-5, "{c:?}");
+}

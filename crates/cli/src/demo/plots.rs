@@ -92,8 +92,8 @@ pub fn focus(path: &Path, r: &Run, mode: Mode) -> Result<()> {
         .flat_map(|q| {
             [
                 q.gaze_target_d.map(|v| v as f32),
-                q.lens_power.map(|v| v.0),
-                q.commanded.map(|v| v.0),
+                q.eye_focus.map(|v| v.0),
+                q.commanded_focus.map(|v| v.0),
             ]
         })
         .flatten()
@@ -123,11 +123,13 @@ pub fn focus(path: &Path, r: &Run, mode: Mode) -> Result<()> {
             q.gaze_target_d
         }),
         ("vergence (truth)", GREEN, |q| q.vergence_d),
-        ("lens commanded", BLUE, |q| {
-            q.commanded.map(|v| f64::from(v.0))
+        // Lens powers as the focus each gives: the command through the rig's optics map,
+        // the simulated lens through the simulated optics (what the eye sees).
+        ("lens commanded (focus it aims at)", BLUE, |q| {
+            q.commanded_focus.map(|v| f64::from(v.0))
         }),
-        ("lens actual (simulated)", RED, |q| {
-            q.lens_power.map(|v| f64::from(v.0))
+        ("lens actual (focus it gives, simulated)", RED, |q| {
+            q.eye_focus.map(|v| f64::from(v.0))
         }),
     ];
     for (name, colour, pick) in series {

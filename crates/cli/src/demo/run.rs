@@ -236,8 +236,9 @@ fn score(r: &Run, frames: &DemoFrames, kept: &[Kept], args: &Args) -> Result<()>
             continue;
         };
         let accommodation = Diopters(p.vergence_d.unwrap_or(1.0).max(0.0) as f32);
-        // Only a varifocal display moves its lens with gaze.
-        let lens = p.lens_power.filter(|_| frames.mode() == Mode::Varifocal);
+        // Only a varifocal display moves its lens with gaze; the display's image is where
+        // the simulated lens puts it through the simulated optics.
+        let lens = p.eye_focus.filter(|_| frames.mode() == Mode::Varifocal);
         let eye_img = frames.eye_view(k, accommodation, lens)?;
         let truth = frames.ground_truth(k, accommodation, args.truth_samples)?;
         let q = metrics::quality(&eye_img, &truth, None)?;

@@ -175,7 +175,8 @@ fn measure(fault: Fault, r: &Run, seconds: f64) -> LoopResult {
         .probes
         .iter()
         .filter_map(|p| {
-            let (lens, target) = (p.lens_power?, p.gaze_target_d?);
+            // Where the simulated lens puts the display's image, through the simulated optics.
+            let (lens, target) = (p.eye_focus?, p.gaze_target_d?);
             Some((
                 p.t.saturating_since(start).as_micros() as u64,
                 (f64::from(lens.0) - target).abs(),

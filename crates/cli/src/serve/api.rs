@@ -274,21 +274,29 @@ async fn set_focus(
     b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let f: FocusBody = body(&b)?;
-    let r = s.cfg.optics.lens_range;
+    // The focus the lens range reaches through the optics map (the identity: the range).
+    let [lo, hi] = s.focus_range_d();
+    // f32 round trips through the map: a range end asked for is inside.
+    let slack = 1e-4;
     let d = match f.diopters {
         None => None,
-        Some(d) if d.is_finite() && (f64::from(r.min)..=f64::from(r.max)).contains(&d) => {
+        Some(d)
+            if d.is_finite() && (f64::from(lo) - slack..=f64::from(hi) + slack).contains(&d) =>
+        {
             Some(d as f32)
         }
         Some(d) => {
+            let r = s.cfg.optics.lens_range;
             return Err(ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
                 format!(
-                    "focus {d} D is outside the lens range {}..{} D (optics.lens_range)",
-                    r.min, r.max
+                    "focus {d} D is outside what the lens reaches, {lo}..{hi} D (optics.lens_range {}..{} D through the optics map: {})",
+                    r.min,
+                    r.max,
+                    s.optics.describe()
                 ),
             )
-            .at("diopters"))
+            .at("diopters"));
         }
     };
     s.control(Control::ManualFocus(d)).await?;

@@ -160,7 +160,7 @@ async fn the_api_rejects_malformed_requests_with_clear_errors() {
             "{\"diopters\": 9.5}",
             StatusCode::UNPROCESSABLE_ENTITY,
             Some("diopters"),
-            "outside the lens range -1..4 D",
+            "outside what the lens reaches, -1..4 D",
         ),
         (
             "POST",
@@ -868,19 +868,23 @@ async fn the_api_on_a_unix_socket_is_private() {
     assert!(!sock.exists(), "the socket is removed on shutdown");
 }
 
-#[tokio::test(start_paused = true)]
-async fn a_recorded_run_replays_to_the_same_commands() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = Daemon::start_config(sim_config(dir.path(), true))
-        .await
-        .unwrap();
+/// Runs `cfg` (recording from the start) with gaze and a manual focus of `manual` D (whose
+/// command is `power` D), calls `before_replay`, and checks that the recording replays to
+/// the same commands.
+async fn replays_to_the_same_commands(
+    cfg: RigConfig,
+    manual: f32,
+    power: f32,
+    before_replay: impl FnOnce(),
+) {
+    let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     eventually("a few gaze-driven lens commands", || {
         (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(3)).then_some(())
     })
     .await;
     // An API command is part of the run too.
-    sh.control(dioptra_rig::Control::ManualFocus(Some(2.0)))
+    sh.control(dioptra_rig::Control::ManualFocus(Some(manual)))
         .await
         .unwrap();
     sh.control(dioptra_rig::Control::ManualFocus(None))
@@ -893,6 +897,7 @@ async fn a_recorded_run_replays_to_the_same_commands() {
     d.cancel_token().cancel();
     let report = d.wait().await;
     let stats = report.recording.unwrap().unwrap();
+    before_replay();
     let r = crate::replay::replay_file(&stats.path).unwrap();
     assert!(r.complete && r.from_start);
     let lens = r
@@ -901,10 +906,13 @@ async fn a_recorded_run_replays_to_the_same_commands() {
         .filter(|c| matches!(c, crate::replay::Cmd::Lens { .. }))
         .count();
     assert!(lens >= 4, "{:?}", r.recorded);
-    assert!(r
-        .recorded
-        .iter()
-        .any(|c| matches!(c, crate::replay::Cmd::Lens { power_d, .. } if *power_d == 2.0)));
+    assert!(
+        r.recorded.iter().any(
+            |c| matches!(c, crate::replay::Cmd::Lens { power_d, .. } if (*power_d - power).abs() < 1e-5)
+        ),
+        "{:?}",
+        r.recorded
+    );
     assert!(
         r.identical(),
         "first difference {:?} after {}",
@@ -913,6 +921,32 @@ async fn a_recorded_run_replays_to_the_same_commands() {
     );
     assert_eq!(r.recorded, r.replayed);
     assert_eq!(r.verdict(), crate::replay::Verdict::Identical);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_recorded_run_replays_to_the_same_commands() {
+    let dir = tempfile::tempdir().unwrap();
+    replays_to_the_same_commands(sim_config(dir.path(), true), 2.0, 2.0, || {}).await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_run_with_a_calibration_table_replays_with_the_table_it_read() {
+    let dir = tempfile::tempdir().unwrap();
+    // A table of demand 3 - command over the lens range: 2 D is a command of 1 D.
+    let table = dir.path().join("cal.csv");
+    let rows: String = (0..=10)
+        .map(|k| {
+            let c = -1.0 + 0.5 * f64::from(k);
+            format!("{c},{}\n", 3.0 - c)
+        })
+        .collect();
+    std::fs::write(&table, format!("command_d,demand_d\n{rows}")).unwrap();
+    let mut cfg = sim_config(dir.path(), true);
+    cfg.optics.calibration = Some(table.clone());
+    let cfg = RigConfig::parse(&toml::to_string(&cfg).unwrap()).unwrap();
+    assert_eq!(cfg.optics_map(None).unwrap().source_name(), "calibration");
+    // The table is gone (or changed) by the time of the replay: the recording has it.
+    replays_to_the_same_commands(cfg, 2.0, 1.0, || std::fs::remove_file(&table).unwrap()).await;
 }
 
 #[tokio::test(start_paused = true)]
@@ -1885,5 +1919,49 @@ async fn light_field_mode_shows_streamed_content() {
     .await;
     assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
     assert_eq!(v["content"]["on_show_seq"], json!(1), "{v}");
+    stop(d).await;
+}
+
+#[tokio::test(start_paused = true)]
+async fn the_daemon_commands_its_lens_through_the_optics_map_and_says_which() {
+    let dir = tempfile::tempdir().unwrap();
+    // The example rig: nothing configured, and /status says so.
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let v = status_of(&d);
+    assert_eq!(v["optics"]["source"], "identity", "{v}");
+    assert!(v["optics"]["map"].as_str().unwrap().starts_with("identity"));
+    assert_eq!(v["focus"]["focus_range_d"], json!([-1.0, 4.0]));
+    stop(d).await;
+    // Display 25 cm from the lens, pupil 15 mm behind: 2 D by hand is X = 2 / 0.97 =
+    // 2.061856, a command of 4 - X = 1.938144 D; the lens range -1..4 D reaches focus
+    // 0 D (command 4) to 5 / 1.075 = 4.651163 D (command -1).
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.optics.layout = Some(dioptra_rig::config::Layout {
+        display_distance_m: 0.25,
+        eye_relief_m: 0.015,
+        fixed_power_d: 0.0,
+    });
+    cfg.validate().unwrap();
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 2.0}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let v = status_of(&d);
+    assert_eq!(v["optics"]["source"], "layout", "{v}");
+    let close = |x: &Value, want: f64| x.as_f64().is_some_and(|x| (x - want).abs() < 1e-4);
+    assert!(close(&v["focus"]["commanded_d"], 1.938144), "{v}");
+    assert!(close(&v["focus"]["commanded_focus_d"], 2.0), "{v}");
+    // The simulated lens settled there: the focus it gives is the one asked for.
+    let lens_focus = v["focus"]["lens_focus_d"].as_f64().unwrap();
+    assert!((lens_focus - 2.0).abs() < 0.01, "{v}");
+    assert!(v["optics"]["magnification"].as_f64().is_some(), "{v}");
+    assert!(close(&v["focus"]["focus_range_d"][1], 4.651163), "{v}");
+    // A focus beyond what the lens reaches is refused with the range it does reach.
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 5.0}").await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert!(v["error"].as_str().unwrap().contains("0..4.65"), "{v}");
     stop(d).await;
 }

@@ -25,6 +25,10 @@ use crate::config::{ConfigError, RigConfig, SyncDevice};
 pub struct SimSpec {
     /// The varifocal lens (Lens Driver 4 or dioptra lens controller simulator).
     pub lens: LensModelConfig,
+    /// Where the simulated lens sits: the display's image reaches the simulated eye through
+    /// `[optics.layout]` and the viewer's prescription (identity without a layout). A
+    /// calibration table is the rig's belief, not this: a wrong one shows as a focus error.
+    pub optics: dioptra_core::OpticsMap,
     /// The sync board simulator, with the lens it steps through the planes.
     pub board: dioptra_sim::sync_board::SyncBoardSimConfig,
     pub dlpc350: dioptra_sim::dlpc350::Dlpc350SimConfig,
@@ -57,6 +61,7 @@ impl SimSpec {
             .as_ref()
             .map_or(SyncDevice::DEFAULT_SIM_SETTLE_MS, |s| s.sim_settle_ms);
         Ok(SimSpec {
+            optics: cfg.simulated_optics(None)?,
             lens: LensModelConfig {
                 settle_time: ms(l.sim_settle_ms),
                 ..Default::default()

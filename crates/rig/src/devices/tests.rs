@@ -374,7 +374,7 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
     let r = tokio::time::timeout(Duration::from_secs(90), async {
         loop {
             let s = dioptra_core::lock(&state.status).clone();
-            if let Some(p) = s.commanded_focus_d {
+            if let Some(p) = s.commanded_power_d {
                 if powers.last() != Some(&p) {
                     powers.push(p);
                 }
