@@ -11,7 +11,10 @@ use dioptra_render::io::{read_color, read_depth, write_color, DepthUnits};
 use dioptra_render::metrics::quality;
 use dioptra_render::multifocal::{linspace, Layers};
 use dioptra_render::retina::LfView;
-use dioptra_render::{backend_on, Backend, DefocusMethod, LightFieldParams, OptimizeParams};
+use dioptra_render::spectral::SpectralTargets;
+use dioptra_render::{
+    backend_on, Backend, DefocusMethod, LightFieldParams, OptimizeParams, SpectralParams,
+};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
@@ -306,33 +309,42 @@ pub struct DecomposeArgs {
     /// Display planes, diopters.
     #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
     planes: String,
-    /// linear (Akeley), optimized (Narain), network (DeepFocus C4; its planes are fixed) or
-    /// refine (C4R: linear blending corrected by a small net; its planes are fixed).
+    /// linear (Akeley), optimized (Narain), spectral (the per-frequency least squares, after
+    /// Mercier et al. 2017: real time), network (DeepFocus C4; its planes are fixed) or refine
+    /// (C4R: linear blending corrected by a small net; its planes are fixed).
     #[arg(long, default_value = "optimized")]
     method: String,
     /// Network weights for --method network or refine (default: the shipped ones).
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// Optimized: focal samples of the target focal stack.
-    #[arg(long, default_value_t = 22)]
-    focal_samples: usize,
-    /// Optimized: range of the focal samples, diopters.
+    /// Optimized and spectral: focal samples of the target focal stack (default 22 for
+    /// optimized, the spectral default otherwise).
+    #[arg(long)]
+    focal_samples: Option<usize>,
+    /// Optimized and spectral: range of the focal samples, diopters.
     #[arg(long, default_value = "0.1,2.2")]
     focal_range: String,
-    /// Optimized: directory of target slices named focus_<q>D.<png|exr> (e.g. from `dioptra sim
-    /// scene` or `dioptra focalstack`); without it the targets are rendered with --target-method.
+    /// Optimized and spectral: directory of target slices named focus_<q>D.<png|exr> (e.g.
+    /// from `dioptra sim scene` or `dioptra focalstack`); without it the targets are rendered
+    /// with --target-method.
     #[arg(long)]
     targets: Option<PathBuf>,
-    /// Optimized: defocus method (gather or lightfield) that renders the targets when
-    /// --targets is absent.
+    /// Optimized and spectral: what renders the targets when --targets is absent: gather or
+    /// lightfield; spectral also takes slices or normalized-slices (a focal stack built in the
+    /// frequency domain from depth slices). Default: lightfield.
     #[arg(long, default_value = "lightfield")]
     target_method: String,
-    /// Optimized: lightfield views for the targets.
-    #[arg(long, default_value_t = 36)]
-    target_views: usize,
-    /// Optimized: iterations.
-    #[arg(long, default_value_t = 100)]
-    iterations: usize,
+    /// Optimized and spectral: lightfield views for the targets (default 36 for optimized,
+    /// the spectral default otherwise).
+    #[arg(long)]
+    target_views: Option<usize>,
+    /// Optimized: iterations (default 100); spectral: projected steps after the clamp
+    /// (default: the spectral default).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// Spectral: weight of the prior toward linear blending, per focal sample.
+    #[arg(long)]
+    prior: Option<f32>,
     #[command(flatten)]
     eye: EyeArgs,
     /// Output directory: layer_<p>D.<ext> per plane.
@@ -357,6 +369,65 @@ fn find_slice(dir: &Path, q: Diopters) -> Result<PathBuf> {
         q.0,
         slice_name(q, "png|exr")
     )
+}
+
+/// The target slices at `foci` from `dir`, each the input's size.
+fn read_targets(dir: &Path, foci: &[Diopters], input: &Rgbd) -> Result<Vec<RgbImage>> {
+    let t = foci
+        .iter()
+        .map(|&q| Ok(read_color(&find_slice(dir, q)?)?))
+        .collect::<Result<Vec<_>>>()?;
+    if let Some(bad) = t
+        .iter()
+        .find(|i| (i.width(), i.height()) != (input.width(), input.height()))
+    {
+        bail!(
+            "target slices are {}x{} but the input is {}x{}",
+            bad.width(),
+            bad.height(),
+            input.width(),
+            input.height()
+        );
+    }
+    Ok(t)
+}
+
+impl DecomposeArgs {
+    /// The spectral decomposition's settings: its defaults, with what was given.
+    fn spectral_params(&self) -> Result<SpectralParams> {
+        let d = SpectralParams::default();
+        let targets = match self.target_method.as_str() {
+            "slices" => SpectralTargets::Slices,
+            "normalized-slices" => SpectralTargets::NormalizedSlices,
+            m => {
+                let views = self.target_views.unwrap_or(match d.targets {
+                    SpectralTargets::Defocus(DefocusMethod::LightField(l)) => l.views,
+                    _ => 12,
+                });
+                SpectralTargets::Defocus(
+                    MethodArgs {
+                        method: m.to_string(),
+                        views,
+                        weights: None,
+                    }
+                    .method()
+                    .context(
+                        "--target-method: expected gather, lightfield, slices or normalized-slices",
+                    )?,
+                )
+            }
+        };
+        let p = SpectralParams {
+            focal_samples: self.focal_samples.unwrap_or(d.focal_samples),
+            focal_range: parse_range(&self.focal_range)?,
+            prior: self.prior.unwrap_or(d.prior),
+            iterations: self.iterations.unwrap_or(d.iterations),
+            targets,
+            ..d
+        };
+        p.check()?;
+        Ok(p)
+    }
 }
 
 pub fn layer_name(p: Diopters, ext: &str) -> String {
@@ -409,32 +480,49 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                 net.refine_decompose(&input, &linear)?
             }
         }
+        "spectral" => {
+            let params = a.spectral_params()?;
+            let foci = params.foci();
+            let (layers, rep) = match &a.targets {
+                Some(dir) => {
+                    let stack = read_targets(dir, &foci, &input)?;
+                    let plan = dioptra_render::spectral::plan_for(
+                        &eye,
+                        &planes,
+                        input.width(),
+                        input.height(),
+                        params,
+                    )?;
+                    plan.solve(&plan.targets_stack(&input, &stack)?)?
+                }
+                None => b.spectral_blend(&input, &planes, &eye, params)?,
+            };
+            println!(
+                "spectral decomposition: {} focal samples, {} projected steps{}",
+                params.focal_samples,
+                rep.iterations,
+                if rep.iterations == 0 {
+                    String::new()
+                } else if rep.refined {
+                    format!(
+                        " (objective {:.3e} -> {:.3e})",
+                        rep.objective_clamped, rep.objective_final
+                    )
+                } else {
+                    " (not kept: they did not lower the objective)".into()
+                }
+            );
+            layers
+        }
         "optimized" => {
             let (lo, hi) = parse_range(&a.focal_range)?;
-            if a.focal_samples == 0 || a.focal_samples > 200 {
+            let samples = a.focal_samples.unwrap_or(22);
+            if samples == 0 || samples > 200 {
                 bail!("--focal-samples must be 1 to 200");
             }
-            let foci = linspace(lo, hi, a.focal_samples);
+            let foci = linspace(lo, hi, samples);
             let targets = match &a.targets {
-                Some(dir) => {
-                    let t = foci
-                        .iter()
-                        .map(|&q| Ok(read_color(&find_slice(dir, q)?)?))
-                        .collect::<Result<Vec<_>>>()?;
-                    if let Some(bad) = t
-                        .iter()
-                        .find(|i| (i.width(), i.height()) != (input.width(), input.height()))
-                    {
-                        bail!(
-                            "target slices are {}x{} but the input is {}x{}",
-                            bad.width(),
-                            bad.height(),
-                            input.width(),
-                            input.height()
-                        );
-                    }
-                    t
-                }
+                Some(dir) => read_targets(dir, &foci, &input)?,
                 None => {
                     let pb = bar(foci.len(), "targets")?;
                     let t = b.defocus(
@@ -443,7 +531,7 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                         &eye,
                         MethodArgs {
                             method: a.target_method.clone(),
-                            views: a.target_views,
+                            views: a.target_views.unwrap_or(36),
                             weights: None,
                         }
                         .method()?,
@@ -453,9 +541,10 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                     t
                 }
             };
-            let pb = bar(a.iterations, "optimizing")?;
+            let iterations = a.iterations.unwrap_or(100);
+            let pb = bar(iterations, "optimizing")?;
             let params = OptimizeParams {
-                iterations: a.iterations,
+                iterations,
                 tolerance: 0.0,
             };
             let (layers, rep) = b.optimized_blend(
@@ -477,7 +566,7 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             layers
         }
         m => bail!(
-            "unknown decomposition method {m:?}: expected linear, optimized, network or refine"
+            "unknown decomposition method {m:?}: expected linear, optimized, spectral, network or refine"
         ),
     };
     ensure_dir(&a.out)?;

@@ -70,6 +70,7 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         "linear",
         "optimized",
         "optimized-gather",
+        "spectral",
         "network-c4",
         "refine-c1r",
         "refine-c4r",
@@ -142,6 +143,13 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         mean_psnr("optimized", "10 it")
     );
 
+    // The spectral decomposition (issue 42) is above linear blending.
+    assert!(
+        mean_psnr("spectral", "") > mean_psnr("linear", "") + 3.0,
+        "spectral {} vs linear {}",
+        mean_psnr("spectral", ""),
+        mean_psnr("linear", "")
+    );
     let failure = read_csv(&out.join("failure.csv"));
     let cases: std::collections::BTreeSet<&str> =
         failure.iter().map(|r| r["case"].as_str()).collect();

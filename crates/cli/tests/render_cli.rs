@@ -132,6 +132,38 @@ fn scene_render_metrics_round_trip() {
     assert!(psnr > 20.0 && psnr.is_finite(), "{text}");
     assert!(text.contains("SSIM 0."), "{text}");
 
+    // The spectral decomposition (issue 42), with its defaults and with slice targets; a bad
+    // setting is refused naming it.
+    for extra in [
+        &[][..],
+        &["--target-method", "slices", "--iterations", "3"][..],
+    ] {
+        let out = d(&format!("spectral{}", extra.len()));
+        let mut args = vec!["decompose", "--method", "spectral", "--out", &out];
+        args.extend_from_slice(extra);
+        let (ok, text) = on_scene(&dir, &args);
+        assert!(ok && text.contains("spectral decomposition"), "{text}");
+        for p in ["0.20", "0.80", "1.40", "2.00"] {
+            assert!(
+                Path::new(&format!("{out}/layer_{p}D.exr")).exists(),
+                "{text}"
+            );
+        }
+    }
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "decompose",
+            "--method",
+            "spectral",
+            "--prior",
+            "0",
+            "--out",
+            &d("bad"),
+        ],
+    );
+    assert!(!ok && text.contains("prior"), "{text}");
+
     // Clear errors: a missing file, an unreadable format, an unknown backend.
     let (ok, text) = dioptra(&[
         "render",

@@ -7,7 +7,7 @@ use crate::arch::Arch;
 use crate::direct::{self, DirectWeights};
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
-use crate::refine::{TileMap, TILE};
+use crate::tiles::{TileMap, TILE};
 use crate::weights::Weights;
 use rayon::prelude::*;
 

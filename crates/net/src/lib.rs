@@ -12,6 +12,7 @@ pub mod gpu;
 pub mod graph;
 pub mod refine;
 pub mod tasks;
+pub mod tiles;
 #[cfg(feature = "train")]
 pub mod train;
 pub mod weights;

@@ -5,7 +5,7 @@ use crate::arch::{Task, COC_NORM, DEPTH_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
-use dioptra_render::Layers;
+use dioptra_render::{eye_for, Layers};
 
 fn check_focus(q: Diopters) -> Result<(), NetError> {
     // As the renderer's: below 0 D the eye focuses beyond optical infinity.
@@ -16,12 +16,6 @@ fn check_focus(q: Diopters) -> Result<(), NetError> {
             "focus {q} is invalid: expected finite and -1000 < q < 1000 D"
         )))
     }
-}
-
-/// The eye with its field spread over `width` pixels (as the renderer does).
-pub(crate) fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, NetError> {
-    let w = u32::try_from(width).map_err(|_| input(format!("image width {width} is too large")))?;
-    Ok(eye.with_width(w).validated()?)
 }
 
 /// C3/C4 input: [R, G, B, depth / 4] per pixel.

@@ -3,7 +3,7 @@
 // transcendental values (rho per ring, cos/sin per angle) come from the host in f32 exactly as
 // the CPU computes them, so the GPU's reduced-precision exp/sin/cos cannot move a sample.
 // cells: one 8 x 8 workgroup per 8 x 8-pixel cell compacts its samples, in raster order (the
-// CPU's bucket order), into a fixed 64-entry slot: no prefix sum over the image, no atomics.
+// CPU's bucket order), into a fixed FOV_CELL^2-entry slot: no prefix sum over the image, no atomics.
 // interp: one invocation per pixel visits cells ring by ring in the CPU's order and keeps the
 // four nearest samples with the CPU's tie rule (strictly nearer replaces; equal keeps the
 // first visited). Distances are compared as exact integer squares.
@@ -19,7 +19,7 @@ struct Params {
     gh: u32,      // cells per column
 }
 
-const CELL: u32 = 8u;
+// FOV_CELL (pixels per cell side) comes from src/foveate.rs, prepended by the host.
 
 @group(0) @binding(0) var<uniform> p: Params;
 
@@ -40,18 +40,18 @@ fn mask(@builtin(global_invocation_id) g: vec3<u32>) {
     }
 }
 
-// cells: mask -> counts (one per cell), entries (64 per cell: pixel index y * w + x)
+// cells: mask -> counts (one per cell), entries (FOV_CELL^2 per cell: pixel index y * w + x)
 @group(0) @binding(1) var<storage, read> mask_in: array<u32>;
 @group(0) @binding(2) var<storage, read_write> counts: array<u32>;
 @group(0) @binding(3) var<storage, read_write> entries: array<u32>;
 
-var<workgroup> flags: array<u32, 64>;
+var<workgroup> flags: array<u32, FOV_CELL * FOV_CELL>;
 
-@compute @workgroup_size(8, 8)
+@compute @workgroup_size(FOV_CELL, FOV_CELL)
 fn cells(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) l: vec3<u32>) {
-    let x = wg.x * CELL + l.x;
-    let y = wg.y * CELL + l.y;
-    let k = l.y * CELL + l.x;
+    let x = wg.x * FOV_CELL + l.x;
+    let y = wg.y * FOV_CELL + l.y;
+    let k = l.y * FOV_CELL + l.x;
     var f = 0u;
     if x < p.w && y < p.h && mask_in[y * p.w + x] != 0u {
         f = 1u;
@@ -64,11 +64,11 @@ fn cells(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) l: 
         for (var j = 0u; j < k; j++) {
             slot += flags[j];
         }
-        entries[cell * 64u + slot] = y * p.w + x;
+        entries[cell * FOV_CELL * FOV_CELL + slot] = y * p.w + x;
     }
     if k == 63u {
         var n = 0u;
-        for (var j = 0u; j < 64u; j++) {
+        for (var j = 0u; j < FOV_CELL * FOV_CELL; j++) {
             n += flags[j];
         }
         counts[cell] = n;
@@ -95,8 +95,8 @@ fn interp(@builtin(global_invocation_id) g: vec3<u32>) {
     }
     let x = i32(g.x);
     let y = i32(g.y);
-    let cx = x / i32(CELL);
-    let cy = y / i32(CELL);
+    let cx = x / i32(FOV_CELL);
+    let cy = y / i32(FOV_CELL);
     // The four nearest, sorted by squared distance; found = how many are set.
     var bd = array<i32, 4>(0, 0, 0, 0);
     var bs = array<u32, 4>(0u, 0u, 0u, 0u);
@@ -105,8 +105,8 @@ fn interp(@builtin(global_invocation_id) g: vec3<u32>) {
     let gh = i32(p.gh);
     let last = max(gw, gh);
     for (var ring = 0; ring <= last; ring++) {
-        // Every sample in this ring or beyond is at least (ring - 1) * CELL away.
-        let lb = max(ring - 1, 0) * i32(CELL);
+        // Every sample in this ring or beyond is at least (ring - 1) * FOV_CELL away.
+        let lb = max(ring - 1, 0) * i32(FOV_CELL);
         if found == 4u && lb * lb > bd[3] { break; }
         for (var gy = cy - ring; gy <= cy + ring; gy++) {
             if gy < 0 || gy >= gh { continue; }
@@ -119,7 +119,7 @@ fn interp(@builtin(global_invocation_id) g: vec3<u32>) {
                     let cell = u32(gy * gw + gx);
                     let c = cnt[cell];
                     for (var e = 0u; e < c; e++) {
-                        let s = ent[cell * 64u + e];
+                        let s = ent[cell * FOV_CELL * FOV_CELL + e];
                         let dx = i32(s % p.w) - x;
                         let dy = i32(s / p.w) - y;
                         let d = dx * dx + dy * dy;

@@ -24,8 +24,7 @@ struct Params {
 
 @group(0) @binding(0) var<uniform> p: Params;
 
-const PREFILTER: f32 = 0.35;
-const LEVEL_SIGMA = array<f32, 7>(0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0);
+// PREFILTER and LEVEL_SIGMA come from src/lightfield.rs, prepended by the host.
 
 // prefilter: levels (nlev x 3 planes), depth -> pre (r, g, b, 0)
 @group(0) @binding(1) var<storage, read> levels: array<f32>;

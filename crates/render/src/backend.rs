@@ -10,6 +10,7 @@ use crate::lightfield::{LightFieldParams, LightFieldPrep};
 use crate::metrics::{quality, Quality};
 use crate::multifocal::{linear_blend, optimized_blend, Layers, OptimizeParams, OptimizeReport};
 use crate::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
+use crate::spectral::{plan_for, SpectralParams, SpectralReport, SpectralTargets};
 use crate::views::{synthesize_light_field, RgbdView};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::str::FromStr;
@@ -96,6 +97,29 @@ pub trait Backend: Send + Sync {
         progress: Progress,
     ) -> Result<(Layers, OptimizeReport), RenderError> {
         optimized_blend(targets, foci, planes, eye, init, params, progress)
+    }
+
+    /// Spectral decomposition of `input` onto `planes`: the per-frequency least squares of
+    /// the retinal images (see [`crate::spectral`]), its matrices built once per settings.
+    fn spectral_blend(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: SpectralParams,
+    ) -> Result<(Layers, SpectralReport), RenderError> {
+        crate::common::check_rgbd(input)?;
+        let plan = plan_for(eye, planes, input.width(), input.height(), params)?;
+        let t = match params.targets {
+            SpectralTargets::Defocus(m) => {
+                let stack = self.defocus(input, &params.foci(), eye, m, &|_| {})?;
+                plan.targets_stack(input, &stack)?
+            }
+            SpectralTargets::Slices | SpectralTargets::NormalizedSlices => {
+                plan.targets_rgbd(input)?
+            }
+        };
+        plan.solve(&t)
     }
 
     fn retina_multifocal(

@@ -4,7 +4,7 @@ use crate::error::{invalid, RenderError};
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 
 /// The eye model for an image `width` pixels wide (the field stays the same), validated.
-pub(crate) fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, RenderError> {
+pub fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, RenderError> {
     let w =
         u32::try_from(width).map_err(|_| invalid(format!("image width {width} is too large")))?;
     Ok(eye.with_width(w).validated()?)

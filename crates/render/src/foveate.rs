@@ -6,6 +6,10 @@ use crate::error::{invalid, mismatch, RenderError};
 use dioptra_core::{Plane, RgbImage};
 use rayon::prelude::*;
 
+/// Pixels per side of the cells the interpolation buckets samples in: the CPU's, the GPU
+/// host code's and (through `gpu::context::shared_wgsl`) shaders/foveate.wgsl's.
+pub(crate) const FOV_CELL: usize = 8;
+
 /// Parameters of a log-polar mask.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LogPolar {
@@ -101,7 +105,7 @@ pub fn interpolate(img: &RgbImage, mask: &Plane) -> Result<RgbImage, RenderError
         )));
     }
     // Samples bucketed on a coarse grid so the nearest four are found by growing rings.
-    const CELL: usize = 8;
+    const CELL: usize = FOV_CELL;
     let (gw, gh) = (w.div_ceil(CELL), h.div_ceil(CELL));
     let mut grid: Vec<Vec<u32>> = vec![Vec::new(); gw * gh];
     for (i, &m) in mask.data().iter().enumerate() {

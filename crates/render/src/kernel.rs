@@ -1,5 +1,6 @@
 //! Convolution kernels and the FFT convolution engine shared by the methods.
 
+use crate::fft2::fft_size;
 use dioptra_core::Plane;
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
@@ -142,23 +143,6 @@ pub fn separable_blur(p: &Plane, taps: &[f32]) -> Plane {
         }
     });
     Plane::from_vec(w, h, out).unwrap_or_else(|_| p.clone())
-}
-
-/// Smallest n >= `min` whose only prime factors are 2, 3 and 5 (fast for rustfft).
-fn fft_size(min: usize) -> usize {
-    let mut n = min.max(1);
-    loop {
-        let mut m = n;
-        for f in [2, 3, 5] {
-            while m.is_multiple_of(f) {
-                m /= f;
-            }
-        }
-        if m == 1 {
-            return n;
-        }
-        n += 1;
-    }
 }
 
 /// 2-D FFT convolution on a padded grid. Images are padded by edge replication with a margin

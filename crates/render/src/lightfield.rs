@@ -39,10 +39,12 @@ impl Default for LightFieldParams {
     }
 }
 
-/// Standard deviations (pixels) of the pyramid levels; level 0 is the image itself.
-const LEVEL_SIGMA: [f32; 7] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
-/// Gaussian sigma per pixel of spacing between adjacent views' copies of a point.
-const PREFILTER: f32 = 0.35;
+/// Standard deviations (pixels) of the pyramid levels; level 0 is the image itself. The GPU
+/// host code uses these, and every shader gets them from here (`gpu::context::shared_wgsl`).
+pub(crate) const LEVEL_SIGMA: [f32; 7] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
+/// Gaussian sigma per pixel of spacing between adjacent views' copies of a point (shared as
+/// [`LEVEL_SIGMA`] is).
+pub(crate) const PREFILTER: f32 = 0.35;
 
 /// Work shared by every focus for one input: the Gaussian pyramid and the lens samples.
 pub struct LightFieldPrep<'a> {
@@ -243,15 +245,12 @@ impl<'a> LightFieldPrep<'a> {
             self.level(l);
         });
         // A ray's prefilter depends only on its source pixel's depth and the focus, not on the
-        // view: prefilter every source pixel once per focus instead of once per ray.
+        // view: prefilter every source pixel once per focus instead of once per ray. The CoC
+        // per diopter once (coc_px evaluates a tangent per call).
+        let sigma_per_d = PREFILTER * self.eye.coc_px(Diopters(1.0), Diopters(0.0)) * spacing;
         let pre: Vec<[f32; 3]> = (0..n)
             .into_par_iter()
-            .map(|i| {
-                self.fetch(
-                    i,
-                    PREFILTER * self.eye.coc_px(Diopters(depth[i]), focus) * spacing,
-                )
-            })
+            .map(|i| self.fetch(i, sigma_per_d * (depth[i] - q).abs()))
             .collect();
         // Per-thread accumulators: [r, g, b, weight] per pixel.
         let acc = self

@@ -7,7 +7,8 @@ use dioptra_core::{Diopters, EyeModel, Plane, Rgbd};
 use dioptra_render::metrics::{depth_edge_mask, psnr};
 use dioptra_render::multifocal::{linspace, DEFAULT_PLANES};
 use dioptra_render::retina::{retina_lightfield, LfView};
-use dioptra_render::{backend, DefocusMethod, LightFieldParams, OptimizeParams};
+use dioptra_render::{backend, DefocusMethod, LightFieldParams, OptimizeParams, SpectralParams};
+use dioptra_sim::scene::failure::failure_cases;
 use dioptra_sim::scene::{
     render_light_field, render_pinhole, render_thin_lens, render_thin_lens_scrambled,
     render_thin_lens_stack, Camera, Object, Pattern, Rot, Scene, Shape, Split, Texture,
@@ -108,6 +109,122 @@ fn optimized_multifocal_beats_linear() {
         .flat_map(|i| i.channels.iter())
         .flat_map(|p| p.data())
         .all(|v| (0.0..=1.0).contains(v)));
+}
+
+/// Issue 42: the spectral decomposition with its defaults (what `decompose --method spectral`
+/// and the daemon run) is above linear blending and at least optimized blending of a gathered
+/// stack with 30 iterations (the daemon's `method = "optimized"`), on a test scene.
+#[test]
+fn spectral_multifocal_beats_linear_and_optimized_gather() {
+    let eye = EyeModel::default();
+    let cam = Camera::square(eye, 256);
+    let cpu = backend("cpu").unwrap();
+    // The second of `dioptra eval`'s test scenes (the first is the easier one for both).
+    let scene = Scene::generate(Split::Test.seed(1));
+    let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], 6).unwrap();
+    let input = Rgbd::new(color, depth).unwrap();
+    let foci = linspace(0.1, 2.2, 22);
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let gt = render_thin_lens_stack(&scene, &cam, &foci, 48, |_| {}).unwrap();
+    let linear = cpu.linear_blend(&input, &planes).unwrap();
+    let (spectral, rep) = cpu
+        .spectral_blend(&input, &planes, &eye, SpectralParams::default())
+        .unwrap();
+    assert!(rep.refined, "{rep:?}");
+    let gathered = cpu
+        .defocus(&input, &foci, &eye, DefocusMethod::Gather, &|_| {})
+        .unwrap();
+    let params = OptimizeParams {
+        iterations: 30,
+        tolerance: 0.0,
+    };
+    let (opt, _) = cpu
+        .optimized_blend(
+            &gathered,
+            &foci,
+            &planes,
+            &eye,
+            Some(&linear),
+            params,
+            &|_| {},
+        )
+        .unwrap();
+    let score = |l| {
+        let r = cpu.retina_multifocal(l, &foci, &eye).unwrap();
+        mean(
+            &r.iter()
+                .zip(&gt)
+                .map(|(a, b)| psnr(a, b, None).unwrap())
+                .collect::<Vec<_>>(),
+        )
+    };
+    let (pl, ps, po) = (score(&linear), score(&spectral), score(&opt));
+    eprintln!(
+        "multifocal linear {pl:.2} dB, spectral {ps:.2} dB, optimized-gather 30 it {po:.2} dB"
+    );
+    assert!(ps > pl + 5.0, "spectral {ps} dB vs linear {pl} dB");
+    assert!(
+        ps >= po,
+        "spectral {ps} dB vs optimized-gather 30 it {po} dB"
+    );
+    assert!(spectral
+        .images
+        .iter()
+        .flat_map(|i| i.channels.iter())
+        .flat_map(|p| p.data())
+        .all(|v| (0.0..=1.0).contains(v)));
+}
+
+/// Issue 42: the spectral decomposition is above linear blending in every failure case but
+/// one (the semi-transparent pane, whose input depth is wrong: see below), as the eye sees the
+/// layers at the case's focus, over the whole image and inside the case's failure region (at
+/// 96 px: the suite's cases, smaller).
+#[test]
+fn spectral_beats_linear_in_every_failure_case() {
+    let cpu = backend("cpu").unwrap();
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let mut below = Vec::new();
+    for case in failure_cases(96).unwrap() {
+        let eye = case.camera.eye;
+        let (color, depth) = case.input(&case.scene).unwrap();
+        let input = Rgbd::new(color, depth).unwrap();
+        let gt = render_thin_lens(&case.scene, &case.camera, case.focus, 32).unwrap();
+        let linear = cpu.linear_blend(&input, &planes).unwrap();
+        let (spectral, _) = cpu
+            .spectral_blend(&input, &planes, &eye, SpectralParams::default())
+            .unwrap();
+        let seen = |l| {
+            cpu.retina_multifocal(l, &[case.focus], &eye)
+                .unwrap()
+                .remove(0)
+        };
+        let (a, b) = (seen(&linear), seen(&spectral));
+        let (pl, ps) = (psnr(&a, &gt, None).unwrap(), psnr(&b, &gt, None).unwrap());
+        let (rl, rs) = (
+            psnr(&a, &gt, Some(&case.mask)).unwrap(),
+            psnr(&b, &gt, Some(&case.mask)).unwrap(),
+        );
+        eprintln!(
+            "{}: linear {pl:.2} / region {rl:.2} dB, spectral {ps:.2} / region {rs:.2} dB",
+            case.name
+        );
+        if case.name == "semi-transparent" {
+            // The known exception: the input holds the pane's depth (3 D) for the wall seen
+            // through it, so the stack spectral fits is blurred where the truth is sharp, and
+            // fitting it faithfully is worse than linear blending's (also wrong) 2 D plane:
+            // measured 27.0 against 28.7 dB. Guard that it stays near linear.
+            assert!(
+                ps > pl - 2.5,
+                "{}: spectral {ps} dB vs linear {pl} dB",
+                case.name
+            );
+            continue;
+        }
+        if ps <= pl || rs <= rl {
+            below.push(case.name);
+        }
+    }
+    assert!(below.is_empty(), "spectral at or below linear in {below:?}");
 }
 
 #[test]

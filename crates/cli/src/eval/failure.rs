@@ -95,6 +95,7 @@ pub fn suite_methods(optimized_iterations: usize, c1_rate: usize) -> Vec<Method>
         Method::Optimized {
             iterations: optimized_iterations,
         },
+        Method::Spectral,
         Method::NetworkC4,
         Method::RefineC1,
         Method::RefineC4,

@@ -7,7 +7,9 @@ use dioptra_net::gpu::GpuNet;
 use dioptra_net::refine::{classical_defocus, Refined};
 use dioptra_net::{Arch, Classical, CpuNet, Task, Weights};
 use dioptra_render::multifocal::DEFAULT_PLANES;
-use dioptra_render::{Backend, DefocusMethod, Layers, LightFieldParams, OptimizeParams};
+use dioptra_render::{
+    Backend, DefocusMethod, Layers, LightFieldParams, OptimizeParams, SpectralParams,
+};
 
 /// One method with one setting.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -32,6 +34,9 @@ pub enum Method {
     OptimizedGather {
         iterations: usize,
     },
+    /// The spectral decomposition (per-frequency least squares; the daemon's `method =
+    /// "spectral"`) with its default settings, its time including its target stack.
+    Spectral,
     NetworkC4,
     /// C1R: the classical render its weights name, refined on the error map's tiles.
     RefineC1,
@@ -48,6 +53,7 @@ impl Method {
             Method::Linear => "linear",
             Method::Optimized { .. } => "optimized",
             Method::OptimizedGather { .. } => "optimized-gather",
+            Method::Spectral => "spectral",
             Method::NetworkC4 => "network-c4",
             Method::RefineC1 => "refine-c1r",
             Method::RefineC4 => "refine-c4r",
@@ -56,7 +62,11 @@ impl Method {
 
     pub fn setting(&self) -> String {
         match self {
-            Method::Gather | Method::Linear | Method::RefineC1 | Method::RefineC4 => String::new(),
+            Method::Gather
+            | Method::Linear
+            | Method::Spectral
+            | Method::RefineC1
+            | Method::RefineC4 => String::new(),
             Method::LightField { views } => format!("{views} views"),
             Method::NetworkC1 { rate } => format!("r={rate}"),
             Method::Optimized { iterations } | Method::OptimizedGather { iterations } => {
@@ -84,6 +94,7 @@ impl Method {
             Method::Linear
                 | Method::Optimized { .. }
                 | Method::OptimizedGather { .. }
+                | Method::Spectral
                 | Method::NetworkC4
                 | Method::RefineC4
         )
@@ -366,6 +377,9 @@ pub fn decompose(
                 )?
                 .0)
         }
+        Method::Spectral => Ok(backend
+            .spectral_blend(input, &planes, eye, SpectralParams::default())?
+            .0),
         Method::NetworkC4 => {
             let net = net.ok_or_else(|| anyhow!("network-c4 needs a net"))?;
             net.decompose(input)

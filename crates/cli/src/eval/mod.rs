@@ -155,6 +155,7 @@ fn settings(a: &Args) -> Result<Settings> {
             Method::Optimized { iterations: 1 },
             Method::Optimized { iterations: 10 },
             Method::OptimizedGather { iterations: 10 },
+            Method::Spectral,
             Method::NetworkC4,
             Method::RefineC1,
             Method::RefineC4,
@@ -169,6 +170,7 @@ fn settings(a: &Args) -> Result<Settings> {
         m.extend([1, 10, 100].map(|iterations| Method::Optimized { iterations }));
         // 30: the daemon's setting.
         m.extend([10, 30].map(|iterations| Method::OptimizedGather { iterations }));
+        m.push(Method::Spectral);
         m.push(Method::NetworkC4);
         m.push(Method::RefineC4);
         m
@@ -448,7 +450,9 @@ fn speed_report(
          tests, and starts from linear blending, whose time is not included: a best case no rig \
          has; `optimized-gather` fits what a rig can make, a focal stack gathered from the RGB-D \
          at those foci, as the daemon's `method = \"optimized\"` does with 30 iterations, and its \
-         time includes the stack and the linear start). PSNR and SSIM are on \
+         time includes the stack and the linear start; `spectral` solves the least squares per \
+         spatial frequency with its default settings (a 12-view light-field stack at 6 foci, \
+         5 projected steps; crates/render/README.md), its time including that stack). PSNR and SSIM are on \
          sRGB-encoded images. Networks are scored with the shipped weights (crates/net/weights); a setting with none (another interleave rate) runs the same architecture with random weights and is timed only. On the GPU backend the networks run the same weights through dioptra-net's wgpu inference.\n",
         (0..plan.scenes).map(|s| dioptra_sim::scene::Split::Test.seed(s as u64).to_string()).collect::<Vec<_>>().join(", "),
         plan.sizes,

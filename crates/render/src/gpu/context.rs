@@ -343,7 +343,7 @@ impl GpuContext {
                 .or_insert_with(|| {
                     device.create_shader_module(wgpu::ShaderModuleDescriptor {
                         label: None,
-                        source: wgpu::ShaderSource::Wgsl(src.into()),
+                        source: wgpu::ShaderSource::Wgsl(with_shared(src).into()),
                     })
                 })
                 .clone();
@@ -531,6 +531,24 @@ impl GpuContext {
             pool: self.pool.clone(),
         })
     }
+}
+
+/// The constants the CPU twins and the shaders share, as WGSL, from their one definition in
+/// the CPU code: the shader files use them and never define them.
+pub(crate) fn shared_wgsl() -> String {
+    use crate::foveate::FOV_CELL;
+    use crate::lightfield::{LEVEL_SIGMA, PREFILTER};
+    let sigma: Vec<String> = LEVEL_SIGMA.iter().map(|s| format!("{s:?}")).collect();
+    format!(
+        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\n",
+        LEVEL_SIGMA.len(),
+        sigma.join(", ")
+    )
+}
+
+/// A shader file of this crate with the shared constants before it.
+fn with_shared(src: &str) -> String {
+    format!("{}\n{src}", shared_wgsl())
 }
 
 fn check_limits(have: &wgpu::Limits) -> Result<(), GpuError> {
@@ -948,5 +966,35 @@ impl Readbacks {
             .get(r.0)
             .map(|v| bytemuck::pod_collect_to_vec::<u8, f32>(v))
             .unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shared_constants_are_defined_once() {
+        // The shaders get PREFILTER, LEVEL_SIGMA and FOV_CELL from the CPU code: a file that
+        // defined its own copy would not compile with the prelude (a redefinition), and one
+        // that used a literal instead would drift; both are refused here.
+        let prelude = shared_wgsl();
+        assert!(
+            prelude.contains("const PREFILTER: f32 = 0.35;"),
+            "{prelude}"
+        );
+        assert!(prelude.contains("array<f32, 7>(0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)"));
+        assert!(prelude.contains("const FOV_CELL: u32 = 8u;"));
+        for k in Kernel::ALL {
+            let (src, entry, _, _) = k.spec();
+            for name in ["PREFILTER", "LEVEL_SIGMA", "FOV_CELL"] {
+                assert!(
+                    !src.contains(&format!("const {name}")),
+                    "{entry}'s shader defines {name} itself"
+                );
+            }
+        }
+        assert!(LIGHTFIELD_WGSL.contains("PREFILTER * coc"));
+        assert!(FOVEATE_WGSL.contains("@workgroup_size(FOV_CELL, FOV_CELL)"));
     }
 }

@@ -11,8 +11,9 @@ use crate::backend::Progress;
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::foveate::LogPolar;
+use crate::foveate::FOV_CELL;
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
-use crate::lightfield::{halton_disk, LightFieldParams};
+use crate::lightfield::{halton_disk, LightFieldParams, LEVEL_SIGMA, PREFILTER};
 use crate::metrics::Quality;
 use crate::multifocal::{
     check_optimize_inputs, check_planes, Layers, OptimizeParams, OptimizeReport,
@@ -509,11 +510,6 @@ pub(super) fn quality(
     ))
 }
 
-/// Standard deviations of the pyramid levels and the prefilter per view spacing: the CPU's
-/// constants in src/lightfield.rs (private there), repeated in shaders/lightfield.wgsl.
-const LEVEL_SIGMA: [f32; 7] = [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0];
-const PREFILTER: f32 = 0.35;
-
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct LfP {
@@ -998,9 +994,6 @@ struct FovP {
     gh: u32,
 }
 
-/// Pixels per side of the interpolation search's cells (the CPU's `CELL`).
-const FOV_CELL: u32 = 8;
-
 /// The log-polar tables: rho per ring and (cos, sin) per angle, computed in f32 exactly as
 /// the CPU's mask does (so the GPU's reduced-precision transcendentals never move a sample),
 /// after the CPU's parameter checks.
@@ -1069,7 +1062,8 @@ fn foveate_frame(ctx: &GpuContext, img: &RgbImage, from: MaskFrom) -> Out<(RgbIm
     }
     let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
     let n = (w * h) as u64;
-    let (gw, gh) = (wu.div_ceil(FOV_CELL), hu.div_ceil(FOV_CELL));
+    let cell = FOV_CELL as u32;
+    let (gw, gh) = (wu.div_ceil(cell), hu.div_ceil(cell));
     let mut p = FovP {
         w: wu,
         h: hu,
@@ -1117,7 +1111,7 @@ fn foveate_frame(ctx: &GpuContext, img: &RgbImage, from: MaskFrom) -> Out<(RgbIm
     };
     let ncell = (gw * gh) as u64;
     let counts = f.scratch("cell counts", 4 * ncell)?;
-    let entries = f.scratch("cell samples", 4 * 64 * ncell)?;
+    let entries = f.scratch("cell samples", 4 * (FOV_CELL * FOV_CELL) as u64 * ncell)?;
     f.dispatch(
         Kernel::FovCells,
         &p,

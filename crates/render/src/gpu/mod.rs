@@ -19,6 +19,7 @@ use crate::foveate::LogPolar;
 use crate::metrics::Quality;
 use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
+use crate::spectral::{SpectralParams, SpectralReport};
 use crate::views::RgbdView;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -214,6 +215,19 @@ impl Backend for Gpu {
             images: kernels::on_host(out)?,
         };
         Ok((layers, report))
+    }
+
+    fn spectral_blend(
+        &self,
+        _input: &Rgbd,
+        _planes: &[Diopters],
+        _eye: &EyeModel,
+        _params: SpectralParams,
+    ) -> Result<(Layers, SpectralReport), RenderError> {
+        Err(RenderError::Unsupported {
+            backend: "gpu",
+            method: "spectral blending",
+        })
     }
 
     fn retina_multifocal(
