@@ -495,6 +495,10 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                     )?;
                     plan.solve(&plan.targets_stack(&input, &stack)?)?
                 }
+                None if b.name() == "gpu" => {
+                    eprintln!("dioptra: spectral has no GPU kernel yet: running it on the CPU");
+                    dioptra_render::Cpu.spectral_blend(&input, &planes, &eye, params)?
+                }
                 None => b.spectral_blend(&input, &planes, &eye, params)?,
             };
             println!(

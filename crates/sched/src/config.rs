@@ -61,6 +61,9 @@ pub enum RenderMethod {
     Linear,
     /// Optimized blending into layers (multifocal).
     Optimized,
+    /// The spectral decomposition into layers: the least squares solved per spatial frequency
+    /// (multifocal).
+    Spectral,
     /// Light-field views resampled into elemental images (light field).
     Views,
     /// A classical result corrected by a refinement net (varifocal: C1R on its classical
@@ -69,12 +72,13 @@ pub enum RenderMethod {
 }
 
 impl RenderMethod {
-    pub const ALL: [RenderMethod; 7] = [
+    pub const ALL: [RenderMethod; 8] = [
         RenderMethod::Gather,
         RenderMethod::LightFieldDefocus,
         RenderMethod::Network,
         RenderMethod::Linear,
         RenderMethod::Optimized,
+        RenderMethod::Spectral,
         RenderMethod::Views,
         RenderMethod::Refine,
     ];
@@ -86,6 +90,7 @@ impl RenderMethod {
             RenderMethod::Network => "network",
             RenderMethod::Linear => "linear",
             RenderMethod::Optimized => "optimized",
+            RenderMethod::Spectral => "spectral",
             RenderMethod::Views => "views",
             RenderMethod::Refine => "refine",
         }
@@ -96,7 +101,7 @@ impl RenderMethod {
         use RenderMethod::*;
         match mode {
             Mode::Varifocal => matches!(self, Gather | LightFieldDefocus | Network | Refine),
-            Mode::Multifocal => matches!(self, Linear | Optimized | Network | Refine),
+            Mode::Multifocal => matches!(self, Linear | Optimized | Spectral | Network | Refine),
             Mode::LightField => matches!(self, Views | Network),
         }
     }

@@ -30,7 +30,7 @@ use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
 use dioptra_render::views::RgbdView;
-use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError};
+use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
 use crate::config::{Method, Mode, RenderBackend, RigConfig};
 use crate::content::ContentFrame;
@@ -436,6 +436,16 @@ impl RgbdRenderer {
             on_host(self.net_decompose(input)?)
         } else if method.0 == RenderMethod::Refine {
             on_host(self.refine_decompose(input)?)
+        } else if method.0 == RenderMethod::Spectral {
+            // Its default settings (dioptra_render::spectral: a 12-view light-field stack at
+            // 6 foci), the plan built once for the rig's size. No GPU kernel yet: on a GPU rig
+            // it runs on the CPU, said in /status (`spectral_on`).
+            let params = SpectralParams::default();
+            on_host(
+                Cpu.spectral_blend(input, &self.planes, &self.eye, params)?
+                    .0
+                    .images,
+            )
         } else if method.0 == RenderMethod::Optimized {
             // Targets (a gathered focal stack), the linear start and the iterations all on
             // the rig's backend; on the GPU the layers stay there.
@@ -752,6 +762,8 @@ impl Compute {
             "gpu_time_us": gpu_time,
             "network": nets_of(RenderMethod::Network),
             "refine": nets_of(RenderMethod::Refine),
+            // The spectral decomposition has no GPU kernel yet.
+            "spectral_on": "cpu",
             "refine_tiles_run": self.refine_tiles,
         })
     }
