@@ -6,7 +6,8 @@
 //!   simulated HID trackers), [`photodiode`] (the serial-line photodiode). Byte-speaking
 //!   devices run on any link through [`serve::serve`].
 //! - Shared models: [`lens_model`] (tunable-lens physics), [`light`] (light on a photodiode and
-//!   its comparator), [`protocol_device`] (the device side of dioptra-protocol), [`tokio_clock`].
+//!   its comparator), [`panel`] (a display panel's light: latency, persistence, dropped
+//!   refreshes), [`protocol_device`] (the device side of dioptra-protocol), [`tokio_clock`].
 //! - Ground truth: [`scene`] (procedural scenes, pinhole, thin-lens and light-field renders).
 
 pub mod dlpc350;
@@ -15,6 +16,7 @@ pub mod lens_controller;
 pub mod lens_model;
 pub mod light;
 pub mod optotune;
+pub mod panel;
 pub mod photodiode;
 pub mod protocol_device;
 pub mod scene;

@@ -660,3 +660,136 @@ async fn through_the_optics_the_eye_sees_what_it_looks_at_and_a_wrong_calibratio
         "{wrong} D with a table 0.5 D off"
     );
 }
+
+/// The example rig in varifocal mode with a simulated photodiode over a marker patch toggled
+/// every frame, `edit` applied to its config text.
+fn photodiode_rig(photodiode: &str, display: &str) -> RigConfig {
+    config(Mode::Varifocal, |t| {
+        let t = t.replace(
+            "png_every = 0 ",
+            &format!(
+                "marker_patch = {{ corner = \"top-left\", size = 8 }}\n{display}\npng_every = 0 "
+            ),
+        );
+        format!("{t}\n[devices.photodiode]\n{photodiode}\n")
+    })
+}
+
+/// Runs `cfg` for `seconds` with the patch held black for the first half second, recording
+/// what the photon match needs; returns the run and the match.
+async fn photons(cfg: RigConfig, seconds: f64) -> (Run, dioptra_rig::photons::PhotonReport) {
+    use dioptra_rig::photons::{analyse, PhotonLog, PhotonRecorder};
+    let log = Arc::new(std::sync::Mutex::new(PhotonLog {
+        recording: true,
+        ..Default::default()
+    }));
+    let mut opts = SimRun::new(cfg, Duration::from_secs_f64(seconds)).unwrap();
+    opts.spec.gaze_scene = near_far(400);
+    opts.spec.gaze.blink_rate_hz = 0.0;
+    opts.hooks.push(Box::new(PhotonRecorder::new(log.clone())));
+    opts.actions = vec![
+        (Duration::ZERO, Action::HoldMarker(true)),
+        (Duration::from_millis(500), Action::HoldMarker(false)),
+    ];
+    let r = go(opts, Duration::from_millis(4)).await;
+    let log = std::mem::take(&mut *log.lock().unwrap());
+    // Refreshes are judged up to a quarter second before the rig stopped.
+    let until = Timestamp::from_millis((seconds * 1000.0) as u64 - 250);
+    let report = analyse(&log, until, Duration::from_millis(250)).unwrap();
+    (r, report)
+}
+
+const SERIAL_LINE: &str = "driver = \"serial-line\"\nport = \"sim\"";
+/// The input of the example rig's simulated sync board.
+const ON_THE_SYNC_BOARD: &str = "driver = \"sync\"";
+
+#[tokio::test(start_paused = true)]
+async fn the_panels_photon_latency_is_recovered_within_0_2_ms() {
+    for (photodiode, persistence) in [
+        (SERIAL_LINE, ""),
+        (ON_THE_SYNC_BOARD, ""),
+        (SERIAL_LINE, "sim_persistence_ms = 2.0"),
+    ] {
+        // Not the 4 ms default the scheduler assumes, to show the figure is the panel's.
+        let display = format!("sim_photon_latency_ms = 7.3\n{persistence}");
+        let (_, r) = photons(photodiode_rig(photodiode, &display), 3.0).await;
+        let n = r.vsync_to_photons.len();
+        // 2.5 s at 60 Hz toggled every frame: 150 changes; a pulsed panel's dark ones have
+        // no edge of their own.
+        let least = if persistence.is_empty() { 140 } else { 70 };
+        assert!(n >= least, "{photodiode} {persistence}: {n} matched");
+        for d in &r.vsync_to_photons {
+            let off_us = (d.as_secs_f64() * 1e6 - 7_300.0).abs();
+            assert!(off_us <= 200.0, "{photodiode} {persistence}: {d:?}");
+        }
+        // Judged from the end of the hold (0.5 s) to a quarter second before the stop: 135.
+        assert!(
+            r.refreshes_checked >= 130,
+            "{photodiode} {persistence}: {} refreshes judged",
+            r.refreshes_checked
+        );
+        assert!(r.refreshes_wrong.is_empty(), "{:?}", r.refreshes_wrong);
+        assert_eq!(r.edges_lost, 0);
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_dropped_frame_in_the_simulated_display_is_reported_as_one() {
+    let cfg = photodiode_rig(SERIAL_LINE, "sim_dropped_refreshes = [100]");
+    let (run, r) = photons(cfg, 3.0).await;
+    let panel = run.state.sims.get().unwrap().panel.clone().unwrap();
+    let dropped: Vec<(Timestamp, u64)> = panel
+        .lock()
+        .refreshes()
+        .filter(|f| f.dropped)
+        .map(|f| (f.vsync, f.frame))
+        .collect();
+    assert_eq!(dropped.len(), 1);
+    assert_eq!(r.refreshes_wrong, dropped, "{r:?}");
+    assert_eq!(r.frames_never_seen.len(), 1);
+    // The latency is still the panel's own around it.
+    assert!(r
+        .vsync_to_photons
+        .iter()
+        .all(|d| (d.as_secs_f64() * 1e6 - 4_000.0).abs() <= 200.0));
+}
+
+#[tokio::test(start_paused = true)]
+async fn gaze_to_photons_is_the_host_path_plus_render_plus_the_display_latency() {
+    let (run, r) = photons(photodiode_rig(SERIAL_LINE, ""), 4.0).await;
+    let g = &r.gaze_to_photons;
+    // A fixation change every 400 ms after the hold: most of them drive the lens.
+    assert!(g.len() >= 5, "{} samples", g.len());
+    let period = Duration::from_secs_f64(1.0 / 60.0);
+    let panel = run.state.sims.get().unwrap().panel.clone().unwrap();
+    let panel = panel.lock();
+    for s in g {
+        // The parts: the loop's own path (no wait in simulated time), then the next frame
+        // request and its one-frame render lead, then the display's 4 ms.
+        assert!(s.gaze_to_command < Duration::from_micros(100), "{s:?}");
+        // The frame requested a render lead (one period) before its vsync, at the first
+        // request after the command; tokio's timers fire on the millisecond, so a request can
+        // come up to 1 ms late and its frame then has less than a full lead.
+        assert!(
+            s.command_to_vsync + Duration::from_millis(1) >= period
+                && s.command_to_vsync <= 2 * period,
+            "{s:?}"
+        );
+        let sum = s.gaze_to_command + s.command_to_vsync + Duration::from_millis(4);
+        let off = s.total.as_secs_f64() - sum.as_secs_f64();
+        assert!(off.abs() <= 200e-6, "{s:?}: {off:e} s off");
+        // And against the panel's own record of when that frame lit up (what the photodiode
+        // saw went through its clock and the driver's mapping; this did not).
+        let lit = panel
+            .refreshes()
+            .find(|f| f.frame == s.frame && !f.dropped)
+            .unwrap()
+            .light_at;
+        let truth = lit.saturating_since(s.gaze_received);
+        let off = s.total.as_secs_f64() - truth.as_secs_f64();
+        assert!(
+            off.abs() <= 200e-6,
+            "{s:?}: {off:e} s from the panel's record"
+        );
+    }
+}

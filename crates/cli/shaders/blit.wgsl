@@ -51,3 +51,16 @@ fn fs_buffer(in: VsOut) -> @location(0) vec4<f32> {
     // As the texture path packs it: clamped to [0, 1], NaN black.
     return vec4<f32>(select(vec3<f32>(0.0), clamp(c, vec3<f32>(0.0), vec3<f32>(1.0)), c == c), 1.0);
 }
+
+// The marker patch, drawn over the frame within a scissor rectangle in its corner
+// (MarkerDraw::rect): full white or black for the photodiode taped over it. The CPU twin is
+// MarkerDraw::paint, which the headless sink uses.
+@fragment
+fn fs_white(in: VsOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(1.0, 1.0, 1.0, 1.0);
+}
+
+@fragment
+fn fs_black(in: VsOut) -> @location(0) vec4<f32> {
+    return vec4<f32>(0.0, 0.0, 0.0, 1.0);
+}

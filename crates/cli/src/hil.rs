@@ -10,9 +10,8 @@
 //! 2. command to settled: `--trials` lens steps between a quarter and three quarters of
 //!    `optics.lens_range`, commanded as manual focus through the loop, each timed from the
 //!    command to the first readback within 0.05 D (and not reporting "moving"). Readbacks
-//!    come every `devices.lens.poll_ms`, so these figures are quantised to it. The dioptra
-//!    sync board has no photodiode input, so there is no optical measurement of settling;
-//!    the summary says so;
+//!    come every `devices.lens.poll_ms`, so these figures are quantised to it (a photodiode
+//!    watches the display, not the lens: settling is the lens's own readback);
 //! 3. sub-frame timing (when `devices.sync` is configured): the rig is switched to multifocal
 //!    mode and the sequencer's sub-frame start times (device clock) are compared with the
 //!    programmed period `1 / optics.subframe_hz`, the plane order with the programmed
@@ -23,6 +22,14 @@
 //!    to its being ready, and to the display time of the first frame showing it, from the
 //!    rig's own latency histograms. With `source = "stream"` the harness plays the application:
 //!    `--trials` frames through the stream's `PUT /frame` path at `display.frame_hz`.
+//! 5. in photons (when `[devices.photodiode]` is configured, during phase 1): the marker patch
+//!    is held black, then toggled as `display.marker_patch.toggle_on` says while the rig follows
+//!    gaze, and the photodiode's edges are matched to the presents ([`dioptra_rig::photons`]):
+//!    `vsync to photons` (the display's latency), `frame presented to photons`, `gaze sample to
+//!    photons` (a gaze sample received, through the lens command it caused and the first frame
+//!    rendered for the new focus, to that frame's light), and the refreshes that showed another
+//!    frame than their own (dropped or late frames, seen optically). Without a photodiode the
+//!    summary says there is no optical measurement.
 //!
 //! It writes `summary.txt` and `summary.json` (HdrHistogram percentiles) and one PNG histogram
 //! per measurement to `--out`. With simulated devices every output says SIMULATED.
@@ -41,6 +48,7 @@ use dioptra_rig::config::{Mode, Port, RigConfig, SyncDriver};
 use dioptra_rig::devices::{DeviceInput, State};
 use dioptra_rig::engine::Command;
 use dioptra_rig::executor::LoopHook;
+use dioptra_rig::photons::{PhotonLog, PhotonRecorder, PhotonReport};
 use dioptra_rig::{Control, Rig, RigSetup};
 
 #[derive(clap::Args, Debug)]
@@ -103,8 +111,20 @@ fn devices_of(cfg: &RigConfig) -> Vec<(&'static str, &'static str, Port)> {
     if let Some(s) = &d.sync {
         v.push(("sync", "devices.sync.port", s.port.clone()));
     }
+    if let Some(port) = d.photodiode.as_ref().and_then(|p| p.port.clone()) {
+        v.push(("photodiode", "devices.photodiode.port", port));
+    }
     v
 }
+
+/// How long the marker patch is held black before the photon measurement (the anchor needs
+/// the light off long enough that its first edge is the first white frame's).
+fn photon_hold(frame_hz: f64) -> Duration {
+    Duration::from_millis(300).max(Duration::from_secs_f64(4.0 / frame_hz))
+}
+
+/// A match searches this far after the first white present for its light.
+const MAX_PHOTON_LATENCY: Duration = Duration::from_millis(250);
 
 pub fn run(args: Args) -> Result<()> {
     if !(1..=100_000).contains(&args.trials) {
@@ -161,8 +181,15 @@ pub fn run(args: Args) -> Result<()> {
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     // The runtime `dioptra serve` runs the rig on.
     let rt = crate::serve::runtime()?;
-    let measures = rt.block_on(measure(&cfg, &args, &devices))?;
-    write_outputs(&args.out, &args.config, &banner, all_sim, &measures)?;
+    let (measures, optical) = rt.block_on(measure(&cfg, &args, &devices))?;
+    write_outputs(
+        &args.out,
+        &args.config,
+        &banner,
+        all_sim,
+        &measures,
+        &optical,
+    )?;
     println!(
         "\nwrote {}: summary.txt, summary.json, {}",
         args.out.display(),
@@ -172,7 +199,21 @@ pub fn run(args: Args) -> Result<()> {
             .collect::<Vec<_>>()
             .join(", ")
     );
+    if let Optical::Failed(why) = optical {
+        bail!(
+            "the photodiode was configured and its light could not be matched to the frames: {why}"
+        );
+    }
     Ok(())
+}
+
+/// What the photon measurement found.
+enum Optical {
+    /// No photodiode is configured.
+    NoPhotodiode,
+    Measured(PhotonReport),
+    /// It ran and could not match the light to the frames: why.
+    Failed(String),
 }
 
 /// What the hook forwards from the rig's loop to the harness.
@@ -230,6 +271,8 @@ async fn push_stream_frames(
     };
     let mut accepted = 0;
     let mut tick = tokio::time::interval(Duration::from_secs_f64(1.0 / hz));
+    // An application late with one frame sends the next a period later, not two at once.
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     for i in 0..n {
         tick.tick().await;
         let near = if i % 2 == 0 { 0.5f32 } else { 2.0 };
@@ -276,10 +319,17 @@ async fn measure(
     cfg: &RigConfig,
     args: &Args,
     devices: &[(&'static str, &'static str, Port)],
-) -> Result<Vec<Measure>> {
+) -> Result<(Vec<Measure>, Optical)> {
     let (tx, mut rx) = mpsc::unbounded_channel::<Seen>();
     let mut setup = RigSetup::new(cfg.clone());
     setup.hooks.push(Box::new(Forward(tx)));
+    let photodiode = cfg.devices.photodiode.is_some();
+    let photon_log = std::sync::Arc::new(std::sync::Mutex::new(PhotonLog::default()));
+    if photodiode {
+        setup
+            .hooks
+            .push(Box::new(PhotonRecorder::new(photon_log.clone())));
+    }
     let rig = Rig::start(setup)
         .await
         .map_err(|e| anyhow::anyhow!("cannot start the rig: {e}"))?;
@@ -334,6 +384,14 @@ async fn measure(
         "sub-frame start error against the programmed period",
     );
 
+    // The photodiode watches phase 1: the patch held black first, so that its first edge
+    // anchors the match.
+    if photodiode {
+        state.marker.hold_black(true);
+        tokio::time::sleep(photon_hold(cfg.display.frame_hz)).await;
+        dioptra_core::lock(&photon_log).recording = true;
+        state.marker.hold_black(false);
+    }
     // 1. Gaze to lens command written: the rig follows gaze as `dioptra serve` does.
     let phase_limit = Duration::from_secs(30.max(args.trials as u64 / 4).min(300));
     let phase_end = tokio::time::Instant::now() + phase_limit;
@@ -371,6 +429,31 @@ async fn measure(
         "{gaze_samples} gaze samples in; {gaze_commands} lens commands caused by a gaze sample, each timed (wall clock) from the gaze task receiving the sample from its driver to the lens driver having written the command, through the rig's loop and scheduler as `dioptra serve` runs them"
     );
     println!("gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples)");
+    let optical = if photodiode {
+        let until = state.clock.now();
+        let log = std::mem::take(&mut *dioptra_core::lock(&photon_log));
+        match dioptra_rig::photons::analyse(&log, until, MAX_PHOTON_LATENCY) {
+            Ok(r) => {
+                println!(
+                    "photons: {} edges ({} lost), {} of {} patch changes matched; {} refreshes judged, {} showed another frame",
+                    r.edges,
+                    r.edges_lost,
+                    r.matched,
+                    r.transitions,
+                    r.refreshes_checked,
+                    r.refreshes_wrong.len()
+                );
+                Optical::Measured(r)
+            }
+            Err(why) => {
+                println!("photons: no optical measurement: {why}");
+                Optical::Failed(why)
+            }
+        }
+    } else {
+        println!("photons: skipped (the config names no devices.photodiode)");
+        Optical::NoPhotodiode
+    };
 
     // 2. Lens steps through manual focus, timed to the first readback at the commanded power.
     let r = cfg.optics.lens_range;
@@ -428,7 +511,7 @@ async fn measure(
     }
     let _ = state.control(Control::ManualFocus(None)).await;
     settled.note = format!(
-        "{} steps between lens powers {lo:.2} and {hi:.2} D (manual focus through the rig's loop and its optics map: {}); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. Photodiode: the dioptra sync board driver has no photodiode input, so settling is measured from the lens's readback only",
+        "{} steps between lens powers {lo:.2} and {hi:.2} D (manual focus through the rig's loop and its optics map: {}); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. A photodiode watches the display, not the lens: settling is the lens's own readback",
         args.trials,
         state.optics.describe(),
         state.settings.lens_poll.as_millis(),
@@ -444,6 +527,9 @@ async fn measure(
 
     // 3. Sub-frame timing against the programmed schedule, in multifocal mode.
     let mut measures = vec![host_path, to_wire, settled];
+    if let Optical::Measured(r) = &optical {
+        measures.extend(photon_measures(r, cfg));
+    }
     let sync_driver = cfg.devices.sync.as_ref().map(|s| s.driver);
     if sync_driver == Some(SyncDriver::Dlpc350) {
         // Its driver predicts sub-frame starts from the programmed sequence (the controller
@@ -568,7 +654,101 @@ async fn measure(
             format!("{how}; from a frame's arrival to the display time of the first frame showing it (frames replaced before any frame showed them are not counted)"),
         ));
     }
-    Ok(measures)
+    Ok((measures, optical))
+}
+
+fn median_ms(v: impl Iterator<Item = Duration>) -> f64 {
+    let mut v: Vec<Duration> = v.collect();
+    v.sort_unstable();
+    v.get(v.len() / 2)
+        .map_or(f64::NAN, |d| d.as_secs_f64() * 1e3)
+}
+
+/// The photon figures as measurements.
+fn photon_measures(r: &PhotonReport, cfg: &RigConfig) -> Vec<Measure> {
+    let patch = cfg.display.marker_patch.as_ref();
+    let toggled = patch.map_or(String::new(), |m| {
+        m.toggle_on
+            .iter()
+            .map(|e| e.as_str())
+            .collect::<Vec<_>>()
+            .join(", ")
+    });
+    let how = format!(
+        "the photodiode's edges matched to the presents that changed the marker patch (toggled on: {toggled}); {} of {} changes matched, refresh period {:.3} ms, lit {:.3} ms per refresh; {} edges, {} lost",
+        r.matched,
+        r.transitions,
+        r.refresh_period.as_secs_f64() * 1e3,
+        r.pulse_width.as_secs_f64() * 1e3,
+        r.edges,
+        r.edges_lost
+    );
+    let mut vsync = Measure::new("vsync_to_photons", "vsync to photons");
+    r.vsync_to_photons
+        .iter()
+        .for_each(|d| vsync.record_us(d.as_secs_f64() * 1e6));
+    vsync.note = format!(
+        "from the vsync a frame is shown from (as the display sink reports it) to the photodiode's edge: the display's latency (scan-out to the patch, pixel response, any compositor frames); {how}"
+    );
+    let mut presented = Measure::new("frame_presented_to_photons", "frame presented to photons");
+    r.presented_to_photons
+        .iter()
+        .for_each(|d| presented.record_us(d.as_secs_f64() * 1e6));
+    presented.note = format!(
+        "from the loop handing the frame to the display sink to the photodiode's edge; {how}"
+    );
+    let mut gaze = Measure::new("gaze_to_photons", "gaze sample to photons");
+    r.gaze_to_photons
+        .iter()
+        .for_each(|g| gaze.record_us(g.total.as_secs_f64() * 1e6));
+    let g = &r.gaze_to_photons;
+    gaze.note = format!(
+        "end to end, for {} lens commands a gaze sample caused: from the gaze task receiving the sample to the light of the first frame rendered for the new focus (the first requested after the command). Medians of its parts: gaze to lens command {:.3} ms, command to that frame's vsync (the next frame request, the render, the wait for vsync) {:.3} ms, vsync to photons {:.3} ms. The tracker's own delay (exposure to receipt) comes before it",
+        g.len(),
+        median_ms(g.iter().map(|g| g.gaze_to_command)),
+        median_ms(g.iter().map(|g| g.command_to_vsync)),
+        median_ms(g.iter().map(|g| g.vsync_to_photons)),
+    );
+    vec![vsync, presented, gaze]
+}
+
+/// The optical frame count, for summary.txt and summary.json.
+fn optical_json(optical: &Optical) -> serde_json::Value {
+    match optical {
+        Optical::NoPhotodiode => json!({
+            "measured": false,
+            "why": "no photodiode is configured ([devices.photodiode] and display.marker_patch), so there is no optical measurement",
+        }),
+        Optical::Failed(why) => json!({ "measured": false, "why": why }),
+        Optical::Measured(r) => json!({
+            "measured": true,
+            "refreshes_checked": r.refreshes_checked,
+            "refreshes_wrong": r.refreshes_wrong.len(),
+            "refreshes_unknown": r.refreshes_unknown,
+            "wrong_vsyncs_ns": r.refreshes_wrong.iter().take(100).map(|w| w.0 .0).collect::<Vec<_>>(),
+            "frames_checked": r.frames_checked,
+            "frames_never_seen": r.frames_never_seen.len(),
+            "edges": r.edges,
+            "edges_lost": r.edges_lost,
+            "patch_changes": r.transitions,
+            "patch_changes_matched": r.matched,
+        }),
+    }
+}
+
+fn optical_text(optical: &Optical) -> String {
+    match optical {
+        Optical::NoPhotodiode => "no optical measurement: no photodiode is configured ([devices.photodiode] and display.marker_patch)".into(),
+        Optical::Failed(why) => format!("no optical measurement: {why}"),
+        Optical::Measured(r) => format!(
+            "frames seen optically: {} refreshes judged by the light in their lit time, {} duplicated (showed another frame's patch than their own: the previous image again, their frame dropped or late), {} not judged (edges lost around them); {} frames judged, {} missed (never seen on any of their refreshes)",
+            r.refreshes_checked,
+            r.refreshes_wrong.len(),
+            r.refreshes_unknown,
+            r.frames_checked,
+            r.frames_never_seen.len()
+        ),
+    }
 }
 
 fn stats_json(m: &Measure) -> serde_json::Value {
@@ -594,11 +774,14 @@ fn write_outputs(
     banner: &str,
     simulated: bool,
     measures: &[Measure],
+    optical: &Optical,
 ) -> Result<()> {
     let mut txt = format!(
-        "dioptra hil --config {}\n{banner}\n\nvalues in microseconds (HdrHistogram, 3 significant digits)\n",
-        config.display()
+        "dioptra hil --config {}\n{banner}\n\nvalues in microseconds (HdrHistogram, 3 significant digits)\n\n{}\n",
+        config.display(),
+        optical_text(optical)
     );
+    println!("  {}", optical_text(optical));
     for m in measures {
         let h = &m.hist;
         txt.push_str(&format!("\n## {} ({})\n{}\n", m.title, m.key, m.note));
@@ -640,6 +823,7 @@ fn write_outputs(
         "simulated": simulated,
         "devices": banner,
         "measurements": measures.iter().map(|m| (m.key.to_string(), stats_json(m))).collect::<serde_json::Map<_, _>>(),
+        "optical_frames": optical_json(optical),
     });
     std::fs::write(out.join("summary.json"), serde_json::to_string_pretty(&js)?)
         .with_context(|| format!("cannot write {}", out.join("summary.json").display()))?;

@@ -378,6 +378,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
             }),
             Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(l.up)),
             Rec::Sync(e) => Input::Device(DeviceInput::Sync(e.into())),
+            Rec::Light(e) => Input::Device(DeviceInput::Light(e.into())),
             Rec::Frame(f) => Input::RenderFinished {
                 frame: f.frame,
                 method: Method::parse(&f.method)

@@ -370,6 +370,46 @@ impl SyncDevice {
     }
 }
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PhotodiodeDriver {
+    /// A microcontroller with a photodiode and a comparator, speaking the serial line protocol
+    /// (firmware-protocol/photodiode/README.md).
+    SerialLine,
+    /// The dioptra sync board's photodiode input.
+    Sync,
+}
+
+/// A light sensor over the display's marker patch, for `dioptra hil`'s optical figures.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PhotodiodeDevice {
+    pub driver: PhotodiodeDriver,
+    /// `serial-line`: the microcontroller's port, or "sim". `sync`: none to use the input of
+    /// the board of `[devices.sync]`; a port for a board used only for its photodiode.
+    pub port: Option<Port>,
+    /// `sync` only: the comparator's threshold and half band, fractions of the sensor's full
+    /// scale (a serial-line board's comparator is set by its own trimmer).
+    pub threshold: Option<f32>,
+    pub hysteresis: Option<f32>,
+}
+
+impl PhotodiodeDevice {
+    /// The sync board's comparator band.
+    pub fn band(&self) -> dioptra_sync::board::PhotodiodeBand {
+        let d = dioptra_sync::board::PhotodiodeBand::default();
+        dioptra_sync::board::PhotodiodeBand {
+            threshold: self.threshold.unwrap_or(d.threshold),
+            hysteresis: self.hysteresis.unwrap_or(d.hysteresis),
+        }
+    }
+
+    /// Whether it is the input of the `[devices.sync]` board rather than a device of its own.
+    pub fn on_sync_board(&self) -> bool {
+        self.driver == PhotodiodeDriver::Sync && self.port.is_none()
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Devices {
@@ -377,6 +417,8 @@ pub struct Devices {
     pub gaze: GazeDevice,
     /// Needed for multifocal mode.
     pub sync: Option<SyncDevice>,
+    /// A photodiode over `display.marker_patch`: `dioptra hil` measures in photons with it.
+    pub photodiode: Option<PhotodiodeDevice>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -575,6 +617,71 @@ pub struct Display {
     /// Seed of the procedural scene the renderer shows.
     #[serde(default = "default_scene_seed")]
     pub scene_seed: u64,
+    /// A square in one corner drawn white or black, for a photodiode taped over it.
+    pub marker_patch: Option<MarkerPatch>,
+    /// The simulated panel (what a simulated photodiode sees): from a frame's vsync to its light,
+    /// ms. Default: the display latency the scheduler assumes.
+    pub sim_photon_latency_ms: Option<f64>,
+    /// The simulated panel's light per refresh, ms (a low-persistence panel); default: held
+    /// until the next refresh changes it.
+    pub sim_persistence_ms: Option<f64>,
+    /// Refreshes (counted from the first frame presented, from 0) the simulated panel drops:
+    /// it shows the previous image again and never shows the frame presented for them.
+    #[serde(default)]
+    pub sim_dropped_refreshes: Vec<u64>,
+}
+
+/// Which corner the marker patch is in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Corner {
+    #[default]
+    TopLeft,
+    TopRight,
+    BottomLeft,
+    BottomRight,
+}
+
+/// What toggles the marker patch between white and black.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MarkerEvent {
+    /// Every presented frame (a repeated one too).
+    Frame,
+    /// The first frame presented after each lens command.
+    LensCommand,
+    /// The first frame presented after each mode change.
+    ModeChange,
+    /// The first frame presented after each marker asked for through the API.
+    ApiMarker,
+}
+
+impl MarkerEvent {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MarkerEvent::Frame => "frame",
+            MarkerEvent::LensCommand => "lens-command",
+            MarkerEvent::ModeChange => "mode-change",
+            MarkerEvent::ApiMarker => "api-marker",
+        }
+    }
+}
+
+/// `display.marker_patch = { corner = "top-left", size = 8, toggle_on = ["frame"] }`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkerPatch {
+    #[serde(default)]
+    pub corner: Corner,
+    /// Side of the square, pixels.
+    pub size: u32,
+    /// Default `["frame"]`.
+    #[serde(default = "default_toggle_on")]
+    pub toggle_on: Vec<MarkerEvent>,
+}
+
+fn default_toggle_on() -> Vec<MarkerEvent> {
+    vec![MarkerEvent::Frame]
 }
 
 impl Default for Display {
@@ -588,6 +695,10 @@ impl Default for Display {
             png_every: 0,
             png_dir: None,
             scene_seed: default_scene_seed(),
+            marker_patch: None,
+            sim_photon_latency_ms: None,
+            sim_persistence_ms: None,
+            sim_dropped_refreshes: Vec::new(),
         }
     }
 }
@@ -902,6 +1013,150 @@ impl RigConfig {
     }
 
     /// The sync device's own settings, and whether it can run the configured schedule.
+    fn check_photodiode(&self, p: &PhotodiodeDevice) -> Result<(), ConfigError> {
+        match (p.driver, &p.port) {
+            (PhotodiodeDriver::SerialLine, None) => {
+                return Err(invalid(
+                    "devices.photodiode.port",
+                    "driver = \"serial-line\" needs the microcontroller's port, e.g. \"/dev/ttyACM0\", or \"sim\"",
+                ))
+            }
+            (PhotodiodeDriver::SerialLine, Some(_)) => {
+                for (key, v) in [
+                    ("devices.photodiode.threshold", p.threshold),
+                    ("devices.photodiode.hysteresis", p.hysteresis),
+                ] {
+                    if v.is_some() {
+                        return Err(invalid(
+                            key,
+                            "a serial-line photodiode's threshold is its comparator's trimmer; this key sets the sync board's (driver = \"sync\")",
+                        ));
+                    }
+                }
+            }
+            (PhotodiodeDriver::Sync, None) => match &self.devices.sync {
+                Some(s) if s.driver == SyncDriver::Sync => {}
+                Some(_) => {
+                    return Err(invalid(
+                        "devices.photodiode.driver",
+                        "driver = \"sync\" without a port uses the dioptra sync board of [devices.sync], which is a DLPC350 here: give the photodiode board's port, or use driver = \"serial-line\"",
+                    ))
+                }
+                None => {
+                    return Err(invalid(
+                        "devices.photodiode.port",
+                        "driver = \"sync\" without a port uses the board of [devices.sync], and there is none: give the board's port, or \"sim\"",
+                    ))
+                }
+            },
+            (PhotodiodeDriver::Sync, Some(port)) => {
+                if self
+                    .devices
+                    .sync
+                    .as_ref()
+                    .is_some_and(|s| s.driver == SyncDriver::Sync && &s.port == port && *port != Port::Sim)
+                {
+                    return Err(invalid(
+                        "devices.photodiode.port",
+                        format!("{port} is the board of [devices.sync]: remove this port to use its photodiode input (one link per board)"),
+                    ));
+                }
+            }
+        }
+        if let Some(Port::Net(a) | Port::Usb(Some(a))) = &p.port {
+            return Err(invalid(
+                "devices.photodiode.port",
+                format!("{a}: a photodiode is reached by device path, VID:PID or \"sim\""),
+            ));
+        }
+        if p.port == Some(Port::Usb(None)) {
+            return Err(invalid(
+                "devices.photodiode.port",
+                "usb: a photodiode is reached by device path, VID:PID or \"sim\"",
+            ));
+        }
+        if p.driver == PhotodiodeDriver::Sync {
+            dioptra_sync::board::wire_photodiode_config(Some(p.band())).map_err(|e| {
+                invalid(
+                    "devices.photodiode.threshold",
+                    format!("{e} (devices.photodiode.threshold and hysteresis)"),
+                )
+            })?;
+        }
+        Ok(())
+    }
+
+    fn check_marker_and_panel(&self) -> Result<(), ConfigError> {
+        let d = &self.display;
+        if let Some(m) = &d.marker_patch {
+            let most = d.width.min(d.height).min(512);
+            if !(1..=most).contains(&m.size) {
+                return Err(invalid(
+                    "display.marker_patch.size",
+                    format!("{}: expected 1 to {most} pixels (within the display's {}x{} and at most 512)", m.size, d.width, d.height),
+                ));
+            }
+            if m.toggle_on.is_empty() {
+                return Err(invalid(
+                    "display.marker_patch.toggle_on",
+                    "name what toggles the patch: [\"frame\"] (every presented frame), or any of \"lens-command\", \"mode-change\", \"api-marker\"",
+                ));
+            }
+            if m.toggle_on.len() > 1 && m.toggle_on.contains(&MarkerEvent::Frame) {
+                return Err(invalid(
+                    "display.marker_patch.toggle_on",
+                    "\"frame\" toggles the patch on every presented frame; the other events cannot be told apart from it: give \"frame\" alone, or the events alone",
+                ));
+            }
+        }
+        if let Some(l) = d.sim_photon_latency_ms {
+            if !(l.is_finite() && (0.0..=200.0).contains(&l)) {
+                return Err(invalid(
+                    "display.sim_photon_latency_ms",
+                    format!("expected 0 to 200 ms from a vsync to the panel's light, got {l} (dioptra hil looks 250 ms for the light)"),
+                ));
+            }
+        }
+        if let Some(p) = d.sim_persistence_ms {
+            let period_ms = 1000.0 / d.frame_hz;
+            if !(p.is_finite() && p > 0.0 && p <= period_ms) {
+                return Err(invalid(
+                    "display.sim_persistence_ms",
+                    format!("expected more than 0 and at most one refresh ({period_ms:.2} ms at display.frame_hz = {}); remove it for a panel that holds its light (got {p})", d.frame_hz),
+                ));
+            }
+        }
+        if d.sim_dropped_refreshes.len() > 10_000 {
+            return Err(invalid(
+                "display.sim_dropped_refreshes",
+                "at most 10000 refreshes",
+            ));
+        }
+        if self.devices.photodiode.is_some() && d.marker_patch.is_none() {
+            return Err(invalid(
+                "display.marker_patch",
+                "[devices.photodiode] is set but no marker patch is drawn for it to see: add display.marker_patch = { corner = \"top-left\", size = 8 }",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Whether a photodiode is simulated: its own port is "sim", or it is the input of a
+    /// simulated sync board.
+    pub fn photodiode_simulated(&self) -> bool {
+        self.devices
+            .photodiode
+            .as_ref()
+            .is_some_and(|p| match &p.port {
+                Some(port) => *port == Port::Sim,
+                None => self
+                    .devices
+                    .sync
+                    .as_ref()
+                    .is_some_and(|s| s.port == Port::Sim),
+            })
+    }
+
     fn check_sync(&self, s: &SyncDevice) -> Result<(), ConfigError> {
         if !(s.sim_settle_ms.is_finite() && s.sim_settle_ms > 0.0 && s.sim_settle_ms <= 1000.0) {
             return Err(invalid(
@@ -1444,6 +1699,9 @@ impl RigConfig {
         if let Some(s) = &self.devices.sync {
             self.check_sync(s)?;
         }
+        if let Some(p) = &self.devices.photodiode {
+            self.check_photodiode(p)?;
+        }
         if self.auto_method && self.mode != Mode::Varifocal {
             return Err(invalid(
                 "method",
@@ -1520,6 +1778,7 @@ impl RigConfig {
             ));
         }
         self.optics_map(None)?;
+        self.check_marker_and_panel()?;
         self.listen()?;
         self.api_token()?;
         Ok(())
@@ -1649,6 +1908,125 @@ pub(crate) mod tests {
             c.listen().unwrap(),
             Listen::Tcp("127.0.0.1:7420".parse().unwrap())
         );
+    }
+
+    /// The example rig with a photodiode (`photodiode` its section's lines) and `display`
+    /// lines added to [display].
+    fn with_photodiode(photodiode: &str, display: &str) -> String {
+        let t = SIM_RIG.replace("png_every = 0 ", &format!("{display}\npng_every = 0 "));
+        assert_ne!(t, SIM_RIG);
+        format!("{t}\n[devices.photodiode]\n{photodiode}\n")
+    }
+
+    const PATCH: &str = "marker_patch = { corner = \"top-left\", size = 8 }";
+
+    #[test]
+    fn a_photodiode_and_its_marker_patch_are_checked_naming_the_key() {
+        let ok = RigConfig::parse(&with_photodiode(
+            "driver = \"serial-line\"\nport = \"sim\"",
+            PATCH,
+        ))
+        .unwrap();
+        let m = ok.display.marker_patch.as_ref().unwrap();
+        assert_eq!((m.corner, m.size), (Corner::TopLeft, 8));
+        assert_eq!(m.toggle_on, [MarkerEvent::Frame]);
+        assert!(ok.photodiode_simulated());
+        // The sync board's input: no port of its own, and a band.
+        let on_board = RigConfig::parse(&with_photodiode(
+            "driver = \"sync\"\nthreshold = 0.3\nhysteresis = 0.02",
+            PATCH,
+        ))
+        .unwrap();
+        let p = on_board.devices.photodiode.as_ref().unwrap();
+        assert!(p.on_sync_board());
+        assert_eq!((p.band().threshold, p.band().hysteresis), (0.3, 0.02));
+        assert!(on_board.photodiode_simulated());
+
+        for (photodiode, display, key, says) in [
+            (
+                "driver = \"serial-line\"",
+                PATCH,
+                "devices.photodiode.port",
+                "needs the microcontroller's port",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"\nthreshold = 0.4",
+                PATCH,
+                "devices.photodiode.threshold",
+                "trimmer",
+            ),
+            (
+                "driver = \"sync\"\nthreshold = 0.98",
+                PATCH,
+                "devices.photodiode.threshold",
+                "strictly inside",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"127.0.0.1:5000\"",
+                PATCH,
+                "devices.photodiode.port",
+                "device path",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                "",
+                "display.marker_patch",
+                "no marker patch",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                "marker_patch = { size = 0 }",
+                "display.marker_patch.size",
+                "1 to 96",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                "marker_patch = { size = 8, toggle_on = [] }",
+                "display.marker_patch.toggle_on",
+                "name what toggles",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                "marker_patch = { size = 8, toggle_on = [\"frame\", \"lens-command\"] }",
+                "display.marker_patch.toggle_on",
+                "alone",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                &format!("{PATCH}\nsim_persistence_ms = 20.0"),
+                "display.sim_persistence_ms",
+                "one refresh",
+            ),
+            (
+                "driver = \"serial-line\"\nport = \"sim\"",
+                &format!("{PATCH}\nsim_photon_latency_ms = -1.0"),
+                "display.sim_photon_latency_ms",
+                "0 to 200",
+            ),
+        ] {
+            let e = err(&with_photodiode(photodiode, display));
+            assert_eq!(e.key(), key, "{photodiode} / {display}: {e}");
+            assert!(e.to_string().contains(says), "{e}");
+        }
+        // The board of [devices.sync] is not opened twice, and a DLPC350 has no input.
+        let dlp = with_photodiode("driver = \"sync\"", PATCH).replace(
+            "driver = \"sync\"             # sync (the dioptra",
+            "driver = \"dlpc350\"          # sync (the dioptra",
+        );
+        assert_eq!(err(&dlp).key(), "devices.photodiode.driver");
+        let same = with_photodiode("driver = \"sync\"\nport = \"/dev/ttyACM3\"", PATCH).replace(
+            "port = \"sim\"\n# video_hz",
+            "port = \"/dev/ttyACM3\"\n# video_hz",
+        );
+        let e = err(&same);
+        assert_eq!(e.key(), "devices.photodiode.port", "{e}");
+        assert!(e.to_string().contains("one link per board"), "{e}");
+        // Unknown events are refused by name.
+        let e = err(&with_photodiode(
+            "driver = \"serial-line\"\nport = \"sim\"",
+            "marker_patch = { size = 8, toggle_on = [\"vsync\"] }",
+        ));
+        assert!(e.to_string().contains("vsync"), "{e}");
     }
 
     #[test]

@@ -2,14 +2,22 @@
 //! writes every Nth frame as PNG) for tests and CI; the rig's fullscreen window
 //! ([`super::window::WindowSink`]: winit with a wgpu surface, vsync, on a chosen monitor)
 //! implements the same trait.
+//!
+//! The marker patch (`display.marker_patch`): a square in one corner that both sinks draw
+//! white or black over the frame, for a photodiode taped over it. [`Marker`] decides its
+//! colour for each present (toggled on every frame, or on the events the config names) and
+//! the loop hands it to the sink with the frame ([`Frame::marker`]); [`MarkerControl`] is how
+//! the API asks for a marker and how `dioptra hil` holds the patch black.
 
 use std::collections::VecDeque;
 use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
-use dioptra_core::{Diopters, Timestamp};
+use dioptra_core::{Diopters, RgbImage, Timestamp};
 use serde::Serialize;
 use thiserror::Error;
 
+use crate::config::{Corner, MarkerEvent, MarkerPatch};
 use crate::render::FrameImage;
 
 #[derive(Debug, Error)]
@@ -37,6 +45,120 @@ pub struct Frame {
     pub focus: Diopters,
     /// Shared, so a sink can hand the frame to another thread without copying the images.
     pub layers: std::sync::Arc<Vec<FrameImage>>,
+    /// The marker patch to draw over it in this present, if the rig has one.
+    pub marker: Option<MarkerDraw>,
+}
+
+/// The marker patch as a sink draws it in one present.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct MarkerDraw {
+    pub corner: Corner,
+    /// Side, pixels.
+    pub size: u32,
+    pub white: bool,
+}
+
+impl MarkerDraw {
+    /// The patch in a `width` x `height` image (rows from the top): x, y, width, height,
+    /// clipped to the image.
+    pub fn rect(&self, width: u32, height: u32) -> [u32; 4] {
+        let (w, h) = (self.size.min(width), self.size.min(height));
+        let x = match self.corner {
+            Corner::TopLeft | Corner::BottomLeft => 0,
+            Corner::TopRight | Corner::BottomRight => width - w,
+        };
+        let y = match self.corner {
+            Corner::TopLeft | Corner::TopRight => 0,
+            Corner::BottomLeft | Corner::BottomRight => height - h,
+        };
+        [x, y, w, h]
+    }
+
+    /// Paints the patch into `image` (linear light: white 1, black 0).
+    pub fn paint(&self, image: &mut RgbImage) {
+        let (width, height) = (image.width(), image.height());
+        let [x0, y0, w, h] = self.rect(
+            u32::try_from(width).unwrap_or(u32::MAX),
+            u32::try_from(height).unwrap_or(u32::MAX),
+        );
+        let v = if self.white { 1.0 } else { 0.0 };
+        for plane in &mut image.channels {
+            for y in y0 as usize..(y0 + h) as usize {
+                let row = y * width;
+                plane.data_mut()[row + x0 as usize..row + (x0 + w) as usize].fill(v);
+            }
+        }
+    }
+}
+
+/// The patch's colour, present by present: the loop's own state.
+#[derive(Debug, Clone)]
+pub struct Marker {
+    patch: MarkerPatch,
+    white: bool,
+    /// An event asked for a toggle at the next present.
+    pending: bool,
+    api_seen: u64,
+}
+
+impl Marker {
+    /// Black until the first toggle.
+    pub fn new(patch: &MarkerPatch) -> Marker {
+        Marker {
+            patch: patch.clone(),
+            white: false,
+            pending: false,
+            api_seen: 0,
+        }
+    }
+
+    /// `event` happened: the next present toggles the patch if the config names it.
+    pub fn event(&mut self, event: MarkerEvent) {
+        if self.patch.toggle_on.contains(&event) {
+            self.pending = true;
+        }
+    }
+
+    /// The patch for the next present.
+    pub fn on_present(&mut self, control: &MarkerControl) -> MarkerDraw {
+        let api = control.api_markers.load(Ordering::Relaxed);
+        if api != self.api_seen {
+            self.api_seen = api;
+            self.event(MarkerEvent::ApiMarker);
+        }
+        if control.hold.load(Ordering::Relaxed) {
+            // Held black: what happened meanwhile is not shown afterwards.
+            self.white = false;
+            self.pending = false;
+        } else if self.pending || self.patch.toggle_on.contains(&MarkerEvent::Frame) {
+            self.white = !self.white;
+            self.pending = false;
+        }
+        MarkerDraw {
+            corner: self.patch.corner,
+            size: self.patch.size,
+            white: self.white,
+        }
+    }
+}
+
+/// What outside the loop asks of the marker patch.
+#[derive(Debug, Default)]
+pub struct MarkerControl {
+    hold: AtomicBool,
+    api_markers: AtomicU64,
+}
+
+impl MarkerControl {
+    /// Toggles the patch at the next present, where `toggle_on` names "api-marker" (the API's
+    /// `POST /marker`). Returns the markers asked for so far.
+    pub fn api_marker(&self) -> u64 {
+        self.api_markers.fetch_add(1, Ordering::Relaxed) + 1
+    }
+    /// Holds the patch black (true) from the next present until released (false).
+    pub fn hold_black(&self, hold: bool) {
+        self.hold.store(hold, Ordering::Relaxed);
+    }
 }
 
 /// When a frame was shown.
@@ -45,6 +167,8 @@ pub struct Shown {
     pub frame: u64,
     pub focus_d: f32,
     pub shown_ns: u64,
+    /// The marker patch's colour in that present (true: white).
+    pub marker_white: Option<bool>,
 }
 
 /// Where frames go.
@@ -114,6 +238,7 @@ impl DisplaySink for HeadlessSink {
             frame: frame.number,
             focus_d: frame.focus.0,
             shown_ns: now.0,
+            marker_white: frame.marker.map(|m| m.white),
         });
         if let (true, Some(dir)) = (self.png_every > 0, &self.dir) {
             if (self.shown - 1).is_multiple_of(u64::from(self.png_every)) {
@@ -129,7 +254,10 @@ impl DisplaySink for HeadlessSink {
                         path: path.clone(),
                         detail: e.to_string(),
                     };
-                    let pixels = layer.to_host().map_err(failed)?;
+                    let mut pixels = layer.to_host().map_err(failed)?;
+                    if let Some(m) = &frame.marker {
+                        m.paint(pixels.to_mut());
+                    }
                     dioptra_render::io::write_color(&path, &pixels).map_err(failed)?;
                     self.pngs += 1;
                 }
@@ -191,6 +319,7 @@ mod tests {
                 number: n,
                 focus: Diopters(1.0),
                 layers: vec![dioptra_core::RgbImage::new(8, 8, [0.5, 0.25, 0.0]).into()].into(),
+                marker: None,
             };
             let t = s.present(&f, Timestamp(n * 1000)).unwrap();
             assert_eq!(t, Timestamp(n * 1000));
@@ -202,5 +331,104 @@ mod tests {
         }
         assert!(!dir.path().join("frames/frame_000001.png").exists());
         assert_eq!(s.recent().count(), 7);
+    }
+
+    fn patch(corner: Corner, toggle_on: Vec<MarkerEvent>) -> MarkerPatch {
+        MarkerPatch {
+            corner,
+            size: 3,
+            toggle_on,
+        }
+    }
+
+    #[test]
+    fn the_patch_is_painted_in_its_corner_and_nowhere_else() {
+        for (corner, x0, y0) in [
+            (Corner::TopLeft, 0, 0),
+            (Corner::TopRight, 5, 0),
+            (Corner::BottomLeft, 0, 3),
+            (Corner::BottomRight, 5, 3),
+        ] {
+            let mut img = RgbImage::new(8, 6, [0.5; 3]);
+            let m = MarkerDraw {
+                corner,
+                size: 3,
+                white: true,
+            };
+            assert_eq!(m.rect(8, 6), [x0, y0, 3, 3]);
+            m.paint(&mut img);
+            for y in 0..6 {
+                for x in 0..8 {
+                    let inside = (x0..x0 + 3).contains(&x) && (y0..y0 + 3).contains(&y);
+                    let want = if inside { 1.0 } else { 0.5 };
+                    assert_eq!(
+                        img.pixel(x as usize, y as usize),
+                        Some([want; 3]),
+                        "{corner:?} {x},{y}"
+                    );
+                }
+            }
+        }
+        // Larger than the image: clipped.
+        let m = MarkerDraw {
+            corner: Corner::BottomRight,
+            size: 50,
+            white: false,
+        };
+        assert_eq!(m.rect(8, 6), [0, 0, 8, 6]);
+    }
+
+    #[test]
+    fn the_marker_toggles_on_every_frame_or_on_the_events_named() {
+        let control = MarkerControl::default();
+        let mut every = Marker::new(&patch(Corner::TopLeft, vec![MarkerEvent::Frame]));
+        let colours: Vec<bool> = (0..4).map(|_| every.on_present(&control).white).collect();
+        assert_eq!(colours, [true, false, true, false]);
+
+        let mut on = Marker::new(&patch(
+            Corner::TopLeft,
+            vec![MarkerEvent::LensCommand, MarkerEvent::ApiMarker],
+        ));
+        assert!(!on.on_present(&control).white);
+        on.event(MarkerEvent::ModeChange); // not named: nothing
+        assert!(!on.on_present(&control).white);
+        on.event(MarkerEvent::LensCommand);
+        on.event(MarkerEvent::LensCommand); // two before one present: one toggle
+        assert!(on.on_present(&control).white);
+        assert!(on.on_present(&control).white);
+        control.api_marker();
+        assert!(!on.on_present(&control).white);
+        // Held black, whatever happens; released, it waits for the next event.
+        control.hold_black(true);
+        on.event(MarkerEvent::LensCommand);
+        assert!(!on.on_present(&control).white);
+        control.api_marker();
+        assert!(!on.on_present(&control).white);
+        control.hold_black(false);
+        assert!(!on.on_present(&control).white);
+        on.event(MarkerEvent::LensCommand);
+        assert!(on.on_present(&control).white);
+    }
+
+    #[test]
+    fn headless_pngs_carry_the_patch_and_the_timings_its_colour() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::new(1, Some(dir.path().to_path_buf())).unwrap();
+        let f = Frame {
+            number: 7,
+            focus: Diopters(1.0),
+            layers: vec![RgbImage::new(16, 16, [0.25; 3]).into()].into(),
+            marker: Some(MarkerDraw {
+                corner: Corner::TopRight,
+                size: 4,
+                white: true,
+            }),
+        };
+        s.present(&f, Timestamp(5)).unwrap();
+        assert_eq!(s.recent().last().unwrap().marker_white, Some(true));
+        let png = dioptra_render::io::read_color(&dir.path().join("frame_000007.png")).unwrap();
+        assert!(png.pixel(15, 0).unwrap()[0] > 0.99);
+        assert!(png.pixel(11, 3).unwrap()[0] < 0.3);
+        assert!(png.pixel(12, 4).unwrap()[0] < 0.3);
     }
 }

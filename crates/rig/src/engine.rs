@@ -155,6 +155,8 @@ impl Engine {
                     LinkStatus::Lost
                 }),
                 DeviceInput::Sync(e) => Event::Sequencer(e),
+                // The scheduler does not use the light: hooks (`dioptra hil`) do.
+                DeviceInput::Light(_) => Event::Tick,
             },
             Input::Control(c) => match c {
                 Control::ManualFocus(d) => Event::ManualFocus(d.map(Diopters)),

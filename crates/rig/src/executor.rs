@@ -18,10 +18,11 @@ use std::time::{Duration, Instant};
 use dioptra_core::{Diopters, Timestamp};
 use tokio::sync::mpsc;
 
+use crate::config::MarkerEvent;
 use crate::config::{Method, Mode};
 use crate::content::{Content, ContentFrame};
 use crate::devices::{DeviceInput, DeviceLinks, LensOrder};
-use crate::display::{DisplaySink, Frame};
+use crate::display::{DisplaySink, Frame, Marker};
 use crate::engine::{Command, Engine, Input};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use crate::{Control, ControlMsg, RigState};
@@ -100,6 +101,8 @@ pub struct Presented {
     pub shown: Timestamp,
     /// The scheduler showed it again (no newer frame was ready).
     pub repeat: bool,
+    /// The marker patch's colour in this present (true: white), if the rig draws one.
+    pub marker_white: Option<bool>,
 }
 
 /// A finished render.
@@ -186,6 +189,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         pending: None,
         hooks,
         on_show: None,
+        marker: state.cfg.display.marker_patch.as_ref().map(Marker::new),
     };
     for h in &mut ex.hooks {
         h.started(now, &engine, ex.sink.as_ref());
@@ -226,6 +230,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                     Ok(cmds) => {
                         if let Control::Mode(_) = cmd {
                             let _ = links.multifocal.send(engine.mode() == Mode::Multifocal);
+                            ex.marker_event(MarkerEvent::ModeChange);
                         }
                         for h in &mut ex.hooks {
                             h.control(now, &cmd, &engine);
@@ -325,9 +330,17 @@ struct Executor<'a> {
     hooks: Vec<Box<dyn LoopHook>>,
     /// The content frame whose depth the scheduler has: what a render job shows.
     on_show: Option<ContentFrame>,
+    /// The marker patch's colour, present by present (`display.marker_patch`).
+    marker: Option<Marker>,
 }
 
 impl Executor<'_> {
+    fn marker_event(&mut self, event: MarkerEvent) {
+        if let Some(m) = &mut self.marker {
+            m.event(event);
+        }
+    }
+
     /// Polls the content source; a new frame's depth (and when it arrived) goes to the
     /// scheduler.
     async fn take_content(&mut self, engine: &mut Engine, content: &dyn Content, now: Timestamp) {
@@ -359,6 +372,9 @@ impl Executor<'_> {
                 }));
                 lens_sent = true;
             }
+        }
+        if lens_sent {
+            self.marker_event(MarkerEvent::LensCommand);
         }
         if lens_sent {
             // Let the lens task write it before this task goes on.
@@ -508,9 +524,14 @@ impl Executor<'_> {
             tracing::warn!(frame, "asked to present a frame that is not rendered");
             return;
         };
+        let mut f = f.clone();
+        f.marker = self
+            .marker
+            .as_mut()
+            .map(|m| m.on_present(&self.state.marker));
         let shown = match layer {
-            None => self.sink.present(f, at),
-            Some(l) => self.sink.present_layer(f, usize::from(l), at),
+            None => self.sink.present(&f, at),
+            Some(l) => self.sink.present_layer(&f, usize::from(l), at),
         };
         match shown {
             Ok(t) => {
@@ -520,6 +541,7 @@ impl Executor<'_> {
                     focus: f.focus,
                     shown: t,
                     repeat,
+                    marker_white: f.marker.map(|m| m.white),
                 };
                 for h in &mut self.hooks {
                     h.presented(now, &p, self.sink.as_ref());
@@ -537,6 +559,7 @@ impl Executor<'_> {
             number: job.frame,
             layers: Arc::new(images),
             focus: job.focus,
+            marker: None,
         });
     }
 

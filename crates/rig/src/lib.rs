@@ -14,7 +14,9 @@
 //! - [`render`]: the render worker's [`render::Renderer`], which renders a job from a content
 //!   frame ([`render::rgbd::RgbdRenderer`], the rig's own).
 //! - [`display`]: where frames go ([`display::DisplaySink`]; headless here, the window in the
-//!   binary).
+//!   binary), and the marker patch a photodiode watches.
+//! - [`photons`]: latency measured in photons (`dioptra hil`): a photodiode's edges matched to
+//!   the presents that toggled the marker patch.
 //! - [`recording`]: MCAP recordings.
 //! - [`devices::simulators`]: the simulated devices of `port = "sim"`; [`simulated_rig`]
 //!   (feature `simulated`): a whole rig on simulated devices and tokio's paused clock,
@@ -33,6 +35,7 @@ pub mod engine;
 pub mod executor;
 pub mod lsl;
 pub mod observers;
+pub mod photons;
 pub mod recording;
 pub mod render;
 #[cfg(feature = "simulated")]
@@ -148,6 +151,9 @@ pub struct LoopStatus {
     pub gaze_samples: u64,
     pub lens_commands: u64,
     pub sync_events: u64,
+    /// Edges from the photodiode over the marker patch, and edges it reported lost.
+    pub light_edges: u64,
+    pub light_edges_lost: u64,
     /// Sub-frames the sync hardware started, those with a measured lens power, those whose
     /// power was off its plane by more than [`SUBFRAME_TOLERANCE_D`], and its fault reports.
     pub subframes: u64,
@@ -281,6 +287,8 @@ pub struct RigState {
     /// Focus <-> lens command for the rig's lens: the scheduler's map (`/status`, recordings,
     /// the WebSocket and LSL say what focus a lens power gives through it).
     pub optics: dioptra_core::OpticsMap,
+    /// The marker patch's requests from outside the loop (an API marker; `dioptra hil`'s hold).
+    pub marker: display::MarkerControl,
     controls: mpsc::Sender<ControlMsg>,
     started: Timestamp,
 }
@@ -743,6 +751,7 @@ impl Rig {
                 "the host's monotonic clock (CLOCK_MONOTONIC, through tokio), from daemon start"
             },
             clock: clock.clone(),
+            marker: display::MarkerControl::default(),
             controls: controls_tx,
             started: clock.now(),
             cfg: cfg.clone(),
@@ -763,6 +772,10 @@ impl Rig {
         )
         .map_err(RigError::Devices)?;
         let _ = state.sims.set(sims);
+        let panel_feed = spec
+            .panel
+            .clone()
+            .map(|p| Box::new(devices::simulators::PanelFeed(p)) as Box<dyn LoopHook>);
         let looper = tokio::spawn(executor::run_loop(executor::LoopParts {
             state: state.clone(),
             engine,
@@ -774,6 +787,7 @@ impl Rig {
             controls: controls_rx,
             hooks: observers::standard(&state)
                 .into_iter()
+                .chain(panel_feed)
                 .chain(hooks)
                 .collect(),
             devices_stop: devices_stop.clone(),

@@ -61,6 +61,7 @@ impl LoopHook for Recording {
             }),
             DeviceInput::LensLink(up) => Rec::LensLink(LensLinkRec { up: *up }),
             DeviceInput::Sync(e) => Rec::Sync(e.into()),
+            DeviceInput::Light(e) => Rec::Light(e.into()),
         };
         self.0.record(now, rec);
     }
@@ -237,6 +238,10 @@ impl LoopHook for Status {
                     }
                     dioptra_core::SequencerEvent::Fault { .. } => st.subframe_faults += 1,
                 }
+            }
+            DeviceInput::Light(dioptra_core::LightEvent::Edge(_)) => st.light_edges += 1,
+            DeviceInput::Light(dioptra_core::LightEvent::Lost { count, .. }) => {
+                st.light_edges_lost += count
             }
             DeviceInput::LensWire { .. } | DeviceInput::LensLink(_) => {}
         }

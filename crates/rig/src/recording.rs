@@ -23,7 +23,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 
 use dioptra_core::{
-    Diopters, EyeRay, GazeSample, LensState, SequencerEvent, SequencerFault, Timestamp,
+    Diopters, EyeRay, GazeSample, LensState, LightEdge, LightEvent, SequencerEvent, SequencerFault,
+    Timestamp,
 };
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -133,6 +134,65 @@ impl From<&LensStateRec> for LensState {
             temperature_c: r.temperature_c,
             settled: r.settled,
             host_time: Timestamp(r.host_ns),
+        }
+    }
+}
+
+/// Light on the photodiode: an edge, or edges the device could not report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum LightRec {
+    Edge {
+        device_ns: u64,
+        host_receive_ns: u64,
+        host_ns: u64,
+        rising: bool,
+        level: Option<f32>,
+    },
+    Lost {
+        count: u64,
+        host_ns: u64,
+    },
+}
+
+impl From<&LightEvent> for LightRec {
+    fn from(e: &LightEvent) -> Self {
+        match *e {
+            LightEvent::Edge(e) => LightRec::Edge {
+                device_ns: e.device_time.0,
+                host_receive_ns: e.host_receive_time.0,
+                host_ns: e.host_time.0,
+                rising: e.rising,
+                level: e.level,
+            },
+            LightEvent::Lost { count, host_time } => LightRec::Lost {
+                count,
+                host_ns: host_time.0,
+            },
+        }
+    }
+}
+
+impl From<&LightRec> for LightEvent {
+    fn from(r: &LightRec) -> Self {
+        match *r {
+            LightRec::Edge {
+                device_ns,
+                host_receive_ns,
+                host_ns,
+                rising,
+                level,
+            } => LightEvent::Edge(LightEdge {
+                device_time: Timestamp(device_ns),
+                host_receive_time: Timestamp(host_receive_ns),
+                host_time: Timestamp(host_ns),
+                rising,
+                level,
+            }),
+            LightRec::Lost { count, host_ns } => LightEvent::Lost {
+                count,
+                host_time: Timestamp(host_ns),
+            },
         }
     }
 }
@@ -371,6 +431,7 @@ pub enum Rec {
     LensWire(LensWireRec),
     LensLink(LensLinkRec),
     Sync(SyncRec),
+    Light(LightRec),
     Frame(FrameRec),
     Control(ControlRec),
     Depth(DepthRec),
@@ -427,6 +488,8 @@ topics! {
     LensLink => "/lens/link", "dioptra.LensLink", format!(r#""up":{B}"#);
     Sync => "/sync/event", "dioptra.SyncEvent",
         format!(r#""kind":{{"enum":["subframe","fault"]}},"frame":{N},"plane_index":{N},"device_ns":{N},"host_ns":{N},"lens_power_d":{ON},"fault":{S},"code":{N}"#);
+    Light => "/photodiode", "dioptra.LightEdge",
+        format!(r#""kind":{{"enum":["edge","lost"]}},"device_ns":{N},"host_receive_ns":{N},"host_ns":{N},"rising":{B},"level":{ON},"count":{N}"#);
     Frame => "/frame", "dioptra.FrameRendered",
         format!(r#""frame":{N},"method":{S},"render_ns":{N},"requested_ns":{N},"focus_d":{ON}"#);
     Control => "/control", "dioptra.Control",

@@ -35,6 +35,8 @@ pub enum Action {
     UnplugLens,
     ReplugLens,
     ManualFocus(Option<Diopters>),
+    /// Holds the marker patch black (true) or lets it toggle again (false).
+    HoldMarker(bool),
 }
 
 /// What to run.
@@ -51,6 +53,8 @@ pub struct SimRun {
     /// Simulated time after the rig stopped before the last probe (the lens has parked).
     pub after_shutdown: Duration,
     pub actions: Vec<(Duration, Action)>,
+    /// Loop hooks of the test's own (e.g. [`crate::photons::PhotonRecorder`]).
+    pub hooks: Vec<Box<dyn LoopHook>>,
 }
 
 impl SimRun {
@@ -62,6 +66,10 @@ impl SimRun {
             ("devices.lens.port", Some(&d.lens.port)),
             ("devices.gaze.port", Some(&d.gaze.port)),
             ("devices.sync.port", d.sync.as_ref().map(|s| &s.port)),
+            (
+                "devices.photodiode.port",
+                d.photodiode.as_ref().and_then(|p| p.port.as_ref()),
+            ),
         ];
         for (key, port) in ports {
             if let Some(p) = port.filter(|p| **p != Port::Sim) {
@@ -91,6 +99,7 @@ impl SimRun {
             duration,
             after_shutdown: Duration::from_millis(200),
             actions: Vec::new(),
+            hooks: Vec::new(),
         })
     }
 
@@ -146,6 +155,7 @@ impl SimRun {
         setup.sim = Some(self.spec);
         setup.scheduler = Some(self.sched);
         setup.hooks.push(Box::new(hook));
+        setup.hooks.extend(self.hooks);
         let rig = Rig::start(setup).await?;
         let state = rig.state().clone();
         if let Some(s) = state.sims.get() {
@@ -238,6 +248,7 @@ async fn act(state: &RigState, action: Action) {
                 tracing::warn!(error = %e, "scripted manual focus refused");
             }
         }
+        Action::HoldMarker(hold) => state.marker.hold_black(hold),
     }
 }
 
@@ -368,6 +379,7 @@ impl LoopHook for TruthRecorder {
         match input {
             DeviceInput::Gaze(..) => log.gaze_samples += 1,
             DeviceInput::Sync(_) => log.sequencer_events += 1,
+            DeviceInput::Light(_) => {}
             DeviceInput::LensLink(up) => log.link_events.push((
                 now,
                 if *up {

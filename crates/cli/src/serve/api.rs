@@ -141,6 +141,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/recording/start", post(recording_start))
         .route("/recording/stop", post(recording_stop))
         .route("/shutdown", post(shutdown))
+        .route("/marker", post(marker))
         .route("/sim/{device}/{action}", post(sim_plug))
         .route("/stream", get(websocket))
         .route(
@@ -152,7 +153,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
             ApiError::new(
                 StatusCode::NOT_FOUND,
                 "no such endpoint; see GET /status, POST /mode, /method, /focus, \
-                 /recording/start, /recording/stop, /shutdown, GET /stream (WebSocket), and \
+                 /recording/start, /recording/stop, /shutdown, /marker, GET /stream (WebSocket), and \
                  for a streaming rig POST/PUT /frame and GET /frame/ring",
             )
         })
@@ -339,13 +340,14 @@ async fn sim_plug(
         "lens" => sims.lens.as_ref(),
         "gaze" => sims.gaze.as_ref(),
         "sync" => sims.sync.as_ref(),
+        "photodiode" => sims.photodiode.as_ref(),
         _ => None,
     });
     let plug = plug.map(|slot| &slot.plug);
     let Some(plug) = plug else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
-            format!("{device:?} is not a simulated device of this rig (lens, gaze or sync with port = \"sim\")"),
+            format!("{device:?} is not a simulated device of this rig (lens, gaze, sync or photodiode with port = \"sim\")"),
         )
         .at("device"));
     };
@@ -372,6 +374,26 @@ async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json:
         StatusCode::ACCEPTED,
         Json(json!({ "status": "stopping: parking the lens and finishing files" })),
     )
+}
+
+/// Toggles the marker patch at the next presented frame (`display.marker_patch.toggle_on`
+/// naming "api-marker"): an experiment's event made visible to a photodiode.
+async fn marker(State(s): State<Arc<Shared>>) -> Result<Json<serde_json::Value>, ApiError> {
+    use dioptra_rig::config::MarkerEvent;
+    let Some(patch) = &s.cfg.display.marker_patch else {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "the rig draws no marker patch: add display.marker_patch = { corner = \"top-left\", size = 8, toggle_on = [\"api-marker\"] }",
+        ));
+    };
+    if !patch.toggle_on.contains(&MarkerEvent::ApiMarker) {
+        return Err(ApiError::new(
+            StatusCode::CONFLICT,
+            "display.marker_patch.toggle_on does not name \"api-marker\", so an API marker would not show: add it there",
+        ));
+    }
+    let n = s.marker.api_marker();
+    Ok(Json(json!({ "markers": n })))
 }
 
 async fn websocket(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {

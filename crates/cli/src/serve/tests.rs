@@ -1594,6 +1594,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
                 number: 0,
                 focus: q,
                 layers: Arc::new(images),
+                marker: None,
             };
             use dioptra_rig::display::DisplaySink as _;
             sink.present(&frame, dioptra_core::Timestamp::ZERO).unwrap();
@@ -1970,4 +1971,74 @@ async fn the_daemon_commands_its_lens_through_the_optics_map_and_says_which() {
     assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
     assert!(v["error"].as_str().unwrap().contains("0..4.65"), "{v}");
     stop(d).await;
+}
+
+/// `POST /marker` toggles the marker patch at the next frame where `toggle_on` names
+/// "api-marker" (seen here on the simulated panel a simulated photodiode watches), and is
+/// refused, naming the key, where the patch would not show it.
+#[tokio::test(start_paused = true)]
+async fn an_api_marker_toggles_the_patch_once() {
+    let dir = tempfile::tempdir().unwrap();
+    use dioptra_rig::config::{Corner, MarkerEvent, MarkerPatch, PhotodiodeDevice};
+    let with_patch = |toggle_on: MarkerEvent| {
+        let mut cfg = sim_config(dir.path(), false);
+        cfg.display.marker_patch = Some(MarkerPatch {
+            corner: Corner::BottomRight,
+            size: 8,
+            toggle_on: vec![toggle_on],
+        });
+        cfg
+    };
+    let mut cfg = with_patch(MarkerEvent::ApiMarker);
+    cfg.devices.photodiode = Some(PhotodiodeDevice {
+        driver: dioptra_rig::config::PhotodiodeDriver::SerialLine,
+        port: Some(dioptra_rig::config::Port::Sim),
+        threshold: None,
+        hysteresis: None,
+    });
+    cfg.validate().unwrap();
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let app = api::router(d.shared().clone());
+    let panel = d.shared().sims.get().unwrap().panel.clone().unwrap();
+    let whites = |p: &dioptra_sim::panel::SharedPanel| -> Vec<bool> {
+        p.lock().refreshes().map(|r| r.white).collect()
+    };
+    eventually("frames on the panel", || {
+        (panel.lock().presents() >= 10).then_some(())
+    })
+    .await;
+    assert!(whites(&panel).iter().all(|w| !w), "black until a marker");
+    let before = panel.lock().presents() as usize;
+    let (s, v) = call(&app, "POST", "/marker", "").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(v["markers"], json!(1));
+    eventually("the patch white", || {
+        (panel.lock().presents() as usize >= before + 10).then_some(())
+    })
+    .await;
+    // From the next present on it stays white: one toggle, not one per frame.
+    let w = whites(&panel);
+    let first = w.iter().position(|w| *w).expect("never white");
+    assert!((before..=before + 2).contains(&first), "{first} {before}");
+    assert!(w[first..].iter().all(|w| *w), "{w:?}");
+    stop(d).await;
+
+    // A patch toggled on frames, or no patch at all: refused.
+    for cfg in [
+        with_patch(MarkerEvent::Frame),
+        sim_config(dir.path(), false),
+    ] {
+        let d = Daemon::start_config(cfg).await.unwrap();
+        let app = api::router(d.shared().clone());
+        let (s, v) = call(&app, "POST", "/marker", "").await;
+        assert_eq!(s, StatusCode::CONFLICT, "{v}");
+        assert!(
+            v["error"]
+                .as_str()
+                .unwrap()
+                .contains("display.marker_patch"),
+            "{v}"
+        );
+        stop(d).await;
+    }
 }

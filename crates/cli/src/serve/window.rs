@@ -36,7 +36,7 @@ use dioptra_render::gpu::{GpuContext, GpuImage};
 
 use thiserror::Error;
 
-use dioptra_rig::display::{DisplayError, DisplaySink, Frame};
+use dioptra_rig::display::{DisplayError, DisplaySink, Frame, MarkerDraw};
 use dioptra_rig::render::FrameImage;
 
 pub use dioptra_rig::config::MonitorChoice;
@@ -342,7 +342,7 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
         let Some(image) = job.frame.layers.get(job.layer) else {
             continue;
         };
-        match blitter.draw(image) {
+        match blitter.draw(image, job.frame.marker) {
             Ok(true) => {
                 let now = Instant::now();
                 if let Some(l) = last {
@@ -395,6 +395,9 @@ pub struct Blit {
     layout_uniform: wgpu::Buffer,
     source: Option<Source>,
     staging: Vec<u8>,
+    /// The marker patch's pipelines (white, black), and the patch the next draw shows.
+    patch: [wgpu::RenderPipeline; 2],
+    marker: Option<MarkerDraw>,
 }
 
 const FRAME_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8UnormSrgb;
@@ -452,10 +455,11 @@ impl Blit {
                 ),
             ],
         });
-        let pipeline_for = |layout: &wgpu::BindGroupLayout, fragment: &str| {
+        let pipeline_for = |layout: Option<&wgpu::BindGroupLayout>, fragment: &str| {
+            let layouts = [layout];
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("blit"),
-                bind_group_layouts: &[Some(layout)],
+                bind_group_layouts: if layout.is_some() { &layouts } else { &[] },
                 immediate_size: 0,
             });
             device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
@@ -480,8 +484,12 @@ impl Blit {
                 cache: None,
             })
         };
-        let pipeline = pipeline_for(&layout, "fs_main");
-        let buffer_pipeline = pipeline_for(&buffer_layout, "fs_buffer");
+        let pipeline = pipeline_for(Some(&layout), "fs_main");
+        let buffer_pipeline = pipeline_for(Some(&buffer_layout), "fs_buffer");
+        let patch = [
+            pipeline_for(None, "fs_white"),
+            pipeline_for(None, "fs_black"),
+        ];
         // Nearest: a frame shown at the monitor's own size is copied pixel for pixel.
         let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
             label: Some("blit"),
@@ -503,7 +511,14 @@ impl Blit {
             layout_uniform,
             source: None,
             staging: Vec::new(),
+            patch,
+            marker: None,
         }
+    }
+
+    /// The marker patch the next draws show over the frame (`None`: none).
+    pub fn set_marker(&mut self, marker: Option<MarkerDraw>) {
+        self.marker = marker;
     }
 
     /// Packs and uploads `image` into the frame texture, and draws from it from now on.
@@ -609,6 +624,17 @@ impl Blit {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, bind_group, &[]);
         pass.draw(0..3, 0..1);
+        // The patch goes in the panel's corner, where the photodiode is, whatever the letterbox.
+        if let Some(m) = self.marker {
+            let (tw, th) = target_size;
+            let [px, py, pw, ph] = m.rect(tw, th);
+            if pw > 0 && ph > 0 {
+                pass.set_viewport(0.0, 0.0, tw as f32, th as f32, 0.0, 1.0);
+                pass.set_scissor_rect(px, py, pw, ph);
+                pass.set_pipeline(&self.patch[usize::from(!m.white)]);
+                pass.draw(0..3, 0..1);
+            }
+        }
     }
 
     fn frame_texture(&self, device: &wgpu::Device, size: (u32, u32)) -> wgpu::Texture {
@@ -765,7 +791,12 @@ impl Blitter {
     /// Presents `image`; blocks until a swapchain image is free (vsync). `Ok(false)`: skipped
     /// this time (window occluded, surface reconfigured). Its GPU errors are returned
     /// ([`scoped`]).
-    fn draw(&mut self, image: &FrameImage) -> Result<bool, WindowError> {
+    fn draw(
+        &mut self,
+        image: &FrameImage,
+        marker: Option<MarkerDraw>,
+    ) -> Result<bool, WindowError> {
+        self.blit.set_marker(marker);
         let device = self.device.clone();
         scoped(&device, || self.draw_unscoped(image))?
     }
@@ -1252,6 +1283,56 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The marker patch is drawn in the surface's corner over the letterboxed frame, white or
+    /// black, as the headless sink paints it ([`MarkerDraw::paint`], its CPU twin).
+    #[test]
+    fn the_marker_patch_is_drawn_in_the_panels_corner() {
+        use dioptra_rig::config::Corner;
+        let Some((device, queue)) = headless_device() else {
+            return;
+        };
+        let mut blit = Blit::new(&device, wgpu::TextureFormat::Rgba8UnormSrgb);
+        let grey = RgbImage::new(4, 2, [0.2; 3]);
+        blit.upload(&device, &queue, &grey);
+        let (tw, th) = (64u32, 64u32);
+        for (corner, white) in [
+            (Corner::TopLeft, true),
+            (Corner::BottomRight, false),
+            (Corner::TopRight, true),
+        ] {
+            let m = MarkerDraw {
+                corner,
+                size: 8,
+                white,
+            };
+            blit.set_marker(Some(m));
+            let got = draw_and_read(&device, &queue, &blit, (tw, th));
+            // The CPU twin on an image of the target's size: the frame letterboxed (rows 16..48
+            // grey, the rest black), then the patch painted.
+            let mut want = RgbImage::new(tw as usize, th as usize, [0.0; 3]);
+            for plane in &mut want.channels {
+                for y in 16..48 {
+                    plane.data_mut()[y * tw as usize..(y + 1) * tw as usize].fill(0.2);
+                }
+            }
+            m.paint(&mut want);
+            let mut packed = Vec::new();
+            pack_rgba8_srgb(&want, &mut packed);
+            for (i, (a, b)) in got.iter().zip(&packed).enumerate() {
+                assert!(
+                    a.abs_diff(*b) <= 1,
+                    "{corner:?}: byte {i} (pixel {}, {}): {a} drawn, {b} painted",
+                    (i / 4) as u32 % tw,
+                    (i / 4) as u32 / tw
+                );
+            }
+        }
+        // Without a patch the corner shows the frame again (here: the black bar).
+        blit.set_marker(None);
+        let got = draw_and_read(&device, &queue, &blit, (tw, th));
+        assert_eq!(&got[..4], &[0, 0, 0, 255]);
     }
 
     /// A frame the renderer left in GPU memory is drawn from its buffer on the render's own

@@ -6,8 +6,8 @@ use std::future::Future;
 use std::pin::Pin;
 
 use dioptra_core::{
-    DeviceError, Diopters, GazeSample, GazeSource, LensState, PlaneSchedule, PlaneSequencer,
-    PowerRange, SequencerEvent, Timestamp, VarifocalLens,
+    DeviceError, Diopters, GazeSample, GazeSource, LensState, LightEvent, Photodiode,
+    PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
 };
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
@@ -125,5 +125,25 @@ impl PlaneSequencer for BoxSequencer {
     }
     fn next_event(&mut self) -> impl Future<Output = Result<SequencerEvent, DeviceError>> + Send {
         self.0.next_event()
+    }
+}
+
+/// [`Photodiode`] in a form that can be boxed.
+pub trait DynPhotodiode: Send {
+    fn next_light(&mut self) -> BoxFuture<'_, Result<LightEvent, DeviceError>>;
+}
+
+impl<T: Photodiode> DynPhotodiode for T {
+    fn next_light(&mut self) -> BoxFuture<'_, Result<LightEvent, DeviceError>> {
+        Box::pin(Photodiode::next_light(self))
+    }
+}
+
+/// Any photodiode driver.
+pub struct BoxPhotodiode(pub Box<dyn DynPhotodiode>);
+
+impl Photodiode for BoxPhotodiode {
+    fn next_light(&mut self) -> impl Future<Output = Result<LightEvent, DeviceError>> + Send {
+        self.0.next_light()
     }
 }

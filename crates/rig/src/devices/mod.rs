@@ -9,7 +9,7 @@
 //! link for `port = "sim"`, a serial port or HID device otherwise) and a connected driver.
 
 mod boxed;
-mod gaze;
+mod forward;
 mod lens;
 pub mod open;
 pub mod simulators;
@@ -21,13 +21,14 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use dioptra_core::{
-    lock, Clock, DeviceError, Diopters, GazeSample, LensState, LinkError, SequencerEvent, Timestamp,
+    lock, Clock, DeviceError, Diopters, GazeSample, LensState, LightEvent, LinkError,
+    SequencerEvent, Timestamp,
 };
 use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-pub use boxed::{BoxGaze, BoxLens, BoxSequencer};
+pub use boxed::{BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
 pub use lens::ParkReport;
 
 use crate::config::{Port, RigConfig};
@@ -317,6 +318,9 @@ pub enum DeviceInput {
     /// down (false).
     LensLink(bool),
     Sync(SequencerEvent),
+    /// Light on the photodiode over the marker patch (from its own device, or from the sync
+    /// board's input).
+    Light(LightEvent),
 }
 
 /// Channels from the loop to the device tasks.
@@ -350,6 +354,7 @@ pub fn spawn_devices(
     let ctx = open::Context {
         cfg: cfg.clone(),
         clock,
+        inputs: Some(out.clone()),
     };
 
     let l = &cfg.devices.lens;
@@ -385,7 +390,7 @@ pub fn spawn_devices(
         &mut sims.gaze,
         &mut sims.gaze_truth,
     );
-    others.push(tokio::spawn(gaze::gaze_task(
+    others.push(tokio::spawn(forward::forward_task(
         connect,
         dev,
         settings,
@@ -407,16 +412,47 @@ pub fn spawn_devices(
             &mut sims.sync,
             &mut sims.gaze_truth,
         );
+        // A photodiode on this board: its light is read whatever the mode.
+        let light = cfg
+            .devices
+            .photodiode
+            .as_ref()
+            .is_some_and(|p| p.on_sync_board());
         others.push(tokio::spawn(sync::sync_task(
             connect,
             dev,
             settings,
-            schedule,
-            mf_rx,
+            sync::SyncWork {
+                schedule,
+                multifocal: mf_rx,
+                light,
+            },
             out.clone(),
             stop.clone(),
         )));
     }
+    if let Some(p) = cfg.devices.photodiode.as_ref() {
+        if let Some(port) = &p.port {
+            let row = open::row(&open::PHOTODIODE, p.driver)?;
+            let dev = registry.add("photodiode", row.name, port);
+            let connect = open::device_connector(
+                row,
+                port,
+                ctx.clone(),
+                spec,
+                &mut sims.photodiode,
+                &mut sims.gaze_truth,
+            );
+            others.push(tokio::spawn(forward::forward_task(
+                connect,
+                dev,
+                settings,
+                out.clone(),
+                stop.clone(),
+            )));
+        }
+    }
+    sims.panel = spec.panel.clone();
     Ok((
         sims,
         DeviceLinks {

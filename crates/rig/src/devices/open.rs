@@ -8,17 +8,23 @@
 
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{Clock, DeviceError, Diopters, LinkError, PowerRange};
+use dioptra_core::{
+    Clock, DeviceError, Diopters, LinkError, PlaneSchedule, PlaneSequencer, PowerRange,
+    SequencerEvent,
+};
 use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
 use dioptra_lens::{ControllerConfig, LensController, LensLimits, Optotune, OptotuneConfig};
-use dioptra_sync::board::SyncBoard;
+use dioptra_photodiode::SerialPhotodiode;
+use dioptra_sim::serve::ByteDevice;
+use dioptra_sync::board::{BoardEvent, SyncBoard};
 use dioptra_sync::dlpc350::Dlpc350;
 use dioptra_transport::{AnyByteLink, AnyHidLink};
 
-use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxSequencer};
-use crate::config::{GazeDriver, LensDriver, Port, RigConfig, SyncDriver};
+use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
+use super::DeviceInput;
+use crate::config::{GazeDriver, LensDriver, PhotodiodeDriver, Port, RigConfig, SyncDriver};
 use crate::devices::simulators::{
     byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
     SimPupilCapture, SimSlot, SimSpec,
@@ -88,6 +94,9 @@ impl Link {
 pub struct Context {
     pub cfg: Arc<RigConfig>,
     pub clock: Arc<dyn Clock>,
+    /// The loop's device inputs, for a driver that reports for another device too (the sync
+    /// board's photodiode input); `None` outside a rig.
+    pub inputs: Option<tokio::sync::mpsc::Sender<DeviceInput>>,
 }
 
 type Connect<D> = fn(Link, Context) -> BoxFuture<'static, Result<D, DeviceError>>;
@@ -180,6 +189,27 @@ pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
         usb: None,
         sim: sim_dlpc350,
         connect: connect_dlpc350,
+    },
+];
+
+pub static PHOTODIODE: [Row<PhotodiodeDriver, BoxPhotodiode>; 2] = [
+    Row {
+        driver: PhotodiodeDriver::SerialLine,
+        name: "serial-line",
+        what: "serial-line photodiode",
+        transport: Transport::Serial,
+        usb: None,
+        sim: sim_serial_photodiode,
+        connect: connect_serial_photodiode,
+    },
+    Row {
+        driver: PhotodiodeDriver::Sync,
+        name: "sync",
+        what: "sync board (its photodiode input)",
+        transport: Transport::Serial,
+        usb: None,
+        sim: sim_photodiode_board,
+        connect: connect_photodiode_board,
     },
 ];
 
@@ -392,8 +422,78 @@ fn connect_sync_board(
     ctx: Context,
 ) -> BoxFuture<'static, Result<BoxSequencer, DeviceError>> {
     Box::pin(async move {
-        let d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
-        Ok(BoxSequencer(Box::new(d)))
+        let mut d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
+        let photodiode = ctx.cfg.devices.photodiode.as_ref();
+        match (photodiode.filter(|p| p.on_sync_board()), ctx.inputs) {
+            (Some(p), Some(inputs)) => {
+                d.set_photodiode(Some(p.band())).await?;
+                Ok(BoxSequencer(Box::new(BoardWithLight { board: d, inputs })))
+            }
+            _ => Ok(BoxSequencer(Box::new(d))),
+        }
+    })
+}
+
+/// The sync board when the rig's photodiode is its input: sub-frame events go to the sync
+/// task, light straight to the loop (the link is one, so one reader takes both).
+struct BoardWithLight {
+    board: SyncBoard<AnyByteLink>,
+    inputs: tokio::sync::mpsc::Sender<DeviceInput>,
+}
+
+impl PlaneSequencer for BoardWithLight {
+    async fn program(&mut self, schedule: &PlaneSchedule) -> Result<(), DeviceError> {
+        self.board.program(schedule).await
+    }
+    async fn start(&mut self) -> Result<(), DeviceError> {
+        self.board.start().await
+    }
+    async fn stop(&mut self) -> Result<(), DeviceError> {
+        PlaneSequencer::stop(&mut self.board).await
+    }
+    /// Also while no schedule runs: then only light comes, and this waits for ever (the
+    /// board's 1 s time-sync ping fails it if the link breaks).
+    async fn next_event(&mut self) -> Result<SequencerEvent, DeviceError> {
+        loop {
+            match self.board.next_board_event().await? {
+                BoardEvent::Sequencer(e) => return Ok(e),
+                BoardEvent::Light(l) => {
+                    if self.inputs.send(DeviceInput::Light(l)).await.is_err() {
+                        return Err(DeviceError::Invalid("the rig's loop has stopped".into()));
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn connect_serial_photodiode(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxPhotodiode, DeviceError>> {
+    Box::pin(async move {
+        let d = SerialPhotodiode::connect(link.byte("serial-line photodiode")?, ctx.clock).await?;
+        Ok(BoxPhotodiode(Box::new(d)))
+    })
+}
+
+/// A sync board used only for its photodiode input (`[devices.photodiode] driver = "sync"`
+/// with a port of its own).
+fn connect_photodiode_board(
+    link: Link,
+    ctx: Context,
+) -> BoxFuture<'static, Result<BoxPhotodiode, DeviceError>> {
+    Box::pin(async move {
+        let band = ctx
+            .cfg
+            .devices
+            .photodiode
+            .as_ref()
+            .map(|p| p.band())
+            .unwrap_or_default();
+        let mut d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
+        d.set_photodiode(Some(band)).await?;
+        Ok(BoxPhotodiode(Box::new(d)))
     })
 }
 
@@ -447,15 +547,56 @@ fn sim_lens_controller(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
 }
 
 fn sim_sync_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
-    let dev = Arc::new(Mutex::new(dioptra_sim::sync_board::SyncBoardSim::new(
-        spec.board.clone(),
-    )));
+    let mut sim = dioptra_sim::sync_board::SyncBoardSim::new(spec.board.clone());
+    // Its photodiode input sees the simulated panel when the rig's photodiode is on it.
+    let on_board = ctx
+        .cfg
+        .devices
+        .photodiode
+        .as_ref()
+        .is_some_and(|p| p.on_sync_board());
+    if let (true, Some(panel)) = (on_board, &spec.panel) {
+        sim = sim.with_light(Arc::new(panel.clone()));
+    }
+    byte_sim("sync board", sim, ctx)
+}
+
+/// A byte-speaking simulator with no lens, gaze or pupil of its own.
+fn byte_sim<D: ByteDevice + Send + 'static>(
+    what: &'static str,
+    sim: D,
+    ctx: &Context,
+) -> SimEndpoint {
     SimEndpoint {
         lens: None,
-        open: Box::new(byte_endpoint("sync board", dev, ctx.clock.clone())),
+        open: Box::new(byte_endpoint(
+            what,
+            Arc::new(Mutex::new(sim)),
+            ctx.clock.clone(),
+        )),
         gaze_truth: None,
         pupil: None,
     }
+}
+
+/// A light source for a simulated photodiode: the simulated panel, or darkness without one.
+fn panel_light(spec: &SimSpec) -> Arc<dyn dioptra_sim::light::LightSource> {
+    match &spec.panel {
+        Some(p) => Arc::new(p.clone()),
+        None => Arc::new(dioptra_sim::light::ScriptedLight::new()),
+    }
+}
+
+fn sim_serial_photodiode(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let sim = dioptra_sim::photodiode::SerialPhotodiodeSim::new(spec.serial_photodiode.clone())
+        .with_light(panel_light(spec));
+    byte_sim("serial-line photodiode", sim, ctx)
+}
+
+fn sim_photodiode_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+    let sim = dioptra_sim::sync_board::SyncBoardSim::new(spec.board.clone())
+        .with_light(panel_light(spec));
+    byte_sim("sync board", sim, ctx)
 }
 
 fn sim_dlpc350(spec: &SimSpec, _ctx: &Context) -> SimEndpoint {

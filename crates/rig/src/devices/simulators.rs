@@ -13,6 +13,8 @@ use dioptra_sim::gaze::generator::{SampleSource, TruthSample};
 use dioptra_sim::gaze::hid_tracker::HidTrackerSetup;
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene};
 use dioptra_sim::lens_model::{LensModel, LensModelConfig};
+use dioptra_sim::panel::{PanelConfig, SharedPanel};
+use dioptra_sim::photodiode::SerialPhotodiodeSimConfig;
 use dioptra_sim::serve::ByteDevice;
 use dioptra_transport::{memory, AnyByteLink, AnyHidLink};
 
@@ -43,6 +45,11 @@ pub struct SimSpec {
     /// Keep the generator's ground truth (what the eyes really did) in
     /// [`SimDevices::gaze_truth`]; off in the daemon, where it would grow without bound.
     pub record_gaze_truth: bool,
+    /// The simulated panel whose marker patch a simulated photodiode sees (with a simulated
+    /// photodiode): the display presents to it.
+    pub panel: Option<SharedPanel>,
+    /// The simulated serial-line photodiode.
+    pub serial_photodiode: SerialPhotodiodeSimConfig,
 }
 
 impl SimSpec {
@@ -92,8 +99,49 @@ impl SimSpec {
             gaze_latency_us: (1500, 500),
             hid_tracker: HidTrackerSetup::default(),
             record_gaze_truth: false,
+            panel: cfg.photodiode_simulated().then(|| sim_panel(cfg)),
+            serial_photodiode: SerialPhotodiodeSimConfig::default(),
         })
     }
+}
+
+/// Shows each presented frame's marker patch on the simulated panel, so that a simulated
+/// photodiode sees what the display draws (whichever sink draws it).
+pub struct PanelFeed(pub SharedPanel);
+
+impl crate::executor::LoopHook for PanelFeed {
+    fn presented(
+        &mut self,
+        _now: Timestamp,
+        shown: &crate::executor::Presented,
+        _sink: &dyn crate::display::DisplaySink,
+    ) {
+        if let Some(white) = shown.marker_white {
+            self.0.lock().present(shown.shown, shown.frame, white);
+        }
+    }
+}
+
+/// The simulated panel of `display`'s `sim_*` keys: its light `sim_photon_latency_ms` after
+/// each vsync (default: the display latency the scheduler assumes), held or pulsed
+/// (`sim_persistence_ms`), with `sim_dropped_refreshes` dropped.
+pub fn sim_panel(cfg: &RigConfig) -> SharedPanel {
+    let d = &cfg.display;
+    let assumed = crate::engine::sched_config(cfg)
+        .map(|s| s.display.latency)
+        .unwrap_or_else(|_| dioptra_sched::DisplayTiming::default().latency);
+    let ms = |v: f64| Duration::from_secs_f64(v / 1000.0);
+    let panel = SharedPanel::new(PanelConfig {
+        persistence: d.sim_persistence_ms.map(ms),
+        ..PanelConfig::new(
+            Duration::from_secs_f64(1.0 / d.frame_hz),
+            d.sim_photon_latency_ms.map_or(assumed, ms),
+        )
+    });
+    for n in &d.sim_dropped_refreshes {
+        panel.lock().drop_refresh(*n);
+    }
+    panel
 }
 
 /// Plugs and unplugs a simulated device, as its cable would.
@@ -323,6 +371,9 @@ pub struct SimDevices {
     pub lens: Option<SimSlot>,
     pub gaze: Option<SimSlot>,
     pub sync: Option<SimSlot>,
+    pub photodiode: Option<SimSlot>,
+    /// The simulated panel a simulated photodiode watches: what it showed, refresh by refresh.
+    pub panel: Option<SharedPanel>,
     /// With [`SimSpec::record_gaze_truth`].
     pub gaze_truth: Option<GazeTruth>,
 }

@@ -1,5 +1,6 @@
 //! The sync task: runs the plane schedule while the mode is multifocal, forwards its events,
-//! and stops the sequence when the mode changes or the rig stops.
+//! and stops the sequence when the mode changes or the rig stops. With the rig's photodiode on
+//! the board (`light`), it reads the board whatever the mode: the driver forwards the light.
 
 use std::future::Future;
 
@@ -11,12 +12,19 @@ use super::{
     connect_retrying, Backoff, DeviceHandle, DeviceInput, DeviceSettings, LinkHealth, Verdict,
 };
 
+/// What the sync task runs: the schedule while `multifocal` says so, and whether the rig's
+/// photodiode is on the board (then the board is read in every mode).
+pub(crate) struct SyncWork {
+    pub schedule: PlaneSchedule,
+    pub multifocal: watch::Receiver<bool>,
+    pub light: bool,
+}
+
 pub(crate) async fn sync_task<S, F, Fut>(
     mut connect: F,
     dev: DeviceHandle,
     settings: DeviceSettings,
-    schedule: PlaneSchedule,
-    mut multifocal: watch::Receiver<bool>,
+    work: SyncWork,
     out: mpsc::Sender<DeviceInput>,
     stop: CancellationToken,
 ) where
@@ -24,6 +32,11 @@ pub(crate) async fn sync_task<S, F, Fut>(
     F: FnMut() -> Fut,
     Fut: Future<Output = Result<S, DeviceError>>,
 {
+    let SyncWork {
+        schedule,
+        mut multifocal,
+        light,
+    } = work;
     let policy = settings.link;
     let mut backoff = Backoff::new(policy.backoff_min, policy.backoff_max);
     loop {
@@ -74,7 +87,7 @@ pub(crate) async fn sync_task<S, F, Fut>(
                         },
                     }
                 }
-                r = s.next_event(), if running => match r {
+                r = s.next_event(), if running || light => match r {
                     Ok(ev) => {
                         health.ok();
                         let _ = out.try_send(DeviceInput::Sync(ev));
