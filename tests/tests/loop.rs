@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use dioptra_core::{DepthMap, Diopters, Plane, Timestamp};
 use dioptra_rig::config::{Mode, RigConfig, EXAMPLE_SIM_RIG};
+use dioptra_rig::devices::LensId;
 use dioptra_rig::recording::Rec;
 use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_rig::simulated_rig::{Action, Run, ScriptedRenderer, SimRun};
@@ -605,6 +606,17 @@ fn through_optics(table: Option<String>) -> SimRun {
     o
 }
 
+/// The example binocular rig (a lens per eye) with its tracker at 500 Hz, on `scene`.
+fn binocular(scene: Scene, seconds: f64) -> SimRun {
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("sim_rate_hz = 250.0", "sim_rate_hz = 500.0");
+    let cfg = RigConfig::parse(&text).unwrap();
+    let mut o = SimRun::new(cfg, Duration::from_secs_f64(seconds)).unwrap();
+    o.spec.gaze_scene = scene;
+    o.spec.gaze.blink_rate_hz = 0.0;
+    o
+}
+
 /// A table of the layout's demand every 0.25 D over the lens range, `offset_d` added.
 fn layout_table(offset_d: f64) -> String {
     let mut t = String::from("command_d,demand_d\n");
@@ -792,4 +804,221 @@ async fn gaze_to_photons_is_the_host_path_plus_render_plus_the_display_latency()
             "{s:?}: {off:e} s from the panel's record"
         );
     }
+}
+
+/// When each simulated lens (`right`: the right eye's) first sat within `tol` of `power`
+/// from `from` until `until`, µs.
+fn settled_at(r: &Run, right: bool, power: f32, from: u64, until: u64, tol: f32) -> Option<u64> {
+    r.log
+        .probes
+        .iter()
+        .filter(|p| us(p.t) >= from && us(p.t) < until)
+        .scan(None, |since: &mut Option<u64>, p| {
+            let lens = if right {
+                p.lens_power_right
+            } else {
+                p.lens_power
+            };
+            let ok = lens.is_some_and(|l| (l.0 - power).abs() <= tol);
+            *since = if ok { since.or(Some(us(p.t))) } else { None };
+            Some(*since)
+        })
+        .last()
+        .flatten()
+}
+
+/// A lens per eye: one fixation estimate drives both. At every saccade between the near and
+/// far objects both lenses are commanded to the new depth, left then right at the same
+/// instant, and each (its own simulated Lens Driver 4) settles there within its settle time
+/// of its command reaching the wire.
+#[tokio::test(start_paused = true)]
+async fn both_lenses_follow_one_fixation_through_saccades() {
+    let opts = binocular(near_far(500), 3.2);
+    let settle = opts.spec.lens.settle_time;
+    let r = go(opts, Duration::from_millis(4)).await;
+    let sacc = saccades(&r);
+    assert!(sacc.len() >= 5, "{sacc:?}");
+    let cmds = &r.log.lens_commands;
+    for &(start, land, depth) in &sacc {
+        let to = |lens: u8| {
+            cmds.iter()
+                .find(|c| {
+                    c.lens.0 == lens
+                        && us(c.t) >= start
+                        && (f64::from(c.power.0) - depth).abs() < 0.05
+                })
+                .unwrap_or_else(|| panic!("lens {lens}: no command to {depth} D after {start} µs"))
+        };
+        let (l, rr) = (to(0), to(1));
+        // One decision: both commands issued at once, the left first.
+        assert_eq!(l.t, rr.t);
+        assert_eq!(l.id.0 + 1, rr.id.0);
+        assert!(
+            us(l.t) <= land + 10_000,
+            "command at {} µs, landing {land}",
+            us(l.t)
+        );
+        for (c, right) in [(l, false), (rr, true)] {
+            let wire = us(c.wire.expect("on the wire"));
+            let at = settled_at(&r, right, c.power.0, wire, wire + 200_000, 0.03)
+                .unwrap_or_else(|| panic!("lens {} never settled at {} D", c.lens.0, c.power.0));
+            assert!(
+                Duration::from_micros(at - wire) <= settle + Duration::from_millis(1),
+                "lens {} settled {} µs after its wire",
+                c.lens.0,
+                at - wire
+            );
+        }
+    }
+    // Both lenses parked at the end.
+    let end = r.log.probes.last().unwrap();
+    assert!((end.lens_power.unwrap().0 - 0.5).abs() < 0.01, "{end:?}");
+    assert!(
+        (end.lens_power_right.unwrap().0 - 0.5).abs() < 0.01,
+        "{end:?}"
+    );
+    assert!(r.report.ok(), "{:?}", r.report);
+    assert!(r.report.park_right.is_some());
+}
+
+/// Each lens is driven through its own eye's optics map: with the right eye a -0.5 D myope
+/// ([optics.right], 0 mm vertex), every decision sends the right lens 0.5 D more than the left
+/// (both lenses on the identity map otherwise), and frames are rendered at the focus each
+/// lens gives its eye.
+#[tokio::test(start_paused = true)]
+async fn each_lens_follows_its_own_eyes_optics_map() {
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("sim_rate_hz = 250.0", "sim_rate_hz = 500.0")
+        .replace(
+            "[eye]",
+            "[optics.right]\nprescription_sphere_d = -0.5\nprescription_vertex_mm = 0.0\n\n[eye]",
+        );
+    let cfg = RigConfig::parse(&text).unwrap();
+    let mut opts = SimRun::new(cfg, Duration::from_secs_f64(2.0)).unwrap();
+    opts.spec.gaze_scene = near_far(400);
+    opts.spec.gaze.blink_rate_hz = 0.0;
+    let r = go(opts, Duration::from_millis(4)).await;
+    assert_eq!(r.state.optics_of(LensId(1)).source_name(), "identity");
+    let cmds = &r.log.lens_commands;
+    let left: Vec<_> = cmds.iter().filter(|c| c.lens.0 == 0).collect();
+    let right: Vec<_> = cmds.iter().filter(|c| c.lens.0 == 1).collect();
+    assert!(left.len() >= 3, "{cmds:?}");
+    assert_eq!(left.len(), right.len());
+    for (l, r) in left.iter().zip(&right) {
+        assert_eq!(l.t, r.t);
+        if l.reason == FocusReason::Park {
+            // Each parks where its own section says (both at 0.5 D in the example).
+            assert_eq!((l.power.0, r.power.0), (0.5, 0.5));
+        } else {
+            assert!((r.power.0 - l.power.0 - 0.5).abs() < 1e-4, "{l:?} {r:?}");
+        }
+    }
+}
+
+/// Unplugging the right eye's lens holds that eye only: while it is away the left lens keeps
+/// following the saccades, nothing is sent to the right one, and when it is plugged back in
+/// it is sent the current focus and both follow again.
+#[tokio::test(start_paused = true)]
+async fn unplugging_the_right_lens_holds_that_eye_while_the_left_keeps_focusing() {
+    let mut opts = binocular(near_far(400), 4.0);
+    let (pull, back) = (1_300_000u64, 2_600_000u64);
+    opts.actions = vec![
+        (Duration::from_micros(pull), Action::UnplugLensOf(LensId(1))),
+        (Duration::from_micros(back), Action::ReplugLensOf(LensId(1))),
+    ];
+    let r = go(opts, Duration::from_millis(4)).await;
+    let right_links: Vec<(Timestamp, LinkStatus)> = r
+        .log
+        .link_events
+        .iter()
+        .filter(|l| l.2 == LensId(1))
+        .map(|l| (l.0, l.1))
+        .collect();
+    let left_links: Vec<LinkStatus> = r
+        .log
+        .link_events
+        .iter()
+        .filter(|l| l.2 == LensId(0))
+        .map(|l| l.1)
+        .collect();
+    assert_eq!(
+        left_links,
+        [LinkStatus::Connected],
+        "the left lens stayed up"
+    );
+    assert_eq!(
+        right_links.iter().map(|l| l.1).collect::<Vec<_>>(),
+        [
+            LinkStatus::Connected,
+            LinkStatus::Lost,
+            LinkStatus::Connected
+        ]
+    );
+    let (lost_at, back_at) = (us(right_links[1].0), us(right_links[2].0));
+    assert!(lost_at >= pull && back_at >= back, "{lost_at} {back_at}");
+    assert_eq!(r.lenses_opened, [1, 2]);
+    // While it was away: saccades moved the left lens, and no command reached the right one.
+    let sacc: Vec<_> = saccades(&r)
+        .into_iter()
+        .filter(|s| s.0 > lost_at + 50_000 && s.1 + 100_000 < back_at)
+        .collect();
+    assert!(sacc.len() >= 2, "{sacc:?}");
+    let cmds = &r.log.lens_commands;
+    for &(start, _, depth) in &sacc {
+        let left = cmds
+            .iter()
+            .find(|c| {
+                c.lens.0 == 0 && us(c.t) >= start && (f64::from(c.power.0) - depth).abs() < 0.05
+            })
+            .expect("the left lens followed");
+        let wire = us(left.wire.expect("on the wire"));
+        assert!(settled_at(&r, false, left.power.0, wire, wire + 100_000, 0.03).is_some());
+    }
+    assert!(
+        !cmds
+            .iter()
+            .any(|c| c.lens.0 == 1 && us(c.t) > lost_at && us(c.t) < back_at),
+        "a command was handed to the unplugged lens"
+    );
+    // Held: the right lens stayed where it was when it was pulled.
+    let held: Vec<f32> = r
+        .log
+        .probes
+        .iter()
+        .filter(|p| us(p.t) > lost_at && us(p.t) < back_at)
+        .filter_map(|p| p.lens_power_right.map(|d| d.0))
+        .collect();
+    let (lo, hi) = held
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+    assert!(
+        hi - lo < 0.05,
+        "the right lens moved while unplugged: {lo}..{hi}"
+    );
+    // Back: sent the current focus (the left lens's), and both follow the next saccade.
+    let reconnect = cmds
+        .iter()
+        .find(|c| c.lens.0 == 1 && us(c.t) >= back_at)
+        .expect("a command after the replug");
+    assert_eq!(reconnect.reason, FocusReason::Reconnect);
+    let left_then = cmds
+        .iter()
+        .rev()
+        .find(|c| c.lens.0 == 0 && c.t <= reconnect.t)
+        .unwrap();
+    assert!((reconnect.power.0 - left_then.power.0).abs() < 1e-4);
+    let after: Vec<_> = saccades(&r)
+        .into_iter()
+        .filter(|s| s.0 > back_at + 50_000)
+        .collect();
+    let &(start, _, depth) = after.first().expect("a saccade after the replug");
+    for lens in [0u8, 1] {
+        assert!(
+            cmds.iter().any(|c| c.lens.0 == lens
+                && us(c.t) >= start
+                && (f64::from(c.power.0) - depth).abs() < 0.05),
+            "lens {lens} did not follow after the replug"
+        );
+    }
+    assert!(r.report.ok(), "{:?}", r.report);
 }

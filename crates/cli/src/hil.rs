@@ -45,7 +45,7 @@ use serde_json::json;
 use tokio::sync::mpsc;
 
 use dioptra_rig::config::{Mode, Port, RigConfig, SyncDriver};
-use dioptra_rig::devices::{DeviceInput, State};
+use dioptra_rig::devices::{DeviceInput, LensId, State};
 use dioptra_rig::engine::Command;
 use dioptra_rig::executor::LoopHook;
 use dioptra_rig::photons::{PhotonLog, PhotonRecorder, PhotonReport};
@@ -102,17 +102,31 @@ fn ts_us(a: Timestamp, b: Timestamp) -> f64 {
 }
 
 /// Names each configured device, its config key and port, and whether it is simulated.
-fn devices_of(cfg: &RigConfig) -> Vec<(&'static str, &'static str, Port)> {
+fn devices_of(cfg: &RigConfig) -> Vec<(String, String, Port)> {
     let d = &cfg.devices;
-    let mut v = vec![
-        ("lens", "devices.lens.port", d.lens.port.clone()),
-        ("gaze", "devices.gaze.port", d.gaze.port.clone()),
-    ];
+    let mut v: Vec<(String, String, Port)> = d
+        .lens
+        .each()
+        .into_iter()
+        .enumerate()
+        .map(|(i, l)| {
+            (
+                d.lens.name(i),
+                format!("{}.port", d.lens.key(i)),
+                l.port.clone(),
+            )
+        })
+        .collect();
+    v.push((
+        "gaze".into(),
+        "devices.gaze.port".into(),
+        d.gaze.port.clone(),
+    ));
     if let Some(s) = &d.sync {
-        v.push(("sync", "devices.sync.port", s.port.clone()));
+        v.push(("sync".into(), "devices.sync.port".into(), s.port.clone()));
     }
     if let Some(port) = d.photodiode.as_ref().and_then(|p| p.port.clone()) {
-        v.push(("photodiode", "devices.photodiode.port", port));
+        v.push(("photodiode".into(), "devices.photodiode.port".into(), port));
     }
     v
 }
@@ -160,7 +174,7 @@ pub fn run(args: Args) -> Result<()> {
     let simulated: Vec<&str> = devices
         .iter()
         .filter(|d| d.2 == Port::Sim)
-        .map(|d| d.0)
+        .map(|d| d.0.as_str())
         .collect();
     let all_sim = simulated.len() == devices.len();
     let banner = if all_sim {
@@ -219,8 +233,8 @@ enum Optical {
 /// What the hook forwards from the rig's loop to the harness.
 enum Seen {
     Input(DeviceInput),
-    /// The loop handed lens command `id` to the lens task at this time.
-    LensCommand(u64, Timestamp),
+    /// The loop handed command `id` (power `.2`, D) to lens `.0`'s task at time `.3`.
+    LensCommand(LensId, u64, f32, Timestamp),
     /// The loop stopped: the scheduler's latency histograms.
     Stopped(Box<dioptra_sched::Latency>),
 }
@@ -238,8 +252,11 @@ impl LoopHook for Forward {
         let _ = self.0.send(Seen::Input(input.clone()));
     }
     fn command(&mut self, now: Timestamp, cmd: &Command) {
-        if let Command::SetLensPower { id, .. } = cmd {
-            let _ = self.0.send(Seen::LensCommand(id.0, now));
+        if let Command::SetLensPower {
+            lens, id, power, ..
+        } = cmd
+        {
+            let _ = self.0.send(Seen::LensCommand(*lens, id.0, power.0, now));
         }
     }
     fn stopped(&mut self, _now: Timestamp, engine: &dioptra_rig::engine::Engine) {
@@ -318,7 +335,7 @@ fn from_latency(
 async fn measure(
     cfg: &RigConfig,
     args: &Args,
-    devices: &[(&'static str, &'static str, Port)],
+    devices: &[(String, String, Port)],
 ) -> Result<(Vec<Measure>, Optical)> {
     let (tx, mut rx) = mpsc::unbounded_channel::<Seen>();
     let mut setup = RigSetup::new(cfg.clone());
@@ -349,7 +366,7 @@ async fn measure(
             let missing: Vec<String> = devices
                 .iter()
                 .filter_map(|(name, key, port)| {
-                    let s = snap.get(*name)?;
+                    let s = snap.get(name)?;
                     (s.state != State::Ok).then(|| {
                         format!(
                             "{key} = \"{port}\": the {name} device ({} driver) did not connect within {} s: {}",
@@ -373,9 +390,18 @@ async fn measure(
             .join(", ")
     );
 
+    let lenses = cfg.devices.lens.count();
     let mut host_path = Measure::new(
         "gaze_to_command",
-        "gaze sample received to lens command written (host path)",
+        if lenses > 1 {
+            "gaze sample received to both lens commands written (host path)"
+        } else {
+            "gaze sample received to lens command written (host path)"
+        },
+    );
+    let mut skew = Measure::new(
+        "inter_eye_skew",
+        "left and right lens commands of one gaze sample: written, right minus left (|skew|)",
     );
     let mut to_wire = Measure::new("command_to_wire", "lens command to on the wire");
     let mut settled = Measure::new("command_to_settled", "lens command to settled (readback)");
@@ -397,7 +423,11 @@ async fn measure(
     let phase_end = tokio::time::Instant::now() + phase_limit;
     // What arrived while the devices connected would count its wait: drop it.
     while rx.try_recv().is_ok() {}
-    let mut handed: Vec<(u64, Timestamp)> = Vec::new();
+    let mut handed: Vec<(LensId, u64, Timestamp)> = Vec::new();
+    // The host paths of one decision's commands (handed at the same time), by lens, until
+    // every lens's is written.
+    let mut decision: Option<(Timestamp, Vec<Option<f64>>)> = None;
+    let mut skew_sum = 0.0f64;
     let mut gaze_samples = 0u64;
     let mut gaze_commands = 0u64;
     while (host_path.hist.len() as usize) < args.trials && tokio::time::Instant::now() < phase_end {
@@ -407,26 +437,57 @@ async fn measure(
         };
         match seen {
             Some(Seen::Input(DeviceInput::Gaze(..))) => gaze_samples += 1,
-            Some(Seen::LensCommand(id, at)) => handed.push((id, at)),
+            Some(Seen::LensCommand(lens, id, _, at)) => handed.push((lens, id, at)),
             Some(Seen::Input(DeviceInput::LensWire {
+                lens,
                 id,
                 wire_time,
                 host_path: path,
                 ..
             })) => {
-                if let Some(&(_, at)) = handed.iter().rev().find(|h| h.0 == id) {
-                    to_wire.record_us(ts_us(at, wire_time));
+                let Some(&(_, _, at)) = handed.iter().rev().find(|h| h.1 == id) else {
+                    continue;
+                };
+                to_wire.record_us(ts_us(at, wire_time));
+                let Some(p) = path else { continue };
+                let us = p.as_secs_f64() * 1e6;
+                if decision.as_ref().is_none_or(|d| d.0 != at) {
+                    decision = Some((at, vec![None; lenses]));
                 }
-                if let Some(p) = path {
+                let Some((_, paths)) = decision.as_mut() else {
+                    continue;
+                };
+                if let Some(slot) = paths.get_mut(lens.index()) {
+                    *slot = Some(us);
+                }
+                // Every lens's command of this sample is written: the slowest is the path.
+                if paths.iter().all(Option::is_some) {
+                    let all: Vec<f64> = paths.iter().flatten().copied().collect();
                     gaze_commands += 1;
-                    host_path.record_us(p.as_secs_f64() * 1e6);
+                    host_path.record_us(all.iter().copied().fold(0.0, f64::max));
+                    if let [l, r] = all[..] {
+                        skew.record_us((r - l).abs());
+                        skew_sum += r - l;
+                    }
+                    decision = None;
                 }
             }
             _ => {}
         }
     }
-    host_path.note = format!(
-        "{gaze_samples} gaze samples in; {gaze_commands} lens commands caused by a gaze sample, each timed (wall clock) from the gaze task receiving the sample from its driver to the lens driver having written the command, through the rig's loop and scheduler as `dioptra serve` runs them"
+    host_path.note = if lenses > 1 {
+        format!(
+            "{gaze_samples} gaze samples in; {gaze_commands} focus changes caused by a gaze sample, each timed (wall clock) from the gaze task receiving the sample from its driver to both lens drivers having written their commands (the later of the two), through the rig's loop and scheduler as `dioptra serve` runs them"
+        )
+    } else {
+        format!(
+            "{gaze_samples} gaze samples in; {gaze_commands} lens commands caused by a gaze sample, each timed (wall clock) from the gaze task receiving the sample from its driver to the lens driver having written the command, through the rig's loop and scheduler as `dioptra serve` runs them"
+        )
+    };
+    let n_skew = skew.hist.len();
+    skew.signed_mean_us = (n_skew > 0).then(|| skew_sum / n_skew as f64);
+    skew.note = format!(
+        "{n_skew} focus changes sent to both lenses: the right lens's command written less the left's (wall clock, from the same gaze sample); the loop hands both to their lens tasks back to back, left first"
     );
     println!("gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples)");
     let optical = if photodiode {
@@ -472,8 +533,11 @@ async fn measure(
             .await
             .map_err(|e| anyhow::anyhow!("manual focus {focus} D was refused: {e}"))?;
         let end = tokio::time::Instant::now() + STEP_TIMEOUT;
-        let mut command: Option<(u64, Timestamp)> = None;
-        let mut wired = false;
+        // Each lens's command, whether it is on the wire, and when it settled.
+        // (Each lens is commanded its own power for the focus: its eye's optics map.)
+        let mut command: Vec<Option<(u64, f32, Timestamp)>> = vec![None; lenses];
+        let mut wired = vec![false; lenses];
+        let mut settled_at: Vec<Option<Timestamp>> = vec![None; lenses];
         let mut done = false;
         while tokio::time::Instant::now() < end {
             let seen = tokio::select! {
@@ -481,25 +545,45 @@ async fn measure(
                 _ = tokio::time::sleep_until(end) => None,
             };
             match seen {
-                Some(Seen::LensCommand(id, at)) => command = Some((id, at)),
-                Some(Seen::Input(DeviceInput::LensWire { id, wire_time, .. }))
-                    if command.is_some_and(|c| c.0 == id) =>
-                {
-                    if let Some((_, at)) = command {
-                        to_wire.record_us(ts_us(at, wire_time));
+                Some(Seen::LensCommand(lens, id, power, at)) => {
+                    if let Some(c) = command.get_mut(lens.index()) {
+                        *c = Some((id, power, at));
                     }
-                    wired = true;
                 }
-                Some(Seen::Input(DeviceInput::LensState(s)))
-                    if wired
-                        && (s.power.0 - p).abs() <= SETTLE_TOLERANCE_D
+                Some(Seen::Input(DeviceInput::LensWire {
+                    lens,
+                    id,
+                    wire_time,
+                    ..
+                })) if command
+                    .get(lens.index())
+                    .copied()
+                    .flatten()
+                    .is_some_and(|c| c.0 == id) =>
+                {
+                    if let Some(Some((_, _, at))) = command.get(lens.index()) {
+                        to_wire.record_us(ts_us(*at, wire_time));
+                    }
+                    wired[lens.index()] = true;
+                }
+                Some(Seen::Input(DeviceInput::LensState(lens, s)))
+                    if wired.get(lens.index()) == Some(&true)
+                        && settled_at[lens.index()].is_none()
+                        && command[lens.index()]
+                            .is_some_and(|c| (s.power.0 - c.1).abs() <= SETTLE_TOLERANCE_D)
                         && s.settled != Some(false) =>
                 {
-                    if let Some((_, at)) = command {
-                        settled.record_us(ts_us(at, s.host_time));
+                    settled_at[lens.index()] = Some(s.host_time);
+                    // Every lens settled: from the (first) command to the last settle.
+                    if settled_at.iter().all(Option::is_some) {
+                        let from = command.iter().flatten().map(|c| c.2).min();
+                        let last = settled_at.iter().flatten().max().copied();
+                        if let (Some(at), Some(t)) = (from, last) {
+                            settled.record_us(ts_us(at, t));
+                        }
+                        done = true;
+                        break;
                     }
-                    done = true;
-                    break;
                 }
                 None if tokio::time::Instant::now() >= end => break,
                 _ => {}
@@ -527,6 +611,9 @@ async fn measure(
 
     // 3. Sub-frame timing against the programmed schedule, in multifocal mode.
     let mut measures = vec![host_path, to_wire, settled];
+    if lenses > 1 {
+        measures.insert(1, skew);
+    }
     if let Optical::Measured(r) = &optical {
         measures.extend(photon_measures(r, cfg));
     }

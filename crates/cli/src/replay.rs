@@ -16,9 +16,10 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{DepthMap, Diopters, Timestamp};
 use serde::Serialize;
 
-use dioptra_rig::config::{ContentSource, Method, Mode, RigConfig};
+use dioptra_core::Side;
+use dioptra_rig::config::{ContentSource, Lenses, Method, Mode, RigConfig};
 use dioptra_rig::content::scene::{self, AnimatedScene, Pacing};
-use dioptra_rig::devices::DeviceInput;
+use dioptra_rig::devices::{DeviceInput, LensId};
 use dioptra_rig::engine::{Command, Engine, Input};
 use dioptra_rig::recording::{self, ControlRec, Rec, Recorded};
 use dioptra_rig::Control;
@@ -41,6 +42,12 @@ pub enum Cmd {
         id: u64,
         power_d: f32,
         reason: String,
+        /// With a lens per eye, the eye's lens.
+        #[serde(
+            skip_serializing_if = "Option::is_none",
+            serialize_with = "dioptra_rig::config::side_serde::serialize"
+        )]
+        eye: Option<Side>,
     },
     Render {
         t_ns: u64,
@@ -69,6 +76,7 @@ impl Cmd {
                 id: c.id,
                 power_d: c.power_d,
                 reason: c.reason.clone(),
+                eye: c.eye,
             },
             Rec::Render(c) => Cmd::Render {
                 t_ns: t.0,
@@ -88,16 +96,22 @@ impl Cmd {
         })
     }
 
-    /// A command the replayed scheduler gave, in the form the daemon records it.
-    fn replayed(t: Timestamp, c: &Command) -> Option<Cmd> {
+    /// A command the replayed scheduler gave, in the form the daemon records it (`lenses`:
+    /// the rig's, which name each lens's eye).
+    fn replayed(t: Timestamp, c: &Command, lenses: &Lenses) -> Option<Cmd> {
         Some(match *c {
             Command::SetLensPower {
-                id, power, reason, ..
+                lens,
+                id,
+                power,
+                reason,
+                ..
             } => Cmd::Lens {
                 t_ns: t.0,
                 id: id.0,
                 power_d: power.0,
                 reason: dioptra_rig::engine::reason_name(reason),
+                eye: lenses.side(lens.index()),
             },
             Command::RenderFrame(req) => Cmd::Render {
                 t_ns: t.0,
@@ -281,6 +295,15 @@ pub fn replay_file(path: &Path) -> Result<ReplayReport> {
     Ok(r)
 }
 
+/// The lens a recorded message's eye names: the right eye's is the second lens; the left
+/// eye's, or a rig's one lens (no eye), the first.
+fn lens_of(eye: Option<Side>) -> LensId {
+    match eye {
+        Some(Side::Right) => LensId(1),
+        _ => LensId::FIRST,
+    }
+}
+
 /// Replays a recording through a fresh scheduler.
 pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
     let Some((t0, Rec::Start(start))) = rec.messages.first() else {
@@ -369,14 +392,15 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         }
         let input = match m {
             Rec::Gaze(g) => Input::Device(DeviceInput::Gaze(g.into(), std::time::Instant::now())),
-            Rec::LensState(s) => Input::Device(DeviceInput::LensState(s.into())),
+            Rec::LensState(s) => Input::Device(DeviceInput::LensState(lens_of(s.eye), s.into())),
             Rec::LensWire(w) => Input::Device(DeviceInput::LensWire {
+                lens: lens_of(w.eye),
                 id: w.id,
                 requested: Diopters(w.requested_d),
                 wire_time: Timestamp(w.wire_ns),
                 host_path: None,
             }),
-            Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(l.up)),
+            Rec::LensLink(l) => Input::Device(DeviceInput::LensLink(lens_of(l.eye), l.up)),
             Rec::Sync(e) => Input::Device(DeviceInput::Sync(e.into())),
             Rec::Light(e) => Input::Device(DeviceInput::Light(e.into())),
             Rec::Frame(f) => Input::RenderFinished {
@@ -408,7 +432,10 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         let Ok(cmds) = engine.step(*t, input) else {
             continue;
         };
-        replayed.extend(cmds.iter().filter_map(|c| Cmd::replayed(*t, c)));
+        replayed.extend(
+            cmds.iter()
+                .filter_map(|c| Cmd::replayed(*t, c, &cfg.devices.lens)),
+        );
     }
     let matching_prefix = recorded
         .iter()

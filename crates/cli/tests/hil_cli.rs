@@ -73,6 +73,42 @@ fn hil_on_the_sim_rig_writes_outputs_that_say_simulated() {
     }
 }
 
+/// On the binocular example rig (a lens per eye): the host path runs to both lenses' commands
+/// written, the inter-eye skew is measured for each of those focus changes, and every step
+/// settles both lenses.
+#[test]
+fn hil_on_the_binocular_sim_rig_times_both_lenses_and_their_skew() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = write_config(
+        dir.path(),
+        include_str!("../examples/rig-sim-binocular.toml"),
+    );
+    let out = dir.path().join("hil");
+    let run = hil(&config, 6, &out);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "stdout:\n{stdout}\nstderr:\n{stderr}");
+    let js = summary_json(&out);
+    let m = &js["measurements"];
+    let changes = m["gaze_to_command"]["count"].as_u64().unwrap();
+    assert!(changes > 0, "{js}");
+    assert!(
+        m["gaze_to_command"]["title"]
+            .as_str()
+            .unwrap()
+            .contains("both lens commands"),
+        "{js}"
+    );
+    assert_eq!(m["inter_eye_skew"]["count"].as_u64(), Some(changes), "{js}");
+    assert_eq!(m["command_to_settled"]["count"], 6, "{js}");
+    // Two commands on the wire per step (at least), each timed.
+    assert!(
+        m["command_to_wire"]["count"].as_u64().unwrap() >= 12,
+        "{js}"
+    );
+    assert!(out.join("inter_eye_skew.png").exists());
+}
+
 #[test]
 fn hil_with_an_absent_serial_port_names_it_and_fails() {
     let dir = tempfile::tempdir().unwrap();

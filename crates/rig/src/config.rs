@@ -410,10 +410,184 @@ impl PhotodiodeDevice {
     }
 }
 
+/// An eye (`left`/`right`) in serialized records: core's [`Side`], which has no serde.
+pub mod side_serde {
+    use dioptra_core::Side;
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(side: &Option<Side>, s: S) -> Result<S::Ok, S::Error> {
+        side.map(Side::as_str).serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Side>, D::Error> {
+        match Option::<String>::deserialize(d)? {
+            None => Ok(None),
+            Some(s) => Side::parse(&s).map(Some).ok_or_else(|| {
+                serde::de::Error::custom(format!("{s:?}: expected \"left\" or \"right\""))
+            }),
+        }
+    }
+}
+
+/// `[devices.lens]`: one lens (a monocular bench, or one lens both eyes look through), or a
+/// lens per eye in `[devices.lens.left]` and `[devices.lens.right]`, each a full lens section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "LensSection", into = "LensSection")]
+pub enum Lenses {
+    One(LensDevice),
+    PerEye { left: LensDevice, right: LensDevice },
+}
+
+impl Lenses {
+    /// Each lens in the order of the lens tasks and the scheduler's lens ids: the one lens,
+    /// or the left then the right.
+    pub fn each(&self) -> Vec<&LensDevice> {
+        match self {
+            Lenses::One(l) => vec![l],
+            Lenses::PerEye { left, right } => vec![left, right],
+        }
+    }
+    pub fn count(&self) -> usize {
+        match self {
+            Lenses::One(_) => 1,
+            Lenses::PerEye { .. } => 2,
+        }
+    }
+    /// The one lens, or the left eye's.
+    pub fn first(&self) -> &LensDevice {
+        match self {
+            Lenses::One(l) => l,
+            Lenses::PerEye { left, .. } => left,
+        }
+    }
+    /// The one lens, or the left eye's, to change.
+    pub fn first_mut(&mut self) -> &mut LensDevice {
+        match self {
+            Lenses::One(l) => l,
+            Lenses::PerEye { left, .. } => left,
+        }
+    }
+    /// The eye lens `index` is in front of (`None`: the one lens, in front of both).
+    pub fn side(&self, index: usize) -> Option<Side> {
+        match (self, index) {
+            (Lenses::PerEye { .. }, 0) => Some(Side::Left),
+            (Lenses::PerEye { .. }, _) => Some(Side::Right),
+            (Lenses::One(_), _) => None,
+        }
+    }
+    /// Lens `index`'s config key: `devices.lens`, `devices.lens.left` or `devices.lens.right`.
+    pub fn key(&self, index: usize) -> String {
+        match self.side(index) {
+            None => "devices.lens".into(),
+            Some(e) => format!("devices.lens.{}", e.as_str()),
+        }
+    }
+    /// Lens `index`'s name in `/status` and the device registry: `lens`, `lens_left`,
+    /// `lens_right`.
+    pub fn name(&self, index: usize) -> String {
+        match self.side(index) {
+            None => "lens".into(),
+            Some(e) => format!("lens_{}", e.as_str()),
+        }
+    }
+}
+
+/// `[devices.lens]` as written: one lens's keys, or a `left` and a `right` table.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LensSection {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    driver: Option<LensDriver>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    port: Option<Port>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    park_power: Option<f32>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    sim_settle_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    settle_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    poll_ms: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    temperature_limits_c: Option<[f32; 2]>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    left: Option<LensDevice>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    right: Option<LensDevice>,
+}
+
+impl TryFrom<LensSection> for Lenses {
+    type Error = String;
+    fn try_from(s: LensSection) -> Result<Lenses, String> {
+        let one_keys = [
+            ("driver", s.driver.is_some()),
+            ("port", s.port.is_some()),
+            ("park_power", s.park_power.is_some()),
+            ("sim_settle_ms", s.sim_settle_ms.is_some()),
+            ("settle_ms", s.settle_ms.is_some()),
+            ("poll_ms", s.poll_ms.is_some()),
+            ("temperature_limits_c", s.temperature_limits_c.is_some()),
+        ];
+        match (s.left, s.right) {
+            (Some(left), Some(right)) => {
+                if let Some((k, _)) = one_keys.iter().find(|(_, set)| *set) {
+                    return Err(format!(
+                        "{k}: with [devices.lens.left] and [devices.lens.right], each lens's keys go in its own table (devices.lens.left.{k}, devices.lens.right.{k})"
+                    ));
+                }
+                Ok(Lenses::PerEye { left, right })
+            }
+            (None, Some(_)) => Err(
+                "right: a right lens without a left one: add [devices.lens.left], or give one lens in [devices.lens] (a monocular bench, or one lens both eyes look through)".into(),
+            ),
+            (Some(_), None) => Err(
+                "left: a left lens without a right one: add [devices.lens.right], or give one lens in [devices.lens] (a monocular bench, or one lens both eyes look through)".into(),
+            ),
+            (None, None) => {
+                let missing = |k: &str| {
+                    format!("missing field `{k}` (one lens: driver, port and park_power; a lens per eye: [devices.lens.left] and [devices.lens.right])")
+                };
+                Ok(Lenses::One(LensDevice {
+                    driver: s.driver.ok_or_else(|| missing("driver"))?,
+                    port: s.port.ok_or_else(|| missing("port"))?,
+                    park_power: s.park_power.ok_or_else(|| missing("park_power"))?,
+                    sim_settle_ms: s.sim_settle_ms.unwrap_or_else(default_settle_ms),
+                    settle_ms: s.settle_ms,
+                    poll_ms: s.poll_ms.unwrap_or_else(default_lens_poll_ms),
+                    temperature_limits_c: s.temperature_limits_c,
+                }))
+            }
+        }
+    }
+}
+
+impl From<Lenses> for LensSection {
+    fn from(l: Lenses) -> LensSection {
+        match l {
+            Lenses::One(l) => LensSection {
+                driver: Some(l.driver),
+                port: Some(l.port),
+                park_power: Some(l.park_power),
+                sim_settle_ms: Some(l.sim_settle_ms),
+                settle_ms: l.settle_ms,
+                poll_ms: Some(l.poll_ms),
+                temperature_limits_c: l.temperature_limits_c,
+                ..LensSection::default()
+            },
+            Lenses::PerEye { left, right } => LensSection {
+                left: Some(left),
+                right: Some(right),
+                ..LensSection::default()
+            },
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Devices {
-    pub lens: LensDevice,
+    /// One lens, or a lens per eye.
+    pub lens: Lenses,
     pub gaze: GazeDevice,
     /// Needed for multifocal mode.
     pub sync: Option<SyncDevice>,
@@ -736,6 +910,11 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:7420";
 /// The example rig of simulated devices (`crates/cli/examples/rig-sim.toml`), which the demo,
 /// the loop tests and `dioptra eval --suite loop` run.
 pub const EXAMPLE_SIM_RIG: &str = include_str!("../../cli/examples/rig-sim.toml");
+
+/// The example binocular rig of simulated devices (`crates/cli/examples/rig-sim-binocular.toml`):
+/// a lens per eye, the binocular tracker, the panel split side by side.
+pub const EXAMPLE_SIM_BINOCULAR_RIG: &str =
+    include_str!("../../cli/examples/rig-sim-binocular.toml");
 
 /// Where the API listens, validated.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -1220,31 +1399,94 @@ impl RigConfig {
         Ok(())
     }
 
+    /// One lens's section (`key`: `devices.lens`, `devices.lens.left` or `.right`).
+    fn check_lens(&self, key: &str, l: &LensDevice) -> Result<(), ConfigError> {
+        let r = self.optics.lens_range;
+        let k = |field: &str| format!("{key}.{field}");
+        let park = l.park_power;
+        if !(park.is_finite() && (r.min..=r.max).contains(&park)) {
+            return Err(invalid(
+                &k("park_power"),
+                format!(
+                    "{park} D is outside optics.lens_range {}..{} D: the lens must park inside the rig's range",
+                    r.min, r.max
+                ),
+            ));
+        }
+        if let Some([lo, hi]) = l.temperature_limits_c {
+            if l.driver != LensDriver::Optotune {
+                return Err(invalid(
+                    &k("temperature_limits_c"),
+                    "only the Optotune Lens Driver 4 takes temperature limits (driver = \"optotune\")",
+                ));
+            }
+            if !(lo.is_finite() && hi.is_finite() && lo < hi && lo >= -120.0 && hi <= 120.0) {
+                return Err(invalid(
+                    &k("temperature_limits_c"),
+                    format!("[{lo}, {hi}]: expected [lower, upper] in °C, lower below upper, within -120..120"),
+                ));
+            }
+        }
+        let settle = l.sim_settle_ms;
+        if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
+            return Err(invalid(
+                &k("sim_settle_ms"),
+                format!("expected a settle time above 0 and at most 1000 ms (got {settle})"),
+            ));
+        }
+        if let Some(settle) = l.settle_ms {
+            if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
+                return Err(invalid(
+                    &k("settle_ms"),
+                    format!("expected the lens's settle time, more than 0 and at most 1000 ms (got {settle})"),
+                ));
+            }
+        }
+        let poll = l.poll_ms;
+        if !(poll.is_finite() && (1.0..=1000.0).contains(&poll)) {
+            return Err(invalid(
+                &k("poll_ms"),
+                format!("expected a read-back interval of 1 to 1000 ms (got {poll})"),
+            ));
+        }
+        if let Port::Net(a) = &l.port {
+            return Err(invalid(
+                &k("port"),
+                format!("{a}: lenses are reached by device path, VID:PID or \"sim\", not over the network"),
+            ));
+        }
+        Ok(())
+    }
+
     /// A `port = "usb"` only for a driver that talks over USB bulk endpoints (the drivers'
     /// table says which).
     fn check_usb_ports(&self) -> Result<(), ConfigError> {
         use crate::devices::open::{row, GAZE, LENS, SYNC};
         let d = &self.devices;
-        let usb = [
-            (
-                "devices.lens.port",
-                &d.lens.port,
-                row(&LENS, d.lens.driver).map(|r| (r.what, r.usb.is_some())),
-            ),
-            (
+        let keys: Vec<String> = (0..d.lens.count())
+            .map(|i| format!("{}.port", d.lens.key(i)))
+            .collect();
+        let usb = d
+            .lens
+            .each()
+            .into_iter()
+            .zip(&keys)
+            .map(|(l, key)| {
+                let found = row(&LENS, l.driver).map(|r| (r.what, r.usb.is_some()));
+                (key.as_str(), &l.port, found)
+            })
+            .chain([(
                 "devices.gaze.port",
                 &d.gaze.port,
                 row(&GAZE, d.gaze.driver).map(|r| (r.what, r.usb.is_some())),
-            ),
-        ]
-        .into_iter()
-        .chain(d.sync.as_ref().map(|s| {
-            (
-                "devices.sync.port",
-                &s.port,
-                row(&SYNC, s.driver).map(|r| (r.what, r.usb.is_some())),
-            )
-        }));
+            )])
+            .chain(d.sync.as_ref().map(|s| {
+                (
+                    "devices.sync.port",
+                    &s.port,
+                    row(&SYNC, s.driver).map(|r| (r.what, r.usb.is_some())),
+                )
+            }));
         for (key, port, found) in usb {
             if let (Port::Usb(_), Ok((what, false))) = (port, found) {
                 return Err(invalid(
@@ -1454,14 +1696,17 @@ impl RigConfig {
                     .to_string(),
             );
         }
-        let l = &self.devices.lens;
-        if l.port != Port::Sim && l.settle_ms.is_none() {
-            out.push(format!(
-                "devices.lens.settle_ms is not set: the scheduler models the lens as settling \
-                 in {} ms (the EL-10-30's datasheet); measure yours with `dioptra lens set D \
-                 --watch-ms 100` and set it",
-                LensDevice::DEFAULT_SETTLE_MS
-            ));
+        let lenses = &self.devices.lens;
+        for (i, l) in lenses.each().into_iter().enumerate() {
+            if l.port != Port::Sim && l.settle_ms.is_none() {
+                out.push(format!(
+                    "{}.settle_ms is not set: the scheduler models the lens as settling \
+                     in {} ms (the EL-10-30's datasheet); measure yours with `dioptra lens set D \
+                     --watch-ms 100` and set it",
+                    lenses.key(i),
+                    LensDevice::DEFAULT_SETTLE_MS
+                ));
+            }
         }
         out
     }
@@ -1591,51 +1836,8 @@ impl RigConfig {
                 "expected a sub-frame rate of 1 to 10000 Hz",
             ));
         }
-        let park = self.devices.lens.park_power;
-        if !(park.is_finite() && (r.min..=r.max).contains(&park)) {
-            return Err(invalid(
-                "devices.lens.park_power",
-                format!(
-                    "{park} D is outside optics.lens_range {}..{} D: the lens must park inside the rig's range",
-                    r.min, r.max
-                ),
-            ));
-        }
-        if let Some([lo, hi]) = self.devices.lens.temperature_limits_c {
-            if self.devices.lens.driver != LensDriver::Optotune {
-                return Err(invalid(
-                    "devices.lens.temperature_limits_c",
-                    "only the Optotune Lens Driver 4 takes temperature limits (driver = \"optotune\")",
-                ));
-            }
-            if !(lo.is_finite() && hi.is_finite() && lo < hi && lo >= -120.0 && hi <= 120.0) {
-                return Err(invalid(
-                    "devices.lens.temperature_limits_c",
-                    format!("[{lo}, {hi}]: expected [lower, upper] in °C, lower below upper, within -120..120"),
-                ));
-            }
-        }
-        let settle = self.devices.lens.sim_settle_ms;
-        if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
-            return Err(invalid(
-                "devices.lens.sim_settle_ms",
-                format!("expected a settle time above 0 and at most 1000 ms (got {settle})"),
-            ));
-        }
-        if let Some(settle) = self.devices.lens.settle_ms {
-            if !(settle.is_finite() && settle > 0.0 && settle <= 1000.0) {
-                return Err(invalid(
-                    "devices.lens.settle_ms",
-                    format!("expected the lens's settle time, more than 0 and at most 1000 ms (got {settle})"),
-                ));
-            }
-        }
-        let poll = self.devices.lens.poll_ms;
-        if !(poll.is_finite() && (1.0..=1000.0).contains(&poll)) {
-            return Err(invalid(
-                "devices.lens.poll_ms",
-                format!("expected a read-back interval of 1 to 1000 ms (got {poll})"),
-            ));
+        for (i, l) in self.devices.lens.each().into_iter().enumerate() {
+            self.check_lens(&self.devices.lens.key(i), l)?;
         }
         let g = &self.devices.gaze;
         if g.port == Port::Sim && !dioptra_sim::gaze::SCENARIOS.contains(&g.sim_scenario.as_str()) {
@@ -1672,12 +1874,6 @@ impl RigConfig {
             _ => {}
         }
         self.check_usb_ports()?;
-        if let Port::Net(a) = &self.devices.lens.port {
-            return Err(invalid(
-                "devices.lens.port",
-                format!("{a}: lenses are reached by device path, VID:PID or \"sim\", not over the network"),
-            ));
-        }
         if let Some(Port::Net(a)) = self.devices.sync.as_ref().map(|s| &s.port) {
             return Err(invalid(
                 "devices.sync.port",
@@ -1769,7 +1965,8 @@ impl RigConfig {
                 "display.png_every is set: give a directory for the PNGs",
             ));
         }
-        if self.optics.left.is_some() && self.optics.right.is_some() {
+        let one_lens = matches!(self.devices.lens, Lenses::One(_));
+        if one_lens && self.optics.left.is_some() && self.optics.right.is_some() {
             return Err(invalid(
                 "optics.right",
                 "[optics.left] and [optics.right] are both given, but this rig has one lens \
@@ -1777,7 +1974,13 @@ impl RigConfig {
                  section of a monocular bench); per-eye maps need a lens per eye",
             ));
         }
-        self.optics_map(None)?;
+        if one_lens {
+            self.optics_map(None)?;
+        } else {
+            for side in Side::BOTH {
+                self.optics_map(Some(side))?;
+            }
+        }
         self.check_marker_and_panel()?;
         self.listen()?;
         self.api_token()?;
@@ -1903,7 +2106,7 @@ pub(crate) mod tests {
     fn the_example_config_parses() {
         let c = RigConfig::parse(SIM_RIG).unwrap();
         assert_eq!(c.mode, Mode::Varifocal);
-        assert_eq!(c.devices.lens.port, Port::Sim);
+        assert_eq!(c.devices.lens.first().port, Port::Sim);
         assert_eq!(
             c.listen().unwrap(),
             Listen::Tcp("127.0.0.1:7420".parse().unwrap())
@@ -2144,7 +2347,10 @@ pub(crate) mod tests {
             "port = \"/dev/ttyACM0\"\npark_power",
         ))
         .unwrap();
-        assert_eq!(ok.devices.lens.port, Port::Path("/dev/ttyACM0".into()));
+        assert_eq!(
+            ok.devices.lens.first().port,
+            Port::Path("/dev/ttyACM0".into())
+        );
     }
 
     /// The lens controller's USB bulk endpoints, which `dioptra lens --device lens:usb`
@@ -2163,7 +2369,7 @@ pub(crate) mod tests {
                 "port = \"usb:A1B2\"\npark_power",
             );
         let c = RigConfig::parse(&lens).unwrap();
-        assert_eq!(c.devices.lens.port, Port::Usb(Some("A1B2".into())));
+        assert_eq!(c.devices.lens.first().port, Port::Usb(Some("A1B2".into())));
         let optotune = SIM_RIG.replace("port = \"sim\"\npark_power", "port = \"usb\"\npark_power");
         let e = err(&optotune);
         assert_eq!(e.key(), "devices.lens.port", "{e}");
@@ -2178,6 +2384,83 @@ pub(crate) mod tests {
         );
         assert_ne!(gaze, SIM_RIG);
         assert_eq!(err(&gaze).key(), "devices.gaze.port");
+    }
+
+    /// `[devices.lens.left]` and `[devices.lens.right]`: a lens per eye, each a full lens
+    /// section checked under its own keys; half a pair, or one lens's keys beside the pair, is
+    /// refused naming the key; one `[devices.lens]` is one lens as before.
+    #[test]
+    fn a_lens_per_eye_is_two_full_sections() {
+        let c = RigConfig::parse(EXAMPLE_SIM_BINOCULAR_RIG).unwrap();
+        assert_eq!(c.devices.lens.count(), 2);
+        assert_eq!(c.devices.lens.side(1), Some(Side::Right));
+        assert_eq!(c.devices.lens.name(1), "lens_right");
+        assert_eq!(c.devices.lens.key(0), "devices.lens.left");
+        // It goes through TOML and back (recordings keep the config).
+        let again = RigConfig::parse(&toml::to_string(&c).unwrap()).unwrap();
+        assert_eq!(again.devices.lens, c.devices.lens);
+        let one = RigConfig::parse(SIM_RIG).unwrap();
+        assert!(matches!(one.devices.lens, Lenses::One(_)));
+        assert_eq!(one.devices.lens.name(0), "lens");
+        let again = RigConfig::parse(&toml::to_string(&one).unwrap()).unwrap();
+        assert_eq!(again.devices.lens, one.devices.lens);
+        // The right's own keys are checked under its own name.
+        let bad = EXAMPLE_SIM_BINOCULAR_RIG.replace(
+            "[devices.lens.right]\ndriver = \"optotune\"\nport = \"sim\"\npark_power = 0.5",
+            "[devices.lens.right]\ndriver = \"optotune\"\nport = \"sim\"\npark_power = 9.5",
+        );
+        assert_ne!(bad, EXAMPLE_SIM_BINOCULAR_RIG);
+        let e = err(&bad);
+        assert_eq!(e.key(), "devices.lens.right.park_power", "{e}");
+        let bad = EXAMPLE_SIM_BINOCULAR_RIG.replace(
+            "sim_settle_ms = 15.0\n\n[devices.gaze]",
+            "sim_settle_ms = 15.0\nbogus = 1\n\n[devices.gaze]",
+        );
+        assert_ne!(bad, EXAMPLE_SIM_BINOCULAR_RIG);
+        let e = err(&bad);
+        assert_eq!(e.key(), "devices.lens.right.bogus", "{e}");
+        // A right lens without a left one; a left without a right; one lens's keys beside both.
+        let right_only =
+            EXAMPLE_SIM_BINOCULAR_RIG.replace("[devices.lens.left]", "[devices.lens.unused]");
+        let e = err(&right_only);
+        assert!(e.to_string().contains("unused"), "{e}");
+        let start = EXAMPLE_SIM_BINOCULAR_RIG
+            .find("[devices.lens.left]")
+            .unwrap();
+        let end = EXAMPLE_SIM_BINOCULAR_RIG
+            .find("[devices.lens.right]")
+            .unwrap();
+        let no_left = format!(
+            "{}{}",
+            &EXAMPLE_SIM_BINOCULAR_RIG[..start],
+            &EXAMPLE_SIM_BINOCULAR_RIG[end..]
+        );
+        let e = err(&no_left);
+        assert_eq!(e.key(), "devices.lens", "{e}");
+        assert!(
+            e.to_string().contains("a right lens without a left one"),
+            "{e}"
+        );
+        let gaze = EXAMPLE_SIM_BINOCULAR_RIG.find("[devices.gaze]").unwrap();
+        let no_right = format!(
+            "{}{}",
+            &EXAMPLE_SIM_BINOCULAR_RIG[..end],
+            &EXAMPLE_SIM_BINOCULAR_RIG[gaze..]
+        );
+        let e = err(&no_right);
+        assert!(
+            e.to_string().contains("a left lens without a right one"),
+            "{e}"
+        );
+        let mixed = EXAMPLE_SIM_BINOCULAR_RIG.replace(
+            "[devices.lens.left]",
+            "[devices.lens]\npark_power = 0.5\n\n[devices.lens.left]",
+        );
+        let e = err(&mixed);
+        assert!(
+            e.to_string().contains("devices.lens.left.park_power"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -2314,7 +2597,10 @@ pub(crate) mod tests {
             )
         };
         let ok = RigConfig::parse(&with("[15.0, 45.0]")).unwrap();
-        assert_eq!(ok.devices.lens.temperature_limits_c, Some([15.0, 45.0]));
+        assert_eq!(
+            ok.devices.lens.first().temperature_limits_c,
+            Some([15.0, 45.0])
+        );
         for bad in ["[45.0, 15.0]", "[-200.0, 40.0]", "[20.0, nan]"] {
             let e = err(&with(bad));
             assert_eq!(e.key(), "devices.lens.temperature_limits_c", "{bad}: {e}");
@@ -2546,11 +2832,11 @@ pub(crate) mod tests {
     #[test]
     fn the_lens_model_settles_as_the_lens_does() {
         let c = RigConfig::parse(SIM_RIG).unwrap();
-        assert_eq!(c.devices.lens.model_settle_ms(), 15.0);
+        assert_eq!(c.devices.lens.first().model_settle_ms(), 15.0);
         let slow =
             RigConfig::parse(&SIM_RIG.replace("sim_settle_ms = 15.0", "sim_settle_ms = 40.0"))
                 .unwrap();
-        assert_eq!(slow.devices.lens.model_settle_ms(), 40.0);
+        assert_eq!(slow.devices.lens.first().model_settle_ms(), 40.0);
         // A real lens: its own settle_ms, not the simulator's.
         let real = SIM_RIG.replace(
             "port = \"sim\"\npark_power",
@@ -2560,7 +2846,7 @@ pub(crate) mod tests {
         let c = RigConfig::parse(&real.replace("sim_settle_ms = 15.0", "sim_settle_ms = 40.0"))
             .unwrap();
         assert_eq!(
-            c.devices.lens.model_settle_ms(),
+            c.devices.lens.first().model_settle_ms(),
             LensDevice::DEFAULT_SETTLE_MS
         );
         assert!(c
@@ -2571,7 +2857,7 @@ pub(crate) mod tests {
             &real.replace("park_power = 0.5", "park_power = 0.5\nsettle_ms = 8.0"),
         )
         .unwrap();
-        assert_eq!(c.devices.lens.model_settle_ms(), 8.0);
+        assert_eq!(c.devices.lens.first().model_settle_ms(), 8.0);
         assert!(c.notices().is_empty());
         let e = err(&real.replace("park_power = 0.5", "park_power = 0.5\nsettle_ms = 0.0"));
         assert_eq!(e.key(), "devices.lens.settle_ms", "{e}");

@@ -7,16 +7,16 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use dioptra_core::{DepthMap, Diopters, PlaneSchedule, PowerRange, Timestamp};
+use dioptra_core::{DepthMap, Diopters, PlaneSchedule, PowerRange, Side, Timestamp};
 use dioptra_sched::{
-    CommandId, DisplayTiming, Event, FrameId, LensDynamics, LinkStatus, RenderMethod, Scheduler,
-    SchedulerConfig,
+    CommandId, DisplayTiming, Event, FrameId, LensDynamics, LinkStatus, RenderMethod, RightLens,
+    Scheduler, SchedulerConfig,
 };
 use serde_json::json;
 
 pub use dioptra_sched::Command;
 
-use crate::config::{Method, Mode, RigConfig};
+use crate::config::{Lenses, Method, Mode, RigConfig};
 use crate::devices::DeviceInput;
 use crate::Control;
 
@@ -72,13 +72,28 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     let r = cfg.optics.lens_range;
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;
-    // One map for the rig's one lens (per-eye maps come with a lens per eye).
-    s.optics = cfg.optics_map(None).map_err(|e| e.to_string())?;
-    s.lens = LensDynamics {
-        settle_time: Duration::from_secs_f64(cfg.devices.lens.model_settle_ms() / 1000.0),
+    let dynamics = |l: &crate::config::LensDevice| LensDynamics {
+        settle_time: Duration::from_secs_f64(l.model_settle_ms() / 1000.0),
         ..LensDynamics::default()
     };
-    s.park_power = Diopters(cfg.devices.lens.park_power);
+    let first = cfg.devices.lens.first();
+    s.lens = dynamics(first);
+    s.park_power = Diopters(first.park_power);
+    let map = |side| cfg.optics_map(side).map_err(|e| e.to_string());
+    match &cfg.devices.lens {
+        // One map for the rig's one lens.
+        Lenses::One(_) => s.optics = map(None)?,
+        // A lens per eye: both follow the one fixation estimate, each through its own eye's
+        // optics map and its own model.
+        Lenses::PerEye { right, .. } => {
+            s.optics = map(Some(Side::Left))?;
+            s.right_lens = Some(RightLens {
+                lens: dynamics(right),
+                optics: map(Some(Side::Right))?,
+                park_power: Diopters(right.park_power),
+            });
+        }
+    }
     let period = Duration::from_secs_f64(1.0 / cfg.display.frame_hz);
     s.display = DisplayTiming {
         frame_period: period,
@@ -144,16 +159,25 @@ impl Engine {
         let event = match input {
             Input::Device(d) => match d {
                 DeviceInput::Gaze(g, _) => Event::Gaze(g),
-                DeviceInput::LensState(s) => Event::LensState(s),
-                DeviceInput::LensWire { id, wire_time, .. } => Event::LensCommandWritten {
+                DeviceInput::LensState(lens, s) => Event::LensState(lens, s),
+                DeviceInput::LensWire {
+                    lens,
+                    id,
+                    wire_time,
+                    ..
+                } => Event::LensCommandWritten {
+                    lens,
                     id: CommandId(id),
                     wire_time,
                 },
-                DeviceInput::LensLink(up) => Event::LensLink(if up {
-                    LinkStatus::Connected
-                } else {
-                    LinkStatus::Lost
-                }),
+                DeviceInput::LensLink(lens, up) => Event::LensLink(
+                    lens,
+                    if up {
+                        LinkStatus::Connected
+                    } else {
+                        LinkStatus::Lost
+                    },
+                ),
                 DeviceInput::Sync(e) => Event::Sequencer(e),
                 // The scheduler does not use the light: hooks (`dioptra hil`) do.
                 DeviceInput::Light(_) => Event::Tick,

@@ -361,16 +361,22 @@ impl Executor<'_> {
     }
 
     async fn execute(&mut self, now: Timestamp, cmds: Vec<Command>, cause: Option<Instant>) {
-        // Lens commands first: nothing else the loop does waits in front of them.
+        // Lens commands first, each lens's back to back: nothing else the loop does waits in
+        // front of them.
         let mut lens_sent = false;
         for c in &cmds {
-            if let Command::SetLensPower { id, power, .. } = *c {
-                self.links.lens_commands.send_replace(Some(LensOrder {
-                    id: id.0,
-                    power,
-                    caused_by_gaze: cause,
-                }));
-                lens_sent = true;
+            if let Command::SetLensPower {
+                lens, id, power, ..
+            } = *c
+            {
+                if let Some(link) = self.links.lens_commands.get(lens.index()) {
+                    link.send_replace(Some(LensOrder {
+                        id: id.0,
+                        power,
+                        caused_by_gaze: cause,
+                    }));
+                    lens_sent = true;
+                }
             }
         }
         if lens_sent {
@@ -406,7 +412,7 @@ impl Executor<'_> {
                         method: Method(req.method),
                         focus: req
                             .focus
-                            .unwrap_or(Diopters(sh.cfg.devices.lens.park_power)),
+                            .unwrap_or(Diopters(sh.cfg.devices.lens.first().park_power)),
                         gaze,
                         auto: sh.auto_method.load(std::sync::atomic::Ordering::Relaxed),
                         display_time: req.display_time,

@@ -55,7 +55,7 @@ use tokio_util::sync::CancellationToken;
 use config::{ConfigError, Method, Mode, RigConfig};
 use content::Content;
 use devices::simulators::{SimDevices, SimSpec};
-use devices::{DeviceInput, DeviceSettings, ParkReport, Registry};
+use devices::{DeviceInput, DeviceSettings, LensId, ParkReport, Registry};
 use display::{DisplaySink, HeadlessSink};
 use engine::Engine;
 use executor::LoopHook;
@@ -144,10 +144,14 @@ pub struct LoopStatus {
     pub mode: Option<Mode>,
     pub method: Option<Method>,
     pub manual_focus_d: Option<f32>,
-    /// The newest lens power the scheduler commanded.
+    /// The newest lens power the scheduler commanded (the one lens, or the left eye's).
     pub commanded_power_d: Option<f32>,
-    /// The newest lens power the lens reported.
+    /// The newest lens power the lens reported (the one lens, or the left eye's).
     pub lens_power_d: Option<f32>,
+    /// Each lens's newest commanded and reported power, by lens id (a lens per eye: left,
+    /// right).
+    pub commanded_by_lens: [Option<f32>; 2],
+    pub reported_by_lens: [Option<f32>; 2],
     pub gaze_samples: u64,
     pub lens_commands: u64,
     pub sync_events: u64,
@@ -276,33 +280,43 @@ pub struct RigState {
     pub renderer: Arc<dyn Renderer>,
     /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
     pub auto_method: std::sync::atomic::AtomicBool,
-    /// Fires when the lens task has parked the lens (or given up) and ended: after this,
-    /// exiting the process leaves the lens safe.
+    /// Fires when every lens task has parked its lens (or given up) and ended: after this,
+    /// exiting the process leaves the lenses safe.
     pub lens_parked: CancellationToken,
     pub clock: Arc<dyn Clock>,
     /// The simulated devices (none on a hardware rig); set once the devices start.
     pub sims: OnceLock<SimDevices>,
     /// Lab Streaming Layer outlets (`[lsl] enabled = true`).
     pub lsl: Option<lsl::LslOutlets>,
-    /// Focus <-> lens command for the rig's lens: the scheduler's map (`/status`, recordings,
-    /// the WebSocket and LSL say what focus a lens power gives through it).
+    /// Focus <-> lens command for the rig's lens (the one lens, or the left eye's): the
+    /// scheduler's map (`/status`, recordings, the WebSocket and LSL say what focus a lens
+    /// power gives through it). See [`RigState::optics_of`].
     pub optics: dioptra_core::OpticsMap,
     /// The marker patch's requests from outside the loop (an API marker; `dioptra hil`'s hold).
     pub marker: display::MarkerControl,
+    /// The right eye's lens's map, on a rig with a lens per eye.
+    pub optics_right: Option<dioptra_core::OpticsMap>,
     controls: mpsc::Sender<ControlMsg>,
     started: Timestamp,
 }
 
 impl RigState {
-    /// The focus range the lens range gives through the optics map, nearest last.
+    /// The focus range the lens range gives through the optics map, nearest last; with a lens
+    /// per eye, the range both eyes' lenses reach.
     pub fn focus_range_d(&self) -> [f32; 2] {
-        let r = self.optics.range();
-        let (a, b) = (self.optics.focus_of(r.min).0, self.optics.focus_of(r.max).0);
-        [a.min(b), a.max(b)]
+        std::iter::once(&self.optics)
+            .chain(self.optics_right.as_ref())
+            .map(|o| {
+                let r = o.range();
+                let (a, b) = (o.focus_of(r.min).0, o.focus_of(r.max).0);
+                [a.min(b), a.max(b)]
+            })
+            .fold([f32::MIN, f32::MAX], |acc, r| {
+                [acc[0].max(r[0]), acc[1].min(r[1])]
+            })
     }
 
     pub fn status_json(&self) -> serde_json::Value {
-        let focus_of = |p: f32| self.optics.focus_of(dioptra_core::Diopters(p)).0;
         let now = self.clock.now();
         let status = lock(&self.status).clone();
         let recording = lock(&self.recording)
@@ -322,23 +336,8 @@ impl RigState {
                 "predicted_fovea_psnr_db": p.predicted_psnr_db,
                 "why": p.why,
             })),
-            "focus": {
-                "manual_d": status.manual_focus_d,
-                "commanded_d": status.commanded_power_d,
-                "commanded_focus_d": status.commanded_power_d.map(focus_of),
-                "lens_d": status.lens_power_d,
-                "lens_focus_d": status.lens_power_d.map(focus_of),
-                "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
-                "focus_range_d": self.focus_range_d(),
-            },
-            "optics": {
-                "source": self.optics.source_name(),
-                "map": self.optics.describe(),
-                "magnification": status
-                    .lens_power_d
-                    .and_then(|p| self.optics.magnification(dioptra_core::Diopters(p))),
-                "eyes": "one map: this rig has one lens ([devices.lens])",
-            },
+            "focus": self.focus_json(&status),
+            "optics": self.optics_json(&status),
             "content": self.content.status(),
             "render": self.renderer.backend_status(),
             "clock": {
@@ -374,16 +373,109 @@ impl RigState {
             "scheduler": status.scheduler,
             "recording": recording,
             "lsl": self.lsl.as_ref().map(|l| l.status_json()),
-            "sim_lens": self.sims.get().and_then(|s| s.lens.as_ref()).and_then(|slot| {
-                let m = slot.lens.as_ref()?.model();
-                Some(json!({
-                    "power_d": m.power().0,
-                    "target_d": m.target_power().0,
-                    "settled": m.settled(),
-                    "plugged": slot.plug.is_plugged(),
-                }))
-            }),
+            "sim_lens": self.sim_lens_json(),
         })
+    }
+
+    /// `/status`'s `focus`: the one lens's, or the left eye's; with a lens per eye, each
+    /// eye's under `left` and `right` (commanded and reported power, the focus each gives
+    /// through that eye's optics map, and the lens's link).
+    fn focus_json(&self, status: &LoopStatus) -> serde_json::Value {
+        let focus_of = |lens: LensId, p: Option<f32>| {
+            p.map(|p| self.optics_of(lens).focus_of(dioptra_core::Diopters(p)).0)
+        };
+        let mut focus = json!({
+            "manual_d": status.manual_focus_d,
+            "commanded_d": status.commanded_power_d,
+            "commanded_focus_d": focus_of(LensId::FIRST, status.commanded_power_d),
+            "lens_d": status.lens_power_d,
+            "lens_focus_d": focus_of(LensId::FIRST, status.lens_power_d),
+            "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
+            "focus_range_d": self.focus_range_d(),
+        });
+        let lenses = &self.cfg.devices.lens;
+        if lenses.count() > 1 {
+            let devices = self.registry.snapshot();
+            for i in 0..lenses.count() {
+                let Some(side) = lenses.side(i) else { continue };
+                let lens = LensId(i as u8);
+                let link = devices.get(&lenses.name(i)).map(|d| d.state);
+                focus[side.as_str()] = json!({
+                    "commanded_d": status.commanded_by_lens[i],
+                    "commanded_focus_d": focus_of(lens, status.commanded_by_lens[i]),
+                    "lens_d": status.reported_by_lens[i],
+                    "lens_focus_d": focus_of(lens, status.reported_by_lens[i]),
+                    "link": link,
+                });
+            }
+        }
+        focus
+    }
+
+    /// `/status`'s `optics`: the map of the one lens, or each eye's.
+    fn optics_json(&self, status: &LoopStatus) -> serde_json::Value {
+        let one = |lens: LensId, power: Option<f32>| {
+            let o = self.optics_of(lens);
+            json!({
+                "source": o.source_name(),
+                "map": o.describe(),
+                "magnification": power.and_then(|p| o.magnification(dioptra_core::Diopters(p))),
+            })
+        };
+        let lenses = &self.cfg.devices.lens;
+        if lenses.count() == 1 {
+            let mut v = one(LensId::FIRST, status.lens_power_d);
+            v["eyes"] = json!("one map: this rig has one lens ([devices.lens])");
+            return v;
+        }
+        let mut v = json!({ "eyes": "a map per eye: this rig has a lens per eye" });
+        for i in 0..lenses.count() {
+            if let Some(side) = lenses.side(i) {
+                v[side.as_str()] = one(LensId(i as u8), status.reported_by_lens[i]);
+            }
+        }
+        v
+    }
+
+    /// The optics map of `lens` (the one lens, or an eye's).
+    pub fn optics_of(&self, lens: LensId) -> &dioptra_core::OpticsMap {
+        match (lens.0, &self.optics_right) {
+            (1, Some(o)) => o,
+            _ => &self.optics,
+        }
+    }
+
+    /// `/status`'s `sim_lens`: where each simulated lens really is.
+    fn sim_lens_json(&self) -> serde_json::Value {
+        let Some(sims) = self.sims.get() else {
+            return serde_json::Value::Null;
+        };
+        let one = |slot: Option<&devices::simulators::SimSlot>| -> serde_json::Value {
+            let Some(slot) = slot else {
+                return serde_json::Value::Null;
+            };
+            let Some(lens) = slot.lens.as_ref() else {
+                return serde_json::Value::Null;
+            };
+            let m = lens.model();
+            json!({
+                "power_d": m.power().0,
+                "target_d": m.target_power().0,
+                "settled": m.settled(),
+                "plugged": slot.plug.is_plugged(),
+            })
+        };
+        let lenses = &self.cfg.devices.lens;
+        if lenses.count() == 1 {
+            return one(sims.lenses.first().and_then(Option::as_ref));
+        }
+        let mut out = json!({});
+        for i in 0..lenses.count() {
+            if let Some(side) = lenses.side(i) {
+                out[side.as_str()] = one(sims.lenses.get(i).and_then(Option::as_ref));
+            }
+        }
+        out
     }
 
     /// Hands a command to the loop and waits for its answer.
@@ -459,9 +551,11 @@ impl RigState {
             path = rc.dir.join(format!("{stem}-{n}.mcap"));
             n += 1;
         }
-        let r = Recorder::start(&path).map_err(|e| ControlError::Failed {
-            what: "cannot start the recording".into(),
-            source: Box::new(e),
+        let r = Recorder::start(&path, self.cfg.devices.lens.count() > 1).map_err(|e| {
+            ControlError::Failed {
+                what: "cannot start the recording".into(),
+                source: Box::new(e),
+            }
         })?;
         // The rig config and the scheduler's state, so that a replay starts where the run was.
         let st = lock(&self.status).clone();
@@ -575,7 +669,12 @@ fn wall_ns() -> u64 {
 /// How the rig stopped.
 #[derive(Debug, Clone, Serialize)]
 pub struct ShutdownReport {
+    /// The one lens, or the left eye's.
     pub park: Option<ParkReport>,
+    /// The right eye's lens, on a rig with a lens per eye.
+    pub park_right: Option<ParkReport>,
+    /// Whether the rig has a lens per eye (then `park_right` must report too).
+    pub lens_per_eye: bool,
     pub recording: Option<Result<RecordingStats, String>>,
     pub task_errors: Vec<String>,
 }
@@ -583,10 +682,12 @@ pub struct ShutdownReport {
 impl ShutdownReport {
     pub fn problems(&self) -> Vec<String> {
         let mut p = self.task_errors.clone();
-        match &self.park {
-            Some(ParkReport { error: Some(e), .. }) => p.push(e.clone()),
-            None => p.push("the lens task did not report".into()),
-            _ => {}
+        for (name, park) in self.parks() {
+            match park {
+                Some(ParkReport { error: Some(e), .. }) => p.push(format!("{name}: {e}")),
+                None => p.push(format!("the {name} task did not report")),
+                _ => {}
+            }
         }
         if let Some(Err(e)) = &self.recording {
             p.push(e.clone());
@@ -596,17 +697,30 @@ impl ShutdownReport {
     pub fn ok(&self) -> bool {
         self.problems().is_empty()
     }
-    pub fn summary(&self) -> String {
-        let mut s = String::new();
-        match &self.park {
-            Some(ParkReport {
-                park_power,
-                reported_power: Some(r),
-                error: None,
-            }) => s += &format!("lens parked at {park_power} D (reports {r:.3} D)"),
-            Some(ParkReport { error: Some(e), .. }) => s += &format!("lens: {e}"),
-            _ => s += "lens: no report",
+    /// Each lens's park report, by name (`lens`, or `left lens` and `right lens`).
+    fn parks(&self) -> Vec<(&'static str, &Option<ParkReport>)> {
+        if self.lens_per_eye {
+            vec![("left lens", &self.park), ("right lens", &self.park_right)]
+        } else {
+            vec![("lens", &self.park)]
         }
+    }
+
+    pub fn summary(&self) -> String {
+        let parks: Vec<String> = self
+            .parks()
+            .into_iter()
+            .map(|(name, park)| match park {
+                Some(ParkReport {
+                    park_power,
+                    reported_power: Some(r),
+                    error: None,
+                }) => format!("{name} parked at {park_power} D (reports {r:.3} D)"),
+                Some(ParkReport { error: Some(e), .. }) => format!("{name}: {e}"),
+                _ => format!("{name}: no report"),
+            })
+            .collect();
+        let mut s = parks.join("; ");
         match &self.recording {
             Some(Ok(r)) => {
                 s += &format!(
@@ -626,7 +740,8 @@ impl ShutdownReport {
 /// A running rig.
 pub struct Rig {
     state: Arc<RigState>,
-    lens: tokio::task::JoinHandle<Result<ParkReport, tokio::task::JoinError>>,
+    /// Each lens task's park report, in lens order.
+    lens: tokio::task::JoinHandle<Vec<Result<ParkReport, tokio::task::JoinError>>>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
     looper: tokio::task::JoinHandle<()>,
     devices_stop: CancellationToken,
@@ -729,6 +844,12 @@ impl Rig {
         let registry = Arc::new(Registry::default());
         let state = Arc::new(RigState {
             optics: engine.scheduler().config().optics.clone(),
+            optics_right: engine
+                .scheduler()
+                .config()
+                .right_lens
+                .as_ref()
+                .map(|r| r.optics.clone()),
             registry: registry.clone(),
             settings,
             status: Mutex::new(LoopStatus {
@@ -792,11 +913,14 @@ impl Rig {
                 .collect(),
             devices_stop: devices_stop.clone(),
         }));
-        let (lens_task, parked) = (dtasks.lens, state.lens_parked.clone());
+        let (lens_tasks, parked) = (dtasks.lenses, state.lens_parked.clone());
         let lens = tokio::spawn(async move {
-            let r = lens_task.await;
+            let mut reports = Vec::new();
+            for t in lens_tasks {
+                reports.push(t.await);
+            }
             parked.cancel();
-            r
+            reports
         });
         Ok(Rig {
             state,
@@ -829,13 +953,22 @@ impl Rig {
         }
         // Normally the loop did this after its shutdown step.
         devices_stop.cancel();
-        let park = match lens.await.and_then(|r| r) {
-            Ok(p) => Some(p),
+        let mut parks = match lens.await {
+            Ok(reports) => reports
+                .into_iter()
+                .map(|r| {
+                    r.map_err(|e| task_errors.push(format!("a lens task failed: {e}")))
+                        .ok()
+                })
+                .collect(),
             Err(e) => {
-                task_errors.push(format!("the lens task failed: {e}"));
-                None
+                task_errors.push(format!("the lens tasks failed: {e}"));
+                Vec::new()
             }
-        };
+        }
+        .into_iter();
+        let park = parks.next().flatten();
+        let park_right = parks.next().flatten();
         for t in tasks {
             if let Err(e) = t.await {
                 task_errors.push(format!("a device task failed: {e}"));
@@ -848,6 +981,8 @@ impl Rig {
         };
         ShutdownReport {
             park,
+            park_right,
+            lens_per_eye: state.cfg.devices.lens.count() > 1,
             recording,
             task_errors,
         }

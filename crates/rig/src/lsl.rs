@@ -20,6 +20,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::config::RigConfig;
+use crate::devices::LensId;
 
 /// `[lsl]` in the rig config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -154,52 +155,70 @@ pub const EYE_PHASES: [&str; 6] = ["unknown", "fixation", "pursuit", "saccade", 
 /// The outlets a rig with `cfg` makes, whether or not LSL is enabled in it.
 pub fn stream_specs(cfg: &RigConfig) -> Vec<StreamSpec> {
     let name = &cfg.lsl.name;
-    vec![
-        StreamSpec {
-            name: format!("{name}-gaze"),
-            kind: "Gaze",
-            // A real tracker's rate is known only once it is connected: irregular.
-            rate_hz: if cfg.devices.gaze.port == crate::config::Port::Sim {
-                cfg.devices.gaze.sim_rate_hz
-            } else {
-                0.0
-            },
-            format: Format::Double64,
-            source_id: format!("{name}-gaze"),
-            channels: GAZE_CHANNELS.to_vec(),
-            timestamps: "the sample's device time mapped to the host timeline (the tracker \
-                         driver's clock-offset estimate), on LSL's clock",
+    vec![StreamSpec {
+        name: format!("{name}-gaze"),
+        kind: "Gaze",
+        // A real tracker's rate is known only once it is connected: irregular.
+        rate_hz: if cfg.devices.gaze.port == crate::config::Port::Sim {
+            cfg.devices.gaze.sim_rate_hz
+        } else {
+            0.0
         },
+        format: Format::Double64,
+        source_id: format!("{name}-gaze"),
+        channels: GAZE_CHANNELS.to_vec(),
+        timestamps: "the sample's device time mapped to the host timeline (the tracker \
+                         driver's clock-offset estimate), on LSL's clock",
+    }]
+    .into_iter()
+    // A lens outlet per lens: `<name>-lens`, or `<name>-lens-left` and `<name>-lens-right`.
+    .chain((0..cfg.devices.lens.count()).map(|i| {
+        let stream = match cfg.devices.lens.side(i) {
+            None => format!("{name}-lens"),
+            Some(eye) => format!("{name}-lens-{}", eye.as_str()),
+        };
         StreamSpec {
-            name: format!("{name}-lens"),
+            name: stream.clone(),
             kind: "Lens",
             rate_hz: 0.0,
             format: Format::Double64,
-            source_id: format!("{name}-lens"),
+            source_id: stream,
             channels: LENS_CHANNELS.to_vec(),
             timestamps: "event 1 (commanded): when the command was on the wire; event 2 \
                          (read back): when the lens's reply arrived; on LSL's clock",
-        },
-        StreamSpec {
-            name: format!("{name}-markers"),
-            kind: "Markers",
-            rate_hz: 0.0,
-            format: Format::String,
-            source_id: format!("{name}-markers"),
-            channels: vec![ch("event", "", "Marker", "json")],
-            timestamps: "when the event happened: a frame's time on screen, a sub-frame's \
+        }
+    }))
+    .chain([StreamSpec {
+        name: format!("{name}-markers"),
+        kind: "Markers",
+        rate_hz: 0.0,
+        format: Format::String,
+        source_id: format!("{name}-markers"),
+        channels: vec![ch("event", "", "Marker", "json")],
+        timestamps: "when the event happened: a frame's time on screen, a sub-frame's \
                          start as the sync hardware reports it, a control's or recording's \
                          time of taking effect; on LSL's clock",
-        },
-    ]
+    }])
+    .collect()
 }
 
 /// A sample on its way to an outlet; `t` is on the host timeline.
 #[derive(Debug, Clone, PartialEq)]
 pub enum LslSample {
-    Gaze { t: Timestamp, values: Vec<f64> },
-    Lens { t: Timestamp, values: Vec<f64> },
-    Marker { t: Timestamp, text: String },
+    Gaze {
+        t: Timestamp,
+        values: Vec<f64>,
+    },
+    /// `lens`: which lens outlet (the lens's index: the one lens, or left then right).
+    Lens {
+        lens: usize,
+        t: Timestamp,
+        values: Vec<f64>,
+    },
+    Marker {
+        t: Timestamp,
+        text: String,
+    },
 }
 
 /// Counters for `/status`.
@@ -275,9 +294,16 @@ impl LslOutlets {
         });
     }
 
-    /// A lens command on the wire at `wire_time`.
-    pub fn lens_wire(&self, wire_time: Timestamp, commanded: Diopters, optics: &OpticsMap) {
+    /// A command to `lens` on the wire at `wire_time`.
+    pub fn lens_wire(
+        &self,
+        lens: LensId,
+        wire_time: Timestamp,
+        commanded: Diopters,
+        optics: &OpticsMap,
+    ) {
         self.send(LslSample::Lens {
+            lens: lens.index(),
             t: wire_time,
             values: vec![
                 LENS_EVENT_COMMANDED,
@@ -290,10 +316,17 @@ impl LslOutlets {
         });
     }
 
-    /// A lens read-back, with the power last commanded.
-    pub fn lens_state(&self, s: &LensState, commanded: Option<Diopters>, optics: &OpticsMap) {
+    /// A read-back of `lens`, with the power last commanded to it.
+    pub fn lens_state(
+        &self,
+        lens: LensId,
+        s: &LensState,
+        commanded: Option<Diopters>,
+        optics: &OpticsMap,
+    ) {
         let focus = |p: Diopters| f64::from(optics.focus_of(p).0);
         self.send(LslSample::Lens {
+            lens: lens.index(),
             t: s.host_time,
             values: vec![
                 LENS_EVENT_READ_BACK,
@@ -500,7 +533,13 @@ mod liblsl {
         map: ClockMap,
         pushed: &Mutex<PushStatus>,
     ) {
-        let (gaze, lens, markers) = (&outlets[0], &outlets[1], &outlets[2]);
+        // Gaze first, markers last, the lens outlets (one per lens) between.
+        let (Some(gaze), Some(markers)) = (outlets.first(), outlets.last()) else {
+            return;
+        };
+        let lenses = outlets
+            .get(1..outlets.len().saturating_sub(1))
+            .unwrap_or(&[]);
         let mut n = 0u64;
         let mut last_look = std::time::Instant::now();
         // Ends when the rig drops its end.
@@ -509,9 +548,10 @@ mod liblsl {
                 LslSample::Gaze { t, values } => {
                     gaze.push_sample_ex(values, map.lsl_time(*t), true)
                 }
-                LslSample::Lens { t, values } => {
-                    lens.push_sample_ex(values, map.lsl_time(*t), true)
-                }
+                LslSample::Lens { lens, t, values } => match lenses.get(*lens) {
+                    Some(o) => o.push_sample_ex(values, map.lsl_time(*t), true),
+                    None => continue,
+                },
                 LslSample::Marker { t, text } => {
                     markers.push_sample_ex(&vec![text.clone()], map.lsl_time(*t), true)
                 }
@@ -559,6 +599,30 @@ mod tests {
                 valid: true,
             },
         }
+    }
+
+    /// A lens per eye: a lens outlet per eye, between the gaze and marker outlets (the order
+    /// the LSL thread pushes to).
+    #[test]
+    fn a_lens_per_eye_has_a_lens_outlet_per_eye() {
+        let one = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
+        let names: Vec<String> = stream_specs(&one).into_iter().map(|s| s.name).collect();
+        assert_eq!(names, ["dioptra-gaze", "dioptra-lens", "dioptra-markers"]);
+        let two = RigConfig::parse(crate::config::EXAMPLE_SIM_BINOCULAR_RIG).unwrap();
+        let specs = stream_specs(&two);
+        let names: Vec<&str> = specs.iter().map(|s| s.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "dioptra-gaze",
+                "dioptra-lens-left",
+                "dioptra-lens-right",
+                "dioptra-markers"
+            ]
+        );
+        assert!(specs[1..3]
+            .iter()
+            .all(|s| s.kind == "Lens" && s.source_id == s.name));
     }
 
     #[test]
@@ -669,7 +733,7 @@ mod tests {
         for s in rx.try_iter() {
             match s {
                 LslSample::Gaze { t, values } => gaze.push((t, values)),
-                LslSample::Lens { t, values } => lens.push((t, values)),
+                LslSample::Lens { t, values, .. } => lens.push((t, values)),
                 LslSample::Marker { t, text } => markers.push((t, text)),
             }
         }

@@ -12,14 +12,16 @@ use serde_json::json;
 use crate::config::{Method, Mode};
 use crate::content::ContentFrame;
 use crate::devices::DeviceInput;
+use crate::devices::LensId;
 use crate::display::DisplaySink;
 use crate::engine::{self, Command, Engine};
 use crate::executor::{LoopHook, Presented, RenderReport};
 use crate::recording::{
-    ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensWireRec, Marker, PresentRec,
-    Rec, RenderRec,
+    ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensStateRec, LensWireRec, Marker,
+    PresentRec, Rec, RenderRec,
 };
 use crate::{Control, RigState};
+use dioptra_core::Side;
 
 /// The observers every rig has, in the order the loop calls them.
 pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
@@ -34,7 +36,7 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
     if state.lsl.is_some() {
         hooks.push(Box::new(Lsl {
             state: state.clone(),
-            commanded: None,
+            commanded: [None; 2],
         }));
     }
     hooks
@@ -44,12 +46,23 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
 /// (none: nothing), in the order the loop handled it, which `dioptra replay` follows.
 struct Recording(Arc<RigState>);
 
+impl Recording {
+    /// The eye of lens `lens` on a rig with a lens per eye (`None`: the rig's one lens).
+    fn eye(&self, lens: LensId) -> Option<Side> {
+        self.0.cfg.devices.lens.side(lens.index())
+    }
+}
+
 impl LoopHook for Recording {
     fn input(&mut self, now: Timestamp, input: &DeviceInput, _engine: &Engine) {
         let rec = match input {
             DeviceInput::Gaze(g, _) => Rec::Gaze(g.into()),
-            DeviceInput::LensState(s) => Rec::LensState(s.into()),
+            DeviceInput::LensState(lens, s) => Rec::LensState(LensStateRec {
+                eye: self.eye(*lens),
+                ..s.into()
+            }),
             DeviceInput::LensWire {
+                lens,
                 id,
                 requested,
                 wire_time,
@@ -58,8 +71,12 @@ impl LoopHook for Recording {
                 id: *id,
                 requested_d: requested.0,
                 wire_ns: wire_time.0,
+                eye: self.eye(*lens),
             }),
-            DeviceInput::LensLink(up) => Rec::LensLink(LensLinkRec { up: *up }),
+            DeviceInput::LensLink(lens, up) => Rec::LensLink(LensLinkRec {
+                up: *up,
+                eye: self.eye(*lens),
+            }),
             DeviceInput::Sync(e) => Rec::Sync(e.into()),
             DeviceInput::Light(e) => Rec::Light(e.into()),
         };
@@ -87,6 +104,7 @@ impl LoopHook for Recording {
     fn command(&mut self, now: Timestamp, cmd: &Command) {
         let rec = match *cmd {
             Command::SetLensPower {
+                lens,
                 id,
                 power,
                 apply_at,
@@ -96,7 +114,8 @@ impl LoopHook for Recording {
                 power_d: power.0,
                 apply_at_ns: apply_at.0,
                 reason: engine::reason_name(reason),
-                focus_d: Some(self.0.optics.focus_of(power).0),
+                focus_d: Some(self.0.optics_of(lens).focus_of(power).0),
+                eye: self.eye(lens),
             }),
             Command::RenderFrame(req) => Rec::Render(RenderRec {
                 frame: req.frame.0,
@@ -218,7 +237,14 @@ impl LoopHook for Status {
         let mut st = lock(&sh.status);
         match input {
             DeviceInput::Gaze(..) => st.gaze_samples += 1,
-            DeviceInput::LensState(s) => st.lens_power_d = Some(s.power.0),
+            DeviceInput::LensState(lens, s) => {
+                if *lens == LensId::FIRST {
+                    st.lens_power_d = Some(s.power.0);
+                }
+                if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
+                    *p = Some(s.power.0);
+                }
+            }
             DeviceInput::Sync(e) => {
                 st.sync_events += 1;
                 match e {
@@ -243,7 +269,7 @@ impl LoopHook for Status {
             DeviceInput::Light(dioptra_core::LightEvent::Lost { count, .. }) => {
                 st.light_edges_lost += count
             }
-            DeviceInput::LensWire { .. } | DeviceInput::LensLink(_) => {}
+            DeviceInput::LensWire { .. } | DeviceInput::LensLink(..) => {}
         }
     }
     fn control(&mut self, _now: Timestamp, _cmd: &Control, engine: &Engine) {
@@ -252,8 +278,13 @@ impl LoopHook for Status {
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
         let mut st = lock(&self.state.status);
         match cmd {
-            Command::SetLensPower { power, .. } => {
-                st.commanded_power_d = Some(power.0);
+            Command::SetLensPower { lens, power, .. } => {
+                if *lens == LensId::FIRST {
+                    st.commanded_power_d = Some(power.0);
+                }
+                if let Some(p) = st.commanded_by_lens.get_mut(lens.index()) {
+                    *p = Some(power.0);
+                }
                 st.lens_commands += 1;
             }
             Command::RenderFrame(_) => st.frames_requested += 1,
@@ -321,27 +352,45 @@ impl LoopHook for WebSocket {
                     "right": { "direction": g.right.direction, "valid": g.right.valid },
                 })
             }),
-            DeviceInput::LensState(s) => self.0.publish(|| {
-                json!({
-                    "type": "lens",
-                    "host_ns": s.host_time.0,
-                    "power_d": s.power.0,
-                    "focus_d": self.0.optics.focus_of(s.power).0,
+            DeviceInput::LensState(lens, s) => {
+                let eye = self.0.cfg.devices.lens.side(lens.index());
+                self.0.publish(|| {
+                    let mut m = json!({
+                        "type": "lens",
+                        "host_ns": s.host_time.0,
+                        "power_d": s.power.0,
+                        "focus_d": self.0.optics_of(*lens).focus_of(s.power).0,
+                    });
+                    if let Some(e) = eye {
+                        m["eye"] = json!(e.as_str());
+                    }
+                    m
                 })
-            }),
+            }
             _ => {}
         }
     }
     fn command(&mut self, now: Timestamp, cmd: &Command) {
-        if let Command::SetLensPower { power, reason, .. } = *cmd {
+        if let Command::SetLensPower {
+            lens,
+            power,
+            reason,
+            ..
+        } = *cmd
+        {
+            let eye = self.0.cfg.devices.lens.side(lens.index());
             self.0.publish(|| {
-                json!({
+                let mut m = json!({
                     "type": "focus",
                     "host_ns": now.0,
                     "commanded_d": power.0,
-                    "focus_d": self.0.optics.focus_of(power).0,
+                    "focus_d": self.0.optics_of(lens).focus_of(power).0,
                     "reason": engine::reason_name(reason),
-                })
+                });
+                if let Some(e) = eye {
+                    m["eye"] = json!(e.as_str());
+                }
+                m
             });
         }
     }
@@ -360,11 +409,11 @@ impl LoopHook for WebSocket {
 }
 
 /// The Lab Streaming Layer outlets (`[lsl] enabled = true`): gaze with the scheduler's reading
-/// of it, lens commands on the wire and read-backs, and markers.
+/// of it, lens commands on the wire and read-backs (each lens's outlet), and markers.
 struct Lsl {
     state: Arc<RigState>,
-    /// The newest lens power commanded (the lens outlet's read-backs carry it).
-    commanded: Option<dioptra_core::Diopters>,
+    /// Each lens's newest power commanded (its outlet's read-backs carry it).
+    commanded: [Option<dioptra_core::Diopters>; 2],
 }
 
 impl Lsl {
@@ -382,12 +431,16 @@ impl LoopHook for Lsl {
                 let st = engine.scheduler().status();
                 l.gaze(g, st.phase.as_str(), st.vergence_d);
             }
-            DeviceInput::LensState(s) => l.lens_state(s, self.commanded, &self.state.optics),
+            DeviceInput::LensState(lens, s) => {
+                let commanded = self.commanded.get(lens.index()).copied().flatten();
+                l.lens_state(*lens, s, commanded, self.state.optics_of(*lens))
+            }
             DeviceInput::LensWire {
+                lens,
                 requested,
                 wire_time,
                 ..
-            } => l.lens_wire(*wire_time, *requested, &self.state.optics),
+            } => l.lens_wire(*lens, *wire_time, *requested, self.state.optics_of(*lens)),
             DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
                 frame,
                 plane_index,
@@ -420,8 +473,10 @@ impl LoopHook for Lsl {
         }
     }
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
-        if let Command::SetLensPower { power, .. } = cmd {
-            self.commanded = Some(*power);
+        if let Command::SetLensPower { lens, power, .. } = cmd {
+            if let Some(c) = self.commanded.get_mut(lens.index()) {
+                *c = Some(*power);
+            }
         }
     }
     fn presented(&mut self, _now: Timestamp, p: &Presented, _sink: &dyn DisplaySink) {

@@ -27,6 +27,8 @@ use dioptra_core::{
     Timestamp,
 };
 use serde::{Deserialize, Serialize};
+
+use dioptra_core::Side;
 use thiserror::Error;
 use tokio::sync::mpsc;
 
@@ -113,6 +115,14 @@ pub struct LensStateRec {
     pub temperature_c: Option<f32>,
     pub settled: Option<bool>,
     pub host_ns: u64,
+    /// With a lens per eye, the eye whose lens it is (its topics are `/lens/left/...` and
+    /// `/lens/right/...`); absent for a rig's one lens.
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        with = "crate::config::side_serde"
+    )]
+    pub eye: Option<Side>,
 }
 
 impl From<&LensState> for LensStateRec {
@@ -123,6 +133,7 @@ impl From<&LensState> for LensStateRec {
             temperature_c: s.temperature_c,
             settled: s.settled,
             host_ns: s.host_time.0,
+            eye: None,
         }
     }
 }
@@ -340,12 +351,26 @@ pub struct LensWireRec {
     pub id: u64,
     pub requested_d: f32,
     pub wire_ns: u64,
+    /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        with = "crate::config::side_serde"
+    )]
+    pub eye: Option<Side>,
 }
 
 /// The lens link went down or came back.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct LensLinkRec {
     pub up: bool,
+    /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        with = "crate::config::side_serde"
+    )]
+    pub eye: Option<Side>,
 }
 
 /// A lens power the scheduler commanded.
@@ -358,6 +383,13 @@ pub struct LensCommandRec {
     /// The focus the command gives through the rig's optics map (absent in older recordings).
     #[serde(default)]
     pub focus_d: Option<f32>,
+    /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
+    #[serde(
+        default,
+        skip_serializing_if = "Option::is_none",
+        with = "crate::config::side_serde"
+    )]
+    pub eye: Option<Side>,
 }
 
 /// A frame the scheduler asked the renderer for.
@@ -448,7 +480,8 @@ pub enum Rec {
 macro_rules! topics {
     ($( $variant:ident => $topic:literal, $name:literal, $props:expr; )*) => {
         impl Rec {
-            pub fn topic(&self) -> &'static str {
+            /// The topic of the message's kind, before a lens's eye is added.
+            fn kind_topic(&self) -> &'static str {
                 match self { $( Rec::$variant(_) => $topic, )* }
             }
             fn to_json(&self) -> Result<Vec<u8>, serde_json::Error> {
@@ -456,13 +489,15 @@ macro_rules! topics {
             }
             /// Decodes a message of `topic`; `None` for a topic this version does not know.
             pub fn from_json(topic: &str, data: &[u8]) -> Option<Result<Rec, serde_json::Error>> {
+                let topic = kind_of_topic(topic);
                 match topic {
                     $( $topic => Some(serde_json::from_slice(data).map(Rec::$variant)), )*
                     _ => None,
                 }
             }
         }
-        /// (topic, schema name, JSON Schema) for every topic.
+        /// (topic, schema name, JSON Schema) for every topic (the lens topics once, without
+        /// an eye).
         fn topics() -> Vec<(&'static str, &'static str, String)> {
             vec![ $( ($topic, $name, format!(r#"{{"type":"object","properties":{{{}}}}}"#, $props)), )* ]
         }
@@ -508,7 +543,48 @@ topics! {
     StopSequencer => "/sync/stop", "dioptra.StopSequencer", "";
 }
 
-/// What a finished recording holds.
+/// The lens topics of each eye, on a rig with a lens per eye: `(kind topic, left, right)`.
+const EYE_TOPICS: [(&str, &str, &str); 4] = [
+    ("/lens/state", "/lens/left/state", "/lens/right/state"),
+    ("/lens/wire", "/lens/left/wire", "/lens/right/wire"),
+    ("/lens/link", "/lens/left/link", "/lens/right/link"),
+    ("/lens/command", "/lens/left/command", "/lens/right/command"),
+];
+
+/// The message kind's topic of `topic` (an eye's lens topic is its kind's).
+fn kind_of_topic(topic: &str) -> &str {
+    EYE_TOPICS
+        .iter()
+        .find(|(_, l, r)| *l == topic || *r == topic)
+        .map_or(topic, |(k, _, _)| k)
+}
+
+impl Rec {
+    /// The message's topic: its kind's, or with a lens per eye, its eye's
+    /// (`/lens/left/state`, `/lens/right/command`, ...).
+    pub fn topic(&self) -> &'static str {
+        let eye = match self {
+            Rec::LensState(r) => r.eye,
+            Rec::LensWire(r) => r.eye,
+            Rec::LensLink(r) => r.eye,
+            Rec::LensCommand(r) => r.eye,
+            _ => None,
+        };
+        let kind = self.kind_topic();
+        match eye {
+            None => kind,
+            Some(e) => EYE_TOPICS
+                .iter()
+                .find(|(k, _, _)| *k == kind)
+                .map_or(kind, |(_, l, r)| match e {
+                    Side::Left => l,
+                    Side::Right => r,
+                }),
+        }
+    }
+}
+
+/// What a finished recording holds./// What a finished recording holds.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RecordingStats {
     pub path: PathBuf,
@@ -541,8 +617,9 @@ impl std::fmt::Debug for Recorder {
 }
 
 impl Recorder {
-    /// Creates the file and starts its writer thread.
-    pub fn start(path: &Path) -> Result<Recorder, RecordingError> {
+    /// Creates the file and starts its writer thread; `lens_per_eye`: the lens topics are
+    /// each eye's (`/lens/left/...`, `/lens/right/...`).
+    pub fn start(path: &Path, lens_per_eye: bool) -> Result<Recorder, RecordingError> {
         let file = File::create(path).map_err(|source| RecordingError::Create {
             path: path.to_path_buf(),
             source,
@@ -562,10 +639,17 @@ impl Recorder {
             let sid = w
                 .add_schema(name, "jsonschema", schema.as_bytes())
                 .map_err(werr)?;
-            let cid = w
-                .add_channel(sid, topic, "json", &BTreeMap::new())
-                .map_err(werr)?;
-            channels.insert(topic, cid);
+            let eyes = EYE_TOPICS.iter().find(|(k, _, _)| *k == topic);
+            let each: Vec<&'static str> = match (eyes, lens_per_eye) {
+                (Some((_, l, r)), true) => vec![l, r],
+                _ => vec![topic],
+            };
+            for t in each {
+                let cid = w
+                    .add_channel(sid, t, "json", &BTreeMap::new())
+                    .map_err(werr)?;
+                channels.insert(t, cid);
+            }
         }
         let (tx, mut rx) = mpsc::channel::<(u64, Rec)>(QUEUE);
         let p = path.to_path_buf();
@@ -845,7 +929,7 @@ mod tests {
     async fn chunks_span_at_most_a_second_and_a_cut_file_is_recovered() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.mcap");
-        let rec = Recorder::start(&path).unwrap();
+        let rec = Recorder::start(&path, false).unwrap();
         // 5 s of gaze at 1 kHz.
         let n = 5000u64;
         for i in 0..n {
@@ -911,7 +995,7 @@ mod tests {
     async fn a_recording_reads_back_exactly_in_order() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.mcap");
-        let rec = Recorder::start(&path).unwrap();
+        let rec = Recorder::start(&path, false).unwrap();
         let ev = SequencerEvent::Fault {
             fault: SequencerFault::LateSettle,
             frame: 3,
@@ -950,6 +1034,7 @@ mod tests {
                     apply_at_ns: 3,
                     reason: "fixation".into(),
                     focus_d: Some(1.25),
+                    eye: None,
                 }),
             ),
             (Timestamp(2), Rec::Sync(SyncRec::from(&ev))),
@@ -1005,7 +1090,7 @@ mod tests {
     async fn a_cut_off_recording_reads_up_to_the_cut_and_says_so() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("r.mcap");
-        let rec = Recorder::start(&path).unwrap();
+        let rec = Recorder::start(&path, false).unwrap();
         for i in 0..50 {
             rec.record(
                 Timestamp(i),

@@ -20,7 +20,7 @@ use dioptra_sim::gaze::generator::TruthSample;
 use crate::config::{Mode, Port, RigConfig};
 use crate::content::{Content, ContentFrame};
 use crate::devices::simulators::{SimDevices, SimSpec};
-use crate::devices::DeviceInput;
+use crate::devices::{DeviceInput, LensId};
 use crate::display::DisplaySink;
 use crate::engine::{sched_config, Engine};
 use crate::executor::LoopHook;
@@ -30,10 +30,13 @@ use crate::{Control, Rig, RigError, RigSetup, RigState, ShutdownReport};
 /// Something scripted to happen during a run, at a time after its start.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Action {
-    /// Pulls the lens cable: the link breaks and the device cannot be reopened until
-    /// [`Action::ReplugLens`].
+    /// Pulls the lens cable (the one lens, or the left eye's): the link breaks and the device
+    /// cannot be reopened until [`Action::ReplugLens`].
     UnplugLens,
     ReplugLens,
+    /// The same for one lens of a rig with a lens per eye.
+    UnplugLensOf(LensId),
+    ReplugLensOf(LensId),
     ManualFocus(Option<Diopters>),
     /// Holds the marker patch black (true) or lets it toggle again (false).
     HoldMarker(bool),
@@ -62,15 +65,23 @@ impl SimRun {
     pub fn new(cfg: RigConfig, duration: Duration) -> Result<SimRun, RigError> {
         cfg.validate()?;
         let d = &cfg.devices;
-        let ports = [
-            ("devices.lens.port", Some(&d.lens.port)),
-            ("devices.gaze.port", Some(&d.gaze.port)),
-            ("devices.sync.port", d.sync.as_ref().map(|s| &s.port)),
-            (
-                "devices.photodiode.port",
-                d.photodiode.as_ref().and_then(|p| p.port.as_ref()),
-            ),
-        ];
+        let lens_keys: Vec<String> = (0..d.lens.count())
+            .map(|i| format!("{}.port", d.lens.key(i)))
+            .collect();
+        let ports = d
+            .lens
+            .each()
+            .into_iter()
+            .zip(&lens_keys)
+            .map(|(l, k)| (k.as_str(), Some(&l.port)))
+            .chain([
+                ("devices.gaze.port", Some(&d.gaze.port)),
+                ("devices.sync.port", d.sync.as_ref().map(|s| &s.port)),
+                (
+                    "devices.photodiode.port",
+                    d.photodiode.as_ref().and_then(|p| p.port.as_ref()),
+                ),
+            ]);
         for (key, port) in ports {
             if let Some(p) = port.filter(|p| **p != Port::Sim) {
                 return Err(RigError::Config(crate::config::ConfigError::Invalid {
@@ -185,12 +196,16 @@ impl SimRun {
             .ok_or_else(|| RigError::Task("the rig's loop stopped without its shutdown".into()))?;
         // The last probe: where the lens came to rest after parking.
         if self.probe.is_some() {
-            let (lens_power, lens_target) = lens_truth(state.sims.get(), now).unzip();
+            let (lens_power, lens_target) = lens_truth(state.sims.get(), 0, now).unzip();
+            let (lens_power_right, lens_target_right) =
+                lens_truth(state.sims.get(), 1, now).unzip();
             log.probes.push(Probe {
                 t: now,
                 lens_power,
                 eye_focus: lens_power.map(|p| optics.focus_of(p)),
                 lens_target,
+                lens_power_right,
+                lens_target_right,
                 predicted: None,
                 commanded: end.status.commanded_power,
                 commanded_focus: end.status.commanded_power.map(|c| state.optics.focus_of(c)),
@@ -214,8 +229,14 @@ impl SimRun {
             lens_opened: state
                 .sims
                 .get()
-                .and_then(|s| s.lens.as_ref())
+                .and_then(|s| s.lenses.first()?.as_ref())
                 .map_or(0, |l| l.plug.opened()),
+            lenses_opened: state.sims.get().map_or_else(Vec::new, |s| {
+                s.lenses
+                    .iter()
+                    .map(|l| l.as_ref().map_or(0, |l| l.plug.opened()))
+                    .collect()
+            }),
             report,
             state,
             simulated: now.saturating_since(start),
@@ -225,21 +246,29 @@ impl SimRun {
 }
 
 async fn act(state: &RigState, action: Action) {
-    let lens_plug = || {
+    let lens_plug = |lens: LensId| {
         state
             .sims
             .get()
-            .and_then(|s| s.lens.as_ref())
+            .and_then(|s| s.lenses.get(lens.index())?.as_ref())
             .map(|l| l.plug.clone())
     };
     match action {
-        Action::UnplugLens => {
-            if let Some(p) = lens_plug() {
+        Action::UnplugLens | Action::UnplugLensOf(_) => {
+            let lens = match action {
+                Action::UnplugLensOf(l) => l,
+                _ => LensId::FIRST,
+            };
+            if let Some(p) = lens_plug(lens) {
                 p.unplug()
             }
         }
-        Action::ReplugLens => {
-            if let Some(p) = lens_plug() {
+        Action::ReplugLens | Action::ReplugLensOf(_) => {
+            let lens = match action {
+                Action::ReplugLensOf(l) => l,
+                _ => LensId::FIRST,
+            };
+            if let Some(p) = lens_plug(lens) {
                 p.replug()
             }
         }
@@ -269,8 +298,13 @@ pub fn example_config(mode: Mode) -> Result<RigConfig, RigError> {
     Ok(RigConfig::parse(&text)?)
 }
 
-fn lens_truth(sims: Option<&SimDevices>, now: Timestamp) -> Option<(Diopters, Diopters)> {
-    let lens = sims?.lens.as_ref()?.lens.as_ref()?.at(now);
+/// Where simulated lens `index` really is at `now`, and the power it heads to.
+fn lens_truth(
+    sims: Option<&SimDevices>,
+    index: usize,
+    now: Timestamp,
+) -> Option<(Diopters, Diopters)> {
+    let lens = sims?.lenses.get(index)?.as_ref()?.lens.as_ref()?.at(now);
     Some((lens.power(), lens.target_power()))
 }
 
@@ -278,13 +312,17 @@ fn lens_truth(sims: Option<&SimDevices>, now: Timestamp) -> Option<(Diopters, Di
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Probe {
     pub t: Timestamp,
-    /// The simulated lens's true power and the power it heads to.
+    /// The simulated lens's true power and the power it heads to (the one lens, or the left
+    /// eye's).
     pub lens_power: Option<Diopters>,
     /// Where the eye must focus to see the display sharp at the lens's true power: through
     /// the simulated optics ([`SimSpec::optics`]), the focus a corrected eye would have. The
     /// identity map makes it the lens power.
     pub eye_focus: Option<Diopters>,
     pub lens_target: Option<Diopters>,
+    /// The right eye's lens, on a rig with a lens per eye.
+    pub lens_power_right: Option<Diopters>,
+    pub lens_target_right: Option<Diopters>,
     /// The scheduler's model of the lens.
     pub predicted: Option<Diopters>,
     pub commanded: Option<Diopters>,
@@ -300,6 +338,8 @@ pub struct Probe {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LensCommand {
     pub t: Timestamp,
+    /// Which lens (the one lens, or the left eye's, is the first).
+    pub lens: LensId,
     pub id: CommandId,
     pub power: Diopters,
     pub reason: FocusReason,
@@ -321,7 +361,8 @@ pub struct Log {
     pub host_path: Vec<Duration>,
     pub gaze_samples: u64,
     pub sequencer_events: u64,
-    pub link_events: Vec<(Timestamp, LinkStatus)>,
+    /// Each lens link change: when, the new status, and which lens.
+    pub link_events: Vec<(Timestamp, LinkStatus, LensId)>,
     /// The gaze device's last error when it was lost during the run.
     pub gaze_errors: Vec<String>,
     end: Option<End>,
@@ -339,8 +380,10 @@ pub struct Run {
     /// The scheduler's status and latency figures when the rig stopped.
     pub status: dioptra_sched::Status,
     pub latency: dioptra_sched::Latency,
-    /// How many links the lens task opened (1 + reconnects).
+    /// How many links the lens task opened (1 + reconnects): the one lens, or the left eye's.
     pub lens_opened: u32,
+    /// The same for each lens.
+    pub lenses_opened: Vec<u32>,
     pub report: ShutdownReport,
     pub state: Arc<RigState>,
     /// Simulated time covered, and the wall time it took.
@@ -380,13 +423,14 @@ impl LoopHook for TruthRecorder {
             DeviceInput::Gaze(..) => log.gaze_samples += 1,
             DeviceInput::Sync(_) => log.sequencer_events += 1,
             DeviceInput::Light(_) => {}
-            DeviceInput::LensLink(up) => log.link_events.push((
+            DeviceInput::LensLink(lens, up) => log.link_events.push((
                 now,
                 if *up {
                     LinkStatus::Connected
                 } else {
                     LinkStatus::Lost
                 },
+                *lens,
             )),
             DeviceInput::LensWire {
                 id,
@@ -399,7 +443,7 @@ impl LoopHook for TruthRecorder {
                 }
                 log.host_path.extend(*host_path);
             }
-            DeviceInput::LensState(_) => {}
+            DeviceInput::LensState(..) => {}
         }
     }
 
@@ -407,9 +451,14 @@ impl LoopHook for TruthRecorder {
         let mut log = lock(&self.log);
         match *cmd {
             Command::SetLensPower {
-                id, power, reason, ..
+                lens,
+                id,
+                power,
+                reason,
+                ..
             } => log.lens_commands.push(LensCommand {
                 t: now,
+                lens,
                 id,
                 power,
                 reason,
@@ -432,13 +481,16 @@ impl LoopHook for TruthRecorder {
             return;
         };
         let truth = self.gaze_truth_at(now);
-        let (lens_power, lens_target) = lens_truth(self.sims.get(), now).unzip();
+        let (lens_power, lens_target) = lens_truth(self.sims.get(), 0, now).unzip();
+        let (lens_power_right, lens_target_right) = lens_truth(self.sims.get(), 1, now).unzip();
         let st = engine.scheduler().status();
         lock(&self.log).probes.push(Probe {
             t: now,
             lens_power,
             eye_focus: lens_power.map(|p| self.optics.focus_of(p)),
             lens_target,
+            lens_power_right,
+            lens_target_right,
             predicted: engine.scheduler().predicted_lens_power(now),
             commanded: st.commanded_power,
             commanded_focus: st

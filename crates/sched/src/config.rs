@@ -166,6 +166,16 @@ impl Default for FocusPolicy {
     }
 }
 
+/// The right eye's lens on a rig with a lens per eye: its own step response, optics map and
+/// park power (each lens is built and calibrated on its own).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RightLens {
+    pub lens: LensDynamics,
+    /// Made for `lens_range`, like [`SchedulerConfig::optics`].
+    pub optics: OpticsMap,
+    pub park_power: Diopters,
+}
+
 /// Display timing for whole-frame modes (varifocal, light field). Multifocal frames follow the
 /// sync hardware's events instead.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -203,6 +213,9 @@ pub struct SchedulerConfig {
     pub optics: OpticsMap,
     /// The lens is left here on shutdown.
     pub park_power: Diopters,
+    /// The right eye's lens, on a rig with a lens per eye (`lens`, `optics` and
+    /// `park_power` are then the left eye's). One fixation estimate drives both.
+    pub right_lens: Option<RightLens>,
     pub focus: FocusPolicy,
     pub gaze: ProcessorConfig,
     pub display: DisplayTiming,
@@ -215,6 +228,35 @@ pub struct SchedulerConfig {
 }
 
 impl SchedulerConfig {
+    /// How many lenses the scheduler drives: 1, or 2 (a lens per eye).
+    pub fn lens_count(&self) -> usize {
+        1 + usize::from(self.right_lens.is_some())
+    }
+
+    /// The optics map of `lens`: focus <-> that lens's command.
+    pub fn optics_of(&self, lens: crate::LensId) -> &OpticsMap {
+        match (lens.0, &self.right_lens) {
+            (1, Some(r)) => &r.optics,
+            _ => &self.optics,
+        }
+    }
+
+    /// `lens`'s step response.
+    pub fn dynamics_of(&self, lens: crate::LensId) -> LensDynamics {
+        match (lens.0, &self.right_lens) {
+            (1, Some(r)) => r.lens,
+            _ => self.lens,
+        }
+    }
+
+    /// Where `lens` is left on shutdown.
+    pub fn park_power_of(&self, lens: crate::LensId) -> Diopters {
+        match (lens.0, &self.right_lens) {
+            (1, Some(r)) => r.park_power,
+            _ => self.park_power,
+        }
+    }
+
     /// Defaults for `mode`: DeepFocus's eye, a 0-4 D lens, 60 Hz frames, and in multifocal
     /// mode DeepFocus's planes (0.2, 0.8, 1.4, 2.0 D) at 240 sub-frames per second.
     pub fn new(mode: Mode) -> Self {
@@ -240,6 +282,7 @@ impl SchedulerConfig {
             lens: LensDynamics::default(),
             optics: OpticsMap::identity(lens_range),
             park_power: Diopters(0.0),
+            right_lens: None,
             focus: FocusPolicy::default(),
             gaze: ProcessorConfig::default(),
             display: DisplayTiming::default(),
@@ -283,23 +326,46 @@ impl SchedulerConfig {
                 ),
             ));
         }
-        if self.lens.settle_time.is_zero() || self.lens.damping.is_nan() || self.lens.damping <= 0.0
-        {
-            return Err(ConfigError::invalid(
-                "lens",
-                "settle_time must be > 0 and damping > 0 (e.g. 15 ms, 0.7)",
-            ));
+        let right = self.right_lens.as_ref();
+        for (key, d) in [
+            ("lens", Some(&self.lens)),
+            ("right_lens.lens", right.map(|r| &r.lens)),
+        ] {
+            let Some(d) = d else { continue };
+            if d.settle_time.is_zero() || d.damping.is_nan() || d.damping <= 0.0 {
+                return Err(ConfigError::invalid(
+                    key,
+                    "settle_time must be > 0 and damping > 0 (e.g. 15 ms, 0.7)",
+                ));
+            }
         }
-        if self.optics.range() != self.lens_range {
-            let r = self.optics.range();
-            return Err(ConfigError::invalid(
-                "optics",
-                format!(
-                    "the optics map was made for a lens range of {}..{} D, and lens_range is \
-                     {}..{} D: make the map for the range the scheduler drives",
-                    r.min.0, r.max.0, self.lens_range.min.0, self.lens_range.max.0
-                ),
-            ));
+        for (key, o) in [
+            ("optics", Some(&self.optics)),
+            ("right_lens.optics", right.map(|r| &r.optics)),
+        ] {
+            let Some(o) = o else { continue };
+            if o.range() != self.lens_range {
+                let r = o.range();
+                return Err(ConfigError::invalid(
+                    key,
+                    format!(
+                        "the optics map was made for a lens range of {}..{} D, and lens_range is \
+                         {}..{} D: make the map for the range the scheduler drives",
+                        r.min.0, r.max.0, self.lens_range.min.0, self.lens_range.max.0
+                    ),
+                ));
+            }
+        }
+        if let Some(r) = right {
+            if !self.lens_range.contains(r.park_power) {
+                return Err(ConfigError::invalid(
+                    "right_lens.park_power",
+                    format!(
+                        "{} D is outside the lens range {}..{} D",
+                        r.park_power.0, self.lens_range.min.0, self.lens_range.max.0
+                    ),
+                ));
+            }
         }
         let f = &self.focus;
         if !(f.deadband_d.is_finite() && f.deadband_d >= 0.0) {

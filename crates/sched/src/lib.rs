@@ -59,12 +59,14 @@ pub mod lenslet;
 pub mod processing;
 mod scheduler;
 
-pub use config::{ConfigError, DisplayTiming, FocusPolicy, Mode, RenderMethod, SchedulerConfig};
+pub use config::{
+    ConfigError, DisplayTiming, FocusPolicy, Mode, RenderMethod, RightLens, SchedulerConfig,
+};
 pub use latency::{Latency, Stage};
 pub use lens::{LensDynamics, LensPredictor};
 pub use scheduler::{
-    Command, CommandId, Counters, Event, FocusReason, FrameId, FrameRequest, LinkStatus, Scheduler,
-    Status,
+    Command, CommandId, Counters, Event, FocusReason, FrameId, FrameRequest, LensId, LensStatus,
+    LinkStatus, Scheduler, Status, MAX_LENSES,
 };
 
 #[cfg(test)]

@@ -20,6 +20,18 @@ pub struct FrameId(pub u64);
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
 pub struct CommandId(pub u64);
 
+/// Which lens: 0 is the rig's only lens (or the left eye's), 1 the right eye's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct LensId(pub u8);
+
+impl LensId {
+    /// The only lens of a one-lens rig; the left eye's on a binocular one.
+    pub const FIRST: LensId = LensId(0);
+    pub fn index(self) -> usize {
+        usize::from(self.0)
+    }
+}
+
 /// Whether the lens's link is up, as the executor last reported.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum LinkStatus {
@@ -51,12 +63,18 @@ pub enum FocusReason {
 pub enum Event {
     /// A binocular gaze sample, with its device, receive and mapped host times.
     Gaze(GazeSample),
-    /// A lens readback; re-anchors the lens model and completes settle timing.
-    LensState(LensState),
-    /// Command `id` went on the wire at `wire_time` (what `VarifocalLens::set_power` returns).
-    LensCommandWritten { id: CommandId, wire_time: Timestamp },
-    /// The lens link went down or came back (after the driver reopened it).
-    LensLink(LinkStatus),
+    /// A readback of a lens; re-anchors its model and completes settle timing.
+    LensState(LensId, LensState),
+    /// Command `id` to `lens` went on the wire at `wire_time` (what
+    /// `VarifocalLens::set_power` returns).
+    LensCommandWritten {
+        lens: LensId,
+        id: CommandId,
+        wire_time: Timestamp,
+    },
+    /// A lens's link went down or came back (after the driver reopened it). Each lens is held
+    /// or commanded on its own: one lost lens does not hold the other.
+    LensLink(LensId, LinkStatus),
     /// The depth map (diopters) of the scene frame now being rendered, spanning the eye
     /// model's horizontal field. Fixation depth is read from the latest one.
     Depth(Arc<DepthMap>),
@@ -98,10 +116,13 @@ pub struct FrameRequest {
     pub mode: Mode,
     pub method: RenderMethod,
     /// Varifocal: the focus to render defocus for, diopters: the lens power predicted at
-    /// `display_time`, through the focus map. `None` in other modes.
+    /// `display_time`, through the focus map (the first lens's: the only one, or the left
+    /// eye's). `None` in other modes.
     pub focus: Option<Diopters>,
     /// Varifocal: the lens power predicted at `display_time`.
     pub lens_power: Option<Diopters>,
+    /// Varifocal with a lens per eye: the right eye's focus, from its own lens.
+    pub focus_right: Option<Diopters>,
     /// When the frame's light reaches the eye (first sub-frame in multifocal mode).
     pub display_time: Timestamp,
     /// Latest smoothed gaze (for foveation), and the host time of its sample.
@@ -118,6 +139,7 @@ pub enum Command {
     /// (`LensController::set_power_at`) may apply it exactly then; others send it at once.
     /// Report the wire time with [`Event::LensCommandWritten`].
     SetLensPower {
+        lens: LensId,
         id: CommandId,
         power: Diopters,
         apply_at: Timestamp,
@@ -187,14 +209,41 @@ pub struct Status {
     pub manual_focus: Option<Diopters>,
     /// Depth at the gaze point the last time it was read, diopters.
     pub fixation_depth: Option<Diopters>,
-    /// The lens power last commanded (or held while the link is down).
+    /// The first lens's power last commanded (or held while its link is down).
     pub commanded_power: Option<Diopters>,
+    /// The first lens's link.
     pub lens_link: LinkStatus,
-    /// Last command's time from the wire to a settled readback.
+    /// Last command's time from the wire to a settled readback (any lens).
     pub last_settle: Option<Duration>,
     pub shown_frame: Option<FrameId>,
     pub shutting_down: bool,
     pub counters: Counters,
+    /// Each lens (index: [`LensId`]); `None` beyond the rig's lenses.
+    pub lenses: [Option<LensStatus>; MAX_LENSES],
+}
+
+/// The most lenses a rig has: one per eye.
+pub const MAX_LENSES: usize = 2;
+
+/// One lens as the scheduler sees it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensStatus {
+    /// The power last commanded (or held while its link is down).
+    pub commanded_power: Option<Diopters>,
+    pub link: LinkStatus,
+    /// Its last command's time from the wire to a settled readback.
+    pub last_settle: Option<Duration>,
+}
+
+/// One lens's link, model and command in flight.
+#[derive(Debug, Clone)]
+struct LensTrack {
+    model: LensPredictor,
+    link: LinkStatus,
+    /// The power last commanded (or held while the link is down).
+    commanded: Option<Diopters>,
+    tracked: Option<Tracked>,
+    last_settle: Option<Duration>,
 }
 
 /// The command whose latency is being followed.
@@ -242,7 +291,8 @@ struct FrameClock {
 pub struct Scheduler {
     cfg: SchedulerConfig,
     processor: GazeProcessor,
-    lens: LensPredictor,
+    /// Each lens, by [`LensId`].
+    lenses: Vec<LensTrack>,
     latency: Latency,
     depth: Option<Arc<DepthMap>>,
     /// Arrival of a content frame that no requested frame shows yet.
@@ -252,6 +302,8 @@ pub struct Scheduler {
     /// Treat the next fixation sample as an onset (after manual focus or a mode change).
     reevaluate: bool,
     manual: Option<Diopters>,
+    /// The first lens's power last decided (what focus decisions compare against; every lens
+    /// is commanded the same focus through its own map).
     commanded: Option<Diopters>,
     last_command_at: Option<Timestamp>,
     /// A fixation target outside the deadband, and since when.
@@ -259,9 +311,7 @@ pub struct Scheduler {
     landing_sent: bool,
     /// Where the current (or last) saccade started.
     saccade_from: Option<Angles>,
-    lens_link: LinkStatus,
     next_command_id: u64,
-    tracked: Option<Tracked>,
     last_settle: Option<Duration>,
     fixation_depth: Option<Diopters>,
     last_gaze: Option<(Timestamp, Angles)>,
@@ -292,7 +342,15 @@ impl Scheduler {
         let latency = Latency::new().map_err(|e| ConfigError::Histogram(e.to_string()))?;
         Ok(Scheduler {
             processor: GazeProcessor::new(cfg.gaze),
-            lens: LensPredictor::new(cfg.lens),
+            lenses: (0..cfg.lens_count())
+                .map(|i| LensTrack {
+                    model: LensPredictor::new(cfg.dynamics_of(LensId(i as u8))),
+                    link: LinkStatus::Connected,
+                    commanded: None,
+                    tracked: None,
+                    last_settle: None,
+                })
+                .collect(),
             latency,
             depth: None,
             content_new: None,
@@ -305,9 +363,7 @@ impl Scheduler {
             pending: None,
             landing_sent: false,
             saccade_from: None,
-            lens_link: LinkStatus::Connected,
             next_command_id: 0,
-            tracked: None,
             last_settle: None,
             fixation_depth: None,
             last_gaze: None,
@@ -332,9 +388,13 @@ impl Scheduler {
     pub fn step(&mut self, now: Timestamp, event: Event, out: &mut Vec<Command>) {
         match event {
             Event::Gaze(s) => self.on_gaze(now, &s, out),
-            Event::LensState(s) => self.on_lens_state(&s),
-            Event::LensCommandWritten { id, wire_time } => self.on_written(id, wire_time),
-            Event::LensLink(l) => self.on_link(now, l, out),
+            Event::LensState(lens, s) => self.on_lens_state(lens, &s),
+            Event::LensCommandWritten {
+                lens,
+                id,
+                wire_time,
+            } => self.on_written(lens, id, wire_time),
+            Event::LensLink(lens, l) => self.on_link(now, lens, l, out),
             Event::Depth(d) => self.depth = Some(d),
             Event::Content { arrived, ready } => self.on_content(arrived, ready),
             Event::Sequencer(e) => self.on_sequencer(now, &e, out),
@@ -386,7 +446,10 @@ impl Scheduler {
             manual_focus: self.manual,
             fixation_depth: self.fixation_depth,
             commanded_power: self.commanded,
-            lens_link: self.lens_link,
+            lens_link: self
+                .lenses
+                .first()
+                .map_or(LinkStatus::Connected, |l| l.link),
             last_settle: self.last_settle,
             shown_frame: self.shown,
             shutting_down: self.shutting_down,
@@ -395,6 +458,13 @@ impl Scheduler {
                 blinks: st.blinks,
                 ..self.counters
             },
+            lenses: std::array::from_fn(|i| {
+                self.lenses.get(i).map(|l| LensStatus {
+                    commanded_power: l.commanded,
+                    link: l.link,
+                    last_settle: l.last_settle,
+                })
+            }),
         }
     }
 
@@ -407,14 +477,37 @@ impl Scheduler {
         self.processor.state()
     }
 
-    /// Lens power the model predicts at `t` from the commands and readbacks so far.
+    /// The first lens's power the model predicts at `t` from the commands and readbacks so far.
     pub fn predicted_lens_power(&self, t: Timestamp) -> Option<Diopters> {
-        self.lens.power_at(t)
+        self.predicted_power_of(LensId::FIRST, t)
     }
 
-    /// When the model predicts the lens settles (within the settled tolerance) after `from`.
+    /// `lens`'s power its model predicts at `t`.
+    pub fn predicted_power_of(&self, lens: LensId, t: Timestamp) -> Option<Diopters> {
+        self.lenses.get(lens.index())?.model.power_at(t)
+    }
+
+    /// When the model predicts the first lens settles (within the settled tolerance) after
+    /// `from`.
     pub fn predicted_settle(&self, from: Timestamp) -> Option<Timestamp> {
-        self.lens.settled_by(from, self.cfg.settled_tolerance_d)
+        self.lenses
+            .first()?
+            .model
+            .settled_by(from, self.cfg.settled_tolerance_d)
+    }
+
+    /// The focus (accommodation demand, diopters) that `power` on `lens` gives the eye: the
+    /// one place that turns a lens's power into a focus.
+    pub fn focus_of(&self, lens: LensId, power: Diopters) -> Diopters {
+        self.cfg.optics_of(lens).focus_of(power)
+    }
+
+    /// The power of `lens` for `focus`, inside the lens range: the one place that turns a
+    /// focus into a lens command.
+    fn power_of(&self, lens: LensId, focus: Diopters) -> Diopters {
+        self.cfg
+            .lens_range
+            .clamp(self.cfg.optics_of(lens).command_for(focus))
     }
 
     // ---- focus ----
@@ -593,6 +686,8 @@ impl Scheduler {
         (o.focus_of(a).0 - o.focus_of(b).0).abs() <= self.cfg.focus.deadband_d
     }
 
+    /// Commands the first lens's `power` (and every other lens the same focus, through its
+    /// own map). A lens whose link is down is held: it gets its power when it comes back.
     fn command(
         &mut self,
         now: Timestamp,
@@ -607,16 +702,45 @@ impl Scheduler {
         }
         self.commanded = Some(power);
         self.last_command_at = Some(now);
-        if self.lens_link == LinkStatus::Lost {
-            self.counters.lens_commands_held += 1;
+        let focus = self.focus_of(LensId::FIRST, power);
+        for i in 0..self.lenses.len() {
+            let lens = LensId(i as u8);
+            let p = match (i, reason) {
+                (0, _) => power,
+                // Each lens parks where its own section says.
+                (_, FocusReason::Park) => self.cfg.park_power_of(lens),
+                _ => self.power_of(lens, focus),
+            };
+            self.command_lens(now, lens, p, reason, trigger, out);
+        }
+    }
+
+    /// Sends `power` to one lens (or holds it while the lens's link is down).
+    fn command_lens(
+        &mut self,
+        now: Timestamp,
+        lens: LensId,
+        power: Diopters,
+        reason: FocusReason,
+        trigger: Option<&GazeSample>,
+        out: &mut Vec<Command>,
+    ) {
+        if !power.is_finite() {
             return;
         }
         let id = CommandId(self.next_command_id);
+        let apply_at = now + self.cfg.dynamics_of(lens).command_latency;
+        let Some(l) = self.lenses.get_mut(lens.index()) else {
+            return;
+        };
+        l.commanded = Some(power);
+        if l.link == LinkStatus::Lost {
+            self.counters.lens_commands_held += 1;
+            return;
+        }
         self.next_command_id += 1;
-        let apply_at = now + self.cfg.lens.command_latency;
-        self.lens.command(apply_at, power);
-        self.counters.lens_commands += 1;
-        self.tracked = Some(Tracked {
+        l.model.command(apply_at, power);
+        l.tracked = Some(Tracked {
             id,
             power,
             sent_at: now,
@@ -624,7 +748,9 @@ impl Scheduler {
             wire: None,
             settled: false,
         });
+        self.counters.lens_commands += 1;
         out.push(Command::SetLensPower {
+            lens,
             id,
             power,
             apply_at,
@@ -632,8 +758,13 @@ impl Scheduler {
         });
     }
 
-    fn on_written(&mut self, id: CommandId, wire: Timestamp) {
-        let Some(t) = self.tracked.as_mut().filter(|t| t.id == id) else {
+    fn on_written(&mut self, lens: LensId, id: CommandId, wire: Timestamp) {
+        let Some(t) = self
+            .lenses
+            .get_mut(lens.index())
+            .and_then(|l| l.tracked.as_mut())
+            .filter(|t| t.id == id)
+        else {
             return;
         };
         t.wire = Some(wire);
@@ -642,12 +773,16 @@ impl Scheduler {
         }
     }
 
-    fn on_lens_state(&mut self, s: &LensState) {
+    fn on_lens_state(&mut self, lens: LensId, s: &LensState) {
         self.counters.lens_readbacks += 1;
-        self.lens
-            .observe(s.host_time, s.power, self.cfg.readback_tolerance_d);
+        let readback_tol = self.cfg.readback_tolerance_d;
         let tol = self.cfg.settled_tolerance_d;
-        let Some(t) = self.tracked.as_mut() else {
+        let Some(l) = self.lenses.get_mut(lens.index()) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        l.model.observe(s.host_time, s.power, readback_tol);
+        let Some(t) = l.tracked.as_mut() else {
             return;
         };
         let start = t.wire.unwrap_or(t.sent_at);
@@ -657,6 +792,7 @@ impl Scheduler {
         if s.settled.unwrap_or(true) && (s.power.0 - t.power.0).abs() <= tol {
             t.settled = true;
             let d = since(s.host_time, start);
+            l.last_settle = Some(d);
             self.last_settle = Some(d);
             self.latency.record(Stage::WireToSettled, d);
             if let Some((_, gaze)) = t.trigger {
@@ -666,24 +802,35 @@ impl Scheduler {
         }
     }
 
-    fn on_link(&mut self, now: Timestamp, l: LinkStatus, out: &mut Vec<Command>) {
-        match (self.lens_link, l) {
+    fn on_link(
+        &mut self,
+        now: Timestamp,
+        lens: LensId,
+        status: LinkStatus,
+        out: &mut Vec<Command>,
+    ) {
+        let Some(l) = self.lenses.get_mut(lens.index()) else {
+            self.counters.ignored_events += 1;
+            return;
+        };
+        match (l.link, status) {
             (LinkStatus::Connected, LinkStatus::Lost) => {
-                self.lens_link = LinkStatus::Lost;
+                l.link = LinkStatus::Lost;
                 self.counters.lens_link_losses += 1;
                 // Where the lens is after a reconnect is unknown until it is read back.
-                self.lens.forget();
-                self.tracked = None;
+                l.model.forget();
+                l.tracked = None;
             }
             (LinkStatus::Lost, LinkStatus::Connected) => {
-                self.lens_link = LinkStatus::Connected;
+                l.link = LinkStatus::Connected;
+                let held = l.commanded;
                 let target = if self.shutting_down {
-                    Some(self.cfg.park_power)
+                    Some(self.cfg.park_power_of(lens))
                 } else {
-                    self.commanded
+                    held
                 };
                 if let Some(p) = target {
-                    self.command(now, p, FocusReason::Reconnect, None, out);
+                    self.command_lens(now, lens, p, FocusReason::Reconnect, None, out);
                 }
             }
             _ => {}
@@ -744,16 +891,23 @@ impl Scheduler {
     // ---- frames ----
 
     fn request(&mut self, frame: FrameId, display_time: Timestamp, out: &mut Vec<Command>) {
-        let (focus, lens_power) = if self.cfg.mode == Mode::Varifocal {
-            let p = self
-                .lens
+        // Each eye's image is rendered at the focus its own lens is predicted to give.
+        let focus_at = |lens: LensId| {
+            let l = self.lenses.get(lens.index())?;
+            let p = l
+                .model
                 .power_at(display_time)
-                .or(self.commanded)
-                .unwrap_or(self.cfg.park_power);
-            (Some(self.cfg.optics.focus_of(p)), Some(p))
+                .or(l.commanded)
+                .unwrap_or(self.cfg.park_power_of(lens));
+            Some((self.focus_of(lens, p), p))
+        };
+        let (first, right) = if self.cfg.mode == Mode::Varifocal {
+            (focus_at(LensId::FIRST), focus_at(LensId(1)))
         } else {
             (None, None)
         };
+        let (focus, lens_power) = first.unzip();
+        let focus_right = right.map(|r| r.0);
         let gaze_time = self.last_gaze.map(|g| g.0);
         self.in_flight = Some(InFlight {
             frame,
@@ -767,6 +921,7 @@ impl Scheduler {
             method: self.cfg.method,
             focus,
             lens_power,
+            focus_right,
             display_time,
             gaze: self.last_gaze.map(|g| g.1),
             gaze_time,

@@ -315,7 +315,11 @@ fn lost_link_holds_the_target_and_reconnect_sends_it_then_shutdown_parks() {
     cfg.park_power = Diopters(0.25);
     let mut s = Scheduler::new(cfg).unwrap();
     let mut out = Vec::new();
-    s.step(Timestamp::ZERO, Event::LensLink(LinkStatus::Lost), &mut out);
+    s.step(
+        Timestamp::ZERO,
+        Event::LensLink(LensId::FIRST, LinkStatus::Lost),
+        &mut out,
+    );
     s.step(
         Timestamp::from_millis(1),
         Event::ManualFocus(Some(Diopters(1.5))),
@@ -325,7 +329,7 @@ fn lost_link_holds_the_target_and_reconnect_sends_it_then_shutdown_parks() {
     assert_eq!(s.status().counters.lens_commands_held, 1);
     s.step(
         Timestamp::from_millis(2),
-        Event::LensLink(LinkStatus::Connected),
+        Event::LensLink(LensId::FIRST, LinkStatus::Connected),
         &mut out,
     );
     assert_eq!(
@@ -361,6 +365,7 @@ fn settle_latency_is_measured_from_the_wire_to_a_settled_readback() {
     s.step(
         wire,
         Event::LensCommandWritten {
+            lens: LensId::FIRST,
             id,
             wire_time: wire,
         },
@@ -380,7 +385,7 @@ fn settle_latency_is_measured_from_the_wire_to_a_settled_readback() {
         (20, 2.0, true),
     ] {
         let st = state(ms, p, settled);
-        s.step(st.host_time, Event::LensState(st), &mut out);
+        s.step(st.host_time, Event::LensState(LensId::FIRST, st), &mut out);
     }
     let l = s.latency();
     assert_eq!(l.stage(Stage::HostToWire).len(), 1);
@@ -661,4 +666,167 @@ fn focus_becomes_a_lens_command_through_the_optics_map_and_back_for_the_render()
     s.step(now, Event::ManualFocus(Some(Diopters(1.0))), &mut out);
     let c = lens_commands(&out);
     assert!((c[0].0 .0 - (2.0 - 2.0 / 0.96)).abs() < 1e-5, "{c:?}");
+}
+
+fn lens_commands_of(out: &[Command]) -> Vec<(LensId, Diopters, FocusReason)> {
+    out.iter()
+        .filter_map(|c| match c {
+            Command::SetLensPower {
+                lens,
+                power,
+                reason,
+                ..
+            } => Some((*lens, *power, *reason)),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Two lenses, one per eye: one fixation estimate commands both, back to back, each through
+/// its own optics map; a lost lens is held while the other goes on, and gets its target when
+/// it comes back; each eye's frame is rendered at its own lens's focus.
+#[test]
+fn two_lenses_follow_one_fixation_and_a_lost_one_holds_only_itself() {
+    let mut cfg = SchedulerConfig::new(Mode::Varifocal);
+    // The right lens is driven 0.25 D stronger for the same focus (its eye's own optics map),
+    // settles more slowly and parks elsewhere.
+    cfg.right_lens = Some(RightLens {
+        lens: LensDynamics {
+            settle_time: Duration::from_millis(30),
+            ..LensDynamics::default()
+        },
+        // A -0.25 D myope's right eye (0 mm vertex): shown 0.25 D nearer than the focus.
+        optics: dioptra_core::OpticsMap::new(
+            None,
+            None,
+            dioptra_core::optics_map::Prescription::new(-0.25, 0.0, 0.0).unwrap(),
+            cfg.lens_range,
+        )
+        .unwrap(),
+        park_power: Diopters(0.75),
+    });
+    let mut s = Scheduler::new(cfg).unwrap();
+    let mut out = Vec::new();
+    s.step(Timestamp::ZERO, Event::Depth(split_depth()), &mut out);
+    // The first frame, asked for at once: rendered at once, so that later ones are asked for.
+    let first = out
+        .iter()
+        .find_map(|c| match c {
+            Command::RenderFrame(r) => Some(*r),
+            _ => None,
+        })
+        .unwrap();
+    s.step(
+        Timestamp::ZERO,
+        Event::RenderFinished {
+            frame: first.frame,
+            method: first.method,
+            render_time: Duration::ZERO,
+        },
+        &mut out,
+    );
+    // Fixating the near (2 D) half: both lenses, the left first.
+    let c = gaze(&mut s, sample(0, -5.0, 0.0, 2.0, true));
+    assert_eq!(
+        lens_commands_of(&c),
+        [
+            (LensId(0), Diopters(2.0), FocusReason::FixationOnset),
+            (LensId(1), Diopters(2.25), FocusReason::FixationOnset),
+        ]
+    );
+    let ids: Vec<CommandId> = c
+        .iter()
+        .filter_map(|c| match c {
+            Command::SetLensPower { id, .. } => Some(*id),
+            _ => None,
+        })
+        .collect();
+    assert_ne!(ids[0], ids[1]);
+    // The right lens is lost; a manual focus moves the left lens only.
+    s.step(
+        Timestamp::from_millis(5),
+        Event::LensLink(LensId(1), LinkStatus::Lost),
+        &mut out,
+    );
+    out.clear();
+    s.step(
+        Timestamp::from_millis(6),
+        Event::ManualFocus(Some(Diopters(1.0))),
+        &mut out,
+    );
+    assert_eq!(
+        lens_commands_of(&out),
+        [(LensId(0), Diopters(1.0), FocusReason::Manual)]
+    );
+    let st = s.status();
+    assert_eq!(st.counters.lens_commands_held, 1);
+    let right = st.lenses[1].unwrap();
+    assert_eq!(right.link, LinkStatus::Lost);
+    assert_eq!(
+        right.commanded_power,
+        Some(Diopters(1.25)),
+        "held, not sent"
+    );
+    assert_eq!(st.lenses[0].unwrap().link, LinkStatus::Connected);
+    // Back: the right lens gets the focus it missed, the left nothing new.
+    out.clear();
+    s.step(
+        Timestamp::from_millis(7),
+        Event::LensLink(LensId(1), LinkStatus::Connected),
+        &mut out,
+    );
+    assert_eq!(
+        lens_commands_of(&out),
+        [(LensId(1), Diopters(1.25), FocusReason::Reconnect)]
+    );
+    // Frames carry each eye's focus, from its own lens model, through its own map: once both
+    // lenses settled, both eyes focus at 1 D (the right lens at 1.25 D).
+    out.clear();
+    let mut t = Timestamp::from_millis(7);
+    let request = loop {
+        assert!(t < Timestamp::from_millis(1000), "no frame asked for");
+        t = s.next_wakeup().unwrap().max(t);
+        out.clear();
+        s.step(t, Event::Tick, &mut out);
+        let Some(r) = out.iter().find_map(|c| match c {
+            Command::RenderFrame(r) => Some(*r),
+            _ => None,
+        }) else {
+            continue;
+        };
+        if r.display_time > Timestamp::from_millis(100) {
+            break r;
+        }
+        // A renderer that finishes at once, so that the next frame is asked for.
+        s.step(
+            t,
+            Event::RenderFinished {
+                frame: r.frame,
+                method: r.method,
+                render_time: Duration::ZERO,
+            },
+            &mut out,
+        );
+    };
+    let (l, r) = (request.focus.unwrap(), request.focus_right.unwrap());
+    assert!(
+        (l.0 - 1.0).abs() < 0.01 && (r.0 - 1.0).abs() < 0.01,
+        "{l:?} {r:?}"
+    );
+    assert!((request.lens_power.unwrap().0 - 1.0).abs() < 0.01);
+    // Shutdown parks each lens where its own section says.
+    out.clear();
+    s.step(t, Event::Shutdown, &mut out);
+    assert_eq!(
+        lens_commands_of(&out),
+        [
+            (LensId(0), Diopters(0.0), FocusReason::Park),
+            (LensId(1), Diopters(0.75), FocusReason::Park),
+        ]
+    );
+    // One lens: no right focus.
+    let mut one = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    let c = gaze(&mut one, sample(0, -5.0, 0.0, 2.0, true));
+    assert_eq!(lens_commands_of(&c).len(), 1);
+    assert!(one.status().lenses[1].is_none());
 }

@@ -336,18 +336,21 @@ async fn sim_plug(
     Path((device, action)): Path<(String, String)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let sims = s.sims.get();
+    let lenses = &s.cfg.devices.lens;
     let plug = sims.and_then(|sims| match device.as_str() {
-        "lens" => sims.lens.as_ref(),
         "gaze" => sims.gaze.as_ref(),
         "sync" => sims.sync.as_ref(),
         "photodiode" => sims.photodiode.as_ref(),
-        _ => None,
+        // `lens`, or `lens_left` and `lens_right` with a lens per eye.
+        name => (0..lenses.count())
+            .find(|&i| lenses.name(i) == name)
+            .and_then(|i| sims.lenses.get(i)?.as_ref()),
     });
     let plug = plug.map(|slot| &slot.plug);
     let Some(plug) = plug else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
-            format!("{device:?} is not a simulated device of this rig (lens, gaze, sync or photodiode with port = \"sim\")"),
+            format!("{device:?} is not a simulated device of this rig (lens, or lens_left and lens_right, gaze, sync or photodiode with port = \"sim\")"),
         )
         .at("device"));
     };

@@ -339,12 +339,7 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
     let (d, addr) = start_tcp(sim_config(dir.path(), false)).await;
     assert!(addr.ip().is_loopback() && addr.port() != 0);
-    let lens_sim = d
-        .shared()
-        .sims
-        .get()
-        .unwrap()
-        .lens
+    let lens_sim = d.shared().sims.get().unwrap().lenses[0]
         .clone()
         .unwrap()
         .lens
@@ -698,12 +693,7 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     let d = Daemon::start_config(sim_config(dir.path(), true))
         .await
         .unwrap();
-    let lens_sim = d
-        .shared()
-        .sims
-        .get()
-        .unwrap()
-        .lens
+    let lens_sim = d.shared().sims.get().unwrap().lenses[0]
         .clone()
         .unwrap()
         .lens
@@ -813,12 +803,64 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     assert!(report.ok(), "{report:?}");
 }
 
+/// The binocular example rig: a lens per eye, each its own device; `/status` shows each eye
+/// under `focus` and names the lens that is lost when one is unplugged, while the other goes
+/// on.
+#[tokio::test(start_paused = true)]
+async fn a_binocular_rig_shows_each_eye_and_which_lens_is_lost() {
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("[recording]\ndir = \"recordings\"\nstart = false\n", "");
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
+    eventually("both lenses to connect and be commanded", || {
+        let v = sh.status_json();
+        let ok = state("lens_left") == Some(State::Ok)
+            && state("lens_right") == Some(State::Ok)
+            && v["focus"]["left"]["commanded_d"].is_number()
+            && v["focus"]["right"]["commanded_d"].is_number()
+            && v["focus"]["right"]["lens_d"].is_number();
+        ok.then_some(())
+    })
+    .await;
+    assert_eq!(state("lens"), None, "no one-lens device on a binocular rig");
+    let app = api::router(sh.clone());
+    let (s, v) = call(&app, "POST", "/sim/lens_right/unplug", "").await;
+    assert_eq!((s, &v["plugged"]), (StatusCode::OK, &json!(false)), "{v}");
+    let v = eventually("the right lens to be lost", || {
+        let v = sh.status_json();
+        (v["focus"]["right"]["link"] == json!("lost")).then_some(v)
+    })
+    .await;
+    assert_eq!(v["focus"]["left"]["link"], json!("ok"), "{v}");
+    assert_eq!(v["devices"]["lens_right"]["state"], json!("lost"), "{v}");
+    assert_eq!(v["sim_lens"]["right"]["plugged"], json!(false), "{v}");
+    assert_eq!(v["sim_lens"]["left"]["plugged"], json!(true), "{v}");
+    let (s, _) = call(&app, "POST", "/sim/lens_right/replug", "").await;
+    assert_eq!(s, StatusCode::OK);
+    eventually("the right lens back", || {
+        (sh.status_json()["focus"]["right"]["link"] == json!("ok")).then_some(())
+    })
+    .await;
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    assert!(report.ok(), "{report:?}");
+    assert!(
+        report.summary().contains("right lens parked"),
+        "{}",
+        report.summary()
+    );
+}
+
 #[tokio::test(start_paused = true)]
 async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
     let missing = dir.path().join("ttyACM-missing");
-    cfg.devices.lens.port = dioptra_rig::config::Port::Path(missing.clone());
+    cfg.devices.lens.first_mut().port = dioptra_rig::config::Port::Path(missing.clone());
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let lens = eventually("a failed lens connect", || {
@@ -921,6 +963,55 @@ async fn replays_to_the_same_commands(
     );
     assert_eq!(r.recorded, r.replayed);
     assert_eq!(r.verdict(), crate::replay::Verdict::Identical);
+}
+
+/// A binocular rig records each eye's lens on its own topics, and its recording replays to
+/// the same commands, each to its eye's lens.
+#[tokio::test(start_paused = true)]
+async fn a_binocular_recording_has_each_eyes_lens_topics_and_replays() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace(
+            "dir = \"recordings\"",
+            &format!("dir = {:?}", dir.path().join("rec").display().to_string()),
+        )
+        .replace("start = false", "start = true");
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    eventually("gaze-driven lens commands to both lenses", || {
+        (sh.status_json()["counts"]["lens_commands"].as_u64() >= Some(6)).then_some(())
+    })
+    .await;
+    d.cancel_token().cancel();
+    let report = d.wait().await;
+    let stats = report.recording.unwrap().unwrap();
+    let r = crate::replay::replay_file(&stats.path).unwrap();
+    for t in [
+        "/lens/left/command",
+        "/lens/right/command",
+        "/lens/left/state",
+        "/lens/right/wire",
+    ] {
+        assert!(
+            r.topics.get(t).is_some_and(|&n| n > 0),
+            "{t}: {:?}",
+            r.topics
+        );
+    }
+    assert!(!r.topics.contains_key("/lens/command"), "{:?}", r.topics);
+    use dioptra_core::Side;
+    let to = |eye| {
+        r.recorded
+            .iter()
+            .filter(|c| matches!(c, crate::replay::Cmd::Lens { eye: Some(e), .. } if *e == eye))
+            .count()
+    };
+    assert!(to(Side::Left) >= 3 && to(Side::Left) == to(Side::Right));
+    assert!(r.identical(), "first difference {:?}", r.first_difference);
+    assert_eq!(r.recorded, r.replayed);
 }
 
 #[tokio::test(start_paused = true)]

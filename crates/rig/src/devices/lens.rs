@@ -10,8 +10,8 @@ use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
 use super::{
-    connect_retrying, Backoff, DeviceHandle, DeviceInput, DeviceSettings, LensOrder, LinkHealth,
-    Verdict,
+    connect_retrying, Backoff, DeviceHandle, DeviceInput, DeviceSettings, LensId, LensOrder,
+    LinkHealth, Verdict,
 };
 
 /// How the lens was left at shutdown.
@@ -34,8 +34,10 @@ pub struct ParkReport {
 /// After every (re)connect the newest commanded power is sent again before the lens is
 /// reported up: a Lens Driver 4 resets its current on the session handshake, so without it
 /// the lens would sit at its zero-current power until the next command.
+#[allow(clippy::too_many_arguments)]
 pub(crate) async fn lens_task<D, F, Fut>(
     mut connect: F,
+    id: LensId,
     dev: DeviceHandle,
     settings: DeviceSettings,
     mut commands: watch::Receiver<Option<LensOrder>>,
@@ -63,20 +65,20 @@ where
         let mut health = LinkHealth::new(&policy);
         let resend = *commands.borrow_and_update();
         if let Some(order) = resend {
-            if let Err(e) = send(&mut lens, order, &out).await {
+            if let Err(e) = send(&mut lens, id, order, &out).await {
                 dev.lost(&e);
                 continue;
             }
         }
         dev.ok();
-        let _ = out.send(DeviceInput::LensLink(true)).await;
+        let _ = out.send(DeviceInput::LensLink(id, true)).await;
         let mut poll = tokio::time::interval(settings.lens_poll);
         poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         let lost = loop {
             tokio::select! {
                 biased;
                 _ = stop.cancelled() => {
-                    return shut_down(&mut lens, &mut commands, &out, park, settings.park_timeout).await;
+                    return shut_down(&mut lens, id, &mut commands, &out, park, settings.park_timeout).await;
                 }
                 r = commands.changed() => {
                     if r.is_err() {
@@ -84,7 +86,7 @@ where
                         stop.cancelled().await;
                         continue;
                     }
-                    if let Err(e) = apply_newest(&mut lens, &mut commands, &out, &dev, &mut health).await {
+                    if let Err(e) = apply_newest(&mut lens, id, &mut commands, &out, &dev, &mut health).await {
                         break e;
                     }
                 }
@@ -94,11 +96,11 @@ where
                     let read = tokio::select! {
                         biased;
                         _ = stop.cancelled() => {
-                            return shut_down(&mut lens, &mut commands, &out, park, settings.park_timeout).await;
+                            return shut_down(&mut lens, id, &mut commands, &out, park, settings.park_timeout).await;
                         }
                         r = commands.changed() => {
                             if r.is_ok() {
-                                if let Err(e) = apply_newest(&mut lens, &mut commands, &out, &dev, &mut health).await {
+                                if let Err(e) = apply_newest(&mut lens, id, &mut commands, &out, &dev, &mut health).await {
                                     break e;
                                 }
                             }
@@ -109,7 +111,7 @@ where
                     match read {
                         Ok(s) => {
                             health.ok();
-                            let _ = out.try_send(DeviceInput::LensState(s));
+                            let _ = out.try_send(DeviceInput::LensState(id, s));
                         }
                         Err(e) => match health.judge(&e) {
                             Verdict::Lost => break e,
@@ -120,19 +122,21 @@ where
             }
         };
         dev.lost(&lost);
-        let _ = out.send(DeviceInput::LensLink(false)).await;
+        let _ = out.send(DeviceInput::LensLink(id, false)).await;
     }
 }
 
 /// Sends `order` and reports it on the wire.
 async fn send<D: VarifocalLens>(
     lens: &mut D,
+    id: LensId,
     order: LensOrder,
     out: &mpsc::Sender<DeviceInput>,
 ) -> Result<dioptra_core::Timestamp, DeviceError> {
     let t = lens.set_power(order.power).await?;
     let host_path = order.caused_by_gaze.map(|at| at.elapsed());
     let _ = out.try_send(DeviceInput::LensWire {
+        lens: id,
         id: order.id,
         requested: order.power,
         wire_time: t,
@@ -144,6 +148,7 @@ async fn send<D: VarifocalLens>(
 /// Sends the newest commanded power; `Err` when the link is lost.
 async fn apply_newest<D: VarifocalLens>(
     lens: &mut D,
+    id: LensId,
     commands: &mut watch::Receiver<Option<LensOrder>>,
     out: &mpsc::Sender<DeviceInput>,
     dev: &DeviceHandle,
@@ -152,7 +157,7 @@ async fn apply_newest<D: VarifocalLens>(
     let Some(order) = *commands.borrow_and_update() else {
         return Ok(());
     };
-    match send(lens, order, out).await {
+    match send(lens, id, order, out).await {
         Ok(_) => {
             health.ok();
             Ok(())
@@ -171,6 +176,7 @@ async fn apply_newest<D: VarifocalLens>(
 /// is parked and watched until it reports the park power.
 async fn shut_down<D: VarifocalLens>(
     lens: &mut D,
+    id: LensId,
     commands: &mut watch::Receiver<Option<LensOrder>>,
     out: &mpsc::Sender<DeviceInput>,
     park: Diopters,
@@ -180,7 +186,7 @@ async fn shut_down<D: VarifocalLens>(
         let pending = *commands.borrow_and_update();
         if let Some(order) = pending {
             // Reported like any command: the loop still reads inputs while devices stop.
-            let _ = send(lens, order, out).await;
+            let _ = send(lens, id, order, out).await;
         }
     }
     park_lens(lens, park, timeout).await

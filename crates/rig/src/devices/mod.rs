@@ -33,6 +33,7 @@ pub use lens::ParkReport;
 
 use crate::config::{Port, RigConfig};
 use crate::devices::simulators::{SimDevices, SimSpec};
+pub use dioptra_sched::LensId;
 
 /// A device's connection state, as the API shows it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -175,7 +176,7 @@ impl DeviceSettings {
     pub fn from_config(cfg: &RigConfig) -> DeviceSettings {
         DeviceSettings {
             link: LinkPolicy::default(),
-            lens_poll: Duration::from_secs_f64(cfg.devices.lens.poll_ms / 1000.0),
+            lens_poll: Duration::from_secs_f64(cfg.devices.lens.first().poll_ms / 1000.0),
             park_timeout: Duration::from_secs(1),
         }
     }
@@ -299,16 +300,18 @@ pub struct LensOrder {
     pub caused_by_gaze: Option<Instant>,
 }
 
-/// What a device task tells the loop.
+/// What a device task tells the loop. A lens's inputs name it ([`LensId`]: the one lens,
+/// or the left eye's, is 0).
 #[derive(Debug, Clone, PartialEq)]
 pub enum DeviceInput {
     /// A gaze sample, and when the gaze task received it from the driver (wall clock).
     Gaze(GazeSample, Instant),
-    LensState(LensState),
+    LensState(LensId, LensState),
     /// Lens command `id` (for `requested`) went on the wire at `wire_time`. `host_path` is
     /// the wall time from the gaze task receiving the sample that caused it to the driver
     /// having written it.
     LensWire {
+        lens: LensId,
         id: u64,
         requested: Diopters,
         wire_time: Timestamp,
@@ -316,7 +319,7 @@ pub enum DeviceInput {
     },
     /// The lens link came up (true: connected, and the last commanded power re-sent) or went
     /// down (false).
-    LensLink(bool),
+    LensLink(LensId, bool),
     Sync(SequencerEvent),
     /// Light on the photodiode over the marker patch (from its own device, or from the sync
     /// board's input).
@@ -325,14 +328,14 @@ pub enum DeviceInput {
 
 /// Channels from the loop to the device tasks.
 pub struct DeviceLinks {
-    /// The newest lens command; a newer one replaces one not yet sent.
-    pub lens_commands: watch::Sender<Option<LensOrder>>,
+    /// Each lens's newest command (by [`LensId`]); a newer one replaces one not yet sent.
+    pub lens_commands: Vec<watch::Sender<Option<LensOrder>>>,
     pub multifocal: watch::Sender<bool>,
 }
 
-/// Spawned device tasks: the lens task's park report comes back through `lens`.
+/// Spawned device tasks: each lens task's park report comes back through `lenses`.
 pub struct DeviceTasks {
-    pub lens: tokio::task::JoinHandle<ParkReport>,
+    pub lenses: Vec<tokio::task::JoinHandle<ParkReport>>,
     pub others: Vec<tokio::task::JoinHandle<()>>,
 }
 
@@ -349,34 +352,54 @@ pub fn spawn_devices(
     stop: &CancellationToken,
 ) -> Result<(SimDevices, DeviceLinks, DeviceTasks), DeviceError> {
     let mut sims = SimDevices::default();
-    let (lens_tx, lens_rx) = watch::channel(None);
     let (mf_tx, mf_rx) = watch::channel(cfg.mode == crate::config::Mode::Multifocal);
     let ctx = open::Context {
         cfg: cfg.clone(),
         clock,
         inputs: Some(out.clone()),
+        lens: 0,
     };
 
-    let l = &cfg.devices.lens;
-    let row = open::row(&open::LENS, l.driver)?;
-    let dev = registry.add("lens", row.name, &l.port);
-    let connect = open::device_connector(
-        row,
-        &l.port,
-        ctx.clone(),
-        spec,
-        &mut sims.lens,
-        &mut sims.gaze_truth,
-    );
-    let lens = tokio::spawn(lens::lens_task(
-        connect,
-        dev,
-        settings,
-        lens_rx,
-        out.clone(),
-        Diopters(l.park_power),
-        stop.clone(),
-    ));
+    // A task per lens, each with its own link, backoff and read-backs.
+    let mut lens_commands = Vec::new();
+    let mut lenses = Vec::new();
+    for (i, l) in cfg.devices.lens.each().into_iter().enumerate() {
+        let id = LensId(i as u8);
+        let (tx, rx) = watch::channel(None);
+        let row = open::row(&open::LENS, l.driver)?;
+        let dev = registry.add(&cfg.devices.lens.name(i), row.name, &l.port);
+        let mut lens_spec = spec.clone();
+        lens_spec.lens = spec.lens_of(i);
+        let mut slot = None;
+        let connect = open::device_connector(
+            row,
+            &l.port,
+            open::Context {
+                lens: i,
+                ..ctx.clone()
+            },
+            &lens_spec,
+            &mut slot,
+            &mut sims.gaze_truth,
+        );
+        sims.lenses.push(slot);
+        // Each lens is read back at its own interval.
+        let lens_settings = DeviceSettings {
+            lens_poll: Duration::from_secs_f64(l.poll_ms / 1000.0),
+            ..settings
+        };
+        lenses.push(tokio::spawn(lens::lens_task(
+            connect,
+            id,
+            dev,
+            lens_settings,
+            rx,
+            out.clone(),
+            Diopters(l.park_power),
+            stop.clone(),
+        )));
+        lens_commands.push(tx);
+    }
 
     let mut others = Vec::new();
     let g = &cfg.devices.gaze;
@@ -456,10 +479,10 @@ pub fn spawn_devices(
     Ok((
         sims,
         DeviceLinks {
-            lens_commands: lens_tx,
+            lens_commands,
             multifocal: mf_tx,
         },
-        DeviceTasks { lens, others },
+        DeviceTasks { lenses, others },
     ))
 }
 

@@ -97,6 +97,9 @@ pub struct Context {
     /// The loop's device inputs, for a driver that reports for another device too (the sync
     /// board's photodiode input); `None` outside a rig.
     pub inputs: Option<tokio::sync::mpsc::Sender<DeviceInput>>,
+    /// Which of the rig's lenses a lens driver connects to (its index in
+    /// `devices.lens.each()`).
+    pub lens: usize,
 }
 
 type Connect<D> = fn(Link, Context) -> BoxFuture<'static, Result<D, DeviceError>>;
@@ -363,7 +366,9 @@ fn lens_limits(cfg: &RigConfig) -> Result<LensLimits, DeviceError> {
 fn connect_optotune(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
     Box::pin(async move {
         let mut cfg = OptotuneConfig::new(lens_limits(&ctx.cfg)?);
-        if let Some([lo, hi]) = ctx.cfg.devices.lens.temperature_limits_c {
+        let lens = ctx.cfg.devices.lens.each();
+        let limits = lens.get(ctx.lens).and_then(|l| l.temperature_limits_c);
+        if let Some([lo, hi]) = limits {
             cfg = cfg.with_temperature_limits_c(lo, hi);
         }
         let d = Optotune::connect(link.byte("Lens Driver 4")?, cfg, ctx.clock).await?;

@@ -8,7 +8,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use dioptra_core::{lock, Clock, LinkError, Timestamp};
+use dioptra_core::{lock, Clock, LinkError, Side, Timestamp};
 use dioptra_sim::gaze::generator::{SampleSource, TruthSample};
 use dioptra_sim::gaze::hid_tracker::HidTrackerSetup;
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene};
@@ -18,19 +18,23 @@ use dioptra_sim::photodiode::SerialPhotodiodeSimConfig;
 use dioptra_sim::serve::ByteDevice;
 use dioptra_transport::{memory, AnyByteLink, AnyHidLink};
 
-use crate::config::{ConfigError, RigConfig, SyncDevice};
+use crate::config::{ConfigError, Lenses, RigConfig, SyncDevice};
 
 /// How the simulated devices of a rig are set up. [`SimSpec::from_config`] is what `dioptra
 /// serve` runs; the simulated-rig builder starts from the same and may change it (a scripted
 /// gaze scene, injected faults).
 #[derive(Debug, Clone)]
 pub struct SimSpec {
-    /// The varifocal lens (Lens Driver 4 or dioptra lens controller simulator).
+    /// The varifocal lens (Lens Driver 4 or dioptra lens controller simulator): the one
+    /// lens, or the left eye's.
     pub lens: LensModelConfig,
     /// Where the simulated lens sits: the display's image reaches the simulated eye through
     /// `[optics.layout]` and the viewer's prescription (identity without a layout). A
     /// calibration table is the rig's belief, not this: a wrong one shows as a focus error.
+    /// The one lens's, or the left eye's.
     pub optics: dioptra_core::OpticsMap,
+    /// The right eye's lens and where it sits, on a rig with a lens per eye.
+    pub lens_right: Option<(LensModelConfig, dioptra_core::OpticsMap)>,
     /// The sync board simulator, with the lens it steps through the planes.
     pub board: dioptra_sim::sync_board::SyncBoardSimConfig,
     pub dlpc350: dioptra_sim::dlpc350::Dlpc350SimConfig,
@@ -53,9 +57,25 @@ pub struct SimSpec {
 }
 
 impl SimSpec {
+    /// The simulated lens of lens `index` (0: the one lens or the left; 1: the right).
+    pub fn lens_of(&self, index: usize) -> LensModelConfig {
+        match (index, &self.lens_right) {
+            (1, Some((l, _))) => *l,
+            _ => self.lens,
+        }
+    }
+
+    /// Where simulated lens `index` sits (see [`SimSpec::optics`]).
+    pub fn optics_of(&self, index: usize) -> &dioptra_core::OpticsMap {
+        match (index, &self.lens_right) {
+            (1, Some((_, o))) => o,
+            _ => &self.optics,
+        }
+    }
+
     /// The simulators a rig config describes (its `sim_*` keys).
     pub fn from_config(cfg: &RigConfig) -> Result<SimSpec, ConfigError> {
-        let l = &cfg.devices.lens;
+        let l = cfg.devices.lens.first();
         let g = &cfg.devices.gaze;
         let ms = |v: f64| Duration::from_secs_f64(v / 1000.0);
         let gaze_scene = Scene::named(&g.sim_scenario).ok_or_else(|| ConfigError::Invalid {
@@ -68,10 +88,23 @@ impl SimSpec {
             .as_ref()
             .map_or(SyncDevice::DEFAULT_SIM_SETTLE_MS, |s| s.sim_settle_ms);
         Ok(SimSpec {
-            optics: cfg.simulated_optics(None)?,
+            optics: cfg.simulated_optics(match cfg.devices.lens {
+                Lenses::One(_) => None,
+                Lenses::PerEye { .. } => Some(Side::Left),
+            })?,
             lens: LensModelConfig {
                 settle_time: ms(l.sim_settle_ms),
                 ..Default::default()
+            },
+            lens_right: match &cfg.devices.lens {
+                Lenses::PerEye { right, .. } => Some((
+                    LensModelConfig {
+                        settle_time: ms(right.sim_settle_ms),
+                        ..Default::default()
+                    },
+                    cfg.simulated_optics(Some(Side::Right))?,
+                )),
+                Lenses::One(_) => None,
             },
             board: dioptra_sim::sync_board::SyncBoardSimConfig {
                 lens: LensModelConfig {
@@ -368,7 +401,8 @@ pub type GazeTruth = Arc<Mutex<Vec<TruthSample>>>;
 /// Handles on the simulated devices of a rig (empty for hardware).
 #[derive(Clone, Default)]
 pub struct SimDevices {
-    pub lens: Option<SimSlot>,
+    /// Each lens's simulator (by lens id), where it is simulated.
+    pub lenses: Vec<Option<SimSlot>>,
     pub gaze: Option<SimSlot>,
     pub sync: Option<SimSlot>,
     pub photodiode: Option<SimSlot>,

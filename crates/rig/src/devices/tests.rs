@@ -93,7 +93,9 @@ impl Started {
         for t in self.tasks.others {
             t.await.unwrap();
         }
-        self.tasks.lens.await.unwrap();
+        for t in self.tasks.lenses {
+            t.await.unwrap();
+        }
     }
 }
 
@@ -213,6 +215,7 @@ async fn commands_during_state_reads_all_reach_the_lens() {
     };
     let task = tokio::spawn(lens::lens_task(
         connect,
+        LensId::FIRST,
         dev,
         settings,
         rx,
@@ -221,7 +224,7 @@ async fn commands_during_state_reads_all_reach_the_lens() {
         stop.clone(),
     ));
     loop {
-        if let Some(DeviceInput::LensLink(true)) = inputs.recv().await {
+        if let Some(DeviceInput::LensLink(_, true)) = inputs.recv().await {
             break;
         }
     }
@@ -256,7 +259,7 @@ async fn commands_during_state_reads_all_reach_the_lens() {
                 delays.push(wire_time.saturating_since(sent[id as usize - 1]));
                 wired.push(id);
             }
-            DeviceInput::LensState(s) => {
+            DeviceInput::LensState(_, s) => {
                 states += 1;
                 last_state = Some(s);
             }
