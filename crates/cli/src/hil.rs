@@ -496,13 +496,14 @@ async fn measure(
         match dioptra_rig::photons::analyse(&log, until, MAX_PHOTON_LATENCY) {
             Ok(r) => {
                 println!(
-                    "photons: {} edges ({} lost), {} of {} patch changes matched; {} refreshes judged, {} showed another frame",
+                    "photons: {} edges ({} lost), {} of {} patch changes matched; {} refreshes judged, {} duplicated; {} frames missed",
                     r.edges,
                     r.edges_lost,
                     r.matched,
                     r.transitions,
                     r.refreshes_checked,
-                    r.refreshes_wrong.len()
+                    r.refreshes_wrong.len(),
+                    r.frames_never_seen.len()
                 );
                 Optical::Measured(r)
             }
@@ -810,11 +811,12 @@ fn optical_json(optical: &Optical) -> serde_json::Value {
         Optical::Measured(r) => json!({
             "measured": true,
             "refreshes_checked": r.refreshes_checked,
-            "refreshes_wrong": r.refreshes_wrong.len(),
+            "refreshes_duplicated": r.refreshes_wrong.len(),
             "refreshes_unknown": r.refreshes_unknown,
-            "wrong_vsyncs_ns": r.refreshes_wrong.iter().take(100).map(|w| w.0 .0).collect::<Vec<_>>(),
+            "duplicated_vsyncs_ns": r.refreshes_wrong.iter().take(100).map(|w| w.0 .0).collect::<Vec<_>>(),
             "frames_checked": r.frames_checked,
-            "frames_never_seen": r.frames_never_seen.len(),
+            "frames_missed": r.frames_never_seen.len(),
+            "missed_frames": r.frames_never_seen.iter().take(100).collect::<Vec<_>>(),
             "edges": r.edges,
             "edges_lost": r.edges_lost,
             "patch_changes": r.transitions,
