@@ -486,23 +486,25 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             let (layers, rep) = match &a.targets {
                 Some(dir) => {
                     let stack = read_targets(dir, &foci, &input)?;
-                    let plan = dioptra_render::spectral::plan_for(
-                        &eye,
-                        &planes,
-                        input.width(),
-                        input.height(),
-                        params,
-                    )?;
-                    plan.solve(&plan.targets_stack(&input, &stack)?)?
-                }
-                None if b.name() == "gpu" => {
-                    eprintln!("dioptra: spectral has no GPU kernel yet: running it on the CPU");
-                    dioptra_render::Cpu.spectral_blend(&input, &planes, &eye, params)?
+                    if b.name() == "gpu" {
+                        dioptra_render::Gpu::new(a.eye.adapter.as_deref())?
+                            .spectral_blend_stack(&input, &stack, &planes, &eye, params)?
+                    } else {
+                        let plan = dioptra_render::spectral::plan_for(
+                            &eye,
+                            &planes,
+                            input.width(),
+                            input.height(),
+                            params,
+                        )?;
+                        plan.solve(&plan.targets_stack(&input, &stack)?)?
+                    }
                 }
                 None => b.spectral_blend(&input, &planes, &eye, params)?,
             };
             println!(
-                "spectral decomposition: {} focal samples, {} projected steps{}",
+                "spectral decomposition on the {}: {} focal samples, {} projected steps{}",
+                b.name(),
                 params.focal_samples,
                 rep.iterations,
                 if rep.iterations == 0 {

@@ -3,13 +3,15 @@
 //! 1/4 of optimized blending's 10 iterations on a gathered stack (`optimized_gather_10`, what
 //! the daemon's `method = "optimized"` runs, measured here beside it), and the solve itself
 //! (the unconstrained fit of a rendered stack, the clamp and the projected steps) at most
-//! 30 ms; at 512 x 512 both are reported.
+//! 30 ms; at 512 x 512 both are reported. Where a GPU adapter exists, the GPU backend beside
+//! them at 256 x 256 (`gpu_whole`, `gpu_solve`: wall time per frame, uploads and readbacks
+//! included; on a machine with only lavapipe that is a software rasteriser on the same CPU).
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use dioptra_render::multifocal::{default_focal_samples, DEFAULT_PLANES};
 use dioptra_render::spectral::{plan_for, SpectralTargets};
-use dioptra_render::{backend, DefocusMethod, OptimizeParams, SpectralParams};
+use dioptra_render::{backend, Backend, DefocusMethod, Gpu, OptimizeParams, SpectralParams};
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
 use std::hint::black_box;
 use std::time::Duration;
@@ -27,6 +29,13 @@ fn benches(c: &mut Criterion) {
     let cpu = backend("cpu").expect("cpu backend");
     let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
     let params = SpectralParams::default();
+    let gpu = match Gpu::new(None) {
+        Ok(g) => Some(g),
+        Err(e) => {
+            eprintln!("no GPU rows: {e}");
+            None
+        }
+    };
     for size in [256usize, 512] {
         let input = input(size);
         let mut g = c.benchmark_group(format!("spectral_{size}"));
@@ -56,6 +65,20 @@ fn benches(c: &mut Criterion) {
                 plan.solve(&t).expect("solve")
             })
         });
+        if let Some(gpu) = gpu.as_ref().filter(|_| size == 256) {
+            g.bench_function("gpu_whole", |b| {
+                b.iter(|| {
+                    gpu.spectral_blend(black_box(&input), &planes, &eye, params)
+                        .expect("gpu spectral")
+                })
+            });
+            g.bench_function("gpu_solve", |b| {
+                b.iter(|| {
+                    gpu.spectral_blend_stack(black_box(&input), &stack, &planes, &eye, params)
+                        .expect("gpu spectral solve")
+                })
+            });
+        }
         let foci = default_focal_samples();
         g.bench_function("optimized_gather_10", |b| {
             b.iter(|| {

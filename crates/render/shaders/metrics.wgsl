@@ -17,12 +17,12 @@ fn encode(v: f32) -> f32 {
     return 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
 
-var<workgroup> part: array<f32, 256>;
+var<workgroup> part: array<f32, WG1>;
 
 fn reduce(l: u32, v: f32) -> f32 {
     part[l] = v;
     workgroupBarrier();
-    for (var s = 128u; s > 0u; s >>= 1u) {
+    for (var s = WG1 / 2u; s > 0u; s >>= 1u) {
         if l < s { part[l] += part[l + s]; }
         workgroupBarrier();
     }
@@ -35,7 +35,7 @@ fn reduce(l: u32, v: f32) -> f32 {
 @group(0) @binding(3) var<storage, read> pmask: array<f32>;
 @group(0) @binding(4) var<storage, read_write> p_out: array<f32>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG1)
 fn psnr_sum(@builtin(global_invocation_id) g: vec3<u32>, @builtin(local_invocation_index) l: u32,
             @builtin(workgroup_id) wg: vec3<u32>) {
     let n = p.w * p.h;
@@ -78,7 +78,7 @@ fn ssim_prep(@builtin(global_invocation_id) g: vec3<u32>) {
 @group(0) @binding(2) var<storage, read> m_mask: array<f32>;
 @group(0) @binding(3) var<storage, read_write> m_out: array<f32>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG1)
 fn ssim_sum(@builtin(global_invocation_id) g: vec3<u32>, @builtin(local_invocation_index) l: u32,
             @builtin(workgroup_id) wg: vec3<u32>) {
     let n = p.w * p.h;

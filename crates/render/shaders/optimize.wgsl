@@ -89,20 +89,20 @@ fn step(@builtin(global_invocation_id) g: vec3<u32>) {
     }
 }
 
-var<workgroup> part: array<f32, 256>;
+var<workgroup> part: array<f32, WG1>;
 
 @group(0) @binding(1) var<storage, read> q_r: array<f32>;
 @group(0) @binding(2) var<storage, read_write> q_out: array<f32>;
 
-@compute @workgroup_size(256)
+@compute @workgroup_size(WG1)
 fn sq_sum(@builtin(global_invocation_id) g: vec3<u32>, @builtin(local_invocation_index) l: u32,
           @builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>) {
-    let i = (wg.y * nw.x + wg.x) * 256u + l;
+    let i = (wg.y * nw.x + wg.x) * WG1 + l;
     var s = 0.0;
     if i < p.len { s = q_r[i] * q_r[i]; }
     part[l] = s;
     workgroupBarrier();
-    for (var k = 128u; k > 0u; k >>= 1u) {
+    for (var k = WG1 / 2u; k > 0u; k >>= 1u) {
         if l < k { part[l] += part[l + k]; }
         workgroupBarrier();
     }

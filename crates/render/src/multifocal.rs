@@ -75,10 +75,14 @@ impl Layers {
     }
 }
 
+/// Display planes a decomposition takes at most (the GPU kernels hold one value per plane in
+/// registers; the shaders get it from here).
+pub(crate) const MAX_PLANES: usize = 16;
+
 pub(crate) fn check_planes(planes: &[Diopters]) -> Result<(), RenderError> {
-    if planes.is_empty() || planes.len() > 16 {
+    if planes.is_empty() || planes.len() > MAX_PLANES {
         return Err(invalid(format!(
-            "{} display planes: expected 1 to 16",
+            "{} display planes: expected 1 to {MAX_PLANES}",
             planes.len()
         )));
     }

@@ -29,7 +29,7 @@ use crate::common::eye_for;
 use crate::error::{invalid, mismatch, RenderError};
 use crate::fft2::{fft_size, Fft2, HalfSpectrum};
 use crate::kernel::disk_kernel;
-use crate::multifocal::{check_planes, linear_blend, linspace, Layers};
+use crate::multifocal::{check_planes, linear_blend, linspace, Layers, MAX_PLANES};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
@@ -184,9 +184,9 @@ pub struct SpectralPlan {
     /// Step of the projected gradient: 1 / the largest eigenvalue of M + lambda I.
     pub(crate) step: f32,
     /// [a][b][f]: (M + lambda I)^-1.
-    ainv: Vec<f32>,
+    pub(crate) ainv: Vec<f32>,
     /// [a][j][f]: (1/nf) (M + lambda I)^-1 K_j, the fit of a rendered stack (its targets).
-    fit: Vec<f32>,
+    pub(crate) fit: Vec<f32>,
     /// [j][a][f]: kernel spectra of the planes at each focus (normalised slices only).
     kstack: Vec<f32>,
     /// [j][d][f]: kernel spectra of the depth nodes at each focus (normalised slices only).
@@ -413,6 +413,12 @@ impl SpectralPlan {
 
     pub fn params(&self) -> &SpectralParams {
         &self.params
+    }
+
+    /// The padded grid the FFTs run on (width, height): the image and a margin for the
+    /// widest kernel, each side a product of 2, 3 and 5.
+    pub fn grid(&self) -> (usize, usize) {
+        (self.fft.pw, self.fft.ph)
     }
 
     /// The depth nodes the colour is sliced at, diopters.
@@ -785,7 +791,7 @@ impl SpectralPlan {
             .into_par_iter()
             .map(|(c, f0, mut ls)| {
                 let mut s = 0.0f64;
-                let mut d = [Complex32::default(); 16];
+                let mut d = [Complex32::default(); MAX_PLANES];
                 let m = ls[0].len();
                 for i in 0..m {
                     let f = f0 + i;

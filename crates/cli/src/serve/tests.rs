@@ -1667,16 +1667,11 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
             .images;
         assert_eq!(a.len(), b.len());
         // The GPU's own methods leave their images on the GPU (the nets' come back through
-        // dioptra-net; spectral runs on the CPU); the headless sink reads them back for its
-        // PNGs only.
+        // dioptra-net); the headless sink reads them back for its PNGs only.
         let kept = b
             .iter()
             .all(|i| matches!(i, dioptra_rig::render::FrameImage::Gpu(_)));
-        assert_eq!(
-            kept,
-            !matches!(method, "network" | "refine" | "spectral"),
-            "{method}"
-        );
+        assert_eq!(kept, !matches!(method, "network" | "refine"), "{method}");
         let png = |images: Vec<dioptra_rig::render::FrameImage>, to: &str| {
             let out = dir.path().join(format!("{method}-{focus}-{to}"));
             let mut sink = dioptra_rig::display::HeadlessSink::new(1, Some(out.clone())).unwrap();
@@ -1721,6 +1716,8 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     assert_eq!(status["refine"]["multifocal"], json!("gpu"), "{status}");
     // The fraction is the last varifocal refine's (0.2 D).
     assert!(status["refine_tiles_run"].as_f64() > Some(0.0), "{status}");
+    assert_eq!(status["spectral_on"], json!("gpu"), "{status}");
+    assert_eq!(cpu.backend_status()["spectral_on"], json!("cpu"));
     if status["timestamps"] == json!(true) {
         for m in [
             "gather",
@@ -1729,6 +1726,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
             "network",
             "optimized",
             "refine",
+            "spectral",
         ] {
             assert!(
                 status["gpu_time_us"][m]["count"].as_u64() >= Some(1),

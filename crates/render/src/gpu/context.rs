@@ -44,6 +44,15 @@ pub(crate) enum Kernel {
     FovMask,
     FovCells,
     FovInterp,
+    SpPad,
+    SpSlices,
+    SpPack,
+    SpFftPass,
+    SpRowsToHalf,
+    SpHalfToRows,
+    SpRowsToReal,
+    SpApply,
+    SpGradStep,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -55,9 +64,10 @@ const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
 const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
 const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
+const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
 
 impl Kernel {
-    const ALL: [Kernel; 26] = [
+    pub(crate) const ALL: [Kernel; 35] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -84,10 +94,19 @@ impl Kernel {
         Kernel::FovMask,
         Kernel::FovCells,
         Kernel::FovInterp,
+        Kernel::SpPad,
+        Kernel::SpSlices,
+        Kernel::SpPack,
+        Kernel::SpFftPass,
+        Kernel::SpRowsToHalf,
+        Kernel::SpHalfToRows,
+        Kernel::SpRowsToReal,
+        Kernel::SpApply,
+        Kernel::SpGradStep,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
-    fn spec(self) -> (&'static str, &'static str, u32, u32) {
+    pub(crate) fn spec(self) -> (&'static str, &'static str, u32, u32) {
         use Kernel::*;
         match self {
             GatherPrep => (GATHER_WGSL, "prep", 2, 2),
@@ -116,6 +135,15 @@ impl Kernel {
             FovMask => (FOVEATE_WGSL, "mask", 2, 1),
             FovCells => (FOVEATE_WGSL, "cells", 1, 2),
             FovInterp => (FOVEATE_WGSL, "interp", 4, 1),
+            SpPad => (SPECTRAL_WGSL, "pad", 1, 1),
+            SpSlices => (SPECTRAL_WGSL, "slices", 3, 1),
+            SpPack => (SPECTRAL_WGSL, "pack", 1, 1),
+            SpFftPass => (SPECTRAL_WGSL, "fft_pass", 2, 1),
+            SpRowsToHalf => (SPECTRAL_WGSL, "rows_to_half", 1, 1),
+            SpHalfToRows => (SPECTRAL_WGSL, "half_to_rows", 1, 1),
+            SpRowsToReal => (SPECTRAL_WGSL, "rows_to_real", 1, 2),
+            SpApply => (SPECTRAL_WGSL, "apply", 2, 1),
+            SpGradStep => (SPECTRAL_WGSL, "grad_step", 2, 2),
         }
     }
 }
@@ -536,18 +564,20 @@ impl GpuContext {
 /// The constants the CPU twins and the shaders share, as WGSL, from their one definition in
 /// the CPU code: the shader files use them and never define them.
 pub(crate) fn shared_wgsl() -> String {
+    use crate::fft2::MAX_RADIX;
     use crate::foveate::FOV_CELL;
     use crate::lightfield::{LEVEL_SIGMA, PREFILTER};
+    use crate::multifocal::MAX_PLANES;
     let sigma: Vec<String> = LEVEL_SIGMA.iter().map(|s| format!("{s:?}")).collect();
     format!(
-        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\n",
+        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\nconst MAX_RADIX: u32 = {MAX_RADIX}u;\n",
         LEVEL_SIGMA.len(),
         sigma.join(", ")
     )
 }
 
 /// A shader file of this crate with the shared constants before it.
-fn with_shared(src: &str) -> String {
+pub(crate) fn with_shared(src: &str) -> String {
     format!("{}\n{src}", shared_wgsl())
 }
 
@@ -985,9 +1015,19 @@ mod tests {
         );
         assert!(prelude.contains("array<f32, 7>(0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0)"));
         assert!(prelude.contains("const FOV_CELL: u32 = 8u;"));
+        assert!(prelude.contains("const WG1: u32 = 256u;"));
+        assert!(prelude.contains("const MAX_PLANES: u32 = 16u;"));
+        assert!(prelude.contains("const MAX_RADIX: u32 = 5u;"));
         for k in Kernel::ALL {
             let (src, entry, _, _) = k.spec();
-            for name in ["PREFILTER", "LEVEL_SIGMA", "FOV_CELL"] {
+            for name in [
+                "PREFILTER",
+                "LEVEL_SIGMA",
+                "FOV_CELL",
+                "WG1",
+                "MAX_PLANES",
+                "MAX_RADIX",
+            ] {
                 assert!(
                     !src.contains(&format!("const {name}")),
                     "{entry}'s shader defines {name} itself"
@@ -996,5 +1036,12 @@ mod tests {
         }
         assert!(LIGHTFIELD_WGSL.contains("PREFILTER * coc"));
         assert!(FOVEATE_WGSL.contains("@workgroup_size(FOV_CELL, FOV_CELL)"));
+        // The 1-D workgroups and their shared arrays are WG1 wide, as the host dispatches them.
+        for src in [SPECTRAL_WGSL, OPTIMIZE_WGSL, METRICS_WGSL] {
+            assert!(!src.contains("256"), "a literal workgroup width");
+            assert!(src.contains("@workgroup_size(WG1)"));
+        }
+        assert!(SPECTRAL_WGSL.contains("array<vec2<f32>, MAX_PLANES>"));
+        assert!(SPECTRAL_WGSL.contains("array<vec2<f32>, MAX_RADIX>"));
     }
 }

@@ -126,6 +126,11 @@ impl GpuImage {
         &self.buf.buffer
     }
 
+    /// Its buffer's handle (held by a frame that reads the image).
+    pub(super) fn buf(&self) -> &BufRef {
+        &self.buf
+    }
+
     /// Copies the image to the host (one submission), counted by its maker.
     pub fn read(&self) -> Result<RgbImage, GpuError> {
         let l = self.layout;

@@ -25,7 +25,7 @@ use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 
 type Out<T> = Result<(T, FrameStats), RenderError>;
 
-fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
+pub(super) fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
     u32::try_from(v).map_err(|_| invalid(format!("{what} {v} is too large for the GPU backend")))
 }
 
@@ -34,7 +34,7 @@ fn groups2(w: u32, h: u32, z: u32) -> [u32; 3] {
 }
 
 /// Planar colour: R plane, then G, then B.
-fn planar(img: &RgbImage) -> Vec<f32> {
+pub(super) fn planar(img: &RgbImage) -> Vec<f32> {
     let mut v = Vec::with_capacity(3 * img.width() * img.height());
     for c in &img.channels {
         v.extend_from_slice(c.data());
@@ -61,7 +61,7 @@ pub(super) enum Output {
 
 /// `count` output images in one buffer, the first at `first`, each `pitch` values after the
 /// one before: read back when they go to the host (recorded in the frame that writes them).
-struct Outputs {
+pub(super) struct Outputs {
     dst: BufRef,
     first: ImageLayout,
     pitch: usize,
@@ -70,7 +70,7 @@ struct Outputs {
 }
 
 impl Outputs {
-    fn record(
+    pub(super) fn record(
         f: &mut Frame,
         keep: Keep,
         dst: &BufRef,
@@ -90,7 +90,11 @@ impl Outputs {
     }
 
     /// The images, once the frame has finished.
-    fn take(self, ctx: &Arc<GpuContext>, rb: &Readbacks) -> Result<Vec<Output>, RenderError> {
+    pub(super) fn take(
+        self,
+        ctx: &Arc<GpuContext>,
+        rb: &Readbacks,
+    ) -> Result<Vec<Output>, RenderError> {
         let data = self.read.map(|r| rb.f32s(r));
         (0..self.count)
             .map(|k| {
@@ -243,7 +247,6 @@ pub(super) fn linear_blend(
     check_planes(planes)?;
     check_rgbd(input)?;
     let (w, h) = (input.width(), input.height());
-    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
     let (n, np) = ((w * h) as u64, planes.len());
     let mut f = Frame::new(ctx)?;
     let color = f.upload("colour image", &planar(&input.color))?;
@@ -252,22 +255,31 @@ pub(super) fn linear_blend(
     let pbuf = f.upload("planes", &pl)?;
     let bytes = 12 * n * np as u64;
     let dst = f.scratch("layer stack", bytes)?;
-    let p = SizeP {
-        w: wu,
-        h: hu,
-        k: np as u32,
-        _pad: 0,
-    };
-    f.dispatch(
-        Kernel::LinearBlend,
-        &p,
-        &[&color, &depth, &pbuf, &dst],
-        groups2(wu, hu, 1),
-    )?;
+    linear_blend_into(&mut f, [&color, &depth, &pbuf, &dst], w, h, np)?;
     let layout = ImageLayout::packed(w, h, 0);
     let o = Outputs::record(&mut f, keep, &dst, layout, 3 * w * h, np);
     let (rb, s) = f.finish()?;
     Ok((o.take(ctx, &rb)?, s))
+}
+
+/// Records linear blending of a `w` x `h` input (planar colour, depth, `np` planes) into
+/// `bufs[3]`: plane-major, then channel, planar.
+pub(super) fn linear_blend_into(
+    f: &mut Frame,
+    bufs: [&BufRef; 4],
+    w: usize,
+    h: usize,
+    np: usize,
+) -> Result<(), RenderError> {
+    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+    let p = SizeP {
+        w: wu,
+        h: hu,
+        k: dim(np, "plane count")?,
+        _pad: 0,
+    };
+    f.dispatch(Kernel::LinearBlend, &p, &bufs, groups2(wu, hu, 1))?;
+    Ok(())
 }
 
 /// Convolves `layers` (same size) with per-focus, per-layer disk kernels and sums over the
@@ -1157,4 +1169,73 @@ pub(super) fn foveate(ctx: &GpuContext, img: &RgbImage, p: &LogPolar) -> Out<Fov
 pub(super) fn interpolate(ctx: &GpuContext, img: &RgbImage, mask: &Plane) -> Out<RgbImage> {
     let ((out, _), s) = foveate_frame(ctx, img, MaskFrom::Given(mask))?;
     Ok((out, s))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::spectral::SpecP;
+    use super::super::{rust_uniform, wgsl_uniform};
+    use super::*;
+
+    /// Every shader's uniform as naga lays it out is the Rust struct the host writes: the
+    /// same members (by name, where the struct is the shader's own) at the same offsets.
+    #[test]
+    fn uniform_layouts_match_the_shaders() {
+        let sizes = || rust_uniform!(SizeP; w, h, k, _pad);
+        let named = [
+            (
+                Kernel::Gather,
+                rust_uniform!(GatherP; w, h, n_off, reach, focus, pupil_m, pitch, _pad),
+            ),
+            (
+                Kernel::LfPrefilter,
+                rust_uniform!(LfP; w, h, nv, v0, focus, pupil_m, pitch, spacing, lens_f, top,
+                    nlev, dstride),
+            ),
+            (
+                Kernel::OptStep,
+                rust_uniform!(OptP; pw, ph, np, nf, step, mom, len, _pad),
+            ),
+            (
+                Kernel::FovMask,
+                rust_uniform!(FovP; w, h, rings, angles, cx, cy, gw, gh),
+            ),
+            (
+                Kernel::SpFftPass,
+                rust_uniform!(SpecP; n, lines, ns, radix, tw_off, inverse, pw, ph, hw, count, w,
+                    h, margin, rows, cols, off, row_pitch, plane_pitch, dst, img_pitch, scale,
+                    step, mom, flag),
+            ),
+        ];
+        // Kernels whose shader reads SizeP under names of its own (w, h, a count, padding).
+        let sized = [
+            Kernel::LinearBlend,
+            Kernel::Convolve,
+            Kernel::BlurH,
+            Kernel::PsnrSum,
+            Kernel::ViewResolve,
+        ];
+        let mut checked = Vec::new();
+        for (k, (rust, size)) in &named {
+            let (wgsl, wsize) = wgsl_uniform(k.spec().0);
+            assert_eq!(&wgsl, rust, "{k:?}'s Params against the host's");
+            assert_eq!(wsize, *size, "{k:?}'s Params size");
+            checked.push(k.spec().0.as_ptr());
+        }
+        for k in sized {
+            let (wgsl, wsize) = wgsl_uniform(k.spec().0);
+            let (rust, size) = sizes();
+            let layout =
+                |v: &[(String, u32, u32)]| v.iter().map(|m| (m.1, m.2)).collect::<Vec<_>>();
+            assert_eq!(layout(&wgsl), layout(&rust), "{k:?}'s Params against SizeP");
+            assert_eq!(wsize, size, "{k:?}'s Params size");
+            checked.push(k.spec().0.as_ptr());
+        }
+        for k in Kernel::ALL {
+            assert!(
+                checked.contains(&k.spec().0.as_ptr()),
+                "{k:?}'s shader has no uniform check"
+            );
+        }
+    }
 }

@@ -5,6 +5,7 @@
 mod context;
 mod image;
 mod kernels;
+mod spectral;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
@@ -25,6 +26,54 @@ use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use thiserror::Error;
+
+/// The uniform `Params` of a shader file of this crate, as naga lays it out: (member, offset,
+/// size) and the struct's size.
+#[cfg(test)]
+pub(crate) fn wgsl_uniform(src: &str) -> (Vec<(String, u32, u32)>, u32) {
+    let module = naga::front::wgsl::parse_str(&context::with_shared(src))
+        .unwrap_or_else(|e| panic!("WGSL does not parse: {e}"));
+    let mut layouter = naga::proc::Layouter::default();
+    layouter.update(module.to_ctx()).expect("layout");
+    let (_, ty) = module
+        .types
+        .iter()
+        .find(|(_, t)| t.name.as_deref() == Some("Params"))
+        .expect("a uniform struct named Params");
+    match &ty.inner {
+        naga::TypeInner::Struct { members, span } => (
+            members
+                .iter()
+                .map(|m| {
+                    (
+                        m.name.clone().unwrap_or_default(),
+                        m.offset,
+                        layouter[m.ty].size,
+                    )
+                })
+                .collect(),
+            *span,
+        ),
+        other => panic!("Params is {other:?}"),
+    }
+}
+
+/// A uniform struct of the host code in [`wgsl_uniform`]'s form: each listed field's name,
+/// offset and size, and the struct's size.
+#[cfg(test)]
+macro_rules! rust_uniform {
+    ($t:ty; $($f:ident),* $(,)?) => {{
+        let z: $t = bytemuck::Zeroable::zeroed();
+        let fields: Vec<(String, u32, u32)> = vec![$((
+            stringify!($f).to_string(),
+            std::mem::offset_of!($t, $f) as u32,
+            std::mem::size_of_val(&z.$f) as u32,
+        )),*];
+        (fields, std::mem::size_of::<$t>() as u32)
+    }};
+}
+#[cfg(test)]
+pub(crate) use rust_uniform;
 
 /// What can go wrong on the GPU, with what to do about it.
 #[derive(Debug, Error)]
@@ -136,6 +185,66 @@ impl Gpu {
         kernels::on_gpu(out, &self.images_read_back)
     }
 
+    fn spectral_to(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: SpectralParams,
+        targets: spectral::Targets,
+        keep: Keep,
+    ) -> Result<(Vec<kernels::Output>, SpectralReport), RenderError> {
+        let ((out, report), s) =
+            spectral::spectral_blend(&self.ctx, input, planes, eye, params, targets, keep)?;
+        self.record(s);
+        Ok((out, report))
+    }
+
+    /// [`Backend::spectral_blend`], one image per plane, left in GPU memory.
+    pub fn spectral_blend_on_gpu(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: SpectralParams,
+    ) -> Result<(Vec<GpuImage>, SpectralReport), RenderError> {
+        let (out, report) = self.spectral_to(
+            input,
+            planes,
+            eye,
+            params,
+            spectral::Targets::Input,
+            Keep::Gpu,
+        )?;
+        Ok((kernels::on_gpu(out, &self.images_read_back)?, report))
+    }
+
+    /// The spectral decomposition fitting a given focal stack (one image per focal sample
+    /// of `params`, whose targets must be a rendered kind), the prior toward `input`'s
+    /// linear blending: the GPU twin of [`crate::SpectralPlan::targets_stack`] and `solve`.
+    pub fn spectral_blend_stack(
+        &self,
+        input: &Rgbd,
+        stack: &[RgbImage],
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: SpectralParams,
+    ) -> Result<(Layers, SpectralReport), RenderError> {
+        let (images, report) = self.spectral_to(
+            input,
+            planes,
+            eye,
+            params,
+            spectral::Targets::Stack(stack),
+            Keep::Host,
+        )?;
+        let layers = Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(images)?,
+        };
+        Ok((layers, report))
+    }
+
     /// [`Backend::optimized_blend`], one image per plane, left in GPU memory.
     #[allow(clippy::too_many_arguments)]
     pub fn optimized_blend_on_gpu(
@@ -217,17 +326,28 @@ impl Backend for Gpu {
         Ok((layers, report))
     }
 
+    /// On the GPU: its targets rendered there, the plan's matrices resident (uploaded once
+    /// per plan), FFTs in WGSL; normalised-slice targets are `Unsupported` here.
     fn spectral_blend(
         &self,
-        _input: &Rgbd,
-        _planes: &[Diopters],
-        _eye: &EyeModel,
-        _params: SpectralParams,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: SpectralParams,
     ) -> Result<(Layers, SpectralReport), RenderError> {
-        Err(RenderError::Unsupported {
-            backend: "gpu",
-            method: "spectral blending",
-        })
+        let (images, report) = self.spectral_to(
+            input,
+            planes,
+            eye,
+            params,
+            spectral::Targets::Input,
+            Keep::Host,
+        )?;
+        let layers = Layers {
+            planes: planes.to_vec(),
+            images: kernels::on_host(images)?,
+        };
+        Ok((layers, report))
     }
 
     fn retina_multifocal(

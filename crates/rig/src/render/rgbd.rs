@@ -438,14 +438,22 @@ impl RgbdRenderer {
             on_host(self.refine_decompose(input)?)
         } else if method.0 == RenderMethod::Spectral {
             // Its default settings (dioptra_render::spectral: a 12-view light-field stack at
-            // 6 foci), the plan built once for the rig's size. No GPU kernel yet: on a GPU rig
-            // it runs on the CPU, said in /status (`spectral_on`).
+            // 6 foci), the plan built once for the rig's size (on the GPU, its matrices
+            // uploaded once); on the rig's backend, the layers left on the GPU there.
             let params = SpectralParams::default();
-            on_host(
-                Cpu.spectral_blend(input, &self.planes, &self.eye, params)?
-                    .0
-                    .images,
-            )
+            self.on_backend("spectral", |gpu| {
+                Ok(match gpu {
+                    Some(g) => on_gpu(
+                        g.spectral_blend_on_gpu(input, &self.planes, &self.eye, params)?
+                            .0,
+                    ),
+                    None => on_host(
+                        Cpu.spectral_blend(input, &self.planes, &self.eye, params)?
+                            .0
+                            .images,
+                    ),
+                })
+            })?
         } else if method.0 == RenderMethod::Optimized {
             // Targets (a gathered focal stack), the linear start and the iterations all on
             // the rig's backend; on the GPU the layers stay there.
@@ -762,8 +770,8 @@ impl Compute {
             "gpu_time_us": gpu_time,
             "network": nets_of(RenderMethod::Network),
             "refine": nets_of(RenderMethod::Refine),
-            // The spectral decomposition has no GPU kernel yet.
-            "spectral_on": "cpu",
+            // Where the spectral decomposition runs: the rig's backend.
+            "spectral_on": if self.gpu.is_some() { "gpu" } else { "cpu" },
             "refine_tiles_run": self.refine_tiles,
         })
     }
