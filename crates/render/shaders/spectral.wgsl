@@ -163,9 +163,25 @@ fn root(k: u32) -> vec2<f32> {
     return w;
 }
 
+// Multiplies by the forward transform's i^-1 (-i), or by i for the inverse.
+fn rot(a: vec2<f32>) -> vec2<f32> {
+    if p.inverse == 1u { return vec2<f32>(-a.y, a.x); }
+    return vec2<f32>(a.y, -a.x);
+}
+
+// The radix-3 and radix-5 butterflies' constants: sin(2 pi / 3), cos and sin of 2 pi / 5 and
+// 4 pi / 5.
+const SIN3: f32 = 0.8660254037844386;
+const COS5A: f32 = 0.30901699437494745;
+const COS5B: f32 = -0.8090169943749475;
+const SIN5A: f32 = 0.9510565162951535;
+const SIN5B: f32 = 0.5877852522924731;
+
 // One Stockham autosort pass (Govindaraju et al. 2008): butterfly j of n / radix reads
 // src[j + r n / radix], twiddles by w^(r (j mod ns) n / (ns radix)), takes the radix-point DFT
-// and writes dst[(j / ns) ns radix + j mod ns + r ns]. After every pass, natural order.
+// and writes dst[(j / ns) ns radix + j mod ns + r ns]. After every pass, natural order. The
+// butterflies are written out per radix (the host's radices: 4 and the grid's primes), so
+// nothing is indexed dynamically.
 @compute @workgroup_size(WG1)
 fn fft_pass(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>,
             @builtin(local_invocation_index) l: u32) {
@@ -175,19 +191,58 @@ fn fft_pass(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: v
     let base = (i / m) * p.n;
     let j = i % m;
     let k = j % p.ns;
-    let tstep = p.n / (p.ns * p.radix);
-    var v: array<vec2<f32>, MAX_RADIX>;
-    for (var r = 0u; r < p.radix; r++) {
-        v[r] = cmul(ff_src[base + j + r * m], root(r * k * tstep));
-    }
-    let dst0 = base + (j / p.ns) * p.ns * p.radix + k;
-    let unit = p.n / p.radix;
-    for (var o = 0u; o < p.radix; o++) {
-        var acc = v[0];
-        for (var r = 1u; r < p.radix; r++) {
-            acc += cmul(v[r], root(((r * o) % p.radix) * unit));
+    // Input r is twiddled by root r t (below n).
+    let t = k * (p.n / (p.ns * p.radix));
+    let src = base + j;
+    let d = base + (j / p.ns) * p.ns * p.radix + k;
+    let s = p.ns;
+    let a0 = ff_src[src];
+    let a1 = cmul(ff_src[src + m], root(t));
+    switch p.radix {
+        case 2u: {
+            ff_dst[d] = a0 + a1;
+            ff_dst[d + s] = a0 - a1;
         }
-        ff_dst[dst0 + o * p.ns] = acc;
+        case 3u: {
+            let a2 = cmul(ff_src[src + 2u * m], root(2u * t));
+            let t1 = a1 + a2;
+            let b = a0 - 0.5 * t1;
+            let r = SIN3 * rot(a1 - a2);
+            ff_dst[d] = a0 + t1;
+            ff_dst[d + s] = b + r;
+            ff_dst[d + 2u * s] = b - r;
+        }
+        case 4u: {
+            let a2 = cmul(ff_src[src + 2u * m], root(2u * t));
+            let a3 = cmul(ff_src[src + 3u * m], root(3u * t));
+            let e = a0 + a2;
+            let f = a0 - a2;
+            let g = a1 + a3;
+            let h = rot(a1 - a3);
+            ff_dst[d] = e + g;
+            ff_dst[d + s] = f + h;
+            ff_dst[d + 2u * s] = e - g;
+            ff_dst[d + 3u * s] = f - h;
+        }
+        case 5u: {
+            let a2 = cmul(ff_src[src + 2u * m], root(2u * t));
+            let a3 = cmul(ff_src[src + 3u * m], root(3u * t));
+            let a4 = cmul(ff_src[src + 4u * m], root(4u * t));
+            let t1 = a1 + a4;
+            let t2 = a2 + a3;
+            let d1 = a1 - a4;
+            let d2 = a2 - a3;
+            let b1 = a0 + COS5A * t1 + COS5B * t2;
+            let b2 = a0 + COS5B * t1 + COS5A * t2;
+            let r1 = rot(SIN5A * d1 + SIN5B * d2);
+            let r2 = rot(SIN5B * d1 - SIN5A * d2);
+            ff_dst[d] = a0 + t1 + t2;
+            ff_dst[d + s] = b1 + r1;
+            ff_dst[d + 2u * s] = b2 + r2;
+            ff_dst[d + 3u * s] = b2 - r2;
+            ff_dst[d + 4u * s] = b1 - r1;
+        }
+        default: {}
     }
 }
 

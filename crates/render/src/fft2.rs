@@ -9,11 +9,8 @@ use rustfft::{Fft, FftPlanner};
 use std::sync::Arc;
 
 /// The prime factors the padded grid's sides may have: fast for rustfft, and the radices the
-/// GPU's FFT has (with 4; shaders/spectral.wgsl holds up to [`MAX_RADIX`] values a butterfly).
+/// GPU's FFT has (with 4: shaders/spectral.wgsl has a butterfly for each, checked in a test).
 pub(crate) const FFT_PRIMES: [usize; 3] = [2, 3, 5];
-/// The largest radix of the GPU's FFT passes.
-pub(crate) const MAX_RADIX: usize = 5;
-const _: () = assert!(FFT_PRIMES[2] == MAX_RADIX && 4 < MAX_RADIX);
 
 /// Smallest n >= `min` whose only prime factors are [`FFT_PRIMES`].
 pub(crate) fn fft_size(min: usize) -> usize {

@@ -564,13 +564,12 @@ impl GpuContext {
 /// The constants the CPU twins and the shaders share, as WGSL, from their one definition in
 /// the CPU code: the shader files use them and never define them.
 pub(crate) fn shared_wgsl() -> String {
-    use crate::fft2::MAX_RADIX;
     use crate::foveate::FOV_CELL;
     use crate::lightfield::{LEVEL_SIGMA, PREFILTER};
     use crate::multifocal::MAX_PLANES;
     let sigma: Vec<String> = LEVEL_SIGMA.iter().map(|s| format!("{s:?}")).collect();
     format!(
-        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\nconst MAX_RADIX: u32 = {MAX_RADIX}u;\n",
+        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n",
         LEVEL_SIGMA.len(),
         sigma.join(", ")
     )
@@ -1017,17 +1016,9 @@ mod tests {
         assert!(prelude.contains("const FOV_CELL: u32 = 8u;"));
         assert!(prelude.contains("const WG1: u32 = 256u;"));
         assert!(prelude.contains("const MAX_PLANES: u32 = 16u;"));
-        assert!(prelude.contains("const MAX_RADIX: u32 = 5u;"));
         for k in Kernel::ALL {
             let (src, entry, _, _) = k.spec();
-            for name in [
-                "PREFILTER",
-                "LEVEL_SIGMA",
-                "FOV_CELL",
-                "WG1",
-                "MAX_PLANES",
-                "MAX_RADIX",
-            ] {
+            for name in ["PREFILTER", "LEVEL_SIGMA", "FOV_CELL", "WG1", "MAX_PLANES"] {
                 assert!(
                     !src.contains(&format!("const {name}")),
                     "{entry}'s shader defines {name} itself"
@@ -1042,6 +1033,12 @@ mod tests {
             assert!(src.contains("@workgroup_size(WG1)"));
         }
         assert!(SPECTRAL_WGSL.contains("array<vec2<f32>, MAX_PLANES>"));
-        assert!(SPECTRAL_WGSL.contains("array<vec2<f32>, MAX_RADIX>"));
+        // A butterfly for every radix the host's FFT plans use.
+        for r in std::iter::once(4).chain(crate::fft2::FFT_PRIMES) {
+            assert!(
+                SPECTRAL_WGSL.contains(&format!("case {r}u: {{")),
+                "radix {r}"
+            );
+        }
     }
 }
