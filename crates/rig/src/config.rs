@@ -159,6 +159,37 @@ impl Method {
     }
 }
 
+/// A device of the config, as the rig opens it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ConfiguredDevice {
+    /// Its name in `/status`'s `devices`: lens, gaze, sync.
+    pub name: &'static str,
+    /// Its config section: `devices.lens`, ...
+    pub section: &'static str,
+    pub port: Port,
+    pub required: bool,
+}
+
+impl Devices {
+    /// The configured devices, lens first.
+    pub fn list(&self) -> Vec<ConfiguredDevice> {
+        let dev = |name, section, port: &Port, required: Option<bool>| ConfiguredDevice {
+            name,
+            section,
+            port: port.clone(),
+            required: required.unwrap_or(*port != Port::Sim),
+        };
+        let mut v = vec![
+            dev("lens", "devices.lens", &self.lens.port, self.lens.required),
+            dev("gaze", "devices.gaze", &self.gaze.port, self.gaze.required),
+        ];
+        if let Some(s) = &self.sync {
+            v.push(dev("sync", "devices.sync", &s.port, s.required));
+        }
+        v
+    }
+}
+
 /// Where a device is: simulated in-process, a device path, a USB/HID VID:PID, a USB device's
 /// bulk endpoints, or a network address (Pupil Capture's Pupil Remote).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -304,6 +335,10 @@ pub struct LensDevice {
     /// Optotune only: the lens's temperature limits `[lower, upper]`, °C, sent at every
     /// connect (`PwTA`); the device's focal-power range follows from them. Default 20-40 °C.
     pub temperature_limits_c: Option<[f32; 2]>,
+    /// Whether the rig needs the device present: `serve` does not start without it, and
+    /// while a required lens is down `POST /focus` answers 503. Default: true for a real port,
+    /// false for `port = "sim"` (always present).
+    pub required: Option<bool>,
 }
 
 impl LensDevice {
@@ -329,6 +364,10 @@ pub struct GazeDevice {
     /// Scenario of the simulated tracker (sim only): saccades, fixation, pursuit, vergence, blinks.
     #[serde(default = "default_scenario")]
     pub sim_scenario: String,
+    /// Whether the rig needs the device present: `serve` does not start without it, and
+    /// while a required lens is down `POST /focus` answers 503. Default: true for a real port,
+    /// false for `port = "sim"` (always present).
+    pub required: Option<bool>,
     /// Sample rate of the simulated tracker, Hz (sim only).
     #[serde(default = "default_gaze_rate")]
     pub sim_rate_hz: f64,
@@ -345,6 +384,10 @@ pub struct GazeDevice {
 pub struct SyncDevice {
     pub driver: SyncDriver,
     pub port: Port,
+    /// Whether the rig needs the device present: `serve` does not start without it, and
+    /// while a required lens is down `POST /focus` answers 503. Default: true for a real port,
+    /// false for `port = "sim"` (always present).
+    pub required: Option<bool>,
     /// DLPC350 only: frame rate of the video the projector receives, Hz; each VSYNC starts
     /// one pass over the planes (default 60).
     pub video_hz: Option<f64>,
@@ -1506,7 +1549,12 @@ impl RigConfig {
             path: path.to_path_buf(),
             source,
         })?;
-        let dir = path.parent().unwrap_or(Path::new("")).to_path_buf();
+        // Absolute, so that the paths it resolves (and recordings of them) do not depend on
+        // the working directory.
+        let dir = std::path::absolute(path)
+            .ok()
+            .and_then(|p| p.parent().map(Path::to_path_buf))
+            .unwrap_or_else(|| path.parent().unwrap_or(Path::new("")).to_path_buf());
         Self::parse_in(&text, Some(dir))
     }
 
@@ -1558,6 +1606,7 @@ impl RigConfig {
             ..cfg
         };
         cfg.read_calibration_tables()?;
+        cfg.resolve_paths();
         cfg.validate()?;
         Ok(cfg)
     }
@@ -1601,6 +1650,45 @@ impl RigConfig {
         }
         self.calibration_tables.extend(read);
         Ok(())
+    }
+
+    /// Makes the config's relative file paths (content files and ring, recording.dir,
+    /// render.weights, api.unix and token_file, display.png_dir) relative to its folder, so
+    /// the daemon finds the same files whatever directory it is started from. Recordings hold
+    /// the config with these paths. (Calibration tables are read through
+    /// [`RigConfig::config_path`].)
+    fn resolve_paths(&mut self) {
+        let Some(dir) = self.config_dir.clone() else {
+            return;
+        };
+        let at = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = dir.join(&*p);
+            }
+        };
+        let c = &mut self.content;
+        for pattern in [&mut c.color, &mut c.depth].into_iter().flatten() {
+            let mut p = PathBuf::from(&*pattern);
+            at(&mut p);
+            *pattern = p.display().to_string();
+        }
+        if let Some(r) = c.ring.as_mut().filter(|r| r.as_os_str() != "none") {
+            at(r);
+        }
+        if let Some(r) = self.recording.as_mut() {
+            at(&mut r.dir);
+        }
+        for p in [
+            &mut self.render.weights,
+            &mut self.api.unix,
+            &mut self.api.token_file,
+            &mut self.display.png_dir,
+        ]
+        .into_iter()
+        .flatten()
+        {
+            at(p);
+        }
     }
 
     /// A path given in the config, as it is read: relative ones from the config's folder.
@@ -2555,6 +2643,44 @@ pub(crate) mod tests {
         assert!(e.to_string().contains("linear, optimized"), "{e}");
         let ok = RigConfig::parse(&text.replace("method = \"gather\"", "method = \"linear\""));
         assert!(ok.is_ok(), "{ok:?}");
+    }
+
+    /// Relative paths are the config file's folder's, from any working directory (issue 39
+    /// item 3); absolute ones stay.
+    #[test]
+    fn relative_paths_are_read_from_the_config_files_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = SIM_RIG.replace("dir = \"recordings\"", "dir = \"rec\"")
+            + "\n[content]\nsource = \"files\"\ncolor = \"stim/c_%04d.png\"\n\
+               depth = \"/abs/d.exr\"\n\n[render]\nweights = \"w\"\n";
+        let path = dir.path().join("rig.toml");
+        std::fs::write(&path, &text).unwrap();
+        let cfg = RigConfig::load(&path).unwrap();
+        let base = std::path::absolute(dir.path()).unwrap();
+        assert_eq!(cfg.recording.as_ref().unwrap().dir, base.join("rec"));
+        assert_eq!(
+            cfg.content.color.as_deref(),
+            Some(base.join("stim/c_%04d.png").to_str().unwrap())
+        );
+        assert_eq!(cfg.content.depth.as_deref(), Some("/abs/d.exr"));
+        assert_eq!(cfg.render.weights, Some(base.join("w")));
+        // Text without a file: the working directory's, as before.
+        let cfg = RigConfig::parse(&text).unwrap();
+        assert_eq!(cfg.recording.unwrap().dir, PathBuf::from("rec"));
+    }
+
+    /// `devices.*.required`: true for a real port by default, false for a simulator; the
+    /// config can say otherwise.
+    #[test]
+    fn devices_are_required_by_default_on_a_real_port() {
+        let cfg = RigConfig::parse(SIM_RIG).unwrap();
+        assert!(cfg.devices.list().iter().all(|d| !d.required));
+        let real = SIM_RIG.replacen("port = \"sim\"", "port = \"/dev/ttyACM0\"", 1);
+        let cfg = RigConfig::parse(&real).unwrap();
+        let list = cfg.devices.list();
+        assert_eq!((list[0].name, list[0].required), ("lens", true));
+        let optional = real.replacen("park_power", "required = false\npark_power", 1);
+        assert!(!RigConfig::parse(&optional).unwrap().devices.list()[0].required);
     }
 
     #[test]

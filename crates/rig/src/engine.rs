@@ -156,6 +156,7 @@ impl Engine {
 
     /// Steps the scheduler. API commands it would ignore are refused with the reason.
     pub fn step(&mut self, now: Timestamp, input: Input) -> Result<Vec<Command>, String> {
+        let mut then_method = None;
         let event = match input {
             Input::Device(d) => match d {
                 DeviceInput::Gaze(g, _) => Event::Gaze(g),
@@ -187,7 +188,8 @@ impl Engine {
                 Control::Method(m) => {
                     if !m.fits(self.mode()) {
                         return Err(format!(
-                            "{} does not make {} frames; use {}",
+                            "{} does not make {} frames; use {}, or change the mode first \
+                             (POST /mode)",
                             m.as_str(),
                             self.mode().as_str(),
                             Method::for_mode(self.mode())
@@ -202,20 +204,30 @@ impl Engine {
                     Event::SetMethod(m.0)
                 }
                 Control::Mode(m) => {
-                    let method = if self.method().fits(m) {
-                        self.method()
+                    // The current method if the new mode renders it, else the mode's default
+                    // (from multifocal with the network, lightfield mode shows views: C5 is
+                    // not rendered by the daemon).
+                    let current = self.method();
+                    let usable = |method: Method| {
+                        method
+                            .unavailable(m)
+                            .or_else(|| self.network_missing(m, method))
+                    };
+                    let method = if current.fits(m) && usable(current).is_none() {
+                        current
                     } else {
                         Method(RenderMethod::default_for(m.sched()))
                     };
-                    if let Some(why) = method
-                        .unavailable(m)
-                        .or_else(|| self.network_missing(m, method))
-                    {
+                    if let Some(why) = usable(method) {
                         return Err(format!(
                             "{} mode would render with {}, and {why}",
                             m.as_str(),
                             method.as_str()
                         ));
+                    }
+                    // The scheduler keeps a method that suits the mode: say the switch.
+                    if method != current && current.fits(m) {
+                        then_method = Some(method.0);
                     }
                     Event::SetMode(m.sched())
                 }
@@ -239,6 +251,9 @@ impl Engine {
         };
         let mut out = Vec::new();
         self.sched.step(now, event, &mut out);
+        if let Some(m) = then_method {
+            self.sched.step(now, Event::SetMethod(m), &mut out);
+        }
         Ok(out)
     }
 

@@ -95,7 +95,7 @@ pub struct RenderFailure {
 pub struct Presented {
     pub frame: u64,
     pub layer: Option<u8>,
-    /// The focus it was rendered for.
+    /// The focus it was rendered for; a multifocal layer's plane.
     pub focus: Diopters,
     /// When it is on screen.
     pub shown: Timestamp,
@@ -541,10 +541,12 @@ impl Executor<'_> {
         };
         match shown {
             Ok(t) => {
+                // A multifocal layer is seen at its plane, whatever focus the frame had.
+                let plane = layer.and_then(|l| self.state.cfg.optics.planes.get(usize::from(l)));
                 let p = Presented {
                     frame,
                     layer,
-                    focus: f.focus,
+                    focus: plane.map_or(f.focus, |&d| Diopters(d)),
                     shown: t,
                     repeat,
                     marker_white: f.marker.map(|m| m.white),

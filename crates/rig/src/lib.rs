@@ -152,6 +152,8 @@ pub struct LoopStatus {
     /// right).
     pub commanded_by_lens: [Option<f32>; 2],
     pub reported_by_lens: [Option<f32>; 2],
+    /// Whether that read-back had the lens settled at the power commanded.
+    pub lens_settled: Option<bool>,
     pub gaze_samples: u64,
     pub lens_commands: u64,
     pub sync_events: u64,
@@ -192,18 +194,39 @@ pub struct RecordingMeta {
     pub trial: Option<String>,
 }
 
+/// A trial: a whole number (0 or more) or a label; anything else is refused saying so.
 fn number_or_text<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<String>, D::Error> {
-    use serde::Deserialize;
-    #[derive(Deserialize)]
-    #[serde(untagged)]
-    enum T {
-        N(u64),
-        S(String),
+    struct Trial;
+    impl<'de> serde::de::Visitor<'de> for Trial {
+        type Value = Option<String>;
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a trial number (a whole number, 0 or more) or a label such as \"3b\"")
+        }
+        fn visit_u64<E: serde::de::Error>(self, n: u64) -> Result<Self::Value, E> {
+            Ok(Some(n.to_string()))
+        }
+        fn visit_i64<E: serde::de::Error>(self, n: i64) -> Result<Self::Value, E> {
+            u64::try_from(n)
+                .map(|n| Some(n.to_string()))
+                .map_err(|_| E::invalid_value(serde::de::Unexpected::Signed(n), &self))
+        }
+        fn visit_f64<E: serde::de::Error>(self, n: f64) -> Result<Self::Value, E> {
+            Err(E::invalid_value(serde::de::Unexpected::Float(n), &self))
+        }
+        fn visit_str<E: serde::de::Error>(self, s: &str) -> Result<Self::Value, E> {
+            Ok(Some(s.to_string()))
+        }
+        fn visit_none<E: serde::de::Error>(self) -> Result<Self::Value, E> {
+            Ok(None)
+        }
+        fn visit_unit<E: serde::de::Error>(self) -> Result<Self::Value, E> {
+            Ok(None)
+        }
+        fn visit_some<D2: serde::Deserializer<'de>>(self, d: D2) -> Result<Self::Value, D2::Error> {
+            d.deserialize_any(Trial)
+        }
     }
-    Ok(Option::<T>::deserialize(d)?.map(|t| match t {
-        T::N(n) => n.to_string(),
-        T::S(s) => s,
-    }))
+    d.deserialize_option(Trial)
 }
 
 impl RecordingMeta {
@@ -243,6 +266,19 @@ impl RecordingMeta {
         }
         s
     }
+}
+
+/// Whether a read-back `s` shows the lens settled at `target_d`, within `tolerance_d` (the
+/// scheduler's `settled_tolerance_d`, with which it times settling): `None` without a target;
+/// not settled while the lens says it is moving (lenses that do not say, such as the Lens
+/// Driver 4, are judged by their power alone).
+pub fn lens_settled(
+    s: &dioptra_core::LensState,
+    target_d: Option<f32>,
+    tolerance_d: f32,
+) -> Option<bool> {
+    let target = target_d?;
+    Some(s.settled != Some(false) && (s.power.0 - target).abs() <= tolerance_d)
 }
 
 /// A sub-frame's lens power off its plane by more than this is off target (the dioptra sync
@@ -390,6 +426,7 @@ impl RigState {
             "commanded_focus_d": focus_of(LensId::FIRST, status.commanded_power_d),
             "lens_d": status.lens_power_d,
             "lens_focus_d": focus_of(LensId::FIRST, status.lens_power_d),
+            "lens_settled": status.lens_settled,
             "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
             "focus_range_d": self.focus_range_d(),
         });
@@ -496,14 +533,14 @@ impl RigState {
         }
     }
 
-    /// Sends a `/stream` message, made only when someone listens.
-    /// Sends a `/stream` message, stamped with the host time and (on a real clock) the
-    /// wall-clock time it was sent.
+    /// Sends a `/stream` message, made only when someone listens. Its `host_ns` is when the
+    /// event happened (the message's own, else now); `wall_ns` the wall clock (UTC) when it
+    /// was sent (none on a simulated clock).
     pub(crate) fn publish(&self, msg: impl FnOnce() -> serde_json::Value) {
         if self.websocket.receiver_count() > 0 {
             let mut m = msg();
             if let Some(o) = m.as_object_mut() {
-                o.insert("host_ns".into(), json!(self.clock.now().0));
+                o.entry("host_ns").or_insert(json!(self.clock.now().0));
                 o.insert(
                     "wall_ns".into(),
                     json!(self.wall_zero_ns.is_some().then(wall_ns)),
@@ -511,6 +548,19 @@ impl RigState {
             }
             let _ = self.websocket.send(Arc::from(m.to_string()));
         }
+    }
+
+    /// A lab's marker (`POST /marker`: a trial's onset, a response): recorded (`/marker`),
+    /// sent on `/stream` and to LSL's marker outlet, stamped with the host time now, which it
+    /// returns.
+    pub fn lab_marker(&self, marker: serde_json::Value) -> Timestamp {
+        let t = self.clock.now();
+        if let Some(l) = &self.lsl {
+            l.marker(t, "marker", json!({ "marker": marker }));
+        }
+        self.publish(|| json!({ "type": "marker", "host_ns": t.0, "marker": marker.clone() }));
+        self.record(t, Rec::Marker(recording::MarkerRec { marker }));
+        t
     }
 
     /// Starts a recording in `recording.dir`; returns its path.
@@ -582,6 +632,16 @@ impl RigState {
             }),
         );
         *slot = Some(r);
+        self.publish(|| {
+            json!({
+                "type": "recording",
+                "event": "start",
+                "path": path.display().to_string(),
+                "name": meta.name,
+                "subject": meta.subject,
+                "trial": meta.trial,
+            })
+        });
         if let Some(l) = &self.lsl {
             l.marker(
                 self.clock.now(),
@@ -602,11 +662,13 @@ impl RigState {
         let r = lock(&self.recording)
             .take()
             .ok_or_else(|| ControlError::Conflict("not recording".into()))?;
+        let path = r.path().display().to_string();
+        self.publish(|| json!({ "type": "recording", "event": "stop", "path": path }));
         if let Some(l) = &self.lsl {
             l.marker(
                 self.clock.now(),
                 "recording_stop",
-                json!({ "path": r.path().display().to_string() }),
+                json!({ "path": path }),
             );
         }
         r.finish().await.map_err(|e| ControlError::Failed {

@@ -232,14 +232,21 @@ impl LoopHook for Status {
         self.modes(engine);
         lock(&self.state.status).display = sink.status();
     }
-    fn input(&mut self, _now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, engine: &Engine) {
         let sh = &self.state;
         let mut st = lock(&sh.status);
         match input {
             DeviceInput::Gaze(..) => st.gaze_samples += 1,
             DeviceInput::LensState(lens, s) => {
+                let target = lens_target(engine, *lens);
+                let settled = crate::lens_settled(
+                    s,
+                    target.map(|d| d.0),
+                    engine.scheduler().config().settled_tolerance_d,
+                );
                 if *lens == LensId::FIRST {
                     st.lens_power_d = Some(s.power.0);
+                    st.lens_settled = settled;
                 }
                 if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
                     *p = Some(s.power.0);
@@ -337,29 +344,65 @@ impl LoopHook for Status {
     }
 }
 
-/// The WebSocket's messages (`GET /stream`): gaze, lens read-backs, focus commands and frames
-/// shown, made only while someone listens.
+/// The WebSocket's messages (`GET /stream`): gaze with the scheduler's reading of it, lens
+/// read-backs with their target and whether the lens settled there, focus commands, frames
+/// shown, sub-frames, and the API's controls; made only while someone listens. Each has the
+/// host time it happened (`host_ns`).
 struct WebSocket(Arc<RigState>);
 
+/// The power the scheduler last commanded `lens` (its read-backs' target).
+fn lens_target(engine: &Engine, lens: LensId) -> Option<dioptra_core::Diopters> {
+    engine
+        .scheduler()
+        .status()
+        .lenses
+        .get(lens.index())
+        .copied()
+        .flatten()
+        .and_then(|l| l.commanded_power)
+}
+
+fn eye_json(e: &dioptra_core::EyeRay) -> serde_json::Value {
+    json!({
+        "direction": e.direction,
+        "origin_mm": e.origin_mm,
+        "pupil_mm": e.pupil_mm,
+        "valid": e.valid,
+    })
+}
+
 impl LoopHook for WebSocket {
-    fn input(&mut self, _now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, engine: &Engine) {
         match input {
             DeviceInput::Gaze(g, _) => self.0.publish(|| {
+                let st = engine.scheduler().status();
                 json!({
                     "type": "gaze",
                     "host_ns": g.host_time.0,
-                    "left": { "direction": g.left.direction, "valid": g.left.valid },
-                    "right": { "direction": g.right.direction, "valid": g.right.valid },
+                    "device_ns": g.device_time.0,
+                    "host_receive_ns": g.host_receive_time.0,
+                    "left": eye_json(&g.left),
+                    "right": eye_json(&g.right),
+                    "phase": st.phase.as_str(),
+                    "vergence_d": st.vergence_d,
                 })
             }),
             DeviceInput::LensState(lens, s) => {
                 let eye = self.0.cfg.devices.lens.side(lens.index());
                 self.0.publish(|| {
+                    let target = lens_target(engine, *lens);
+                    let tolerance = engine.scheduler().config().settled_tolerance_d;
+                    let optics = self.0.optics_of(*lens);
                     let mut m = json!({
                         "type": "lens",
                         "host_ns": s.host_time.0,
                         "power_d": s.power.0,
-                        "focus_d": self.0.optics_of(*lens).focus_of(s.power).0,
+                        "focus_d": optics.focus_of(s.power).0,
+                        "target_d": target.map(|d| d.0),
+                        "target_focus_d": target.map(|d| optics.focus_of(d).0),
+                        "settled": crate::lens_settled(s, target.map(|d| d.0), tolerance),
+                        "current_ma": s.current_ma,
+                        "temperature_c": s.temperature_c,
                     });
                     if let Some(e) = eye {
                         m["eye"] = json!(e.as_str());
@@ -367,8 +410,35 @@ impl LoopHook for WebSocket {
                     m
                 })
             }
+            DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
+                frame,
+                plane_index,
+                lens_power,
+                host_time,
+                ..
+            }) => self.0.publish(|| {
+                let plane = self.0.cfg.optics.planes.get(usize::from(*plane_index));
+                json!({
+                    "type": "subframe",
+                    "host_ns": host_time.0,
+                    "frame": frame,
+                    "plane": plane_index,
+                    "plane_d": plane,
+                    "lens_d": lens_power.map(|d| d.0),
+                })
+            }),
             _ => {}
         }
+    }
+    fn control(&mut self, now: Timestamp, cmd: &Control, _engine: &Engine) {
+        self.0.publish(|| {
+            let mut m = serde_json::to_value(cmd.rec()).unwrap_or_default();
+            if let Some(o) = m.as_object_mut() {
+                o.insert("type".into(), json!("control"));
+                o.insert("host_ns".into(), json!(now.0));
+            }
+            m
+        });
     }
     fn command(&mut self, now: Timestamp, cmd: &Command) {
         if let Command::SetLensPower {
@@ -398,6 +468,7 @@ impl LoopHook for WebSocket {
         self.0.publish(|| {
             json!({
                 "type": "frame",
+                "host_ns": p.shown.0,
                 "frame": p.frame,
                 "layer": p.layer,
                 "focus_d": p.focus.0,

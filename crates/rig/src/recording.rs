@@ -418,6 +418,12 @@ pub struct PresentRec {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Marker {}
 
+/// A lab's marker (`POST /marker`): its text or JSON object, as the experiment sent it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MarkerRec {
+    pub marker: serde_json::Value,
+}
+
 /// What a replay needs to rebuild the scheduler.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StartRec {
@@ -454,7 +460,7 @@ pub struct StartRec {
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
 /// LensWire, LensLink, Sync, Frame, Control, Depth, Content, Tick, Shutdown. Outputs (what it
-/// commanded): LensCommand, Render, Present, StopSequencer.
+/// commanded): LensCommand, Render, Present, StopSequencer. And the lab's markers (Marker).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Rec {
     Start(StartRec),
@@ -474,6 +480,8 @@ pub enum Rec {
     Render(RenderRec),
     Present(PresentRec),
     StopSequencer(Marker),
+    /// Not an input of the scheduler: replay passes it over.
+    Marker(MarkerRec),
 }
 
 /// Declares, for each variant, its topic, schema name and JSON Schema properties.
@@ -541,6 +549,8 @@ topics! {
     Present => "/present", "dioptra.Present",
         format!(r#""frame":{N},"layer":{ON},"at_ns":{N},"repeat":{B}"#);
     StopSequencer => "/sync/stop", "dioptra.StopSequencer", "";
+    Marker => "/marker", "dioptra.Marker",
+        r#""marker":{"type":["string","object"]}"#;
 }
 
 /// The lens topics of each eye, on a rig with a lens per eye: `(kind topic, left, right)`.
@@ -1052,6 +1062,18 @@ mod tests {
                     render_ns: 1_250_000,
                     requested_ns: 1,
                     focus_d: Some(2.25),
+                }),
+            ),
+            (
+                Timestamp(5),
+                Rec::Marker(MarkerRec {
+                    marker: serde_json::json!({"event": "stimulus_on", "trial": 3}),
+                }),
+            ),
+            (
+                Timestamp(6),
+                Rec::Marker(MarkerRec {
+                    marker: serde_json::json!("response"),
                 }),
             ),
         ];

@@ -55,6 +55,10 @@ pub enum FocusReason {
     Reconnect,
     /// Shutdown: the configured park power.
     Park,
+    /// Multifocal mode, which gaze does not drive the varifocal lens in: held at the park
+    /// power until something commands it (else it sits wherever it relaxed, perhaps outside
+    /// the rig's range).
+    MultifocalHold,
 }
 
 /// What the executor reports to the scheduler. `now` (passed beside it) is when it happened.
@@ -388,7 +392,16 @@ impl Scheduler {
     pub fn step(&mut self, now: Timestamp, event: Event, out: &mut Vec<Command>) {
         match event {
             Event::Gaze(s) => self.on_gaze(now, &s, out),
-            Event::LensState(lens, s) => self.on_lens_state(lens, &s),
+            Event::LensState(lens, s) => {
+                self.on_lens_state(lens, &s);
+                if self.cfg.mode == Mode::Multifocal
+                    && self.commanded.is_none()
+                    && !self.shutting_down
+                {
+                    let park = self.cfg.park_power;
+                    self.command(now, park, FocusReason::MultifocalHold, None, out);
+                }
+            }
             Event::LensCommandWritten {
                 lens,
                 id,
@@ -708,7 +721,9 @@ impl Scheduler {
             let p = match (i, reason) {
                 (0, _) => power,
                 // Each lens parks where its own section says.
-                (_, FocusReason::Park) => self.cfg.park_power_of(lens),
+                (_, FocusReason::Park | FocusReason::MultifocalHold) => {
+                    self.cfg.park_power_of(lens)
+                }
                 _ => self.power_of(lens, focus),
             };
             self.command_lens(now, lens, p, reason, trigger, out);

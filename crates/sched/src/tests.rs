@@ -350,6 +350,38 @@ fn lost_link_holds_the_target_and_reconnect_sends_it_then_shutdown_parks() {
     assert!(out.is_empty(), "{out:?}");
 }
 
+/// In multifocal mode gaze does not drive the varifocal lens: the first read-back of a lens
+/// nothing commanded holds it at the park power, once (issue 39 item 9: it showed -2 D, where
+/// a relaxed Lens Driver 4 sits, outside the rig's range).
+#[test]
+fn multifocal_holds_an_uncommanded_lens_at_the_park_power_once() {
+    let mut cfg = SchedulerConfig::new(Mode::Multifocal);
+    cfg.park_power = Diopters(0.5);
+    let mut s = Scheduler::new(cfg).unwrap();
+    let relaxed = |ms: u64| {
+        Event::LensState(LensState {
+            power: Diopters(-2.0),
+            current_ma: Some(0.0),
+            temperature_c: None,
+            settled: None,
+            host_time: Timestamp::from_millis(ms),
+        })
+    };
+    let mut out = Vec::new();
+    s.step(Timestamp::from_millis(1), relaxed(1), &mut out);
+    assert_eq!(
+        lens_commands(&out),
+        [(Diopters(0.5), FocusReason::MultifocalHold)]
+    );
+    out.clear();
+    s.step(Timestamp::from_millis(11), relaxed(11), &mut out);
+    assert!(lens_commands(&out).is_empty(), "{out:?}");
+    // A varifocal scheduler leaves the lens to gaze.
+    let mut v = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();
+    v.step(Timestamp::from_millis(1), relaxed(1), &mut out);
+    assert!(lens_commands(&out).is_empty(), "{out:?}");
+}
+
 #[test]
 fn settle_latency_is_measured_from_the_wire_to_a_settled_readback() {
     let mut s = Scheduler::new(SchedulerConfig::new(Mode::Varifocal)).unwrap();

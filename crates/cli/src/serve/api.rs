@@ -5,7 +5,8 @@
 //! | GET | `/status` | | mode, method, focus, devices, frames, latency, recording |
 //! | POST | `/mode` | `{"mode": "varifocal"}` | varifocal, multifocal or lightfield |
 //! | POST | `/method` | `{"method": "gather"}` | a render method that fits the mode, or `auto` (varifocal) |
-//! | POST | `/focus` | `{"diopters": 1.5}` or `{"diopters": null}` | manual focus, or back to gaze |
+//! | POST | `/focus` | `{"diopters": 1.5}` or `{"diopters": null}` | manual focus, or back to gaze (`diopters` is required) |
+//! | POST | `/marker` | `{"marker": "stimulus_on"}` or `{"marker": {...}}`; or none | marks now: recorded, streamed, sent to LSL, and the marker patch toggled where it listens; answers its `host_ns`. Without a body: the patch toggle alone |
 //! | POST | `/recording/start` | none, or `{"name": "vergence", "subject": "s01", "trial": 3}` | starts an MCAP recording in `recording.dir` |
 //! | POST | `/recording/stop` | | finishes it; answers with its path and message count |
 //! | POST | `/shutdown` | | parks the lens, finishes files, exits |
@@ -138,10 +139,10 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/mode", post(set_mode))
         .route("/method", post(set_method))
         .route("/focus", post(set_focus))
+        .route("/marker", post(marker))
         .route("/recording/start", post(recording_start))
         .route("/recording/stop", post(recording_stop))
         .route("/shutdown", post(shutdown))
-        .route("/marker", post(marker))
         .route("/sim/{device}/{action}", post(sim_plug))
         .route("/stream", get(websocket))
         .route(
@@ -152,8 +153,8 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .fallback(|| async {
             ApiError::new(
                 StatusCode::NOT_FOUND,
-                "no such endpoint; see GET /status, POST /mode, /method, /focus, \
-                 /recording/start, /recording/stop, /shutdown, /marker, GET /stream (WebSocket), and \
+                "no such endpoint; see GET /status, POST /mode, /method, /focus, /marker, \
+                 /recording/start, /recording/stop, /shutdown, GET /stream (WebSocket), and \
                  for a streaming rig POST/PUT /frame and GET /frame/ring",
             )
         })
@@ -185,9 +186,27 @@ struct MethodBody {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct FocusBody {
-    /// Diopters; `null` hands focus back to gaze.
-    diopters: Option<f64>,
+    /// Diopters; `null` hands focus back to gaze. Required: `{}` says neither.
+    #[serde(default, deserialize_with = "present")]
+    diopters: Option<Option<f64>>,
 }
+
+/// A field that must be given, `null` included: `Some(None)` for `null`, `None` when absent.
+fn present<'de, D: serde::Deserializer<'de>, T: Deserialize<'de>>(
+    d: D,
+) -> Result<Option<Option<T>>, D::Error> {
+    Option::<T>::deserialize(d).map(Some)
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MarkerBody {
+    /// Text, or a JSON object of the experiment's own fields.
+    marker: serde_json::Value,
+}
+
+/// The longest marker text, characters.
+const MAX_MARKER_TEXT: usize = 1024;
 
 async fn set_mode(
     State(s): State<Arc<Shared>>,
@@ -215,7 +234,9 @@ async fn set_mode(
     if mode != Mode::Varifocal {
         set_auto(&s, false);
     }
-    Ok(Json(json!({ "mode": mode.as_str() })))
+    // The method the new mode renders with (its default when the old one does not fit).
+    let method = dioptra_core::lock(&s.status).method.map(|m| m.as_str());
+    Ok(Json(json!({ "mode": mode.as_str(), "method": method })))
 }
 
 async fn set_method(
@@ -228,9 +249,9 @@ async fn set_method(
     let method = if auto {
         if mode != Mode::Varifocal {
             return Err(ApiError::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
+                StatusCode::CONFLICT,
                 format!(
-                    "auto plans varifocal frames; the rig is in {} mode",
+                    "auto plans varifocal frames; the rig is in {} mode (POST /mode first)",
                     mode.as_str()
                 ),
             )
@@ -252,7 +273,7 @@ async fn set_method(
         })?
     };
     if let Some(why) = method.unavailable(mode) {
-        return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at("method"));
+        return Err(ApiError::new(StatusCode::CONFLICT, why).at("method"));
     }
     s.control(Control::Method(method)).await?;
     set_auto(&s, auto);
@@ -275,11 +296,22 @@ async fn set_focus(
     b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let f: FocusBody = body(&b)?;
+    let Some(diopters) = f.diopters else {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "diopters is required: a focus the lens reaches (see /status focus.focus_range_d) \
+             for manual focus, or null to hand focus back to gaze",
+        )
+        .at("diopters"));
+    };
+    if diopters.is_some() {
+        lens_must_be_up(&s)?;
+    }
     // The focus the lens range reaches through the optics map (the identity: the range).
     let [lo, hi] = s.focus_range_d();
     // f32 round trips through the map: a range end asked for is inside.
     let slack = 1e-4;
-    let d = match f.diopters {
+    let d = match diopters {
         None => None,
         Some(d)
             if d.is_finite() && (f64::from(lo) - slack..=f64::from(hi) + slack).contains(&d) =>
@@ -301,7 +333,100 @@ async fn set_focus(
         }
     };
     s.control(Control::ManualFocus(d)).await?;
-    Ok(Json(json!({ "manual_focus_d": d })))
+    let mode = dioptra_core::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let effect = match (d, mode) {
+        (None, _) => "focus follows gaze again",
+        (Some(_), Mode::Multifocal) => {
+            "the varifocal lens holds this power; the multifocal planes (optics.planes) are \
+             unchanged"
+        }
+        (Some(_), _) => "the lens holds this power; gaze no longer moves it",
+    };
+    Ok(Json(json!({ "manual_focus_d": d, "effect": effect })))
+}
+
+/// 503 while a required lens (`devices.lens.required`, true for a real port) is not
+/// connected: a focus would be held, not shown, until it is back.
+fn lens_must_be_up(s: &Shared) -> Result<(), ApiError> {
+    let lens = s
+        .cfg
+        .devices
+        .list()
+        .into_iter()
+        .find(|d| d.name == "lens")
+        .filter(|d| d.required);
+    let Some(lens) = lens else { return Ok(()) };
+    let snap = s.registry.snapshot();
+    let Some(st) = snap.get("lens") else {
+        return Ok(());
+    };
+    if st.state == dioptra_rig::devices::State::Ok {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::SERVICE_UNAVAILABLE,
+        format!(
+            "the lens ({}.port = \"{}\") is {}: {}; the focus would not be shown until it is \
+             back (the daemon reconnects it)",
+            lens.section,
+            lens.port,
+            serde_json::to_value(st.state)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_string))
+                .unwrap_or_default(),
+            st.last_error.as_deref().unwrap_or("no answer yet")
+        ),
+    )
+    .at("diopters"))
+}
+
+/// Marks this moment for the experiment (`{"marker": text or object}`): the marker goes
+/// into the recording (`/marker`), onto `/stream` and to LSL's marker outlet, with the host
+/// time it arrived; and where `display.marker_patch.toggle_on` names "api-marker", the patch
+/// toggles at the next presented frame, so a photodiode sees the event. Without a body: the
+/// patch toggle alone (409 when no patch listens for it).
+async fn marker(
+    State(s): State<Arc<Shared>>,
+    b: Bytes,
+) -> Result<Json<serde_json::Value>, ApiError> {
+    use dioptra_rig::config::MarkerEvent;
+    let patch = s.cfg.display.marker_patch.as_ref();
+    let toggles = patch.is_some_and(|p| p.toggle_on.contains(&MarkerEvent::ApiMarker));
+    if b.iter().all(u8::is_ascii_whitespace) {
+        if patch.is_none() {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "the rig draws no marker patch: add display.marker_patch = { corner = \"top-left\", size = 8, toggle_on = [\"api-marker\"] }, or send {\"marker\": \"...\"} to record and stream a marker",
+            ));
+        }
+        if !toggles {
+            return Err(ApiError::new(
+                StatusCode::CONFLICT,
+                "display.marker_patch.toggle_on does not name \"api-marker\", so an API marker would not show: add it there",
+            ));
+        }
+        let n = s.marker.api_marker();
+        return Ok(Json(json!({ "markers": n })));
+    }
+    let m: MarkerBody = body(&b)?;
+    let ok = match &m.marker {
+        serde_json::Value::String(t) => !t.is_empty() && t.chars().count() <= MAX_MARKER_TEXT,
+        serde_json::Value::Object(_) => true,
+        _ => false,
+    };
+    if !ok {
+        return Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            format!(
+                "a marker is a text of 1 to {MAX_MARKER_TEXT} characters or a JSON object, \
+                 e.g. {{\"marker\": \"stimulus_on\"}} or {{\"marker\": {{\"trial\": 3}}}}"
+            ),
+        )
+        .at("marker"));
+    }
+    let t = s.lab_marker(m.marker);
+    let n = toggles.then(|| s.marker.api_marker());
+    Ok(Json(json!({ "host_ns": t.0, "markers": n })))
 }
 
 async fn recording_start(
@@ -377,26 +502,6 @@ async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json:
         StatusCode::ACCEPTED,
         Json(json!({ "status": "stopping: parking the lens and finishing files" })),
     )
-}
-
-/// Toggles the marker patch at the next presented frame (`display.marker_patch.toggle_on`
-/// naming "api-marker"): an experiment's event made visible to a photodiode.
-async fn marker(State(s): State<Arc<Shared>>) -> Result<Json<serde_json::Value>, ApiError> {
-    use dioptra_rig::config::MarkerEvent;
-    let Some(patch) = &s.cfg.display.marker_patch else {
-        return Err(ApiError::new(
-            StatusCode::CONFLICT,
-            "the rig draws no marker patch: add display.marker_patch = { corner = \"top-left\", size = 8, toggle_on = [\"api-marker\"] }",
-        ));
-    };
-    if !patch.toggle_on.contains(&MarkerEvent::ApiMarker) {
-        return Err(ApiError::new(
-            StatusCode::CONFLICT,
-            "display.marker_patch.toggle_on does not name \"api-marker\", so an API marker would not show: add it there",
-        ));
-    }
-    let n = s.marker.api_marker();
-    Ok(Json(json!({ "markers": n })))
 }
 
 async fn websocket(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {

@@ -195,6 +195,17 @@ impl Daemon {
         let token = setup.cfg.api_token()?;
         let rig = Rig::start(setup).await?;
         let shared = rig.state().clone();
+        // A required device (every real port, unless the config says otherwise) must be
+        // there before the daemon takes commands.
+        let devices = shared.cfg.devices.list();
+        let timeout = shared.settings.link.connect_timeout;
+        if let Err(why) =
+            dioptra_rig::devices::wait_for_required(&shared.registry, &devices, timeout).await
+        {
+            shared.cancel.cancel();
+            let _ = rig.wait().await;
+            anyhow::bail!("{why}");
+        }
         let c = shared.cancel.clone();
         let bound = match listen {
             Listen::Tcp(addr) => tokio::net::TcpListener::bind(addr)

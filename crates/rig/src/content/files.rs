@@ -40,8 +40,8 @@ pub struct ContentStatus {
     pub since_ns: u64,
 }
 
-/// The files of a sequence, in order.
-fn expand(pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
+/// The files of a sequence, in order; `key` names the pattern's config key.
+fn expand(key: &'static str, pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
     let Some(at) = pattern.find('%') else {
         return Ok(vec![PathBuf::from(pattern)]);
     };
@@ -64,10 +64,13 @@ fn expand(pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
     }
     if paths.is_empty() {
         return Err(ContentError::File {
+            key,
+            reason: format!(
+                "{}: not found: the sequence's first file must exist (set content.first to its \
+                 number if it does not start at 0)",
+                name(first).display(),
+            ),
             path: name(first),
-            reason: "not found: the sequence's first file must exist (set content.first to \
-                     its number if it does not start at 0)"
-                .into(),
         });
     }
     Ok(paths)
@@ -79,18 +82,31 @@ fn decode(
     units: Option<DepthUnits>,
     size: (usize, usize),
 ) -> Result<Rgbd, ContentError> {
-    let err = |path: &Path, e: &dyn std::fmt::Display| ContentError::File {
-        path: path.to_path_buf(),
-        reason: e.to_string(),
+    // One message per file: the config key, then the path once (the readers' errors start
+    // with it), then why, in the config's words.
+    let err = |key: &'static str, path: &Path, e: &dyn std::fmt::Display| {
+        let shown = path.display().to_string();
+        let e = e.to_string().replace("--depth-units", "content.depth_units");
+        let reason = if e.starts_with(&shown) {
+            e
+        } else {
+            format!("{shown}: {e}")
+        };
+        ContentError::File {
+            key,
+            path: path.to_path_buf(),
+            reason,
+        }
     };
-    let c = read_color(color).map_err(|e| err(color, &e))?;
-    let d = read_depth(depth, units).map_err(|e| err(depth, &e))?;
+    let c = read_color(color).map_err(|e| err("content.color", color, &e))?;
+    let d = read_depth(depth, units).map_err(|e| err("content.depth", depth, &e))?;
     if (c.width(), c.height()) != size {
         return Err(err(
+            "content.color",
             color,
             &format!(
-                "{} x {} pixels, and display.width x display.height is {} x {}: set them to \
-                 the content's size",
+                "it is {} x {} pixels, and display.width x display.height is {} x {}: set them \
+                 to the content's size",
                 c.width(),
                 c.height(),
                 size.0,
@@ -98,7 +114,20 @@ fn decode(
             ),
         ));
     }
-    Rgbd::new(c, d).map_err(|e| err(depth, &format!("does not match its colour image: {e}")))
+    if (d.width(), d.height()) != (c.width(), c.height()) {
+        return Err(err(
+            "content.depth",
+            depth,
+            &format!(
+                "it is {} x {} pixels, and its colour image (content.color) {} x {}",
+                d.width(),
+                d.height(),
+                c.width(),
+                c.height()
+            ),
+        ));
+    }
+    Rgbd::new(c, d).map_err(|e| err("content.depth", depth, &e))
 }
 
 struct Shared {
@@ -160,8 +189,8 @@ impl FileFrames {
             .transpose()
             .map_err(|e| ContentError::Config(format!("content.depth_units: {e}")))?;
         let first = c.first.unwrap_or(0);
-        let colors = expand(color, first)?;
-        let depths = expand(depth, first)?;
+        let colors = expand("content.color", color, first)?;
+        let depths = expand("content.depth", depth, first)?;
         if colors.len() != depths.len() {
             return Err(ContentError::Config(format!(
                 "{} colour files ({color}) and {} depth files ({depth}): they must pair up",
@@ -490,6 +519,29 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("64 x 48") && e.contains("display.width"), "{e}");
+        // Each message names the config key and the path once (issue 39 item 2).
+        let once = |e: &str, key: &str, file: &str| {
+            assert!(e.starts_with(&format!("{key}: ")), "{e}");
+            assert_eq!(e.matches(file).count(), 1, "{e}");
+        };
+        let e = FileFrames::open(&config(dir.path(), "nope.png", "d_000.exr", ""))
+            .unwrap_err()
+            .to_string();
+        once(&e, "content.color", "nope.png");
+        assert!(e.contains("not found"), "{e}");
+        let e = FileFrames::open(&config(dir.path(), "c_000.exr", "small_d.exr", ""))
+            .unwrap_err()
+            .to_string();
+        once(&e, "content.depth", "small_d.exr");
+        assert!(e.contains("64 x 48 pixels") && e.contains("96 x 96"), "{e}");
+        // An 8-bit PNG depth: the fix in the config's words.
+        let eight = RgbImage::new(96, 96, [0.5, 0.5, 0.5]);
+        write_color(&dir.path().join("depth8.png"), &eight).unwrap();
+        let e = FileFrames::open(&config(dir.path(), "c_000.exr", "depth8.png", ""))
+            .unwrap_err()
+            .to_string();
+        once(&e, "content.depth", "depth8.png");
+        assert!(e.contains("content.depth_units") && !e.contains("--"), "{e}");
         // The config itself: files needs both paths.
         let text = crate::config::EXAMPLE_SIM_RIG.to_string() + "\n[content]\nsource = \"files\"\n";
         let e = RigConfig::parse(&text).unwrap_err();

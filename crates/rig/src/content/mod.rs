@@ -96,8 +96,11 @@ pub trait Content: Send + Sync + 'static {
 pub enum ContentError {
     #[error("content: {0}")]
     Config(String),
-    #[error("content: {path}: {reason}")]
+    /// A file the config names (`key`: `content.color`, ...) cannot be used; `reason` begins
+    /// with its path.
+    #[error("{key}: {reason}")]
     File {
+        key: &'static str,
         path: std::path::PathBuf,
         reason: String,
     },
@@ -124,9 +127,16 @@ pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, 
             let ring = cfg.content.ring_path(&cfg.api);
             let s =
                 stream::StreamFrames::open(d.width as usize, d.height as usize, ring.as_deref())
-                    .map_err(|e| ContentError::File {
-                        path: ring.clone().unwrap_or_else(|| "content.ring".into()),
-                        reason: format!("cannot create the shared-memory ring: {e}"),
+                    .map_err(|e| {
+                        let path = ring.clone().unwrap_or_default();
+                        ContentError::File {
+                            key: "content.ring",
+                            reason: format!(
+                                "{}: cannot create the shared-memory ring: {e}",
+                                path.display()
+                            ),
+                            path,
+                        }
                     })?;
             Arc::new(s)
         }

@@ -84,6 +84,72 @@ impl Registry {
     }
 }
 
+/// Waits up to `timeout` for every required device of `devices` to connect. The error names
+/// each one that did not: its config key, port, and why (a device path that does not exist
+/// fails at once).
+pub async fn wait_for_required(
+    registry: &Registry,
+    devices: &[crate::config::ConfiguredDevice],
+    timeout: Duration,
+) -> Result<(), String> {
+    let required: Vec<_> = devices.iter().filter(|d| d.required).collect();
+    let why_required = |d: &crate::config::ConfiguredDevice| {
+        format!(
+            "the rig requires it ({0}.required, true by default for a real port; set it to \
+             false to start without it, or port = \"sim\")",
+            d.section
+        )
+    };
+    let absent: Vec<String> = required
+        .iter()
+        .filter_map(|d| match &d.port {
+            Port::Path(p) if !p.exists() => Some(format!(
+                "{}.port = \"{}\": the {} device is not present (no such file); {}",
+                d.section,
+                p.display(),
+                d.name,
+                why_required(d)
+            )),
+            _ => None,
+        })
+        .collect();
+    if !absent.is_empty() {
+        return Err(absent.join("\n"));
+    }
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        let snap = registry.snapshot();
+        let missing: Vec<_> = required
+            .iter()
+            .filter(|d| snap.get(d.name).is_none_or(|s| s.state != State::Ok))
+            .collect();
+        if missing.is_empty() {
+            return Ok(());
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return Err(missing
+                .iter()
+                .map(|d| {
+                    let s = snap.get(d.name);
+                    format!(
+                        "{}.port = \"{}\": the {} device ({} driver) did not connect within {} s: \
+                         {}; {}",
+                        d.section,
+                        d.port,
+                        d.name,
+                        s.map_or("?", |s| s.driver.as_str()),
+                        timeout.as_secs_f64(),
+                        s.and_then(|s| s.last_error.as_deref()).unwrap_or("no answer"),
+                        why_required(d)
+                    )
+                })
+                .collect::<Vec<_>>()
+                .join("\n"));
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
 /// One device's entry in the [`Registry`].
 #[derive(Debug, Clone)]
 pub struct DeviceHandle {
