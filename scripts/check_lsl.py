@@ -9,7 +9,7 @@ focus and starts and stops a recording through the API, and checks:
 - gaze sample count against the tracker's rate, timestamps increasing and close to LSL's
   clock now (the outlet maps them from the host timeline);
 - the lens stream carries the manual focus as a command; the marker stream carries frames,
-  the control and the recording start and stop;
+  the control, the recording start and stop, and a lab's POST /marker;
 - SIGTERM ends the daemon with exit 0.
 
     pip install pylsl
@@ -142,6 +142,7 @@ def main():
             if not acted and time.time() > t_end - SECONDS / 2:
                 call(addr, "/focus", {"diopters": 2.0})
                 call(addr, "/recording/start", {"name": "lslcheck"})
+                marked = call(addr, "/marker", {"marker": {"trial": 3, "stimulus": "on"}})
                 time.sleep(0.3)
                 call(addr, "/recording/stop", {})
                 acted = True
@@ -183,6 +184,16 @@ def main():
         check(any(m["event"] == "recording_start" and m.get("name") == "lslcheck"
                   for m in marks), "markers have the recording start with its name")
         check("recording_stop" in events, "markers have the recording stop")
+        lab = [(m, t) for m, t in zip(marks, data["Markers"][1]) if m["event"] == "marker"]
+        check(len(lab) == 1 and lab[0][0]["marker"] == {"trial": 3, "stimulus": "on"},
+              f"markers have the POST /marker one: {lab}")
+        if lab and gaze:
+            # Its LSL time is the host time POST /marker answered, on the gaze stream's
+            # mapping from the host timeline (its host_time channel) to LSL's clock.
+            offset = gts[-1] - gaze[-1][host]
+            stamp = marked["host_ns"] / 1e9 + offset
+            check(abs(lab[0][1] - stamp) < 1e-3,
+                  f"the marker's LSL time is its host time ({lab[0][1] - stamp:+.6f} s)")
         status = call(addr, "/status")
         check(status["lsl"]["dropped"] == 0, f"/status lsl: {status['lsl']}")
     finally:

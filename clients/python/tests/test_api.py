@@ -7,7 +7,7 @@ import time
 import pytest
 
 from dioptra_client import (Dioptra, DioptraError, FocusEvent, FrameEvent, GazeEvent,
-                            LensEvent)
+                            LensEvent, MarkerEvent, NotSettled)
 
 
 def eventually(what, check, timeout=20.0):
@@ -95,12 +95,74 @@ def test_live_events_are_typed(client):
         assert isinstance(seen[LensEvent].power_d, float)
     with client.events([FocusEvent], timeout=10.0) as ev:
         client.set_focus(2.0)
-        f = next(ev)
+        # Gaze may command the lens between the subscription and the manual focus.
+        f = next(e for e in ev if e.reason == "manual")
         assert isinstance(f, FocusEvent) and abs(f.commanded_d - 2.0) < 1e-4
     client.release_focus()
     with client.events(["frame"], timeout=10.0) as ev:
         f = next(ev)
         assert isinstance(f, FrameEvent) and f.frame >= 0 and f.focus_d is not None
+
+
+def test_full_gaze_on_the_stream(client):
+    with client.events(["gaze"], timeout=10.0) as ev:
+        g = next(ev)
+    assert isinstance(g, GazeEvent)
+    for eye in (g.left, g.right):
+        assert len(eye.direction) == 3 and len(eye.origin_mm) == 3
+        assert 1.0 < eye.pupil_mm < 9.0
+    assert g.phase in ("fixation", "saccade", "pursuit", "blink", "lost", "unknown")
+    assert isinstance(g.device_ns, int) and isinstance(g.wall_ns, int)
+    assert g.vergence_d is None or isinstance(g.vergence_d, float)
+
+
+def test_wait_settled_returns_the_settled_read_back_at_the_target(client):
+    try:
+        client.set_focus(2.5)
+        e = client.wait_settled(timeout=10.0, target_d=2.5)
+        assert isinstance(e, LensEvent) and e.settled is True
+        assert e.target_d == 2.5 and abs(e.power_d - 2.5) < 0.02
+        assert client.status()["focus"]["lens_settled"] is True
+        # A target the lens was never sent to: no settled read-back there, NotSettled.
+        with pytest.raises(NotSettled) as err:
+            client.wait_settled(timeout=0.5, target_d=3.9)
+        assert "3.9" in str(err.value) and err.value.last is not None
+        assert isinstance(err.value, TimeoutError)
+    finally:
+        client.release_focus()
+
+
+def test_markers_are_streamed_recorded_and_stamped(client, binary):
+    import json
+    import subprocess
+    path = client.start_recording(name="markers", trial=1)
+    with client.events([MarkerEvent], timeout=10.0) as ev:
+        t1 = client.marker("stimulus_on")
+        t2 = client.marker({"event": "response", "key": "left", "rt_ms": 412})
+        m1, m2 = next(ev), next(ev)
+    client.stop_recording()
+    assert (m1.marker, m1.host_ns) == ("stimulus_on", t1)
+    assert (m2.marker, m2.host_ns) == ({"event": "response", "key": "left", "rt_ms": 412}, t2)
+    assert t2 >= t1
+    out = subprocess.run([str(binary), "replay", "--json", path], capture_output=True,
+                         text=True, timeout=120)
+    assert json.loads(out.stdout)["topics"]["/marker"] == 2, out.stderr
+    for bad in ("", "x" * 1025):
+        with pytest.raises(DioptraError) as e:
+            client.marker(bad)
+        assert e.value.status == 422 and e.value.key == "marker"
+
+
+def test_the_lens_stream_carries_target_and_settled(client):
+    with client.events(["lens"], timeout=10.0) as ev:
+        client.set_focus(1.0)
+        try:
+            for e in ev:
+                assert isinstance(e, LensEvent) and isinstance(e.power_d, float)
+                if e.target_d == 1.0 and e.settled:
+                    break
+        finally:
+            client.release_focus()
 
 
 def test_frame_calls_need_a_streaming_rig(client):

@@ -321,6 +321,11 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         .with_context(|| format!("unknown mode {:?} in the recording", start.mode))?;
     cfg.method = Method::parse(&start.method)
         .with_context(|| format!("unknown method {:?} in the recording", start.method))?;
+    // Streamed content is replayed from its recorded depths: no shared-memory ring (one at the
+    // recorded path could be a running daemon's).
+    if cfg.content.source == ContentSource::Stream {
+        cfg.content.ring = Some(PathBuf::from("none"));
+    }
     // A recording without scene times is of a still scene (made before the scene moved, or
     // with content.animate = false).
     let animated = rec

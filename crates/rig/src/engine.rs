@@ -206,19 +206,17 @@ impl Engine {
                 Control::Mode(m) => {
                     // The current method if the new mode renders it, else the mode's default
                     // (from multifocal with the network, lightfield mode shows views: C5 is
-                    // not rendered by the daemon).
+                    // not rendered by the daemon). Missing weights refuse the switch.
                     let current = self.method();
-                    let usable = |method: Method| {
-                        method
-                            .unavailable(m)
-                            .or_else(|| self.network_missing(m, method))
-                    };
-                    let method = if current.fits(m) && usable(current).is_none() {
+                    let method = if current.fits(m) && current.unavailable(m).is_none() {
                         current
                     } else {
                         Method(RenderMethod::default_for(m.sched()))
                     };
-                    if let Some(why) = usable(method) {
+                    if let Some(why) = method
+                        .unavailable(m)
+                        .or_else(|| self.network_missing(m, method))
+                    {
                         return Err(format!(
                             "{} mode would render with {}, and {why}",
                             m.as_str(),

@@ -399,6 +399,7 @@ impl RigState {
                     .then(|| status.subframes_off_target as f64 / status.subframes_measured as f64),
                 "tolerance_d": SUBFRAME_TOLERANCE_D,
                 "faults": status.subframe_faults,
+                "lens_measured_by": self.subframe_measurement(),
             },
             "render_errors": {
                 "by_method": status.render_errors_by_method,
@@ -513,6 +514,21 @@ impl RigState {
             }
         }
         out
+    }
+
+    /// What measures the multifocal lens at each sub-frame (`/status` `subframes`): the
+    /// dioptra sync board reads it back; a DLPC350 only sequences, so nothing confirms the
+    /// planes were reached and `measured` stays 0.
+    fn subframe_measurement(&self) -> Option<&'static str> {
+        let sync = self.cfg.devices.sync.as_ref()?;
+        Some(match sync.driver {
+            config::SyncDriver::Sync => "the sync board's lens read-back at each sub-frame",
+            config::SyncDriver::Dlpc350 => {
+                "nothing: the DLPC350 sequences the planes but reports no lens power, so \
+                 measured stays 0; a photodiode or the lens's own read-back is needed to \
+                 confirm the planes were reached"
+            }
+        })
     }
 
     /// Hands a command to the loop and waits for its answer.
@@ -665,11 +681,7 @@ impl RigState {
         let path = r.path().display().to_string();
         self.publish(|| json!({ "type": "recording", "event": "stop", "path": path }));
         if let Some(l) = &self.lsl {
-            l.marker(
-                self.clock.now(),
-                "recording_stop",
-                json!({ "path": path }),
-            );
+            l.marker(self.clock.now(), "recording_stop", json!({ "path": path }));
         }
         r.finish().await.map_err(|e| ControlError::Failed {
             what: "cannot finish the recording".into(),

@@ -30,6 +30,8 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
         Box::new(Status {
             state: state.clone(),
             error_log: HashMap::new(),
+            scheduler_at: None,
+            scheduler_due: false,
         }),
         Box::new(WebSocket(state.clone())),
     ];
@@ -177,9 +179,23 @@ struct Status {
     state: Arc<RigState>,
     /// Per (method, error kind): when it was last logged, and how many since.
     error_log: HashMap<(String, &'static str), (Timestamp, u64)>,
+    /// When `/status`'s scheduler part was last made, and whether steps since wait for it.
+    scheduler_at: Option<Timestamp>,
+    scheduler_due: bool,
 }
 
+/// `/status`'s scheduler part (counters, latency percentiles) is made at most this often:
+/// after every step it cost the loop most of a core in a debug build, starving the devices'
+/// inputs (lens read-backs) on a loaded machine.
+const SCHEDULER_STATUS_EVERY: std::time::Duration = std::time::Duration::from_millis(20);
+
 impl Status {
+    fn refresh_scheduler(&mut self, now: Timestamp, engine: &Engine) {
+        lock(&self.state.status).scheduler = engine.status();
+        self.scheduler_at = Some(now);
+        self.scheduler_due = false;
+    }
+
     fn modes(&self, engine: &Engine) {
         let mut st = lock(&self.state.status);
         st.mode = Some(engine.mode());
@@ -281,6 +297,8 @@ impl LoopHook for Status {
     }
     fn control(&mut self, _now: Timestamp, _cmd: &Control, engine: &Engine) {
         self.modes(engine);
+        // An API change shows in the scheduler part at the step's end.
+        self.scheduler_at = None;
     }
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
         let mut st = lock(&self.state.status);
@@ -336,8 +354,25 @@ impl LoopHook for Status {
         st.frames_shown = sink.shown();
         st.display = sink.status();
     }
-    fn stepped(&mut self, _now: Timestamp, engine: &Engine) {
-        lock(&self.state.status).scheduler = engine.status();
+    fn stepped(&mut self, now: Timestamp, engine: &Engine) {
+        let fresh = self
+            .scheduler_at
+            .is_some_and(|t| now.saturating_since(t) < SCHEDULER_STATUS_EVERY);
+        if fresh && !self.scheduler_due {
+            self.scheduler_due = true;
+        } else if !fresh {
+            self.refresh_scheduler(now, engine);
+        }
+    }
+    fn next_wakeup(&self) -> Option<Timestamp> {
+        let at = self.scheduler_at?;
+        self.scheduler_due
+            .then(|| at.saturating_add(SCHEDULER_STATUS_EVERY))
+    }
+    fn wake(&mut self, now: Timestamp, engine: &Engine) {
+        if self.scheduler_due {
+            self.refresh_scheduler(now, engine);
+        }
     }
     fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
         lock(&self.state.status).scheduler = engine.status();

@@ -861,6 +861,8 @@ async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let mut cfg = sim_config(dir.path(), false);
     let missing = dir.path().join("ttyACM-missing");
     cfg.devices.lens.first_mut().port = dioptra_rig::config::Port::Path(missing.clone());
+    // Not required: the rig starts without it (a required one stops the start, below).
+    cfg.devices.lens.first_mut().required = Some(false);
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let lens = eventually("a failed lens connect", || {
@@ -1133,7 +1135,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     .await;
     // The network does not render light fields (C5) in the daemon: refused, with why.
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
-    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
     stop(d).await;
 }
 
@@ -1187,7 +1189,7 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
     assert_eq!(s, StatusCode::OK);
     assert_eq!(status_of(&d)["method"], json!("linear"));
     let (s, v) = call(&app, "POST", "/method", "{\"method\": \"auto\"}").await;
-    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
     assert_eq!(v["key"], json!("method"));
     stop(d).await;
 }
@@ -2130,4 +2132,331 @@ async fn an_api_marker_toggles_the_patch_once() {
         );
         stop(d).await;
     }
+}
+
+/// Every duration in `/status` is a number with its unit in its name (issue 39): none comes
+/// out as serde's `{"secs", "nanos"}`.
+#[tokio::test(start_paused = true)]
+async fn status_durations_are_numbers_named_with_their_unit() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let v = after_frames(&d, 3).await;
+    fn walk(v: &Value, at: &str, bad: &mut Vec<String>) {
+        match v {
+            Value::Object(o) => {
+                if o.contains_key("secs") || o.contains_key("nanos") {
+                    bad.push(at.to_string());
+                }
+                for (k, x) in o {
+                    walk(x, &format!("{at}.{k}"), bad);
+                }
+            }
+            Value::Array(a) => a
+                .iter()
+                .enumerate()
+                .for_each(|(i, x)| walk(x, &format!("{at}[{i}]"), bad)),
+            _ => {}
+        }
+    }
+    let mut bad = Vec::new();
+    walk(&v, "", &mut bad);
+    assert!(bad.is_empty(), "durations as {{secs, nanos}} at {bad:?}");
+    assert_eq!(v["device_tasks"]["lens_poll_ms"], json!(10.0), "{v}");
+    assert_eq!(v["device_tasks"]["link"]["backoff_min_ms"], json!(100.0));
+    stop(d).await;
+}
+
+/// Item 4: a required device (a real port, by default) that is not there stops `serve`
+/// before it takes commands, naming the key; `required = false` starts without it.
+#[tokio::test(start_paused = true)]
+async fn a_required_device_that_is_absent_stops_the_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.devices.lens.port = dioptra_rig::config::Port::Path(dir.path().join("ttyACM-missing"));
+    let e = match Daemon::start_config(cfg.clone()).await {
+        Ok(_) => panic!("started without its required lens"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(
+        e.contains("devices.lens.port") && e.contains("ttyACM-missing"),
+        "{e}"
+    );
+    assert!(e.contains("devices.lens.required"), "{e}");
+    cfg.devices.lens.required = Some(false);
+    let d = Daemon::start_config(cfg).await.unwrap();
+    d.cancel_token().cancel();
+    // It could not park a lens it never reached, and says so.
+    assert!(!d.wait().await.ok());
+}
+
+/// Item 4: while a required lens is down, `POST /focus` answers 503 with why (the focus
+/// would not be shown); handing focus back to gaze still works; once the lens is back,
+/// focus works again.
+#[tokio::test(start_paused = true)]
+async fn while_a_required_lens_is_down_focus_answers_503() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.devices.lens.required = Some(true);
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let state = || sh.registry.snapshot().get("lens").map(|s| s.state);
+    // A required device is up before the daemon takes commands.
+    assert_eq!(state(), Some(State::Ok));
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 1.0}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/sim/lens/unplug", "").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    eventually("the lens to be lost", || {
+        (state() == Some(State::Lost)).then_some(())
+    })
+    .await;
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 2.0}").await;
+    assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE, "{v}");
+    assert_eq!(v["key"], json!("diopters"));
+    let err = v["error"].as_str().unwrap();
+    assert!(
+        err.contains("devices.lens") && err.contains("lost"),
+        "{err}"
+    );
+    assert_eq!(status_of(&d)["focus"]["manual_d"], json!(1.0));
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": null}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/sim/lens/replug", "").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    eventually("the lens to reconnect", || {
+        (state() == Some(State::Ok)).then_some(())
+    })
+    .await;
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 2.0}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    stop(d).await;
+}
+
+/// Items 6 and 7: a negative trial and a focus body without `diopters` are refused, saying
+/// what is expected.
+#[tokio::test(start_paused = true)]
+async fn a_bad_trial_and_a_focus_without_diopters_are_refused_with_the_fix() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let app = api::router(d.shared().clone());
+    for (path, body, key, words) in [
+        (
+            "/recording/start",
+            "{\"trial\": -1}",
+            "trial",
+            "a trial number",
+        ),
+        ("/recording/start", "{\"trial\": 2.5}", "trial", "0 or more"),
+        ("/focus", "{}", "diopters", "diopters is required"),
+    ] {
+        let (s, v) = call(&app, "POST", path, body).await;
+        assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{body}: {v}");
+        assert_eq!(v["key"], json!(key), "{body}: {v}");
+        let err = v["error"].as_str().unwrap();
+        assert!(err.contains(words) && !err.contains("untagged"), "{err}");
+    }
+    assert!(status_of(&d)["recording"].is_null());
+    let (s, v) = call(&app, "POST", "/recording/start", "{\"trial\": \"3b\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert!(v["recording"].as_str().unwrap().ends_with("-trial-3b.mcap"));
+    let (s, _) = call(&app, "POST", "/recording/stop", "").await;
+    assert_eq!(s, StatusCode::OK);
+    stop(d).await;
+}
+
+/// The next `/stream` message of `type` (within 20 s of simulated time).
+async fn next_of(rx: &mut tokio::sync::broadcast::Receiver<Arc<str>>, kind: &str) -> Value {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+    loop {
+        let m = tokio::time::timeout_at(deadline, rx.recv())
+            .await
+            .unwrap_or_else(|_| panic!("no {kind} message within 20 s"));
+        let Ok(text) = m else { continue };
+        let v: Value = serde_json::from_str(&text).unwrap();
+        if v["type"] == json!(kind) {
+            return v;
+        }
+    }
+}
+
+/// `POST /marker`: recorded (`/marker`), streamed, stamped with the host time it returns;
+/// anything but a text or an object is refused.
+#[tokio::test(start_paused = true)]
+async fn a_marker_is_recorded_and_streamed_with_its_host_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    for body in [
+        "{\"marker\": 3}",
+        "{\"marker\": \"\"}",
+        "{\"marker\": [1]}",
+        "{\"marker\": null}",
+        "{}",
+    ] {
+        let (s, v) = call(&app, "POST", "/marker", body).await;
+        assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{body}: {v}");
+    }
+    let long = format!("{{\"marker\": \"{}\"}}", "x".repeat(1025));
+    let (s, _) = call(&app, "POST", "/marker", &long).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY);
+    let (s, v) = call(&app, "POST", "/recording/start", "{\"trial\": 1}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let path = v["recording"].as_str().unwrap().to_string();
+    let mut rx = sh.websocket.subscribe();
+    let (s, v) = call(&app, "POST", "/marker", "{\"marker\": \"stimulus_on\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let t1 = v["host_ns"].as_u64().unwrap();
+    let streamed = next_of(&mut rx, "marker").await;
+    assert_eq!(streamed["marker"], json!("stimulus_on"));
+    assert_eq!(streamed["host_ns"], json!(t1));
+    let (s, v) = call(
+        &app,
+        "POST",
+        "/marker",
+        "{\"marker\": {\"event\": \"response\", \"key\": \"left\"}}",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let t2 = v["host_ns"].as_u64().unwrap();
+    assert!(t2 >= t1);
+    let (s, _) = call(&app, "POST", "/recording/stop", "").await;
+    assert_eq!(s, StatusCode::OK);
+    let rec = dioptra_rig::recording::read(Path::new(&path)).unwrap();
+    let markers: Vec<_> = rec
+        .messages
+        .iter()
+        .filter_map(|(t, r)| match r {
+            dioptra_rig::recording::Rec::Marker(m) => Some((t.0, m.marker.clone())),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        markers,
+        [
+            (t1, json!("stimulus_on")),
+            (t2, json!({"event": "response", "key": "left"}))
+        ]
+    );
+    stop(d).await;
+}
+
+/// `/stream` carries full gaze (pupil, eye position, phase, vergence) and lens read-backs
+/// with their target and whether the lens settled there; a manual focus ends with a
+/// read-back settled at it.
+#[tokio::test(start_paused = true)]
+async fn the_stream_has_full_gaze_and_lens_targets_and_settling() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = Daemon::start_config(sim_config(dir.path(), false))
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let mut rx = sh.websocket.subscribe();
+    let g = next_of(&mut rx, "gaze").await;
+    for eye in ["left", "right"] {
+        assert_eq!(g[eye]["direction"].as_array().map(Vec::len), Some(3), "{g}");
+        assert_eq!(g[eye]["origin_mm"].as_array().map(Vec::len), Some(3), "{g}");
+        assert!(g[eye]["pupil_mm"].as_f64().unwrap() > 1.0, "{g}");
+        assert!(g[eye]["valid"].is_boolean(), "{g}");
+    }
+    assert!(g["phase"].is_string() && g["device_ns"].is_u64(), "{g}");
+    assert!(g.get("vergence_d").is_some(), "{g}");
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 2.5}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    // Read-backs on the way carry the new target; the lens gets there and says so.
+    let settled = loop {
+        let l = next_of(&mut rx, "lens").await;
+        assert!(l["power_d"].is_f64(), "{l}");
+        if l["target_d"] == json!(2.5) && l["settled"] == json!(true) {
+            break l;
+        }
+    };
+    assert!((settled["power_d"].as_f64().unwrap() - 2.5).abs() < 0.02);
+    assert_eq!(status_of(&d)["focus"]["lens_settled"], json!(true));
+    stop(d).await;
+}
+
+/// Items 8 and 9: multifocal mode holds the varifocal lens inside its range, frame messages
+/// carry each layer's plane, `/focus` says what it does there, and the way out of
+/// multifocal is direct (any mode; the methods it refuses are 409 like the rest).
+#[tokio::test(start_paused = true)]
+async fn multifocal_mode_says_what_it_shows_and_lets_the_rig_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = sim_config(dir.path(), false);
+    cfg.mode = dioptra_rig::config::Mode::Multifocal;
+    cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Linear);
+    let planes = cfg.optics.planes.clone();
+    let range = cfg.optics.lens_range;
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let mut rx = sh.websocket.subscribe();
+    let mut layers = std::collections::BTreeSet::new();
+    while layers.len() < planes.len() {
+        let f = next_of(&mut rx, "frame").await;
+        let layer = f["layer"].as_u64().expect("a layer") as usize;
+        assert_eq!(f["focus_d"].as_f64().unwrap() as f32, planes[layer], "{f}");
+        layers.insert(layer);
+    }
+    let sub = next_of(&mut rx, "subframe").await;
+    let plane = sub["plane"].as_u64().unwrap() as usize;
+    assert_eq!(
+        sub["plane_d"].as_f64().unwrap() as f32,
+        planes[plane],
+        "{sub}"
+    );
+    let lens = eventually("a lens read-back", || {
+        status_of(&d)["focus"]["lens_d"].as_f64()
+    })
+    .await as f32;
+    assert!(
+        (range.min - 0.03..=range.max + 0.03).contains(&lens),
+        "{lens} D outside {range:?}"
+    );
+    let v = status_of(&d);
+    assert!(v["subframes"]["lens_measured_by"]
+        .as_str()
+        .unwrap()
+        .contains("sync board"));
+    let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 1.0}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert!(v["effect"].as_str().unwrap().contains("planes"), "{v}");
+    for m in ["gather", "auto", "views"] {
+        let (s, v) = call(&app, "POST", "/method", &format!("{{\"method\": \"{m}\"}}")).await;
+        assert_eq!(s, StatusCode::CONFLICT, "{m}: {v}");
+        assert!(v["error"].as_str().unwrap().contains("POST /mode"), "{v}");
+    }
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(v["method"], json!("views"));
+    stop(d).await;
+}
+
+/// Item 8 with the network: from multifocal (C4), light-field mode is one request away
+/// (it renders views: the daemon does not run C5), not a 409.
+#[tokio::test(start_paused = true)]
+async fn from_multifocal_with_the_network_lightfield_is_one_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = dir.path().join("weights");
+    random_weights(&weights);
+    let mut cfg = network_config(dir.path(), &weights);
+    cfg.mode = dioptra_rig::config::Mode::Multifocal;
+    let d = Daemon::start_config(cfg).await.unwrap();
+    let app = api::router(d.shared().clone());
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"lightfield\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    assert_eq!(v["method"], json!("views"));
+    let (s, v) = call(&app, "POST", "/mode", "{\"mode\": \"multifocal\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, v) = call(&app, "POST", "/method", "{\"method\": \"network\"}").await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    stop(d).await;
 }

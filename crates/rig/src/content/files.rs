@@ -86,7 +86,10 @@ fn decode(
     // with it), then why, in the config's words.
     let err = |key: &'static str, path: &Path, e: &dyn std::fmt::Display| {
         let shown = path.display().to_string();
-        let e = e.to_string().replace("--depth-units", "content.depth_units");
+        let e = e
+            .to_string()
+            .replace("pass --depth-units", "set content.depth_units")
+            .replace("--depth-units", "content.depth_units");
         let reason = if e.starts_with(&shown) {
             e
         } else {
@@ -541,7 +544,10 @@ mod tests {
             .unwrap_err()
             .to_string();
         once(&e, "content.depth", "depth8.png");
-        assert!(e.contains("content.depth_units") && !e.contains("--"), "{e}");
+        assert!(
+            e.contains("content.depth_units") && !e.contains("--"),
+            "{e}"
+        );
         // The config itself: files needs both paths.
         let text = crate::config::EXAMPLE_SIM_RIG.to_string() + "\n[content]\nsource = \"files\"\n";
         let e = RigConfig::parse(&text).unwrap_err();

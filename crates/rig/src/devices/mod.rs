@@ -139,7 +139,8 @@ pub async fn wait_for_required(
                         d.name,
                         s.map_or("?", |s| s.driver.as_str()),
                         timeout.as_secs_f64(),
-                        s.and_then(|s| s.last_error.as_deref()).unwrap_or("no answer"),
+                        s.and_then(|s| s.last_error.as_deref())
+                            .unwrap_or("no answer"),
                         why_required(d)
                     )
                 })
@@ -194,9 +195,12 @@ impl DeviceHandle {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct LinkPolicy {
     /// First wait after a failed connect or a loss; doubles per failure up to `backoff_max`.
+    #[serde(rename = "backoff_min_ms", serialize_with = "as_ms")]
     pub backoff_min: Duration,
+    #[serde(rename = "backoff_max_ms", serialize_with = "as_ms")]
     pub backoff_max: Duration,
     /// A connect attempt that takes longer is abandoned and retried.
+    #[serde(rename = "connect_timeout_ms", serialize_with = "as_ms")]
     pub connect_timeout: Duration,
     /// This many timeouts in a row mean the device stopped answering: the link is lost.
     pub timeouts_lost: u32,
@@ -228,13 +232,21 @@ impl LinkPolicy {
     }
 }
 
+/// A duration in `/status` and recordings: milliseconds, a plain number (the field's name
+/// says the unit), not serde's `{"secs", "nanos"}`.
+fn as_ms<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_f64(d.as_secs_f64() * 1e3)
+}
+
 /// The device tasks' settings, from the rig config.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct DeviceSettings {
     pub link: LinkPolicy,
     /// How often the lens task reads the lens back.
+    #[serde(rename = "lens_poll_ms", serialize_with = "as_ms")]
     pub lens_poll: Duration,
     /// How long parking may take at shutdown before the rig stops without it.
+    #[serde(rename = "park_timeout_ms", serialize_with = "as_ms")]
     pub park_timeout: Duration,
 }
 
