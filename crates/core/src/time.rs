@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 
 /// Nanoseconds on one host-side monotonic timeline.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct Timestamp(pub u64);
 
 impl Timestamp {

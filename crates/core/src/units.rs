@@ -7,6 +7,7 @@ macro_rules! unit {
     ($(#[$m:meta])* $name:ident, $suffix:literal) => {
         $(#[$m])*
         #[derive(Debug, Clone, Copy, PartialEq, PartialOrd, Default)]
+        #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
         pub struct $name(pub f32);
 
         impl $name {

@@ -7,7 +7,7 @@ use std::time::Duration;
 use dioptra_core::{Diopters, Timestamp};
 
 /// How the lens responds to a command.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LensDynamics {
     /// Time for a step to settle within 2 % of its size.
     pub settle_time: Duration,
@@ -38,7 +38,7 @@ impl LensDynamics {
 }
 
 /// Position and velocity relative to a target.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 struct Motion {
     t: Timestamp,
     power: f64,
@@ -50,7 +50,7 @@ struct Motion {
 const MAX_PENDING: usize = 8;
 
 /// Predicts lens power at future times from the commands sent so far.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct LensPredictor {
     dynamics: LensDynamics,
     omega: f64,

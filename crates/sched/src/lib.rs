@@ -66,7 +66,7 @@ pub use latency::{Latency, Stage};
 pub use lens::{LensDynamics, LensPredictor};
 pub use scheduler::{
     Command, CommandId, Counters, Event, FocusReason, FrameId, FrameRequest, LensId, LensStatus,
-    LinkStatus, Scheduler, Status, MAX_LENSES,
+    LinkStatus, RestoreError, Scheduler, Status, MAX_LENSES,
 };
 
 #[cfg(test)]

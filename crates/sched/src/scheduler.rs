@@ -13,11 +13,35 @@ use crate::processing::{Angles, EyePhase, GazeProcessor, GazeState};
 
 /// A frame's number. Whole-frame modes count display slots from 0; in multifocal mode it is
 /// the sync hardware's frame number.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+)]
 pub struct FrameId(pub u64);
 
 /// Names one lens command, so the executor can report when it went on the wire.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    PartialOrd,
+    Ord,
+    Hash,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+)]
 pub struct CommandId(pub u64);
 
 /// Which lens: 0 is the rig's only lens (or the left eye's), 1 the right eye's.
@@ -33,7 +57,7 @@ impl LensId {
 }
 
 /// Whether the lens's link is up, as the executor last reported.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 pub enum LinkStatus {
     #[default]
     Connected,
@@ -175,7 +199,7 @@ pub enum Command {
 }
 
 /// Running totals.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Counters {
     pub gaze_samples: u64,
     pub saccades: u64,
@@ -240,7 +264,7 @@ pub struct LensStatus {
 }
 
 /// One lens's link, model and command in flight.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 struct LensTrack {
     model: LensPredictor,
     link: LinkStatus,
@@ -251,7 +275,7 @@ struct LensTrack {
 }
 
 /// The command whose latency is being followed.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct Tracked {
     id: CommandId,
     power: Diopters,
@@ -262,7 +286,7 @@ struct Tracked {
     settled: bool,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct InFlight {
     frame: FrameId,
     gaze_time: Option<Timestamp>,
@@ -270,7 +294,7 @@ struct InFlight {
     content_time: Option<Timestamp>,
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct Ready {
     frame: FrameId,
     at: Timestamp,
@@ -282,7 +306,7 @@ struct Ready {
 const READY_KEPT: usize = 4;
 
 /// Whole-frame display clock: slot k's vsync is `base + (k - base_slot) * period`.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct FrameClock {
     base: Timestamp,
     base_slot: u64,
@@ -290,14 +314,31 @@ struct FrameClock {
     next_vsync: u64,
 }
 
+/// Why [`Scheduler::restore`] failed.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RestoreError {
+    #[error("{0}")]
+    Config(ConfigError),
+    #[error("the scheduler state does not fit this version of the scheduler: {0}")]
+    State(String),
+}
+
 /// The sans-IO scheduler. See the crate documentation.
-#[derive(Debug, Clone)]
+///
+/// Its state is data (serde): [`Scheduler::state`] and [`Scheduler::restore`] carry it into a
+/// recording started mid-run, so a replay starts where the run was. Not in it: the config
+/// (the rig config makes it again; mode and method are given to `restore`), the depth map (the
+/// content gives it again) and the latency statistics (they start afresh).
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct Scheduler {
+    #[serde(skip, default = "placeholder_config")]
     cfg: SchedulerConfig,
     processor: GazeProcessor,
     /// Each lens, by [`LensId`].
     lenses: Vec<LensTrack>,
+    #[serde(skip, default = "fresh_latency")]
     latency: Latency,
+    #[serde(skip)]
     depth: Option<Arc<DepthMap>>,
     /// Arrival of a content frame that no requested frame shows yet.
     content_new: Option<Timestamp>,
@@ -339,7 +380,46 @@ fn since(later: Timestamp, earlier: Timestamp) -> Duration {
     later.saturating_since(earlier)
 }
 
+/// Replaced by [`Scheduler::restore`] before a restored scheduler is used.
+fn placeholder_config() -> SchedulerConfig {
+    SchedulerConfig::new(Mode::Varifocal)
+}
+
+fn fresh_latency() -> Latency {
+    // The histograms' bounds are constants that Latency::new's tests create.
+    Latency::new().expect("the latency histograms' constant bounds")
+}
+
 impl Scheduler {
+    /// The scheduler's state without its config, depth map and latency statistics: give it to
+    /// [`Scheduler::restore`] (through any serde format that keeps `f64`s exact).
+    pub fn state(&self) -> &impl serde::Serialize {
+        self
+    }
+
+    /// The scheduler whose [`Scheduler::state`] was `state`, running `cfg` with the `mode`
+    /// and `method` it had then (the API may have changed them since start) and the `depth`
+    /// map it had (the content's frame then).
+    pub fn restore<'de, D: serde::Deserializer<'de>>(
+        cfg: SchedulerConfig,
+        mode: Mode,
+        method: RenderMethod,
+        depth: Option<Arc<DepthMap>>,
+        state: D,
+    ) -> Result<Self, RestoreError> {
+        cfg.validate().map_err(RestoreError::Config)?;
+        let mut s: Scheduler = serde::Deserialize::deserialize(state)
+            .map_err(|e: D::Error| RestoreError::State(e.to_string()))?;
+        s.cfg = SchedulerConfig {
+            mode,
+            method,
+            ..cfg
+        };
+        s.depth = depth;
+        s.cfg.validate().map_err(RestoreError::Config)?;
+        Ok(s)
+    }
+
     /// A scheduler for `cfg`; the error names the bad setting.
     pub fn new(cfg: SchedulerConfig) -> Result<Self, ConfigError> {
         cfg.validate()?;

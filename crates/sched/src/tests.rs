@@ -359,13 +359,16 @@ fn multifocal_holds_an_uncommanded_lens_at_the_park_power_once() {
     cfg.park_power = Diopters(0.5);
     let mut s = Scheduler::new(cfg).unwrap();
     let relaxed = |ms: u64| {
-        Event::LensState(LensState {
+        Event::LensState(
+            LensId::FIRST,
+            LensState {
             power: Diopters(-2.0),
             current_ma: Some(0.0),
             temperature_c: None,
             settled: None,
             host_time: Timestamp::from_millis(ms),
-        })
+            },
+        )
     };
     let mut out = Vec::new();
     s.step(Timestamp::from_millis(1), relaxed(1), &mut out);
@@ -861,4 +864,129 @@ fn two_lenses_follow_one_fixation_and_a_lost_one_holds_only_itself() {
     let c = gaze(&mut one, sample(0, -5.0, 0.0, 2.0, true));
     assert_eq!(lens_commands_of(&c).len(), 1);
     assert!(one.status().lenses[1].is_none());
+}
+
+/// A scheduler restored from its state (through JSON, as a recording started mid-run carries
+/// it) answers every later event with the same commands as the one it was taken from (issue
+/// 39 item 5), through saccades, lens read-backs, renders, a manual focus and a method change.
+#[test]
+fn a_restored_scheduler_continues_exactly_where_its_state_was_taken() {
+    let cfg = SchedulerConfig::new(Mode::Varifocal);
+    let mut live = Scheduler::new(cfg.clone()).unwrap();
+    // 3 s of events: fixations alternating between the 2 D and 0.5 D halves, a saccade
+    // between them every 400 ms, read-backs every 10 ms, renders finishing 4 ms after each
+    // request; manual focus at 1.2 s, back to gaze at 1.6 s, another method at 2.4 s.
+    let mut events: Vec<(Timestamp, Event)> = vec![(Timestamp::ZERO, Event::Depth(split_depth()))];
+    let mut requested: Vec<(Timestamp, FrameId)> = Vec::new();
+    let yaw_at = |t_us: u64| {
+        let k = t_us / 400_000;
+        let (from, to) = if k % 2 == 0 {
+            (-10.0, 10.0)
+        } else {
+            (10.0, -10.0)
+        };
+        let into = (t_us % 400_000) as f64 / 40_000.0;
+        from + (to - from) * min_jerk(into)
+    };
+    for t_us in (0..3_000_000u64).step_by(2_000) {
+        let g = sample(t_us, yaw_at(t_us), 0.0, 1.0, true);
+        events.push((g.host_receive_time, Event::Gaze(g)));
+        if t_us % 10_000 == 0 {
+            let t = Timestamp::from_micros(t_us + 300);
+            events.push((
+                t,
+                Event::LensState(
+            LensId::FIRST,
+            LensState {
+                    power: Diopters(0.5 + (t_us % 70_000) as f32 * 1e-5),
+                    current_ma: None,
+                    temperature_c: None,
+                    settled: None,
+                    host_time: t,
+                    },
+                ),
+            ));
+        }
+        match t_us {
+            1_200_000 => events.push((
+                Timestamp::from_micros(t_us + 500),
+                Event::ManualFocus(Some(Diopters(1.5))),
+            )),
+            1_600_000 => {
+                events.push((Timestamp::from_micros(t_us + 500), Event::ManualFocus(None)))
+            }
+            2_400_000 => events.push((
+                Timestamp::from_micros(t_us + 500),
+                Event::SetMethod(RenderMethod::LightFieldDefocus),
+            )),
+            _ => {}
+        }
+    }
+    events.sort_by_key(|(t, _)| *t);
+    // Steps `s` through `events`, finishing each render 4 ms after its request.
+    let run = |s: &mut Scheduler,
+               events: &[(Timestamp, Event)],
+               pending: &mut Vec<(Timestamp, FrameId)>| {
+        let mut all = Vec::new();
+        for (t, e) in events {
+            let mut out = Vec::new();
+            while let Some(&(due, frame)) = pending.first().filter(|(due, _)| *due <= *t) {
+                pending.remove(0);
+                let method = s.status().method;
+                s.step(
+                    due,
+                    Event::RenderFinished {
+                        frame,
+                        method,
+                        render_time: Duration::from_millis(4),
+                    },
+                    &mut out,
+                );
+            }
+            s.step(*t, e.clone(), &mut out);
+            for c in &out {
+                if let Command::RenderFrame(r) = c {
+                    pending.push((*t + Duration::from_millis(4), r.frame));
+                }
+            }
+            all.extend(out);
+        }
+        all
+    };
+    // Mid-fixation, after its lens command: the restored scheduler must know the lens is
+    // there (within the deadband) and not command it again.
+    let half = events
+        .iter()
+        .position(|(t, _)| *t >= Timestamp::from_millis(1_000))
+        .unwrap();
+    run(&mut live, &events[..half], &mut requested);
+    let json = serde_json::to_string(live.state()).unwrap();
+    let status = live.status();
+    // The depth map is the content's: given again, as a replay gives it.
+    let mut restored = Scheduler::restore(
+        cfg,
+        status.mode,
+        status.method,
+        Some(split_depth()),
+        &mut serde_json::Deserializer::from_str(&json),
+    )
+    .unwrap();
+    let mut requested_restored = requested.clone();
+    let a = run(&mut live, &events[half..], &mut requested);
+    let b = run(&mut restored, &events[half..], &mut requested_restored);
+    assert!(lens_commands(&a).len() >= 4, "{:?}", lens_commands(&a));
+    assert!(a.iter().any(|c| matches!(c, Command::RenderFrame(_))));
+    assert_eq!(live.status().method, RenderMethod::LightFieldDefocus);
+    assert_eq!(a, b);
+    assert_eq!(live.status(), restored.status());
+    // State of another shape is refused, saying so.
+    let e = Scheduler::restore(
+        SchedulerConfig::new(Mode::Varifocal),
+        Mode::Varifocal,
+        RenderMethod::Gather,
+        None,
+        &mut serde_json::Deserializer::from_str("{\"processor\": 3}"),
+    )
+    .unwrap_err();
+    assert!(matches!(e, RestoreError::State(_)), "{e}");
 }

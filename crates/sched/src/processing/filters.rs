@@ -2,7 +2,7 @@
 //! speed, so fixations are smoothed hard while fast movements pass with little lag.
 
 /// One-euro filter settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OneEuroConfig {
     /// Cutoff at rest, Hz: lower smooths fixations more.
     pub min_cutoff_hz: f64,
@@ -24,7 +24,7 @@ impl Default for OneEuroConfig {
 }
 
 /// A scalar one-euro filter over irregularly timed samples.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OneEuro {
     cfg: OneEuroConfig,
     /// (last time s, filtered value, filtered derivative)

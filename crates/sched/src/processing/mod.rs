@@ -29,7 +29,7 @@ use saccades::{SaccadeConfig, SaccadeDetector, SaccadeEvent};
 use vergence::{to_f64, unit, Vergence, V3};
 
 /// Horizontal and vertical gaze angles, degrees: yaw positive to the right, pitch up.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Angles {
     pub yaw_deg: f64,
     pub pitch_deg: f64,
@@ -59,7 +59,7 @@ impl Angles {
 }
 
 /// What the eyes are doing.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 pub enum EyePhase {
     /// No valid sample yet.
     #[default]
@@ -88,7 +88,7 @@ impl EyePhase {
 }
 
 /// The current fixation.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Fixation {
     pub start: Timestamp,
     /// Mean gaze direction over the fixation so far.
@@ -97,7 +97,7 @@ pub struct Fixation {
 }
 
 /// Processor settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ProcessorConfig {
     pub saccade: SaccadeConfig,
     pub smoothing: OneEuroConfig,
@@ -133,7 +133,7 @@ impl Default for ProcessorConfig {
 }
 
 /// Everything the processor knows after the latest sample.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct GazeState {
     /// Host time of the latest sample.
     pub time: Timestamp,
@@ -159,7 +159,7 @@ pub struct GazeState {
 }
 
 /// The sans-IO gaze processor.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
 pub struct GazeProcessor {
     cfg: ProcessorConfig,
     state: GazeState,

@@ -5,7 +5,7 @@
 use dioptra_core::Timestamp;
 
 /// Saccade detector settings.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SaccadeConfig {
     /// Angular speed that starts a saccade, degrees/s.
     pub onset_dps: f64,
@@ -43,7 +43,7 @@ pub enum SaccadeEvent {
 }
 
 /// The hysteresis state machine on angular speed.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct SaccadeDetector {
     cfg: SaccadeConfig,
     /// Onset time and peak speed while a saccade runs.

@@ -5,7 +5,7 @@ use dioptra_core::EyeRay;
 use glam::DVec3;
 
 /// One vergence measurement.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Vergence {
     /// Fixation depth, diopters from the midpoint of the eyes. Negative when the rays
     /// diverge (noise beyond optical infinity); kept signed so averages stay unbiased.
