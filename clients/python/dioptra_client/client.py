@@ -107,8 +107,9 @@ class Dioptra:
     def wait_settled(self, timeout: float = 2.0, target_d: Optional[float] = None,
                      tolerance_d: float = 1e-3) -> LensEvent:
         """Returns the first lens read-back from now on that reports the lens settled at its
-        target (at ``target_d``, within ``tolerance_d``, when given); raises
-        :class:`NotSettled` after ``timeout`` seconds without one."""
+        target (at the focus ``target_d``, as given to :meth:`set_focus`, within
+        ``tolerance_d``, when given); raises :class:`NotSettled` after ``timeout`` seconds
+        without one."""
         deadline = time.monotonic() + timeout
         last = None
         with self.events(["lens"]) as ev:
@@ -121,8 +122,9 @@ class Dioptra:
                 except TimeoutError:
                     break
                 last = e
-                if e.settled and e.target_d is not None and (
-                        target_d is None or abs(e.target_d - target_d) <= tolerance_d):
+                target = e.target_focus_d if e.target_focus_d is not None else e.target_d
+                if e.settled and target is not None and (
+                        target_d is None or abs(target - target_d) <= tolerance_d):
                     return e
         where = "" if target_d is None else f" at {target_d} D"
         seen = "" if last is None else (f"; last read-back {last.power_d:.3f} D, target "

@@ -56,19 +56,25 @@ class GazeEvent(Event):
 @dataclass(frozen=True)
 class LensEvent(Event):
     """A lens read-back: the power it reports (``power_d``), the power it was last commanded
-    (``target_d``) and whether it has settled there (``settled``)."""
+    (``target_d``) and whether it has settled there (``settled``); ``focus_d`` and
+    ``target_focus_d`` are the focus (accommodation demand) those powers give through the
+    rig's optics map (equal to the powers when the config has none)."""
 
     power_d: float
     target_d: Optional[float]
     settled: Optional[bool]
+    focus_d: Optional[float] = None
+    target_focus_d: Optional[float] = None
 
 
 @dataclass(frozen=True)
 class FocusEvent(Event):
-    """The scheduler commanded the lens to ``commanded_d`` (``reason``: gaze, manual, ...)."""
+    """The scheduler commanded the lens to ``commanded_d`` (``reason``: gaze, manual, ...),
+    which gives the focus ``focus_d`` through the optics map."""
 
     commanded_d: float
     reason: Optional[str]
+    focus_d: Optional[float] = None
 
 
 @dataclass(frozen=True)
@@ -128,9 +134,11 @@ def parse_event(msg: Union[str, bytes, dict]) -> Event:
                          vergence_d=m.get("vergence_d"))
     if kind == "lens":
         return LensEvent(**base, power_d=m.get("power_d"), target_d=m.get("target_d"),
-                         settled=m.get("settled"))
+                         settled=m.get("settled"), focus_d=m.get("focus_d"),
+                         target_focus_d=m.get("target_focus_d"))
     if kind == "focus":
-        return FocusEvent(**base, commanded_d=m.get("commanded_d"), reason=m.get("reason"))
+        return FocusEvent(**base, commanded_d=m.get("commanded_d"), reason=m.get("reason"),
+                          focus_d=m.get("focus_d"))
     if kind == "frame":
         return FrameEvent(**base, frame=m.get("frame"), layer=m.get("layer"),
                           focus_d=m.get("focus_d"), shown_ns=m.get("shown_ns"),

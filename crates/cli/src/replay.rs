@@ -161,6 +161,8 @@ pub struct ReplayReport {
     /// Rewritten by `dioptra recording recover` from a cut file.
     pub recovered: bool,
     pub from_start: bool,
+    /// Started mid-run with the scheduler's state (through the API): the replay starts there.
+    pub restored: bool,
     pub mode: String,
     pub method: String,
     /// Seconds from the first to the last message.
@@ -188,7 +190,7 @@ impl ReplayReport {
     }
 
     pub fn verdict(&self) -> Verdict {
-        if !self.from_start {
+        if !self.from_start && !self.restored {
             Verdict::CannotCompare
         } else if self.identical() {
             Verdict::Identical
@@ -217,9 +219,10 @@ pub fn run(args: Args) -> Result<()> {
         .into()),
         Verdict::CannotCompare => Err(crate::Exit::new(
             2,
-            "the recording began mid-run: the scheduler's state before it is not in the file, \
-             so the replay (from a fresh scheduler) cannot be compared command by command; \
-             record from daemon start (recording.start = true) to compare",
+            "the recording began mid-run without the scheduler's state (it was started by a \
+             daemon older than this one, or not through the API), so the replay (from a fresh \
+             scheduler) cannot be compared command by command; record through POST \
+             /recording/start or from daemon start (recording.start = true) to compare",
         )
         .into()),
     }
@@ -250,6 +253,8 @@ fn print_summary(r: &ReplayReport) {
         },
         if r.from_start {
             ", recorded from daemon start"
+        } else if r.restored {
+            ", started mid-run (replayed from the scheduler's recorded state)"
         } else {
             ", started mid-run (the scheduler's history before it is unknown)"
         }
@@ -265,7 +270,7 @@ fn print_summary(r: &ReplayReport) {
         r.replayed.len(),
         lens(&r.replayed),
     );
-    if !r.from_start {
+    if !r.from_start && !r.restored {
         println!(
             "not compared: the recording began mid-run, so a fresh scheduler cannot reproduce \
              its commands ({} replayed commands are in --json)",
@@ -374,14 +379,27 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
             None => bail!("the recording has scene times, and its config's content is not the procedural scene"),
         }
     };
-    let mut engine = Engine::new(&cfg)
+    let restored = start.scheduler_state.is_some();
+    let mut engine = match &start.scheduler_state {
+        // Started mid-run through the API: where the scheduler was, with the depth it had.
+        Some(state) => Engine::restore(
+            &cfg,
+            cfg.mode,
+            cfg.method,
+            depth_at(start.depth_scene_ns)?,
+            state,
+        )
         .map_err(anyhow::Error::msg)
-        .context("cannot start the scheduler")?;
-    if !start.from_start {
+        .context("cannot restore the scheduler's state recorded in /start")?,
+        None => Engine::new(&cfg)
+            .map_err(anyhow::Error::msg)
+            .context("cannot start the scheduler")?,
+    };
+    if !start.from_start && !restored {
         // The daemon gave the scene's depth at its start, before this recording began.
         let _ = engine.step(*t0, Input::Depth(depth.clone()));
     }
-    if let Some(d) = start.manual_focus_d {
+    if let Some(d) = start.manual_focus_d.filter(|_| !restored) {
         // Set before the recording began: its commands are not in the file.
         let _ = engine.step(*t0, Input::Control(Control::ManualFocus(Some(d))));
     }
@@ -458,6 +476,7 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         complete: rec.complete,
         recovered: rec.recovered,
         from_start: start.from_start,
+        restored,
         mode: start.mode.clone(),
         method: start.method.clone(),
         duration_s: last.saturating_since(*t0).as_secs_f64(),

@@ -119,6 +119,30 @@ impl Engine {
         Self::with_config(sched_config(cfg)?)
     }
 
+    /// The scheduler of `cfg` in the `state` a recording started mid-run holds
+    /// ([`dioptra_sched::Scheduler::state`]), in `mode` with `method`, the content's `depth`
+    /// map as it had it: where a replay of that recording starts.
+    pub fn restore(
+        cfg: &RigConfig,
+        mode: Mode,
+        method: Method,
+        depth: Arc<DepthMap>,
+        state: &serde_json::Value,
+    ) -> Result<Engine, String> {
+        let sched = Scheduler::restore(
+            sched_config(cfg)?,
+            mode.sched(),
+            method.0,
+            Some(depth),
+            state,
+        )
+        .map_err(|e| e.to_string())?;
+        Ok(Engine {
+            sched,
+            network_missing: Vec::new(),
+        })
+    }
+
     /// A scheduler with settings of its own (the simulated-rig builder tunes them).
     pub fn with_config(cfg: SchedulerConfig) -> Result<Engine, String> {
         let sched = Scheduler::new(cfg).map_err(|e| e.to_string())?;

@@ -25,7 +25,7 @@ use crate::devices::{DeviceInput, DeviceLinks, LensOrder};
 use crate::display::{DisplaySink, Frame, Marker};
 use crate::engine::{Command, Engine, Input};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
-use crate::{Control, ControlMsg, RigState};
+use crate::{Control, ControlMsg, LoopCmd, PendingRecording, RigState};
 
 /// Sees what the loop does, on the loop's task: keep it quick. The rig's recording, status,
 /// WebSocket and LSL outlets are hooks ([`crate::observers`]); the simulated-rig builder
@@ -225,7 +225,14 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         let mut cause = None;
         let cmds = match woke {
             Woke::Control(msg) => {
-                let cmd = msg.cmd;
+                let cmd = match msg.cmd {
+                    LoopCmd::StartRecording(p) => {
+                        let r = ex.start_recording(*p, &engine, now);
+                        let _ = msg.reply.send(r);
+                        continue;
+                    }
+                    LoopCmd::Control(c) => c,
+                };
                 match engine.step(now, Input::Control(cmd.clone())) {
                     Ok(cmds) => {
                         if let Control::Mode(_) = cmd {
@@ -339,6 +346,35 @@ impl Executor<'_> {
         if let Some(m) = &mut self.marker {
             m.event(event);
         }
+    }
+
+    /// Writes a recording's `/start` with the scheduler's state and the depth it has now, and
+    /// makes it the recording: every input after this step is in it.
+    fn start_recording(
+        &self,
+        p: PendingRecording,
+        engine: &Engine,
+        now: Timestamp,
+    ) -> Result<(), String> {
+        let PendingRecording {
+            recorder,
+            mut start,
+            path,
+            meta,
+        } = p;
+        start.mode = engine.mode().as_str().into();
+        start.method = engine.method().as_str().into();
+        start.scheduler_state = Some(Box::new(
+            serde_json::to_value(engine.scheduler().state())
+                .map_err(|e| format!("cannot record the scheduler's state: {e}"))?,
+        ));
+        start.depth_scene_ns = self
+            .on_show
+            .as_ref()
+            .and_then(|f| f.scene_time.map(|t| t.0));
+        self.state
+            .install_recording(recorder, start, &path, &meta, now)
+            .map_err(|e| e.to_string())
     }
 
     /// Polls the content source; a new frame's depth (and when it arrived) goes to the

@@ -134,8 +134,23 @@ impl Control {
 }
 
 pub(crate) struct ControlMsg {
-    pub cmd: Control,
+    pub cmd: LoopCmd,
     pub reply: oneshot::Sender<Result<(), String>>,
+}
+
+/// What the API asks of the loop.
+pub(crate) enum LoopCmd {
+    Control(Control),
+    /// Start this recording between two steps, with the scheduler's state then.
+    StartRecording(Box<PendingRecording>),
+}
+
+/// A recording file made, its `/start` not yet written.
+pub(crate) struct PendingRecording {
+    pub recorder: Recorder,
+    pub start: StartRec,
+    pub path: PathBuf,
+    pub meta: RecordingMeta,
 }
 
 /// What the loop publishes for `GET /status`.
@@ -535,7 +550,10 @@ impl RigState {
     pub async fn control(&self, cmd: Control) -> Result<(), ControlError> {
         let (reply, rx) = oneshot::channel();
         self.controls
-            .send(ControlMsg { cmd, reply })
+            .send(ControlMsg {
+                cmd: LoopCmd::Control(cmd),
+                reply,
+            })
             .await
             .map_err(|_| ControlError::ShuttingDown)?;
         rx.await
@@ -579,7 +597,9 @@ impl RigState {
         t
     }
 
-    /// Starts a recording in `recording.dir`; returns its path.
+    /// Starts a recording in `recording.dir` now, from this thread; returns its path. The
+    /// scheduler's state is not in it: for a recording started mid-run, use
+    /// [`RigState::start_recording_mid_run`], which a replay can check.
     pub fn start_recording(&self, from_start: bool) -> Result<PathBuf, ControlError> {
         self.start_recording_with(from_start, &RecordingMeta::default())
     }
@@ -591,13 +611,61 @@ impl RigState {
         from_start: bool,
         meta: &RecordingMeta,
     ) -> Result<PathBuf, ControlError> {
+        let (r, path) = self.open_recording(meta)?;
+        let start = self.start_rec(from_start, meta);
+        self.install_recording(r, start, &path, meta, self.clock.now())?;
+        Ok(path)
+    }
+
+    /// Starts a recording while the rig runs (`POST /recording/start`): the loop writes its
+    /// `/start` between two steps, with the scheduler's state and the depth it has then, and
+    /// records every input after it, so `dioptra replay` starts where the run was and can
+    /// compare every command.
+    pub async fn start_recording_mid_run(
+        &self,
+        meta: &RecordingMeta,
+    ) -> Result<PathBuf, ControlError> {
+        let (recorder, path) = self.open_recording(meta)?;
+        let start = self.start_rec(false, meta);
+        let (reply, rx) = oneshot::channel();
+        let pending = PendingRecording {
+            recorder,
+            start,
+            path: path.clone(),
+            meta: meta.clone(),
+        };
+        let sent = self
+            .controls
+            .send(ControlMsg {
+                cmd: LoopCmd::StartRecording(Box::new(pending)),
+                reply,
+            })
+            .await;
+        let answer = match sent {
+            Ok(()) => rx.await.map_err(|_| ControlError::ShuttingDown),
+            Err(_) => Err(ControlError::ShuttingDown),
+        };
+        match answer {
+            Ok(Ok(())) => Ok(path),
+            Ok(Err(why)) => {
+                let _ = std::fs::remove_file(&path);
+                Err(ControlError::Conflict(why))
+            }
+            Err(e) => {
+                let _ = std::fs::remove_file(&path);
+                Err(e)
+            }
+        }
+    }
+
+    /// A new recording file in `recording.dir`, named after `meta`.
+    fn open_recording(&self, meta: &RecordingMeta) -> Result<(Recorder, PathBuf), ControlError> {
         let Some(rc) = &self.cfg.recording else {
             return Err(ControlError::Conflict(
                 "the rig config has no [recording] section with a dir; add one to record".into(),
             ));
         };
-        let mut slot = lock(&self.recording);
-        if let Some(r) = slot.as_ref() {
+        if let Some(r) = lock(&self.recording).as_ref() {
             return Err(ControlError::Conflict(format!(
                 "already recording to {}",
                 r.path().display()
@@ -623,31 +691,55 @@ impl RigState {
                 source: Box::new(e),
             }
         })?;
-        // The rig config and the scheduler's state, so that a replay starts where the run was.
+        Ok((r, path))
+    }
+
+    /// The `/start` message: the rig config and what the rig is doing.
+    fn start_rec(&self, from_start: bool, meta: &RecordingMeta) -> StartRec {
         let st = lock(&self.status).clone();
-        r.record(
-            self.clock.now(),
-            Rec::Start(StartRec {
-                config: toml::to_string(self.cfg.as_ref()).unwrap_or_default(),
-                mode: st.mode.unwrap_or(self.cfg.mode).as_str().into(),
-                method: st.method.unwrap_or(self.cfg.method).as_str().into(),
-                manual_focus_d: st.manual_focus_d,
-                from_start,
-                device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
-                wall_zero_ns: self.wall_zero_ns,
-                clock: self.clock_source.into(),
-                calibration_tables: self
-                    .cfg
-                    .calibration_tables
-                    .iter()
-                    .map(|(p, t)| (p.display().to_string(), t.clone()))
-                    .collect(),
-                name: meta.name.clone(),
-                subject: meta.subject.clone(),
-                trial: meta.trial.clone(),
-            }),
-        );
-        *slot = Some(r);
+        StartRec {
+            config: toml::to_string(self.cfg.as_ref()).unwrap_or_default(),
+            mode: st.mode.unwrap_or(self.cfg.mode).as_str().into(),
+            method: st.method.unwrap_or(self.cfg.method).as_str().into(),
+            manual_focus_d: st.manual_focus_d,
+            from_start,
+            device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
+            wall_zero_ns: self.wall_zero_ns,
+            clock: self.clock_source.into(),
+            calibration_tables: self
+                .cfg
+                .calibration_tables
+                .iter()
+                .map(|(p, t)| (p.display().to_string(), t.clone()))
+                .collect(),
+            name: meta.name.clone(),
+            subject: meta.subject.clone(),
+            trial: meta.trial.clone(),
+            scheduler_state: None,
+            depth_scene_ns: None,
+        }
+    }
+
+    /// Writes `/start` at `t` and makes `r` the recording every message goes to.
+    pub(crate) fn install_recording(
+        &self,
+        r: Recorder,
+        start: StartRec,
+        path: &std::path::Path,
+        meta: &RecordingMeta,
+        t: Timestamp,
+    ) -> Result<(), ControlError> {
+        {
+            let mut slot = lock(&self.recording);
+            if let Some(other) = slot.as_ref() {
+                let why = format!("already recording to {}", other.path().display());
+                drop(r);
+                let _ = std::fs::remove_file(path);
+                return Err(ControlError::Conflict(why));
+            }
+            r.record(t, Rec::Start(start));
+            *slot = Some(r);
+        }
         self.publish(|| {
             json!({
                 "type": "recording",
@@ -660,7 +752,7 @@ impl RigState {
         });
         if let Some(l) = &self.lsl {
             l.marker(
-                self.clock.now(),
+                t,
                 "recording_start",
                 json!({
                     "path": path.display().to_string(),
@@ -670,7 +762,7 @@ impl RigState {
                 }),
             );
         }
-        Ok(path)
+        Ok(())
     }
 
     /// Finishes the recording in progress.

@@ -456,6 +456,15 @@ pub struct StartRec {
     pub subject: Option<String>,
     #[serde(default)]
     pub trial: Option<String>,
+    /// A recording started mid-run (through the API): the scheduler's state when it began
+    /// ([`dioptra_sched::Scheduler::state`]), so a replay starts there. `None` from the start,
+    /// and in older recordings.
+    #[serde(default)]
+    pub scheduler_state: Option<Box<serde_json::Value>>,
+    /// With it: the scene time of the frame whose depth the scheduler had (`None` for content
+    /// without one).
+    #[serde(default)]
+    pub depth_scene_ns: Option<u64>,
 }
 
 /// One recorded message. Inputs (what the scheduler was given): Start, Gaze, LensState,
@@ -521,7 +530,7 @@ const EYE_SCHEMA: &str = r#"{"type":"object","properties":{"origin_mm":{"type":"
 
 topics! {
     Start => "/start", "dioptra.Start",
-        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S},"calibration_tables":{{"type":"object"}},"name":{OS},"subject":{OS},"trial":{OS}"#);
+        format!(r#""config":{S},"mode":{S},"method":{S},"manual_focus_d":{ON},"from_start":{B},"wall_zero_ns":{ON},"clock":{S},"calibration_tables":{{"type":"object"}},"name":{OS},"subject":{OS},"trial":{OS},"scheduler_state":{{"type":["object","null"]}},"depth_scene_ns":{ON}"#);
     Gaze => "/gaze", "dioptra.Gaze",
         format!(r#""device_ns":{N},"host_receive_ns":{N},"host_ns":{N},"left":{EYE_SCHEMA},"right":{EYE_SCHEMA}"#);
     LensState => "/lens/state", "dioptra.LensState",
@@ -1032,6 +1041,8 @@ mod tests {
                     name: Some("vergence".into()),
                     subject: None,
                     trial: Some("3".into()),
+                    scheduler_state: Some(Box::new(serde_json::json!({"commanded": 1.5}))),
+                    depth_scene_ns: Some(50_000_000),
                 }),
             ),
             (Timestamp(1), Rec::Gaze(GazeRec::from(&gaze(1_000)))),

@@ -442,7 +442,7 @@ async fn recording_start(
     if let Some((key, why)) = meta.invalid() {
         return Err(ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, why).at(key));
     }
-    let path = s.start_recording_with(false, &meta)?;
+    let path = s.start_recording_mid_run(&meta).await?;
     Ok(Json(json!({ "recording": path })))
 }
 
