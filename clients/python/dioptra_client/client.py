@@ -47,9 +47,11 @@ class Dioptra:
         return self._http.request("GET", "/status")
 
     def set_focus(self, diopters: float) -> float:
-        """Manual focus: the lens goes to ``diopters`` (within ``optics.lens_range``) and
-        stays there whatever the gaze does, until :meth:`release_focus`. Returns the focus
-        the daemon took."""
+        """Manual focus: the lens goes to the focus ``diopters`` (the accommodation demand,
+        within what the lens reaches through the optics map: ``status()["focus"]
+        ["focus_range_d"]``) and stays there whatever the gaze does, until
+        :meth:`release_focus`. Returns the focus the daemon took. Raises
+        :class:`DioptraError` (503) while a required lens is down."""
         r = self._http.request("POST", "/focus", {"diopters": float(diopters)})
         return float(r["manual_focus_d"])
 
