@@ -162,29 +162,44 @@ impl Method {
 /// A device of the config, as the rig opens it.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ConfiguredDevice {
-    /// Its name in `/status`'s `devices`: lens, gaze, sync.
-    pub name: &'static str,
-    /// Its config section: `devices.lens`, ...
-    pub section: &'static str,
+    /// Its name in `/status`'s `devices`: lens (lens_left, lens_right), gaze, sync.
+    pub name: String,
+    /// Its config section: `devices.lens` (`devices.lens.left`, ...), ...
+    pub section: String,
     pub port: Port,
     pub required: bool,
 }
 
 impl Devices {
-    /// The configured devices, lens first.
+    /// The configured devices, lenses first.
     pub fn list(&self) -> Vec<ConfiguredDevice> {
-        let dev = |name, section, port: &Port, required: Option<bool>| ConfiguredDevice {
-            name,
-            section,
-            port: port.clone(),
-            required: required.unwrap_or(*port != Port::Sim),
-        };
-        let mut v = vec![
-            dev("lens", "devices.lens", &self.lens.port, self.lens.required),
-            dev("gaze", "devices.gaze", &self.gaze.port, self.gaze.required),
-        ];
+        let dev =
+            |name: String, section: String, port: &Port, required: Option<bool>| ConfiguredDevice {
+                name,
+                section,
+                port: port.clone(),
+                required: required.unwrap_or(*port != Port::Sim),
+            };
+        let mut v: Vec<_> = self
+            .lens
+            .each()
+            .into_iter()
+            .enumerate()
+            .map(|(i, l)| dev(self.lens.name(i), self.lens.key(i), &l.port, l.required))
+            .collect();
+        v.push(dev(
+            "gaze".into(),
+            "devices.gaze".into(),
+            &self.gaze.port,
+            self.gaze.required,
+        ));
         if let Some(s) = &self.sync {
-            v.push(dev("sync", "devices.sync", &s.port, s.required));
+            v.push(dev(
+                "sync".into(),
+                "devices.sync".into(),
+                &s.port,
+                s.required,
+            ));
         }
         v
     }
@@ -554,6 +569,8 @@ struct LensSection {
     #[serde(skip_serializing_if = "Option::is_none")]
     temperature_limits_c: Option<[f32; 2]>,
     #[serde(skip_serializing_if = "Option::is_none")]
+    required: Option<bool>,
+    #[serde(skip_serializing_if = "Option::is_none")]
     left: Option<LensDevice>,
     #[serde(skip_serializing_if = "Option::is_none")]
     right: Option<LensDevice>,
@@ -570,6 +587,7 @@ impl TryFrom<LensSection> for Lenses {
             ("settle_ms", s.settle_ms.is_some()),
             ("poll_ms", s.poll_ms.is_some()),
             ("temperature_limits_c", s.temperature_limits_c.is_some()),
+            ("required", s.required.is_some()),
         ];
         match (s.left, s.right) {
             (Some(left), Some(right)) => {
@@ -598,6 +616,7 @@ impl TryFrom<LensSection> for Lenses {
                     settle_ms: s.settle_ms,
                     poll_ms: s.poll_ms.unwrap_or_else(default_lens_poll_ms),
                     temperature_limits_c: s.temperature_limits_c,
+                    required: s.required,
                 }))
             }
         }
@@ -615,6 +634,7 @@ impl From<Lenses> for LensSection {
                 settle_ms: l.settle_ms,
                 poll_ms: Some(l.poll_ms),
                 temperature_limits_c: l.temperature_limits_c,
+                required: l.required,
                 ..LensSection::default()
             },
             Lenses::PerEye { left, right } => LensSection {
@@ -2678,7 +2698,7 @@ pub(crate) mod tests {
         let real = SIM_RIG.replacen("port = \"sim\"", "port = \"/dev/ttyACM0\"", 1);
         let cfg = RigConfig::parse(&real).unwrap();
         let list = cfg.devices.list();
-        assert_eq!((list[0].name, list[0].required), ("lens", true));
+        assert_eq!((list[0].name.as_str(), list[0].required), ("lens", true));
         let optional = real.replacen("park_power", "required = false\npark_power", 1);
         assert!(!RigConfig::parse(&optional).unwrap().devices.list()[0].required);
     }

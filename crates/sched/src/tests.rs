@@ -362,11 +362,11 @@ fn multifocal_holds_an_uncommanded_lens_at_the_park_power_once() {
         Event::LensState(
             LensId::FIRST,
             LensState {
-            power: Diopters(-2.0),
-            current_ma: Some(0.0),
-            temperature_c: None,
-            settled: None,
-            host_time: Timestamp::from_millis(ms),
+                power: Diopters(-2.0),
+                current_ma: Some(0.0),
+                temperature_c: None,
+                settled: None,
+                host_time: Timestamp::from_millis(ms),
             },
         )
     };
@@ -896,13 +896,13 @@ fn a_restored_scheduler_continues_exactly_where_its_state_was_taken() {
             events.push((
                 t,
                 Event::LensState(
-            LensId::FIRST,
-            LensState {
-                    power: Diopters(0.5 + (t_us % 70_000) as f32 * 1e-5),
-                    current_ma: None,
-                    temperature_c: None,
-                    settled: None,
-                    host_time: t,
+                    LensId::FIRST,
+                    LensState {
+                        power: Diopters(0.5 + (t_us % 70_000) as f32 * 1e-5),
+                        current_ma: None,
+                        temperature_c: None,
+                        settled: None,
+                        host_time: t,
                     },
                 ),
             ));

@@ -345,24 +345,18 @@ async fn set_focus(
     Ok(Json(json!({ "manual_focus_d": d, "effect": effect })))
 }
 
-/// 503 while a required lens (`devices.lens.required`, true for a real port) is not
-/// connected: a focus would be held, not shown, until it is back.
+/// 503 while a required lens (`devices.lens.required`, true for a real port; each eye's with
+/// a lens per eye) is not connected: a focus would be held, not shown, until it is back.
 fn lens_must_be_up(s: &Shared) -> Result<(), ApiError> {
-    let lens = s
-        .cfg
-        .devices
-        .list()
-        .into_iter()
-        .find(|d| d.name == "lens")
-        .filter(|d| d.required);
-    let Some(lens) = lens else { return Ok(()) };
     let snap = s.registry.snapshot();
-    let Some(st) = snap.get("lens") else {
+    let down = s.cfg.devices.list().into_iter().find_map(|d| {
+        let st = snap.get(&d.name)?;
+        (d.name.starts_with("lens") && d.required && st.state != dioptra_rig::devices::State::Ok)
+            .then(|| (d, st.clone()))
+    });
+    let Some((lens, st)) = down else {
         return Ok(());
     };
-    if st.state == dioptra_rig::devices::State::Ok {
-        return Ok(());
-    }
     Err(ApiError::new(
         StatusCode::SERVICE_UNAVAILABLE,
         format!(

@@ -2235,7 +2235,8 @@ async fn status_durations_are_numbers_named_with_their_unit() {
 async fn a_required_device_that_is_absent_stops_the_start() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
-    cfg.devices.lens.port = dioptra_rig::config::Port::Path(dir.path().join("ttyACM-missing"));
+    cfg.devices.lens.first_mut().port =
+        dioptra_rig::config::Port::Path(dir.path().join("ttyACM-missing"));
     let e = match Daemon::start_config(cfg.clone()).await {
         Ok(_) => panic!("started without its required lens"),
         Err(e) => format!("{e:#}"),
@@ -2245,7 +2246,7 @@ async fn a_required_device_that_is_absent_stops_the_start() {
         "{e}"
     );
     assert!(e.contains("devices.lens.required"), "{e}");
-    cfg.devices.lens.required = Some(false);
+    cfg.devices.lens.first_mut().required = Some(false);
     let d = Daemon::start_config(cfg).await.unwrap();
     d.cancel_token().cancel();
     // It could not park a lens it never reached, and says so.
@@ -2259,7 +2260,7 @@ async fn a_required_device_that_is_absent_stops_the_start() {
 async fn while_a_required_lens_is_down_focus_answers_503() {
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = sim_config(dir.path(), false);
-    cfg.devices.lens.required = Some(true);
+    cfg.devices.lens.first_mut().required = Some(true);
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());

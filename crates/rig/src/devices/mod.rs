@@ -121,7 +121,7 @@ pub async fn wait_for_required(
         let snap = registry.snapshot();
         let missing: Vec<_> = required
             .iter()
-            .filter(|d| snap.get(d.name).is_none_or(|s| s.state != State::Ok))
+            .filter(|d| snap.get(&d.name).is_none_or(|s| s.state != State::Ok))
             .collect();
         if missing.is_empty() {
             return Ok(());
@@ -130,7 +130,7 @@ pub async fn wait_for_required(
             return Err(missing
                 .iter()
                 .map(|d| {
-                    let s = snap.get(d.name);
+                    let s = snap.get(&d.name);
                     format!(
                         "{}.port = \"{}\": the {} device ({} driver) did not connect within {} s: \
                          {}; {}",
