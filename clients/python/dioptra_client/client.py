@@ -110,10 +110,12 @@ class Dioptra:
                      tolerance_d: float = 1e-3) -> LensEvent:
         """Returns the first lens read-back from now on that reports the lens settled at its
         target (at the focus ``target_d``, as given to :meth:`set_focus`, within
-        ``tolerance_d``, when given); raises :class:`NotSettled` after ``timeout`` seconds
-        without one."""
+        ``tolerance_d``, when given); with a lens per eye, once each eye's has (the later
+        one is returned). Raises :class:`NotSettled` after ``timeout`` seconds without."""
         deadline = time.monotonic() + timeout
         last = None
+        focus = self.status().get("focus", {})
+        waiting = {e for e in ("left", "right") if e in focus} or {None}
         with self.events(["lens"]) as ev:
             while True:
                 left = deadline - time.monotonic()
@@ -127,7 +129,9 @@ class Dioptra:
                 target = e.target_focus_d if e.target_focus_d is not None else e.target_d
                 if e.settled and target is not None and (
                         target_d is None or abs(target - target_d) <= tolerance_d):
-                    return e
+                    waiting.discard(e.eye)
+                    if not waiting:
+                        return e
         where = "" if target_d is None else f" at {target_d} D"
         seen = "" if last is None else (f"; last read-back {last.power_d:.3f} D, target "
                                         f"{last.target_d}, settled {last.settled}")

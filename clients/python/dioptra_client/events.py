@@ -58,23 +58,27 @@ class LensEvent(Event):
     """A lens read-back: the power it reports (``power_d``), the power it was last commanded
     (``target_d``) and whether it has settled there (``settled``); ``focus_d`` and
     ``target_focus_d`` are the focus (accommodation demand) those powers give through the
-    rig's optics map (equal to the powers when the config has none)."""
+    rig's optics map (equal to the powers when the config has none). ``eye`` is ``left`` or
+    ``right`` on a rig with a lens per eye, else ``None``."""
 
     power_d: float
     target_d: Optional[float]
     settled: Optional[bool]
     focus_d: Optional[float] = None
     target_focus_d: Optional[float] = None
+    eye: Optional[str] = None
 
 
 @dataclass(frozen=True)
 class FocusEvent(Event):
     """The scheduler commanded the lens to ``commanded_d`` (``reason``: gaze, manual, ...),
-    which gives the focus ``focus_d`` through the optics map."""
+    which gives the focus ``focus_d`` through the optics map; ``eye`` as for
+    :class:`LensEvent`."""
 
     commanded_d: float
     reason: Optional[str]
     focus_d: Optional[float] = None
+    eye: Optional[str] = None
 
 
 @dataclass(frozen=True)
@@ -135,10 +139,10 @@ def parse_event(msg: Union[str, bytes, dict]) -> Event:
     if kind == "lens":
         return LensEvent(**base, power_d=m.get("power_d"), target_d=m.get("target_d"),
                          settled=m.get("settled"), focus_d=m.get("focus_d"),
-                         target_focus_d=m.get("target_focus_d"))
+                         target_focus_d=m.get("target_focus_d"), eye=m.get("eye"))
     if kind == "focus":
         return FocusEvent(**base, commanded_d=m.get("commanded_d"), reason=m.get("reason"),
-                          focus_d=m.get("focus_d"))
+                          focus_d=m.get("focus_d"), eye=m.get("eye"))
     if kind == "frame":
         return FrameEvent(**base, frame=m.get("frame"), layer=m.get("layer"),
                           focus_d=m.get("focus_d"), shown_ns=m.get("shown_ns"),

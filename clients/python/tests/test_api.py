@@ -212,3 +212,22 @@ def test_a_unix_socket(rigs, tmp_path):
         seq = d.send_rgbd(np.zeros((d.height, d.width, 3), np.uint8),
                           np.ones((d.height, d.width), np.float32))
         assert seq >= 1
+
+
+def test_wait_settled_waits_for_each_eyes_lens(binary, tmp_path):
+    """On a rig with a lens per eye, wait_settled returns once both lenses report settled at
+    the focus, and lens events say which eye."""
+    from conftest import ROOT, Rigs
+    rigs = Rigs(binary, (ROOT / "crates/cli/examples/rig-sim-binocular.toml").read_text(),
+                tmp_path)
+    try:
+        with rigs.start().client() as d:
+            d.set_focus(1.5)
+            e = d.wait_settled(timeout=10.0, target_d=1.5)
+            assert e.settled and e.eye in ("left", "right")
+            focus = d.status()["focus"]
+            for eye in ("left", "right"):
+                assert abs(focus[eye]["lens_focus_d"] - 1.5) < 0.02, focus
+            d.release_focus()
+    finally:
+        rigs.stop_all()
