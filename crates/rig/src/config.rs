@@ -810,6 +810,74 @@ pub enum SinkKind {
     Window,
 }
 
+/// Where the eyes' images go (`display.layout`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DisplayLayout {
+    /// One image: a monocular bench, or one view both eyes see.
+    #[default]
+    One,
+    /// One panel, 2 x `display.width` wide: the left eye's image in the left half.
+    SideBySide,
+    /// A window per eye (`monitor_left`, `monitor_right`); headless: an image per eye.
+    TwoOutputs,
+}
+
+impl DisplayLayout {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DisplayLayout::One => "one",
+            DisplayLayout::SideBySide => "side-by-side",
+            DisplayLayout::TwoOutputs => "two-outputs",
+        }
+    }
+    /// Whether each eye gets its own image.
+    pub fn stereo(self) -> bool {
+        self != DisplayLayout::One
+    }
+}
+
+/// How an eye's image meets panel pixels (`display.scale`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Scale {
+    /// 1:1 onto panel pixels, so a stimulus subtends the angle it was rendered for; an image
+    /// that does not fit its place is reported and not shown.
+    #[default]
+    Exact,
+    /// Scaled to fit its place, aspect kept (letterboxed).
+    Fit,
+}
+
+impl Scale {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Scale::Exact => "exact",
+            Scale::Fit => "fit",
+        }
+    }
+}
+
+/// `display.eye_offset_px`: each eye's image moved from the centre of its place, pixels
+/// (+x right, +y down).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EyeOffsets {
+    #[serde(default)]
+    pub left: [i32; 2],
+    #[serde(default)]
+    pub right: [i32; 2],
+}
+
+impl EyeOffsets {
+    pub fn of(&self, side: Side) -> [i32; 2] {
+        match side {
+            Side::Left => self.left,
+            Side::Right => self.right,
+        }
+    }
+}
+
 /// Which monitor the window goes on: its name as the system gives it (e.g. `"HDMI-1"`), or
 /// its index in the system's list.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -839,10 +907,27 @@ pub struct Display {
     pub kind: SinkKind,
     /// The window's monitor: a name such as "HDMI-1" or an index; default the primary.
     pub monitor: Option<MonitorChoice>,
+    /// `layout = "two-outputs"`: the left and the right eye's monitors.
+    pub monitor_left: Option<MonitorChoice>,
+    pub monitor_right: Option<MonitorChoice>,
+    /// One eye's image (per eye on a stereo layout), pixels.
     #[serde(default = "default_size")]
     pub width: u32,
     #[serde(default = "default_size")]
     pub height: u32,
+    /// Where the eyes' images go: `one` (one image), `side-by-side` (one panel 2 x width
+    /// wide, the left eye's image in its left half) or `two-outputs` (a window per monitor).
+    #[serde(default)]
+    pub layout: DisplayLayout,
+    /// `exact` (default): each image drawn 1:1 onto panel pixels, a misfit reported and
+    /// refused; `fit`: scaled to its place, aspect kept (letterboxed).
+    #[serde(default)]
+    pub scale: Scale,
+    /// Each eye's image moved from the centre of its place (its half of a side-by-side
+    /// panel, its output), pixels right and down: for panels whose lenses are not centred.
+    /// `{ left = [x, y], right = [x, y] }`.
+    #[serde(default)]
+    pub eye_offset_px: EyeOffsets,
     /// Frame rate the renderer runs at, Hz.
     #[serde(default = "default_frame_hz")]
     pub frame_hz: f64,
@@ -926,8 +1011,13 @@ impl Default for Display {
         Display {
             kind: default_sink(),
             monitor: None,
+            monitor_left: None,
+            monitor_right: None,
             width: default_size(),
             height: default_size(),
+            layout: DisplayLayout::One,
+            scale: Scale::Exact,
+            eye_offset_px: EyeOffsets::default(),
             frame_hz: default_frame_hz(),
             png_every: 0,
             png_dir: None,
@@ -2067,6 +2157,7 @@ impl RigConfig {
                 "a monitor is chosen only for the window: set display.kind = \"window\" or remove it",
             ));
         }
+        self.check_layout()?;
         if d.png_every > 0 && d.png_dir.is_none() {
             return Err(invalid(
                 "display.png_dir",
@@ -2093,6 +2184,93 @@ impl RigConfig {
         self.listen()?;
         self.api_token()?;
         Ok(())
+    }
+
+    /// `display.layout` with its monitors and offsets.
+    fn check_layout(&self) -> Result<(), ConfigError> {
+        let d = &self.display;
+        let window = d.kind == SinkKind::Window;
+        match d.layout {
+            DisplayLayout::TwoOutputs => {
+                if d.monitor.is_some() {
+                    return Err(invalid(
+                        "display.monitor",
+                        "layout = \"two-outputs\" shows each eye on its own monitor: give \
+                         display.monitor_left and display.monitor_right instead",
+                    ));
+                }
+                if window {
+                    for (key, m) in [
+                        ("display.monitor_left", &d.monitor_left),
+                        ("display.monitor_right", &d.monitor_right),
+                    ] {
+                        if m.is_none() {
+                            return Err(invalid(
+                                key,
+                                "layout = \"two-outputs\" with the window needs each eye's \
+                                 monitor (a name such as \"HDMI-1\" or an index)",
+                            ));
+                        }
+                    }
+                    if d.monitor_left == d.monitor_right {
+                        return Err(invalid(
+                            "display.monitor_right",
+                            "the same monitor as display.monitor_left: two outputs need two \
+                             monitors (one panel for both eyes is layout = \"side-by-side\")",
+                        ));
+                    }
+                }
+            }
+            _ => {
+                for (key, m) in [
+                    ("display.monitor_left", &d.monitor_left),
+                    ("display.monitor_right", &d.monitor_right),
+                ] {
+                    if m.is_some() {
+                        return Err(invalid(
+                            key,
+                            format!(
+                                "a monitor per eye is for layout = \"two-outputs\" (layout is \
+                                 \"{}\"); one panel's monitor is display.monitor",
+                                d.layout.as_str()
+                            ),
+                        ));
+                    }
+                }
+            }
+        }
+        if (d.monitor_left.is_some() || d.monitor_right.is_some()) && !window {
+            return Err(invalid(
+                "display.monitor_left",
+                "monitors are chosen only for the window: set display.kind = \"window\" or \
+                 remove them",
+            ));
+        }
+        if d.layout == DisplayLayout::One && d.eye_offset_px.right != [0, 0] {
+            return Err(invalid(
+                "display.eye_offset_px.right",
+                "layout = \"one\" shows one image (placed by eye_offset_px.left): a right \
+                 eye's offset needs layout = \"side-by-side\" or \"two-outputs\"",
+            ));
+        }
+        for side in Side::BOTH {
+            let [x, y] = d.eye_offset_px.of(side);
+            if x.unsigned_abs() > 4096 || y.unsigned_abs() > 4096 {
+                return Err(invalid(
+                    match side {
+                        Side::Left => "display.eye_offset_px.left",
+                        Side::Right => "display.eye_offset_px.right",
+                    },
+                    "expected -4096 to 4096 pixels",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether each eye gets its own image (`display.layout` is not "one").
+    pub fn stereo(&self) -> bool {
+        self.display.layout.stereo()
     }
 
     /// Where the API listens. A non-loopback address needs `api.allow_remote = true`.
@@ -2720,6 +2898,74 @@ pub(crate) mod tests {
         let e = err(&SIM_RIG.replace("sim_settle_ms = 15.0", "sim_settle_ms = 0.0"));
         assert_eq!(e.key(), "devices.lens.sim_settle_ms", "{e}");
         assert!(e.to_string().contains("above 0 and at most 1000 ms"), "{e}");
+    }
+
+    #[test]
+    fn the_display_layout_and_its_monitors_and_offsets_are_checked() {
+        let with = |extra: &str| {
+            let (kind, rest) = match extra.strip_prefix("kind = \"window\"\n") {
+                Some(rest) => ("window", rest),
+                None => ("headless", extra),
+            };
+            SIM_RIG
+                .replacen("kind = \"headless\"", &format!("kind = \"{kind}\""), 1)
+                .replacen("[display]", &format!("[display]\n{rest}"), 1)
+        };
+        let c = RigConfig::parse(&with(
+            "layout = \"side-by-side\"\neye_offset_px = { left = [-12, 0], right = [12, 3] }",
+        ))
+        .unwrap();
+        assert_eq!(c.display.layout, DisplayLayout::SideBySide);
+        assert!(c.stereo());
+        assert_eq!(c.display.eye_offset_px.of(Side::Right), [12, 3]);
+        assert_eq!(c.display.scale, Scale::Exact);
+        let c = RigConfig::parse(&with("scale = \"fit\"")).unwrap();
+        assert_eq!(c.display.scale, Scale::Fit);
+        assert!(!c.stereo());
+        // Headless two-outputs: an image per eye, no monitors.
+        assert!(RigConfig::parse(&with("layout = \"two-outputs\"")).is_ok());
+        for (extra, key) in [
+            ("layout = \"sideways\"", "display.layout"),
+            (
+                "layout = \"two-outputs\"\nmonitor_left = 0",
+                "display.monitor_left",
+            ),
+            (
+                "kind = \"window\"\nlayout = \"two-outputs\"\nmonitor_left = 0",
+                "display.monitor_right",
+            ),
+            (
+                "kind = \"window\"\nlayout = \"two-outputs\"\nmonitor_left = 1\nmonitor_right = 1",
+                "display.monitor_right",
+            ),
+            (
+                "kind = \"window\"\nlayout = \"two-outputs\"\nmonitor = 0",
+                "display.monitor",
+            ),
+            (
+                "kind = \"window\"\nlayout = \"side-by-side\"\nmonitor_right = 1",
+                "display.monitor_right",
+            ),
+            (
+                "eye_offset_px = { right = [4, 0] }",
+                "display.eye_offset_px.right",
+            ),
+            (
+                "layout = \"side-by-side\"\neye_offset_px = { left = [9000, 0] }",
+                "display.eye_offset_px.left",
+            ),
+        ] {
+            let e = err(&with(extra));
+            assert_eq!(e.key(), key, "{extra}: {e}");
+        }
+        let two = RigConfig::parse(&with(
+            "kind = \"window\"\nlayout = \"two-outputs\"\nmonitor_left = \"DP-1\"\nmonitor_right = \"DP-2\"",
+        ))
+        .unwrap();
+        assert_eq!(
+            two.display.monitor_right,
+            Some(MonitorChoice::Name("DP-2".into()))
+        );
     }
 
     #[test]

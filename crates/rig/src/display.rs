@@ -44,7 +44,10 @@ pub struct Frame {
     /// The focus it was rendered for.
     pub focus: Diopters,
     /// Shared, so a sink can hand the frame to another thread without copying the images.
+    /// On a stereo layout (`display.layout`): the left eye's.
     pub layers: std::sync::Arc<Vec<FrameImage>>,
+    /// On a stereo layout: the right eye's images, as many as `layers`.
+    pub right: Option<std::sync::Arc<Vec<FrameImage>>>,
     /// The marker patch to draw over it in this present, if the rig has one.
     pub marker: Option<MarkerDraw>,
 }
@@ -319,6 +322,7 @@ mod tests {
                 number: n,
                 focus: Diopters(1.0),
                 layers: vec![dioptra_core::RgbImage::new(8, 8, [0.5, 0.25, 0.0]).into()].into(),
+                right: None,
                 marker: None,
             };
             let t = s.present(&f, Timestamp(n * 1000)).unwrap();
@@ -418,6 +422,7 @@ mod tests {
             number: 7,
             focus: Diopters(1.0),
             layers: vec![RgbImage::new(16, 16, [0.25; 3]).into()].into(),
+            right: None,
             marker: Some(MarkerDraw {
                 corner: Corner::TopRight,
                 size: 4,

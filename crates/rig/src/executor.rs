@@ -603,6 +603,7 @@ impl Executor<'_> {
             number: job.frame,
             layers: Arc::new(images),
             focus: job.focus,
+            right: None,
             marker: None,
         });
     }

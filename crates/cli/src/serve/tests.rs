@@ -1743,6 +1743,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
                 number: 0,
                 focus: q,
                 layers: Arc::new(images),
+                right: None,
                 marker: None,
             };
             use dioptra_rig::display::DisplaySink as _;

@@ -17,7 +17,7 @@ pub mod stream;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use dioptra_core::{DepthMap, RgbImage, Rgbd, Timestamp};
+use dioptra_core::{DepthMap, RgbImage, Rgbd, Side, Timestamp};
 
 use crate::config::{ContentSource, RigConfig};
 
@@ -35,8 +35,16 @@ pub struct ContentFrame {
     /// Counts the frames the source put on show, from 1; what is made from a frame (layers,
     /// a light-field panel) is kept under its number.
     pub number: u64,
-    /// Colour (linear) and depth (diopters), spanning the eye's field.
+    /// Colour (linear) and depth (diopters), spanning the eye's field: the view the
+    /// scheduler reads fixation depth from (the cyclopean view; stereo content without one:
+    /// the left eye's).
     pub rgbd: Arc<Rgbd>,
+    /// Stereo content: the left and the right eye's views (`None`: one view; a stereo
+    /// layout then synthesises each eye's from `rgbd`).
+    pub eyes: Option<[Arc<Rgbd>; 2]>,
+    /// The eye this frame is the view of (a frame [`ContentFrame::for_eye`] made); `None`: the
+    /// cyclopean or only view.
+    pub eye: Option<Side>,
     /// When it arrived (`None`: a still frame, or a source that does not know).
     pub arrival: Option<Arrival>,
     /// The procedural scene's time of the frame: recorded with its depth, so a replay renders
@@ -53,9 +61,21 @@ impl ContentFrame {
         ContentFrame {
             number,
             rgbd,
+            eyes: None,
+            eye: None,
             arrival: None,
             scene_time: None,
             scene: None,
+        }
+    }
+
+    /// The frame as `side`'s eye sees it (`view`: that eye's RGB-D), for rendering that eye.
+    pub fn for_eye(&self, side: Side, view: Arc<Rgbd>) -> ContentFrame {
+        ContentFrame {
+            rgbd: view,
+            eyes: None,
+            eye: Some(side),
+            ..self.clone()
         }
     }
 

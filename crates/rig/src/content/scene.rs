@@ -378,6 +378,8 @@ impl Content for AnimatedScene {
         Some(ContentFrame {
             number,
             rgbd,
+            eyes: None,
+            eye: None,
             arrival,
             scene_time: Some(time),
             scene: Some(Arc::new(self.scene_at(time))),
