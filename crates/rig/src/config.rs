@@ -1135,15 +1135,20 @@ pub enum ContentSource {
     Stream,
 }
 
+/// In `content.color` and `content.depth`: the eye, `left` or `right` (a stereo rig's left
+/// and right sequences, e.g. `"stim/%e/color_%04d.png"`).
+pub const EYE_MARK: &str = "%e";
+
 /// `[content]`: the rig's RGB-D content.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ContentConfig {
     #[serde(default)]
     pub source: ContentSource,
-    /// Colour: PNG (8/16-bit sRGB) or EXR/PFM (linear); `%04d` makes it a sequence.
+    /// Colour: PNG (8/16-bit sRGB) or EXR/PFM (linear); `%04d` makes it a sequence; `%e`
+    /// (a stereo layout) stands for `left` and `right`, each eye's files.
     pub color: Option<String>,
-    /// Depth: EXR/PFM metres or 16-bit PNG millimetres; a sequence like `color`.
+    /// Depth: EXR/PFM metres or 16-bit PNG millimetres; a sequence (and `%e`) like `color`.
     pub depth: Option<String>,
     /// Override the depth files' units: m, mm or D.
     pub depth_units: Option<String>,
@@ -1946,6 +1951,7 @@ impl RigConfig {
                         "expected a frame rate of 0 to 1000 Hz",
                     ));
                 }
+                self.check_eye_patterns()?;
                 if let Some(u) = &c.depth_units {
                     if !["m", "mm", "D"].contains(&u.as_str()) {
                         return Err(invalid(
@@ -2264,6 +2270,42 @@ impl RigConfig {
                     "expected -4096 to 4096 pixels",
                 ));
             }
+        }
+        Ok(())
+    }
+
+    /// `%e` in `content.color`/`content.depth` (a left and a right sequence): only on a
+    /// stereo layout, and in both patterns or neither.
+    fn check_eye_patterns(&self) -> Result<(), ConfigError> {
+        let c = &self.content;
+        let keys = [("content.color", &c.color), ("content.depth", &c.depth)];
+        let has = |v: &Option<String>| v.as_deref().is_some_and(|p| p.contains(EYE_MARK));
+        for (key, v) in keys {
+            if has(v) && !self.stereo() {
+                return Err(invalid(
+                    key,
+                    format!(
+                        "{EYE_MARK} names the eye (a left and a right sequence), and \
+                         display.layout is \"one\" (one image): set display.layout = \
+                         \"side-by-side\" or \"two-outputs\", or name one sequence without \
+                         {EYE_MARK}"
+                    ),
+                ));
+            }
+        }
+        if has(&c.color) != has(&c.depth) {
+            let (key, other) = if has(&c.color) {
+                ("content.depth", "content.color")
+            } else {
+                ("content.color", "content.depth")
+            };
+            return Err(invalid(
+                key,
+                format!(
+                    "{other} names each eye's files with {EYE_MARK}, so this must too: each \
+                     eye's colour needs that eye's depth"
+                ),
+            ));
         }
         Ok(())
     }
@@ -3259,5 +3301,31 @@ pub(crate) mod tests {
     fn planes_outside_the_lens_range_are_refused() {
         let e = err(&SIM_RIG.replace("planes = [0.2, 0.8, 1.4, 2.0]", "planes = [0.2, 8.0]"));
         assert_eq!(e.key(), "optics.planes");
+    }
+
+    /// `%e` in the files' patterns: each eye's sequence on a stereo layout; refused on a mono
+    /// one and in one pattern without the other, naming the key.
+    #[test]
+    fn eye_patterns_need_a_stereo_layout_and_both_keys() {
+        let files = |layout: &str, color: &str, depth: &str| {
+            SIM_RIG.replacen("[display]", &format!("[display]\nlayout = \"{layout}\""), 1)
+                + &format!(
+                    "\n[content]\nsource = \"files\"\ncolor = {color:?}\ndepth = {depth:?}\n"
+                )
+        };
+        let ok = RigConfig::parse(&files("side-by-side", "s/%e/c_%04d.png", "s/%e/d_%04d.exr"));
+        assert!(ok.is_ok(), "{ok:?}");
+        // Without %e a stereo rig shows one view (each eye's synthesised).
+        assert!(RigConfig::parse(&files("two-outputs", "c.png", "d.exr")).is_ok());
+        let e = err(&files("one", "s/%e/c.png", "s/%e/d.exr"));
+        assert_eq!(e.key(), "content.color", "{e}");
+        assert!(e.to_string().contains("display.layout"), "{e}");
+        let e = err(&files("one", "c.png", "d_%e.exr"));
+        assert_eq!(e.key(), "content.depth", "{e}");
+        let e = err(&files("side-by-side", "c_%e.png", "d.exr"));
+        assert_eq!(e.key(), "content.depth", "{e}");
+        assert!(e.to_string().contains("content.color names"), "{e}");
+        let e = err(&files("side-by-side", "c.png", "d_%e.exr"));
+        assert_eq!(e.key(), "content.color", "{e}");
     }
 }

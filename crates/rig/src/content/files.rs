@@ -2,30 +2,46 @@
 //! numbered sequence (`color = "stim/color_%04d.png"`) played at `fps`, decoded ahead on a
 //! worker thread so playback never waits for the disk.
 //!
-//! At start every file of the sequence must exist and the first frame must decode and match
-//! the display's size: otherwise the rig does not start, naming the path and the reason. A
-//! frame that fails later (corrupt, wrong size) is skipped and counted, and the frame before
-//! it stays on screen; one not decoded by the time it is due is counted late (same).
+//! Stereo content (a stereo `display.layout`): `%e` in both patterns stands for `left` and
+//! `right` (`"stim/%e/color_%04d.png"`), one pattern for the two eyes so their sequences are
+//! numbered, started and played as one; each frame is then the two eyes' views
+//! ([`ContentFrame::eyes`]), its `rgbd` the left eye's. Without `%e` a stereo rig shows one
+//! view and each eye's is synthesised from it.
+//!
+//! At start every file of the sequence (each eye's) must exist and the first frame must decode
+//! and match the display's (one eye's) size: otherwise the rig does not start, naming the path
+//! and the reason. A frame that fails later (corrupt, wrong size) is skipped and counted, and
+//! the frame before it stays on screen; one not decoded by the time it is due is counted late
+//! (same).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Duration;
 
-use dioptra_core::{lock, Rgbd, Timestamp};
+use dioptra_core::{lock, Rgbd, Side, Timestamp};
 use dioptra_render::io::{read_color, read_depth, DepthUnits};
 use serde::Serialize;
 
 use super::{Arrival, Content, ContentError, ContentFrame};
-use crate::config::{ContentConfig, RigConfig};
+use crate::config::{ContentConfig, RigConfig, EYE_MARK};
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
+
+/// One frame's files: a colour and a depth file per view (one, or the left and the right
+/// eye's).
+type FrameFiles = Vec<(PathBuf, PathBuf)>;
+
+/// One frame decoded: its views, in [`FrameFiles`]' order.
+type Views = Arc<[Arc<Rgbd>]>;
 
 /// What `/status` shows under `content`.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct ContentStatus {
     pub source: &'static str,
+    /// Each frame a left and a right eye's view (`%e` in the patterns).
+    pub stereo: bool,
     pub frames_in_sequence: usize,
     /// The sequence index on show.
     pub index: usize,
@@ -40,10 +56,10 @@ pub struct ContentStatus {
     pub since_ns: u64,
 }
 
-/// The files of a sequence, in order; `key` names the pattern's config key.
-fn expand(key: &'static str, pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
+/// A pattern's file of number `i` (`None`: the pattern is one file, not a sequence).
+fn numbered(pattern: &str) -> Result<Option<impl Fn(usize) -> PathBuf + '_>, ContentError> {
     let Some(at) = pattern.find('%') else {
-        return Ok(vec![PathBuf::from(pattern)]);
+        return Ok(None);
     };
     // %d or %0Nd, once.
     let rest = &pattern[at + 1..];
@@ -55,7 +71,24 @@ fn expand(key: &'static str, pattern: &str, first: usize) -> Result<Vec<PathBuf>
     }
     let width: usize = digits.parse().unwrap_or(0);
     let (head, tail) = (&pattern[..at], &rest[digits.len() + 1..]);
-    let name = |i: usize| PathBuf::from(format!("{head}{i:0width$}{tail}"));
+    Ok(Some(move |i: usize| {
+        PathBuf::from(format!("{head}{i:0width$}{tail}"))
+    }))
+}
+
+/// `pattern` for `eye` (`%e` replaced by `left` or `right`); unchanged for one view.
+fn eye_pattern(pattern: &str, eye: Option<Side>) -> String {
+    match eye {
+        Some(e) => pattern.replace(EYE_MARK, e.as_str()),
+        None => pattern.to_string(),
+    }
+}
+
+/// The files of a sequence, in order; `key` names the pattern's config key.
+fn expand(key: &'static str, pattern: &str, first: usize) -> Result<Vec<PathBuf>, ContentError> {
+    let Some(name) = numbered(pattern)? else {
+        return Ok(vec![PathBuf::from(pattern)]);
+    };
     let mut paths = Vec::new();
     let mut i = first;
     while name(i).exists() {
@@ -76,11 +109,105 @@ fn expand(key: &'static str, pattern: &str, first: usize) -> Result<Vec<PathBuf>
     Ok(paths)
 }
 
+/// A sequence as found on disk: its config key, its pattern (the eye's) and its files.
+struct Found {
+    key: &'static str,
+    pattern: String,
+    paths: Vec<PathBuf>,
+}
+
+impl Found {
+    fn new(key: &'static str, pattern: String, first: usize) -> Result<Found, ContentError> {
+        let paths = expand(key, &pattern, first)?;
+        Ok(Found {
+            key,
+            pattern,
+            paths,
+        })
+    }
+}
+
+/// Two sequences that must have the same frames (a colour and its depth, the left and the
+/// right eye's): where one ends before the other, the first file it lacks is named.
+fn pair_up(a: &Found, b: &Found, first: usize) -> Result<(), ContentError> {
+    let (short, long) = match a.paths.len().cmp(&b.paths.len()) {
+        std::cmp::Ordering::Equal => return Ok(()),
+        std::cmp::Ordering::Less => (a, b),
+        std::cmp::Ordering::Greater => (b, a),
+    };
+    let n = short.paths.len();
+    let missing = match numbered(&short.pattern)? {
+        Some(name) => name(first + n),
+        None => PathBuf::from(&short.pattern),
+    };
+    Err(ContentError::File {
+        key: short.key,
+        reason: format!(
+            "{}: not found, and {} ({}) is there: frame {} needs both",
+            missing.display(),
+            long.paths[n].display(),
+            long.key,
+            first + n
+        ),
+        path: missing,
+    })
+}
+
+/// Each frame's files: one view's, or (`eyes`) the left and the right eye's.
+fn sequence(
+    color: &str,
+    depth: &str,
+    first: usize,
+    eyes: bool,
+) -> Result<Vec<FrameFiles>, ContentError> {
+    let views: &[Option<Side>] = if eyes {
+        &[Some(Side::Left), Some(Side::Right)]
+    } else {
+        &[None]
+    };
+    let mut each = Vec::new();
+    for &eye in views {
+        let c = Found::new("content.color", eye_pattern(color, eye), first)?;
+        let d = Found::new("content.depth", eye_pattern(depth, eye), first)?;
+        each.push((c, d));
+    }
+    // The left eye's colour against its depth, then each of the right eye's files against
+    // the left eye's: a missing file is named beside its partner.
+    pair_up(&each[0].0, &each[0].1, first)?;
+    if let [(lc, ld), (rc, rd)] = &each[..] {
+        pair_up(lc, rc, first)?;
+        pair_up(ld, rd, first)?;
+    }
+    let n = each[0].0.paths.len();
+    Ok((0..n)
+        .map(|i| {
+            each.iter()
+                .map(|(c, d)| (c.paths[i].clone(), d.paths[i].clone()))
+                .collect()
+        })
+        .collect())
+}
+
+/// A frame's views, each decoded and checked against one eye's size.
+fn decode_views(
+    files: &[(PathBuf, PathBuf)],
+    units: Option<DepthUnits>,
+    size: (usize, usize),
+    stereo: bool,
+) -> Result<Views, ContentError> {
+    files
+        .iter()
+        .map(|(c, d)| decode(c, d, units, size, stereo).map(Arc::new))
+        .collect()
+}
+
+/// One colour and depth file pair; `stereo`: the display's size is one eye's.
 fn decode(
     color: &Path,
     depth: &Path,
     units: Option<DepthUnits>,
     size: (usize, usize),
+    stereo: bool,
 ) -> Result<Rgbd, ContentError> {
     // One message per file: the config key, then the path once (the readers' errors start
     // with it), then why, in the config's words.
@@ -108,10 +235,11 @@ fn decode(
             "content.color",
             color,
             &format!(
-                "it is {} x {} pixels, and display.width x display.height is {} x {}: set them \
-                 to the content's size",
+                "it is {} x {} pixels, and display.width x display.height{} is {} x {}: set \
+                 them to the content's size",
                 c.width(),
                 c.height(),
+                if stereo { " (one eye's image)" } else { "" },
                 size.0,
                 size.1
             ),
@@ -144,7 +272,7 @@ struct Shared {
 struct Worker {
     /// The index the loop shows; the worker decodes from here on.
     want: usize,
-    cache: BTreeMap<usize, Result<Arc<Rgbd>, String>>,
+    cache: BTreeMap<usize, Result<Views, String>>,
     /// Frames decoded so far (the first included).
     decoded: u64,
     stop: bool,
@@ -152,12 +280,12 @@ struct Worker {
 
 /// A file sequence being played.
 pub struct FileFrames {
-    pairs: Arc<Vec<(PathBuf, PathBuf)>>,
+    pairs: Arc<Vec<FrameFiles>>,
     fps: f64,
     looped: bool,
     shared: Arc<Shared>,
     /// (start time, index on show, frame on show).
-    on_show: Mutex<(Option<Timestamp>, usize, Arc<Rgbd>)>,
+    on_show: Mutex<(Option<Timestamp>, usize, Views)>,
     /// The index last counted late (each late frame counts once).
     late_index: Mutex<Option<usize>>,
     status: Mutex<ContentStatus>,
@@ -192,18 +320,19 @@ impl FileFrames {
             .transpose()
             .map_err(|e| ContentError::Config(format!("content.depth_units: {e}")))?;
         let first = c.first.unwrap_or(0);
-        let colors = expand("content.color", color, first)?;
-        let depths = expand("content.depth", depth, first)?;
-        if colors.len() != depths.len() {
+        let stereo = cfg.stereo();
+        // Config validation refuses %e on a mono layout; checked again for a config built by
+        // hand.
+        let eyes = color.contains(EYE_MARK);
+        if eyes && !stereo {
             return Err(ContentError::Config(format!(
-                "{} colour files ({color}) and {} depth files ({depth}): they must pair up",
-                colors.len(),
-                depths.len()
+                "content.color: {EYE_MARK} names each eye's files, and display.layout shows \
+                 one image"
             )));
         }
+        let pairs = Arc::new(sequence(color, depth, first, eyes)?);
         let size = (cfg.display.width as usize, cfg.display.height as usize);
-        let first_frame = Arc::new(decode(&colors[0], &depths[0], units, size)?);
-        let pairs: Arc<Vec<_>> = Arc::new(colors.into_iter().zip(depths).collect());
+        let first_frame = decode_views(&pairs[0], units, size, stereo)?;
         let shared = Arc::new(Shared {
             state: Mutex::new(Worker {
                 want: 0,
@@ -219,7 +348,7 @@ impl FileFrames {
             let looped = c.looped;
             std::thread::Builder::new()
                 .name("dioptra-content".into())
-                .spawn(move || decode_ahead(&pairs, &shared, units, size, looped))
+                .spawn(move || decode_ahead(&pairs, &shared, units, size, stereo, looped))
                 .map_err(|e| ContentError::Config(format!("cannot start the decoder: {e}")))?;
         }
         Ok(FileFrames {
@@ -227,6 +356,7 @@ impl FileFrames {
             looped: c.looped,
             status: Mutex::new(ContentStatus {
                 source: "files",
+                stereo: eyes,
                 frames_in_sequence: pairs.len(),
                 decoded: 1,
                 ..Default::default()
@@ -245,14 +375,20 @@ impl FileFrames {
         lock(&self.arrival).take()
     }
 
-    /// The frame on show now.
+    /// The frame on show now (stereo: the left eye's view).
     pub fn current(&self) -> Arc<Rgbd> {
-        lock(&self.on_show).2.clone()
+        lock(&self.on_show).2[0].clone()
     }
 
-    /// The frame on show at `now`, and whether it changed since the last call. The first call
-    /// starts the sequence.
+    /// The frame on show at `now` (stereo: the left eye's view), and whether it changed since
+    /// the last call. The first call starts the sequence.
     pub fn frame_at(&self, now: Timestamp) -> (Arc<Rgbd>, bool) {
+        let (views, changed) = self.views_at(now);
+        (views[0].clone(), changed)
+    }
+
+    /// [`FileFrames::frame_at`] with each of the frame's views.
+    fn views_at(&self, now: Timestamp) -> (Views, bool) {
         let mut show = lock(&self.on_show);
         let n = self.pairs.len();
         let start = *show.0.get_or_insert(now);
@@ -319,7 +455,7 @@ impl FileFrames {
 
 impl Content for FileFrames {
     fn poll(&self, now: Timestamp) -> Option<ContentFrame> {
-        let (frame, changed) = self.frame_at(now);
+        let (views, changed) = self.views_at(now);
         let mut polled = lock(&self.polled);
         polled.1 = Some(now);
         if !changed && polled.0 > 0 {
@@ -328,7 +464,11 @@ impl Content for FileFrames {
         polled.0 += 1;
         Some(ContentFrame {
             arrival: self.take_arrival(),
-            ..ContentFrame::new(polled.0, frame)
+            eyes: match &views[..] {
+                [left, right] => Some([left.clone(), right.clone()]),
+                _ => None,
+            },
+            ..ContentFrame::new(polled.0, views[0].clone())
         })
     }
     fn next_due(&self) -> Option<Timestamp> {
@@ -357,10 +497,11 @@ impl Drop for FileFrames {
 
 /// The worker: keeps frames `want..want + AHEAD` decoded, drops the ones behind.
 fn decode_ahead(
-    pairs: &[(PathBuf, PathBuf)],
+    pairs: &[FrameFiles],
     shared: &Shared,
     units: Option<DepthUnits>,
     size: (usize, usize),
+    stereo: bool,
     looped: bool,
 ) {
     let n = pairs.len();
@@ -386,10 +527,7 @@ fn decode_ahead(
             continue;
         };
         drop(w);
-        let (c, d) = &pairs[next];
-        let r = decode(c, d, units, size)
-            .map(Arc::new)
-            .map_err(|e| e.to_string());
+        let r = decode_views(&pairs[next], units, size, stereo).map_err(|e| e.to_string());
         w = lock(&shared.state);
         if r.is_ok() {
             w.decoded += 1;
@@ -552,5 +690,128 @@ mod tests {
         let text = crate::config::EXAMPLE_SIM_RIG.to_string() + "\n[content]\nsource = \"files\"\n";
         let e = RigConfig::parse(&text).unwrap_err();
         assert_eq!(e.key(), "content.color");
+    }
+
+    /// The example rig with a side-by-side panel and `[content]` naming files in `dir`.
+    fn stereo_config(dir: &Path, color: &str, depth: &str) -> RigConfig {
+        let text = crate::config::EXAMPLE_SIM_RIG.replacen(
+            "[display]",
+            "[display]\nlayout = \"side-by-side\"",
+            1,
+        ) + &format!(
+            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\nfps = 10\n",
+            dir.join(color).display().to_string(),
+            dir.join(depth).display().to_string()
+        );
+        RigConfig::parse(&text).unwrap()
+    }
+
+    /// Each eye's sequence in `dir/left` and `dir/right`: the left eye's frame i has red
+    /// 0.1 i and 1 + 0.1 i D, the right eye's red 0.5 + 0.1 i and 2 + 0.1 i D.
+    fn write_eyes(dir: &Path, n: usize) {
+        for (eye, v0) in [("left", 0.0), ("right", 0.5)] {
+            std::fs::create_dir_all(dir.join(eye)).unwrap();
+            for i in 0..n {
+                let (c, d) = frame(v0 + 0.1 * i as f32, 96, 96);
+                write_color(&dir.join(format!("{eye}/c_{i:03}.exr")), &c).unwrap();
+                write_depth(&dir.join(format!("{eye}/d_{i:03}.exr")), &d).unwrap();
+            }
+        }
+    }
+
+    /// Stereo files are shown as pairs: each ContentFrame's eyes hold the left and the right
+    /// file's pixels (as `dioptra render` reads them), `rgbd` the left eye's.
+    #[test]
+    fn stereo_files_are_shown_as_pairs() {
+        use dioptra_render::io::{read_color, read_depth};
+        let dir = tempfile::tempdir().unwrap();
+        write_eyes(dir.path(), 3);
+        let cfg = stereo_config(dir.path(), "%e/c_%03d.exr", "%e/d_%03d.exr");
+        assert!(cfg.stereo());
+        let f = FileFrames::open(&cfg).unwrap();
+        let st = f.status();
+        assert!(st.stereo && st.frames_in_sequence == 3, "{st:?}");
+        let ms = |m: u64| Timestamp(m * 1_000_000);
+        let first = f.poll(ms(0)).expect("the first frame");
+        cached(&f, 3);
+        let second = f.poll(ms(100)).expect("frame 1 at 100 ms");
+        for (frame, i) in [(first, 0), (second, 1)] {
+            let [left, right] = frame.eyes.clone().expect("a pair");
+            for (eye, view) in [("left", &left), ("right", &right)] {
+                let file = |kind: &str| dir.path().join(format!("{eye}/{kind}_{i:03}.exr"));
+                assert_eq!(view.color, read_color(&file("c")).unwrap(), "{eye} {i}");
+                assert_eq!(
+                    view.depth.data(),
+                    read_depth(&file("d"), None).unwrap().data(),
+                    "{eye} {i}"
+                );
+            }
+            assert!(
+                Arc::ptr_eq(&frame.rgbd, &left),
+                "rgbd is the left eye's view"
+            );
+            assert!(frame.eye.is_none());
+            let red = |v: &Rgbd| v.color.channels[0].data()[0];
+            assert!((red(&left) - 0.1 * i as f32).abs() < 1e-6);
+            assert!((red(&right) - (0.5 + 0.1 * i as f32)).abs() < 1e-6);
+        }
+        assert!(f.poll(ms(150)).is_none(), "no new frame before 200 ms");
+    }
+
+    /// A right eye's file missing for frame N, or of the wrong size, stops the start naming
+    /// the key and the path; a mono layout refuses `%e`; without `%e` a stereo rig's frames
+    /// are one view.
+    #[test]
+    fn a_missing_or_misfit_eye_file_is_refused_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        write_eyes(dir.path(), 3);
+        let open =
+            || FileFrames::open(&stereo_config(dir.path(), "%e/c_%03d.exr", "%e/d_%03d.exr"));
+        let right = |name: &str| dir.path().join("right").join(name);
+        std::fs::rename(right("c_002.exr"), dir.path().join("aside.exr")).unwrap();
+        let e = open().unwrap_err();
+        let text = e.to_string();
+        assert!(
+            matches!(&e, ContentError::File { key: "content.color", path, .. } if *path == right("c_002.exr")),
+            "{text}"
+        );
+        assert!(
+            text.contains("not found") && text.contains("left/c_002.exr"),
+            "{text}"
+        );
+        std::fs::rename(dir.path().join("aside.exr"), right("c_002.exr")).unwrap();
+        // The right depth sequence one frame longer: the left's frame 3 is missing.
+        let (c, d) = frame(0.9, 96, 96);
+        write_depth(&right("d_003.exr"), &d).unwrap();
+        let e = open().unwrap_err().to_string();
+        assert!(
+            e.starts_with("content.depth: ") && e.contains("left/d_003.exr: not found"),
+            "{e}"
+        );
+        std::fs::remove_file(right("d_003.exr")).unwrap();
+        // The right eye's first frame of another size than one eye's image.
+        let (small, _) = frame(0.2, 64, 48);
+        write_color(&right("c_000.exr"), &small).unwrap();
+        let e = open().unwrap_err().to_string();
+        assert!(
+            e.starts_with("content.color: ")
+                && e.contains("right/c_000.exr")
+                && e.contains("64 x 48")
+                && e.contains("one eye's image"),
+            "{e}"
+        );
+        write_color(&right("c_000.exr"), &c).unwrap();
+        assert!(open().is_ok());
+        // %e on a mono layout (a config built by hand: parsing refuses it already).
+        let mut mono = config(dir.path(), "c.exr", "d.exr", "");
+        mono.content.color = Some(dir.path().join("%e/c_%03d.exr").display().to_string());
+        mono.content.depth = Some(dir.path().join("%e/d_%03d.exr").display().to_string());
+        let e = FileFrames::open(&mono).unwrap_err().to_string();
+        assert!(e.contains("content.color") && e.contains("%e"), "{e}");
+        // No %e on a stereo rig: one view.
+        let one = stereo_config(dir.path(), "left/c_%03d.exr", "left/d_%03d.exr");
+        let f = FileFrames::open(&one).unwrap();
+        let fr = f.poll(Timestamp(0)).unwrap();
+        assert!(fr.eyes.is_none() && !f.status().stereo);
     }
 }
