@@ -26,6 +26,37 @@ pub fn synthesize_view(
     target: [f32; 2],
     eye: &EyeModel,
 ) -> Result<RgbImage, RenderError> {
+    let (w, h, px) = warp_to(inputs, target, eye)?;
+    let colour: Vec<[f32; 3]> = px.iter().map(|p| p.0).collect();
+    Ok(RgbImage::from_interleaved(w, h, colour.as_flattened())?)
+}
+
+/// The view from `target` synthesised from `inputs`, with its depth: a stereo eye's RGB-D
+/// made from one central view (`target` an eye's position, IPD / 2 from the centre), which
+/// the eye's own render then defocuses. A hole with nothing on its row or column is black at
+/// infinity (0 D).
+pub fn synthesize_rgbd_view(
+    inputs: &[RgbdView],
+    target: [f32; 2],
+    eye: &EyeModel,
+) -> Result<Rgbd, RenderError> {
+    let (w, h, px) = warp_to(inputs, target, eye)?;
+    let colour: Vec<[f32; 3]> = px.iter().map(|p| p.0).collect();
+    let depth: Vec<f32> = px.iter().map(|p| p.1).collect();
+    Ok(Rgbd::new(
+        RgbImage::from_interleaved(w, h, colour.as_flattened())?,
+        dioptra_core::DepthMap::from_diopters(dioptra_core::Plane::from_vec(w, h, depth)?)?,
+    )?)
+}
+
+/// Every input warped to `target` and blended, holes filled: width, height and per pixel the
+/// colour and depth (diopters).
+#[allow(clippy::type_complexity)]
+fn warp_to(
+    inputs: &[RgbdView],
+    target: [f32; 2],
+    eye: &EyeModel,
+) -> Result<(usize, usize, Vec<([f32; 3], f32)>), RenderError> {
     let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
     let (w, h) = (first.rgbd.width(), first.rgbd.height());
     if w == 0
@@ -103,13 +134,12 @@ pub fn synthesize_view(
             (wsum > 0.0).then(|| (acc.map(|v| v / wsum), nearest))
         })
         .collect();
-    let filled = fill_holes(&px, w, h);
-    Ok(RgbImage::from_interleaved(w, h, filled.as_flattened())?)
+    Ok((w, h, fill_holes(&px, w, h)))
 }
 
 /// Fills each hole with the farther (background) of the nearest valid pixels to its left and
 /// right on its row, or from above and below when a row has none.
-fn fill_holes(px: &[Option<([f32; 3], f32)>], w: usize, h: usize) -> Vec<[f32; 3]> {
+fn fill_holes(px: &[Option<([f32; 3], f32)>], w: usize, h: usize) -> Vec<([f32; 3], f32)> {
     let mut out: Vec<Option<([f32; 3], f32)>> = px.to_vec();
     for y in 0..h {
         let row = &px[y * w..(y + 1) * w];
@@ -142,7 +172,7 @@ fn fill_holes(px: &[Option<([f32; 3], f32)>], w: usize, h: usize) -> Vec<[f32; 3
         }
     }
     out.into_iter()
-        .map(|p| p.map_or([0.0; 3], |p| p.0))
+        .map(|p| p.unwrap_or(([0.0; 3], 0.0)))
         .collect()
 }
 

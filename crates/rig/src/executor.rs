@@ -15,11 +15,12 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use dioptra_core::{Diopters, Timestamp};
+use dioptra_core::{Diopters, Side, Timestamp};
 use tokio::sync::mpsc;
 
 use crate::config::MarkerEvent;
 use crate::config::{Method, Mode};
+use crate::content::stereo::EyeViews;
 use crate::content::{Content, ContentFrame};
 use crate::devices::{DeviceInput, DeviceLinks, LensOrder};
 use crate::display::{DisplaySink, Frame, Marker};
@@ -111,9 +112,14 @@ struct Rendered {
     /// The focus the scheduler asked for (`None`: it gave none).
     focus: Option<Diopters>,
     requested: Timestamp,
-    result: Result<RenderOutput, (RenderFailure, Option<Vec<dioptra_core::RgbImage>>)>,
+    /// The frame's images (a stereo layout: the left eye's, and the right eye's), or why not
+    /// and what is shown instead (the unblurred content, in both eyes' places).
+    result: Result<(RenderOutput, Option<RenderOutput>), (RenderFailure, Unblurred)>,
     took: Duration,
 }
+
+/// The unblurred content shown in a failed render's place (`None`: nothing to show).
+type Unblurred = Option<Vec<dioptra_core::RgbImage>>;
 
 /// A failed render, and the unblurred content shown in its place.
 fn failure(
@@ -130,6 +136,25 @@ fn failure(
         fallback: unblurred.is_some(),
     };
     (failure, unblurred)
+}
+
+/// Renders each eye of a stereo layout, one after the other on the rig's backend: the left
+/// eye's view at `job.focus`, the right eye's at `job.focus_right` (its own lens's focus;
+/// `focus` where the rig has one lens).
+fn render_eyes(
+    renderer: &dyn Renderer,
+    views: &EyeViews,
+    job: &RenderJob,
+    content: &ContentFrame,
+) -> Result<(RenderOutput, Option<RenderOutput>), dioptra_render::RenderError> {
+    let ([left, right], _) = views.of(content)?;
+    let left_out = renderer.render(job, &content.for_eye(Side::Left, left))?;
+    let right_job = RenderJob {
+        focus: job.focus_right.unwrap_or(job.focus),
+        ..job.clone()
+    };
+    let right_out = renderer.render(&right_job, &content.for_eye(Side::Right, right))?;
+    Ok((left_out, Some(right_out)))
 }
 
 /// Finished frames kept for the scheduler to present (it shows the newest ready one).
@@ -178,7 +203,19 @@ pub(crate) async fn run_loop(parts: LoopParts) {
     let arrivals = content.arrivals();
     let (done_tx, mut done_rx) = mpsc::channel::<Rendered>(4);
     let now = clock.now();
+    // A stereo layout renders each eye from its own view of the content.
+    let eye_views = match state.cfg.stereo() {
+        false => None,
+        true => match EyeViews::new(&state.cfg) {
+            Ok(v) => Some(Arc::new(v)),
+            Err(e) => {
+                tracing::error!(error = %e, "cannot make each eye's view; both eyes are shown the one view");
+                None
+            }
+        },
+    };
     let mut ex = Executor {
+        eye_views,
         state: &state,
         links: &links,
         renderer: &renderer,
@@ -339,6 +376,8 @@ struct Executor<'a> {
     on_show: Option<ContentFrame>,
     /// The marker patch's colour, present by present (`display.marker_patch`).
     marker: Option<Marker>,
+    /// A stereo layout: each eye's view of the content ([`crate::content::stereo`]).
+    eye_views: Option<Arc<EyeViews>>,
 }
 
 impl Executor<'_> {
@@ -449,6 +488,7 @@ impl Executor<'_> {
                         focus: req
                             .focus
                             .unwrap_or(Diopters(sh.cfg.devices.lens.first().park_power)),
+                        focus_right: req.focus_right,
                         gaze,
                         auto: sh.auto_method.load(std::sync::atomic::Ordering::Relaxed),
                         display_time: req.display_time,
@@ -506,13 +546,18 @@ impl Executor<'_> {
             self.state.clock.clone(),
         );
         let planes = self.state.cfg.optics.planes.len();
+        let eye_views = self.eye_views.clone();
         tokio::spawn(async move {
             let started = clock.now();
             let job_kept = job.clone();
             let content_kept = content.clone();
             let r = tokio::task::spawn_blocking(move || {
                 let t0 = Instant::now();
-                let result = renderer.render(&job, &content).map_err(|e| {
+                let result = match &eye_views {
+                    None => renderer.render(&job, &content).map(|out| (out, None)),
+                    Some(views) => render_eyes(renderer.as_ref(), views, &job, &content),
+                };
+                let result = result.map_err(|e| {
                     failure(
                         crate::render::error_kind(&e),
                         e.to_string(),
@@ -522,7 +567,11 @@ impl Executor<'_> {
                     )
                 });
                 let took = match &result {
-                    Ok(out) => out.cost.unwrap_or_else(|| t0.elapsed()),
+                    Ok((out, right)) => match (out.cost, right.as_ref().map(|r| r.cost)) {
+                        (Some(l), None) | (Some(l), Some(None)) => l,
+                        (Some(l), Some(Some(r))) => l + r,
+                        (None, _) => t0.elapsed(),
+                    },
                     Err(_) => t0.elapsed(),
                 };
                 (job, result, took)
@@ -595,7 +644,12 @@ impl Executor<'_> {
         }
     }
 
-    fn keep_frame(&mut self, job: &RenderJob, images: Vec<crate::render::FrameImage>) {
+    fn keep_frame(
+        &mut self,
+        job: &RenderJob,
+        images: Vec<crate::render::FrameImage>,
+        right: Option<Vec<crate::render::FrameImage>>,
+    ) {
         if self.frames.len() == FRAMES_KEPT {
             self.frames.pop_front();
         }
@@ -603,7 +657,7 @@ impl Executor<'_> {
             number: job.frame,
             layers: Arc::new(images),
             focus: job.focus,
-            right: None,
+            right: right.map(Arc::new),
             marker: None,
         });
     }
@@ -623,10 +677,11 @@ impl Executor<'_> {
             result,
             took,
         } = done;
-        let (images, planned, failure) = match result {
-            Ok(out) => (Some(out.images), out.planned, None),
+        let (images, right, planned, failure) = match result {
+            Ok((out, right)) => (Some(out.images), right.map(|r| r.images), out.planned, None),
             Err((failure, unblurred)) => (
                 unblurred.map(|i| i.into_iter().map(Into::into).collect()),
+                None,
                 None,
                 Some(failure),
             ),
@@ -646,7 +701,7 @@ impl Executor<'_> {
         }
         let render_time = Duration::from_nanos(report.render_ns());
         if let Some(images) = images {
-            self.keep_frame(&job, images);
+            self.keep_frame(&job, images, right);
         }
         Input::RenderFinished {
             frame: job.frame,
@@ -712,6 +767,131 @@ mod tests {
                 planned: None,
                 cost: Some(Duration::from_millis(2)),
             })
+        }
+    }
+
+    /// Notes each eye's render: the eye and its focus.
+    type EyeFoci = Arc<Mutex<Vec<(Option<Side>, Diopters)>>>;
+    struct PerEye(EyeFoci);
+
+    impl Renderer for PerEye {
+        fn render(
+            &self,
+            job: &RenderJob,
+            content: &ContentFrame,
+        ) -> Result<RenderOutput, dioptra_render::RenderError> {
+            self.0.lock().unwrap().push((content.eye, job.focus));
+            // The eye's image says which eye it is: 0.25 left, 0.75 right.
+            let v = if content.eye == Some(Side::Right) {
+                0.75
+            } else {
+                0.25
+            };
+            Ok(RenderOutput {
+                images: vec![dioptra_core::RgbImage::new(2, 2, [v; 3]).into()],
+                planned: None,
+                cost: Some(Duration::from_millis(2)),
+            })
+        }
+    }
+
+    /// Notes each render request's focus per eye (the right's: the left's with one lens).
+    struct Requests(Arc<Mutex<Vec<(Diopters, Diopters)>>>);
+
+    impl LoopHook for Requests {
+        fn command(&mut self, _now: Timestamp, cmd: &Command) {
+            if let Command::RenderFrame(r) = cmd {
+                if let Some(f) = r.focus {
+                    self.0.lock().unwrap().push((f, r.focus_right.unwrap_or(f)));
+                }
+            }
+        }
+    }
+
+    /// Keeps each frame it is shown.
+    struct Keep(Arc<Mutex<Vec<Frame>>>);
+
+    impl DisplaySink for Keep {
+        fn present(
+            &mut self,
+            frame: &Frame,
+            now: Timestamp,
+        ) -> Result<Timestamp, crate::display::DisplayError> {
+            self.0.lock().unwrap().push(frame.clone());
+            Ok(now)
+        }
+        fn present_layer(
+            &mut self,
+            frame: &Frame,
+            _: usize,
+            start: Timestamp,
+        ) -> Result<Timestamp, crate::display::DisplayError> {
+            self.present(frame, start)
+        }
+        fn shown(&self) -> u64 {
+            self.0.lock().unwrap().len() as u64
+        }
+        fn describe(&self) -> String {
+            "kept".into()
+        }
+        fn status(&self) -> serde_json::Value {
+            serde_json::Value::Null
+        }
+    }
+
+    /// On a stereo layout each eye is rendered from its own view of the content at its own
+    /// lens's focus, and the display is handed both eyes' images.
+    #[tokio::test(start_paused = true)]
+    async fn on_a_stereo_layout_each_eye_is_rendered_from_its_view_at_its_lenss_focus() {
+        // The right lens settles four times slower than the left: while they move, the
+        // scheduler predicts different powers, so the eyes' foci differ.
+        let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG;
+        let i = text.find("[devices.lens.right]").unwrap();
+        let text = text[..i].to_string()
+            + &text[i..].replacen("sim_settle_ms = 15.0", "sim_settle_ms = 60.0", 1)
+            + "\n[content]\nanimate = false\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        assert!(cfg.stereo());
+        let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let (renders, frames, requests) = (Arc::default(), Arc::default(), Arc::default());
+        let mut setup = RigSetup::new(cfg);
+        setup.simulated_time = true;
+        setup.clock = Some(clock.clone());
+        setup.renderer = Some(Arc::new(PerEye(Arc::clone(&renders))));
+        setup.sink = Some(Box::new(Keep(Arc::clone(&frames))));
+        setup.hooks.push(Box::new(Requests(Arc::clone(&requests))));
+        let rig = Rig::start(setup).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(2500)).await;
+        rig.state().cancel.cancel();
+        assert!(rig.wait().await.ok());
+        let renders = renders.lock().unwrap().clone();
+        assert!(renders.len() >= 10, "{renders:?}");
+        // Left then right, frame after frame, from each eye's own view (never the cyclopean).
+        for pair in renders.chunks(2) {
+            assert_eq!(
+                (pair[0].0, pair[1].0),
+                (Some(Side::Left), Some(Side::Right)),
+                "{renders:?}"
+            );
+        }
+        // Each eye at the scheduler's focus for it: the left at the request's focus, the right
+        // at its own lens's.
+        let requests: Vec<(Diopters, Diopters)> = requests.lock().unwrap().clone();
+        let rendered: Vec<(Diopters, Diopters)> =
+            renders.chunks(2).map(|p| (p[0].1, p[1].1)).collect();
+        assert_eq!(rendered, requests[..rendered.len()]);
+        let differ = rendered
+            .iter()
+            .filter(|(l, r)| (l.0 - r.0).abs() > 0.05)
+            .count();
+        assert!(differ > 0, "{rendered:?}");
+        let frames = frames.lock().unwrap().clone();
+        assert!(!frames.is_empty());
+        for f in &frames {
+            let right = f.right.as_ref().expect("the right eye's images");
+            let px =
+                |img: &crate::render::FrameImage| img.to_host().unwrap().pixel(0, 0).unwrap()[0];
+            assert_eq!((px(&f.layers[0]), px(&right[0])), (0.25, 0.75));
         }
     }
 

@@ -7,11 +7,14 @@
 //! - [`files`]: a lab's RGB-D files, one frame or a numbered sequence;
 //! - [`stream`]: frames an application pushes (shared-memory ring or `PUT /frame`), the
 //!   ring's byte layout in [`ring`];
-//! - [`Still`]: one fixed frame (loop tests).
+//! - [`Still`]: one fixed frame (loop tests);
+//! - [`stereo`]: each eye's view on a stereo layout (the content's own two, the scene ray
+//!   cast per eye, or synthesised from one RGB-D).
 
 pub mod files;
 pub mod ring;
 pub mod scene;
+pub mod stereo;
 pub mod stream;
 
 use std::sync::atomic::{AtomicBool, Ordering};

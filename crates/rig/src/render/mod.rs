@@ -22,6 +22,9 @@ pub struct RenderJob {
     pub method: Method,
     /// The focus it is rendered for (the lens's park power when the scheduler gave none).
     pub focus: Diopters,
+    /// A stereo layout with a lens per eye: the right eye's focus (its own lens's); `None`:
+    /// both eyes at `focus`.
+    pub focus_right: Option<Diopters>,
     /// Gaze point on the frame, pixels (for `method = "auto"`).
     pub gaze: Option<[f32; 2]>,
     /// `method = "auto"`: the planner chooses this (varifocal) frame's method.

@@ -24,7 +24,7 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
-use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd};
+use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
@@ -46,10 +46,13 @@ pub struct RgbdRenderer {
     size: (usize, usize),
     /// The newest content frame rendered: what the caches below may hold.
     newest: AtomicU64,
-    /// Multifocal layers per method and content frame.
+    /// Multifocal layers per method, content frame and eye.
     layers: Mutex<Vec<CachedLayers>>,
-    /// The light-field panel, made from the content frame numbered with it.
-    panel: Mutex<Option<(u64, Arc<RgbImage>)>>,
+    /// The light-field panels, each made from the content frame numbered with it, for the eye
+    /// with it (`None`: the one view of a mono layout).
+    panel: Mutex<Vec<CachedPanel>>,
+    /// Half the interpupillary distance, metres: where each eye's light field is centred.
+    half_ipd_m: f32,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
     compute: Mutex<Compute>,
     /// The net of each mode and method (`network`: C1, C4; `refine`: C1R, C4R), or why it
@@ -57,9 +60,13 @@ pub struct RgbdRenderer {
     nets: CpuNets,
 }
 
-/// Multifocal layers one method made from the content frame numbered `frame`.
+/// A light-field panel: its content frame's number, its eye, the panel.
+type CachedPanel = (u64, Option<Side>, Arc<RgbImage>);
+
+/// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
     frame: u64,
+    eye: Option<Side>,
     method: Method,
     images: Arc<Vec<FrameImage>>,
 }
@@ -95,7 +102,8 @@ impl RgbdRenderer {
             size: (d.width as usize, d.height as usize),
             newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
-            panel: Mutex::new(None),
+            panel: Mutex::new(Vec::new()),
+            half_ipd_m: cfg.eye.ipd_mm * 0.5e-3,
             nets,
         })
     }
@@ -290,10 +298,7 @@ impl RgbdRenderer {
         let n = content.number;
         if self.newest.fetch_max(n, Ordering::AcqRel) < n {
             lock(&self.layers).retain(|l| l.frame >= n);
-            let mut panel = lock(&self.panel);
-            if panel.as_ref().is_some_and(|(k, _)| *k < n) {
-                *panel = None;
-            }
+            lock(&self.panel).retain(|(k, _, _)| *k >= n);
         }
     }
 
@@ -376,9 +381,9 @@ impl RgbdRenderer {
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
     fn panel(&self, content: &ContentFrame) -> Result<Arc<RgbImage>, RenderError> {
-        if let Some((_, p)) = lock(&self.panel)
-            .as_ref()
-            .filter(|(n, _)| *n == content.number)
+        if let Some((_, _, p)) = lock(&self.panel)
+            .iter()
+            .find(|(n, e, _)| *n == content.number && *e == content.eye)
         {
             return Ok(p.clone());
         }
@@ -388,9 +393,19 @@ impl RgbdRenderer {
                 // Views at half size: a panel of 5 px per lenslet cannot show more.
                 let vcam =
                     dioptra_sim::scene::Camera::new(self.eye, (w / 2).max(8), (h / 2).max(8));
-                let views =
-                    dioptra_sim::scene::render_light_field(scene, &vcam, LF_GRID, LF_SPAN_M, 1)?;
-                let images = views.into_iter().map(|v| v.color).collect();
+                // Centred on the eye's own position (IPD / 2 from the scene's centre).
+                let centre = match content.eye {
+                    Some(Side::Left) => -self.half_ipd_m,
+                    Some(Side::Right) => self.half_ipd_m,
+                    None => 0.0,
+                };
+                let images = dioptra_sim::scene::light_field_positions(LF_GRID, LF_SPAN_M)?
+                    .into_iter()
+                    .map(|[x, y]| {
+                        dioptra_sim::scene::render_pinhole(scene, &vcam, [x + centre, y], 1)
+                            .map(|(color, _)| color)
+                    })
+                    .collect::<Result<Vec<_>, _>>()?;
                 (images, vcam.eye.pixel_pitch_tan())
             }
             None => {
@@ -415,7 +430,7 @@ impl RgbdRenderer {
         let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
-            *lock(&self.panel) = Some((content.number, panel.clone()));
+            lock(&self.panel).push((content.number, content.eye, panel.clone()));
         }
         Ok(panel)
     }
@@ -427,7 +442,7 @@ impl RgbdRenderer {
     ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
         if let Some(l) = lock(&self.layers)
             .iter()
-            .find(|l| l.frame == content.number && l.method == method)
+            .find(|l| l.frame == content.number && l.eye == content.eye && l.method == method)
         {
             return Ok(l.images.clone());
         }
@@ -501,6 +516,7 @@ impl RgbdRenderer {
         if self.keeps(content) {
             lock(&self.layers).push(CachedLayers {
                 frame: content.number,
+                eye: content.eye,
                 method,
                 images: images.clone(),
             });
