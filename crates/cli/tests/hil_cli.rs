@@ -246,3 +246,57 @@ fn hil_on_the_photodiode_rig_measures_in_photons() {
         assert!(bytes.starts_with(b"\x89PNG"), "{png}.png is not a PNG");
     }
 }
+
+/// `dioptra demo --eyes 2` (the binocular example rig) runs, prints each eye's figures and
+/// writes each eye's images and their side-by-side panel, the eyes' views apart by disparity.
+#[test]
+fn the_demo_with_two_eyes_prints_and_writes_each_eye() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let run = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args([
+            "demo",
+            "--eyes",
+            "2",
+            "--seconds",
+            "1.5",
+            "--size",
+            "48",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{text}\n{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    for line in [
+        "left eye: lens commands",
+        "right eye: lens commands",
+        "lens command pairs",
+    ] {
+        assert!(text.contains(line), "{line}: {text}");
+    }
+    let left = dioptra_render::io::read_color(&out.join("frame_0_left_input.png")).unwrap();
+    let right = dioptra_render::io::read_color(&out.join("frame_0_right_input.png")).unwrap();
+    let stereo = dioptra_render::io::read_color(&out.join("frame_0_stereo.png")).unwrap();
+    assert_eq!((stereo.width(), stereo.height()), (96, 48));
+    assert_ne!(left, right, "each eye sees from its own place");
+    let rendered = dioptra_render::io::read_color(&out.join("frame_0_right_rendered.png")).unwrap();
+    assert_eq!(
+        stereo.pixel(48 + 10, 20),
+        rendered.pixel(10, 20),
+        "the right half is the right eye"
+    );
+    // Other modes are refused with the reason.
+    let refused = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["demo", "--eyes", "2", "--mode", "multifocal", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--eyes 2"));
+}

@@ -9,7 +9,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use dioptra_core::{lock, DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Timestamp};
+use dioptra_core::{lock, DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Side, Timestamp};
 use dioptra_render::lightfield::lightfield;
 use dioptra_render::multifocal::linear_blend;
 use dioptra_render::planner::{Choice, FrameStats, Planner};
@@ -57,6 +57,8 @@ pub enum Output {
 /// A frame kept for scoring.
 pub struct Kept {
     pub frame: u64,
+    /// Whose view (`--eyes 2`); `None`: the one eye's.
+    pub eye: Option<Side>,
     pub display_time: Timestamp,
     pub scene: Scene,
     pub input: Rgbd,
@@ -108,6 +110,10 @@ struct DemoState {
     kept: Vec<Kept>,
     /// `--method auto`: frames per choice so far.
     planned: std::collections::BTreeMap<String, u64>,
+    /// `--eyes 2`: each eye's render times, left and right.
+    eye_render: [Vec<Duration>; 2],
+    /// `--eyes 2`: the frame whose left eye was kept: its right eye is kept too.
+    keep_right: Option<u64>,
 }
 
 /// Gaze angles of a scene point (scene: x right, y down, z forward).
@@ -200,6 +206,11 @@ impl DemoFrames {
     /// `--method auto`: how many frames the planner gave each method.
     pub fn planned(&self) -> std::collections::BTreeMap<String, u64> {
         lock(&self.state).planned.clone()
+    }
+
+    /// `--eyes 2`: the render time of each frame of one eye (`right`: the right eye's).
+    pub fn eye_render_times(&self, right: bool) -> Vec<Duration> {
+        lock(&self.state).eye_render[usize::from(right)].clone()
     }
 
     pub fn take_kept(&self) -> Vec<Kept> {
@@ -356,7 +367,11 @@ impl Content for DemoFrames {
         }
         let number = lock(&self.state).given + 1;
         let content = Arc::new(self.content_at(t, number)?);
-        let frame = ContentFrame::new(number, content.rgbd.clone());
+        // With the scene: on a stereo layout the rig ray casts each eye's view from it.
+        let frame = ContentFrame {
+            scene: Some(Arc::new(content.scene.clone())),
+            ..ContentFrame::new(number, content.rgbd.clone())
+        };
         let mut st = lock(&self.state);
         st.given = number;
         if st.recent.len() == FRAMES_KEPT {
@@ -380,9 +395,14 @@ impl Renderer for DemoFrames {
                     frame.number
                 )))
             })?;
+        // A stereo layout's eye: its own view (the rig made it); else the scene's.
+        let input = match frame.eye {
+            Some(_) => &frame.rgbd,
+            None => &content.rgbd,
+        };
         let started = Instant::now();
         let output = self
-            .render_output(job, &content.rgbd, &content.sparse)
+            .render_output(job, input, &content.sparse)
             .ok_or_else(|| {
                 RenderError::Input(dioptra_core::InputError::InvalidValue(
                     "the demo frame did not render".into(),
@@ -395,16 +415,28 @@ impl Renderer for DemoFrames {
             Output::LightField { panel, .. } => vec![panel.clone().into()],
         };
         let mut st = lock(&self.state);
-        if let Some(&after) = st.keep_after.first() {
+        if let Some(eye) = frame.eye {
+            st.eye_render[usize::from(eye == Side::Right)].push(took);
+        }
+        let kept = |output| Kept {
+            frame: job.frame,
+            eye: frame.eye,
+            display_time: job.display_time,
+            scene: content.scene.clone(),
+            input: input.as_ref().clone(),
+            output,
+        };
+        if frame.eye == Some(Side::Right) {
+            if st.keep_right.take() == Some(job.frame) {
+                st.kept.push(kept(output));
+            }
+        } else if let Some(&after) = st.keep_after.first() {
             if job.display_time >= after {
                 st.keep_after.remove(0);
-                st.kept.push(Kept {
-                    frame: job.frame,
-                    display_time: job.display_time,
-                    scene: content.scene.clone(),
-                    input: content.rgbd.as_ref().clone(),
-                    output,
-                });
+                if frame.eye == Some(Side::Left) {
+                    st.keep_right = Some(job.frame);
+                }
+                st.kept.push(kept(output));
             }
         }
         Ok(RenderOutput {

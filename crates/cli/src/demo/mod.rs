@@ -4,7 +4,8 @@
 //! in-memory link), an animated procedural scene, the CPU renderer, and the scheduler between
 //! them. Runs in simulated time (tokio's paused clock): as fast as this machine computes it,
 //! with each frame's render taking the simulated time it really took here. Prints a summary
-//! and writes frames and charts.
+//! and writes frames and charts. `--eyes 2` runs the binocular example rig instead (a lens
+//! per eye, the binocular tracker, side-by-side stereo) and prints and writes per eye.
 
 #[cfg(feature = "simulated")]
 mod frames;
@@ -43,6 +44,12 @@ pub struct Args {
     /// Frames scored against ground truth (each costs a thin-lens render).
     #[arg(long, default_value_t = 3)]
     pub(crate) scored: usize,
+    /// 1: the one-lens example rig. 2: the binocular example rig
+    /// (`crates/cli/examples/rig-sim-binocular.toml`): a lens per eye driven from the
+    /// binocular tracker, each eye's view ray cast from its own position and rendered at its
+    /// own lens's focus, shown side by side (varifocal).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub(crate) eyes: u8,
 }
 
 #[cfg(feature = "simulated")]

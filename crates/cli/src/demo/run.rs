@@ -4,9 +4,9 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
-use dioptra_core::{Diopters, RgbImage, Timestamp};
+use dioptra_core::{Diopters, RgbImage, Side, Timestamp};
 use dioptra_render::metrics;
-use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_RIG};
+use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_BINOCULAR_RIG, EXAMPLE_SIM_RIG};
 use dioptra_rig::simulated_rig::{percentile, Run, SimRun};
 use dioptra_sched::{Mode, Stage};
 use hdrhistogram::Histogram;
@@ -37,17 +37,31 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
         ),
         other => bail!("--method {other:?} is unknown: expected gather or auto"),
     };
+    let binocular = args.eyes == 2;
+    if binocular && mode != Mode::Varifocal {
+        bail!(
+            "--eyes 2 runs the binocular example rig, which is varifocal (a lens per eye, no \
+             sync board); drop --mode {} (the rig renders a layer set or a light-field panel \
+             per eye on a stereo layout, but the demo shows varifocal only)",
+            mode.as_str()
+        );
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     println!(
-        "dioptra demo: {} mode, {} s of simulated time, {}x{} px, scene seed {}",
+        "dioptra demo: {} mode, {} s of simulated time, {}x{} px{}, scene seed {}",
         mode.as_str(),
         args.seconds,
         args.size,
         args.size,
+        if binocular {
+            " per eye, two eyes side by side"
+        } else {
+            ""
+        },
         args.seed
     );
-    let cfg = demo_config(mode, args.size, auto)?;
+    let cfg = demo_config(mode, args.size, auto, binocular)?;
     let mut sim =
         SimRun::new(cfg, Duration::from_secs_f64(args.seconds)).context("the demo's rig config")?;
     let frames = std::sync::Arc::new(DemoFrames::new(
@@ -77,6 +91,9 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
         r.simulated.as_secs_f64() / r.wall.as_secs_f64().max(1e-9)
     );
     summary(&r, mode);
+    if binocular {
+        per_eye_summary(&r, &frames);
+    }
     if auto {
         let chosen: Vec<String> = frames
             .planned()
@@ -90,14 +107,129 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
         );
     }
     let kept = frames.take_kept();
-    score(&r, &frames, &kept, &args)?;
     plots::latency(&args.out.join("latency.png"), &r)?;
     plots::focus(&args.out.join("focus.png"), &r, mode)?;
+    if binocular {
+        write_eyes(&frames, &kept, &args)?;
+        println!(
+            "\nwrote {}: frame_*_{{left,right}}_{{input,rendered}}.png, frame_*_stereo.png (side by side), latency.png, focus.png",
+            args.out.display()
+        );
+        return Ok(());
+    }
+    score(&r, &frames, &kept, &args)?;
     println!(
         "\nwrote {}: frame_*_{{input,rendered,eye,truth}}.png, latency.png, focus.png",
         args.out.display()
     );
     Ok(())
+}
+
+/// Each eye's figures on the binocular rig: its lens's commands and focus error, its render.
+fn per_eye_summary(r: &Run, frames: &DemoFrames) {
+    println!("\n== per eye ==");
+    for (lens, name) in [(0u8, "left"), (1, "right")] {
+        let commands = r
+            .log
+            .lens_commands
+            .iter()
+            .filter(|c| c.lens.0 == lens)
+            .count();
+        // Fixating (not in a saccade or blink): the lens's power against the vergence depth.
+        let errors: Vec<f64> = r
+            .log
+            .probes
+            .iter()
+            .filter(|p| p.phase == dioptra_sched::processing::EyePhase::Fixation)
+            .filter_map(|p| {
+                let power = if lens == 0 {
+                    p.lens_power
+                } else {
+                    p.lens_power_right
+                }?;
+                Some((f64::from(power.0) - p.vergence_d?).abs())
+            })
+            .collect();
+        let median = {
+            let mut e = errors.clone();
+            e.sort_by(f64::total_cmp);
+            e.get(e.len() / 2).copied()
+        };
+        let render = frames.eye_render_times(lens == 1);
+        let (p50, p99) = (percentile(&render, 50.0), percentile(&render, 99.0));
+        println!(
+            "{name} eye: lens commands {commands}, median |lens power - vergence| while fixating {}, render {}",
+            median.map_or("n/a".into(), |m| format!("{m:.3} D (n = {})", errors.len())),
+            match (p50, p99) {
+                (Some(a), Some(b)) => format!(
+                    "p50 {:.2} ms, p99 {:.2} ms (n = {}, CPU, wall clock on this machine)",
+                    a.as_secs_f64() * 1e3,
+                    b.as_secs_f64() * 1e3,
+                    render.len()
+                ),
+                _ => "none".into(),
+            }
+        );
+    }
+    // Both commands of one decision go out back to back: the same simulated instant.
+    let mut pairs = 0;
+    let mut same = 0;
+    let cmds = &r.log.lens_commands;
+    for w in cmds.windows(2) {
+        if w[0].lens.0 == 0 && w[1].lens.0 == 1 {
+            pairs += 1;
+            same += usize::from(w[0].t == w[1].t);
+        }
+    }
+    println!("lens command pairs {pairs}, both eyes' commands issued at the same instant: {same}");
+    println!(
+        "accuracy against thin-lens ground truth is scored for the one-eye demo only (the \
+         reference renders the cyclopean eye); run without --eyes 2 for it"
+    );
+}
+
+/// The kept frames' images per eye, and the side-by-side panel of each.
+fn write_eyes(frames: &DemoFrames, kept: &[Kept], args: &Args) -> Result<()> {
+    let mut index = 0;
+    for pair in kept.chunks(2) {
+        let [l, r] = pair else { continue };
+        if (l.eye, r.eye) != (Some(Side::Left), Some(Side::Right)) || l.frame != r.frame {
+            bail!("the kept frames are not one frame's two eyes");
+        }
+        let base = args.out.join(format!("frame_{index}"));
+        index += 1;
+        let mut rendered = Vec::new();
+        for (k, name) in [(l, "left"), (r, "right")] {
+            write(&base, &format!("{name}_input"), &k.input.color)?;
+            for (what, img) in frames.rendered_images(k) {
+                write(&base, &format!("{name}_{what}"), &img)?;
+                if what == "rendered" {
+                    rendered.push(img);
+                }
+            }
+        }
+        if let [a, b] = rendered.as_slice() {
+            write(&base, "stereo", &side_by_side(a, b)?)?;
+        }
+    }
+    Ok(())
+}
+
+/// `a` and `b` side by side, as one panel of a side-by-side layout shows them.
+fn side_by_side(a: &RgbImage, b: &RgbImage) -> Result<RgbImage> {
+    let (w, h) = (a.width(), a.height());
+    if (b.width(), b.height()) != (w, h) {
+        bail!("the eyes' images differ in size");
+    }
+    let mut px = Vec::with_capacity(2 * w * h * 3);
+    for y in 0..h {
+        for img in [a, b] {
+            for x in 0..w {
+                px.extend(img.pixel(x, y).context("a pixel inside the image")?);
+            }
+        }
+    }
+    Ok(RgbImage::from_interleaved(2 * w, h, &px)?)
 }
 
 fn ms(us: u64) -> f64 {
@@ -116,16 +248,22 @@ fn p50_p99(h: &Histogram<u64>) -> String {
     )
 }
 
-/// The rig the demo runs: the example rig of simulated devices, in `mode`, at `size` pixels
-/// (light field at a 30 Hz display: its frames are slow on the CPU).
-pub fn demo_config(mode: Mode, size: usize, auto: bool) -> Result<RigConfig> {
+/// The rig the demo runs: the example rig of simulated devices (`binocular`: the binocular
+/// example rig), in `mode`, at `size` pixels (light field at a 30 Hz display: its frames are
+/// slow on the CPU).
+pub fn demo_config(mode: Mode, size: usize, auto: bool, binocular: bool) -> Result<RigConfig> {
     let rig_mode = frames::rig_mode(mode);
     let method = if auto {
         "auto"
     } else {
         dioptra_sched::RenderMethod::default_for(mode).as_str()
     };
-    let mut text = EXAMPLE_SIM_RIG.to_string();
+    let mut text = if binocular {
+        EXAMPLE_SIM_BINOCULAR_RIG
+    } else {
+        EXAMPLE_SIM_RIG
+    }
+    .to_string();
     let mut edit = |from: &str, to: String| -> Result<()> {
         if !text.contains(from) {
             bail!("the example rig config no longer has `{from}`");
