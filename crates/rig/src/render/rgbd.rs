@@ -800,6 +800,53 @@ mod tests {
     use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
     use dioptra_core::Timestamp;
 
+    /// On a stereo layout each eye of one content frame gets its own layers and its own panel:
+    /// the caches hold them per eye (the right eye is never shown the left's), and the light
+    /// field of the scene is centred on each eye.
+    #[test]
+    fn each_eye_of_one_content_frame_gets_its_own_layers_and_panel() {
+        let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG.to_string()
+            + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        let r = RgbdRenderer::new(&cfg).unwrap();
+        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let frame = content.poll(Timestamp::ZERO).unwrap();
+        let views = crate::content::stereo::EyeViews::new(&cfg).unwrap();
+        let ([left, right], _) = views.of(&frame).unwrap();
+        let eyes = [
+            frame.for_eye(Side::Left, left),
+            frame.for_eye(Side::Right, right),
+        ];
+        for (mode, method) in [
+            (Mode::Multifocal, RenderMethod::Linear),
+            (Mode::Lightfield, RenderMethod::Views),
+        ] {
+            let out: Vec<Vec<RgbImage>> = eyes
+                .iter()
+                .map(|e| {
+                    r.render_frame(e, mode, Method(method), Diopters(1.0), None, false)
+                        .unwrap()
+                        .images
+                        .iter()
+                        .map(|i| i.to_host().unwrap().into_owned())
+                        .collect()
+                })
+                .collect();
+            assert_ne!(out[0], out[1], "{mode:?}: each eye its own");
+            // Asked again (from the caches): the same per eye.
+            for (e, want) in eyes.iter().zip(&out) {
+                let again: Vec<RgbImage> = r
+                    .render_frame(e, mode, Method(method), Diopters(1.0), None, false)
+                    .unwrap()
+                    .images
+                    .iter()
+                    .map(|i| i.to_host().unwrap().into_owned())
+                    .collect();
+                assert_eq!(&again, want, "{mode:?} {:?}", e.eye);
+            }
+        }
+    }
+
     /// Light-field mode on streamed content: the panel is made from views synthesised from the
     /// frame on show, and made again when another frame comes.
     #[test]
