@@ -352,9 +352,9 @@ pub struct RigState {
 }
 
 impl RigState {
-    /// The focus range the lens range gives through the optics map, nearest last; with a lens
-    /// per eye, the range both eyes' lenses reach.
-    pub fn focus_range_d(&self) -> [f32; 2] {
+    /// The focus range each lens's range gives its eye through its optics map, nearest last:
+    /// the one lens's, or the left's then the right's.
+    pub fn focus_ranges_d(&self) -> Vec<[f32; 2]> {
         std::iter::once(&self.optics)
             .chain(self.optics_right.as_ref())
             .map(|o| {
@@ -362,9 +362,20 @@ impl RigState {
                 let (a, b) = (o.focus_of(r.min).0, o.focus_of(r.max).0);
                 [a.min(b), a.max(b)]
             })
+            .collect()
+    }
+
+    /// The focus range the lens range gives through the optics map, nearest last; with a lens
+    /// per eye, the range both eyes' lenses reach (`None`: they reach no focus in common, as
+    /// with prescriptions further apart than the lens range).
+    pub fn focus_range_d(&self) -> Option<[f32; 2]> {
+        let r = self
+            .focus_ranges_d()
+            .into_iter()
             .fold([f32::MIN, f32::MAX], |acc, r| {
                 [acc[0].max(r[0]), acc[1].min(r[1])]
-            })
+            });
+        (r[0] <= r[1]).then_some(r)
     }
 
     pub fn status_json(&self) -> serde_json::Value {

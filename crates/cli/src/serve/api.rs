@@ -308,17 +308,32 @@ async fn set_focus(
         lens_must_be_up(&s)?;
     }
     // The focus the lens range reaches through the optics map (the identity: the range).
-    let [lo, hi] = s.focus_range_d();
-    // f32 round trips through the map: a range end asked for is inside.
-    let slack = 1e-4;
-    let d = match diopters {
-        None => None,
-        Some(d)
-            if d.is_finite() && (f64::from(lo) - slack..=f64::from(hi) + slack).contains(&d) =>
+    let d = match (diopters, s.focus_range_d()) {
+        (None, _) => None,
+        (Some(_), None) => {
+            let ranges: Vec<String> = s
+                .focus_ranges_d()
+                .iter()
+                .zip(["left", "right"])
+                .map(|([a, b], eye)| format!("{eye} {a}..{b} D"))
+                .collect();
+            return Err(ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                format!(
+                    "the two eyes' lenses reach no focus in common ({}: each lens's range \
+                     through its eye's optics map); manual focus needs one both reach",
+                    ranges.join(", ")
+                ),
+            )
+            .at("diopters"));
+        }
+        // f32 round trips through the map: a range end asked for is inside.
+        (Some(d), Some([lo, hi]))
+            if d.is_finite() && (f64::from(lo) - 1e-4..=f64::from(hi) + 1e-4).contains(&d) =>
         {
             Some(d as f32)
         }
-        Some(d) => {
+        (Some(d), Some([lo, hi])) => {
             let r = s.cfg.optics.lens_range;
             return Err(ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,

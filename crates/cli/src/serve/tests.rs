@@ -855,6 +855,39 @@ async fn a_binocular_rig_shows_each_eye_and_which_lens_is_lost() {
     );
 }
 
+/// Eyes whose lenses reach no focus in common (prescriptions 6 D apart through a 5 D lens
+/// range): a manual focus is refused saying so, with each eye's range, and `/status` gives no
+/// common range; handing focus back to gaze still works.
+#[tokio::test(start_paused = true)]
+async fn manual_focus_on_eyes_with_no_common_focus_is_refused_saying_why() {
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("[recording]\ndir = \"recordings\"\nstart = false\n", "")
+        .replace(
+            "[eye]",
+            "[optics.left]\nprescription_sphere_d = -3.0\nprescription_vertex_mm = 0.0\n\n\
+             [optics.right]\nprescription_sphere_d = 3.0\nprescription_vertex_mm = 0.0\n\n[eye]",
+        );
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    assert_eq!(sh.focus_range_d(), None);
+    assert_eq!(sh.status_json()["focus"]["focus_range_d"], json!(null));
+    let app = api::router(sh.clone());
+    let (s, v) = call(&app, "POST", "/focus", r#"{"diopters": 1.0}"#).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    let msg = v["error"].as_str().unwrap_or_default().to_string() + &v.to_string();
+    assert!(
+        msg.contains("no focus in common") && msg.contains("left") && msg.contains("right"),
+        "{v}"
+    );
+    let (s, v) = call(&app, "POST", "/focus", r#"{"diopters": null}"#).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    d.cancel_token().cancel();
+    assert!(d.wait().await.ok());
+}
+
 #[tokio::test(start_paused = true)]
 async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let dir = tempfile::tempdir().unwrap();
