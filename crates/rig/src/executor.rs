@@ -204,16 +204,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
     let (done_tx, mut done_rx) = mpsc::channel::<Rendered>(4);
     let now = clock.now();
     // A stereo layout renders each eye from its own view of the content.
-    let eye_views = match state.cfg.stereo() {
-        false => None,
-        true => match EyeViews::new(&state.cfg) {
-            Ok(v) => Some(Arc::new(v)),
-            Err(e) => {
-                tracing::error!(error = %e, "cannot make each eye's view; both eyes are shown the one view");
-                None
-            }
-        },
-    };
+    let eye_views = state.eye_views.clone();
     let mut ex = Executor {
         eye_views,
         state: &state,
@@ -862,6 +853,13 @@ mod tests {
         setup.hooks.push(Box::new(Requests(Arc::clone(&requests))));
         let rig = Rig::start(setup).await.unwrap();
         tokio::time::sleep(Duration::from_millis(2500)).await;
+        let views = rig.state().status_json()["eye_views"].clone();
+        assert_eq!(views["source"], "scene-ray-cast", "{views}");
+        assert_eq!(
+            (views["made"].as_u64(), views["failed"].as_u64()),
+            (Some(1), Some(0)),
+            "{views}"
+        );
         rig.state().cancel.cancel();
         assert!(rig.wait().await.ok());
         let renders = renders.lock().unwrap().clone();

@@ -329,6 +329,8 @@ pub struct RigState {
     pub content: Arc<dyn Content>,
     /// What renders the frames (`/status`'s `render`).
     pub renderer: Arc<dyn Renderer>,
+    /// A stereo layout: each eye's view of the content (`/status`'s `eye_views`).
+    pub eye_views: Option<Arc<content::stereo::EyeViews>>,
     /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
     pub auto_method: std::sync::atomic::AtomicBool,
     /// Fires when every lens task has parked its lens (or given up) and ended: after this,
@@ -402,6 +404,7 @@ impl RigState {
             "optics": self.optics_json(&status),
             "content": self.content.status(),
             "render": self.renderer.backend_status(),
+            "eye_views": self.eye_views.as_ref().map(|v| v.status()),
             "clock": {
                 "source": self.clock_source,
                 "wall_zero_ns": self.wall_zero_ns,
@@ -1042,6 +1045,12 @@ impl Rig {
             auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
             content: content.clone(),
             renderer: renderer.clone(),
+            eye_views: match cfg.stereo() {
+                true => Some(Arc::new(
+                    content::stereo::EyeViews::new(&cfg).map_err(RigError::Renderer)?,
+                )),
+                false => None,
+            },
             wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
             clock_source: if simulated_time {
                 "simulated time (tokio's paused clock), from the run's start"

@@ -42,6 +42,22 @@ pub struct EyeViews {
     eye: EyeModel,
     half_ipd_m: f32,
     newest: Mutex<Option<Made>>,
+    status: Mutex<EyeViewsStatus>,
+}
+
+/// What `/status` shows under `eye_views`.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct EyeViewsStatus {
+    /// Where the newest views came from.
+    pub source: Option<ViewSource>,
+    /// Content frames whose views were made, and how many failed (the newest reason).
+    pub made: u64,
+    pub failed: u64,
+    pub last_error: Option<String>,
+    /// What making the newest took, ms (wall clock; both eyes).
+    pub last_ms: Option<f64>,
+    /// Half the interpupillary distance, mm: each eye's distance from the cyclopean eye.
+    pub half_ipd_mm: f32,
 }
 
 impl std::fmt::Debug for EyeViews {
@@ -60,7 +76,15 @@ impl EyeViews {
             eye: cfg.eye_model().validated()?,
             half_ipd_m: cfg.eye.ipd_mm * 0.5e-3,
             newest: Mutex::new(None),
+            status: Mutex::new(EyeViewsStatus {
+                half_ipd_mm: cfg.eye.ipd_mm * 0.5,
+                ..EyeViewsStatus::default()
+            }),
         })
+    }
+
+    pub fn status(&self) -> serde_json::Value {
+        serde_json::to_value(&*lock(&self.status)).unwrap_or_default()
     }
 
     /// An eye's position, metres from the cyclopean eye (+x right).
@@ -79,6 +103,24 @@ impl EyeViews {
                 return Ok((views.clone(), *source));
             }
         }
+        let started = std::time::Instant::now();
+        let made = self.make(frame);
+        let mut st = lock(&self.status);
+        match &made {
+            Ok((_, source)) => {
+                st.made += 1;
+                st.source = Some(*source);
+                st.last_ms = Some(started.elapsed().as_secs_f64() * 1e3);
+            }
+            Err(e) => {
+                st.failed += 1;
+                st.last_error = Some(e.to_string());
+            }
+        }
+        made
+    }
+
+    fn make(&self, frame: &ContentFrame) -> Result<([Arc<Rgbd>; 2], ViewSource), RenderError> {
         let (views, source) = match (&frame.eyes, &frame.scene) {
             (Some(eyes), _) => (eyes.clone(), ViewSource::Stereo),
             (None, Some(scene)) => {
