@@ -141,8 +141,14 @@ pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, 
             let animate = cfg.content.animate.unwrap_or(true);
             let cam = scene::camera(cfg).map_err(ContentError::Scene)?;
             Arc::new(
-                scene::AnimatedScene::start(d.scene_seed, cam, animate, pacing)
-                    .map_err(ContentError::Scene)?,
+                scene::AnimatedScene::start_with_eyes(
+                    d.scene_seed,
+                    cam,
+                    animate,
+                    pacing,
+                    cfg.stereo().then_some(cfg.eye.ipd_mm * 0.5e-3),
+                )
+                .map_err(ContentError::Scene)?,
             )
         }
         ContentSource::Files => Arc::new(files::FileFrames::open(cfg)?),

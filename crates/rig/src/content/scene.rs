@@ -78,7 +78,7 @@ struct Worker {
     /// The scene time being rendered.
     busy: Option<Timestamp>,
     /// The newest render: its scene time and frame (or why it failed).
-    ready: Option<(Timestamp, Result<Arc<Rgbd>, String>)>,
+    ready: Option<(Timestamp, Result<SceneViews, String>)>,
     rendered: u64,
     stop: bool,
     /// The worker thread has ended (stopped, or its render panicked).
@@ -88,7 +88,7 @@ struct Worker {
 /// The frame on show and the counters the loop keeps.
 struct OnShow {
     time: Timestamp,
-    frame: Arc<Rgbd>,
+    frame: SceneViews,
     /// The due time last counted late (each counts once).
     late_at: Option<Timestamp>,
     status: SceneStatus,
@@ -132,10 +132,47 @@ impl std::fmt::Debug for AnimatedScene {
     }
 }
 
-fn render(base: &Scene, a: &Animation, cam: &Camera, t: Timestamp) -> Result<Rgbd, RenderError> {
-    let scene = a.at(base, t.as_secs_f64());
-    let (color, depth) = render_pinhole(&scene, cam, [0.0, 0.0], SAMPLES)?;
+/// One frame of the scene: the cyclopean view and, on a stereo layout, each eye's.
+#[derive(Clone)]
+struct SceneViews {
+    centre: Arc<Rgbd>,
+    eyes: Option<[Arc<Rgbd>; 2]>,
+}
+
+/// The scene seen from `x` metres right of the cyclopean eye, looking straight ahead.
+fn cast(scene: &Scene, cam: &Camera, x: f32) -> Result<Rgbd, RenderError> {
+    let (color, depth) = render_pinhole(scene, cam, [x, 0.0], SAMPLES)?;
     Ok(Rgbd::new(color, depth)?)
+}
+
+fn render_centre(
+    base: &Scene,
+    a: &Animation,
+    cam: &Camera,
+    t: Timestamp,
+) -> Result<Rgbd, RenderError> {
+    cast(&a.at(base, t.as_secs_f64()), cam, 0.0)
+}
+
+/// The frame of scene time `t`: with `half_ipd_m`, each eye's view too (parallel axes, the
+/// eyes `2 x half_ipd_m` apart), ray cast here on the scene's worker, not on the render path.
+fn render(
+    base: &Scene,
+    a: &Animation,
+    cam: &Camera,
+    t: Timestamp,
+    half_ipd_m: Option<f32>,
+) -> Result<SceneViews, RenderError> {
+    let scene = a.at(base, t.as_secs_f64());
+    let centre = Arc::new(cast(&scene, cam, 0.0)?);
+    let eyes = match half_ipd_m {
+        None => None,
+        Some(h) => {
+            let (l, r) = rayon::join(|| cast(&scene, cam, -h), || cast(&scene, cam, h));
+            Some([Arc::new(l?), Arc::new(r?)])
+        }
+    };
+    Ok(SceneViews { centre, eyes })
 }
 
 /// The scene time of the frame due at `now`: the last multiple of [`SCENE_UPDATE`].
@@ -166,6 +203,18 @@ impl AnimatedScene {
         animate: bool,
         pacing: Pacing,
     ) -> Result<AnimatedScene, RenderError> {
+        AnimatedScene::start_with_eyes(seed, cam, animate, pacing, None)
+    }
+
+    /// [`AnimatedScene::start`]; with `half_ipd_m` (a stereo layout) each frame carries each
+    /// eye's view as well, the eyes `2 x half_ipd_m` apart.
+    pub fn start_with_eyes(
+        seed: u64,
+        cam: Camera,
+        animate: bool,
+        pacing: Pacing,
+        half_ipd_m: Option<f32>,
+    ) -> Result<AnimatedScene, RenderError> {
         let base = Scene::generate(seed);
         let animation = if animate {
             let floor = base.objects.first().copied();
@@ -173,7 +222,7 @@ impl AnimatedScene {
         } else {
             Animation::default()
         };
-        let first = Arc::new(render(&base, &animation, &cam, Timestamp::ZERO)?);
+        let first = render(&base, &animation, &cam, Timestamp::ZERO, half_ipd_m)?;
         let shared = Arc::new(Shared {
             state: Mutex::new(Worker {
                 rendered: 1,
@@ -187,7 +236,7 @@ impl AnimatedScene {
             let (b, a, s) = (base.clone(), animation.clone(), shared.clone());
             std::thread::Builder::new()
                 .name("dioptra-scene".into())
-                .spawn(move || render_ahead(&b, &a, &cam, s))
+                .spawn(move || render_ahead(&b, &a, &cam, half_ipd_m, s))
                 .map_err(|e| {
                     RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
                         "cannot start the scene's render thread: {e}"
@@ -221,7 +270,7 @@ impl AnimatedScene {
     /// The frame on show and its scene time.
     pub fn current(&self) -> (Arc<Rgbd>, Timestamp) {
         let on = lock(&self.on_show);
-        (on.frame.clone(), on.time)
+        (on.frame.centre.clone(), on.time)
     }
 
     /// The scene as it is at scene time `t` (what a frame of that time shows).
@@ -231,12 +280,17 @@ impl AnimatedScene {
 
     /// The frame of scene time `t`, rendered now on the caller's thread (a replay's depth).
     pub fn render_at(&self, t: Timestamp) -> Result<Rgbd, RenderError> {
-        render(&self.base, &self.animation, &self.cam, t)
+        render_centre(&self.base, &self.animation, &self.cam, t)
     }
 
     /// The frame due at rig time `now` when it is newer than the one on show: the frame, and
     /// its scene time as its arrival (`ready`: `now`). Asks the worker for the frame after it.
     pub fn frame_at(&self, now: Timestamp) -> Option<(Arc<Rgbd>, Arrival)> {
+        self.views_at(now).map(|(v, a)| (v.centre, a))
+    }
+
+    /// [`AnimatedScene::frame_at`], with each eye's view on a stereo layout.
+    fn views_at(&self, now: Timestamp) -> Option<(SceneViews, Arrival)> {
         if self.animation.is_empty() {
             return None;
         }
@@ -304,9 +358,9 @@ impl AnimatedScene {
         &self,
         on: &mut OnShow,
         t: Timestamp,
-        r: Result<Arc<Rgbd>, String>,
+        r: Result<SceneViews, String>,
         now: Timestamp,
-    ) -> Option<(Arc<Rgbd>, Arrival)> {
+    ) -> Option<(SceneViews, Arrival)> {
         // Not tried again either way: the next is due one update later.
         on.time = t;
         match r {
@@ -364,9 +418,9 @@ impl Content for AnimatedScene {
             p.at = Some(now);
             p.given == 0
         };
-        let (rgbd, arrival) = match self.frame_at(now) {
+        let (views, arrival) = match self.views_at(now) {
             Some((frame, arrival)) => (frame, Some(arrival)),
-            None if first => (self.current().0, None),
+            None if first => (lock(&self.on_show).frame.clone(), None),
             None => return None,
         };
         let time = lock(&self.on_show).time;
@@ -377,8 +431,8 @@ impl Content for AnimatedScene {
         };
         Some(ContentFrame {
             number,
-            rgbd,
-            eyes: None,
+            rgbd: views.centre,
+            eyes: views.eyes,
             eye: None,
             arrival,
             scene_time: Some(time),
@@ -410,7 +464,13 @@ impl Drop for AnimatedScene {
     }
 }
 
-fn render_ahead(base: &Scene, a: &Animation, cam: &Camera, shared: Arc<Shared>) {
+fn render_ahead(
+    base: &Scene,
+    a: &Animation,
+    cam: &Camera,
+    half_ipd_m: Option<f32>,
+    shared: Arc<Shared>,
+) {
     let _end = EndGuard(shared.clone());
     loop {
         let t = {
@@ -429,9 +489,7 @@ fn render_ahead(base: &Scene, a: &Animation, cam: &Camera, shared: Arc<Shared>) 
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
             }
         };
-        let r = render(base, a, cam, t)
-            .map(Arc::new)
-            .map_err(|e| e.to_string());
+        let r = render(base, a, cam, t, half_ipd_m).map_err(|e| e.to_string());
         let mut w = lock(&shared.state);
         w.busy = None;
         w.rendered += 1;

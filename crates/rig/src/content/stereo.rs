@@ -3,7 +3,9 @@
 //! - stereo content (a lab's left and right files, a stream's two halves): its own views;
 //! - the procedural scene: ray cast from each eye's position, IPD apart on the horizontal,
 //!   both looking straight ahead (parallel, as a stereo HMD's displays are: the eyes verge,
-//!   the cameras do not);
+//!   the cameras do not): the rig's animated scene casts them on its own worker thread, ahead
+//!   of the loop ([`super::scene`]); a frame that brings its scene but not its eyes' views (the
+//!   demo's) has them cast here;
 //! - one RGB-D (mono files or stream): each eye's view synthesised from it at that eye's
 //!   position (`dioptra_render::views`), so a lab with one RGB-D still gets disparity.
 //!   Disoccluded pixels are filled from the background side, as the light-field method's are.
@@ -122,7 +124,9 @@ impl EyeViews {
 
     fn make(&self, frame: &ContentFrame) -> Result<([Arc<Rgbd>; 2], ViewSource), RenderError> {
         let (views, source) = match (&frame.eyes, &frame.scene) {
-            (Some(eyes), _) => (eyes.clone(), ViewSource::Stereo),
+            // The rig's scene casts its eyes' views on its own worker.
+            (Some(eyes), Some(_)) => (eyes.clone(), ViewSource::SceneRayCast),
+            (Some(eyes), None) => (eyes.clone(), ViewSource::Stereo),
             (None, Some(scene)) => {
                 let cast = |side| -> Result<Arc<Rgbd>, RenderError> {
                     let (color, depth) =
@@ -250,7 +254,16 @@ mod tests {
         let content = crate::content::open(&cfg, Pacing::Simulated).unwrap();
         let scene_frame = content.poll(Timestamp::ZERO).unwrap();
         let views = EyeViews::new(&cfg).unwrap();
-        let (cast, _) = views.of(&scene_frame).unwrap();
+        let (cast, source) = views.of(&scene_frame).unwrap();
+        // The animated scene cast them on its worker, as they are cast here.
+        assert_eq!(source, ViewSource::SceneRayCast);
+        let here = ContentFrame {
+            scene: scene_frame.scene.clone(),
+            ..ContentFrame::new(10, scene_frame.rgbd.clone())
+        };
+        let (cast_here, _) = views.of(&here).unwrap();
+        assert_eq!(*cast_here[0], *cast[0]);
+        assert_eq!(*cast_here[1], *cast[1]);
         // The same cyclopean RGB-D as a lab's one file: no scene behind it.
         let mono = ContentFrame::new(2, scene_frame.rgbd.clone());
         let (synth, source) = views.of(&mono).unwrap();
