@@ -172,7 +172,8 @@ class Dioptra:
 
     def send_rgbd(self, color, depth, depth_units: str = "m", near: Optional[float] = None,
                   far: Optional[float] = None, app_time_ns: Optional[int] = None,
-                  encoding: str = "raw") -> int:
+                  encoding: str = "raw", eye: Optional[str] = None,
+                  seq: Optional[int] = None) -> int:
         """Shows one frame; returns its sequence number, or raises :class:`FrameRefused`
         with the daemon's reason (the frame on show stays).
 
@@ -182,9 +183,17 @@ class Dioptra:
         infinite reversed-Z projection). H x W must be the display's size. ``encoding="png"``
         (``uint8`` colour, depth in ``m`` or ``mm``) sends PNG files through ``PUT /frame``,
         depth in whole millimetres from 1 mm to 65.535 m (farther is sent as 65.535 m).
+
+        A stereo rig (``display.layout`` side-by-side or two-outputs; H x W one eye's image)
+        also takes both eyes side by side, H x 2W, and one eye's half of a pair:
+        ``eye="left"`` or ``"right"``. The daemon shows a pair once both halves of the same
+        sequence number arrived. ``seq`` names the number; without it a half gets a new one,
+        unless it is the partner (the other eye) of the half sent last, which it then shares:
+        ``send_rgbd(l, ld, eye="left")`` then ``send_rgbd(r, rd, eye="right")`` is one pair.
+        ``eye`` on a mono rig is refused (:class:`FrameRefused`, 422).
         """
         return self._sender().send(color, depth, depth_units, near, far, app_time_ns,
-                                   encoding)
+                                   encoding, eye, seq)
 
     def close(self) -> None:
         """Closes the connection and unmaps the ring."""

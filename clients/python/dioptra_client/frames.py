@@ -20,25 +20,29 @@ DEPTH_UNITS = ("m", "mm", "D", "gl", "gl-reversed", "vulkan", "vulkan-reversed",
 DEPTH_CODES = {"m": 1, "D": 2, "gl": 3, "gl-reversed": 4, "vulkan": 5, "vulkan-reversed": 6,
                "d3d": 5, "d3d-reversed": 6, "mm": 7}
 COLOR_CODES = {"rgb8": 1, "rgba8": 2, "rgbf32": 3}
+#: A slot's ``eye`` (a stereo rig): none (a whole frame), or one eye's half of a pair.
+EYE_CODES = {"none": 0, "left": 1, "right": 2}
 RING_MAGIC = b"DIOPTRA1"
 RING_VERSION = 1
 #: A slot header's fields in order (RING.md): name, offset, type.
 SLOT_FIELDS = (("seq", 0, "u64"), ("color_format", 8, "u32"), ("depth_kind", 12, "u32"),
                ("near", 16, "f32"), ("far", 20, "f32"), ("width", 24, "u32"),
                ("height", 28, "u32"), ("app_time_ns", 32, "u64"), ("color_bytes", 40, "u64"),
-               ("depth_bytes", 48, "u64"))
-_SLOT_FORMAT = "<QIIffIIQQQ"
+               ("depth_bytes", 48, "u64"), ("eye", 56, "u32"))
+_SLOT_FORMAT = "<QIIffIIQQQI"
 SLOT_HEADER_BYTES = 64
 
 
 def pack_slot_header(seq: int, color_format: int, depth_kind: int, near: Optional[float],
                      far: Optional[float], width: int, height: int,
-                     app_time_ns: Optional[int], color_bytes: int, depth_bytes: int) -> bytes:
-    """A slot header's 64 bytes (``near``/``far`` ``None``: NaN; ``app_time_ns`` ``None``: 0)."""
+                     app_time_ns: Optional[int], color_bytes: int, depth_bytes: int,
+                     eye: int = 0) -> bytes:
+    """A slot header's 64 bytes (``near``/``far`` ``None``: NaN; ``app_time_ns`` ``None``: 0;
+    ``eye`` an ``EYE_CODES`` value, 0 for a whole frame)."""
     head = struct.pack(_SLOT_FORMAT, seq, color_format, depth_kind,
                        float("nan") if near is None else near,
                        float("nan") if far is None else far,
-                       width, height, app_time_ns or 0, color_bytes, depth_bytes)
+                       width, height, app_time_ns or 0, color_bytes, depth_bytes, eye)
     return head.ljust(SLOT_HEADER_BYTES, b"\0")
 
 
@@ -107,7 +111,12 @@ def png(pixels: np.ndarray, color_type: int, bit_depth: int) -> bytes:
 
 class FrameSender:
     """Sends frames to one streaming daemon: through the ring when it can be mapped, else
-    ``PUT /frame``. Sequence numbers continue after the newest the daemon accepted."""
+    ``PUT /frame``. Sequence numbers continue after the newest the daemon accepted.
+
+    On a stereo rig a frame may be one eye's half (``eye="left"`` or ``"right"``): the two
+    halves of a pair share a sequence number, which the daemon pairs them by. Without ``seq``
+    a half gets a new number, unless it is the partner of the half this sender sent last
+    (the other eye, not yet paired): then that half's number."""
 
     def __init__(self, http: Http, use_ring: bool):
         self._http = http
@@ -119,12 +128,32 @@ class FrameSender:
                 self.ring = Ring(ring)
             except OSError:
                 self.ring = None  # Not on this machine, no permission, another layout.
+        self.stereo = bool(ring.get("stereo"))
         content = http.request("GET", "/status").get("content", {})
         self.seq = int(content.get("newest_seq") or 0)
+        # The half sent last, waiting for its partner: (seq, eye).
+        self._open_half: Optional[tuple] = None
 
-    def send(self, color, depth, depth_units: str, near, far, app_time_ns, encoding) -> int:
+    def _number(self, eye: Optional[str], seq: Optional[int]) -> int:
+        """The frame's sequence number: ``seq``, a half's partner's, or the next."""
+        if eye is not None and eye not in ("left", "right"):
+            raise ValueError(f"eye {eye!r}: expected 'left', 'right' or None")
+        if seq is None:
+            half = self._open_half
+            if eye is not None and half is not None and half[1] != eye:
+                seq = half[0]
+            else:
+                seq = self.seq + 1
+        seq = int(seq)
+        self.seq = max(self.seq, seq)
+        opened = eye is not None and (self._open_half is None or self._open_half[0] != seq)
+        self._open_half = (seq, eye) if opened else None
+        return seq
+
+    def send(self, color, depth, depth_units: str, near, far, app_time_ns, encoding,
+             eye: Optional[str] = None, seq: Optional[int] = None) -> int:
         if encoding == "png":
-            return self._send_png(color, depth, depth_units, app_time_ns)
+            return self._send_png(color, depth, depth_units, app_time_ns, eye, seq)
         if encoding != "raw":
             raise ValueError(f"encoding {encoding!r}: expected 'raw' or 'png'")
         color = np.asarray(color)
@@ -146,17 +175,18 @@ class FrameSender:
         color = np.ascontiguousarray(color)
         depth = np.ascontiguousarray(depth.astype("<f4", copy=False))
         h, w = depth.shape
-        self.seq += 1
-        seq = self.seq
+        seq = self._number(eye, seq)
         if self.ring is not None:
             slot = seq % self.ring.slots
             header = pack_slot_header(seq, COLOR_CODES[fmt], DEPTH_CODES[depth_units], near,
-                                      far, w, h, app_time_ns, color.nbytes, depth.nbytes)
+                                      far, w, h, app_time_ns, color.nbytes, depth.nbytes,
+                                      EYE_CODES[eye or "none"])
             self.ring.write(slot, seq, header, color, depth)
             r = self._http.request("POST", "/frame", {"slot": slot, "seq": seq}, frame=True)
         else:
             q = {"width": w, "height": h, "color": fmt, "depth": depth_units, "seq": seq}
-            for k, v in (("near", near), ("far", far), ("app_time_ns", app_time_ns)):
+            for k, v in (("near", near), ("far", far), ("app_time_ns", app_time_ns),
+                         ("eye", eye)):
                 if v is not None:
                     q[k] = "inf" if v == float("inf") else v
             r = self._http.request("PUT", "/frame?" + urllib.parse.urlencode(q),
@@ -164,7 +194,7 @@ class FrameSender:
                                    content_type="application/octet-stream", frame=True)
         return int(r["seq"])
 
-    def _send_png(self, color, depth, depth_units, app_time_ns) -> int:
+    def _send_png(self, color, depth, depth_units, app_time_ns, eye, seq) -> int:
         color = np.asarray(color)
         depth = np.asarray(depth, dtype=np.float64)
         if color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] not in (3, 4):
@@ -180,11 +210,12 @@ class FrameSender:
         h, w = mm.shape
         colour_png = png(np.ascontiguousarray(color[:, :, :3]), 2, 8)
         depth_png = png(np.ascontiguousarray(mm), 0, 16)
-        self.seq += 1
         q = {"width": w, "height": h, "color": "png", "color_bytes": len(colour_png),
-             "depth": "mm", "seq": self.seq}
+             "depth": "mm", "seq": self._number(eye, seq)}
         if app_time_ns is not None:
             q["app_time_ns"] = app_time_ns
+        if eye is not None:
+            q["eye"] = eye
         r = self._http.request("PUT", "/frame?" + urllib.parse.urlencode(q),
                                body=colour_png + depth_png,
                                content_type="application/octet-stream", frame=True)

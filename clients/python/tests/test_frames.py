@@ -81,3 +81,55 @@ def test_bad_arrays_are_refused_before_sending(ring_client):
         d.send_rgbd(color, depth, encoding="jpeg")
     with pytest.raises(ValueError):
         d.send_rgbd(color, depth, depth_units="D", encoding="png")
+
+
+@pytest.fixture(scope="module")
+def stereo_rig(binary, tmp_path_factory):
+    """The binocular example rig (side by side, 96 x 96 per eye) showing streamed frames."""
+    from conftest import ROOT, Rigs
+    rigs = Rigs(binary, (ROOT / "crates/cli/examples/rig-sim-binocular.toml").read_text(),
+                tmp_path_factory.mktemp("stereo"))
+    yield rigs.start(content="stream")
+    rigs.stop_all()
+
+
+@pytest.mark.parametrize("use_ring", [True, False])
+def test_stereo_halves_pair_up_by_sequence_number(stereo_rig, use_ring):
+    """Each eye's half through the ring or PUT: the second takes the first's number, and the
+    pair is shown once both are in; both eyes side by side in one frame; a lone half waits."""
+    with stereo_rig.client(use_ring=use_ring) as d:
+        assert d.uses_ring == use_ring
+        color, depth = frame(d, 1)
+        before = d.status()["content"]
+        a = d.send_rgbd(color, depth, eye="left")
+        st = d.status()["content"]
+        assert st["stereo"] and st["halves_waiting"] == 1 and st["received"] == before["received"]
+        assert d.send_rgbd(color + 1, depth, eye="right") == a
+        st = d.status()["content"]
+        assert st["received"] == before["received"] + 1 and st["halves_waiting"] == 0
+        # Both eyes side by side: H x 2W, no eye.
+        b = d.send_rgbd(np.hstack([color, color]), np.hstack([depth, depth]))
+        assert b == a + 1
+        # PNG files too, numbered explicitly.
+        assert d.send_rgbd(color, depth, encoding="png", eye="right", seq=b + 1) == b + 1
+        assert d.send_rgbd(color, depth, encoding="png", eye="left") == b + 1
+        st = d.status()["content"]
+        assert st["received"] == before["received"] + 3, st
+        assert st["halves_received"] == before["halves_received"] + 4, st
+        # A half of the wrong size, and a pair already shown: refused with the reason.
+        with pytest.raises(FrameRefused) as e:
+            d.send_rgbd(np.hstack([color, color]), np.hstack([depth, depth]), eye="left")
+        assert e.value.status == 422 and "one eye's image" in e.value.message
+        with pytest.raises(FrameRefused) as e:
+            d.send_rgbd(color, depth, eye="left", seq=b)
+        assert e.value.status == 409 and "left eye's sequence number" in e.value.message
+        with pytest.raises(ValueError):
+            d.send_rgbd(color, depth, eye="cyclops")
+
+
+def test_an_eye_on_a_mono_rig_is_refused(ring_client):
+    d = ring_client
+    color, depth = frame(d, 5)
+    with pytest.raises(FrameRefused) as e:
+        d.send_rgbd(color, depth, eye="left")
+    assert e.value.status == 422 and 'display.layout = "one"' in e.value.message

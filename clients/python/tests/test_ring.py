@@ -44,3 +44,17 @@ def test_the_daemon_announces_the_same_layout(stream_rig):
         assert info["version"] == frames.RING_VERSION and info["slots"] == g["slots"]
         assert info["slot_bytes"] == 64 + info["width"] * info["height"] * 16
         assert d.uses_ring
+
+
+def test_the_client_packs_the_golden_eye_field():
+    """The right eye's half of a pair: ``eye`` 2 at offset 56, as the daemon reads it."""
+    g = golden()
+    v = g["slot_header_right_eye"]["values"]
+    num = {"inf": math.inf, "nan": math.nan}
+    head = frames.pack_slot_header(
+        v["seq"], frames.COLOR_CODES[v["color_format"]], frames.DEPTH_CODES[v["depth_kind"]],
+        num.get(v["near"], v["near"]), num.get(v["far"], v["far"]), v["width"], v["height"],
+        v["app_time_ns"], v["color_bytes"], v["depth_bytes"], frames.EYE_CODES[v["eye"]])
+    assert head.hex() == g["slot_header_right_eye"]["hex"]
+    assert struct.unpack_from("<I", head, 56) == (2,)
+    assert frames.EYE_CODES == g["eyes"]

@@ -4,7 +4,7 @@
 //! |---|---|---|---|
 //! | GET | `/frame/ring` | | the shared-memory ring's path and layout |
 //! | POST | `/frame` | `{"slot": 0, "seq": 12}` | the frame written into ring slot 0 with sequence number 12 |
-//! | PUT | `/frame?width=&height=&color=&depth=[&color_bytes=&near=&far=&seq=&app_time_ns=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
+//! | PUT | `/frame?width=&height=&color=&depth=[&color_bytes=&near=&far=&seq=&app_time_ns=&eye=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
 //!
 //! `color` is `rgb8` or `rgba8` (sRGB) or `rgbf32` (linear, little-endian), the depth then
 //! little-endian f32; or `png` (sRGB), `exr` or `pfm` (linear): the body is then a colour
@@ -14,6 +14,12 @@
 //! needs `near` and `far` (metres; `far=inf` for an infinite reversed-Z projection). The
 //! answer is `{"seq": N}`, or the reason the frame was refused (422; 409 for a stale sequence
 //! number or when the rig does not stream).
+//!
+//! On a stereo rig (`display.layout` side-by-side or two-outputs) `eye=left` or `eye=right`
+//! makes the frame that eye's half of the pair numbered `seq` (required), shown once the
+//! other half of the same `seq` arrived; without `eye` a frame of one eye's size is mono
+//! (each eye's view synthesised) and one 2 x width wide is both eyes side by side. `eye` on a
+//! mono rig, an unknown eye and a size that is none of these are refused (422).
 
 use std::sync::Arc;
 
@@ -25,14 +31,17 @@ use http_body_util::{BodyExt, Limited};
 use serde::Deserialize;
 use serde_json::json;
 
-use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, FrameError};
+use dioptra_core::Side;
+use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, FrameError, StreamFrames};
 use dioptra_rig::RigState;
 
 use super::api::ApiError;
 
 fn refused(e: FrameError) -> ApiError {
     let status = match e {
-        FrameError::Stale { .. } | FrameError::NotStreaming => StatusCode::CONFLICT,
+        FrameError::Stale { .. } | FrameError::StaleHalf { .. } | FrameError::NotStreaming => {
+            StatusCode::CONFLICT
+        }
         FrameError::MediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
         FrameError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
         FrameError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
@@ -92,6 +101,8 @@ pub struct FrameQuery {
     app_time_ns: Option<u64>,
     /// With an encoded colour: the colour file's length, where the depth file starts.
     color_bytes: Option<usize>,
+    /// A stereo rig: `left` or `right`, the eye whose half of pair `seq` this is.
+    eye: Option<String>,
 }
 
 /// An encoded frame's body may hold this much more than the frame's f32 colour and depth
@@ -108,7 +119,7 @@ pub async fn put(
         return Err(not_streaming());
     };
     // Refusals before the frame is read are counted as the stream counts its own.
-    let (desc, color_len, body) = match read_put(&s, query, &headers, body).await {
+    let (desc, eye, color_len, body) = match read_put(stream, query, &headers, body).await {
         Ok(r) => r,
         Err(e) => return Err(refused(stream.refuse(e))),
     };
@@ -117,21 +128,21 @@ pub async fn put(
         let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
         // A color_bytes beyond the body leaves the depth file empty: refused as such.
         let split = color_len.min(body.len());
-        stream.submit(&desc, &body[..split], &body[split..], now)
+        stream.submit_eye(&desc, eye, &body[..split], &body[split..], now)
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
     r.map(|seq| Json(json!({ "seq": seq }))).map_err(refused)
 }
 
-/// A `PUT /frame` request's frame: its description, where its colour ends, and its body
-/// (bounded by the frame's size, which must be the display's).
+/// A `PUT /frame` request's frame: its description, its eye, where its colour ends, and its
+/// body (bounded by the frame's size, which must be the display's).
 async fn read_put(
-    s: &RigState,
+    stream: &StreamFrames,
     query: Result<Query<FrameQuery>, axum::extract::rejection::QueryRejection>,
     headers: &HeaderMap,
     body: Body,
-) -> Result<(FrameDesc, usize, axum::body::Bytes), FrameError> {
+) -> Result<(FrameDesc, Option<Side>, usize, axum::body::Bytes), FrameError> {
     let Query(q) = query.map_err(|e| {
         FrameError::Request(format!(
             "{}; PUT /frame?width=W&height=H&color=rgb8&depth=m (or color=png&color_bytes=N)",
@@ -150,6 +161,7 @@ async fn read_put(
             q.depth
         ))
     })?;
+    let eye = stream.parse_eye(q.eye.as_deref())?;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -180,15 +192,7 @@ async fn read_put(
         }
     };
     // The frame's own size bounds the body; a frame of the wrong size is refused unread.
-    let (dw, dh) = (s.cfg.display.width as usize, s.cfg.display.height as usize);
-    if (q.width, q.height) != (dw, dh) {
-        return Err(FrameError::WrongSize {
-            got_w: q.width,
-            got_h: q.height,
-            want_w: dw,
-            want_h: dh,
-        });
-    }
+    stream.side_by_side(q.width, q.height, eye)?;
     let limit = super::guard::BODY_TIMEOUT * 4;
     let body = match tokio::time::timeout(limit, Limited::new(body, max).collect()).await {
         Err(_) => return Err(FrameError::Timeout(limit.as_secs())),
@@ -216,5 +220,5 @@ async fn read_put(
         seq: q.seq,
         app_time_ns: q.app_time_ns,
     };
-    Ok((desc, color_len, body))
+    Ok((desc, eye, color_len, body))
 }

@@ -2556,3 +2556,141 @@ async fn from_multifocal_with_the_network_lightfield_is_one_step() {
     assert_eq!(s, StatusCode::OK, "{v}");
     stop(d).await;
 }
+
+/// `PUT /frame` on the binocular example rig (side by side, 96 x 96 per eye): each eye's half
+/// of a pair (`eye=`, `seq=`) is shown only once its partner arrived, a late half is dropped
+/// when a newer pair completes and refused after, a 192-wide frame carries both eyes; bad eyes
+/// and sizes are refused with the reason and counted; on a mono rig `eye` is refused.
+#[tokio::test(start_paused = true)]
+async fn stereo_frames_are_paired_by_sequence_number_and_refused_with_reasons() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("[recording]\ndir = \"recordings\"\nstart = false\n", "")
+        + "\n[content]\nsource = \"stream\"\nring = \"none\"\n";
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let sh = d.shared().clone();
+    let app = api::router(sh.clone());
+    let content = || sh.status_json()["content"].clone();
+    let octets = "application/octet-stream";
+    let frame = |w: usize, v: u8| {
+        [
+            vec![v; w * 96 * 3],
+            f32_bytes(&vec![0.5 + f32::from(v) / 255.0; w * 96]),
+        ]
+        .concat()
+    };
+    let put = |w: usize, q: &str, v: u8| {
+        let app = app.clone();
+        let path = format!("/frame?width={w}&height=96&color=rgb8&depth=m{q}");
+        async move { call_with(&app, "PUT", &path, octets, frame(w, v)).await }
+    };
+    let shown = |seq: u64| {
+        eventually("the pair on show", move || {
+            (content()["on_show_seq"] == json!(seq)).then_some(())
+        })
+    };
+    let (s, v) = put(96, "&eye=left&seq=1", 10).await;
+    assert_eq!((s, &v["seq"]), (StatusCode::OK, &json!(1)), "{v}");
+    let c = content();
+    assert_eq!(
+        (&c["stereo"], &c["halves_waiting"], &c["received"]),
+        (&json!(true), &json!(1), &json!(0)),
+        "{c}"
+    );
+    let frames = sh.status_json()["counts"]["frames_shown"].as_u64().unwrap();
+    let (s, v) = put(96, "&eye=right&seq=1", 20).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    shown(1).await;
+    // A late half: right 2 never comes before pair 3 completes.
+    for q in ["&eye=left&seq=2", "&eye=left&seq=3", "&eye=right&seq=3"] {
+        let (s, v) = put(96, q, 30).await;
+        assert_eq!(s, StatusCode::OK, "{q}: {v}");
+    }
+    shown(3).await;
+    assert_eq!(content()["halves_dropped"], json!(1));
+    let (s, v) = put(96, "&eye=right&seq=2", 40).await;
+    assert_eq!(s, StatusCode::CONFLICT, "{v}");
+    assert!(
+        v["error"]
+            .as_str()
+            .unwrap()
+            .contains("right eye's sequence number 2"),
+        "{v}"
+    );
+    // Both eyes side by side in one frame.
+    let (s, v) = put(192, "&seq=4", 50).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    shown(4).await;
+    // Refusals: (query, width, status, reason counted, words).
+    for (q, w, status, reason, words) in [
+        (
+            "&eye=middle&seq=5",
+            96,
+            422,
+            "eye",
+            "eye=\"middle\": expected left or right",
+        ),
+        (
+            "&eye=left",
+            96,
+            422,
+            "request",
+            "needs its sequence number (seq=N)",
+        ),
+        (
+            "&eye=left&seq=5",
+            192,
+            422,
+            "wrong_size",
+            "left eye's frame is 192x96; one eye's image is 96x96",
+        ),
+        (
+            "&seq=5",
+            95,
+            422,
+            "wrong_size",
+            "or 192x96 for both eyes side by side",
+        ),
+    ] {
+        let before = content();
+        let (s, v) = put(w, q, 60).await;
+        assert_eq!(s.as_u16(), status, "{q}: {v}");
+        let msg = v["error"].as_str().unwrap_or_default();
+        assert!(msg.contains(words), "{q}: {msg:?} lacks {words:?}");
+        let count = |c: &Value| c["refused"][reason].as_u64().unwrap_or(0);
+        assert_eq!(count(&content()), count(&before) + 1, "{reason}");
+        assert_eq!(content()["on_show_seq"], json!(4), "the pair on show stays");
+    }
+    let c = content();
+    assert_eq!(
+        (&c["received"], &c["halves_received"], &c["halves_waiting"]),
+        (&json!(3), &json!(5), &json!(0)),
+        "{c}"
+    );
+    // The pairs were rendered, each eye its own image.
+    let v = eventually("frames of the pairs", || {
+        let v = sh.status_json();
+        (v["counts"]["frames_shown"].as_u64() > Some(frames + 3)).then_some(v)
+    })
+    .await;
+    assert_eq!(v["counts"]["render_errors"], json!(0), "{v}");
+    stop(d).await;
+
+    // On a mono rig an eye is refused.
+    let (d, sh, app) = stream_daemon(dir.path()).await;
+    let path = "/frame?width=96&height=96&color=rgb8&depth=m&eye=left&seq=1";
+    let (s, v) = call_with(&app, "PUT", path, octets, frame(96, 1)).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY, "{v}");
+    assert!(
+        v["error"]
+            .as_str()
+            .unwrap()
+            .contains("display.layout = \"one\""),
+        "{v}"
+    );
+    assert_eq!(sh.status_json()["content"]["refused"]["eye"], json!(1));
+    stop(d).await;
+}

@@ -154,19 +154,23 @@ pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, 
         ContentSource::Files => Arc::new(files::FileFrames::open(cfg)?),
         ContentSource::Stream => {
             let ring = cfg.content.ring_path(&cfg.api);
-            let s =
-                stream::StreamFrames::open(d.width as usize, d.height as usize, ring.as_deref())
-                    .map_err(|e| {
-                        let path = ring.clone().unwrap_or_default();
-                        ContentError::File {
-                            key: "content.ring",
-                            reason: format!(
-                                "{}: cannot create the shared-memory ring: {e}",
-                                path.display()
-                            ),
-                            path,
-                        }
-                    })?;
+            let s = stream::StreamFrames::with_eyes(
+                d.width as usize,
+                d.height as usize,
+                cfg.stereo(),
+                ring.as_deref(),
+            )
+            .map_err(|e| {
+                let path = ring.clone().unwrap_or_default();
+                ContentError::File {
+                    key: "content.ring",
+                    reason: format!(
+                        "{}: cannot create the shared-memory ring: {e}",
+                        path.display()
+                    ),
+                    path,
+                }
+            })?;
             Arc::new(s)
         }
     })

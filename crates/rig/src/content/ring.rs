@@ -4,6 +4,8 @@
 //! layout to clients (`GET /frame/ring`) from [`SLOT_FIELDS`]; `ring-golden.json` holds bytes
 //! that this module's tests and the Python client's tests both check.
 
+use dioptra_core::Side;
+
 /// The ring file's first 8 bytes.
 pub const RING_MAGIC: &[u8; 8] = b"DIOPTRA1";
 pub const RING_VERSION: u32 = 1;
@@ -15,6 +17,29 @@ pub const SLOT_HEADER: usize = 64;
 pub const RING_SLOTS: usize = 3;
 /// A slot holds the largest frame: RGB f32 colour and f32 depth, 16 bytes a pixel.
 pub const SLOT_BYTES_PER_PX: usize = 16;
+
+/// A slot's `eye`: which eye's view its frame is (a stereo rig). 0, what a writer that does
+/// not know the field leaves, is a frame of no one eye: mono, or both eyes side by side.
+pub const EYE_CODES: [(&str, u32); 3] = [("none", 0), ("left", 1), ("right", 2)];
+
+/// A slot's `eye` code for `eye`.
+pub fn eye_code(eye: Option<Side>) -> u32 {
+    match eye {
+        None => 0,
+        Some(Side::Left) => 1,
+        Some(Side::Right) => 2,
+    }
+}
+
+/// The eye a slot's `eye` code names (`Some(None)`: no eye); `None`: not a code.
+pub fn eye_of_code(code: u32) -> Option<Option<Side>> {
+    match code {
+        0 => Some(None),
+        1 => Some(Some(Side::Left)),
+        2 => Some(Some(Side::Right)),
+        _ => None,
+    }
+}
 
 /// A field's place in a header: name, byte offset, little-endian type.
 pub type Field = (&'static str, usize, &'static str);
@@ -43,6 +68,7 @@ pub const SLOT_FIELDS: &[Field] = &[
     ("app_time_ns", 32, "u64"),
     ("color_bytes", 40, "u64"),
     ("depth_bytes", 48, "u64"),
+    ("eye", 56, "u32"),
 ];
 
 fn offset(fields: &[Field], name: &str) -> usize {
@@ -74,10 +100,17 @@ pub struct RingHeader {
 impl RingHeader {
     /// The header of a ring for `width` x `height` frames.
     pub fn for_frames(width: usize, height: usize) -> Self {
+        Self::for_eyes(width, height, false)
+    }
+
+    /// The header of a ring for `width` x `height` frames (one eye's, on a `stereo` rig): a
+    /// stereo rig's slots have room for both eyes side by side, 2 x `width` wide.
+    pub fn for_eyes(width: usize, height: usize, stereo: bool) -> Self {
+        let views = if stereo { 2 } else { 1 };
         RingHeader {
             width: width as u32,
             height: height as u32,
-            slot_bytes: (SLOT_HEADER + width * height * SLOT_BYTES_PER_PX) as u64,
+            slot_bytes: (SLOT_HEADER + views * width * height * SLOT_BYTES_PER_PX) as u64,
         }
     }
 
@@ -123,6 +156,8 @@ pub struct SlotHeader {
     pub app_time_ns: u64,
     pub color_bytes: u64,
     pub depth_bytes: u64,
+    /// Which eye's view ([`EYE_CODES`]; 0: none).
+    pub eye: u32,
 }
 
 impl SlotHeader {
@@ -139,6 +174,7 @@ impl SlotHeader {
         put(&mut b, f, "app_time_ns", &self.app_time_ns.to_le_bytes());
         put(&mut b, f, "color_bytes", &self.color_bytes.to_le_bytes());
         put(&mut b, f, "depth_bytes", &self.depth_bytes.to_le_bytes());
+        put(&mut b, f, "eye", &self.eye.to_le_bytes());
         b
     }
 
@@ -156,6 +192,7 @@ impl SlotHeader {
             app_time_ns: u64::from_le_bytes(get(b, f, "app_time_ns")),
             color_bytes: u64::from_le_bytes(get(b, f, "color_bytes")),
             depth_bytes: u64::from_le_bytes(get(b, f, "depth_bytes")),
+            eye: u32::from_le_bytes(get(b, f, "eye")),
         }
     }
 }
@@ -213,6 +250,29 @@ mod tests {
         }
     }
 
+    /// A golden vector's slot header values.
+    fn slot_of(v: &serde_json::Value) -> SlotHeader {
+        let u = |k: &str| v[k].as_u64().unwrap();
+        let eye = v["eye"].as_str().unwrap();
+        SlotHeader {
+            seq: u("seq"),
+            color_format: ColorFormat::parse(v["color_format"].as_str().unwrap()).unwrap() as u32,
+            depth_kind: DepthKind::parse(v["depth_kind"].as_str().unwrap()).unwrap() as u32,
+            near: num(&v["near"]) as f32,
+            far: num(&v["far"]) as f32,
+            width: u("width") as u32,
+            height: u("height") as u32,
+            app_time_ns: u("app_time_ns"),
+            color_bytes: u("color_bytes"),
+            depth_bytes: u("depth_bytes"),
+            eye: eye_code(if eye == "none" {
+                None
+            } else {
+                Side::parse(eye)
+            }),
+        }
+    }
+
     #[test]
     fn the_golden_bytes_are_what_the_daemon_writes_and_reads() {
         let g = golden();
@@ -226,21 +286,7 @@ mod tests {
         assert_eq!(hex(&header.encode()), ring["hex"].as_str().unwrap());
 
         let slot = &g["slot_header"];
-        let v = &slot["values"];
-        let u = |k: &str| v[k].as_u64().unwrap();
-        let h = SlotHeader {
-            seq: u("seq"),
-            color_format: ColorFormat::parse(v["color_format"].as_str().unwrap()).unwrap() as u32,
-            depth_kind: DepthKind::parse(v["depth_kind"].as_str().unwrap()).unwrap() as u32,
-            near: num(&v["near"]) as f32,
-            far: num(&v["far"]) as f32,
-            width: u("width") as u32,
-            height: u("height") as u32,
-            app_time_ns: u("app_time_ns"),
-            color_bytes: u("color_bytes"),
-            depth_bytes: u("depth_bytes"),
-        };
-        let bytes = h.encode();
+        let bytes = slot_of(&slot["values"]).encode();
         assert_eq!(hex(&bytes), slot["hex"].as_str().unwrap());
         assert_eq!(SlotHeader::decode(&bytes).encode(), bytes);
 
@@ -255,9 +301,49 @@ mod tests {
             assert_eq!(k as u64, code.as_u64().unwrap(), "{name}");
             assert_eq!(DepthKind::from_code(k as u32), Some(k));
         }
+        for (name, code) in g["eyes"].as_object().unwrap() {
+            let eye = if name == "none" {
+                None
+            } else {
+                Some(Side::parse(name).unwrap())
+            };
+            assert_eq!(u64::from(eye_code(eye)), code.as_u64().unwrap(), "{name}");
+            assert_eq!(eye_of_code(eye_code(eye)), Some(eye));
+        }
         assert_eq!(ring["layout"], layout_json(RING_FIELDS));
         assert_eq!(slot["layout"], layout_json(SLOT_FIELDS));
         assert_eq!(g["slots"].as_u64(), Some(RING_SLOTS as u64));
+    }
+
+    /// A slot of one eye's view: its `eye` field's bytes, which the daemon reads back; a
+    /// stereo rig's slots hold both eyes side by side.
+    #[test]
+    fn the_golden_eye_bytes_are_what_the_daemon_reads() {
+        let g = golden();
+        let slot = &g["slot_header_right_eye"];
+        let h = slot_of(&slot["values"]);
+        let want = slot["hex"].as_str().unwrap();
+        assert_eq!(hex(&h.encode()), want);
+        // The field's own bytes: u32 2 at offset 56.
+        assert_eq!(&want[112..120], "02000000");
+        let bytes: Vec<u8> = (0..SLOT_HEADER)
+            .map(|i| u8::from_str_radix(&want[2 * i..2 * i + 2], 16).unwrap())
+            .collect();
+        let back = SlotHeader::decode(&bytes.try_into().unwrap());
+        assert_eq!(eye_of_code(back.eye), Some(Some(Side::Right)));
+        assert_eq!(back.encode(), h.encode());
+        // A writer that leaves the field 0 sends a frame of no one eye.
+        assert_eq!(eye_of_code(0), Some(None));
+        assert_eq!(eye_of_code(3), None);
+        let stereo = &g["ring_header_stereo"];
+        let v = &stereo["values"];
+        let header = RingHeader::for_eyes(
+            v["width"].as_u64().unwrap() as usize,
+            v["height"].as_u64().unwrap() as usize,
+            true,
+        );
+        assert_eq!(header.slot_bytes, v["slot_bytes"].as_u64().unwrap());
+        assert_eq!(hex(&header.encode()), stereo["hex"].as_str().unwrap());
     }
 
     /// RING.md's tables are the layout's.

@@ -15,6 +15,14 @@
 //! display's, a buffer is shorter or longer than its size says, a depth is NaN or outside its
 //! convention's range, its sequence number is not newer than the newest accepted, or its slot
 //! was rewritten while it was read. The frame on show stays until a good one replaces it.
+//!
+//! On a stereo rig (`display.layout` side-by-side or two-outputs) a frame is one of: a mono
+//! frame of one eye's size (each eye's view synthesised from it); both eyes side by side,
+//! 2 x width wide (split here, the left half the left eye's); or one eye's half (`eye=left`,
+//! `eye=right`, a slot's `eye`), numbered with `seq`, the pair's two halves sharing it. A
+//! pair is shown only once both halves arrived, in either order; a half waits until its
+//! partner comes or a newer pair or whole frame completes (then it is dropped, counted under
+//! `halves_dropped`); a half older than the newest complete pair is refused as stale.
 
 use std::fs::OpenOptions;
 use std::io::Write;
@@ -22,12 +30,12 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use dioptra_core::image::srgb_to_linear;
-use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Timestamp};
+use dioptra_core::{lock, DepthMap, Plane, RgbImage, Rgbd, Side, Timestamp};
 use dioptra_render::io::{decode_color, decode_samples, encoded_size, ImageFormat};
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::ring::{RingHeader, SlotHeader};
+use super::ring::{eye_of_code, RingHeader, SlotHeader};
 pub use super::ring::{RING_HEADER, RING_MAGIC, RING_SLOTS, RING_VERSION, SLOT_HEADER};
 use super::{Arrival, Content, ContentFrame};
 
@@ -259,6 +267,38 @@ pub enum FrameError {
     Invalid(String),
     #[error("sequence number {seq} is not newer than {newest}, the newest frame accepted")]
     Stale { seq: u64, newest: u64 },
+    /// One eye's half not newer than that eye's newest half, the newest complete frame or
+    /// the newest half dropped unpaired.
+    #[error(
+        "the {} eye's sequence number {seq} is not newer than {newest}: that eye's newest \
+         half, or a frame or pair already complete or dropped (its pair can no longer be shown)",
+        eye.as_str()
+    )]
+    StaleHalf { eye: Side, seq: u64, newest: u64 },
+    /// A stereo rig's frame of the wrong size: one eye's (`eye`) or a whole one.
+    #[error(
+        "the {}frame is {got_w}x{got_h}; {}",
+        eye.map_or(String::new(), |e| format!("{} eye's ", e.as_str())),
+        if eye.is_some() {
+            format!("one eye's image is {want_w}x{want_h}")
+        } else {
+            format!(
+                "one eye's image is {want_w}x{want_h} (a mono frame), or {}x{want_h} for both \
+                 eyes side by side",
+                2 * want_w
+            )
+        }
+    )]
+    WrongEyeSize {
+        eye: Option<Side>,
+        got_w: usize,
+        got_h: usize,
+        want_w: usize,
+        want_h: usize,
+    },
+    /// The frame's eye: unknown, or named on a rig that shows one image.
+    #[error("{0}")]
+    Eye(String),
     #[error("slot {0} was rewritten while the daemon read it (its sequence number changed)")]
     Torn(usize),
     #[error("the {what}: {detail}")]
@@ -280,7 +320,9 @@ impl FrameError {
     /// A short name for counting refusals.
     pub fn kind(&self) -> &'static str {
         match self {
-            FrameError::WrongSize { .. } => "wrong_size",
+            FrameError::WrongSize { .. } | FrameError::WrongEyeSize { .. } => "wrong_size",
+            FrameError::StaleHalf { .. } => "stale",
+            FrameError::Eye(_) => "eye",
             FrameError::Length { .. } => "length",
             FrameError::Depth { .. } => "depth",
             FrameError::Invalid(_) => "invalid",
@@ -654,16 +696,25 @@ fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct StreamStatus {
     pub source: &'static str,
-    /// Frames accepted.
+    /// A stereo rig: frames may be one eye's half, a pair shown once both arrived.
+    pub stereo: bool,
+    /// Frames accepted (on a stereo rig a pair counts once, when its second half arrives).
     pub received: u64,
     /// Accepted frames the display took up.
     pub shown: u64,
     /// Accepted frames a newer one replaced before the display took them up.
     pub replaced: u64,
+    /// One eye's halves accepted (stereo rig).
+    pub halves_received: u64,
+    /// Halves waiting for the other eye's half of the same sequence number.
+    pub halves_waiting: u64,
+    /// Halves whose partner never came: dropped, never shown, when a newer pair or frame
+    /// completed (or more than [`MAX_WAITING`] sequence numbers waited).
+    pub halves_dropped: u64,
     /// Frames refused, by reason; the newest reason in `last_error`.
     pub refused: std::collections::BTreeMap<&'static str, u64>,
     pub last_error: Option<String>,
-    /// Sequence number of the newest frame accepted, and of the one on show.
+    /// Sequence number of the newest frame (or half) accepted, and of the one on show.
     pub newest_seq: Option<u64>,
     pub on_show_seq: Option<u64>,
     /// Host time (ns) the newest accepted frame arrived, and its application time.
@@ -676,10 +727,64 @@ pub struct StreamStatus {
     newest_at: Option<std::time::Instant>,
 }
 
+/// Sequence numbers whose halves may wait for their partner at once; one more drops the
+/// oldest (each waiting half holds a frame's memory).
+pub const MAX_WAITING: usize = 4;
+
+/// A frame ready to show: one view, or (`eyes`) a pair whose `frame` is the left eye's.
 struct Pending {
     frame: Arc<Rgbd>,
+    eyes: Option<[Arc<Rgbd>; 2]>,
     seq: u64,
     arrival: Arrival,
+}
+
+/// A frame decoded, before it is paired or shown.
+#[derive(Debug)]
+enum Decoded {
+    /// One view (a mono rig's frame, or a mono frame on a stereo rig).
+    Whole(Rgbd),
+    /// Both eyes, from a side-by-side frame.
+    Pair([Rgbd; 2]),
+    /// One eye's half of a pair.
+    Half(Side, Rgbd),
+}
+
+impl Decoded {
+    fn eye(&self) -> Option<Side> {
+        match self {
+            Decoded::Half(e, _) => Some(*e),
+            _ => None,
+        }
+    }
+}
+
+fn eye_index(e: Side) -> usize {
+    match e {
+        Side::Left => 0,
+        Side::Right => 1,
+    }
+}
+
+/// A stereo rig's pairing of halves, and the sequence numbers that make a half stale.
+#[derive(Default)]
+struct Pairing {
+    /// Each eye's newest half accepted (left, right).
+    newest_half: [Option<u64>; 2],
+    /// Pairs up to this number can no longer be shown: the newest frame or pair complete
+    /// (accepted whole, or both halves arrived), or the newest half dropped unpaired.
+    floor: Option<u64>,
+    /// Halves waiting for the other eye's of the same sequence number.
+    waiting: std::collections::BTreeMap<u64, [Option<Arc<Rgbd>>; 2]>,
+}
+
+impl Pairing {
+    fn halves_waiting(&self) -> u64 {
+        self.waiting
+            .values()
+            .map(|h| h.iter().flatten().count() as u64)
+            .sum()
+    }
 }
 
 /// The shared-memory ring: the file and its mapping.
@@ -690,9 +795,8 @@ struct Ring {
 }
 
 impl Ring {
-    fn create(path: &Path, width: usize, height: usize) -> std::io::Result<Ring> {
+    fn create(path: &Path, header: RingHeader) -> std::io::Result<Ring> {
         use std::os::unix::fs::OpenOptionsExt;
-        let header = RingHeader::for_frames(width, height);
         let slot_bytes = header.slot_bytes as usize;
         if let Ok(meta) = std::fs::symlink_metadata(path) {
             if !meta.file_type().is_file() {
@@ -754,23 +858,30 @@ fn libc_o_nofollow() -> i32 {
 
 /// The stream source: the newest accepted frame, waiting for the display.
 pub struct StreamFrames {
+    /// One eye's image (the display's on a mono rig).
     size: (usize, usize),
+    stereo: bool,
     ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
     status: Mutex<StreamStatus>,
+    /// Locked only while `status` is.
+    pairing: Mutex<Pairing>,
     /// Memory of frames done with, for the next ones.
     planes: Planes,
+    /// The same for side-by-side frames (2 x width), before they are split.
+    wide_planes: Planes,
     /// Notified at each accepted frame: the loop takes it up then.
     arrivals: Arc<tokio::sync::Notify>,
-    /// The frame on show (given back for reuse when the next is taken up), and how many
+    /// The views on show (given back for reuse when the next are taken up), and how many
     /// frames the loop has been handed.
-    on_show: Mutex<(Option<Arc<Rgbd>>, u64)>,
+    on_show: Mutex<(Vec<Arc<Rgbd>>, u64)>,
 }
 
 impl std::fmt::Debug for StreamFrames {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("StreamFrames")
             .field("size", &self.size)
+            .field("stereo", &self.stereo)
             .finish_non_exhaustive()
     }
 }
@@ -779,19 +890,35 @@ impl StreamFrames {
     /// A stream of `width` x `height` frames with its ring at `ring` (`None`: `PUT /frame`
     /// only).
     pub fn open(width: usize, height: usize, ring: Option<&Path>) -> std::io::Result<Self> {
-        let ring = ring.map(|p| Ring::create(p, width, height)).transpose()?;
+        Self::with_eyes(width, height, false, ring)
+    }
+
+    /// [`StreamFrames::open`] for a rig whose display is `stereo` (`width` x `height` is then
+    /// one eye's image): frames may be one eye's half or both eyes side by side.
+    pub fn with_eyes(
+        width: usize,
+        height: usize,
+        stereo: bool,
+        ring: Option<&Path>,
+    ) -> std::io::Result<Self> {
+        let header = RingHeader::for_eyes(width, height, stereo);
+        let ring = ring.map(|p| Ring::create(p, header)).transpose()?;
         Ok(StreamFrames {
             size: (width, height),
+            stereo,
             status: Mutex::new(StreamStatus {
                 source: "stream",
+                stereo,
                 ring: ring.as_ref().map(|r| r.path.display().to_string()),
                 ..Default::default()
             }),
             ring,
             pending: Mutex::new(None),
+            pairing: Mutex::new(Pairing::default()),
             planes: Planes::new(width * height),
+            wide_planes: Planes::new(2 * width * height),
             arrivals: Arc::new(tokio::sync::Notify::new()),
-            on_show: Mutex::new((None, 0)),
+            on_show: Mutex::new((Vec::new(), 0)),
         })
     }
 
@@ -813,6 +940,7 @@ impl StreamFrames {
                 "path": null,
                 "width": self.size.0,
                 "height": self.size.1,
+                "stereo": self.stereo,
             }),
             Some(r) => serde_json::json!({
                 "path": r.path.display().to_string(),
@@ -821,15 +949,77 @@ impl StreamFrames {
                 "slots": RING_SLOTS,
                 "width": self.size.0,
                 "height": self.size.1,
+                "stereo": self.stereo,
                 "header_bytes": RING_HEADER,
                 "slot_header_bytes": SLOT_HEADER,
                 "slot_bytes": r.slot_bytes,
                 "slot_header": super::ring::layout_json(super::ring::SLOT_FIELDS),
+                "eyes": super::ring::EYE_CODES.iter().map(|&(n, c)| (n.to_string(), c.into()))
+                    .collect::<serde_json::Map<_, _>>(),
             }),
         }
     }
 
-    /// A frame from `PUT /frame`.
+    /// The eye `PUT /frame?eye=` names (`None`: no eye), or why it is refused.
+    pub fn parse_eye(&self, eye: Option<&str>) -> Result<Option<Side>, FrameError> {
+        let Some(name) = eye else {
+            return Ok(None);
+        };
+        let side = Side::parse(name).ok_or_else(|| {
+            FrameError::Eye(format!(
+                "eye={name:?}: expected left or right (or no eye: a mono frame, or on a \
+                 stereo rig both eyes side by side)"
+            ))
+        })?;
+        self.check_eye(Some(side))
+    }
+
+    /// `eye` is refused on a rig that shows one image.
+    fn check_eye(&self, eye: Option<Side>) -> Result<Option<Side>, FrameError> {
+        match eye {
+            Some(e) if !self.stereo => Err(FrameError::Eye(format!(
+                "eye {}: this rig shows one image (display.layout = \"one\"); send frames \
+                 without an eye",
+                e.as_str()
+            ))),
+            _ => Ok(eye),
+        }
+    }
+
+    /// Whether a frame of `width` x `height` for `eye` is both eyes side by side (a stereo
+    /// rig's 2 x width frame without an eye), or why its size is refused.
+    pub fn side_by_side(
+        &self,
+        width: usize,
+        height: usize,
+        eye: Option<Side>,
+    ) -> Result<bool, FrameError> {
+        let (w, h) = self.size;
+        if (width, height) == (w, h) {
+            return Ok(false);
+        }
+        if self.stereo && eye.is_none() && (width, height) == (2 * w, h) {
+            return Ok(true);
+        }
+        Err(if self.stereo {
+            FrameError::WrongEyeSize {
+                eye,
+                got_w: width,
+                got_h: height,
+                want_w: w,
+                want_h: h,
+            }
+        } else {
+            FrameError::WrongSize {
+                got_w: width,
+                got_h: height,
+                want_w: w,
+                want_h: h,
+            }
+        })
+    }
+
+    /// A frame from `PUT /frame` (no eye: mono, or on a stereo rig possibly side by side).
     pub fn submit(
         &self,
         desc: &FrameDesc,
@@ -837,12 +1027,77 @@ impl StreamFrames {
         depth: &[u8],
         now: Timestamp,
     ) -> Result<u64, FrameError> {
+        self.submit_eye(desc, None, color, depth, now)
+    }
+
+    /// A frame from `PUT /frame?eye=`: `eye`'s half of a pair, or (`None`) a whole frame.
+    pub fn submit_eye(
+        &self,
+        desc: &FrameDesc,
+        eye: Option<Side>,
+        color: &[u8],
+        depth: &[u8],
+        now: Timestamp,
+    ) -> Result<u64, FrameError> {
         let t0 = std::time::Instant::now();
-        let r = self.check_seq(desc.seq).and_then(|seq| {
-            let frame = decode_frame_into(desc, color, depth, self.size, &self.planes)?;
-            Ok((seq, frame))
-        });
+        let r = self
+            .check_eye(eye)
+            .and_then(|eye| self.check_seq(desc.seq, eye))
+            .and_then(|seq| Ok((seq, self.decode(desc, eye, color, depth)?)));
         self.accept(r, desc.app_time_ns, now, t0)
+    }
+
+    /// Decodes a frame for `eye`: a side-by-side one split into the two eyes'.
+    fn decode(
+        &self,
+        desc: &FrameDesc,
+        eye: Option<Side>,
+        color: &[u8],
+        depth: &[u8],
+    ) -> Result<Decoded, FrameError> {
+        if self.side_by_side(desc.width, desc.height, eye)? {
+            let (w, h) = self.size;
+            let wide = decode_frame_into(desc, color, depth, (2 * w, h), &self.wide_planes)?;
+            return Ok(Decoded::Pair(self.split(wide)?));
+        }
+        let frame = decode_frame_into(desc, color, depth, self.size, &self.planes)?;
+        Ok(match eye {
+            Some(e) => Decoded::Half(e, frame),
+            None => Decoded::Whole(frame),
+        })
+    }
+
+    /// A side-by-side frame's left and right halves.
+    fn split(&self, wide: Rgbd) -> Result<[Rgbd; 2], FrameError> {
+        let (w, h) = self.size;
+        let Rgbd { color, depth } = wide;
+        let [r, g, b] = color.channels;
+        let mut halves: [Vec<Plane>; 2] = [Vec::new(), Vec::new()];
+        let bad = |e: dioptra_core::InputError| FrameError::Invalid(e.to_string());
+        for plane in [r, g, b, depth.into_plane()] {
+            let src = plane.into_vec();
+            let (mut left, mut right) = (self.planes.take(), self.planes.take());
+            for ((row, l), r) in src
+                .chunks_exact(2 * w.max(1))
+                .zip(left.chunks_exact_mut(w.max(1)))
+                .zip(right.chunks_exact_mut(w.max(1)))
+            {
+                l.copy_from_slice(&row[..w]);
+                r.copy_from_slice(&row[w..]);
+            }
+            self.wide_planes.give(src);
+            halves[0].push(Plane::from_vec(w, h, left).map_err(bad)?);
+            halves[1].push(Plane::from_vec(w, h, right).map_err(bad)?);
+        }
+        let view = |planes: Vec<Plane>| -> Result<Rgbd, FrameError> {
+            let [r, g, b, d]: [Plane; 4] = planes
+                .try_into()
+                .map_err(|_| FrameError::Invalid("four planes".into()))?;
+            let color = RgbImage::from_planes(r, g, b).map_err(bad)?;
+            Rgbd::new(color, DepthMap::from_diopters(d).map_err(bad)?).map_err(bad)
+        };
+        let [left, right] = halves;
+        Ok([view(left)?, view(right)?])
     }
 
     /// A frame the application wrote into ring slot `slot` with sequence number `seq`.
@@ -853,7 +1108,7 @@ impl StreamFrames {
         self.accept(r.map(|(s, f, _)| (s, f)), app, now, t0)
     }
 
-    fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
+    fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Decoded, Option<u64>), FrameError> {
         self.read_slot_then(slot, seq, || {})
     }
 
@@ -864,7 +1119,7 @@ impl StreamFrames {
         slot: usize,
         seq: u64,
         copied: impl FnOnce(),
-    ) -> Result<(u64, Rgbd, Option<u64>), FrameError> {
+    ) -> Result<(u64, Decoded, Option<u64>), FrameError> {
         let ring = self.ring.as_ref().ok_or_else(|| {
             FrameError::Invalid("this daemon has no shared-memory ring: use PUT /frame".into())
         })?;
@@ -882,10 +1137,17 @@ impl StreamFrames {
                  number last, after the frame)"
             )));
         }
-        let seq = self.check_seq(Some(seq))?;
         let mut bytes = [0u8; SLOT_HEADER];
         bytes.copy_from_slice(&ring.read(base, SLOT_HEADER));
         let h = SlotHeader::decode(&bytes);
+        let eye = eye_of_code(h.eye).ok_or_else(|| {
+            FrameError::Eye(format!(
+                "slot {slot}: unknown eye {} (0 none, 1 left, 2 right)",
+                h.eye
+            ))
+        })?;
+        let eye = self.check_eye(eye)?;
+        let seq = self.check_seq(Some(seq), eye)?;
         let color = ColorFormat::from_code(h.color_format).ok_or_else(|| {
             FrameError::Invalid(format!(
                 "slot {slot}: unknown colour format {}",
@@ -918,23 +1180,20 @@ impl StreamFrames {
         if ring.seq(slot) != seq {
             return Err(FrameError::Torn(slot));
         }
-        let frame = decode_frame_into(&desc, &color_bytes, &depth_bytes, self.size, &self.planes)?;
+        let frame = self.decode(&desc, eye, &color_bytes, &depth_bytes)?;
         Ok((seq, frame, desc.app_time_ns))
     }
 
-    /// The sequence number a frame gets: its own (if newer than the newest) or the next.
-    fn check_seq(&self, seq: Option<u64>) -> Result<u64, FrameError> {
-        let newest = lock(&self.status).newest_seq;
-        match (seq, newest) {
-            (Some(s), Some(n)) if s <= n => Err(FrameError::Stale { seq: s, newest: n }),
-            (Some(s), _) => Ok(s),
-            (None, n) => Ok(n.map_or(1, |n| n + 1)),
-        }
+    /// The sequence number a frame (or `eye`'s half) gets: its own if new, or the next.
+    fn check_seq(&self, seq: Option<u64>, eye: Option<Side>) -> Result<u64, FrameError> {
+        let st = lock(&self.status);
+        let pairing = lock(&self.pairing);
+        next_seq(&st, &pairing, seq, eye)
     }
 
     fn accept(
         &self,
-        r: Result<(u64, Rgbd), FrameError>,
+        r: Result<(u64, Decoded), FrameError>,
         app_time_ns: Option<u64>,
         now: Timestamp,
         started: std::time::Instant,
@@ -945,30 +1204,102 @@ impl StreamFrames {
             ready: now + started.elapsed(),
         };
         let mut st = lock(&self.status);
-        match r {
-            Err(e) => Err(count_refusal(&mut st, e)),
-            Ok((seq, frame)) => {
-                // Two requests may race past check_seq: the newer wins.
-                if let Some(n) = st.newest_seq.filter(|&n| seq <= n) {
-                    return Err(count_refusal(&mut st, FrameError::Stale { seq, newest: n }));
-                }
-                st.received += 1;
-                st.newest_seq = Some(seq);
-                st.newest_received_ns = Some(now.0);
-                st.newest_at = Some(std::time::Instant::now());
-                st.newest_app_time_ns = app_time_ns;
-                let old = lock(&self.pending).replace(Pending {
-                    frame: Arc::new(frame),
-                    seq,
-                    arrival,
-                });
-                if let Some(old) = old {
-                    self.planes.give_frame(old.frame);
-                    st.replaced += 1;
-                }
-                self.arrivals.notify_one();
-                Ok(seq)
+        let (seq, decoded) = match r {
+            Err(e) => return Err(count_refusal(&mut st, e)),
+            Ok(r) => r,
+        };
+        let mut pairing = lock(&self.pairing);
+        // Two requests may race past check_seq: the newer wins.
+        if let Err(e) = next_seq(&st, &pairing, Some(seq), decoded.eye()) {
+            drop(pairing);
+            self.give_back(decoded);
+            return Err(count_refusal(&mut st, e));
+        }
+        st.newest_seq = Some(st.newest_seq.map_or(seq, |n| n.max(seq)));
+        st.newest_received_ns = Some(now.0);
+        st.newest_at = Some(std::time::Instant::now());
+        st.newest_app_time_ns = app_time_ns;
+        let complete = match decoded {
+            Decoded::Whole(f) => Some((Arc::new(f), None, arrival)),
+            Decoded::Pair([l, r]) => {
+                let l = Arc::new(l);
+                Some((l.clone(), Some([l, Arc::new(r)]), arrival))
             }
+            Decoded::Half(eye, f) => {
+                st.halves_received += 1;
+                let i = eye_index(eye);
+                pairing.newest_half[i] = Some(seq);
+                let halves = pairing.waiting.entry(seq).or_default();
+                halves[i] = Some(Arc::new(f));
+                if let [Some(_), Some(_)] = halves {
+                    let [l, r] = pairing.waiting.remove(&seq).unwrap_or_default();
+                    // A pair arrives with its second half.
+                    l.zip(r).map(|(l, r)| (l.clone(), Some([l, r]), arrival))
+                } else {
+                    if pairing.waiting.len() > MAX_WAITING {
+                        if let Some((k, oldest)) = pairing.waiting.pop_first() {
+                            st.halves_dropped += self.drop_halves(oldest);
+                            pairing.floor = pairing.floor.max(Some(k));
+                        }
+                    }
+                    None
+                }
+            }
+        };
+        if let Some((frame, eyes, arrival)) = complete {
+            // Halves older than a complete frame can no longer be shown.
+            let newer = pairing.waiting.split_off(&(seq + 1));
+            let older = std::mem::replace(&mut pairing.waiting, newer);
+            for (_, halves) in older {
+                st.halves_dropped += self.drop_halves(halves);
+            }
+            pairing.floor = Some(seq);
+            st.received += 1;
+            let old = lock(&self.pending).replace(Pending {
+                frame,
+                eyes,
+                seq,
+                arrival,
+            });
+            if let Some(old) = old {
+                self.give_pending(old);
+                st.replaced += 1;
+            }
+            self.arrivals.notify_one();
+        }
+        st.halves_waiting = pairing.halves_waiting();
+        Ok(seq)
+    }
+
+    /// Gives back the memory of halves dropped; how many there were.
+    fn drop_halves(&self, halves: [Option<Arc<Rgbd>>; 2]) -> u64 {
+        let mut n = 0;
+        for h in halves.into_iter().flatten() {
+            self.planes.give_frame(h);
+            n += 1;
+        }
+        n
+    }
+
+    fn give_back(&self, d: Decoded) {
+        match d {
+            Decoded::Whole(f) | Decoded::Half(_, f) => self.planes.give_frame(Arc::new(f)),
+            Decoded::Pair(p) => p
+                .into_iter()
+                .for_each(|f| self.planes.give_frame(Arc::new(f))),
+        }
+    }
+
+    fn give_pending(&self, p: Pending) {
+        let Pending { frame, eyes, .. } = p;
+        // A pair's `frame` is its left eye's view: given back with the eyes.
+        match eyes {
+            Some([l, r]) => {
+                drop(frame);
+                self.planes.give_frame(l);
+                self.planes.give_frame(r);
+            }
+            None => self.planes.give_frame(frame),
         }
     }
 
@@ -984,13 +1315,18 @@ impl StreamFrames {
         count_refusal(&mut lock(&self.status), e)
     }
 
-    /// The newest frame not yet taken up by the display, if any, and when it arrived.
+    /// The newest frame not yet taken up by the display, if any, and when it arrived (a pair:
+    /// the left eye's view; [`Content::poll`] gives both).
     pub fn take_new(&self) -> Option<(Arc<Rgbd>, Arrival)> {
+        self.take_pending().map(|p| (p.frame, p.arrival))
+    }
+
+    fn take_pending(&self) -> Option<Pending> {
         let p = lock(&self.pending).take()?;
         let mut st = lock(&self.status);
         st.shown += 1;
         st.on_show_seq = Some(p.seq);
-        Some((p.frame, p.arrival))
+        Some(p)
     }
 
     pub fn status(&self) -> StreamStatus {
@@ -1000,22 +1336,60 @@ impl StreamFrames {
     }
 }
 
+/// The sequence number a frame (or `eye`'s half) gets: its own if newer than the newest
+/// accepted (a half: than its eye's newest half and the newest complete frame), else stale;
+/// a frame without one gets the next. A half must carry its own.
+fn next_seq(
+    st: &StreamStatus,
+    pairing: &Pairing,
+    seq: Option<u64>,
+    eye: Option<Side>,
+) -> Result<u64, FrameError> {
+    let Some(eye) = eye else {
+        return match (seq, st.newest_seq) {
+            (Some(s), Some(n)) if s <= n => Err(FrameError::Stale { seq: s, newest: n }),
+            (Some(s), _) => Ok(s),
+            (None, n) => Ok(n.map_or(1, |n| n + 1)),
+        };
+    };
+    let seq = seq.ok_or_else(|| {
+        FrameError::Request(format!(
+            "the {} eye's frame needs its sequence number (seq=N): a pair's two halves share it",
+            eye.as_str()
+        ))
+    })?;
+    let newest = pairing.newest_half[eye_index(eye)].max(pairing.floor);
+    match newest {
+        Some(n) if seq <= n => Err(FrameError::StaleHalf {
+            eye,
+            seq,
+            newest: n,
+        }),
+        _ => Ok(seq),
+    }
+}
+
 impl Content for StreamFrames {
-    /// The newest accepted frame not taken up yet; at the first call, the black placeholder if
-    /// none arrived. The frame it replaces is given back for reuse.
+    /// The newest accepted frame (or complete pair) not taken up yet; at the first call, the
+    /// black placeholder if none arrived. The views it replaces are given back for reuse.
     fn poll(&self, _now: Timestamp) -> Option<ContentFrame> {
         let mut on_show = lock(&self.on_show);
-        let (frame, arrival) = match self.take_new() {
-            Some((f, a)) => (f, Some(a)),
-            None if on_show.1 == 0 => (Arc::new(self.placeholder()), None),
+        let (frame, eyes, arrival) = match self.take_pending() {
+            Some(p) => (p.frame, p.eyes, Some(p.arrival)),
+            None if on_show.1 == 0 => (Arc::new(self.placeholder()), None, None),
             None => return None,
         };
-        if let Some(old) = on_show.0.replace(frame.clone()) {
+        let views = match &eyes {
+            Some([l, r]) => vec![l.clone(), r.clone()],
+            None => vec![frame.clone()],
+        };
+        for old in std::mem::replace(&mut on_show.0, views) {
             self.recycle(old);
         }
         on_show.1 += 1;
         Some(ContentFrame {
             arrival,
+            eyes,
             ..ContentFrame::new(on_show.1, frame)
         })
     }
@@ -1292,6 +1666,19 @@ mod tests {
 
     /// Writes a frame into a ring slot the way a client does: sequence number last.
     fn write_slot(ring: &Ring, slot: usize, seq: u64, w: u32, h: u32, color: &[u8], depth: &[u8]) {
+        write_eye_slot(ring, slot, (seq, 0), w, h, color, depth)
+    }
+
+    /// [`write_slot`] with the slot's `eye` code.
+    fn write_eye_slot(
+        ring: &Ring,
+        slot: usize,
+        (seq, eye): (u64, u32),
+        w: u32,
+        h: u32,
+        color: &[u8],
+        depth: &[u8],
+    ) {
         let base = RING_HEADER + slot * ring.slot_bytes;
         let head = SlotHeader {
             seq,
@@ -1304,6 +1691,7 @@ mod tests {
             app_time_ns: 0,
             color_bytes: color.len() as u64,
             depth_bytes: depth.len() as u64,
+            eye,
         };
         let mut bytes = head.encode().to_vec();
         bytes.extend_from_slice(color);
@@ -1367,5 +1755,243 @@ mod tests {
         let e = StreamFrames::open(2, 2, Some(&link)).unwrap_err();
         assert!(e.to_string().contains("not a regular file"), "{e}");
         assert_eq!(std::fs::read(&target).unwrap(), b"keep");
+    }
+
+    /// A 2 x 1 stereo stream's halves: one eye's frame of `v` (sRGB byte) at `d` D.
+    fn half(s: &StreamFrames, eye: Side, seq: u64, v: u8, d: f32) -> Result<u64, FrameError> {
+        let desc = FrameDesc {
+            seq: Some(seq),
+            ..desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        s.submit_eye(&desc, Some(eye), &[v; 6], &f32s(&[d; 2]), Timestamp(seq))
+    }
+
+    /// The views of the frame the display takes up next (left, right), as (red, depth).
+    fn pair_of(s: &StreamFrames) -> Option<(u64, [(f32, f32); 2])> {
+        let f = s.poll(Timestamp(0))?;
+        let [l, r] = f.eyes.clone().expect("a pair");
+        assert!(Arc::ptr_eq(&f.rgbd, &l), "rgbd is the left eye's view");
+        let px = |v: &Rgbd| (v.color.channels[0].data()[0], v.depth.data()[0]);
+        Some((s.status().on_show_seq.unwrap(), [px(&l), px(&r)]))
+    }
+
+    /// On a stereo rig halves are paired by sequence number: a lone half is not shown; a pair
+    /// is, once both halves arrived in either order; a half whose partner never came is
+    /// dropped when a newer pair completes, and refused if it comes after that.
+    #[test]
+    fn halves_are_paired_by_sequence_number() {
+        let s = StreamFrames::with_eyes(2, 1, true, None).unwrap();
+        let lut = srgb_lut();
+        // The placeholder first, then nothing while only the left half of 1 is in.
+        assert!(s.poll(Timestamp(0)).unwrap().eyes.is_none());
+        assert_eq!(half(&s, Side::Left, 1, 10, 1.0), Ok(1));
+        assert!(s.poll(Timestamp(0)).is_none(), "a lone half is not shown");
+        let st = s.status();
+        assert_eq!((st.received, st.halves_waiting), (0, 1), "{st:?}");
+        assert_eq!(half(&s, Side::Right, 1, 20, 2.0), Ok(1));
+        assert_eq!(
+            pair_of(&s),
+            Some((1, [(lut[10], 1.0), (lut[20], 2.0)])),
+            "each eye its own half"
+        );
+        // Late: the right half of 2 never comes before pair 3 completes.
+        half(&s, Side::Left, 2, 30, 1.5).unwrap();
+        half(&s, Side::Left, 3, 40, 1.25).unwrap();
+        assert!(
+            s.poll(Timestamp(0)).is_none(),
+            "2 and 3 wait for their right halves"
+        );
+        half(&s, Side::Right, 3, 50, 2.5).unwrap();
+        assert_eq!(pair_of(&s), Some((3, [(lut[40], 1.25), (lut[50], 2.5)])));
+        let st = s.status();
+        assert_eq!((st.halves_dropped, st.halves_waiting), (1, 0), "{st:?}");
+        // The late half after its pair was overtaken: refused, never shown.
+        let e = half(&s, Side::Right, 2, 60, 3.0).unwrap_err();
+        assert_eq!(
+            e,
+            FrameError::StaleHalf {
+                eye: Side::Right,
+                seq: 2,
+                newest: 3
+            }
+        );
+        assert!(
+            e.to_string().contains("right eye's sequence number 2"),
+            "{e}"
+        );
+        // Right before left; pair 4 completes, then 5, before the display looks: 4 is
+        // replaced by 5.
+        half(&s, Side::Right, 4, 1, 0.5).unwrap();
+        half(&s, Side::Left, 4, 3, 0.5).unwrap();
+        half(&s, Side::Left, 5, 2, 0.75).unwrap();
+        half(&s, Side::Right, 5, 4, 0.75).unwrap();
+        assert_eq!(pair_of(&s), Some((5, [(lut[2], 0.75), (lut[4], 0.75)])));
+        assert!(s.poll(Timestamp(0)).is_none());
+        // A half again for an eye's number already in, and a half without a number.
+        let e = half(&s, Side::Left, 5, 0, 1.0).unwrap_err();
+        assert!(matches!(e, FrameError::StaleHalf { seq: 5, .. }), "{e}");
+        let unnumbered = desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let e = s
+            .submit_eye(
+                &unnumbered,
+                Some(Side::Left),
+                &[0; 6],
+                &f32s(&[1.0; 2]),
+                Timestamp(0),
+            )
+            .unwrap_err();
+        assert!(e.to_string().contains("needs its sequence number"), "{e}");
+        let st = s.status();
+        assert_eq!(
+            (st.received, st.shown, st.replaced, st.halves_received),
+            (4, 3, 1, 9),
+            "{st:?}"
+        );
+        assert_eq!(st.refused.get("stale"), Some(&2), "{st:?}");
+        assert_eq!(st.refused.get("request"), Some(&1), "{st:?}");
+        assert_eq!(st.newest_seq, Some(5));
+    }
+
+    /// Halves waiting for more than MAX_WAITING sequence numbers drop the oldest; a whole
+    /// frame on a stereo rig (mono: its eyes are synthesised) drops every older half.
+    #[test]
+    fn waiting_halves_are_bounded_and_a_whole_frame_overtakes_them() {
+        let s = StreamFrames::with_eyes(2, 1, true, None).unwrap();
+        for seq in 1..=MAX_WAITING as u64 + 1 {
+            half(&s, Side::Left, seq, 0, 1.0).unwrap();
+        }
+        let st = s.status();
+        assert_eq!(
+            (st.halves_waiting, st.halves_dropped),
+            (MAX_WAITING as u64, 1),
+            "{st:?}"
+        );
+        // The oldest (1) is gone: its right half can no longer make a pair.
+        let e = half(&s, Side::Right, 1, 0, 1.0).unwrap_err();
+        assert!(matches!(e, FrameError::StaleHalf { newest: 1, .. }), "{e}");
+        half(&s, Side::Right, 2, 0, 1.0).unwrap();
+        assert!(
+            s.take_new().is_some(),
+            "pair 2, whose left half still waited"
+        );
+        let mono = FrameDesc {
+            seq: Some(10),
+            ..desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        s.submit(&mono, &[9; 6], &f32s(&[2.0; 2]), Timestamp(0))
+            .unwrap();
+        let f = s.poll(Timestamp(0)).unwrap();
+        assert!(f.eyes.is_none(), "a mono frame: eyes synthesised later");
+        let st = s.status();
+        assert_eq!(
+            (st.halves_waiting, st.halves_dropped, st.on_show_seq),
+            (0, MAX_WAITING as u64, Some(10)),
+            "{st:?}"
+        );
+    }
+
+    /// A frame 2 x width wide without an eye is both eyes side by side: its left half is the
+    /// left eye's. Sizes that fit neither, an unknown eye and an eye on a mono rig are
+    /// refused.
+    #[test]
+    fn a_side_by_side_frame_is_split_and_bad_eyes_are_refused() {
+        let s = StreamFrames::with_eyes(2, 1, true, None).unwrap();
+        let wide = desc(4, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let color = [10, 10, 10, 20, 20, 20, 30, 30, 30, 40, 40, 40];
+        s.submit(&wide, &color, &f32s(&[1.0, 2.0, 3.0, 4.0]), Timestamp(0))
+            .unwrap();
+        let f = s.poll(Timestamp(0)).unwrap();
+        let [l, r] = f.eyes.clone().expect("a pair");
+        let lut = srgb_lut();
+        assert_eq!(l.color.channels[1].data(), &[lut[10], lut[20]]);
+        assert_eq!(r.color.channels[2].data(), &[lut[30], lut[40]]);
+        assert_eq!(l.depth.data(), &[1.0, 2.0]);
+        assert_eq!(r.depth.data(), &[3.0, 4.0]);
+        assert_eq!((l.width(), r.width()), (2, 2));
+        // One eye's half must be one eye's size; a whole frame one of the two sizes.
+        let e = s
+            .submit_eye(
+                &FrameDesc {
+                    seq: Some(9),
+                    ..wide
+                },
+                Some(Side::Left),
+                &color,
+                &f32s(&[1.0; 4]),
+                Timestamp(0),
+            )
+            .unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("left eye's frame is 4x1; one eye's image is 2x1"),
+            "{e}"
+        );
+        assert_eq!(e.kind(), "wrong_size");
+        let e = s.side_by_side(3, 1, None).unwrap_err();
+        assert!(
+            e.to_string().contains("or 4x1 for both eyes side by side"),
+            "{e}"
+        );
+        let e = s.parse_eye(Some("middle")).unwrap_err();
+        assert!(e.to_string().contains("expected left or right"), "{e}");
+        assert_eq!(s.parse_eye(Some("right")), Ok(Some(Side::Right)));
+        let mono = StreamFrames::open(2, 1, None).unwrap();
+        let e = mono.parse_eye(Some("left")).unwrap_err();
+        assert!(e.to_string().contains("display.layout = \"one\""), "{e}");
+        assert_eq!(e.kind(), "eye");
+        let e = mono.side_by_side(4, 1, None).unwrap_err();
+        assert!(
+            matches!(e, FrameError::WrongSize { .. }),
+            "a mono rig takes no pair: {e}"
+        );
+    }
+
+    /// A ring slot's `eye`: two slots of the same number make a pair; a stereo ring's slots
+    /// hold a side-by-side frame; an unknown eye, or an eye on a mono rig, is refused.
+    #[test]
+    fn ring_slots_name_their_eye() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = StreamFrames::with_eyes(2, 1, true, Some(&dir.path().join("stereo"))).unwrap();
+        let ring = s.ring.as_ref().unwrap();
+        assert_eq!(ring.slot_bytes, SLOT_HEADER + 2 * 2 * 16);
+        write_eye_slot(ring, 0, (7, 1), 2, 1, &[255; 6], &f32s(&[1.0; 2]));
+        write_eye_slot(ring, 1, (7, 2), 2, 1, &[0; 6], &f32s(&[2.0; 2]));
+        assert_eq!(s.submit_slot(0, 7, Timestamp(1)), Ok(7));
+        assert_eq!(s.status().received, 0, "the left half waits");
+        assert_eq!(s.submit_slot(1, 7, Timestamp(2)), Ok(7));
+        let f = s.poll(Timestamp(2)).unwrap();
+        let [l, r] = f.eyes.expect("a pair");
+        assert_eq!((l.depth.data()[0], r.depth.data()[0]), (1.0, 2.0));
+        assert_eq!(
+            f.arrival.map(|a| a.arrived),
+            Some(Timestamp(2)),
+            "with its second half"
+        );
+        // Both eyes in one slot (eye 0, 2 x width).
+        write_eye_slot(
+            ring,
+            2,
+            (8, 0),
+            4,
+            1,
+            &[9; 12],
+            &f32s(&[1.0, 1.0, 3.0, 3.0]),
+        );
+        assert_eq!(s.submit_slot(2, 8, Timestamp(3)), Ok(8));
+        let [l, r] = s.poll(Timestamp(3)).unwrap().eyes.expect("a pair");
+        assert_eq!(
+            (l.depth.data(), r.depth.data()),
+            (&[1.0, 1.0][..], &[3.0, 3.0][..])
+        );
+        write_eye_slot(ring, 0, (9, 3), 2, 1, &[0; 6], &f32s(&[1.0; 2]));
+        let e = s.submit_slot(0, 9, Timestamp(4)).unwrap_err();
+        assert!(e.to_string().contains("unknown eye 3"), "{e}");
+        let mono = StreamFrames::open(2, 1, Some(&dir.path().join("mono"))).unwrap();
+        let ring = mono.ring.as_ref().unwrap();
+        assert_eq!(ring.slot_bytes, SLOT_HEADER + 2 * 16);
+        write_eye_slot(ring, 0, (1, 2), 2, 1, &[0; 6], &f32s(&[1.0; 2]));
+        let e = mono.submit_slot(0, 1, Timestamp(0)).unwrap_err();
+        assert_eq!(e.kind(), "eye", "{e}");
+        assert_eq!(mono.status().refused.get("eye"), Some(&1));
     }
 }
