@@ -1,7 +1,8 @@
 //! Display output behind [`DisplaySink`]. [`HeadlessSink`] records each frame's timing (and
 //! writes every Nth frame as PNG) for tests and CI; the rig's fullscreen window
 //! ([`super::window::WindowSink`]: winit with a wgpu surface, vsync, on a chosen monitor)
-//! implements the same trait.
+//! implements the same trait. Both place each eye's image on the surface with
+//! [`placement`] (`display.layout`, `display.scale`, `display.eye_offset_px`).
 //!
 //! The marker patch (`display.marker_patch`): a square in one corner that both sinks draw
 //! white or black over the frame, for a photodiode taped over it. [`Marker`] decides its
@@ -17,8 +18,12 @@ use dioptra_core::{Diopters, RgbImage, Timestamp};
 use serde::Serialize;
 use thiserror::Error;
 
-use crate::config::{Corner, MarkerEvent, MarkerPatch};
+use crate::config::{Corner, DisplayLayout, MarkerEvent, MarkerPatch};
 use crate::render::FrameImage;
+
+pub mod placement;
+
+use placement::{PlaceError, PlacementConfig, Placer};
 
 #[derive(Debug, Error)]
 pub enum DisplayError {
@@ -35,6 +40,10 @@ pub enum DisplayError {
     },
     #[error("the display window: {0}")]
     Window(String),
+    /// The frame is not shown: an image does not fit its place (or is missing). The sink
+    /// has counted it in its status and logged the reason (once per reason).
+    #[error("frame not shown: {0}")]
+    NotShown(PlaceError),
 }
 
 /// A rendered frame: one image (varifocal, light field) or one per focal plane (multifocal).
@@ -192,9 +201,20 @@ pub trait DisplaySink: Send {
     fn status(&self) -> serde_json::Value;
 }
 
-/// Keeps the last frames' timing in memory and writes every `png_every`th frame as PNG
-/// (`frame_000042.png`, or `frame_000042_plane1.png` per multifocal layer). A frame left in
-/// GPU memory is read back only when it is written.
+/// Keeps the last frames' timing in memory and writes every `png_every`th frame as PNG. A
+/// frame left in GPU memory is read back only when it is written.
+///
+/// Each PNG is what the panel shows, each eye's image placed on it as the window places it
+/// ([`placement`]): layout `one`, `frame_000042.png` (the panel `display.width` x `height`;
+/// an image that size with no offset is written as it is); `side-by-side`, the same name, the
+/// panel 2 x `display.width` wide, black around the images; `two-outputs`,
+/// `frame_000042_left.png` and `frame_000042_right.png`, an output each. Multifocal: one per
+/// plane (`frame_000042_plane1.png`, `frame_000042_left_plane1.png`). The marker patch is
+/// painted in each panel's corner. A frame with one view on a stereo layout (`Frame::right`
+/// `None`) has its image placed in both eyes' places (counted in `/status`
+/// `mono_on_stereo`). A frame an image of which does not fit its place (`scale = "exact"`)
+/// is not shown: counted in `/status` `misfit`, logged once per reason, and
+/// [`DisplayError::NotShown`] returned.
 #[derive(Debug)]
 pub struct HeadlessSink {
     png_every: u32,
@@ -202,13 +222,41 @@ pub struct HeadlessSink {
     shown: u64,
     recent: VecDeque<Shown>,
     pngs: u64,
+    placer: Placer,
+    /// The panel (for `two-outputs`: each output); `None`: each image's own size.
+    surface: Option<(u32, u32)>,
 }
 
 /// How many frame timings a headless sink keeps.
 const RECENT: usize = 256;
 
 impl HeadlessSink {
+    /// Layout `one`, each image written as it is.
     pub fn new(png_every: u32, dir: Option<PathBuf>) -> Result<Self, DisplayError> {
+        HeadlessSink::with_placement(png_every, dir, PlacementConfig::one(), None)
+    }
+
+    /// The sink `display` asks for: its layout, scale and offsets on a panel of its size
+    /// (`side-by-side`: 2 x `width` wide; `two-outputs`: an output `width` x `height` per eye).
+    pub fn for_display(d: &crate::config::Display) -> Result<Self, DisplayError> {
+        let surface = match d.layout {
+            DisplayLayout::SideBySide => (d.width.saturating_mul(2), d.height),
+            DisplayLayout::One | DisplayLayout::TwoOutputs => (d.width, d.height),
+        };
+        HeadlessSink::with_placement(
+            d.png_every,
+            d.png_dir.clone(),
+            PlacementConfig::from_display(d),
+            Some(surface),
+        )
+    }
+
+    pub fn with_placement(
+        png_every: u32,
+        dir: Option<PathBuf>,
+        placement: PlacementConfig,
+        surface: Option<(u32, u32)>,
+    ) -> Result<Self, DisplayError> {
         if let (true, Some(d)) = (png_every > 0, &dir) {
             std::fs::create_dir_all(d).map_err(|source| DisplayError::Dir {
                 path: d.clone(),
@@ -221,6 +269,8 @@ impl HeadlessSink {
             shown: 0,
             recent: VecDeque::with_capacity(RECENT),
             pngs: 0,
+            placer: Placer::new(placement),
+            surface,
         })
     }
     pub fn recent(&self) -> impl Iterator<Item = &Shown> {
@@ -229,10 +279,96 @@ impl HeadlessSink {
     pub fn pngs_written(&self) -> u64 {
         self.pngs
     }
+    /// Frames not shown because an image did not fit its place.
+    pub fn misfits(&self) -> u64 {
+        self.placer.misfits()
+    }
+    /// Frames with one view shown on a stereo layout.
+    pub fn mono_on_stereo(&self) -> u64 {
+        self.placer.mono_on_stereo()
+    }
+
+    /// The surface for `frame`'s layer `layer`: the panel, or the image's own size.
+    fn surface_for(&self, frame: &Frame, layer: usize) -> (u32, u32) {
+        self.surface.unwrap_or_else(|| {
+            frame.layers.get(layer).map_or((0, 0), |i| {
+                (
+                    u32::try_from(i.width()).unwrap_or(u32::MAX),
+                    u32::try_from(i.height()).unwrap_or(u32::MAX),
+                )
+            })
+        })
+    }
+
+    /// Writes each layer of `frame` as the panel (or panels) show it.
+    fn write_pngs(&mut self, dir: &std::path::Path, frame: &Frame) -> Result<(), DisplayError> {
+        let layers = frame.layers.len();
+        let two_outputs = self.placer.config.layout == DisplayLayout::TwoOutputs;
+        for layer in 0..layers {
+            let surface = self.surface_for(frame, layer);
+            let placed = self
+                .placer
+                .place(frame, layer, surface)
+                .map_err(DisplayError::NotShown)?;
+            // Two outputs: a panel per eye; otherwise one panel with every image on it.
+            let panels: Vec<&[placement::Placed]> = if two_outputs {
+                placed.chunks(1).collect()
+            } else {
+                vec![&placed[..]]
+            };
+            for on_panel in panels {
+                let mut name = format!("frame_{:06}", frame.number);
+                if let (true, Some(eye)) = (two_outputs, on_panel[0].eye) {
+                    name += &format!("_{}", eye.as_str());
+                }
+                if layers > 1 {
+                    name += &format!("_plane{layer}");
+                }
+                let path = dir.join(name + ".png");
+                let failed = |e: dioptra_render::RenderError| DisplayError::Write {
+                    frame: frame.number,
+                    path: path.clone(),
+                    detail: e.to_string(),
+                };
+                let whole = placement::Rect::new(0, 0, surface.0, surface.1);
+                let mut pixels = match on_panel {
+                    // The image is the panel: written as it is.
+                    [p] if p.rect == whole
+                        && (p.image.width(), p.image.height())
+                            == (surface.0 as usize, surface.1 as usize) =>
+                    {
+                        p.image.to_host().map_err(failed)?
+                    }
+                    _ => {
+                        let mut panel =
+                            RgbImage::new(surface.0 as usize, surface.1 as usize, [0.0; 3]);
+                        for p in on_panel {
+                            let image = p.image.to_host().map_err(failed)?;
+                            placement::draw_into(&mut panel, &image, p.rect);
+                        }
+                        std::borrow::Cow::Owned(panel)
+                    }
+                };
+                if let Some(m) = &frame.marker {
+                    m.paint(pixels.to_mut());
+                }
+                dioptra_render::io::write_color(&path, &pixels).map_err(failed)?;
+                self.pngs += 1;
+            }
+        }
+        Ok(())
+    }
 }
 
 impl DisplaySink for HeadlessSink {
     fn present(&mut self, frame: &Frame, now: Timestamp) -> Result<Timestamp, DisplayError> {
+        // Placed before it counts as shown: a frame that does not fit is not shown.
+        let surface = self.surface_for(frame, 0);
+        if let Err(e) = self.placer.place(frame, 0, surface) {
+            self.placer.refused(&e);
+            return Err(DisplayError::NotShown(e));
+        }
+        self.placer.shown(frame);
         self.shown += 1;
         if self.recent.len() == RECENT {
             self.recent.pop_front();
@@ -243,27 +379,9 @@ impl DisplaySink for HeadlessSink {
             shown_ns: now.0,
             marker_white: frame.marker.map(|m| m.white),
         });
-        if let (true, Some(dir)) = (self.png_every > 0, &self.dir) {
+        if let (true, Some(dir)) = (self.png_every > 0, self.dir.clone()) {
             if (self.shown - 1).is_multiple_of(u64::from(self.png_every)) {
-                for (i, layer) in frame.layers.iter().enumerate() {
-                    let name = if frame.layers.len() == 1 {
-                        format!("frame_{:06}.png", frame.number)
-                    } else {
-                        format!("frame_{:06}_plane{i}.png", frame.number)
-                    };
-                    let path = dir.join(name);
-                    let failed = |e: dioptra_render::RenderError| DisplayError::Write {
-                        frame: frame.number,
-                        path: path.clone(),
-                        detail: e.to_string(),
-                    };
-                    let mut pixels = layer.to_host().map_err(failed)?;
-                    if let Some(m) = &frame.marker {
-                        m.paint(pixels.to_mut());
-                    }
-                    dioptra_render::io::write_color(&path, &pixels).map_err(failed)?;
-                    self.pngs += 1;
-                }
+                self.write_pngs(&dir, frame)?;
             }
         }
         Ok(now)
@@ -293,13 +411,19 @@ impl DisplaySink for HeadlessSink {
             }
             _ => None,
         };
-        serde_json::json!({
+        let mut v = serde_json::json!({
             "sink": self.describe(),
             "shown": self.shown,
             "pngs_written": self.pngs_written(),
             "mean_interval_ms": interval_ms,
             "last": recent.last(),
-        })
+        });
+        if let (Some(o), serde_json::Value::Object(p)) =
+            (v.as_object_mut(), self.placer.status(self.surface))
+        {
+            o.extend(p);
+        }
+        v
     }
     fn describe(&self) -> String {
         match (&self.dir, self.png_every) {
@@ -435,5 +559,285 @@ mod tests {
         assert!(png.pixel(15, 0).unwrap()[0] > 0.99);
         assert!(png.pixel(11, 3).unwrap()[0] < 0.3);
         assert!(png.pixel(12, 4).unwrap()[0] < 0.3);
+    }
+
+    /// A `w` x `h` image whose every pixel differs from its neighbours by far more than an
+    /// 8-bit sRGB step: red the column, green the row, blue `tag` (which image it is).
+    fn pattern(w: usize, h: usize, tag: f32) -> RgbImage {
+        let mut v = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                v.extend([(x + 1) as f32 / w as f32, (y + 1) as f32 / h as f32, tag]);
+            }
+        }
+        RgbImage::from_interleaved(w, h, &v).unwrap()
+    }
+
+    /// What an 8-bit sRGB PNG gives back for a linear value.
+    fn through_png(v: f32) -> f32 {
+        let byte = (dioptra_core::image::linear_to_srgb(v) * 255.0).round();
+        dioptra_core::image::srgb_to_linear(byte / 255.0)
+    }
+
+    /// Checks every pixel of the PNG at `path`: inside each `(image, x, y)` the image's pixel
+    /// (1:1, its top-left at x, y), black elsewhere.
+    fn assert_panel(
+        path: &std::path::Path,
+        size: (usize, usize),
+        images: &[(&RgbImage, usize, usize)],
+    ) {
+        let png = dioptra_render::io::read_color(path).unwrap();
+        assert_eq!((png.width(), png.height()), size, "{}", path.display());
+        for y in 0..size.1 {
+            for x in 0..size.0 {
+                let want = images
+                    .iter()
+                    .find_map(|(img, x0, y0)| {
+                        let (ix, iy) = (x.checked_sub(*x0)?, y.checked_sub(*y0)?);
+                        img.pixel(ix, iy)
+                    })
+                    .unwrap_or([0.0; 3])
+                    .map(through_png);
+                assert_eq!(
+                    png.pixel(x, y),
+                    Some(want),
+                    "{} pixel ({x}, {y})",
+                    path.display()
+                );
+            }
+        }
+    }
+
+    fn display(
+        layout: DisplayLayout,
+        scale: crate::config::Scale,
+        dir: &std::path::Path,
+    ) -> crate::config::Display {
+        crate::config::Display {
+            width: 10,
+            height: 8,
+            layout,
+            scale,
+            eye_offset_px: crate::config::EyeOffsets {
+                left: [1, 0],
+                right: [-1, 1],
+            },
+            png_every: 1,
+            png_dir: Some(dir.to_path_buf()),
+            ..Default::default()
+        }
+    }
+
+    fn stereo_frame(number: u64, left: Vec<RgbImage>, right: Option<Vec<RgbImage>>) -> Frame {
+        Frame {
+            number,
+            focus: Diopters(1.0),
+            layers: left.into_iter().map(Into::into).collect::<Vec<_>>().into(),
+            right: right.map(|r| r.into_iter().map(Into::into).collect::<Vec<_>>().into()),
+            marker: None,
+        }
+    }
+
+    #[test]
+    fn side_by_side_writes_the_panel_with_each_eye_at_its_place() {
+        use crate::config::Scale;
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::for_display(&display(
+            DisplayLayout::SideBySide,
+            Scale::Exact,
+            dir.path(),
+        ))
+        .unwrap();
+        let (left, right) = (pattern(8, 6, 0.25), pattern(8, 6, 1.0));
+        s.present(
+            &stereo_frame(3, vec![left.clone()], Some(vec![right.clone()])),
+            Timestamp(1),
+        )
+        .unwrap();
+        // Panel 20 x 8; halves 10 x 8; an 8 x 6 image centred at (1, 1) of its half, moved
+        // by its offset: the left eye's +1 right, the right eye's 1 left and 1 down.
+        assert_panel(
+            &dir.path().join("frame_000003.png"),
+            (20, 8),
+            &[(&left, 2, 1), (&right, 10, 2)],
+        );
+        let st = s.status();
+        assert_eq!(st["layout"], "side-by-side");
+        assert_eq!(st["scale"], "exact");
+        assert_eq!(st["surface"], serde_json::json!([20, 8]));
+        assert_eq!(st["places"]["left"], serde_json::json!([0, 0, 10, 8]));
+        assert_eq!(st["places"]["right"], serde_json::json!([10, 0, 10, 8]));
+        assert_eq!(st["misfit"]["count"], 0);
+        assert_eq!(st["mono_on_stereo"], 0);
+        assert_eq!(s.shown(), 1);
+
+        // Multifocal: a panel per plane, each with both eyes' image of that plane.
+        let planes_l = [pattern(8, 6, 0.0), pattern(8, 6, 0.5)];
+        let planes_r = [pattern(8, 6, 0.75), pattern(8, 6, 1.0)];
+        s.present_layer(
+            &stereo_frame(4, planes_l.to_vec(), Some(planes_r.to_vec())),
+            0,
+            Timestamp(2),
+        )
+        .unwrap();
+        for k in 0..2 {
+            assert_panel(
+                &dir.path().join(format!("frame_000004_plane{k}.png")),
+                (20, 8),
+                &[(&planes_l[k], 2, 1), (&planes_r[k], 10, 2)],
+            );
+        }
+    }
+
+    #[test]
+    fn two_outputs_write_an_image_per_eye() {
+        use crate::config::Scale;
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::for_display(&display(
+            DisplayLayout::TwoOutputs,
+            Scale::Exact,
+            dir.path(),
+        ))
+        .unwrap();
+        let (left, right) = (pattern(8, 6, 0.25), pattern(8, 6, 1.0));
+        s.present(
+            &stereo_frame(9, vec![left.clone()], Some(vec![right.clone()])),
+            Timestamp(1),
+        )
+        .unwrap();
+        assert_panel(
+            &dir.path().join("frame_000009_left.png"),
+            (10, 8),
+            &[(&left, 2, 1)],
+        );
+        assert_panel(
+            &dir.path().join("frame_000009_right.png"),
+            (10, 8),
+            &[(&right, 0, 2)],
+        );
+        assert!(!dir.path().join("frame_000009.png").exists());
+        assert_eq!(s.pngs_written(), 2);
+        assert_eq!(
+            s.status()["places"]["right"],
+            serde_json::json!([0, 0, 10, 8])
+        );
+        // Multifocal: per eye and plane.
+        let planes = [pattern(8, 6, 0.0), pattern(8, 6, 0.5)];
+        s.present(
+            &stereo_frame(10, planes.to_vec(), Some(planes.to_vec())),
+            Timestamp(2),
+        )
+        .unwrap();
+        for name in ["left_plane0", "left_plane1", "right_plane0", "right_plane1"] {
+            assert!(
+                dir.path().join(format!("frame_000010_{name}.png")).exists(),
+                "{name}"
+            );
+        }
+    }
+
+    #[test]
+    fn layout_one_writes_the_image_byte_for_byte_as_before() {
+        use crate::config::Scale;
+        let dir = tempfile::tempdir().unwrap();
+        let (old, new) = (dir.path().join("old"), dir.path().join("new"));
+        let mut d = display(DisplayLayout::One, Scale::Exact, &new);
+        d.eye_offset_px = Default::default();
+        let mut configured = HeadlessSink::for_display(&d).unwrap();
+        let mut plain = HeadlessSink::new(1, Some(old.clone())).unwrap();
+        let img = pattern(10, 8, 0.5);
+        let frame = stereo_frame(1, vec![img.clone()], None);
+        for s in [&mut configured, &mut plain] {
+            s.present(&frame, Timestamp(1)).unwrap();
+        }
+        let direct = dir.path().join("direct.png");
+        dioptra_render::io::write_color(&direct, &img).unwrap();
+        let bytes = |p: &std::path::Path| std::fs::read(p).unwrap();
+        assert_eq!(bytes(&new.join("frame_000001.png")), bytes(&direct));
+        assert_eq!(bytes(&old.join("frame_000001.png")), bytes(&direct));
+        assert_eq!(configured.status()["surface"], serde_json::json!([10, 8]));
+        assert_eq!(
+            configured.status()["places"]["one"],
+            serde_json::json!([0, 0, 10, 8])
+        );
+        assert_eq!(
+            configured.mono_on_stereo(),
+            0,
+            "one view is what layout one shows"
+        );
+        // A smaller image is placed 1:1 in the middle of the panel, by the left offset.
+        d.eye_offset_px.left = [-1, 1];
+        let mut s = HeadlessSink::for_display(&d).unwrap();
+        let small = pattern(4, 4, 0.0);
+        s.present(&stereo_frame(2, vec![small.clone()], None), Timestamp(2))
+            .unwrap();
+        assert_panel(&new.join("frame_000002.png"), (10, 8), &[(&small, 2, 3)]);
+    }
+
+    #[test]
+    fn a_misfit_is_not_shown_and_is_counted_with_its_reason() {
+        use crate::config::Scale;
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::for_display(&display(
+            DisplayLayout::SideBySide,
+            Scale::Exact,
+            dir.path(),
+        ))
+        .unwrap();
+        // 10 wide in a 10 wide half, but the left eye's offset moves it 1 px right.
+        let frame = stereo_frame(
+            5,
+            vec![pattern(10, 6, 0.0)],
+            Some(vec![pattern(10, 6, 1.0)]),
+        );
+        for n in 0..3 {
+            let e = s.present(&frame, Timestamp(n)).unwrap_err();
+            assert!(matches!(e, DisplayError::NotShown(_)), "{e}");
+        }
+        assert_eq!(s.shown(), 0);
+        assert_eq!(s.pngs_written(), 0);
+        assert_eq!(s.misfits(), 3);
+        let st = s.status();
+        assert_eq!(st["misfit"]["count"], 3);
+        let newest = st["misfit"]["newest"].as_str().unwrap();
+        assert!(
+            newest.starts_with("the left eye's 10x6 image, offset [1, 0]")
+                && newest.contains("1 px over its right edge"),
+            "{newest}"
+        );
+        assert!(
+            std::fs::read_dir(dir.path()).unwrap().next().is_none(),
+            "nothing written"
+        );
+        // Fit: scaled into its place instead, and shown.
+        let mut s =
+            HeadlessSink::for_display(&display(DisplayLayout::SideBySide, Scale::Fit, dir.path()))
+                .unwrap();
+        s.present(&frame, Timestamp(9)).unwrap();
+        assert_eq!((s.shown(), s.misfits()), (1, 0));
+    }
+
+    #[test]
+    fn one_view_on_a_stereo_layout_goes_to_both_eyes_and_is_counted() {
+        use crate::config::Scale;
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::for_display(&display(
+            DisplayLayout::SideBySide,
+            Scale::Exact,
+            dir.path(),
+        ))
+        .unwrap();
+        let img = pattern(8, 6, 0.5);
+        for n in 0..2 {
+            s.present(&stereo_frame(n, vec![img.clone()], None), Timestamp(n))
+                .unwrap();
+        }
+        assert_panel(
+            &dir.path().join("frame_000001.png"),
+            (20, 8),
+            &[(&img, 2, 1), (&img, 10, 2)],
+        );
+        assert_eq!(s.mono_on_stereo(), 2);
+        assert_eq!(s.status()["mono_on_stereo"], 2);
     }
 }

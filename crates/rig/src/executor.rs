@@ -631,6 +631,8 @@ impl Executor<'_> {
                     h.presented(now, &p, self.sink.as_ref());
                 }
             }
+            // Not shown (a misfit): the sink counts it and logs each reason once.
+            Err(crate::display::DisplayError::NotShown(_)) => {}
             Err(e) => tracing::warn!(error = %e, "display failed"),
         }
     }

@@ -1008,10 +1008,9 @@ impl Rig {
         engine.set_network_missing(network_missing);
         let sink: Box<dyn DisplaySink> = match (sink, cfg.display.kind) {
             (Some(s), _) => s,
-            (None, config::SinkKind::Headless) => Box::new(
-                HeadlessSink::new(cfg.display.png_every, cfg.display.png_dir.clone())
-                    .map_err(RigError::Display)?,
-            ),
+            (None, config::SinkKind::Headless) => {
+                Box::new(HeadlessSink::for_display(&cfg.display).map_err(RigError::Display)?)
+            }
             (None, config::SinkKind::Window) => return Err(RigError::WindowSinkNeeded),
         };
         let spec = match sim {
