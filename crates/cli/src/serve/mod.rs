@@ -46,12 +46,25 @@ pub fn run(args: Args) -> Result<()> {
         SinkKind::Headless => serve_blocking(cfg, None, stop),
         // The window's event loop takes this (the main) thread; the daemon runs on another.
         SinkKind::Window => {
+            window_layout_supported(cfg.display.layout)?;
             let choice = cfg.display.monitor.clone();
             window::run_on_main_thread(choice, stop.clone(), move |ready| {
                 serve_blocking(cfg, Some(ready), stop)
             })
         }
     }
+}
+
+/// The window draws layouts `one` and `side-by-side`; a window per monitor is not built yet.
+fn window_layout_supported(layout: dioptra_rig::config::DisplayLayout) -> Result<()> {
+    if layout == dioptra_rig::config::DisplayLayout::TwoOutputs {
+        anyhow::bail!(
+            "display.layout = \"two-outputs\" with display.kind = \"window\" is not supported \
+             yet (the window draws one monitor): use layout = \"side-by-side\" on one panel \
+             spanning both eyes, or kind = \"headless\" (an image per eye)"
+        );
+    }
+    Ok(())
 }
 
 /// The daemon's runtime: one thread for the rig's tasks and the API, so that a gaze sample,
@@ -78,7 +91,9 @@ fn serve_blocking(
                 .await
                 .context("the renderer's start failed")?
                 .context("cannot start the renderer")?;
-            let sink = window::WindowSink::new(w.window, w.monitor, renderer.gpu_context())
+            let placement =
+                dioptra_rig::display::placement::PlacementConfig::from_display(&setup.cfg.display);
+            let sink = window::WindowSink::new(w, renderer.gpu_context(), placement)
                 .context("cannot draw to the display window")?;
             setup.sink = Some(Box::new(sink));
             setup.renderer = Some(Arc::new(renderer));

@@ -25,6 +25,19 @@
 //! f32 buffer, clamped to [0, 1] as the packing does. The surface is viewed through an sRGB
 //! format, so the hardware encodes on write: what the monitor gets is the sRGB encoding of the
 //! frame, as in the PNGs the headless sink writes.
+//!
+//! Placement. Each eye's image is drawn at the rectangle
+//! [`dioptra_rig::display::placement`] gives for the surface the system made (the viewport
+//! set to it): 1:1 onto surface pixels with `display.scale = "exact"`, centred in its place
+//! (the whole surface for layout `one`, its half of a side-by-side panel) and moved by
+//! `display.eye_offset_px`; scaled to fit with `"fit"` (the letterbox). A frame that does not
+//! fit, or (exact) a surface that is not its monitor's size, is not shown: counted in
+//! `/status` (`misfit`), logged once per reason; the screen goes black rather than showing a
+//! stimulus at the wrong size or place. The window asks for its monitor's size and position
+//! as well as fullscreen, so that without a window manager it still covers the monitor; the
+//! surface size obtained is logged and in `/status`. Layout `two-outputs` (a window per
+//! monitor) is not supported by the window yet: `dioptra serve` refuses it naming
+//! `display.layout`.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -36,6 +49,8 @@ use dioptra_render::gpu::{GpuContext, GpuImage};
 
 use thiserror::Error;
 
+use dioptra_rig::config::Scale;
+use dioptra_rig::display::placement::{PlaceError, Placed, PlacementConfig, Placer, Rect};
 use dioptra_rig::display::{DisplayError, DisplaySink, Frame, MarkerDraw};
 use dioptra_rig::render::FrameImage;
 
@@ -152,14 +167,24 @@ pub fn pack_rgba8_srgb(image: &RgbImage, out: &mut Vec<u8>) {
     }
 }
 
-/// The largest rectangle of the frame's aspect that fits the surface, centred:
-/// `[x, y, width, height]` in surface pixels (the blit's viewport).
-pub fn letterbox(frame: (u32, u32), surface: (u32, u32)) -> [f32; 4] {
-    let (fw, fh) = (frame.0.max(1) as f32, frame.1.max(1) as f32);
-    let (sw, sh) = (surface.0 as f32, surface.1 as f32);
-    let scale = (sw / fw).min(sh / fh);
-    let (w, h) = ((fw * scale).round(), (fh * scale).round());
-    [((sw - w) / 2.0).floor(), ((sh - h) / 2.0).floor(), w, h]
+/// With `display.scale = "exact"` the surface must be its monitor's size (the panel the
+/// offsets and places are measured on): the reason it is not, for `/status` and the log.
+pub fn surface_check(
+    scale: Scale,
+    surface: (u32, u32),
+    monitor: &str,
+    monitor_size: (u32, u32),
+) -> Result<(), String> {
+    if scale == Scale::Fit || surface == monitor_size {
+        return Ok(());
+    }
+    Err(format!(
+        "the window's surface is {}x{} but {monitor} is {}x{} (no window manager made the \
+         window fullscreen?): drawn 1:1 (display.scale = \"exact\") the images would not be \
+         where the panel's places are; display.scale = \"fit\" shows them scaled to the \
+         surface",
+        surface.0, surface.1, monitor_size.0, monitor_size.1
+    ))
 }
 
 /// The surface's configured format and the format its views are made in: an sRGB format
@@ -183,14 +208,39 @@ struct Job {
     layer: usize,
 }
 
-/// What the presenter thread reports.
-#[derive(Default)]
+/// What the presenter thread reports, and the placement state it shares with the sink.
 struct PresenterStats {
     presented: AtomicU64,
     replaced: AtomicU64,
     /// Wall-clock interval between the last two presents, ns.
     last_interval_ns: AtomicU64,
     error: Mutex<Option<String>>,
+    /// The surface's size now (the presenter follows the window's).
+    surface: Mutex<(u32, u32)>,
+    placer: Mutex<Placer>,
+    /// The monitor the window is on, and its size.
+    monitor: String,
+    monitor_size: (u32, u32),
+}
+
+impl PresenterStats {
+    /// Layer `layer` of `frame`'s images placed on `surface`, or why it is not shown.
+    fn place<'a>(
+        &self,
+        frame: &'a Frame,
+        layer: usize,
+        surface: (u32, u32),
+    ) -> Result<Vec<Placed<'a>>, PlaceError> {
+        let placer = dioptra_core::lock(&self.placer);
+        surface_check(
+            placer.config.scale,
+            surface,
+            &self.monitor,
+            self.monitor_size,
+        )
+        .map_err(PlaceError::Surface)?;
+        placer.place(frame, layer, surface)
+    }
 }
 
 /// The mailbox between the sink and the presenter thread.
@@ -215,27 +265,40 @@ impl std::fmt::Debug for WindowSink {
 }
 
 impl WindowSink {
-    /// Sets up the GPU surface of `window`, on the render's device when `render` is given and
-    /// its adapter can present to the window, and starts the presenter thread.
+    /// Sets up the GPU surface of `ready`'s window, on the render's device when `render` is
+    /// given and its adapter can present to the window, and starts the presenter thread.
+    /// Images are placed as `placement` says (`display.layout`, `scale`, `eye_offset_px`).
     pub fn new(
-        window: Arc<winit::window::Window>,
-        monitor: String,
+        ready: WindowReady,
         render: Option<Arc<GpuContext>>,
+        placement: PlacementConfig,
     ) -> Result<WindowSink, WindowError> {
+        let WindowReady {
+            window,
+            monitor,
+            monitor_size,
+        } = ready;
         let blitter = Blitter::new(window, render)?;
+        let surface = (blitter.config.width, blitter.config.height);
         let describe = format!(
-            "window on {monitor} ({}, {:?}, {}x{}, {})",
-            blitter.adapter,
-            blitter.config.format,
-            blitter.config.width,
-            blitter.config.height,
-            blitter.device_note
+            "window on {monitor} ({}, {:?}, surface {}x{}, {})",
+            blitter.adapter, blitter.config.format, surface.0, surface.1, blitter.device_note
         );
+        log_surface(surface, &monitor, monitor_size);
         let mailbox = Arc::new(Mailbox {
             job: Mutex::new((None, false)),
             ready: Condvar::new(),
         });
-        let stats = Arc::new(PresenterStats::default());
+        let stats = Arc::new(PresenterStats {
+            presented: AtomicU64::new(0),
+            replaced: AtomicU64::new(0),
+            last_interval_ns: AtomicU64::new(0),
+            error: Mutex::new(None),
+            surface: Mutex::new(surface),
+            placer: Mutex::new(Placer::new(placement)),
+            monitor,
+            monitor_size,
+        });
         let (mb, st) = (mailbox.clone(), stats.clone());
         let presenter = std::thread::Builder::new()
             .name("dioptra-present".into())
@@ -253,6 +316,15 @@ impl WindowSink {
     fn hand_over(&mut self, frame: &Frame, layer: usize) -> Result<(), DisplayError> {
         if let Some(e) = dioptra_core::lock(&self.stats.error).clone() {
             return Err(DisplayError::Window(e));
+        }
+        // Placed on the surface as it is now: a frame that does not fit is not handed over.
+        let surface = *dioptra_core::lock(&self.stats.surface);
+        if let Err(e) = self.stats.place(frame, layer, surface) {
+            dioptra_core::lock(&self.stats.placer).refused(&e);
+            return Err(DisplayError::NotShown(e));
+        }
+        if layer == 0 {
+            dioptra_core::lock(&self.stats.placer).shown(frame);
         }
         let mut slot = dioptra_core::lock(&self.mailbox.job);
         if slot
@@ -309,14 +381,39 @@ impl DisplaySink for WindowSink {
     fn status(&self) -> serde_json::Value {
         let s = &self.stats;
         let interval = s.last_interval_ns.load(Ordering::Relaxed);
-        serde_json::json!({
+        let surface = *dioptra_core::lock(&s.surface);
+        let mut v = serde_json::json!({
             "sink": self.describe,
             "shown": self.shown,
             "presented": s.presented.load(Ordering::Relaxed),
             "replaced": s.replaced.load(Ordering::Relaxed),
             "last_present_interval_ms": (interval > 0).then(|| interval as f64 / 1e6),
             "error": dioptra_core::lock(&s.error).clone(),
-        })
+            "monitor": s.monitor,
+            "monitor_size": [s.monitor_size.0, s.monitor_size.1],
+            "surface_is_monitor_size": surface == s.monitor_size,
+        });
+        if let (Some(o), serde_json::Value::Object(p)) = (
+            v.as_object_mut(),
+            dioptra_core::lock(&s.placer).status(Some(surface)),
+        ) {
+            o.extend(p);
+        }
+        v
+    }
+}
+
+/// Logs the surface size the system gave the window (a warning where it is not the monitor's).
+fn log_surface(surface: (u32, u32), monitor: &str, monitor_size: (u32, u32)) {
+    let (w, h) = surface;
+    let (mw, mh) = monitor_size;
+    if surface == monitor_size {
+        tracing::info!("surface {w}x{h} on {monitor} ({mw}x{mh})");
+    } else {
+        tracing::warn!(
+            "surface {w}x{h} on {monitor} ({mw}x{mh}): not the monitor's size (no window \
+             manager made the window fullscreen?)"
+        );
     }
 }
 
@@ -339,10 +436,7 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
             }
         };
-        let Some(image) = job.frame.layers.get(job.layer) else {
-            continue;
-        };
-        match blitter.draw(image, job.frame.marker) {
+        match blitter.draw(&job.frame, job.layer, stats) {
             Ok(true) => {
                 let now = Instant::now();
                 if let Some(l) = last {
@@ -364,10 +458,10 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
 
 /// Where the blit reads the frame it draws.
 enum Source {
-    /// The frame texture: its size and bind group.
-    Texture((u32, u32), wgpu::BindGroup),
-    /// A frame left in GPU memory: its size and the bind group of its buffer and layout.
-    Buffer((u32, u32), wgpu::BindGroup),
+    /// The frame texture's bind group.
+    Texture(wgpu::BindGroup),
+    /// A frame left in GPU memory: the bind group of its buffer and layout.
+    Buffer(wgpu::BindGroup),
 }
 
 /// A [`GpuImage`]'s layout, as `blit.wgsl`'s `Layout` reads it.
@@ -382,18 +476,25 @@ struct LayoutUniform {
     _pad: [u32; 3],
 }
 
-/// The blit: pipelines, sampler, frame texture (remade only when the frame size changes),
-/// staging bytes and the layout uniform, made once; draws into any view of `target_format`.
+/// One image the blit draws (an eye's): its texture (remade only when its size changes), the
+/// layout uniform of a frame in GPU memory, and where the next draw reads it.
+struct Slot {
+    /// The frame texture and its size.
+    texture: Option<(wgpu::Texture, (u32, u32))>,
+    layout_uniform: wgpu::Buffer,
+    source: Option<Source>,
+}
+
+/// The blit: pipelines, sampler, a [`Slot`] per eye, staging bytes, made once; draws each
+/// slot's image at its rectangle ([`dioptra_rig::display::placement`]) into any view of
+/// `target_format`.
 pub struct Blit {
     pipeline: wgpu::RenderPipeline,
     layout: wgpu::BindGroupLayout,
     buffer_pipeline: wgpu::RenderPipeline,
     buffer_layout: wgpu::BindGroupLayout,
     sampler: wgpu::Sampler,
-    /// The frame texture and its size.
-    texture: Option<(wgpu::Texture, (u32, u32))>,
-    layout_uniform: wgpu::Buffer,
-    source: Option<Source>,
+    slots: [Slot; 2],
     staging: Vec<u8>,
     /// The marker patch's pipelines (white, black), and the patch the next draw shows.
     patch: [wgpu::RenderPipeline; 2],
@@ -495,21 +596,23 @@ impl Blit {
             label: Some("blit"),
             ..Default::default()
         });
-        let layout_uniform = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("frame layout"),
-            size: std::mem::size_of::<LayoutUniform>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let slot = || Slot {
+            texture: None,
+            layout_uniform: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("frame layout"),
+                size: std::mem::size_of::<LayoutUniform>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
+            source: None,
+        };
         Blit {
             pipeline,
             layout,
             buffer_pipeline,
             buffer_layout,
             sampler,
-            texture: None,
-            layout_uniform,
-            source: None,
+            slots: [slot(), slot()],
             staging: Vec::new(),
             patch,
             marker: None,
@@ -521,13 +624,24 @@ impl Blit {
         self.marker = marker;
     }
 
-    /// Packs and uploads `image` into the frame texture, and draws from it from now on.
-    pub fn upload(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, image: &RgbImage) {
+    /// Packs and uploads `image` into slot `slot`'s texture (0 or 1: an eye's), and draws
+    /// that slot from it from now on.
+    pub fn upload(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        slot: usize,
+        image: &RgbImage,
+    ) {
         let size = (image.width() as u32, image.height() as u32);
-        if self.texture.as_ref().is_none_or(|t| t.1 != size) {
-            self.texture = Some((self.frame_texture(device, size), size));
+        let Some(sl) = self.slots.get(slot) else {
+            return;
+        };
+        if sl.texture.as_ref().is_none_or(|t| t.1 != size) {
+            let texture = self.frame_texture(device, size);
+            self.slots[slot].texture = Some((texture, size));
         }
-        let Some((texture, _)) = &self.texture else {
+        let Some((texture, _)) = &self.slots[slot].texture else {
             return;
         };
         pack_rgba8_srgb(image, &mut self.staging);
@@ -560,12 +674,21 @@ impl Blit {
                 },
             ],
         });
-        self.source = Some(Source::Texture(size, bind_group));
+        self.slots[slot].source = Some(Source::Texture(bind_group));
     }
 
-    /// Draws from `image`, in GPU memory of this device, from now on: no copy, only its
-    /// layout is written.
-    pub fn show_buffer(&mut self, device: &wgpu::Device, queue: &wgpu::Queue, image: &GpuImage) {
+    /// Draws slot `slot` from `image`, in GPU memory of this device, from now on: no copy,
+    /// only its layout is written.
+    pub fn show_buffer(
+        &mut self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        slot: usize,
+        image: &GpuImage,
+    ) {
+        let Some(sl) = self.slots.get_mut(slot) else {
+            return;
+        };
         let l = image.layout();
         let u32_of = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
         let uniform = LayoutUniform {
@@ -576,14 +699,14 @@ impl Blit {
             plane_pitch: u32_of(l.plane_pitch),
             _pad: [0; 3],
         };
-        queue.write_buffer(&self.layout_uniform, 0, bytemuck::bytes_of(&uniform));
+        queue.write_buffer(&sl.layout_uniform, 0, bytemuck::bytes_of(&uniform));
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("frame in GPU memory"),
             layout: &self.buffer_layout,
             entries: &[
                 wgpu::BindGroupEntry {
                     binding: 2,
-                    resource: self.layout_uniform.as_entire_binding(),
+                    resource: sl.layout_uniform.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 3,
@@ -591,15 +714,21 @@ impl Blit {
                 },
             ],
         });
-        self.source = Some(Source::Buffer((uniform.width, uniform.height), bind_group));
+        sl.source = Some(Source::Buffer(bind_group));
     }
 
-    /// Draws the frame, letterboxed, into `target` (cleared to black).
+    /// Draws each `(slot, rect)` of `draws`, the slot's image at `rect` (1:1 where `rect` is
+    /// its size, nearest pixel otherwise), into `target` (cleared to black), and the marker
+    /// patch in the target's corner. Rectangles are inside the target ([`placement`] gives
+    /// only such); one that is not is left out.
+    ///
+    /// [`placement`]: dioptra_rig::display::placement
     pub fn encode(
         &self,
         enc: &mut wgpu::CommandEncoder,
         target: &wgpu::TextureView,
         target_size: (u32, u32),
+        draws: &[(usize, Rect)],
     ) {
         let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("blit"),
@@ -614,19 +743,37 @@ impl Blit {
             })],
             ..Default::default()
         });
-        let (pipeline, size, bind_group) = match &self.source {
-            Some(Source::Texture(size, bg)) => (&self.pipeline, size, bg),
-            Some(Source::Buffer(size, bg)) => (&self.buffer_pipeline, size, bg),
-            None => return,
-        };
-        let [x, y, w, h] = letterbox(*size, target_size);
-        pass.set_viewport(x, y, w, h, 0.0, 1.0);
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, bind_group, &[]);
-        pass.draw(0..3, 0..1);
-        // The patch goes in the panel's corner, where the photodiode is, whatever the letterbox.
+        let (tw, th) = target_size;
+        for &(slot, r) in draws {
+            let (pipeline, bind_group) = match self.slots.get(slot).and_then(|s| s.source.as_ref())
+            {
+                Some(Source::Texture(bg)) => (&self.pipeline, bg),
+                Some(Source::Buffer(bg)) => (&self.buffer_pipeline, bg),
+                None => continue,
+            };
+            let inside = r.width > 0
+                && r.height > 0
+                && u64::from(r.x) + u64::from(r.width) <= u64::from(tw)
+                && u64::from(r.y) + u64::from(r.height) <= u64::from(th);
+            if !inside {
+                continue;
+            }
+            // Integer viewport: pixel centres land on texel centres, 1:1 at the image's size.
+            pass.set_viewport(
+                r.x as f32,
+                r.y as f32,
+                r.width as f32,
+                r.height as f32,
+                0.0,
+                1.0,
+            );
+            pass.set_scissor_rect(r.x, r.y, r.width, r.height);
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, bind_group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+        // The patch goes in the panel's corner, where the photodiode is, wherever the images are.
         if let Some(m) = self.marker {
-            let (tw, th) = target_size;
             let [px, py, pw, ph] = m.rect(tw, th);
             if pw > 0 && ph > 0 {
                 pass.set_viewport(0.0, 0.0, tw as f32, th as f32, 0.0, 1.0);
@@ -793,33 +940,44 @@ impl Blitter {
     /// ([`scoped`]).
     fn draw(
         &mut self,
-        image: &FrameImage,
-        marker: Option<MarkerDraw>,
+        frame: &Frame,
+        layer: usize,
+        stats: &PresenterStats,
     ) -> Result<bool, WindowError> {
-        self.blit.set_marker(marker);
+        self.blit.set_marker(frame.marker);
         let device = self.device.clone();
-        scoped(&device, || self.draw_unscoped(image))?
+        scoped(&device, || self.draw_unscoped(frame, layer, stats))?
     }
 
-    fn draw_unscoped(&mut self, image: &FrameImage) -> Result<bool, WindowError> {
+    /// Uploads (or points at) `image` for slot `slot`.
+    fn show(&mut self, slot: usize, image: &FrameImage) -> Result<(), WindowError> {
         match image {
-            FrameImage::Host(i) => self.blit.upload(&self.device, &self.queue, i),
+            FrameImage::Host(i) => self.blit.upload(&self.device, &self.queue, slot, i),
             FrameImage::Gpu(g)
                 if self
                     .shared
                     .as_ref()
                     .is_some_and(|c| Arc::ptr_eq(c, g.context())) =>
             {
-                self.blit.show_buffer(&self.device, &self.queue, g)
+                self.blit.show_buffer(&self.device, &self.queue, slot, g)
             }
             // Another device's memory: through the host.
             FrameImage::Gpu(g) => {
                 let pixels = g
                     .read()
                     .map_err(|e| WindowError::Gpu(format!("reading the frame back: {e}")))?;
-                self.blit.upload(&self.device, &self.queue, &pixels)
+                self.blit.upload(&self.device, &self.queue, slot, &pixels)
             }
         }
+        Ok(())
+    }
+
+    fn draw_unscoped(
+        &mut self,
+        frame: &Frame,
+        layer: usize,
+        stats: &PresenterStats,
+    ) -> Result<bool, WindowError> {
         let win = self.window.inner_size();
         if (win.width, win.height) != (self.config.width, self.config.height)
             && win.width > 0
@@ -828,6 +986,22 @@ impl Blitter {
             self.config.width = win.width;
             self.config.height = win.height;
             self.surface.configure(&self.device, &self.config);
+            let surface = (win.width, win.height);
+            *dioptra_core::lock(&stats.surface) = surface;
+            log_surface(surface, &stats.monitor, stats.monitor_size);
+        }
+        let surface = (self.config.width, self.config.height);
+        // Placed again on the surface as it is now (it may have changed since the sink looked);
+        // a frame that does not fit leaves the screen black.
+        let mut draws = Vec::with_capacity(2);
+        match stats.place(frame, layer, surface) {
+            Ok(placed) => {
+                for (slot, p) in placed.iter().enumerate() {
+                    self.show(slot, p.image)?;
+                    draws.push((slot, p.rect));
+                }
+            }
+            Err(e) => dioptra_core::lock(&stats.placer).refused(&e),
         }
         let target = match self.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t)
@@ -854,8 +1028,7 @@ impl Blitter {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("blit"),
             });
-        self.blit
-            .encode(&mut enc, &view, (self.config.width, self.config.height));
+        self.blit.encode(&mut enc, &view, surface, &draws);
         self.queue.submit([enc.finish()]);
         self.window.pre_present_notify();
         self.queue.present(target);
@@ -879,10 +1052,12 @@ fn scoped<T>(device: &wgpu::Device, work: impl FnOnce() -> T) -> Result<T, Windo
     }
 }
 
-/// What the main thread hands the daemon's thread: the window and the name of its monitor.
+/// What the main thread hands the daemon's thread: the window, its monitor's name and size.
 pub struct WindowReady {
     pub window: Arc<winit::window::Window>,
     pub monitor: String,
+    /// The monitor's size, physical pixels: what the surface should be.
+    pub monitor_size: (u32, u32),
 }
 
 /// A message to the main thread's event loop.
@@ -953,7 +1128,7 @@ impl App {
     fn open(
         &mut self,
         event_loop: &winit::event_loop::ActiveEventLoop,
-    ) -> Result<(Arc<winit::window::Window>, String), WindowError> {
+    ) -> Result<WindowReady, WindowError> {
         let monitors: Vec<winit::monitor::MonitorHandle> =
             event_loop.available_monitors().collect();
         let infos: Vec<MonitorInfo> = monitors
@@ -969,9 +1144,14 @@ impl App {
             .and_then(|p| monitors.iter().position(|m| *m == p));
         let i =
             choose_monitor(&infos, self.choice.as_ref(), primary).map_err(WindowError::Monitor)?;
+        // The monitor's size and position as well as fullscreen: without a window manager
+        // (which is what makes a window fullscreen on X11) the window still covers it.
+        let (size, position) = (infos[i].size, infos[i].position);
         let attrs = winit::window::Window::default_attributes()
             .with_title("dioptra")
             .with_decorations(false)
+            .with_inner_size(winit::dpi::PhysicalSize::new(size.0, size.1))
+            .with_position(winit::dpi::PhysicalPosition::new(position.0, position.1))
             .with_fullscreen(Some(winit::window::Fullscreen::Borderless(Some(
                 monitors[i].clone(),
             ))));
@@ -979,7 +1159,11 @@ impl App {
             .create_window(attrs)
             .map_err(|e| WindowError::Create(e.to_string()))?;
         window.set_cursor_visible(false);
-        Ok((Arc::new(window), format!("monitor {i}: {}", infos[i])))
+        Ok(WindowReady {
+            window: Arc::new(window),
+            monitor: format!("monitor {i}: {}", infos[i]),
+            monitor_size: size,
+        })
     }
 }
 
@@ -989,13 +1173,13 @@ impl winit::application::ApplicationHandler<UserEvent> for App {
             return;
         };
         match self.open(event_loop) {
-            Ok((window, monitor)) => {
-                self.window = Some(window.clone());
+            Ok(ready) => {
+                self.window = Some(ready.window.clone());
                 let (proxy, done) = (self.proxy.clone(), self.daemon_done.clone());
                 let spawned = std::thread::Builder::new()
                     .name("dioptra-daemon".into())
                     .spawn(move || {
-                        let r = daemon(WindowReady { window, monitor });
+                        let r = daemon(ready);
                         done.store(true, Ordering::SeqCst);
                         let _ = proxy.send_event(UserEvent::DaemonDone);
                         r
@@ -1140,19 +1324,53 @@ mod tests {
     }
 
     #[test]
-    fn letterbox_keeps_the_frame_aspect_centred() {
-        // Square frame on a 16:9 surface: pillarboxed.
+    fn exact_needs_the_surface_to_be_the_monitors_size() {
         assert_eq!(
-            letterbox((96, 96), (1920, 1080)),
-            [420.0, 0.0, 1080.0, 1080.0]
+            surface_check(Scale::Exact, (1920, 1080), "monitor 0", (1920, 1080)),
+            Ok(())
         );
-        // Same aspect: fills.
+        // What Xvfb without a window manager gave: refused, saying both sizes and the way out.
+        let e = surface_check(
+            Scale::Exact,
+            (800, 600),
+            "monitor 0: \"screen\"",
+            (1024, 768),
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("surface is 800x600 but monitor 0: \"screen\" is 1024x768")
+                && e.contains("display.scale = \"fit\""),
+            "{e}"
+        );
+        // Fit draws on whatever surface there is.
         assert_eq!(
-            letterbox((960, 540), (1920, 1080)),
-            [0.0, 0.0, 1920.0, 1080.0]
+            surface_check(Scale::Fit, (800, 600), "monitor 0", (1024, 768)),
+            Ok(())
         );
-        // Wide frame on a square surface: letterboxed.
-        assert_eq!(letterbox((200, 100), (100, 100)), [0.0, 25.0, 100.0, 50.0]);
+    }
+
+    #[test]
+    fn two_outputs_in_a_window_is_refused_naming_the_key() {
+        use dioptra_rig::config::DisplayLayout;
+        let e = super::super::window_layout_supported(DisplayLayout::TwoOutputs).unwrap_err();
+        assert!(
+            e.to_string().contains("display.layout = \"two-outputs\""),
+            "{e}"
+        );
+        assert!(super::super::window_layout_supported(DisplayLayout::SideBySide).is_ok());
+        assert!(super::super::window_layout_supported(DisplayLayout::One).is_ok());
+    }
+
+    fn fit(image: (u32, u32), surface: (u32, u32)) -> Rect {
+        dioptra_rig::display::placement::placement(
+            dioptra_rig::config::DisplayLayout::One,
+            Scale::Fit,
+            surface,
+            dioptra_core::Side::Left,
+            image,
+            [0, 0],
+        )
+        .unwrap()
     }
 
     #[test]
@@ -1194,6 +1412,7 @@ mod tests {
         queue: &wgpu::Queue,
         blit: &Blit,
         size: (u32, u32),
+        draws: &[(usize, Rect)],
     ) -> Vec<u8> {
         let (tw, th) = size;
         let extent = wgpu::Extent3d {
@@ -1218,7 +1437,12 @@ mod tests {
             mapped_at_creation: false,
         });
         let mut enc = device.create_command_encoder(&Default::default());
-        blit.encode(&mut enc, &target.create_view(&Default::default()), size);
+        blit.encode(
+            &mut enc,
+            &target.create_view(&Default::default()),
+            size,
+            draws,
+        );
         enc.copy_texture_to_buffer(
             target.as_image_copy(),
             wgpu::TexelCopyBufferInfo {
@@ -1254,11 +1478,13 @@ mod tests {
         let img = RgbImage::from_interleaved(4, 2, &vals).unwrap();
         let (tw, th) = (64u32, 64u32);
         // Twice, to check the texture made once is reused and rewritten.
-        blit.upload(&device, &queue, &RgbImage::new(4, 2, [1.0, 0.0, 0.0]));
-        draw_and_read(&device, &queue, &blit, (tw, th));
-        blit.upload(&device, &queue, &img);
-        let got = draw_and_read(&device, &queue, &blit, (tw, th));
-        assert!(blit.texture.is_some());
+        let at = fit((4, 2), (tw, th));
+        assert_eq!(at, Rect::new(0, 16, 64, 32));
+        blit.upload(&device, &queue, 0, &RgbImage::new(4, 2, [1.0, 0.0, 0.0]));
+        draw_and_read(&device, &queue, &blit, (tw, th), &[(0, at)]);
+        blit.upload(&device, &queue, 0, &img);
+        let got = draw_and_read(&device, &queue, &blit, (tw, th), &[(0, at)]);
+        assert!(blit.slots[0].texture.is_some());
         let mut packed = Vec::new();
         pack_rgba8_srgb(&img, &mut packed);
         // Scale 16: the frame fills rows 16..48; rows above and below are black.
@@ -1295,7 +1521,7 @@ mod tests {
         };
         let mut blit = Blit::new(&device, wgpu::TextureFormat::Rgba8UnormSrgb);
         let grey = RgbImage::new(4, 2, [0.2; 3]);
-        blit.upload(&device, &queue, &grey);
+        blit.upload(&device, &queue, 0, &grey);
         let (tw, th) = (64u32, 64u32);
         for (corner, white) in [
             (Corner::TopLeft, true),
@@ -1308,7 +1534,13 @@ mod tests {
                 white,
             };
             blit.set_marker(Some(m));
-            let got = draw_and_read(&device, &queue, &blit, (tw, th));
+            let got = draw_and_read(
+                &device,
+                &queue,
+                &blit,
+                (tw, th),
+                &[(0, fit((4, 2), (tw, th)))],
+            );
             // The CPU twin on an image of the target's size: the frame letterboxed (rows 16..48
             // grey, the rest black), then the patch painted.
             let mut want = RgbImage::new(tw as usize, th as usize, [0.0; 3]);
@@ -1331,7 +1563,13 @@ mod tests {
         }
         // Without a patch the corner shows the frame again (here: the black bar).
         blit.set_marker(None);
-        let got = draw_and_read(&device, &queue, &blit, (tw, th));
+        let got = draw_and_read(
+            &device,
+            &queue,
+            &blit,
+            (tw, th),
+            &[(0, fit((4, 2), (tw, th)))],
+        );
         assert_eq!(&got[..4], &[0, 0, 0, 255]);
     }
 
@@ -1363,11 +1601,12 @@ mod tests {
         let (device, queue) = (ctx.device(), ctx.queue());
         let mut blit = Blit::new(device, wgpu::TextureFormat::Rgba8UnormSrgb);
         let reads = gpu.images_read_back();
-        blit.show_buffer(device, queue, &kept);
-        let from_buffer = draw_and_read(device, queue, &blit, (64, 64));
+        let at = [(1, fit((5, 2), (64, 64)))];
+        blit.show_buffer(device, queue, 1, &kept);
+        let from_buffer = draw_and_read(device, queue, &blit, (64, 64), &at);
         assert_eq!(gpu.images_read_back(), reads, "drawn without a readback");
-        blit.upload(device, queue, &kept.read().unwrap());
-        let from_texture = draw_and_read(device, queue, &blit, (64, 64));
+        blit.upload(device, queue, 1, &kept.read().unwrap());
+        let from_texture = draw_and_read(device, queue, &blit, (64, 64), &at);
         assert_eq!(from_buffer.len(), from_texture.len());
         for (i, (a, b)) in from_buffer.iter().zip(&from_texture).enumerate() {
             assert!(
@@ -1377,5 +1616,78 @@ mod tests {
         }
         // Not all black: the frame is there (12 x 12 pixels per frame pixel, centred).
         assert!(from_buffer.chunks(4).any(|p| p[0] > 200), "no bright pixel");
+    }
+
+    /// Side by side, each eye's image drawn at the rectangle placement gives (1:1, and scaled
+    /// with fit) reads back as the headless sink composes the panel
+    /// ([`dioptra_rig::display::placement::draw_into`], its CPU twin), pixel for pixel.
+    #[test]
+    fn each_eye_is_drawn_at_its_place_as_the_headless_panel_has_it() {
+        use dioptra_rig::config::DisplayLayout;
+        use dioptra_rig::display::placement::{draw_into, placement};
+        let Some((device, queue)) = headless_device() else {
+            return;
+        };
+        let mut blit = Blit::new(&device, wgpu::TextureFormat::Rgba8UnormSrgb);
+        // Every pixel distinct: red the column, green the row, blue the eye.
+        let pattern = |w: usize, h: usize, tag: f32| {
+            let v: Vec<f32> = (0..w * h)
+                .flat_map(|i| {
+                    [
+                        (i % w + 1) as f32 / w as f32,
+                        (i / w + 1) as f32 / h as f32,
+                        tag,
+                    ]
+                })
+                .collect();
+            RgbImage::from_interleaved(w, h, &v).unwrap()
+        };
+        let (left, right) = (pattern(9, 5, 0.2), pattern(11, 7, 0.9));
+        let (tw, th) = (64u32, 16u32);
+        for (scale, offsets) in [
+            (Scale::Exact, [[3, -2], [-4, 1]]),
+            (Scale::Fit, [[0, 0], [2, 1]]),
+        ] {
+            let mut want = RgbImage::new(tw as usize, th as usize, [0.0; 3]);
+            let mut draws = Vec::new();
+            for (slot, (side, img)) in [
+                (dioptra_core::Side::Left, &left),
+                (dioptra_core::Side::Right, &right),
+            ]
+            .into_iter()
+            .enumerate()
+            {
+                let size = (img.width() as u32, img.height() as u32);
+                let r = placement(
+                    DisplayLayout::SideBySide,
+                    scale,
+                    (tw, th),
+                    side,
+                    size,
+                    offsets[slot],
+                )
+                .unwrap();
+                blit.upload(&device, &queue, slot, img);
+                draw_into(&mut want, img, r);
+                draws.push((slot, r));
+            }
+            if scale == Scale::Exact {
+                // By hand: the left half is 32 x 16; a 9 x 5 image centred at (11, 5), moved
+                // (3, -2); the right one 11 x 7 at 32 + 10, 4, moved (-4, 1).
+                assert_eq!(draws[0].1, Rect::new(14, 3, 9, 5));
+                assert_eq!(draws[1].1, Rect::new(38, 5, 11, 7));
+            }
+            let got = draw_and_read(&device, &queue, &blit, (tw, th), &draws);
+            let mut packed = Vec::new();
+            pack_rgba8_srgb(&want, &mut packed);
+            for (i, (a, b)) in got.iter().zip(&packed).enumerate() {
+                assert!(
+                    a.abs_diff(*b) <= 1,
+                    "{scale:?}: byte {i} (pixel {}, {}): {a} drawn, {b} composed",
+                    (i / 4) as u32 % tw,
+                    (i / 4) as u32 / tw
+                );
+            }
+        }
     }
 }

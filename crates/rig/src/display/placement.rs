@@ -316,13 +316,16 @@ pub enum PlaceError {
     Misfit(Misfit),
     /// The frame has no image for this layer (or the right eye fewer than the left).
     NoImage(String),
+    /// The surface is not what the images are placed for (a window that is not the size of
+    /// its monitor, with `scale = "exact"`).
+    Surface(String),
 }
 
 impl std::fmt::Display for PlaceError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             PlaceError::Misfit(m) => m.fmt(f),
-            PlaceError::NoImage(s) => f.write_str(s),
+            PlaceError::NoImage(s) | PlaceError::Surface(s) => f.write_str(s),
         }
     }
 }
