@@ -73,6 +73,8 @@ struct SceneFrame {
     scene: Scene,
     rgbd: Arc<Rgbd>,
     sparse: Vec<RgbdView>,
+    /// `--eyes 2`: each eye's view.
+    eyes: Option<[Arc<Rgbd>; 2]>,
 }
 
 /// Scene frames kept for renders still to come (a render may show a frame the loop has
@@ -94,6 +96,9 @@ pub struct DemoFrames {
     started: Instant,
     /// `--method auto`: plan each varifocal frame.
     auto: bool,
+    /// `--eyes 2`: half the interpupillary distance, metres: each frame's eyes' views are
+    /// ray cast with it, off the render path (as the rig's own scene does).
+    half_ipd_m: Option<f32>,
     /// What changes as the run goes: the loop and the render thread both reach it.
     state: Mutex<DemoState>,
 }
@@ -172,11 +177,17 @@ impl DemoFrames {
             seconds,
             started: Instant::now(),
             auto,
+            half_ipd_m: None,
             state: Mutex::new(DemoState {
                 keep_after,
                 ..Default::default()
             }),
         })
+    }
+
+    /// `--eyes 2`: each frame carries each eye's view, the eyes `2 x half_ipd_m` apart.
+    pub fn with_eyes(self, half_ipd_m: Option<f32>) -> Self {
+        DemoFrames { half_ipd_m, ..self }
     }
 
     pub fn mode(&self) -> Mode {
@@ -335,11 +346,22 @@ impl DemoFrames {
                 });
             }
         }
+        let eyes = match self.half_ipd_m {
+            None => None,
+            Some(h) => {
+                let cast = |x: f32| -> Option<Arc<Rgbd>> {
+                    let (c, d) = render_pinhole(&scene, &self.cam, [x, 0.0], 1).ok()?;
+                    Some(Arc::new(Rgbd::new(c, d).ok()?))
+                };
+                Some([cast(-h)?, cast(h)?])
+            }
+        };
         Some(SceneFrame {
             number,
             scene,
             rgbd,
             sparse,
+            eyes,
         })
     }
 }
@@ -367,9 +389,10 @@ impl Content for DemoFrames {
         }
         let number = lock(&self.state).given + 1;
         let content = Arc::new(self.content_at(t, number)?);
-        // With the scene: on a stereo layout the rig ray casts each eye's view from it.
+        // `--eyes 2`: each eye's view, cast here (the loop's step, free in simulated time).
         let frame = ContentFrame {
             scene: Some(Arc::new(content.scene.clone())),
+            eyes: content.eyes.clone(),
             ..ContentFrame::new(number, content.rgbd.clone())
         };
         let mut st = lock(&self.state);

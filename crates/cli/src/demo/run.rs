@@ -64,21 +64,24 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
     let cfg = demo_config(mode, args.size, auto, binocular)?;
     let mut sim =
         SimRun::new(cfg, Duration::from_secs_f64(args.seconds)).context("the demo's rig config")?;
-    let frames = std::sync::Arc::new(DemoFrames::new(
-        mode,
-        args.seed,
-        args.size,
-        args.seconds,
-        auto,
-        sim.sched.eye,
-        sim.cfg
-            .optics
-            .planes
-            .iter()
-            .copied()
-            .map(Diopters)
-            .collect(),
-    )?);
+    let frames = std::sync::Arc::new(
+        DemoFrames::new(
+            mode,
+            args.seed,
+            args.size,
+            args.seconds,
+            auto,
+            sim.sched.eye,
+            sim.cfg
+                .optics
+                .planes
+                .iter()
+                .copied()
+                .map(Diopters)
+                .collect(),
+        )?
+        .with_eyes(binocular.then_some(sim.cfg.eye.ipd_mm * 0.5e-3)),
+    );
     sim.spec.gaze_scene = frames.gaze_scene();
     println!("running the loop (simulated devices; progress every simulated second)...");
     let r: Run = sim
