@@ -2694,3 +2694,119 @@ async fn stereo_frames_are_paired_by_sequence_number_and_refused_with_reasons() 
     assert_eq!(sh.status_json()["content"]["refused"]["eye"], json!(1));
     stop(d).await;
 }
+
+/// The done-when of the binocular issue: `dioptra serve` on the binocular example rig shows
+/// side-by-side stereo frames (one 192 x 96 panel, the left eye's 96 x 96 image in its left
+/// half) from the procedural scene, a lab's stereo files and a stream's pairs, each eye's
+/// image in its own half.
+#[tokio::test(start_paused = true)]
+async fn the_binocular_rig_shows_side_by_side_stereo_from_the_scene_files_and_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = |content: &str, frames: &Path| {
+        let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+            .replace("127.0.0.1:7420", "127.0.0.1:0")
+            .replace("[recording]\ndir = \"recordings\"\nstart = false\n", "")
+            .replace(
+                "frame_hz = 60.0",
+                &format!(
+                    "frame_hz = 60.0\npng_every = 1\npng_dir = {:?}",
+                    frames.display().to_string()
+                ),
+            )
+            + content;
+        RigConfig::parse(&text).unwrap()
+    };
+    // The newest panel written, once the rig has shown `n` more frames.
+    let newest_panel = |frames: &Path| {
+        let mut pngs: Vec<_> = std::fs::read_dir(frames)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "png"))
+            .collect();
+        pngs.sort();
+        dioptra_render::io::read_color(pngs.last().expect("a panel written")).unwrap()
+    };
+    let halves = |panel: &dioptra_core::RgbImage, x: usize| {
+        (
+            panel.pixel(x, 48).unwrap(),
+            panel.pixel(96 + x, 48).unwrap(),
+        )
+    };
+
+    // The scene, each eye ray cast from its own place: the halves differ.
+    let frames = dir.path().join("scene");
+    let d = Daemon::start_config(rig("\n[content]\nanimate = false\n", &frames))
+        .await
+        .unwrap();
+    after_frames(&d, 4).await;
+    let v = status_of(&d);
+    assert_eq!(v["eye_views"]["source"], json!("scene-ray-cast"), "{v}");
+    stop(d).await;
+    let panel = newest_panel(&frames);
+    assert_eq!((panel.width(), panel.height()), (192, 96));
+    let diff: f32 = (0..96)
+        .flat_map(|y| (0..96).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (l, r) = (panel.pixel(x, y).unwrap(), panel.pixel(96 + x, y).unwrap());
+            (0..3).map(|c| (l[c] - r[c]).abs()).sum::<f32>()
+        })
+        .sum::<f32>()
+        / (96.0 * 96.0 * 3.0);
+    assert!(
+        diff > 0.02,
+        "the eyes' views differ: mean |left - right| {diff}"
+    );
+
+    // Stereo files: a red left eye, a blue right eye, 1 m away.
+    let stim = dir.path().join("stim");
+    for (eye, rgb) in [("left", [0.8, 0.1, 0.1]), ("right", [0.1, 0.1, 0.8])] {
+        std::fs::create_dir_all(stim.join(eye)).unwrap();
+        let c = dioptra_core::RgbImage::new(96, 96, rgb);
+        let depth = dioptra_core::DepthMap::from_meters(96, 96, &[1.0; 96 * 96]).unwrap();
+        dioptra_render::io::write_color(&stim.join(format!("{eye}/c.exr")), &c).unwrap();
+        dioptra_render::io::write_depth(&stim.join(format!("{eye}/d.exr")), &depth).unwrap();
+    }
+    let frames = dir.path().join("files");
+    let files = format!(
+        "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n",
+        stim.join("%e/c.exr").display().to_string(),
+        stim.join("%e/d.exr").display().to_string()
+    );
+    let d = Daemon::start_config(rig(&files, &frames)).await.unwrap();
+    after_frames(&d, 4).await;
+    assert_eq!(status_of(&d)["eye_views"]["source"], json!("stereo"));
+    stop(d).await;
+    let (l, r) = halves(&newest_panel(&frames), 48);
+    assert!(
+        l[0] > 0.5 && l[2] < 0.3 && r[2] > 0.5 && r[0] < 0.3,
+        "{l:?} {r:?}"
+    );
+
+    // The stream: a green left half and a magenta right half of one sequence number.
+    let frames = dir.path().join("stream");
+    let d = Daemon::start_config(rig(
+        "\n[content]\nsource = \"stream\"\nring = \"none\"\n",
+        &frames,
+    ))
+    .await
+    .unwrap();
+    let app = api::router(d.shared().clone());
+    for (eye, rgb) in [("left", [20u8, 220, 20]), ("right", [220, 20, 220])] {
+        let color: Vec<u8> = (0..96 * 96).flat_map(|_| rgb).collect();
+        let body = [color, f32_bytes(&[1.0; 96 * 96])].concat();
+        let path = format!("/frame?width=96&height=96&color=rgb8&depth=m&eye={eye}&seq=1");
+        let (s, v) = call_with(&app, "PUT", &path, "application/octet-stream", body).await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+    }
+    eventually("the pair on show", || {
+        (status_of(&d)["content"]["on_show_seq"] == json!(1)).then_some(())
+    })
+    .await;
+    after_frames(&d, 4).await;
+    stop(d).await;
+    let (l, r) = halves(&newest_panel(&frames), 48);
+    assert!(
+        l[1] > 0.5 && l[0] < 0.3 && r[0] > 0.5 && r[1] < 0.3,
+        "{l:?} {r:?}"
+    );
+}
