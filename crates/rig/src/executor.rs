@@ -49,6 +49,8 @@ pub trait LoopHook: Send {
     fn rendered(&mut self, _now: Timestamp, _report: &RenderReport<'_>) {}
     /// A frame (multifocal: a layer) went to the display.
     fn presented(&mut self, _now: Timestamp, _shown: &Presented, _sink: &dyn DisplaySink) {}
+    /// The display refused frame `frame` (it does not fit its place); the sink counted it.
+    fn not_shown(&mut self, _now: Timestamp, _frame: u64, _sink: &dyn DisplaySink) {}
     /// The loop finished a turn (the scheduler stepped and its commands were carried out).
     fn stepped(&mut self, _now: Timestamp, _engine: &Engine) {}
     /// The scheduler's shutdown is next.
@@ -632,7 +634,11 @@ impl Executor<'_> {
                 }
             }
             // Not shown (a misfit): the sink counts it and logs each reason once.
-            Err(crate::display::DisplayError::NotShown(_)) => {}
+            Err(crate::display::DisplayError::NotShown(_)) => {
+                for h in &mut self.hooks {
+                    h.not_shown(now, frame, self.sink.as_ref());
+                }
+            }
             Err(e) => tracing::warn!(error = %e, "display failed"),
         }
     }

@@ -354,6 +354,10 @@ impl LoopHook for Status {
         st.frames_shown = sink.shown();
         st.display = sink.status();
     }
+    fn not_shown(&mut self, _now: Timestamp, _frame: u64, sink: &dyn DisplaySink) {
+        // The misfit count and reason reach /status though nothing is shown.
+        lock(&self.state.status).display = sink.status();
+    }
     fn stepped(&mut self, now: Timestamp, engine: &Engine) {
         let fresh = self
             .scheduler_at

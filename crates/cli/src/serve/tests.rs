@@ -855,6 +855,59 @@ async fn a_binocular_rig_shows_each_eye_and_which_lens_is_lost() {
     );
 }
 
+/// The binocular example rig's headless panel: both eyes side by side on a 2 x 96 wide panel;
+/// an eye's offset that moves its image past its half refuses every frame, and `/status`
+/// says so (count and reason) though nothing is shown.
+#[tokio::test(start_paused = true)]
+async fn a_side_by_side_panel_shows_both_eyes_and_reports_a_misfit() {
+    let text = dioptra_rig::config::EXAMPLE_SIM_BINOCULAR_RIG
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("[recording]\ndir = \"recordings\"\nstart = false\n", "");
+    assert!(text.contains("layout = \"side-by-side\""));
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let v = eventually("frames shown", || {
+        let v = status_of(&d);
+        (v["counts"]["frames_shown"].as_u64() > Some(2)).then_some(v)
+    })
+    .await;
+    let disp = &v["display"];
+    assert_eq!(disp["layout"], json!("side-by-side"), "{disp}");
+    assert_eq!(disp["surface"], json!([192, 96]), "{disp}");
+    assert_eq!(disp["places"]["right"], json!([96, 0, 96, 96]), "{disp}");
+    assert_eq!(disp["misfit"]["count"], json!(0), "{disp}");
+    assert_eq!(
+        disp["mono_on_stereo"],
+        json!(0),
+        "each eye rendered: {disp}"
+    );
+    stop(d).await;
+
+    let text = text.replace(
+        "layout = \"side-by-side\"",
+        "layout = \"side-by-side\"\neye_offset_px = { left = [1, 0] }",
+    );
+    let d = Daemon::start_config(RigConfig::parse(&text).unwrap())
+        .await
+        .unwrap();
+    let v = eventually("misfits reported", || {
+        let v = status_of(&d);
+        (v["display"]["misfit"]["count"].as_u64() > Some(2)).then_some(v)
+    })
+    .await;
+    assert_eq!(v["counts"]["frames_shown"], json!(0), "{v}");
+    let newest = v["display"]["misfit"]["newest"]
+        .as_str()
+        .unwrap_or_default();
+    assert!(
+        newest.starts_with("the left eye's 96x96 image, offset [1, 0]")
+            && newest.contains("1 px over its right edge"),
+        "{newest}"
+    );
+    stop(d).await;
+}
+
 /// Eyes whose lenses reach no focus in common (prescriptions 6 D apart through a 5 D lens
 /// range): a manual focus is refused saying so, with each eye's range, and `/status` gives no
 /// common range; handing focus back to gaze still works.

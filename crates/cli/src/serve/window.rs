@@ -320,7 +320,7 @@ impl WindowSink {
         // Placed on the surface as it is now: a frame that does not fit is not handed over.
         let surface = *dioptra_core::lock(&self.stats.surface);
         if let Err(e) = self.stats.place(frame, layer, surface) {
-            dioptra_core::lock(&self.stats.placer).refused(&e);
+            refused(&self.stats, &e);
             return Err(DisplayError::NotShown(e));
         }
         if layer == 0 {
@@ -404,16 +404,24 @@ impl DisplaySink for WindowSink {
 }
 
 /// Logs the surface size the system gave the window (a warning where it is not the monitor's).
+/// On stderr, as `dioptra serve` reports (it installs no log subscriber).
 fn log_surface(surface: (u32, u32), monitor: &str, monitor_size: (u32, u32)) {
     let (w, h) = surface;
     let (mw, mh) = monitor_size;
     if surface == monitor_size {
-        tracing::info!("surface {w}x{h} on {monitor} ({mw}x{mh})");
+        eprintln!("dioptra serve: surface {w}x{h} on {monitor} ({mw}x{mh})");
     } else {
-        tracing::warn!(
-            "surface {w}x{h} on {monitor} ({mw}x{mh}): not the monitor's size (no window \
-             manager made the window fullscreen?)"
+        eprintln!(
+            "dioptra serve: warning: surface {w}x{h} on {monitor} ({mw}x{mh}): not the \
+             monitor's size (no window manager made the window fullscreen?)"
         );
+    }
+}
+
+/// Counts a frame not shown; prints each reason the first time.
+fn refused(stats: &PresenterStats, why: &PlaceError) {
+    if dioptra_core::lock(&stats.placer).refused(why) {
+        eprintln!("dioptra serve: frame not shown: {why} (counted in /status display.misfit)");
     }
 }
 
@@ -1001,7 +1009,7 @@ impl Blitter {
                     draws.push((slot, p.rect));
                 }
             }
-            Err(e) => dioptra_core::lock(&stats.placer).refused(&e),
+            Err(e) => refused(stats, &e),
         }
         let target = match self.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t)

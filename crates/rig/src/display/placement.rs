@@ -420,14 +420,17 @@ impl Placer {
         }
     }
 
-    /// Counts a frame not shown because of `why`, and logs each reason once.
-    pub fn refused(&mut self, why: &PlaceError) {
+    /// Counts a frame not shown because of `why`, and logs each reason once; true the first
+    /// time for this reason (a binary without a log subscriber may print it then).
+    pub fn refused(&mut self, why: &PlaceError) -> bool {
         self.misfits += 1;
         let reason = why.to_string();
-        if self.logged.len() < REASONS_LOGGED && self.logged.insert(reason.clone()) {
+        let first = self.logged.len() < REASONS_LOGGED && self.logged.insert(reason.clone());
+        if first {
             tracing::warn!("frame not shown: {reason}");
         }
         self.newest_misfit = Some(reason);
+        first
     }
 
     pub fn misfits(&self) -> u64 {
