@@ -206,6 +206,8 @@ pub fn surface_formats(
 struct Job {
     frame: Frame,
     layer: usize,
+    /// Refused by the sink (it does not fit): the screen goes black.
+    blank: bool,
 }
 
 /// What the presenter thread reports, and the placement state it shares with the sink.
@@ -317,13 +319,13 @@ impl WindowSink {
         if let Some(e) = dioptra_core::lock(&self.stats.error).clone() {
             return Err(DisplayError::Window(e));
         }
-        // Placed on the surface as it is now: a frame that does not fit is not handed over.
+        // Placed on the surface as it is now: a frame that does not fit is not shown, and the
+        // screen goes black rather than keep the previous stimulus.
         let surface = *dioptra_core::lock(&self.stats.surface);
-        if let Err(e) = self.stats.place(frame, layer, surface) {
-            refused(&self.stats, &e);
-            return Err(DisplayError::NotShown(e));
-        }
-        if layer == 0 {
+        let placed = self.stats.place(frame, layer, surface);
+        if let Err(e) = &placed {
+            refused(&self.stats, e);
+        } else if layer == 0 {
             dioptra_core::lock(&self.stats.placer).shown(frame);
         }
         let mut slot = dioptra_core::lock(&self.mailbox.job);
@@ -332,13 +334,14 @@ impl WindowSink {
             .replace(Job {
                 frame: frame.clone(),
                 layer,
+                blank: placed.is_err(),
             })
             .is_some()
         {
             self.stats.replaced.fetch_add(1, Ordering::Relaxed);
         }
         self.mailbox.ready.notify_one();
-        Ok(())
+        placed.map(|_| ()).map_err(DisplayError::NotShown)
     }
 }
 
@@ -444,7 +447,7 @@ fn presenter(mut blitter: Blitter, mailbox: &Mailbox, stats: &PresenterStats) {
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
             }
         };
-        match blitter.draw(&job.frame, job.layer, stats) {
+        match blitter.draw(&job.frame, job.layer, job.blank, stats) {
             Ok(true) => {
                 let now = Instant::now();
                 if let Some(l) = last {
@@ -946,15 +949,17 @@ impl Blitter {
     /// Presents `image`; blocks until a swapchain image is free (vsync). `Ok(false)`: skipped
     /// this time (window occluded, surface reconfigured). Its GPU errors are returned
     /// ([`scoped`]).
+    /// `blank`: the sink refused the frame; only the marker patch is drawn, on black.
     fn draw(
         &mut self,
         frame: &Frame,
         layer: usize,
+        blank: bool,
         stats: &PresenterStats,
     ) -> Result<bool, WindowError> {
         self.blit.set_marker(frame.marker);
         let device = self.device.clone();
-        scoped(&device, || self.draw_unscoped(frame, layer, stats))?
+        scoped(&device, || self.draw_unscoped(frame, layer, blank, stats))?
     }
 
     /// Uploads (or points at) `image` for slot `slot`.
@@ -984,6 +989,7 @@ impl Blitter {
         &mut self,
         frame: &Frame,
         layer: usize,
+        blank: bool,
         stats: &PresenterStats,
     ) -> Result<bool, WindowError> {
         let win = self.window.inner_size();
@@ -1002,7 +1008,12 @@ impl Blitter {
         // Placed again on the surface as it is now (it may have changed since the sink looked);
         // a frame that does not fit leaves the screen black.
         let mut draws = Vec::with_capacity(2);
-        match stats.place(frame, layer, surface) {
+        let placed = if blank {
+            Ok(Vec::new())
+        } else {
+            stats.place(frame, layer, surface)
+        };
+        match placed {
             Ok(placed) => {
                 for (slot, p) in placed.iter().enumerate() {
                     self.show(slot, p.image)?;
