@@ -218,21 +218,27 @@ fn write_eyes(frames: &DemoFrames, kept: &[Kept], args: &Args) -> Result<()> {
     Ok(())
 }
 
-/// `a` and `b` side by side, as one panel of a side-by-side layout shows them.
+/// `a` and `b` side by side, placed as the rig's side-by-side sinks place them (1:1, each
+/// centred in its half).
 fn side_by_side(a: &RgbImage, b: &RgbImage) -> Result<RgbImage> {
+    use dioptra_rig::config::{DisplayLayout, EyeOffsets, Scale};
+    use dioptra_rig::display::placement::{draw_into, PlacementConfig};
     let (w, h) = (a.width(), a.height());
-    if (b.width(), b.height()) != (w, h) {
-        bail!("the eyes' images differ in size");
+    let config = PlacementConfig {
+        layout: DisplayLayout::SideBySide,
+        scale: Scale::Exact,
+        offsets: EyeOffsets::default(),
+    };
+    let surface = (u32::try_from(2 * w)?, u32::try_from(h)?);
+    let mut panel = RgbImage::new(2 * w, h, [0.0; 3]);
+    for (side, img) in [(Side::Left, a), (Side::Right, b)] {
+        let size = (u32::try_from(img.width())?, u32::try_from(img.height())?);
+        let rect = config
+            .placement(surface, Some(side), size)
+            .map_err(|m| anyhow::anyhow!("{m}"))?;
+        draw_into(&mut panel, img, rect);
     }
-    let mut px = Vec::with_capacity(2 * w * h * 3);
-    for y in 0..h {
-        for img in [a, b] {
-            for x in 0..w {
-                px.extend(img.pixel(x, y).context("a pixel inside the image")?);
-            }
-        }
-    }
-    Ok(RgbImage::from_interleaved(2 * w, h, &px)?)
+    Ok(panel)
 }
 
 fn ms(us: u64) -> f64 {
