@@ -559,12 +559,12 @@ impl Executor<'_> {
                         planes,
                     )
                 });
+                // A scripted cost per eye adds up; otherwise the wall time both took.
                 let took = match &result {
-                    Ok((out, right)) => match (out.cost, right.as_ref().map(|r| r.cost)) {
-                        (Some(l), None) | (Some(l), Some(None)) => l,
-                        (Some(l), Some(Some(r))) => l + r,
-                        (None, _) => t0.elapsed(),
-                    },
+                    Ok((out, right)) => out.cost.map_or_else(
+                        || t0.elapsed(),
+                        |l| l + right.as_ref().and_then(|r| r.cost).unwrap_or_default(),
+                    ),
                     Err(_) => t0.elapsed(),
                 };
                 (job, result, took)

@@ -167,12 +167,24 @@ fn render(
     let centre = Arc::new(cast(&scene, cam, 0.0)?);
     let eyes = match half_ipd_m {
         None => None,
-        Some(h) => {
-            let (l, r) = rayon::join(|| cast(&scene, cam, -h), || cast(&scene, cam, h));
-            Some([Arc::new(l?), Arc::new(r?)])
-        }
+        Some(h) => Some(cast_eyes(&scene, cam, h)?),
     };
     Ok(SceneViews { centre, eyes })
+}
+
+/// The left and the right eye's views of `scene`, the eyes `2 x half_ipd_m` apart with
+/// parallel axes, cast side by side: the animated scene's on its worker, and
+/// [`super::stereo::EyeViews`]'s for a frame that brings its scene without them.
+pub fn cast_eyes(
+    scene: &Scene,
+    cam: &Camera,
+    half_ipd_m: f32,
+) -> Result<[Arc<Rgbd>; 2], RenderError> {
+    let (l, r) = rayon::join(
+        || cast(scene, cam, -half_ipd_m),
+        || cast(scene, cam, half_ipd_m),
+    );
+    Ok([Arc::new(l?), Arc::new(r?)])
 }
 
 /// The scene time of the frame due at `now`: the last multiple of [`SCENE_UPDATE`].

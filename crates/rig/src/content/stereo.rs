@@ -15,13 +15,10 @@ use std::sync::{Arc, Mutex};
 use dioptra_core::{lock, EyeModel, Rgbd, Side};
 use dioptra_render::views::{synthesize_rgbd_view, RgbdView};
 use dioptra_render::RenderError;
-use dioptra_sim::scene::{render_pinhole, Camera};
+use dioptra_sim::scene::Camera;
 
 use super::ContentFrame;
 use crate::config::RigConfig;
-
-/// Rays per pixel of an eye's scene view: as the scene's own frames ([`super::scene`]).
-const SCENE_SAMPLES: usize = 2;
 
 /// Where each eye's view comes from, for the `/status` and the log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -127,15 +124,10 @@ impl EyeViews {
             // The rig's scene casts its eyes' views on its own worker.
             (Some(eyes), Some(_)) => (eyes.clone(), ViewSource::SceneRayCast),
             (Some(eyes), None) => (eyes.clone(), ViewSource::Stereo),
-            (None, Some(scene)) => {
-                let cast = |side| -> Result<Arc<Rgbd>, RenderError> {
-                    let (color, depth) =
-                        render_pinhole(scene, &self.cam, self.position(side), SCENE_SAMPLES)?;
-                    Ok(Arc::new(Rgbd::new(color, depth)?))
-                };
-                let (l, r) = rayon::join(|| cast(Side::Left), || cast(Side::Right));
-                ([l?, r?], ViewSource::SceneRayCast)
-            }
+            (None, Some(scene)) => (
+                super::scene::cast_eyes(scene, &self.cam, self.half_ipd_m)?,
+                ViewSource::SceneRayCast,
+            ),
             (None, None) => {
                 let input = [RgbdView {
                     position: [0.0, 0.0],
