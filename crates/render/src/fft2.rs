@@ -29,6 +29,12 @@ pub(crate) fn fft_size(min: usize) -> usize {
     }
 }
 
+thread_local! {
+    /// The row transforms' output before the transpose, kept per thread: a fresh one per
+    /// transform was a measurable part of the spectral solve (its zeroing).
+    static ROWS: std::cell::RefCell<Vec<Complex32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
 /// A half spectrum, `hw * ph` values, column-major.
 pub type HalfSpectrum = Vec<Complex32>;
 
@@ -69,18 +75,18 @@ impl Fft2 {
     pub fn forward(&self, img: &mut [f32]) -> HalfSpectrum {
         let (pw, ph, hw) = (self.pw, self.ph, self.hw);
         debug_assert_eq!(img.len(), pw * ph);
-        let mut rows = vec![Complex32::default(); hw * ph];
-        let mut scratch = self.r2c.make_scratch_vec();
-        for (row, out) in img.chunks_exact_mut(pw).zip(rows.chunks_exact_mut(hw)) {
-            // Lengths are the plan's, so this cannot fail.
-            let _ = self.r2c.process_with_scratch(row, out, &mut scratch);
-        }
-        let mut spec = vec![Complex32::default(); hw * ph];
-        for (kx, col) in spec.chunks_exact_mut(ph).enumerate() {
-            for (y, v) in col.iter_mut().enumerate() {
-                *v = rows[y * hw + kx];
+        let mut spec = Vec::with_capacity(hw * ph);
+        ROWS.with_borrow_mut(|rows| {
+            rows.resize(hw * ph, Complex32::default());
+            let mut scratch = self.r2c.make_scratch_vec();
+            for (row, out) in img.chunks_exact_mut(pw).zip(rows.chunks_exact_mut(hw)) {
+                // Lengths are the plan's, so this cannot fail.
+                let _ = self.r2c.process_with_scratch(row, out, &mut scratch);
             }
-        }
+            for kx in 0..hw {
+                spec.extend(rows[kx..].iter().step_by(hw).take(ph));
+            }
+        });
         let mut cs = vec![Complex32::default(); self.col_fwd.get_inplace_scratch_len()];
         self.col_fwd.process_with_scratch(&mut spec, &mut cs);
         spec

@@ -29,7 +29,7 @@ use crate::common::eye_for;
 use crate::error::{invalid, mismatch, RenderError};
 use crate::fft2::{fft_size, Fft2, HalfSpectrum};
 use crate::kernel::disk_kernel;
-use crate::multifocal::{check_planes, linear_blend, linspace, Layers, MAX_PLANES};
+use crate::multifocal::{check_planes, linear_blend, linspace, Layers};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 use rustfft::num_complex::Complex32;
@@ -468,6 +468,26 @@ impl SpectralPlan {
             .collect()
     }
 
+    /// A `width` x `height` plane on the padded grid, its edges replicated into the margin
+    /// (what [`SpectralPlan::source_index`] maps, by rows).
+    fn padded(&self, p: &[f32]) -> Vec<f32> {
+        let (pw, ph, m, w, h) = (
+            self.fft.pw,
+            self.fft.ph,
+            self.margin,
+            self.width,
+            self.height,
+        );
+        let mut out = Vec::with_capacity(pw * ph);
+        for y in 0..ph {
+            let row = &p[y.saturating_sub(m).min(h - 1) * w..][..w];
+            out.extend(std::iter::repeat_n(row[0], m));
+            out.extend_from_slice(row);
+            out.extend(std::iter::repeat_n(row[w - 1], pw - m - w));
+        }
+        out
+    }
+
     /// The unconstrained solution's spectra from the RGB-D alone (the focal stack built from
     /// depth slices in the frequency domain).
     pub fn targets_rgbd(&self, input: &Rgbd) -> Result<Unconstrained, RenderError> {
@@ -608,38 +628,43 @@ impl SpectralPlan {
         rows: usize,
         n: usize,
     ) -> Vec<HalfSpectrum> {
+        self.apply_sum(&[(inp, mat, cols, 1.0)], rows, n)
+    }
+
+    /// The sum of [`SpectralPlan::apply`]'s products over `terms` (inputs, matrix, its
+    /// columns, a scale), in one pass over the frequencies.
+    fn apply_sum(
+        &self,
+        terms: &[(&[HalfSpectrum], &[f32], usize, f32)],
+        rows: usize,
+        n: usize,
+    ) -> Vec<HalfSpectrum> {
         const CHUNK: usize = 512;
-        let nchunks = n.div_ceil(CHUNK);
-        let parts: Vec<Vec<Complex32>> = (0..nchunks)
-            .into_par_iter()
-            .map(|ch| {
-                let f0 = ch * CHUNK;
-                let f1 = (f0 + CHUNK).min(n);
-                let len = f1 - f0;
-                let mut out = vec![Complex32::default(); 3 * rows * len];
-                for c in 0..3 {
-                    for a in 0..rows {
-                        let o = &mut out[(c * rows + a) * len..(c * rows + a + 1) * len];
-                        for d in 0..cols {
-                            let m = &mat[(a * cols + d) * n + f0..(a * cols + d) * n + f1];
-                            let s = &inp[c * cols + d][f0..f1];
-                            for ((o, &m), &s) in o.iter_mut().zip(m).zip(s) {
-                                *o += s * m;
-                            }
-                        }
-                    }
-                }
-                out
-            })
-            .collect();
         let mut outs: Vec<HalfSpectrum> = (0..3 * rows)
             .map(|_| vec![Complex32::default(); n])
             .collect();
-        outs.par_iter_mut().enumerate().for_each(|(k, o)| {
-            for (ch, part) in parts.iter().enumerate() {
-                let f0 = ch * CHUNK;
-                let len = part.len() / (3 * rows);
-                o[f0..f0 + len].copy_from_slice(&part[k * len..(k + 1) * len]);
+        // Jobs of (first frequency, that chunk of every output).
+        let mut jobs: Vec<(usize, Vec<&mut [Complex32]>)> = (0..n.div_ceil(CHUNK))
+            .map(|k| (k * CHUNK, Vec::with_capacity(3 * rows)))
+            .collect();
+        for o in outs.iter_mut() {
+            for (job, ch) in jobs.iter_mut().zip(o.chunks_mut(CHUNK)) {
+                job.1.push(ch);
+            }
+        }
+        jobs.into_par_iter().for_each(|(f0, mut outs)| {
+            let len = outs[0].len();
+            for (k, o) in outs.iter_mut().enumerate() {
+                let (c, a) = (k / rows, k % rows);
+                for &(inp, mat, cols, scale) in terms {
+                    for d in 0..cols {
+                        let m = &mat[(a * cols + d) * n + f0..][..len];
+                        let s = &inp[c * cols + d][f0..f0 + len];
+                        for ((o, &m), &s) in o.iter_mut().zip(m).zip(s) {
+                            *o += s * (m * scale);
+                        }
+                    }
+                }
             }
         });
         outs
@@ -666,29 +691,30 @@ impl SpectralPlan {
                 self.height
             )));
         }
-        let src = self.source_index();
-        let pad = |p: &Plane| -> HalfSpectrum {
-            let mut img: Vec<f32> = src.iter().map(|&s| p.data()[s as usize]).collect();
-            self.fft.forward(&mut img)
-        };
         let linear = linear_blend(input, &self.planes)?;
-        // Y0[c][a] = sum_j FIT_aj T_jc + lambda sum_b AINV_ab L_bc
-        let ts: Vec<HalfSpectrum> = (0..3 * nf)
+        // Y0[c][a] = sum_j FIT_aj T_jc + lambda sum_b AINV_ab L_bc: the targets' and the
+        // linear layers' spectra in one parallel batch, then one pass over the frequencies.
+        let spectra: Vec<HalfSpectrum> = (0..3 * (nf + np))
             .into_par_iter()
-            .map(|k| pad(&stack[k % nf].channels[k / nf]))
+            .map(|k| {
+                let p = if k < 3 * nf {
+                    &stack[k % nf].channels[k / nf]
+                } else {
+                    let k = k - 3 * nf;
+                    &linear.images[k % np].channels[k / np]
+                };
+                self.fft.forward(&mut self.padded(p.data()))
+            })
             .collect();
-        let mut y0 = self.apply(&ts, &self.fit, nf, np, n);
-        let ls: Vec<HalfSpectrum> = (0..3 * np)
-            .into_par_iter()
-            .map(|k| pad(&linear.images[k % np].channels[k / np]))
-            .collect();
-        let prior = self.apply(&ls, &self.ainv, np, np, n);
-        let lambda = self.params.prior;
-        y0.par_iter_mut().zip(&prior).for_each(|(y, l)| {
-            for (y, l) in y.iter_mut().zip(l) {
-                *y += *l * lambda;
-            }
-        });
+        let (ts, ls) = spectra.split_at(3 * nf);
+        let y0 = self.apply_sum(
+            &[
+                (ts, &self.fit, nf, 1.0),
+                (ls, &self.ainv, np, self.params.prior),
+            ],
+            np,
+            n,
+        );
         Ok(Unconstrained { y0 })
     }
 
@@ -730,12 +756,13 @@ impl SpectralPlan {
                     .collect();
                 let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t_k * t_k).sqrt());
                 let mom = ((t_k - 1.0) / t_next) as f32;
-                y = next
-                    .par_iter()
-                    .zip(&x)
-                    .map(|(nw, od)| nw.iter().zip(od).map(|(n, o)| n + mom * (n - o)).collect())
-                    .collect();
-                x = next;
+                // y = next + mom (next - x), written over x's buffers.
+                y = std::mem::replace(&mut x, next);
+                y.par_iter_mut().zip(&x).for_each(|(od, nw)| {
+                    od.iter_mut()
+                        .zip(nw)
+                        .for_each(|(o, n)| *o = n + mom * (n - *o));
+                });
                 t_k = t_next;
                 report.iterations = it + 1;
             }
@@ -759,63 +786,78 @@ impl SpectralPlan {
     /// One gradient step in frequency, in place: S <- S - step A (S - Y0) for every channel.
     /// Returns the objective at S before the step: (S - Y0)^H A (S - Y0) summed over the
     /// spectrum, per padded pixel (Parseval; the half spectrum's inner columns stand for two).
-    // Indexing by frequency across the layers' slices is the natural form here.
-    #[allow(clippy::needless_range_loop)]
     fn gradient_step(&self, spec: &mut [HalfSpectrum], y0: &[HalfSpectrum]) -> f64 {
-        let (np, n, ph, hw, pw) = (
-            self.planes.len(),
-            self.fft.len(),
-            self.fft.ph,
-            self.fft.hw,
-            self.fft.pw,
-        );
-        let parts = rayon::current_num_threads().max(1) * 2;
-        let len = n.div_ceil(parts);
-        // Jobs of (channel, frequency range), each holding its range of the channel's layers.
-        let mut jobs: Vec<(usize, usize, Vec<&mut [Complex32]>)> = Vec::new();
-        for (c, layers) in spec.chunks_mut(np).enumerate() {
-            let mut per: Vec<Vec<&mut [Complex32]>> = (0..parts).map(|_| Vec::new()).collect();
-            for v in layers.iter_mut() {
-                for (k, ch) in v.chunks_mut(len).enumerate() {
-                    per[k].push(ch);
-                }
-            }
-            for (k, p) in per.into_iter().enumerate() {
-                if !p.is_empty() {
-                    jobs.push((c, k * len, p));
-                }
+        // Memory-bound: frequencies go in chunks whose residuals and gradients (every layer of
+        // the three channels) stay in cache, each chunk of A (symmetric: its upper triangle)
+        // is read once for the three channels, and every inner loop runs over contiguous
+        // slices. (Fusing the step into the column transforms, a few columns of every layer at
+        // a time, measured no faster.)
+        const CHUNK: usize = 128;
+        let (np, n, pw, ph) = (self.planes.len(), self.fft.len(), self.fft.pw, self.fft.ph);
+        let rows = spec.len();
+        // Jobs of (first frequency, that chunk of every layer).
+        let mut jobs: Vec<(usize, Vec<&mut [Complex32]>)> = (0..n.div_ceil(CHUNK))
+            .map(|k| (k * CHUNK, Vec::with_capacity(rows)))
+            .collect();
+        for v in spec.iter_mut() {
+            for (job, ch) in jobs.iter_mut().zip(v.chunks_mut(CHUNK)) {
+                job.1.push(ch);
             }
         }
+        // Parseval's weight: 1 on the half spectrum's own columns (kx = 0, and the Nyquist
+        // column of an even width), 2 on the others; column kx holds kx * ph .. (kx + 1) * ph.
+        let once_from = if pw.is_multiple_of(2) {
+            (self.fft.hw - 1) * ph
+        } else {
+            n
+        };
         let step = self.step;
         let total: f64 = jobs
             .into_par_iter()
-            .map(|(c, f0, mut ls)| {
-                let mut s = 0.0f64;
-                let mut d = [Complex32::default(); MAX_PLANES];
+            .map(|(f0, mut ls)| {
                 let m = ls[0].len();
-                for i in 0..m {
-                    let f = f0 + i;
-                    for a in 0..np {
-                        d[a] = ls[a][i] - y0[c * np + a][f];
+                let at = |k: usize| k * m..(k + 1) * m;
+                let mut d = vec![Complex32::default(); rows * m];
+                for (k, l) in ls.iter().enumerate() {
+                    for ((d, &l), &y) in d[at(k)].iter_mut().zip(l.iter()).zip(&y0[k][f0..]) {
+                        *d = l - y;
                     }
-                    let kx = f / ph;
-                    let twice = if kx == 0 || (pw.is_multiple_of(2) && kx == hw - 1) {
-                        1.0
-                    } else {
-                        2.0
-                    };
-                    let mut acc = 0.0f64;
-                    for a in 0..np {
-                        let mut g = Complex32::default();
-                        for (b, db) in d.iter().enumerate().take(np) {
-                            g += db * self.a[(a * np + b) * n + f];
-                        }
-                        acc += (d[a].conj() * g).re as f64;
-                        ls[a][i] -= g * step;
-                    }
-                    s += twice * acc;
                 }
-                s
+                let mut g = vec![Complex32::default(); rows * m];
+                for a in 0..np {
+                    for b in a..np {
+                        let col = &self.a[(a * np + b) * n + f0..][..m];
+                        for c in 0..rows / np {
+                            let (ka, kb) = (c * np + a, c * np + b);
+                            for ((g, &db), &k) in g[at(ka)].iter_mut().zip(&d[at(kb)]).zip(col) {
+                                *g += db * k;
+                            }
+                            if a != b {
+                                for ((g, &da), &k) in g[at(kb)].iter_mut().zip(&d[at(ka)]).zip(col)
+                                {
+                                    *g += da * k;
+                                }
+                            }
+                        }
+                    }
+                }
+                let mut acc = [0.0f32; CHUNK];
+                for (k, l) in ls.iter_mut().enumerate() {
+                    for (((l, g), da), acc) in
+                        l.iter_mut().zip(&g[at(k)]).zip(&d[at(k)]).zip(&mut acc)
+                    {
+                        *acc += da.re * g.re + da.im * g.im;
+                        *l -= g * step;
+                    }
+                }
+                acc.iter()
+                    .take(m)
+                    .enumerate()
+                    .map(|(i, &v)| {
+                        let f = f0 + i;
+                        v as f64 * if f < ph || f >= once_from { 1.0 } else { 2.0 }
+                    })
+                    .sum::<f64>()
             })
             .sum();
         let npix = (pw * ph) as f64;
