@@ -459,25 +459,27 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
         }
         "refine" => {
             let net = dioptra_net::load_net(a.weights.as_deref(), "c4r")?;
-            let theirs: Vec<Diopters> = net
-                .arch()
-                .task
-                .planes()
-                .unwrap_or(&[])
-                .iter()
-                .map(|&p| Diopters(p))
-                .collect();
+            let (theirs, classical) = dioptra_net::refine::c4r_input(&net.arch().task)?;
             if theirs != planes {
                 bail!("the network's planes are {theirs:?}; pass --planes to match");
             }
+            // The classical layers the weights name, on the chosen backend.
+            let base = dioptra_net::refine::classical_layers(
+                b.as_ref(),
+                classical,
+                &input,
+                &planes,
+                &eye,
+            )?;
+            println!("refining {} layers", classical.label());
             if b.name() == "gpu" {
                 GpuNet::on(
                     dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
                     net.weights().clone(),
                 )?
-                .refine_decompose(&input, &linear)?
+                .refine_decompose(&input, &base)?
             } else {
-                net.refine_decompose(&input, &linear)?
+                net.refine_decompose(&input, &base)?
             }
         }
         "spectral" => {

@@ -414,5 +414,36 @@ fn refine_runs_with_the_shipped_weights_on_both_backends() {
         let f = |b: &str| format!("c4r_{b}/layer_{plane}D.exr");
         assert!(psnr_in(&f("gpu"), &f("cpu")) > 60.0, "layer {plane} D");
     }
+    // A C4R whose weights name the spectral layers (untrained, so it returns them exactly)
+    // refines the spectral decomposition, on either backend.
+    let mut arch = dioptra_net::Arch::preset("c4r").unwrap();
+    if let dioptra_net::Task::C4r { classical, .. } = &mut arch.task {
+        *classical = dioptra_net::ClassicalLayers::Spectral;
+    }
+    let weights = d("c4r_spectral.safetensors");
+    dioptra_net::Weights::random(&arch, 3)
+        .unwrap()
+        .save(Path::new(&weights))
+        .unwrap();
+    for backend in ["cpu", "gpu"] {
+        for (method, out) in [("spectral", "spectral"), ("refine", "c4r_spectral")] {
+            let out = d(&format!("{out}_{backend}"));
+            let mut args = vec!["decompose", "--method", method, "--backend", backend];
+            args.extend(["--out", &out]);
+            if method == "refine" {
+                args.extend(["--weights", &weights]);
+            }
+            let (ok, text) = on_scene(&dir, &args);
+            assert!(ok, "{text}");
+            if method == "refine" {
+                assert!(text.contains("refining spectral layers"), "{text}");
+            }
+        }
+        for plane in ["0.20", "0.80", "1.40", "2.00"] {
+            let f = |m: &str| format!("{m}_{backend}/layer_{plane}D.exr");
+            let p = psnr_in(&f("c4r_spectral"), &f("spectral"));
+            assert!(p > 100.0, "{backend}: layer {plane} D: {p} dB");
+        }
+    }
     std::fs::remove_dir_all(&dir).ok();
 }

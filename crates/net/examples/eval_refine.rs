@@ -8,12 +8,14 @@
 //! Each test scene is rendered (pinhole colour 4x4 supersampled, as `dioptra eval`; thin-lens
 //! ground truth at SAMPLES rays per pixel). C1R is scored at `dioptra eval`'s foci: per focus
 //! the classical and refined PSNR (sRGB), the fraction of tiles the net ran on and the times.
-//! C4R is scored by the retinal images of its layers at the net's foci, beside linear blending
-//! and optimized blending with 10 iterations (fitting the thin-lens stack, as `dioptra eval`).
+//! C4R is scored by the retinal images of its layers at the net's foci, beside its classical
+//! input (the decomposition its weights name: linear blending or spectral), linear blending and
+//! optimized blending with 10 iterations (fitting the thin-lens stack, as `dioptra eval`).
 
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_net::refine::{
-    classical_composite, classical_defocus, compose_defocus, error_tiles_with, refine_defocus_input,
+    classical_composite, classical_defocus, classical_layers, compose_defocus, error_tiles_with,
+    refine_defocus_input,
 };
 use dioptra_net::{load_net, CpuNet, Task};
 use dioptra_render::metrics::psnr;
@@ -268,7 +270,8 @@ fn failure_cases(
     Ok(())
 }
 
-/// C4R against linear blending and optimized blending (10 iterations), retinal PSNR.
+/// C4R against its classical input (linear blending or spectral), linear blending and
+/// optimized blending (10 iterations), retinal PSNR.
 fn eval_c4r(
     net: &CpuNet,
     scenes: u64,
@@ -276,16 +279,23 @@ fn eval_c4r(
     samples: u32,
     split: Split,
 ) -> Result<(), Box<dyn std::error::Error>> {
-    let Task::C4r { planes, foci } = &net.arch().task else {
+    let Task::C4r {
+        planes,
+        foci,
+        classical,
+    } = &net.arch().task
+    else {
         return Err("not a c4r net".into());
     };
+    let classical = *classical;
     let planes: Vec<Diopters> = planes.iter().map(|&p| Diopters(p)).collect();
     let foci: Vec<Diopters> = foci.iter().map(|&q| Diopters(q)).collect();
     let eye = EyeModel::default().with_width(size as u32);
     let cam = Camera::square(eye, size);
     let ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
-    let mut sums = [0.0f64; 3];
-    let mut times = [0.0f64; 3];
+    let mut sums = [0.0f64; 4];
+    let mut times = [0.0f64; 4];
+    let mut worst = f64::INFINITY;
     for i in 0..scenes {
         let seed = split.seed(i);
         let scene = Scene::generate(seed);
@@ -299,8 +309,11 @@ fn eval_c4r(
         let linear = linear_blend(&rgbd, &planes)?;
         let t_lin = ms(t);
         let t = Instant::now();
-        let refined = net.refine_decompose(&rgbd, &linear)?;
-        let t_ref = ms(t) + t_lin;
+        let base = classical_layers(&Cpu, classical, &rgbd, &planes, &eye)?;
+        let t_base = ms(t);
+        let t = Instant::now();
+        let refined = net.refine_decompose(&rgbd, &base)?;
+        let t_ref = ms(t) + t_base;
         let t = Instant::now();
         let params = OptimizeParams {
             iterations: 10,
@@ -317,21 +330,38 @@ fn eval_c4r(
             }
             Ok(s)
         };
-        let p = [score(&linear)?, score(&refined)?, score(&opt)?];
+        let p = [
+            score(&linear)?,
+            score(&refined)?,
+            score(&opt)?,
+            score(&base)?,
+        ];
+        worst = worst.min(p[1] - p[3]);
         println!(
-            "seed {seed}: linear {:.2} dB ({t_lin:.1} ms), refined {:.2} dB ({:+.2}, {t_ref:.1} ms), optimized 10 it {:.2} dB ({t_opt:.0} ms)",
+            "seed {seed}: linear {:.2} dB ({t_lin:.1} ms), {} {:.2} dB ({t_base:.1} ms), refined {:.2} dB ({:+.2} over {}, {t_ref:.1} ms), optimized 10 it {:.2} dB ({t_opt:.0} ms)",
             p[0],
+            classical.label(),
+            p[3],
             p[1],
-            p[1] - p[0],
+            p[1] - p[3],
+            classical.label(),
             p[2]
         );
-        for k in 0..3 {
+        for k in 0..4 {
             sums[k] += p[k] / scenes as f64;
         }
         times[0] += t_lin / scenes as f64;
         times[1] += t_ref / scenes as f64;
         times[2] += t_opt / scenes as f64;
+        times[3] += t_base / scenes as f64;
     }
+    println!(
+        "classical input {}: {:.2} dB {:.1} ms; refined minus it: mean {:+.2} dB, worst scene {worst:+.2} dB",
+        classical.label(),
+        sums[3],
+        times[3],
+        sums[1] - sums[3]
+    );
     println!(
         "mean over {scenes} scenes at {size}x{size} (retinal, {} foci): linear {:.2} dB {:.1} ms; refined {:.2} dB {:.1} ms; optimized 10 it {:.2} dB {:.0} ms",
         foci.len(),

@@ -52,6 +52,30 @@ impl Classical {
     }
 }
 
+/// The classical decomposition a C4R net refines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ClassicalLayers {
+    /// Linear blending (Akeley et al.). A file that names no classical input refines these.
+    #[default]
+    Linear,
+    /// The spectral decomposition with [`dioptra_render::SpectralParams::default`]'s
+    /// settings at the time it runs.
+    Spectral,
+}
+
+impl ClassicalLayers {
+    pub fn label(&self) -> &'static str {
+        match self {
+            ClassicalLayers::Linear => "linear",
+            ClassicalLayers::Spectral => "spectral",
+        }
+    }
+    pub fn is_linear(&self) -> bool {
+        *self == ClassicalLayers::Linear
+    }
+}
+
 /// What a network computes, by inputs and outputs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "config", rename_all = "lowercase")]
@@ -72,9 +96,16 @@ pub enum Task {
     /// Defocus refinement: RGB + depth + CoC map + the `classical` method's render at the
     /// CoC map's focus (8 channels) -> a correction of that render (3).
     C1r { classical: Classical },
-    /// Multifocal refinement: RGB + depth + linear blending's layers for `planes` (4 + 3M)
-    /// -> a correction of those layers (3M); trained through the retina at `foci`.
-    C4r { planes: Vec<f32>, foci: Vec<f32> },
+    /// Multifocal refinement: RGB + depth + the `classical` decomposition's layers for
+    /// `planes` (4 + 3M) -> a correction of those layers (3M); trained through the retina at
+    /// `foci`. `classical` is absent from the JSON when linear (files from before it existed
+    /// refine linear blending).
+    C4r {
+        planes: Vec<f32>,
+        foci: Vec<f32>,
+        #[serde(default, skip_serializing_if = "ClassicalLayers::is_linear")]
+        classical: ClassicalLayers,
+    },
 }
 
 /// Convolutions of the FV U-Net (see the module docs).
@@ -157,7 +188,7 @@ impl Task {
         match self {
             Task::C1 => Ok(()),
             Task::C3 { foci } => diopters(foci, "focal slices", 64),
-            Task::C4 { planes, foci } | Task::C4r { planes, foci } => {
+            Task::C4 { planes, foci } | Task::C4r { planes, foci, .. } => {
                 diopters(planes, "display planes", 16)?;
                 diopters(foci, "focal samples", 64)
             }
@@ -245,6 +276,7 @@ impl Arch {
             "c4r" => Task::C4r {
                 planes: vec![0.2, 0.8, 1.4, 2.0],
                 foci: stack(0.1, 2.2, 22),
+                classical: ClassicalLayers::Linear,
             },
             _ => {
                 return Err(NetError::BadArch(format!(
@@ -431,6 +463,32 @@ mod tests {
             let b = Arch::from_json(&a.to_json()).unwrap();
             assert_eq!(a, b);
         }
+    }
+
+    #[test]
+    fn a_c4r_file_names_its_classical_input_and_older_files_refine_linear_blending() {
+        // The JSON of a C4R file from before the choice existed (the shipped c4r's).
+        let old = r#"{"config":"c4r","planes":[0.2,0.8,1.4,2.0],"foci":[0.1,0.2],"rate":2,"layers":6,"channels":32,"concat_input":false}"#;
+        let a = Arch::from_json(old).unwrap();
+        let Task::C4r { classical, .. } = a.task else {
+            panic!("{a:?}");
+        };
+        assert_eq!(classical, ClassicalLayers::Linear);
+        // Linear is left out of the JSON, so such a file is written as before.
+        assert!(!a.to_json().contains("classical"), "{}", a.to_json());
+        let mut s = Arch::preset("c4r").unwrap();
+        if let Task::C4r { classical, .. } = &mut s.task {
+            *classical = ClassicalLayers::Spectral;
+        }
+        assert!(
+            s.to_json().contains(r#""classical":"spectral""#),
+            "{}",
+            s.to_json()
+        );
+        assert_eq!(Arch::from_json(&s.to_json()).unwrap(), s);
+        // An unknown classical input is refused.
+        let bad = old.replace(r#""rate""#, r#""classical":"optimized","rate""#);
+        assert!(Arch::from_json(&bad).is_err());
     }
 
     #[test]

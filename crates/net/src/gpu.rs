@@ -292,11 +292,11 @@ impl GpuNet {
     }
 
     /// C4R on the GPU (as [`crate::CpuNet::refine_decompose`]).
-    pub fn refine_decompose(&self, rgbd: &Rgbd, linear: &Layers) -> Result<Layers, NetError> {
+    pub fn refine_decompose(&self, rgbd: &Rgbd, classical: &Layers) -> Result<Layers, NetError> {
         self.arch().expect_task("c4r")?;
-        check_planes(&self.arch().task, linear)?;
-        let y = self.forward(&refine_layers_input(rgbd, linear)?)?;
-        compose_layers(linear, &y)
+        check_planes(&self.arch().task, classical)?;
+        let y = self.forward(&refine_layers_input(rgbd, classical)?)?;
+        compose_layers(classical, &y)
     }
 }
 

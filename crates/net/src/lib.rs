@@ -17,7 +17,7 @@ pub mod tiles;
 pub mod train;
 pub mod weights;
 
-pub use arch::{Arch, Classical, Task};
+pub use arch::{Arch, Classical, ClassicalLayers, Task};
 pub use cpu::{Act, CpuNet};
 pub use error::NetError;
 pub use weights::Weights;

@@ -8,13 +8,13 @@
 //! receptive field needs ([`crate::CpuNet::forward_tiles`]), so its output there equals a
 //! full-image pass exactly.
 
-use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
+use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
 pub use crate::tiles::{TileMap, TILE};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::gather::gather_smooth;
-use dioptra_render::{eye_for, Backend, DefocusMethod, Layers, LightFieldParams};
+use dioptra_render::{eye_for, Backend, DefocusMethod, Layers, LightFieldParams, SpectralParams};
 use rayon::prelude::*;
 
 /// A depth step between neighbouring pixels matters when the two depths' blurs differ by
@@ -193,6 +193,26 @@ pub fn classical_defocus(
         .ok_or_else(|| input("the classical method made no image"))
 }
 
+/// The classical layers a C4R net refines, on `backend`: linear blending, or the spectral
+/// decomposition with [`SpectralParams::default`] (the settings the net was trained on when
+/// they were the defaults; the weights' provenance names them).
+pub fn classical_layers(
+    backend: &dyn Backend,
+    classical: ClassicalLayers,
+    rgbd: &Rgbd,
+    planes: &[Diopters],
+    eye: &EyeModel,
+) -> Result<Layers, NetError> {
+    Ok(match classical {
+        ClassicalLayers::Linear => backend.linear_blend(rgbd, planes)?,
+        ClassicalLayers::Spectral => {
+            backend
+                .spectral_blend(rgbd, planes, eye, SpectralParams::default())?
+                .0
+        }
+    })
+}
+
 /// C1R input: [R, G, B, depth / 4, CoC px / 30, classical R, G, B] per pixel.
 pub fn refine_defocus_input(
     rgbd: &Rgbd,
@@ -233,7 +253,7 @@ pub fn refine_defocus_input(
     Act::new(h, w, 8, data)
 }
 
-/// C4R input: [R, G, B, depth / 4, then each layer's R, G, B] per pixel.
+/// C4R input: [R, G, B, depth / 4, then each classical layer's R, G, B] per pixel.
 pub fn refine_layers_input(rgbd: &Rgbd, layers: &Layers) -> Result<Act, NetError> {
     let (w, h) = (rgbd.width(), rgbd.height());
     if layers.images.is_empty() || (layers.width(), layers.height()) != (w, h) {
@@ -411,12 +431,26 @@ impl CpuNet {
         })
     }
 
-    /// C4R: `linear` (linear blending's layers for the net's planes) refined.
-    pub fn refine_decompose(&self, rgbd: &Rgbd, linear: &Layers) -> Result<Layers, NetError> {
+    /// C4R: `classical` (the layers of the net's classical decomposition for its planes,
+    /// [`classical_layers`]) refined.
+    pub fn refine_decompose(&self, rgbd: &Rgbd, classical: &Layers) -> Result<Layers, NetError> {
         self.arch().expect_task("c4r")?;
-        check_planes(&self.arch().task, linear)?;
-        let y = self.forward(&refine_layers_input(rgbd, linear)?)?;
-        compose_layers(linear, &y)
+        check_planes(&self.arch().task, classical)?;
+        let y = self.forward(&refine_layers_input(rgbd, classical)?)?;
+        compose_layers(classical, &y)
+    }
+}
+
+/// The display planes and the classical decomposition of a C4R net.
+pub fn c4r_input(task: &Task) -> Result<(Vec<Diopters>, ClassicalLayers), NetError> {
+    match task {
+        Task::C4r {
+            planes, classical, ..
+        } => Ok((planes.iter().map(|&p| Diopters(p)).collect(), *classical)),
+        t => Err(NetError::WrongConfig {
+            expected: t.name().into(),
+            asked: "c4r".into(),
+        }),
     }
 }
 
@@ -751,6 +785,41 @@ mod tests {
         let planes: Vec<Diopters> = [0.2, 0.8, 1.4, 2.0].map(Diopters).to_vec();
         let linear = linear_blend(&s, &planes).unwrap();
         assert_eq!(c4r.refine_decompose(&s, &linear).unwrap(), linear);
+        // A C4R on the spectral layers: its classical input is the spectral decomposition at
+        // the default settings, and untrained it returns those layers exactly.
+        let mut arch = Arch::preset("c4r").unwrap();
+        let (_, classical) = c4r_input(&arch.task).unwrap();
+        assert_eq!(classical, ClassicalLayers::Linear);
+        if let Task::C4r { classical, .. } = &mut arch.task {
+            *classical = ClassicalLayers::Spectral;
+        }
+        let spectral_net = CpuNet::new(Weights::random(&arch, 7).unwrap()).unwrap();
+        let (p, classical) = c4r_input(&spectral_net.arch().task).unwrap();
+        assert_eq!((p, classical), (planes.clone(), ClassicalLayers::Spectral));
+        let base = classical_layers(&dioptra_render::Cpu, classical, &s, &planes, &e).unwrap();
+        let (spectral, _) =
+            dioptra_render::spectral::spectral_blend(&s, &planes, &e, SpectralParams::default())
+                .unwrap();
+        assert_eq!(base, spectral);
+        assert_ne!(
+            base, linear,
+            "the spectral layers are not linear blending's"
+        );
+        assert_eq!(spectral_net.refine_decompose(&s, &base).unwrap(), spectral);
+        assert_eq!(
+            classical_layers(
+                &dioptra_render::Cpu,
+                ClassicalLayers::Linear,
+                &s,
+                &planes,
+                &e
+            )
+            .unwrap(),
+            linear
+        );
+        // c4r_input names another task's net.
+        let c1r_task = Arch::preset("c1r").unwrap().task;
+        assert!(c4r_input(&c1r_task).is_err());
         // Layers for other planes are refused, naming both.
         let other = linear_blend(&s, &[Diopters(0.5), Diopters(1.5)]).unwrap();
         let err = c4r.refine_decompose(&s, &other).unwrap_err().to_string();

@@ -315,6 +315,49 @@ fn refinement_nets_match_cpu() {
         .fold(0.0, f32::max);
     eprintln!("c4r: max |gpu - cpu| = {err:e}");
     assert!(err < 1e-3, "c4r: {err}");
+    // A C4R on the spectral layers: each backend's spectral decomposition, then its net.
+    let mut arch = Arch::preset("c4r").unwrap();
+    if let dioptra_net::Task::C4r { classical, .. } = &mut arch.task {
+        *classical = dioptra_net::ClassicalLayers::Spectral;
+    }
+    let spectral_c4r = weights_all_random(&arch, 5);
+    let (cpu_s, gpu_s) = (
+        CpuNet::new(spectral_c4r.clone()).unwrap(),
+        GpuNet::new(spectral_c4r, None).unwrap(),
+    );
+    let spectral = dioptra_net::ClassicalLayers::Spectral;
+    let base_cpu = dioptra_net::refine::classical_layers(
+        &dioptra_render::Cpu,
+        spectral,
+        &input,
+        &planes,
+        &eye,
+    )
+    .unwrap();
+    let base_gpu = dioptra_net::refine::classical_layers(
+        &dioptra_render::Gpu::new(None).unwrap(),
+        spectral,
+        &input,
+        &planes,
+        &eye,
+    )
+    .unwrap();
+    let (sa, sb) = (
+        cpu_s.refine_decompose(&input, &base_cpu).unwrap(),
+        gpu_s.refine_decompose(&input, &base_gpu).unwrap(),
+    );
+    assert_ne!(sa, base_cpu, "the random net corrects");
+    let err = sa
+        .images
+        .iter()
+        .zip(&sb.images)
+        .flat_map(|(la, lb)| {
+            (0..3).flat_map(move |c| la.channels[c].data().iter().zip(lb.channels[c].data()))
+        })
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("c4r on spectral: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "c4r on spectral: {err}");
     assert!(a
         .images
         .iter()

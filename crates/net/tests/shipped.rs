@@ -313,7 +313,7 @@ fn c1r_beats_the_36_view_light_field_and_gather_in_the_occlusion_regions() {
 /// Retinal PSNR (mean over the net's foci, 32 rays of truth) of a test scene at 256 px:
 /// (linear, refined, optimized with 10 iterations), and the refined layers.
 fn c4r_on_test_scene(net: &CpuNet, i: u64, optimized: bool) -> (f64, f64, f64, Vec<RgbImage>) {
-    let Task::C4r { planes, foci } = &net.arch().task else {
+    let Task::C4r { planes, foci, .. } = &net.arch().task else {
         panic!("not a c4r net");
     };
     let planes: Vec<Diopters> = planes.iter().copied().map(Diopters).collect();
@@ -362,6 +362,11 @@ fn c4r_on_test_scene(net: &CpuNet, i: u64, optimized: bool) -> (f64, f64, f64, V
 #[test]
 fn shipped_c4r_is_never_below_linear_blending() {
     let net = load_net(None, "c4r").unwrap();
+    // The file names no classical input: it refines linear blending.
+    assert_eq!(
+        dioptra_net::refine::c4r_input(&net.arch().task).unwrap().1,
+        dioptra_net::ClassicalLayers::Linear
+    );
     for i in 0..2 {
         let (l, r, _, layers) = c4r_on_test_scene(&net, i, false);
         assert!(

@@ -400,6 +400,7 @@ fn c4r_training_distils_then_lowers_the_retinal_loss() {
     cfg.arch.task = Task::C4r {
         planes: vec![0.2, 0.8, 1.4, 2.0],
         foci: vec![0.1, 0.7, 1.4, 2.2],
+        classical: dioptra_net::ClassicalLayers::Linear,
     };
     cfg.distill_steps = 15;
     let (_, losses, _) = run(&cfg);

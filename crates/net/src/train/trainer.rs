@@ -386,7 +386,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
     let scenes = load_scenes(cfg, on)?;
     let eye = cfg.data.eye()?;
     let retina = match &cfg.arch.task {
-        Task::C4 { planes, foci } | Task::C4r { planes, foci } => {
+        Task::C4 { planes, foci } | Task::C4r { planes, foci, .. } => {
             Some(Retina::new(planes, foci, &eye, &dev)?)
         }
         _ => None,

@@ -222,19 +222,28 @@ impl RgbdRenderer {
         Ok(r.image)
     }
 
-    /// C4R (multifocal): linear blending on the rig's backend, refined by the net on the GPU
-    /// when the rig renders there, else on the CPU.
+    /// C4R (multifocal): the classical decomposition its weights name (linear blending or
+    /// spectral) on the rig's backend, refined by the net on the GPU when the rig renders
+    /// there, else on the CPU.
     fn refine_decompose(&self, input: &Rgbd) -> Result<Vec<RgbImage>, RenderError> {
         let key = (Mode::Multifocal, RenderMethod::Refine);
         let cpu = self.net(key)?;
-        let linear = self.on_backend("refine (linear)", |gpu| {
-            backend_of(gpu).linear_blend(input, &self.planes)
+        let (_, classical) = dioptra_net::refine::c4r_input(&cpu.arch().task).map_err(net_error)?;
+        let base = self.on_backend("refine (classical)", |gpu| {
+            dioptra_net::refine::classical_layers(
+                backend_of(gpu),
+                classical,
+                input,
+                &self.planes,
+                &self.eye,
+            )
+            .map_err(net_error)
         })?;
-        if let Some(l) = self.on_gpu_net(key, |g| g.refine_decompose(input, &linear))? {
+        if let Some(l) = self.on_gpu_net(key, |g| g.refine_decompose(input, &base))? {
             return Ok(l.images);
         }
         Ok(cpu
-            .refine_decompose(input, &linear)
+            .refine_decompose(input, &base)
             .map_err(net_error)?
             .images)
     }
