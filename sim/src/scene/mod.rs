@@ -137,6 +137,50 @@ fn random_texture(rng: &mut Pcg, distance: f32) -> Texture {
     Texture { a, b, pattern }
 }
 
+/// A texture of [`Scene::generate_wide`]: feature sizes of about 1.5 to 50 mrad, log-uniform
+/// (1 to 35 px at 256 px over 20 degrees), and one in six smooth (one colour).
+fn wide_texture(rng: &mut Pcg, distance: f32) -> Texture {
+    let mut colour = || [0; 3].map(|_| rng.range(0.02, 0.95));
+    let (a, b) = (colour(), colour());
+    let scale = distance * 0.0015 * 33f32.powf(rng.unit());
+    let pattern = match rng.next_u32() % 6 {
+        0 => Pattern::Solid,
+        1 => Pattern::Checker { scale },
+        2 => Pattern::Stripes {
+            scale: scale * 2.0,
+            angle: rng.range(0.0, std::f32::consts::PI),
+        },
+        _ => Pattern::Noise {
+            scale: scale * 2.0,
+            seed: rng.next_u32(),
+        },
+    };
+    Texture { a, b, pattern }
+}
+
+/// The generators of training scenes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Family {
+    /// [`Scene::generate`]: boxes, plates, rods and spheres before a wall.
+    Random,
+    /// [`Scene::generate_occluders`]: thin rods and large boxes before a far wall.
+    Occluders,
+    /// [`Scene::generate_wide`]: large slanted and flat textured planes, spheres of mixed
+    /// sizes, rods and small boxes, at mixed scales.
+    Wide,
+}
+
+impl Family {
+    /// The name used in caches and provenance.
+    pub fn name(self) -> &'static str {
+        match self {
+            Family::Random => "scene",
+            Family::Occluders => "occluders",
+            Family::Wide => "wide",
+        }
+    }
+}
+
 impl Scene {
     /// The scene for `seed` with default options.
     pub fn generate(seed: u64) -> Scene {
@@ -313,6 +357,144 @@ impl Scene {
         }
     }
 
+    /// A scene of the wide family for `seed`: what the random and occluder families hold
+    /// little of, mixed at every scale, before a wall at 0.05-0.6 D. One or two large
+    /// textured planes (the first slanted, its depth varying smoothly by tenths of a diopter
+    /// or more across the view; a second slanted or fronto-parallel and covering much of the
+    /// field); spheres of mixed sizes (radius 1 to
+    /// 30 % of their distance), smooth (one colour, shaded by their curvature) or textured;
+    /// thin rods (about 0.5 to 3 mrad across: 1 to 6 px at 256 px over 20 degrees); small
+    /// boxes and plates. Textures span a wider range of feature sizes (about 1.5 to 50
+    /// mrad) than [`Scene::generate`]'s, with smooth surfaces among them. Objects lie at
+    /// 0.2-4 D. Nothing is taken from any validation scene beyond the kinds of geometry the
+    /// issue names (slanted and curved smooth surfaces, spheres, large textured planes, thin
+    /// structures, mixed scales).
+    pub fn generate_wide(seed: u64) -> Scene {
+        // A different stream from the other families for the same seed.
+        let mut rng = Pcg::new(seed ^ 0x7769_6465_5f66_616d);
+        let wall_depth = 1.0 / rng.range(0.05, 0.6);
+        let wall = wide_texture(&mut rng, wall_depth);
+        let mut objects = Vec::new();
+        let mut push = |shape, texture| {
+            objects.push(Object {
+                shape,
+                texture,
+                alpha: 1.0,
+            })
+        };
+        // Large planes: at least one slanted.
+        let planes = 1 + rng.next_u32() % 2;
+        for k in 0..planes {
+            let slanted = k == 0 || rng.next_u32().is_multiple_of(2);
+            if slanted {
+                // Turned 0.6-1.3 rad out of the fronto-parallel plane about an axis in it
+                // (at `d` D in the middle, its depth runs at d tan(tilt) D per unit of
+                // tangent across the view), reaching 0.25-0.6 of its distance each way.
+                let d = rng.range(0.5, 3.0);
+                let z = 1.0 / d;
+                let along = z * rng.range(0.25, 0.6);
+                let tilt = rng.range(0.6, 1.3) * if rng.unit() < 0.5 { -1.0 } else { 1.0 };
+                push(
+                    Shape::Box {
+                        center: [rng.range(-0.1, 0.1) * z, rng.range(-0.1, 0.1) * z, z],
+                        half: [along, z * rng.range(0.15, 0.5), 1e-4 * z],
+                        rot: Rot::euler(0.0, tilt, rng.range(0.0, std::f32::consts::PI)),
+                    },
+                    wide_texture(&mut rng, z),
+                );
+            } else {
+                let z = 1.0 / rng.range(0.3, 2.0);
+                push(
+                    Shape::Box {
+                        center: [rng.range(-0.15, 0.15) * z, rng.range(-0.15, 0.15) * z, z],
+                        half: [z * rng.range(0.1, 0.3), z * rng.range(0.1, 0.3), 1e-4 * z],
+                        rot: Rot::euler(0.0, 0.0, rng.range(0.0, 0.4)),
+                    },
+                    wide_texture(&mut rng, z),
+                );
+            }
+        }
+        // Spheres of mixed sizes.
+        for _ in 0..rng.next_u32() % 6 {
+            let z = 1.0 / rng.range(0.2, 4.0);
+            // Log-uniform radius: 1 % to 30 % of the distance.
+            let radius = z * 0.01 * 30f32.powf(rng.unit());
+            let texture = if rng.next_u32().is_multiple_of(2) {
+                let c = [0; 3].map(|_| rng.range(0.05, 0.95));
+                Texture {
+                    a: c,
+                    b: c,
+                    pattern: Pattern::Solid,
+                }
+            } else {
+                wide_texture(&mut rng, z)
+            };
+            push(
+                Shape::Sphere {
+                    center: [rng.range(-0.2, 0.2) * z, rng.range(-0.2, 0.2) * z, z],
+                    radius,
+                },
+                texture,
+            );
+        }
+        // Thin rods, a few parallel or at random angles.
+        let rods = rng.next_u32() % 5;
+        let angle = rng.range(0.0, std::f32::consts::PI);
+        for _ in 0..rods {
+            let z = 1.0 / rng.range(0.3, 4.0);
+            let half_thick = z * rng.range(0.00025, 0.0015);
+            let a = if rng.next_u32().is_multiple_of(2) {
+                angle
+            } else {
+                rng.range(0.0, std::f32::consts::PI)
+            };
+            push(
+                Shape::Box {
+                    center: [rng.range(-0.2, 0.2) * z, rng.range(-0.2, 0.2) * z, z],
+                    half: [half_thick, z * rng.range(0.1, 0.4), half_thick],
+                    rot: Rot::euler(rng.range(-0.4, 0.4), 0.0, a),
+                },
+                wide_texture(&mut rng, z),
+            );
+        }
+        // Small boxes and plates, some slanted.
+        for _ in 0..rng.next_u32() % 7 {
+            let z = 1.0 / rng.range(0.2, 4.0);
+            let size = z * 0.01 * 8f32.powf(rng.unit());
+            push(
+                Shape::Box {
+                    center: [rng.range(-0.2, 0.2) * z, rng.range(-0.2, 0.2) * z, z],
+                    half: [
+                        size * rng.range(0.5, 1.5),
+                        size * rng.range(0.5, 1.5),
+                        size * rng.range(0.001, 1.0),
+                    ],
+                    rot: Rot::euler(
+                        rng.range(-1.0, 1.0),
+                        rng.range(-1.0, 1.0),
+                        rng.range(0.0, 3.2),
+                    ),
+                },
+                wide_texture(&mut rng, z),
+            );
+        }
+        Scene {
+            objects,
+            wall_depth,
+            wall,
+            seed,
+        }
+    }
+
+    /// The scene of `family` for `seed`.
+    pub fn of_family(family: Family, seed: u64) -> Scene {
+        match family {
+            Family::Random => Scene::generate(seed),
+            Family::Occluders => Scene::generate_occluders(seed),
+            Family::Wide => Scene::generate_wide(seed),
+        }
+    }
+
     /// Colour and z-depth (metres) of the first surface along `o + t d` (with `d.z = 1`),
     /// compositing semi-transparent surfaces front to back.
     pub fn trace(&self, o: [f32; 3], d: [f32; 3]) -> ([f32; 3], f32) {
@@ -411,6 +593,91 @@ mod tests {
             }
         }
         assert!(kinds[0] && kinds[1], "both rods and boxes among 12 seeds");
+    }
+
+    #[test]
+    fn wide_scenes_hold_slanted_planes_spheres_of_mixed_sizes_and_rods() {
+        use dioptra_core::EyeModel;
+        let cam = Camera::square(EyeModel::default(), 64);
+        let (mut radii, mut smooth_spheres, mut rods, mut flat_planes) = (Vec::new(), 0, 0, 0);
+        for seed in 0..24 {
+            let s = Scene::generate_wide(seed);
+            assert_eq!(s, Scene::of_family(Family::Wide, seed));
+            assert_ne!(s.objects, Scene::generate(seed).objects);
+            let wall_d = 1.0 / s.wall_depth;
+            assert!((0.05..=0.6).contains(&wall_d), "wall at {wall_d} D");
+            // The first object is a large slanted plane: alone before a far wall, its depth
+            // varies smoothly across the view by 0.1 D or more (one pinhole render).
+            let Shape::Box { half, .. } = s.objects[0].shape else {
+                panic!("seed {seed}: the first object is not a plane");
+            };
+            assert!(
+                half[2] < 1e-3 * half[0].min(half[1]),
+                "seed {seed}: {half:?}"
+            );
+            let alone = Scene {
+                objects: vec![s.objects[0]],
+                wall_depth: 1000.0,
+                wall: s.wall,
+                seed,
+            };
+            let (_, depth) = render_pinhole(&alone, &cam, [0.0, 0.0], 1).unwrap();
+            let on: Vec<f32> = depth.data().iter().copied().filter(|&d| d > 0.01).collect();
+            assert!(
+                on.len() > 64 * 64 / 10,
+                "seed {seed}: the plane covers {} px",
+                on.len()
+            );
+            let (lo, hi) = on
+                .iter()
+                .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)));
+            assert!(
+                hi - lo >= 0.1,
+                "seed {seed}: depth {lo}..{hi} D across the plane"
+            );
+            // Smooth: neighbouring plane pixels differ by a small part of the range.
+            let d = depth.data();
+            for y in 0..64 {
+                for x in 0..63 {
+                    let (a, b) = (d[y * 64 + x], d[y * 64 + x + 1]);
+                    if a > 0.01 && b > 0.01 {
+                        assert!((a - b).abs() < 0.25 * (hi - lo) + 0.02, "seed {seed}");
+                    }
+                }
+            }
+            for o in &s.objects[1..] {
+                match o.shape {
+                    Shape::Sphere { center, radius } => {
+                        radii.push(radius / center[2]);
+                        smooth_spheres += usize::from(o.texture.pattern == Pattern::Solid);
+                    }
+                    Shape::Box { center, half, .. } if half[1] > 50.0 * half[0] => {
+                        // A rod: 0.5 to 3 mrad across.
+                        let across = 2.0 * half[0] / center[2];
+                        assert!((0.0005..=0.003).contains(&across), "rod {across} rad");
+                        rods += 1;
+                    }
+                    Shape::Box { half, .. } if half[0] > 0.05 && half[2] < 1e-3 * half[0] => {
+                        flat_planes += 1
+                    }
+                    _ => {}
+                }
+                let z = match o.shape {
+                    Shape::Sphere { center, .. } | Shape::Box { center, .. } => center[2],
+                };
+                assert!((0.2..=4.0).contains(&(1.0 / z)), "object at {} D", 1.0 / z);
+            }
+        }
+        // Mixed sizes: spheres from about 1 % to 30 % of their distance in radius.
+        let (lo, hi) = radii
+            .iter()
+            .fold((f32::MAX, f32::MIN), |(a, b), &r| (a.min(r), b.max(r)));
+        assert!(
+            radii.len() >= 24 && hi / lo > 10.0,
+            "{} radii {lo}..{hi}",
+            radii.len()
+        );
+        assert!(smooth_spheres > 0 && rods >= 12 && flat_planes > 0);
     }
 
     #[test]
