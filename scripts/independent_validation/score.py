@@ -8,7 +8,7 @@ pupil * |plane - focus| and summed, the image edge-replicated; scored against th
 thin-lens truth at every focus of the stack, PSNR on sRGB-encoded images clipped to [0, 1].
 
   python3 scripts/independent_validation/score.py --set ival --binary target/release/dioptra
-      [--methods linear,spectral,optimized,refine] [--out scores.md]
+      [--methods linear,spectral,optimized,refine] [--weights C4R.safetensors] [--out scores.md]
 """
 import argparse
 import glob
@@ -91,6 +91,8 @@ def main():
     ap.add_argument("--binary", required=True)
     ap.add_argument("--methods", default="linear,spectral,optimized,refine")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--weights", default=None,
+                    help="the C4R weights `refine` runs (default: the binary's shipped c4r)")
     a = ap.parse_args()
     methods = a.methods.split(",")
     rows = []
@@ -107,6 +109,8 @@ def main():
             cmd = [a.binary, "decompose", "--color", os.path.join(scene, "color.pfm"),
                    "--depth", os.path.join(scene, "depth.pfm"), "--method", m,
                    "--backend", "cpu", "--out", out]
+            if m == "refine" and a.weights:
+                cmd += ["--weights", a.weights]
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode != 0:
                 row.append(float("nan"))

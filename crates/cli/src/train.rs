@@ -6,7 +6,7 @@ use clap::Args as ClapArgs;
 use dioptra_net::train::data::DataSpec;
 use dioptra_net::train::trainer::StepTimes;
 use dioptra_net::train::{train, TrainConfig, TrainEvent};
-use dioptra_net::{Arch, Classical, Task};
+use dioptra_net::{Arch, Classical, ClassicalLayers, Task};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 
@@ -14,7 +14,7 @@ use std::path::PathBuf;
 pub struct Args {
     /// Configuration: c1 (defocus), c3 (focal stack), c4 (multifocal), c5 (light field from
     /// RGB-D views), fv (foveated view synthesis), c1r (defocus refinement of a classical
-    /// render), c4r (multifocal refinement of linear blending).
+    /// render), c4r (multifocal refinement of a classical decomposition).
     #[arg(long)]
     config: String,
     /// Total steps; rerunning with a larger count resumes and continues.
@@ -76,7 +76,9 @@ pub struct Args {
     /// c4r: steps distilling optimized blending's layers before the retinal loss.
     #[arg(long, default_value_t = 0)]
     distill_steps: u64,
-    /// c1r: the classical render refined: gather, or lightfield:N (N views).
+    /// c1r: the classical render refined: gather, or lightfield:N (N views). c4r: the
+    /// classical decomposition refined: linear (the default) or spectral (the spectral
+    /// decomposition at its default settings).
     #[arg(long)]
     classical: Option<String>,
     /// Lower the learning rate from --lr to this by a cosine over --steps.
@@ -98,6 +100,11 @@ pub struct Args {
     /// wall, training seeds), after the --scenes random ones.
     #[arg(long, default_value_t = 0)]
     occluder_scenes: u64,
+    /// Training scenes of the wide family (large slanted and flat textured planes, spheres
+    /// of mixed sizes, thin rods, small boxes, at mixed scales; training seeds), after the
+    /// occluder scenes.
+    #[arg(long, default_value_t = 0)]
+    wide_scenes: u64,
 }
 
 /// `gather` or `lightfield:N`.
@@ -129,7 +136,14 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(c) = &a.classical {
         match &mut arch.task {
             Task::C1r { classical } => *classical = parse_classical(c)?,
-            _ => bail!("--classical applies to c1r only"),
+            Task::C4r { classical, .. } => {
+                *classical = match c.as_str() {
+                    "linear" => ClassicalLayers::Linear,
+                    "spectral" => ClassicalLayers::Spectral,
+                    _ => bail!("--classical {c}: c4r refines linear or spectral"),
+                }
+            }
+            _ => bail!("--classical applies to c1r and c4r only"),
         }
     }
     if a.distill_steps > 0 && !matches!(arch.task, Task::C4r { .. }) {
@@ -182,6 +196,10 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     cfg.occluder_scenes = a.occluder_scenes;
+    if a.wide_scenes > 0 && matches!(cfg.arch.task, Task::C5 { .. } | Task::Fv { .. }) {
+        bail!("--wide-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)");
+    }
+    cfg.wide_scenes = a.wide_scenes;
     cfg.fovs = match (&a.fovs, &arch_task_is_c1r) {
         (Some(f), _) => f.clone(),
         (None, true) => vec![20.0, 10.0],

@@ -427,3 +427,54 @@ fn c4r_training_distils_then_lowers_the_retinal_loss() {
         .count();
     assert_eq!(cached, 2);
 }
+
+#[test]
+fn c4r_on_spectral_trains_on_the_wide_family_through_a_retina_per_field_of_view() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c4r", dir.path(), 30);
+    cfg.arch.task = Task::C4r {
+        planes: vec![0.2, 0.8, 1.4, 2.0],
+        foci: vec![0.1, 0.7, 1.4, 2.2],
+        classical: dioptra_net::ClassicalLayers::Spectral,
+    };
+    // One random scene (field 5 degrees) and one of the wide family (10 degrees).
+    cfg.scenes = 1;
+    cfg.wide_scenes = 1;
+    cfg.fovs = vec![5.0, 10.0];
+    let (w, losses, _) = run(&cfg);
+    let mean = |s: &[f32]| s.iter().sum::<f32>() / s.len() as f32;
+    // The fields take turns step by step: compare like with like (even steps, odd steps).
+    for (what, first) in [("5 degrees", 0), ("10 degrees", 1)] {
+        let l: Vec<f32> = losses.iter().skip(first).step_by(2).copied().collect();
+        assert!(mean(&l[l.len() - 4..]) < mean(&l[..4]), "{what}: {l:?}");
+    }
+    assert_eq!(
+        w.arch.task, cfg.arch.task,
+        "the weights name their classical input"
+    );
+    let back = Weights::load(&dir.path().join("c4r.safetensors")).unwrap();
+    assert!(back.provenance["refines"].contains("spectral decomposition"));
+    assert!(back.provenance["refines"].contains("taking turns"));
+    assert!(back.provenance["train_wide_seeds"].contains("generate_wide"));
+    // The spectral layers are cached per scene and family; nothing distilled.
+    let names: Vec<String> = std::fs::read_dir(dir.path().join("cache"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    let count = |p: &str| names.iter().filter(|n| n.starts_with(p)).count();
+    assert_eq!(
+        (
+            count("spectral-scene-"),
+            count("spectral-wide-"),
+            count("wide-")
+        ),
+        (1, 1, 1),
+        "{names:?}"
+    );
+    assert_eq!(count("distill-"), 0, "{names:?}");
+    // More fields of view than scenes: a field with no scene is refused, naming it.
+    cfg.fovs = vec![5.0, 10.0, 15.0];
+    cfg.out = dir.path().join("other");
+    let e = train(&cfg, &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("15 degrees"), "{e}");
+}

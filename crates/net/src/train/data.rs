@@ -11,7 +11,7 @@ use crate::error::NetError;
 use crate::fv::{foveate_view, grid_positions, push_view_pixel, view_mask, FoveatedView};
 use crate::weights::SplitMix;
 use dioptra_core::{DepthMap, Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
-use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
+use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Family, Scene, Split};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -27,9 +27,8 @@ pub struct DataSpec {
     pub samples: u32,
     pub fov_deg: f32,
     pub pupil_mm: f32,
-    /// Render [`Scene::generate_occluders`]'s scene for the seed instead of
-    /// [`Scene::generate`]'s.
-    pub occluders: bool,
+    /// The generator of the scenes ([`Scene::of_family`]).
+    pub family: Family,
 }
 
 impl Default for DataSpec {
@@ -40,7 +39,7 @@ impl Default for DataSpec {
             samples: 64,
             fov_deg: 20.0,
             pupil_mm: 4.0,
-            occluders: false,
+            family: Family::Random,
         }
     }
 }
@@ -62,6 +61,8 @@ impl DataSpec {
 #[derive(Debug, Clone)]
 pub struct SceneData {
     pub seed: u64,
+    /// The generator of the scene (seeds are numbered per family).
+    pub family: Family,
     pub rgbd: Rgbd,
     pub foci: Vec<f32>,
     pub stack: Vec<RgbImage>,
@@ -85,7 +86,7 @@ pub fn scene_foci(task: &Task, seed: u64, k: usize) -> Vec<f32> {
     }
 }
 
-fn fnv(bytes: impl IntoIterator<Item = u8>) -> u64 {
+pub(crate) fn fnv(bytes: impl IntoIterator<Item = u8>) -> u64 {
     bytes.into_iter().fold(0xcbf2_9ce4_8422_2325, |h, b| {
         (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
     })
@@ -98,7 +99,7 @@ fn cache_path(dir: &Path, seed: u64, foci: &[f32], spec: &DataSpec) -> PathBuf {
         .flat_map(|f| f.to_le_bytes()));
     dir.join(format!(
         "{}-{seed}-{}px-{}ss-{}spp-{key:016x}.safetensors",
-        if spec.occluders { "occluders" } else { "scene" },
+        spec.family.name(),
         spec.size,
         spec.supersample,
         spec.samples
@@ -174,7 +175,7 @@ fn tensor_f32(raw: &[u8], name: &str) -> Result<(Vec<usize>, Vec<f32>), NetError
     Ok((v.shape().to_vec(), d))
 }
 
-fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetError> {
+fn read_cache(path: &Path, seed: u64, family: Family, foci: &[f32]) -> Result<SceneData, NetError> {
     let raw = read_raw(path)?;
     let get = |name: &str| tensor_f32(&raw, name);
     let (ds, depth) = get("depth")?;
@@ -191,6 +192,7 @@ fn read_cache(path: &Path, seed: u64, foci: &[f32]) -> Result<SceneData, NetErro
     }
     Ok(SceneData {
         seed,
+        family,
         rgbd: Rgbd::new(color, depth)?,
         foci: foci.to_vec(),
         stack,
@@ -213,16 +215,12 @@ pub fn load_or_render(
     let path = cache_path(cache, seed, foci, spec);
     if path.exists() {
         // A corrupt cache entry is re-rendered rather than trusted.
-        if let Ok(s) = read_cache(&path, seed, foci) {
+        if let Ok(s) = read_cache(&path, seed, spec.family, foci) {
             return Ok(s);
         }
     }
     let cam = Camera::square(spec.eye()?, spec.size);
-    let scene = if spec.occluders {
-        Scene::generate_occluders(seed)
-    } else {
-        Scene::generate(seed)
-    };
+    let scene = Scene::of_family(spec.family, seed);
     let (color, depth) = render_pinhole(&scene, &cam, [0.0, 0.0], spec.supersample)?;
     let stack = foci
         .iter()
@@ -230,6 +228,7 @@ pub fn load_or_render(
         .collect::<Result<Vec<_>, _>>()?;
     let s = SceneData {
         seed,
+        family: spec.family,
         rgbd: Rgbd::new(color, depth)?,
         foci: foci.to_vec(),
         stack,
@@ -289,6 +288,7 @@ pub fn load_or_render_views(
     };
     Ok(SceneData {
         seed,
+        family: Family::Random,
         rgbd: views[views.len() / 2].clone(),
         foci: Vec::new(),
         stack: Vec::new(),

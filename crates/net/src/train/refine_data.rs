@@ -6,20 +6,23 @@
 //! threshold). Patches are drawn around tiles that run, a set fraction of them in proportion
 //! to the classical render's squared error there against the thin-lens target (the issue's
 //! "where the classical method errs") and the rest uniformly; the loss covers the pixels of
-//! those tiles the map corrects (its pixel gate, as inference composes). C4R: linear
-//! blending's layers, and optimized blending's layers (fitting the thin-lens focal stack, 100
-//! iterations from linear) to distil before fine-tuning through the retina; the optimized
-//! layers are cached on disk.
+//! those tiles the map corrects (its pixel gate, as inference composes). C4R: the layers of
+//! its classical decomposition (linear blending, or the spectral decomposition, cached on
+//! disk), and, when it distils, optimized blending's layers (fitting the thin-lens focal
+//! stack, 100 iterations from linear) to distil before fine-tuning through the retina, cached
+//! on disk too.
 
-use super::data::{Batch, SceneData};
-use crate::arch::{Classical, Task, COC_NORM, DEPTH_NORM};
+use super::data::{fnv, Batch, SceneData};
+use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM};
 use crate::error::NetError;
-use crate::refine::{classical_defocus, error_tiles_with, TileMap, TILE};
+use crate::refine::{
+    c4r_input, classical_defocus, classical_layers, error_tiles_with, TileMap, TILE,
+};
 use crate::weights::SplitMix;
 use dioptra_core::image::linear_to_srgb;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
 use dioptra_render::multifocal::{linear_blend, optimized_blend};
-use dioptra_render::{Cpu, OptimizeParams};
+use dioptra_render::{Cpu, OptimizeParams, SpectralParams};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::path::Path;
 
@@ -31,11 +34,11 @@ pub struct RefineScene {
     pub data: SceneData,
     /// The eye the scene was rendered for (its field spread over the render's width).
     pub eye: EyeModel,
-    /// C1R: the classical render at each of `data.foci`; C4R: linear blending's layers.
+    /// C1R: the classical render at each of `data.foci`; C4R: its classical layers.
     pub base: Vec<RgbImage>,
     /// C1R: the error map at each focus.
     pub tiles: Vec<TileMap>,
-    /// C4R: optimized blending's layers.
+    /// C4R: optimized blending's layers (when it distils them).
     pub distill: Vec<RgbImage>,
 }
 
@@ -195,61 +198,87 @@ fn read_images(path: &Path, n: usize, w: usize, h: usize) -> Result<Vec<RgbImage
         .collect()
 }
 
-/// C4R: linear blending's layers of every scene, and optimized blending's (read from `cache`
-/// or fitted to the scene's thin-lens focal stack and cached).
+/// C4R: the classical layers of every scene (the net's classical decomposition: linear
+/// blending, or the spectral decomposition at [`SpectralParams::default`], read from `cache`
+/// or computed and cached), and with `distill` optimized blending's (likewise).
 pub fn prepare_c4r(
     scenes: Vec<(SceneData, EyeModel)>,
     task: &Task,
     cache: &Path,
+    distill: bool,
     on: &mut dyn FnMut(usize, usize),
 ) -> Result<Vec<RefineScene>, NetError> {
-    let planes: Vec<Diopters> = task
-        .planes()
-        .ok_or_else(|| NetError::Data(format!("{} has no display planes", task.name())))?
+    let (planes, classical) = c4r_input(task)?;
+    let key: String = planes
         .iter()
-        .map(|&p| Diopters(p))
-        .collect();
+        .map(|p| format!("{:.2}", p.0))
+        .collect::<Vec<_>>()
+        .join("-");
+    // The spectral settings are part of the key: a change of the defaults recomputes.
+    let spectral = SpectralParams::default();
+    let spectral_key = fnv(format!("{spectral:?}").into_bytes());
     let total = scenes.len();
     scenes
         .into_iter()
         .enumerate()
         .map(|(i, (data, eye))| {
-            let linear = linear_blend(&data.rgbd, &planes)?;
             let (w, h) = (data.rgbd.width(), data.rgbd.height());
-            let key: String = planes
-                .iter()
-                .map(|p| format!("{:.2}", p.0))
-                .collect::<Vec<_>>()
-                .join("-");
-            let path = cache.join(format!(
-                "distill-{}-{w}px-fov{}-{key}-{DISTILL_ITERATIONS}it.safetensors",
-                data.seed, eye.fov_horizontal_deg
-            ));
-            let distill = match read_images(&path, planes.len(), w, h) {
-                Ok(v) => v,
-                Err(_) => {
-                    let foci: Vec<Diopters> = data.foci.iter().map(|&q| Diopters(q)).collect();
-                    let (l, _) = optimized_blend(
-                        &data.stack,
-                        &foci,
-                        &planes,
-                        &eye,
-                        Some(&linear),
-                        OptimizeParams {
-                            iterations: DISTILL_ITERATIONS,
-                            tolerance: 0.0,
-                        },
-                        |_| {},
-                    )?;
-                    write_images(&path, &l.images)?;
-                    l.images
+            let name = |what: &str, tail: &str| {
+                cache.join(format!(
+                    "{what}-{}-{}-{w}px-fov{}-{key}-{tail}.safetensors",
+                    data.family.name(),
+                    data.seed,
+                    eye.fov_horizontal_deg
+                ))
+            };
+            let cached = |path: &Path, make: &dyn Fn() -> Result<Vec<RgbImage>, NetError>| {
+                match read_images(path, planes.len(), w, h) {
+                    Ok(v) => Ok(v),
+                    // A missing or corrupt entry is recomputed.
+                    Err(_) => {
+                        let v = make()?;
+                        write_images(path, &v)?;
+                        Ok::<_, NetError>(v)
+                    }
                 }
+            };
+            let base = match classical {
+                ClassicalLayers::Linear => linear_blend(&data.rgbd, &planes)?.images,
+                ClassicalLayers::Spectral => {
+                    cached(&name("spectral", &format!("{spectral_key:016x}")), &|| {
+                        Ok(classical_layers(&Cpu, classical, &data.rgbd, &planes, &eye)?.images)
+                    })?
+                }
+            };
+            let distill = if distill {
+                cached(
+                    &name("distill", &format!("{DISTILL_ITERATIONS}it")),
+                    &|| {
+                        let foci: Vec<Diopters> = data.foci.iter().map(|&q| Diopters(q)).collect();
+                        let linear = linear_blend(&data.rgbd, &planes)?;
+                        let (l, _) = optimized_blend(
+                            &data.stack,
+                            &foci,
+                            &planes,
+                            &eye,
+                            Some(&linear),
+                            OptimizeParams {
+                                iterations: DISTILL_ITERATIONS,
+                                tolerance: 0.0,
+                            },
+                            |_| {},
+                        )?;
+                        Ok(l.images)
+                    },
+                )?
+            } else {
+                Vec::new()
             };
             on(i + 1, total);
             Ok(RefineScene {
                 data,
                 eye,
-                base: linear.images,
+                base,
                 tiles: Vec::new(),
                 distill,
             })
@@ -357,8 +386,9 @@ pub fn sample_c1r_batch(
 /// (the retinal model at all 22 costs more than the net).
 pub const C4R_FOCI_PER_STEP: usize = 8;
 
-/// A batch of random C4R patches: inputs (RGB, depth, linear layers), the thin-lens focal
-/// stack (3 per focus), optimized blending's layers (3 per plane) and the foci scored.
+/// A batch of random C4R patches: inputs (RGB, depth, classical layers), the thin-lens focal
+/// stack (3 per focus), optimized blending's layers (3 per plane, when distilling) and the
+/// foci scored.
 pub fn sample_c4r_batch(
     scenes: &[RefineScene],
     rng: &mut SplitMix,

@@ -10,12 +10,13 @@ use super::refine_data::{
 };
 use super::retina::Retina;
 use super::{log_mse, loss, srgb, LossKind};
-use crate::arch::{Arch, Task};
+use crate::arch::{Arch, ClassicalLayers, Task};
 use crate::error::NetError;
 use crate::refine::TILE;
 use crate::weights::{SplitMix, Weights};
 use candle_core::{Device, Tensor};
-use dioptra_sim::scene::Scene;
+use dioptra_render::SpectralParams;
+use dioptra_sim::scene::{Family, Scene};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -65,6 +66,9 @@ pub struct TrainConfig {
     /// seeds `first_seed ..`) after the `scenes` random ones; for C1 and C1R one focus of
     /// each is its wall's.
     pub occluder_scenes: u64,
+    /// Scenes of the wide family ([`dioptra_sim::scene::Scene::generate_wide`], seeds
+    /// `first_seed ..`) after the occluder scenes.
+    pub wide_scenes: u64,
 }
 
 impl TrainConfig {
@@ -90,6 +94,7 @@ impl TrainConfig {
             own_blur_px: crate::refine::MIN_OWN_BLUR_PX,
             no_worse: 0.0,
             occluder_scenes: 0,
+            wide_scenes: 0,
         }
     }
 
@@ -104,19 +109,47 @@ impl TrainConfig {
         }
     }
 
-    /// Random scenes plus occluder scenes.
+    /// Random scenes plus occluder and wide scenes.
     pub fn total_scenes(&self) -> u64 {
-        self.scenes + self.occluder_scenes
+        self.scenes + self.occluder_scenes + self.wide_scenes
     }
 
-    /// The render settings of training scene `i` (its field of view from `fovs`).
+    /// The family and seed of training scene `i`: the random scenes, then the occluder
+    /// family's, then the wide family's, each family numbering its seeds from `first_seed`
+    /// (different generators, so no scene repeats).
+    pub fn scene_of(&self, i: u64) -> (Family, u64) {
+        let (family, k) = if i < self.scenes {
+            (Family::Random, i)
+        } else if i < self.scenes + self.occluder_scenes {
+            (Family::Occluders, i - self.scenes)
+        } else {
+            (Family::Wide, i - self.scenes - self.occluder_scenes)
+        };
+        (family, self.first_seed + k)
+    }
+
+    /// The render settings of training scene `i` (its family, its field of view from `fovs`).
     pub fn spec_of(&self, i: u64) -> DataSpec {
         let mut spec = self.data.clone();
-        spec.occluders = i >= self.scenes;
+        spec.family = self.scene_of(i).0;
         if !self.fovs.is_empty() {
             spec.fov_deg = self.fovs[(i % self.fovs.len() as u64) as usize];
         }
         spec
+    }
+
+    /// The distinct fields of view of the training scenes, in order of first use.
+    pub fn distinct_fovs(&self) -> Vec<f32> {
+        if self.fovs.is_empty() {
+            return vec![self.data.fov_deg];
+        }
+        let mut out: Vec<f32> = Vec::new();
+        for &f in &self.fovs {
+            if !out.contains(&f) {
+                out.push(f);
+            }
+        }
+        out
     }
 }
 
@@ -220,9 +253,7 @@ pub fn load_scenes(
     let total = cfg.total_scenes();
     (0..total)
         .map(|i| {
-            // The occluder family numbers its seeds from `first_seed` too: a different
-            // generator, so no scene repeats.
-            let seed = cfg.first_seed + if i < cfg.scenes { i } else { i - cfg.scenes };
+            let (_, seed) = cfg.scene_of(i);
             let spec = cfg.spec_of(i);
             let s = match &cfg.arch.task {
                 Task::C5 { grid, .. } | Task::Fv { grid, .. } => {
@@ -230,7 +261,9 @@ pub fn load_scenes(
                 }
                 task => {
                     let mut foci = scene_foci(task, seed, cfg.foci_per_scene);
-                    if spec.occluders && matches!(task, Task::C1 | Task::C1r { .. }) {
+                    if spec.family == Family::Occluders
+                        && matches!(task, Task::C1 | Task::C1r { .. })
+                    {
                         // Looking through the occluders at the wall behind them (a fence, a
                         // grid) is the commonest way to meet them and the hardest for C1R, so
                         // one focus of each such scene is its wall's; the rest stay random.
@@ -252,7 +285,9 @@ pub fn load_scenes(
 enum Data {
     Plain(Vec<SceneData>),
     C1r(Vec<RefineScene>, TileSampler),
-    C4r(Vec<RefineScene>),
+    /// The scenes grouped by field of view ([`TrainConfig::distinct_fovs`]'s order), each
+    /// group trained through its own retinal model.
+    C4r(Vec<Vec<RefineScene>>),
 }
 
 /// One step's loss on a batch (the forward pass and, for C4 and C4R, the retinal model).
@@ -385,11 +420,23 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
     let started = Instant::now();
     let scenes = load_scenes(cfg, on)?;
     let eye = cfg.data.eye()?;
-    let retina = match &cfg.arch.task {
-        Task::C4 { planes, foci } | Task::C4r { planes, foci, .. } => {
-            Some(Retina::new(planes, foci, &eye, &dev)?)
-        }
-        _ => None,
+    // C4: one retinal model (the data's eye); C4R: one per field of view, the scenes of each
+    // trained through their own.
+    let retinas = match &cfg.arch.task {
+        Task::C4 { planes, foci } => vec![Retina::new(planes, foci, &eye, &dev)?],
+        Task::C4r { planes, foci, .. } => cfg
+            .distinct_fovs()
+            .iter()
+            .map(|&f| {
+                let eye = DataSpec {
+                    fov_deg: f,
+                    ..cfg.data.clone()
+                }
+                .eye()?;
+                Ok(Retina::new(planes, foci, &eye, &dev)?)
+            })
+            .collect::<Result<Vec<_>, NetError>>()?,
+        _ => Vec::new(),
     };
     let with_eyes =
         |scenes: Vec<SceneData>| -> Result<Vec<(SceneData, dioptra_core::EyeModel)>, NetError> {
@@ -417,21 +464,37 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             Data::C1r(s, sampler)
         }
         Task::C4r { .. } => {
-            if !cfg.fovs.is_empty() && cfg.fovs.iter().any(|&f| f != cfg.data.fov_deg) {
-                return Err(NetError::Input(
-                    "C4R trains through one retinal model: one field of view".into(),
-                ));
-            }
-            Data::C4r(prepare_c4r(
+            let fovs = cfg.distinct_fovs();
+            let mut groups: Vec<Vec<RefineScene>> = fovs.iter().map(|_| Vec::new()).collect();
+            for s in prepare_c4r(
                 with_eyes(scenes)?,
                 &cfg.arch.task,
                 &cfg.cache,
+                cfg.distill_steps > 0,
                 &mut prep,
-            )?)
+            )? {
+                let g = fovs
+                    .iter()
+                    .position(|&f| f == s.eye.fov_horizontal_deg)
+                    .ok_or_else(|| {
+                        NetError::Data(format!(
+                            "scene {}: a field of view not in --fovs",
+                            s.data.seed
+                        ))
+                    })?;
+                groups[g].push(s);
+            }
+            if let Some(g) = groups.iter().position(|g| g.is_empty()) {
+                return Err(NetError::Input(format!(
+                    "no training scene has the field of view {} degrees: use at least as many scenes as fields of view",
+                    fovs[g]
+                )));
+            }
+            Data::C4r(groups)
         }
         _ => Data::Plain(scenes),
     };
-    if let Some(r) = &retina {
+    for r in &retinas {
         if cfg.patch <= 2 * r.radius + 2 {
             return Err(NetError::Input(format!(
                 "patch {} is too small for the retinal kernels (radius {})",
@@ -483,6 +546,10 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         // Batches depend only on (seed, step): a resumed run sees the same data.
         let mut rng =
             SplitMix(cfg.seed.wrapping_mul(0x9e37_79b9) ^ step.wrapping_mul(0x2545_f491_4f6c_dd1d));
+        let group = match &data {
+            Data::C4r(groups) => (step % groups.len() as u64) as usize,
+            _ => 0,
+        };
         let t0 = Instant::now();
         let b = match &data {
             Data::Plain(scenes) => sample_batch(
@@ -497,11 +564,15 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             Data::C1r(scenes, sampler) => {
                 sample_c1r_batch(scenes, sampler, &mut rng, cfg.batch, cfg.patch, align, halo)?
             }
-            Data::C4r(scenes) => sample_c4r_batch(scenes, &mut rng, cfg.batch, cfg.patch, align)?,
+            // The fields of view take turns, step by step.
+            Data::C4r(groups) => {
+                sample_c4r_batch(&groups[group], &mut rng, cfg.batch, cfg.patch, align)?
+            }
         };
         let t1 = Instant::now();
         let distilling = step < cfg.distill_steps;
-        let l = batch_loss(&net, retina.as_ref(), &b, distilling, cfg.no_worse, &dev)?;
+        let retina = retinas.get(group);
+        let l = batch_loss(&net, retina, &b, distilling, cfg.no_worse, &dev)?;
         let lv = l.to_scalar::<f32>()?;
         if !lv.is_finite() {
             return Err(NetError::Data(format!(
@@ -538,6 +609,16 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         "train_seeds".into(),
         format!("{}..{}", cfg.first_seed, cfg.first_seed + cfg.scenes),
     );
+    if cfg.wide_scenes > 0 {
+        p.insert(
+            "train_wide_seeds".into(),
+            format!(
+                "{}..{} (Scene::generate_wide)",
+                cfg.first_seed,
+                cfg.first_seed + cfg.wide_scenes
+            ),
+        );
+    }
     if cfg.occluder_scenes > 0 {
         p.insert(
             "train_occluder_seeds".into(),
@@ -601,12 +682,31 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
                 ),
             );
         }
-        Task::C4r { .. } => {
+        Task::C4r { classical, .. } => {
+            let input = match classical {
+                ClassicalLayers::Linear => "linear blending's layers".to_string(),
+                ClassicalLayers::Spectral => format!(
+                    "the spectral decomposition's layers (trained on {:?})",
+                    SpectralParams::default()
+                ),
+            };
+            let distill = if cfg.distill_steps > 0 {
+                format!(
+                    "MSE (log10) against optimized blending's layers ({DISTILL_ITERATIONS} iterations fitting the thin-lens stack) for the first {} steps, then ",
+                    cfg.distill_steps
+                )
+            } else {
+                String::new()
+            };
             p.insert(
                 "refines".into(),
                 format!(
-                    "linear blending's layers; loss: MSE (log10) against optimized blending's layers ({DISTILL_ITERATIONS} iterations fitting the thin-lens stack) for the first {} steps, then sRGB MSE (log10) of the retinal focal stack",
-                    cfg.distill_steps
+                    "{input}; loss: {distill}sRGB MSE (log10) of the retinal focal stack{}",
+                    if cfg.distinct_fovs().len() > 1 {
+                        ", the fields of view taking turns step by step, each through its own retinal model"
+                    } else {
+                        ""
+                    }
                 ),
             );
         }
