@@ -118,6 +118,19 @@ impl std::fmt::Display for Exit {
 
 impl std::error::Error for Exit {}
 
+/// The crates' `tracing` events (devices lost and reconnected, display misfits, failed
+/// renders, lens status warnings) on stderr: from `level` up, or as `RUST_LOG` says
+/// (`RUST_LOG=debug`, `RUST_LOG=dioptra_lens=trace`). Without a subscriber they went nowhere.
+fn log_to_stderr(level: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+    // Fails only if a subscriber is already set, which nothing else does.
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
 /// A closed pipe on stdout (`dioptra replay --json | head`) ends the command quietly, as it
 /// does other Unix tools, instead of a panic in `println!`. Not for commands that drive a rig
 /// (serve, hil): they must park the lens whatever happens to their output.
@@ -151,7 +164,9 @@ fn main() -> std::process::ExitCode {
         std::env::set_var("NODEVICE_SELECT", "1");
     }
     dioptra_render::alloc::keep_freed_memory();
-    if !matches!(cli.command, Command::Serve(_) | Command::Hil(_)) {
+    let drives_a_rig = matches!(cli.command, Command::Serve(_) | Command::Hil(_));
+    log_to_stderr(if drives_a_rig { "info" } else { "warn" });
+    if !drives_a_rig {
         quiet_broken_pipes();
     }
     let result = match cli.command {

@@ -31,15 +31,17 @@ fn start_sim(which: &str) -> (Sim, String) {
     (Sim(child), path)
 }
 
-fn lens(device: &str, args: &[&str]) -> (bool, String) {
+/// Whether the command succeeded, its stdout and stderr together, and its stdout alone (the
+/// lines it prints; stderr also carries the driver's logged warnings).
+fn lens(device: &str, args: &[&str]) -> (bool, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
         .args(["lens", "--device", device])
         .args(args)
         .output()
         .unwrap();
-    let text =
-        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
-    (out.status.success(), text)
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+    let text = stdout.clone() + &String::from_utf8_lossy(&out.stderr);
+    (out.status.success(), text, stdout)
 }
 
 /// `handshake_resets`: a new session resets the lens (the Lens Driver 4's `Start` resets its
@@ -47,47 +49,48 @@ fn lens(device: &str, args: &[&str]) -> (bool, String) {
 fn set_then_get(driver: &str, sim: &str, handshake_resets: bool) {
     let (_sim, path) = start_sim(sim);
     let device = format!("{driver}:{path}");
-    let (ok, out) = lens(&device, &["set", "1.5", "--watch-ms", "100"]);
+    let (ok, out, stdout) = lens(&device, &["set", "1.5", "--watch-ms", "100"]);
     assert!(ok, "{out}");
     assert!(
-        out.lines().last().unwrap().contains("power 1.500 D"),
+        stdout.lines().last().unwrap().contains("power 1.500 D"),
         "{out}"
     );
-    let (ok, out) = lens(&device, &["get"]);
+    let (ok, out, _) = lens(&device, &["get"]);
     assert!(ok, "{out}");
     assert_eq!(out.contains("power 1.500 D"), !handshake_resets, "{out}");
-    let (ok, out) = lens(
+    let (ok, out, stdout) = lens(
         &device,
         &["sweep", "0:1", "--step", "0.5", "--dwell-ms", "40"],
     );
     assert!(ok, "{out}");
-    assert_eq!(out.lines().count(), 3, "{out}");
+    assert_eq!(stdout.lines().count(), 3, "{out}");
     assert!(
-        out.lines().last().unwrap().contains("power 1.000 D"),
+        stdout.lines().last().unwrap().contains("power 1.000 D"),
         "{out}"
     );
-    let (ok, out) = lens(&device, &["--refuse", "--max-d", "2", "set", "2.5"]);
+    let (ok, out, _) = lens(&device, &["--refuse", "--max-d", "2", "set", "2.5"]);
     assert!(!ok && out.contains("nothing was sent"), "{out}");
     // A clamped request: the line says what went out, and the lens gets there.
-    let (ok, out) = lens(
+    let (ok, out, stdout) = lens(
         &device,
         &["--max-d", "2", "set", "2.5", "--watch-ms", "100"],
     );
     assert!(ok, "{out}");
     assert!(
-        out.lines()
+        stdout
+            .lines()
             .next()
             .unwrap()
             .starts_with("set 2.000 D (asked 2.500 D, clamped to the driving range"),
         "{out}"
     );
     assert!(
-        out.lines().last().unwrap().contains("power 2.000 D"),
+        stdout.lines().last().unwrap().contains("power 2.000 D"),
         "{out}"
     );
-    let (ok, out) = lens(&device, &["info"]);
+    let (ok, out, _) = lens(&device, &["info"]);
     assert!(ok, "{out}");
-    let (ok, out) = lens(&device, &["temp"]);
+    let (ok, out, _) = lens(&device, &["temp"]);
     assert!(ok && out.contains("temperature"), "{out}");
 }
 
@@ -149,16 +152,16 @@ fn sync_simulator_as_readme_runs_it_reaches_every_plane() {
 
 #[test]
 fn bad_device_specs_say_what_is_accepted() {
-    let (ok, out) = lens("nonsense", &["get"]);
+    let (ok, out, _) = lens("nonsense", &["get"]);
     assert!(!ok && out.contains("DRIVER:PATH"), "{out}");
-    let (ok, out) = lens("zoom:/dev/null", &["get"]);
+    let (ok, out, _) = lens("zoom:/dev/null", &["get"]);
     assert!(!ok && out.contains("unknown lens driver"), "{out}");
-    let (ok, out) = lens("optotune:/dev/ttyACM_dioptra_absent", &["get"]);
+    let (ok, out, _) = lens("optotune:/dev/ttyACM_dioptra_absent", &["get"]);
     assert!(!ok && out.contains("no serial port"), "{out}");
     // The rig config's ports: the Lens Driver 4 has no USB bulk interface; "sim" is for rigs.
-    let (ok, out) = lens("optotune:usb", &["get"]);
+    let (ok, out, _) = lens("optotune:usb", &["get"]);
     assert!(!ok && out.contains("cannot be reached at usb"), "{out}");
-    let (ok, out) = lens("lens:sim", &["get"]);
+    let (ok, out, _) = lens("lens:sim", &["get"]);
     assert!(!ok && out.contains("dioptra sim"), "{out}");
 }
 
@@ -279,7 +282,7 @@ fn calibrate_against_the_simulator_reproduces_a_nonlinear_map_through_noise() {
         "--out",
         out_s,
     ];
-    let (ok, text) = lens(&device, &args);
+    let (ok, text, _) = lens(&device, &args);
     assert!(ok, "{text}");
     assert_eq!(
         text.lines().filter(|l| l.starts_with("step ")).count(),
@@ -331,7 +334,7 @@ fn calibrate_against_the_simulator_reproduces_a_nonlinear_map_through_noise() {
         "{v}"
     );
     // An existing table is not replaced without --force.
-    let (ok, text) = lens(&device, &args);
+    let (ok, text, _) = lens(&device, &args);
     assert!(!ok && text.contains("--force"), "{text}");
 }
 
@@ -358,35 +361,35 @@ fn calibrate_refuses_what_it_cannot_trust_and_writes_nothing() {
         )
     };
     // Up, then down again: a parabola over the commands.
-    let (ok, text) = calibrate(
+    let (ok, text, _) = calibrate(
         "--powers=0:3:0.25",
         r#"awk -v p="$DIOPTRA_LENS_POWER_D" 'BEGIN { printf "%.4f\n", 2 - (p - 1.5) * (p - 1.5) }'"#,
     );
     assert!(!ok && text.contains("not monotonic"), "{text}");
     // Too few points, refused before the lens moves.
-    let (ok, text) = calibrate("--powers=0:1:0.5", MEASURE);
+    let (ok, text, _) = calibrate("--powers=0:1:0.5", MEASURE);
     assert!(!ok && text.contains("at least 5"), "{text}");
     assert!(!text.contains("step "), "{text}");
     // A measure command that fails: its status and stderr, at the command it failed on.
-    let (ok, text) = calibrate("--powers=-1:1:0.25", "echo camera not found >&2; exit 3");
+    let (ok, text, _) = calibrate("--powers=-1:1:0.25", "echo camera not found >&2; exit 3");
     assert!(!ok, "{text}");
     assert!(
         text.contains("failed at command -1 D") && text.contains("camera not found"),
         "{text}"
     );
     // One that prints no number.
-    let (ok, text) = calibrate("--powers=-1:1:0.25", "echo blurry");
+    let (ok, text, _) = calibrate("--powers=-1:1:0.25", "echo blurry");
     assert!(!ok && text.contains("printed \"blurry\""), "{text}");
     // Noise of ±0.1 D: too noisy.
-    let (ok, text) = calibrate(
+    let (ok, text, _) = calibrate(
         "--powers=-1:2:0.25",
         r#"awk -v p="$DIOPTRA_LENS_POWER_D" 'BEGIN { k = int((p + 1) * 4 + 0.5); printf "%.4f\n", 2 - p + (k % 2 ? 0.1 : -0.1) }'"#,
     );
     assert!(!ok && text.contains("too noisy"), "{text}");
     // Too sparse a step, and a range beyond the lens's.
-    let (ok, text) = calibrate("--powers=0:4:1.5", MEASURE);
+    let (ok, text, _) = calibrate("--powers=0:4:1.5", MEASURE);
     assert!(!ok && text.contains("at most 1 D"), "{text}");
-    let (ok, text) = calibrate("--powers=0:40:0.5", MEASURE);
+    let (ok, text, _) = calibrate("--powers=0:40:0.5", MEASURE);
     assert!(
         !ok && text.contains("outside the range this lens is driven within"),
         "{text}"
