@@ -8,13 +8,20 @@ pupil * |plane - focus| and summed, the image edge-replicated; scored against th
 thin-lens truth at every focus of the stack, PSNR on sRGB-encoded images clipped to [0, 1].
 
   python3 scripts/independent_validation/score.py --set ival --binary target/release/dioptra
-      [--methods linear,spectral,optimized,refine] [--weights C4R.safetensors] [--out scores.md]
+      [--methods linear,spectral,optimized,refine] [--weights C4R.safetensors] [--variant LABEL='ARGS' ...]
+      [--out scores.md]
+
+A variant is one more column: `decompose` with ARGS (shell words) instead of `--method M`, e.g.
+--variant "spectral gather 8=--method spectral --target-method gather --focal-samples 8";
+`{scene}` in ARGS is the scene's directory (`--targets {scene}/stack` fits the truth itself: an
+oracle no rig has, scored at the foci it fitted).
 """
 import argparse
 import glob
 import math
 import os
 import re
+import shlex
 import subprocess
 
 import mitsuba as mi
@@ -90,11 +97,19 @@ def main():
     ap.add_argument("--set", required=True)
     ap.add_argument("--binary", required=True)
     ap.add_argument("--methods", default="linear,spectral,optimized,refine")
+    ap.add_argument("--variant", action="append", default=[],
+                    help="LABEL=ARGS: a column from `decompose ARGS` (ARGS as shell words)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--weights", default=None,
                     help="the C4R weights `refine` runs (default: the binary's shipped c4r)")
     a = ap.parse_args()
-    methods = a.methods.split(",")
+    runs = [(m, ["--method", m]) for m in a.methods.split(",") if m]
+    for v in a.variant:
+        label, sep, args = v.partition("=")
+        if not sep or not label.strip():
+            ap.error(f"--variant {v!r}: expected LABEL=ARGS")
+        runs.append((label.strip(), shlex.split(args)))
+    methods = [m for m, _ in runs]
     rows = []
     for d in sorted(glob.glob(os.path.join(a.set, "*", "color.pfm"))):
         scene = os.path.dirname(d)
@@ -104,10 +119,11 @@ def main():
         truth = [read(s) for s in stack]
         width = truth[0].shape[1]
         row = [name]
-        for m in methods:
-            out = os.path.join(scene, f"layers_{m}")
+        for m, args in runs:
+            out = os.path.join(scene, "layers_" + re.sub(r"[^A-Za-z0-9.-]+", "_", m))
             cmd = [a.binary, "decompose", "--color", os.path.join(scene, "color.pfm"),
-                   "--depth", os.path.join(scene, "depth.pfm"), "--method", m,
+                   "--depth", os.path.join(scene, "depth.pfm"),
+                   *[x.replace("{scene}", scene) for x in args],
                    "--backend", "cpu", "--out", out]
             if m == "refine" and a.weights:
                 cmd += ["--weights", a.weights]

@@ -330,10 +330,12 @@ pub struct DecomposeArgs {
     #[arg(long)]
     targets: Option<PathBuf>,
     /// Optimized and spectral: what renders the targets when --targets is absent: gather or
-    /// lightfield; spectral also takes slices or normalized-slices (a focal stack built in the
-    /// frequency domain from depth slices). Default: lightfield.
-    #[arg(long, default_value = "lightfield")]
-    target_method: String,
+    /// lightfield; spectral also takes composite (the light field only where a blurred depth
+    /// step reaches, the exact disk blur of smooth depth elsewhere), slices or
+    /// normalized-slices (a focal stack built in the frequency domain from depth slices).
+    /// Default: lightfield for optimized, the spectral default for spectral.
+    #[arg(long)]
+    target_method: Option<String>,
     /// Optimized and spectral: lightfield views for the targets (default 36 for optimized,
     /// the spectral default otherwise).
     #[arg(long)]
@@ -396,14 +398,28 @@ impl DecomposeArgs {
     /// The spectral decomposition's settings: its defaults, with what was given.
     fn spectral_params(&self) -> Result<SpectralParams> {
         let d = SpectralParams::default();
-        let targets = match self.target_method.as_str() {
-            "slices" => SpectralTargets::Slices,
-            "normalized-slices" => SpectralTargets::NormalizedSlices,
-            m => {
-                let views = self.target_views.unwrap_or(match d.targets {
-                    SpectralTargets::Defocus(DefocusMethod::LightField(l)) => l.views,
-                    _ => 12,
-                });
+        let views = self.target_views.unwrap_or(match d.targets {
+            SpectralTargets::Defocus(DefocusMethod::LightField(l))
+            | SpectralTargets::Composite(l) => l.views,
+            _ => 12,
+        });
+        let targets = match self.target_method.as_deref() {
+            None => match d.targets {
+                SpectralTargets::Defocus(DefocusMethod::LightField(l)) => {
+                    SpectralTargets::Defocus(DefocusMethod::LightField(LightFieldParams {
+                        views,
+                        ..l
+                    }))
+                }
+                SpectralTargets::Composite(l) => {
+                    SpectralTargets::Composite(LightFieldParams { views, ..l })
+                }
+                t => t,
+            },
+            Some("slices") => SpectralTargets::Slices,
+            Some("normalized-slices") => SpectralTargets::NormalizedSlices,
+            Some("composite") => SpectralTargets::Composite(LightFieldParams { views, mip: true }),
+            Some(m) => {
                 SpectralTargets::Defocus(
                     MethodArgs {
                         method: m.to_string(),
@@ -412,7 +428,7 @@ impl DecomposeArgs {
                     }
                     .method()
                     .context(
-                        "--target-method: expected gather, lightfield, slices or normalized-slices",
+                        "--target-method: expected gather, lightfield, composite, slices or normalized-slices",
                     )?,
                 )
             }
@@ -538,7 +554,10 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
                         &foci,
                         &eye,
                         MethodArgs {
-                            method: a.target_method.clone(),
+                            method: a
+                                .target_method
+                                .clone()
+                                .unwrap_or_else(|| "lightfield".into()),
                             views: a.target_views.unwrap_or(36),
                             weights: None,
                         }

@@ -13,14 +13,11 @@ use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
 pub use crate::tiles::{TileMap, TILE};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd};
-use dioptra_render::gather::gather_smooth;
+use dioptra_render::composite::{compose, step_reach};
 use dioptra_render::{eye_for, Backend, DefocusMethod, Layers, LightFieldParams, SpectralParams};
 use rayon::prelude::*;
 
-/// A depth step between neighbouring pixels matters when the two depths' blurs differ by
-/// this many pixels (CoC diameter of the step itself): below it the classical methods'
-/// single-layer assumption holds.
-pub const EDGE_BLUR_PX: f32 = 1.0;
+pub use dioptra_render::composite::EDGE_BLUR_PX;
 
 /// A pixel whose own blur (CoC diameter, pixels) is below this keeps the classical value even
 /// where a blurred step reaches it: it sees itself along nearly every ray through the pupil,
@@ -28,21 +25,10 @@ pub const EDGE_BLUR_PX: f32 = 1.0;
 /// error than it removes (validation seeds, not test seeds: see `crates/net/README.md`).
 pub const MIN_OWN_BLUR_PX: f32 = 3.0;
 
-/// The error map (BokehMe's, from depth alone): the tiles within the blur radius of a depth
-/// discontinuity at focus `focus`. A pair of neighbouring pixels is a discontinuity when their
-/// depths differ by at least [`EDGE_BLUR_PX`] of blur; it can affect the pixels its sides'
-/// blur disks reach (radius CoC / 2, plus one pixel), and nothing when neither side blurs by
-/// half a pixel.
-///
-/// Per pixel the map keeps only what a single view lacks. The farther side's blur corrects
-/// only its own pixels: behind a sharp occluder the occluder's pixels are what a single view
-/// and the thin lens both see. The nearer side's blur corrects both sides when the farther
-/// side blurs too, but only its own pixels when the farther side is sharp: a sharp pixel
-/// beside a blurred occluder sees itself and the occluder along every ray through the pupil,
-/// both in the image, so the classical render lacks nothing there (the light field's only
-/// error is its sampling of the pupil), while the occluder's own pixels hide the background
-/// its blur uncovers. A pixel blurred by less than [`MIN_OWN_BLUR_PX`] itself is never
-/// corrected. A tile runs when any of its pixels is corrected.
+/// The error map (BokehMe's, from depth alone): the tiles holding a pixel that
+/// [`step_reach`] finds lacking at focus `focus` (reached by a blurred depth step's disk,
+/// missing what a single view cannot show, blurred by [`MIN_OWN_BLUR_PX`] or more itself).
+/// Those pixels take the net's correction; a tile runs when any of its pixels does.
 pub fn error_tiles(depth: &DepthMap, focus: Diopters, eye: &EyeModel) -> Result<TileMap, NetError> {
     error_tiles_with(depth, focus, eye, MIN_OWN_BLUR_PX)
 }
@@ -56,121 +42,18 @@ pub fn error_tiles_with(
     eye: &EyeModel,
     min_own_blur_px: f32,
 ) -> Result<TileMap, NetError> {
-    if !(min_own_blur_px.is_finite() && min_own_blur_px >= 0.0) {
-        return Err(input(format!(
-            "the own-blur threshold must be a finite number of pixels >= 0, not {min_own_blur_px}"
-        )));
-    }
-    let (w, h) = (depth.width(), depth.height());
-    let eye = eye_for(eye, w)?;
-    let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
-    let d = depth.data();
-    let q = focus.0;
-    // Pass 1, rows in parallel: the steps from each pixel to its right and lower neighbours
-    // that blur by half a pixel or more.
-    let steps: Vec<Vec<Step>> = (0..h)
-        .into_par_iter()
-        .map(|y| {
-            let mut row = Vec::new();
-            for x in 0..w {
-                let a = d[y * w + x];
-                for (nx, ny) in [(x + 1, y), (x, y + 1)] {
-                    if nx >= w || ny >= h {
-                        continue;
-                    }
-                    let b = d[ny * w + nx];
-                    if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
-                        continue;
-                    }
-                    // Diopters: the nearer side is the larger.
-                    let (near, far) = (a.max(b), a.min(b));
-                    let r_near = 0.5 * (near - q).abs() * px_per_d;
-                    let r_far = 0.5 * (far - q).abs() * px_per_d;
-                    if r_near.max(r_far) < 0.5 {
-                        continue;
-                    }
-                    let reach = |r: f32| (r >= 0.5).then(|| r.ceil() as usize + 1);
-                    row.push(Step {
-                        x,
-                        near: reach(r_near),
-                        far: reach(r_far),
-                        middle: 0.5 * (near + far),
-                    });
-                }
-            }
-            row
-        })
-        .collect();
-    let mut map = TileMap::none(w, h);
-    let reach_max = steps
-        .iter()
-        .flatten()
-        .map(|s| s.near.max(s.far).unwrap_or(0))
-        .max()
-        .unwrap_or(0);
-    // Pass 2, output rows in parallel: a pixel is corrected when a nearer side's disk reaches
-    // it and either that step's farther side blurs or the pixel lies before its middle, or a
-    // farther side's disk reaches it and the pixel lies behind that step's middle. A step at
-    // (x, sy) with reach r covers the box [x - r, x + 1 + r] x [sy - r, sy + 1 + r].
-    map.pixels
-        .par_chunks_mut(w)
-        .zip(map.reached.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, (out, reached))| {
-            let mut near_reach = vec![false; w];
-            let mut near_middle = vec![f32::INFINITY; w];
-            let mut far_middle = vec![f32::NEG_INFINITY; w];
-            let span = |x: usize, r: usize| x.saturating_sub(r)..(x + 2 + r).min(w);
-            for (sy, row) in steps
-                .iter()
-                .enumerate()
-                .take(y + reach_max + 1)
-                .skip(y.saturating_sub(reach_max + 1))
-            {
-                let covers = |r: usize| y + r >= sy && y <= sy + 1 + r;
-                for s in row {
-                    if let Some(r) = s.near.filter(|&r| covers(r)) {
-                        if s.far.is_some() {
-                            near_reach[span(s.x, r)].fill(true);
-                        } else {
-                            for m in &mut near_middle[span(s.x, r)] {
-                                *m = m.min(s.middle);
-                            }
-                        }
-                    }
-                    if let Some(r) = s.far.filter(|&r| covers(r)) {
-                        for m in &mut far_middle[span(s.x, r)] {
-                            *m = m.max(s.middle);
-                        }
-                    }
-                }
-            }
-            for (x, (p, r)) in out.iter_mut().zip(reached.iter_mut()).enumerate() {
-                let v = d[y * w + x];
-                *p = (near_reach[x] || v > near_middle[x] || v < far_middle[x])
-                    && (v - q).abs() * px_per_d >= min_own_blur_px;
-                *r = near_reach[x] || near_middle[x].is_finite() || far_middle[x].is_finite();
-            }
-        });
-    for (y, row) in map.pixels.chunks(w).enumerate() {
+    let reach = step_reach(depth, focus, eye, min_own_blur_px)?;
+    let mut map = TileMap::none(depth.width(), depth.height());
+    for (y, row) in reach.lacking.chunks(map.width).enumerate() {
         for (tx, tile) in row.chunks(TILE).enumerate() {
             if tile.contains(&true) {
                 map.on[(y / TILE) * map.cols + tx] = true;
             }
         }
     }
+    map.pixels = reach.lacking;
+    map.reached = reach.reached;
     Ok(map)
-}
-
-/// A depth step from a pixel to its right or lower neighbour (see [`error_tiles`]).
-struct Step {
-    x: usize,
-    /// Reach (pixels) of the nearer side's blur, when it blurs by half a pixel or more.
-    near: Option<usize>,
-    /// Reach of the farther side's blur, likewise.
-    far: Option<usize>,
-    /// The step's middle, diopters.
-    middle: f32,
 }
 
 /// The classical render a C1R net refines.
@@ -320,9 +203,10 @@ fn corrected(
 
 /// The classical result C1R refines, and returns where it does not correct: `classical` (the
 /// net's classical method) on the pixels a blurred depth step reaches, gather's value from
-/// [`gather_smooth`] on the rest. There the depth within each blur disk is smooth, so gather
-/// is right and the light field's few views only add their sampling of the pupil (measured:
-/// about 2 dB worse there for 12 views, see `crates/net/README.md`).
+/// [`dioptra_render::gather::gather_smooth`] on the rest ([`compose`]). There the depth within
+/// each blur disk is smooth, so gather is right and the light field's few views only add their
+/// sampling of the pupil (measured: about 2 dB worse there for 12 views, see
+/// `crates/net/README.md`).
 pub fn classical_composite(
     rgbd: &Rgbd,
     classical: &RgbImage,
@@ -343,19 +227,7 @@ pub fn classical_composite(
             tiles.height
         )));
     }
-    let smooth: Vec<bool> = tiles.reached.iter().map(|r| !r).collect();
-    if !smooth.contains(&true) {
-        return Ok(classical.clone());
-    }
-    let mut out = gather_smooth(rgbd, focus, eye, &smooth)?;
-    for (o, c) in out.channels.iter_mut().zip(&classical.channels) {
-        for ((v, &k), &r) in o.data_mut().iter_mut().zip(c.data()).zip(&tiles.reached) {
-            if r {
-                *v = k;
-            }
-        }
-    }
-    Ok(out)
+    Ok(compose(rgbd, classical, &tiles.reached, focus, eye)?)
 }
 
 /// The refined image: the classical render with the net's correction on the pixels `tiles`

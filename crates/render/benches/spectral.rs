@@ -9,6 +9,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use dioptra_core::{Diopters, EyeModel, Rgbd};
+use dioptra_render::composite::composite_stack;
 use dioptra_render::multifocal::{default_focal_samples, DEFAULT_PLANES};
 use dioptra_render::spectral::{plan_for, SpectralTargets};
 use dioptra_render::{backend, Backend, DefocusMethod, Gpu, OptimizeParams, SpectralParams};
@@ -47,17 +48,19 @@ fn benches(c: &mut Criterion) {
             })
         });
         let plan = plan_for(&eye, &planes, size, size, params).expect("plan");
-        let SpectralTargets::Defocus(m) = params.targets else {
-            panic!("the default targets are a rendered stack");
+        let target_stack = |input: &Rgbd| {
+            match params.targets {
+                SpectralTargets::Defocus(m) => cpu.defocus(input, &params.foci(), &eye, m, &|_| {}),
+                SpectralTargets::Composite(lf) => {
+                    composite_stack(cpu.as_ref(), input, &params.foci(), &eye, lf)
+                }
+                t => panic!("the default targets are a rendered stack, not {t:?}"),
+            }
+            .expect("stack")
         };
-        let stack = cpu
-            .defocus(&input, &params.foci(), &eye, m, &|_| {})
-            .expect("stack");
+        let stack = target_stack(&input);
         g.bench_function("target_stack", |b| {
-            b.iter(|| {
-                cpu.defocus(black_box(&input), &params.foci(), &eye, m, &|_| {})
-                    .expect("stack")
-            })
+            b.iter(|| target_stack(black_box(&input)))
         });
         g.bench_function("solve", |b| {
             b.iter(|| {

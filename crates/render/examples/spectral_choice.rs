@@ -12,6 +12,7 @@
 //! target/spectral-choice) so a rerun only times.
 
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_render::composite::composite_stack;
 use dioptra_render::io::{read_color, write_color};
 use dioptra_render::metrics::psnr;
 use dioptra_render::multifocal::{default_focal_samples, DEFAULT_PLANES};
@@ -170,8 +171,9 @@ fn main() {
             &ps,
         );
     }
-    // Variants: TARGETS:FOCI:SLICE_STEP:PRIOR:STEPS, TARGETS one of slices, gather, lf36 or
-    // truth (the ground-truth stack itself: an oracle no rig has).
+    // Variants: TARGETS:FOCI:SLICE_STEP:PRIOR:STEPS, TARGETS one of slices, nslices, gather,
+    // lf12, lf36, comp12, comp36 (the composite stack) or truth (the ground-truth stack
+    // itself: an oracle no rig has).
     let specs: Vec<String> = match std::env::var("SPECTRAL_VARIANTS") {
         Ok(v) => v.split_whitespace().map(String::from).collect(),
         Err(_) => [
@@ -201,18 +203,20 @@ fn main() {
             iterations: num(4, 0.0) as usize,
             ..base
         };
+        let views = |k: &str| LightFieldParams {
+            views: if k.ends_with("12") { 12 } else { 36 },
+            mip: true,
+        };
         let method = match kind {
             "gather" => Some(DefocusMethod::Gather),
-            "lf36" | "lf12" => Some(DefocusMethod::LightField(LightFieldParams {
-                views: if kind == "lf12" { 12 } else { 36 },
-                mip: true,
-            })),
+            "lf36" | "lf12" => Some(DefocusMethod::LightField(views(kind))),
             _ => None,
         };
         let p = SpectralParams {
             targets: match (kind, method) {
                 ("slices", _) => SpectralTargets::Slices,
                 ("nslices", _) => SpectralTargets::NormalizedSlices,
+                ("comp12" | "comp36", _) => SpectralTargets::Composite(views(kind)),
                 (_, Some(m)) => SpectralTargets::Defocus(m),
                 _ => SpectralTargets::Defocus(DefocusMethod::Gather),
             },
@@ -241,6 +245,11 @@ fn main() {
                         .expect("stack");
                     plan.targets_stack(&sd.input, &stack).expect("targets")
                 }
+                ("comp12" | "comp36", _) => {
+                    let stack = composite_stack(cpu.as_ref(), &sd.input, &vf, &eye, views(kind))
+                        .expect("stack");
+                    plan.targets_stack(&sd.input, &stack).expect("targets")
+                }
                 _ => panic!("unknown targets {kind}"),
             });
             let (t2, (l, _)) = timed(|| plan.solve(&targets).expect("solve"));
@@ -258,6 +267,10 @@ fn main() {
                 }
                 (_, Some(m)) => Some(
                     cpu.defocus(&sd.input, &foci, &eye, m, &|_| {})
+                        .expect("stack"),
+                ),
+                ("comp12" | "comp36", _) => Some(
+                    composite_stack(cpu.as_ref(), &sd.input, &foci, &eye, views(kind))
                         .expect("stack"),
                 ),
                 _ => None,
@@ -281,6 +294,8 @@ fn main() {
             "gather" => "gather stack".into(),
             "lf36" => "lightfield 36 stack".into(),
             "lf12" => "lightfield 12 stack".into(),
+            "comp12" => "composite (lightfield 12 at steps, smooth disk blur elsewhere)".into(),
+            "comp36" => "composite (lightfield 36 at steps, smooth disk blur elsewhere)".into(),
             _ => "ground-truth stack (oracle)".into(),
         };
         let st = if kind.ends_with("slices") {

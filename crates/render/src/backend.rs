@@ -115,6 +115,11 @@ pub trait Backend: Send + Sync {
                 let stack = self.defocus(input, &params.foci(), eye, m, &|_| {})?;
                 plan.targets_stack(input, &stack)?
             }
+            SpectralTargets::Composite(lp) => {
+                let stack =
+                    crate::composite::composite_stack(self, input, &params.foci(), eye, lp)?;
+                plan.targets_stack(input, &stack)?
+            }
             SpectralTargets::Slices | SpectralTargets::NormalizedSlices => {
                 plan.targets_rgbd(input)?
             }

@@ -5,6 +5,7 @@
 pub mod alloc;
 pub mod backend;
 mod common;
+pub mod composite;
 pub mod error;
 mod fft2;
 pub mod foveate;

@@ -46,6 +46,9 @@ pub enum SpectralTargets {
     NormalizedSlices,
     /// Rendered from the input by a defocus method at every focal sample.
     Defocus(DefocusMethod),
+    /// Rendered at every focal sample by [`crate::composite::composite_stack`]: the light
+    /// field where a blurred depth step reaches, the exact disk blur of smooth depth elsewhere.
+    Composite(crate::lightfield::LightFieldParams),
 }
 
 /// Settings of the spectral decomposition.
@@ -508,7 +511,7 @@ impl SpectralPlan {
         let normalize = match self.params.targets {
             SpectralTargets::Slices => false,
             SpectralTargets::NormalizedSlices => true,
-            SpectralTargets::Defocus(_) => {
+            SpectralTargets::Defocus(_) | SpectralTargets::Composite(_) => {
                 return Err(invalid(
                     "this spectral plan fits a rendered focal stack: use targets_stack",
                 ))

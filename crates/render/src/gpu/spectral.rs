@@ -408,6 +408,24 @@ pub(super) fn spectral_blend(
         total.add(&s);
         rendered = out;
     }
+    // Composite targets: the light field rendered here (only at the foci a blurred step
+    // reaches), read back and composed with the smooth disk blur on the CPU, then uploaded as
+    // a given stack. The composite has no WGSL twin yet: its mask and smooth blur run on the
+    // CPU, as C1R's composite does (crates/net/src/gpu.rs).
+    let composed: Vec<RgbImage>;
+    let targets = match (targets, params.targets) {
+        (Targets::Input, SpectralTargets::Composite(lp)) => {
+            composed =
+                crate::composite::composite_stack_with(input, &params.foci(), eye, |need| {
+                    let (out, s) =
+                        kernels::lightfield(ctx, input, need, eye, lp, &|_| {}, Keep::Host)?;
+                    total.add(&s);
+                    kernels::on_host(out)
+                })?;
+            Targets::Stack(&composed)
+        }
+        (t, _) => t,
+    };
     let batch = if slices {
         3 * plan.nodes().len()
     } else {
