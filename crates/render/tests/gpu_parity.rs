@@ -4,6 +4,7 @@
 //! the suite runs in seconds on a software rasteriser.
 
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::composite::{composite_stack, step_reach};
 use dioptra_render::foveate::{log_polar_mask, LogPolar};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
@@ -667,10 +668,12 @@ fn spectral_blend_matches_cpu() {
     );
 }
 
-/// The default settings (a 12-view light-field stack): the solve from one given stack on
-/// both (the GPU's and the CPU's light fields differ by a pixel at a few splat edges, see
+/// The default settings (a composite stack: the 12-view light field where a blurred depth step
+/// reaches, the smooth disk blur elsewhere): the solve from one given stack on both (the GPU's
+/// and the CPU's light fields differ by a pixel at a few splat edges, see
 /// lightfield_defocus_and_focal_stack_match_cpu), then the whole default on the GPU, seen
-/// through the retina.
+/// through the retina; on a scene without a depth step (no light field in its stack) the
+/// whole default agrees within 1e-3.
 #[test]
 fn spectral_defaults_match_cpu() {
     let Some(g) = gpu() else { return };
@@ -681,12 +684,13 @@ fn spectral_defaults_match_cpu() {
     };
     let input = scene_rgbd(96);
     let params = SpectralParams::default();
-    let SpectralTargets::Defocus(m) = params.targets else {
-        panic!("the default targets are rendered: {:?}", params.targets)
+    let SpectralTargets::Composite(lf) = params.targets else {
+        panic!(
+            "the default targets are the composite: {:?}",
+            params.targets
+        )
     };
-    let stack = Cpu
-        .defocus(&input, &params.foci(), &eye, m, &|_| {})
-        .unwrap();
+    let stack = composite_stack(&Cpu, &input, &params.foci(), &eye, lf).unwrap();
     let plan = SpectralPlan::new(&eye, &planes, 96, 96, params).unwrap();
     let (cl, cr) = plan
         .solve(&plan.targets_stack(&input, &stack).unwrap())
@@ -720,6 +724,37 @@ fn spectral_defaults_match_cpu() {
     for (k, img) in kept.iter().zip(&whole.images) {
         assert_eq!(&k.read().unwrap(), img);
     }
+    // A smooth scene (a slanted plane, 0.3 to 1.9 D): no depth step blurs, so the composite
+    // is the smooth disk blur alone on both and the whole default agrees within 1e-3.
+    let (w, h) = (96, 80);
+    let slanted = Rgbd::new(
+        random_image(w, h, 11),
+        DepthMap::from_diopters(
+            Plane::from_vec(
+                w,
+                h,
+                (0..w * h)
+                    .map(|i| 0.3 + 1.6 * (i % w) as f32 / w as f32)
+                    .collect(),
+            )
+            .unwrap(),
+        )
+        .unwrap(),
+    )
+    .unwrap();
+    assert!(params
+        .foci()
+        .iter()
+        .all(|&q| !step_reach(&slanted.depth, q, &eye, 0.0)
+            .unwrap()
+            .reached
+            .contains(&true)));
+    let (cl, cr) = Cpu.spectral_blend(&slanted, &planes, &eye, params).unwrap();
+    let (gl, gr) = g.spectral_blend(&slanted, &planes, &eye, params).unwrap();
+    let max = layers_diff(&cl, &gl);
+    eprintln!("spectral defaults on a slanted plane: max |gpu - cpu| = {max:e}; {gr:?}");
+    assert!(max < 1e-3, "{max}");
+    same_report(&cr, &gr, "defaults on a slanted plane");
 }
 
 #[test]
