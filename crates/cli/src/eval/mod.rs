@@ -451,7 +451,8 @@ fn speed_report(
          has; `optimized-gather` fits what a rig can make, a focal stack gathered from the RGB-D \
          at those foci, as the daemon's `method = \"optimized\"` does with 30 iterations, and its \
          time includes the stack and the linear start; `spectral` solves the least squares per \
-         spatial frequency with its default settings (a 12-view light-field stack at 6 foci, \
+         spatial frequency with its default settings (a composite stack at 6 foci: the 12-view \
+         light field where a blurred depth step reaches, the smooth disk blur elsewhere; prior 0.02, \
          5 projected steps; crates/render/README.md), its time including that stack). PSNR and SSIM are on \
          sRGB-encoded images. Networks are scored with the shipped weights (crates/net/weights); a setting with none (another interleave rate) runs the same architecture with random weights and is timed only. On the GPU backend the networks run the same weights through dioptra-net's wgpu inference.\n",
         (0..plan.scenes).map(|s| dioptra_sim::scene::Split::Test.seed(s as u64).to_string()).collect::<Vec<_>>().join(", "),

@@ -461,8 +461,8 @@ impl RgbdRenderer {
         } else if method.0 == RenderMethod::Refine {
             on_host(self.refine_decompose(input)?)
         } else if method.0 == RenderMethod::Spectral {
-            // Its default settings (dioptra_render::spectral: a 12-view light-field stack at
-            // 6 foci), the plan built once for the rig's size (on the GPU, its matrices
+            // Its default settings (dioptra_render::spectral: a composite stack at 6 foci),
+            // the plan built once for the rig's size (on the GPU, its matrices
             // uploaded once); on the rig's backend, the layers left on the GPU there.
             let params = SpectralParams::default();
             self.on_backend("spectral", |gpu| {
