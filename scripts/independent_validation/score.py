@@ -23,6 +23,7 @@ import os
 import re
 import shlex
 import subprocess
+import tempfile
 
 import mitsuba as mi
 import numpy as np
@@ -111,31 +112,34 @@ def main():
         runs.append((label.strip(), shlex.split(args)))
     methods = [m for m, _ in runs]
     rows = []
-    for d in sorted(glob.glob(os.path.join(a.set, "*", "color.pfm"))):
-        scene = os.path.dirname(d)
-        name = os.path.basename(scene)
-        stack = sorted(glob.glob(os.path.join(scene, "stack", "focus_*D.pfm")))
-        foci = [float(re.search(r"focus_([0-9.]+)D", s).group(1)) for s in stack]
-        truth = [read(s) for s in stack]
-        width = truth[0].shape[1]
-        row = [name]
-        for m, args in runs:
-            out = os.path.join(scene, "layers_" + re.sub(r"[^A-Za-z0-9.-]+", "_", m))
-            cmd = [a.binary, "decompose", "--color", os.path.join(scene, "color.pfm"),
-                   "--depth", os.path.join(scene, "depth.pfm"),
-                   *[x.replace("{scene}", scene) for x in args],
-                   "--backend", "cpu", "--out", out]
-            if m == "refine" and a.weights:
-                cmd += ["--weights", a.weights]
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            if r.returncode != 0:
-                row.append(float("nan"))
-                print(f"{name} {m}: failed: {r.stderr.strip()[-300:]}", flush=True)
-                continue
-            layers = [read(os.path.join(out, f"layer_{p:.2f}D.exr")) for p in PLANES]
-            row.append(np.mean([psnr(retina(layers, q, width), t) for q, t in zip(foci, truth)]))
-        rows.append(row)
-        print(" | ".join([row[0]] + [f"{v:.2f}" for v in row[1:]]), flush=True)
+    # The layers go to a temporary directory, not the set's scene folders: scorers running
+    # at once on one set would overwrite each other's.
+    with tempfile.TemporaryDirectory() as tmp:
+        for d in sorted(glob.glob(os.path.join(a.set, "*", "color.pfm"))):
+            scene = os.path.dirname(d)
+            name = os.path.basename(scene)
+            stack = sorted(glob.glob(os.path.join(scene, "stack", "focus_*D.pfm")))
+            foci = [float(re.search(r"focus_([0-9.]+)D", s).group(1)) for s in stack]
+            truth = [read(s) for s in stack]
+            width = truth[0].shape[1]
+            row = [name]
+            for m, args in runs:
+                out = os.path.join(tmp, name, "layers_" + re.sub(r"[^A-Za-z0-9.-]+", "_", m))
+                cmd = [a.binary, "decompose", "--color", os.path.join(scene, "color.pfm"),
+                       "--depth", os.path.join(scene, "depth.pfm"),
+                       *[x.replace("{scene}", scene) for x in args],
+                       "--backend", "cpu", "--out", out]
+                if m == "refine" and a.weights:
+                    cmd += ["--weights", a.weights]
+                r = subprocess.run(cmd, capture_output=True, text=True)
+                if r.returncode != 0:
+                    row.append(float("nan"))
+                    print(f"{name} {m}: failed: {r.stderr.strip()[-300:]}", flush=True)
+                    continue
+                layers = [read(os.path.join(out, f"layer_{p:.2f}D.exr")) for p in PLANES]
+                row.append(np.mean([psnr(retina(layers, q, width), t) for q, t in zip(foci, truth)]))
+            rows.append(row)
+            print(" | ".join([row[0]] + [f"{v:.2f}" for v in row[1:]]), flush=True)
     lines = ["| scene | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
     for r in rows:
         lines.append("| " + r[0] + " | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
