@@ -114,6 +114,16 @@ impl Pcg {
     }
 }
 
+/// One random flat colour.
+fn solid_texture(rng: &mut Pcg) -> Texture {
+    let c = [0; 3].map(|_| rng.range(0.05, 0.95));
+    Texture {
+        a: c,
+        b: c,
+        pattern: Pattern::Solid,
+    }
+}
+
 fn random_texture(rng: &mut Pcg, distance: f32) -> Texture {
     let mut colour = || [0; 3].map(|_| rng.range(0.02, 0.9));
     let (a, b) = (colour(), colour());
@@ -310,12 +320,7 @@ impl Scene {
             let spacing = z * rng.range(0.03, 0.08);
             let offset = rng.range(-0.05, 0.05) * z;
             let texture = if rng.next_u32().is_multiple_of(2) {
-                let c = [0; 3].map(|_| rng.range(0.05, 0.95));
-                Texture {
-                    a: c,
-                    b: c,
-                    pattern: Pattern::Solid,
-                }
+                solid_texture(&mut rng)
             } else {
                 random_texture(&mut rng, z)
             };
@@ -420,12 +425,7 @@ impl Scene {
             // Log-uniform radius: 1 % to 30 % of the distance.
             let radius = z * 0.01 * 30f32.powf(rng.unit());
             let texture = if rng.next_u32().is_multiple_of(2) {
-                let c = [0; 3].map(|_| rng.range(0.05, 0.95));
-                Texture {
-                    a: c,
-                    b: c,
-                    pattern: Pattern::Solid,
-                }
+                solid_texture(&mut rng)
             } else {
                 wide_texture(&mut rng, z)
             };
