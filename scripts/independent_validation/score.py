@@ -93,6 +93,21 @@ def psnr(a, b):
     return 10 * math.log10(1 / max(mse, 1e-20))
 
 
+def write_table(rows, methods, out):
+    """Prints the scores (rows of [scene, score per method]) as a markdown table with the
+    mean over scenes, and writes it to `out` if given."""
+    lines = ["| scene | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for r in rows:
+        lines.append("| " + r[0] + " | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
+    means = [np.nanmean([r[1 + i] for r in rows]) for i in range(len(methods))]
+    lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in means) + " |")
+    text = "\n".join(lines)
+    print(text)
+    if out:
+        with open(out, "w") as f:
+            f.write(text + "\n")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", required=True)
@@ -140,16 +155,7 @@ def main():
                 row.append(np.mean([psnr(retina(layers, q, width), t) for q, t in zip(foci, truth)]))
             rows.append(row)
             print(" | ".join([row[0]] + [f"{v:.2f}" for v in row[1:]]), flush=True)
-    lines = ["| scene | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-    for r in rows:
-        lines.append("| " + r[0] + " | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
-    means = [np.nanmean([r[1 + i] for r in rows]) for i in range(len(methods))]
-    lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in means) + " |")
-    text = "\n".join(lines)
-    print(text)
-    if a.out:
-        with open(a.out, "w") as f:
-            f.write(text + "\n")
+    write_table(rows, methods, a.out)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ import tempfile
 
 import numpy as np
 
-from score import psnr, read
+from score import psnr, read, write_table
 
 
 def render_args(method):
@@ -65,16 +65,7 @@ def main():
                 row.append(float(np.mean(scores)))
             rows.append(row)
             print(" | ".join([row[0]] + [f"{v:.2f}" for v in row[1:]]), flush=True)
-    lines = ["| scene | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-    for r in rows:
-        lines.append("| " + r[0] + " | " + " | ".join(f"{v:.2f}" for v in r[1:]) + " |")
-    means = [np.nanmean([r[1 + i] for r in rows]) for i in range(len(methods))]
-    lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in means) + " |")
-    text = "\n".join(lines)
-    print(text)
-    if a.out:
-        with open(a.out, "w") as f:
-            f.write(text + "\n")
+    write_table(rows, methods, a.out)
 
 
 if __name__ == "__main__":
