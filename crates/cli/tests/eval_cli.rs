@@ -104,6 +104,17 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
             }
         }
     }
+    // A scored refinement net that failed the independent set says it is not the default.
+    for r in rows
+        .iter()
+        .filter(|r| r["method"].starts_with("refine") && !r["psnr_db"].is_empty())
+    {
+        assert!(
+            r["note"].contains("not the daemon's default"),
+            "{} says nothing of its standing: {r:?}",
+            r["method"]
+        );
+    }
     // C1R says on what fraction of the tiles its net ran; no other method has one.
     for r in rows.iter().filter(|r| !r["time_ms"].is_empty()) {
         if r["method"] == "refine-c1r" {

@@ -246,8 +246,7 @@ fn main() {
                     plan.targets_stack(&sd.input, &stack).expect("targets")
                 }
                 ("comp12" | "comp36", _) => {
-                    let stack = composite_stack(cpu.as_ref(), &sd.input, &vf, &eye, views(kind))
-                        .expect("stack");
+                    let stack = composite_stack(&sd.input, &vf, &eye, views(kind)).expect("stack");
                     plan.targets_stack(&sd.input, &stack).expect("targets")
                 }
                 _ => panic!("unknown targets {kind}"),
@@ -269,10 +268,9 @@ fn main() {
                     cpu.defocus(&sd.input, &foci, &eye, m, &|_| {})
                         .expect("stack"),
                 ),
-                ("comp12" | "comp36", _) => Some(
-                    composite_stack(cpu.as_ref(), &sd.input, &foci, &eye, views(kind))
-                        .expect("stack"),
-                ),
+                ("comp12" | "comp36", _) => {
+                    Some(composite_stack(&sd.input, &foci, &eye, views(kind)).expect("stack"))
+                }
                 _ => None,
             };
             if let Some(st) = stack {

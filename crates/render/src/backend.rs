@@ -116,8 +116,7 @@ pub trait Backend: Send + Sync {
                 plan.targets_stack(input, &stack)?
             }
             SpectralTargets::Composite(lp) => {
-                let stack =
-                    crate::composite::composite_stack(self, input, &params.foci(), eye, lp)?;
+                let stack = crate::composite::composite_stack(input, &params.foci(), eye, lp)?;
                 plan.targets_stack(input, &stack)?
             }
             SpectralTargets::Slices | SpectralTargets::NormalizedSlices => {

@@ -6,11 +6,10 @@
 //! (`dioptra_net::refine`), and the spectral decomposition can fit a focal stack of it
 //! ([`crate::spectral::SpectralTargets::Composite`]).
 
-use crate::backend::{Backend, DefocusMethod};
 use crate::common::{check_focus, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::gather::gather_smooth;
-use crate::lightfield::LightFieldParams;
+use crate::lightfield::{LightFieldParams, LightFieldPrep};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd};
 use rayon::prelude::*;
 
@@ -202,41 +201,46 @@ pub fn compose(
     Ok(out)
 }
 
-/// The composite focal stack of `input` at `foci`: the light field (rendered by `backend`,
-/// only at the foci where some blurred step reaches a pixel) composed with [`gather_smooth`].
+/// The composite focal stack of `input` at `foci` on the CPU: the light field (only at the
+/// foci where some blurred step reaches a pixel, and there only on the reached pixels)
+/// composed with [`gather_smooth`].
 pub fn composite_stack(
-    backend: &(impl Backend + ?Sized),
     input: &Rgbd,
     foci: &[Diopters],
     eye: &EyeModel,
     light: LightFieldParams,
 ) -> Result<Vec<RgbImage>, RenderError> {
-    composite_stack_with(input, foci, eye, |need| {
-        backend.defocus(input, need, eye, DefocusMethod::LightField(light), &|_| {})
+    composite_stack_with(input, foci, eye, |need, masks| {
+        let prep = LightFieldPrep::new(input, eye, light)?;
+        need.iter()
+            .zip(masks)
+            .map(|(&q, m)| prep.render_masked(q, Some(m)))
+            .collect()
     })
 }
 
-/// [`composite_stack`] with the light field rendered by `light` at the foci given it.
+/// [`composite_stack`] with the light field rendered by `light` at the foci given it, each
+/// with the mask of the pixels that will be kept from it (a renderer may fill only those).
 pub fn composite_stack_with(
     input: &Rgbd,
     foci: &[Diopters],
     eye: &EyeModel,
-    light: impl FnOnce(&[Diopters]) -> Result<Vec<RgbImage>, RenderError>,
+    light: impl FnOnce(&[Diopters], &[&[bool]]) -> Result<Vec<RgbImage>, RenderError>,
 ) -> Result<Vec<RgbImage>, RenderError> {
     let reach: Vec<StepReach> = foci
         .iter()
         .map(|&q| step_reach(&input.depth, q, eye, 0.0))
         .collect::<Result<_, _>>()?;
-    let need: Vec<Diopters> = foci
+    let (need, masks): (Vec<Diopters>, Vec<&[bool]>) = foci
         .iter()
         .zip(&reach)
         .filter(|(_, r)| r.reached.contains(&true))
-        .map(|(&q, _)| q)
-        .collect();
+        .map(|(&q, r)| (q, r.reached.as_slice()))
+        .unzip();
     let mut lf = if need.is_empty() {
         Vec::new()
     } else {
-        light(&need)?
+        light(&need, &masks)?
     }
     .into_iter();
     let blank = RgbImage::new(input.width(), input.height(), [0.0; 3]);
@@ -300,14 +304,20 @@ mod tests {
         let foci = [Diopters(1.5), Diopters(0.5)];
         let light = RgbImage::new(w, h, [2.0; 3]);
         let mut asked = Vec::new();
-        let stack = composite_stack_with(&input, &foci, &eye, |need| {
+        let mut masks = Vec::new();
+        let stack = composite_stack_with(&input, &foci, &eye, |need, m| {
             asked = need.to_vec();
+            masks = m.iter().map(|m| m.to_vec()).collect();
             Ok(vec![light.clone(); need.len()])
         })
         .unwrap();
         assert_eq!(asked, foci.to_vec());
-        for (img, &q) in stack.iter().zip(&foci) {
+        for ((img, &q), mask) in stack.iter().zip(&foci).zip(&masks) {
             let reach = step_reach(&input.depth, q, &eye, 0.0).unwrap();
+            assert_eq!(
+                mask, &reach.reached,
+                "the light field is told which pixels are kept"
+            );
             let smooth: Vec<bool> = reach.reached.iter().map(|r| !r).collect();
             let g = gather_smooth(&input, q, &eye, &smooth).unwrap();
             assert!(reach.reached.contains(&true) && smooth.contains(&true));
@@ -338,7 +348,7 @@ mod tests {
         }
         // Smooth depth (a slope far below a pixel of blur per pixel): no light field at all.
         let slope = rgbd(w, h, |x| 0.5 + x as f32 / w as f32);
-        let stack = composite_stack_with(&slope, &foci, &eye, |need| {
+        let stack = composite_stack_with(&slope, &foci, &eye, |need, _| {
             assert!(need.is_empty(), "light field asked for at {need:?}");
             Ok(Vec::new())
         })
@@ -347,6 +357,40 @@ mod tests {
         for (img, &q) in stack.iter().zip(&foci) {
             assert_eq!(img, &gather_smooth(&slope, q, &eye, &all).unwrap());
         }
+    }
+
+    #[test]
+    fn the_masked_light_field_makes_the_same_stack_as_the_full_one() {
+        let eye = eye();
+        let input = rgbd(64, 24, |x| if (20..40).contains(&x) { 2.0 } else { 0.3 });
+        let foci = [Diopters(0.3), Diopters(1.2), Diopters(2.0)];
+        let light = LightFieldParams {
+            views: 12,
+            mip: true,
+        };
+        let full = composite_stack_with(&input, &foci, &eye, |need, _| {
+            let prep = LightFieldPrep::new(&input, &eye, light)?;
+            need.iter().map(|&q| prep.render(q)).collect()
+        })
+        .unwrap();
+        let masked = composite_stack(&input, &foci, &eye, light).unwrap();
+        assert_eq!(masked, full);
+        // The mask keeps the light field where it is true and the input colour elsewhere.
+        let prep = LightFieldPrep::new(&input, &eye, light).unwrap();
+        let mask: Vec<bool> = (0..64 * 24).map(|i| i % 64 < 32).collect();
+        let half = prep.render_masked(Diopters(1.2), Some(&mask)).unwrap();
+        let all = prep.render(Diopters(1.2)).unwrap();
+        for c in 0..3 {
+            for (i, &v) in half.channels[c].data().iter().enumerate() {
+                let want = if mask[i] {
+                    all.channels[c].data()[i]
+                } else {
+                    input.color.channels[c].data()[i]
+                };
+                assert_eq!(v, want, "pixel {i}");
+            }
+        }
+        assert!(prep.render_masked(Diopters(1.2), Some(&mask[1..])).is_err());
     }
 
     #[test]
@@ -363,6 +407,6 @@ mod tests {
         assert!(compose(&input, &small, &[false; 16 * 8], Diopters(1.0), &e).is_err());
         // A light field that renders too few images is an error, not a panic.
         let step = rgbd(16, 8, |x| if x < 8 { 3.0 } else { 0.2 });
-        assert!(composite_stack_with(&step, &[Diopters(0.2)], &e, |_| Ok(Vec::new())).is_err());
+        assert!(composite_stack_with(&step, &[Diopters(0.2)], &e, |_, _| Ok(Vec::new())).is_err());
     }
 }

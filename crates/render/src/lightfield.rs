@@ -81,17 +81,28 @@ pub(crate) fn splat_exact(
     q: f32,
     exact: &mut [u64],
 ) {
-    exact.iter_mut().for_each(|v| *v = 0);
+    exact.fill(0);
+    let (wf, hf) = (w as f32, h as f32);
+    // Per row, the target pixels first (branch-free in i32, so it vectorises), then the
+    // scattered writes: the splat is the light field's costliest part.
+    let mut tcol = vec![-1i32; w];
+    let mut trow = vec![-1i32; w];
     for (y, row) in depth.chunks(w).enumerate().take(h) {
-        for (x, &d) in row.iter().enumerate() {
+        let fy = y as f32 + 0.5;
+        for (x, ((&d, cx), cy)) in row.iter().zip(&mut tcol).zip(&mut trow).enumerate() {
             let tx = x as f32 + 0.5 + shift[0] * (d - q);
-            let ty = y as f32 + 0.5 + shift[1] * (d - q);
-            if tx < 0.0 || ty < 0.0 || tx >= w as f32 || ty >= h as f32 {
-                continue;
+            let ty = fy + shift[1] * (d - q);
+            let inside = tx >= 0.0 && ty >= 0.0 && tx < wf && ty < hf;
+            // Inside, truncation is the floor.
+            *cx = if inside { tx as i32 } else { -1 };
+            *cy = ty as i32;
+        }
+        let first = (y * w) as u64 + 1;
+        for (x, ((&d, &cx), &cy)) in row.iter().zip(&tcol).zip(&trow).enumerate() {
+            if cx >= 0 {
+                let v = &mut exact[cy as usize * w + cx as usize];
+                *v = (*v).max(((d.to_bits() as u64) << 32) | (first + x as u64));
             }
-            let j = ty as usize * w + tx as usize;
-            let key = ((d.to_bits() as u64) << 32) | ((y * w + x) as u64 + 1);
-            exact[j] = exact[j].max(key);
         }
     }
 }
@@ -229,9 +240,26 @@ impl<'a> LightFieldPrep<'a> {
 
     /// The image seen focusing at `focus`.
     pub fn render(&self, focus: Diopters) -> Result<RgbImage, RenderError> {
+        self.render_masked(focus, None)
+    }
+
+    /// [`Self::render`] on the pixels where `mask` is true; the rest keep the input colour
+    /// (for callers that replace them, as [`crate::composite`] does: the splats still cover
+    /// the whole image, the views' sum only the masked pixels).
+    pub fn render_masked(
+        &self,
+        focus: Diopters,
+        mask: Option<&[bool]>,
+    ) -> Result<RgbImage, RenderError> {
         check_focus(focus)?;
         let (w, h) = (self.input.width(), self.input.height());
         let n = w * h;
+        if mask.is_some_and(|m| m.len() != n) {
+            return Err(crate::error::mismatch(format!(
+                "a mask of {} pixels for a {w}x{h} light field",
+                mask.map_or(0, |m| m.len())
+            )));
+        }
         let depth = self.input.depth.data();
         let pitch = self.eye.pixel_pitch_tan();
         let f = self.eye.lens_to_retina.to_meters().0;
@@ -269,7 +297,11 @@ impl<'a> LightFieldPrep<'a> {
                     splat_exact(depth, w, h, [sx, sy], q, &mut exact);
                     for (y, row) in acc.chunks_mut(w).enumerate() {
                         let ry = (y as f32 + 0.5 - 0.5 * h as f32) * pitch + l[1] / f;
+                        let used = mask.map(|m| &m[y * w..(y + 1) * w]);
                         for (x, a) in row.iter_mut().enumerate() {
+                            if used.is_some_and(|u| !u[x]) {
+                                continue;
+                            }
                             let mut key = exact[y * w + x];
                             if key == 0 {
                                 key = wide_key(&exact, w, h, x, y);

@@ -690,7 +690,7 @@ fn spectral_defaults_match_cpu() {
             params.targets
         )
     };
-    let stack = composite_stack(&Cpu, &input, &params.foci(), &eye, lf).unwrap();
+    let stack = composite_stack(&input, &params.foci(), &eye, lf).unwrap();
     let plan = SpectralPlan::new(&eye, &planes, 96, 96, params).unwrap();
     let (cl, cr) = plan
         .solve(&plan.targets_stack(&input, &stack).unwrap())

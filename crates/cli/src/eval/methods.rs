@@ -193,7 +193,7 @@ impl Nets {
                 return Ok(NetChoice {
                     net: std::borrow::Cow::Borrowed(n),
                     trained: true,
-                    note: String::new(),
+                    note: standing(m).into(),
                 });
             }
         }
@@ -218,6 +218,23 @@ impl Nets {
             trained: false,
             note,
         })
+    }
+}
+
+/// Why a shipped refinement net is not the daemon's default: what it scored on the
+/// independent validation set (Mitsuba 3 scenes, scripts/independent_validation), where a net
+/// must never be below its classical input to be one.
+fn standing(m: Method) -> &'static str {
+    match m {
+        Method::RefineC1 => {
+            "not the daemon's default: on the independent set (scripts/independent_validation/\
+             defocus_scores.md) below the 36-view light field on 11 of 12 scenes"
+        }
+        Method::RefineC4 => {
+            "not the daemon's default: on the independent set (scripts/independent_validation/\
+             scores.md) below linear blending, its input, on every scene"
+        }
+        _ => "",
     }
 }
 

@@ -416,7 +416,7 @@ pub(super) fn spectral_blend(
     let targets = match (targets, params.targets) {
         (Targets::Input, SpectralTargets::Composite(lp)) => {
             composed =
-                crate::composite::composite_stack_with(input, &params.foci(), eye, |need| {
+                crate::composite::composite_stack_with(input, &params.foci(), eye, |need, _| {
                     let (out, s) =
                         kernels::lightfield(ctx, input, need, eye, lp, &|_| {}, Keep::Host)?;
                     total.add(&s);
