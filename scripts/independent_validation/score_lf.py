@@ -1,0 +1,124 @@
+#!/usr/bin/env python3
+"""Scores dioptra's light-field synthesis on the independent light-field set (generate_lf.py).
+
+For every scene, `dioptra lightfield` synthesises the whole grid from 9 (or 5) of its views
+(the inputs `--inputs` picks: corners and centre, plus edge centres for 9); each view no input
+came from (a novel view) is scored against Mitsuba's own render of it: PSNR on sRGB-encoded
+images clipped to [0, 1], mean over the novel views. Beside it, the nearest input view shown
+unchanged in place of each novel view (the baseline a light field without synthesis gives).
+
+  python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
+      [--inputs 9,5] [--out lf_scores.md]
+"""
+import argparse
+import glob
+import json
+import os
+import re
+import subprocess
+import tempfile
+
+import mitsuba as mi
+import numpy as np
+
+mi.set_variant("scalar_rgb")
+
+
+def read_pfm(path):
+    with open(path, "rb") as f:
+        magic = f.readline().strip()
+        w, h = map(int, f.readline().split())
+        scale = float(f.readline())
+        c = 3 if magic == b"PF" else 1
+        a = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4").reshape(h, w, c)
+        return a[::-1].astype(np.float64)
+
+
+def read_png_srgb(path):
+    """An 8-bit PNG's sRGB-encoded values in [0, 1]."""
+    a = np.array(mi.Bitmap(path), dtype=np.float64)[..., :3]
+    return a / 255.0
+
+
+def srgb(linear):
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def psnr(a, b):
+    mse = float(np.mean((a - b) ** 2))
+    return 100.0 if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def picks(n, inputs):
+    """The input views `dioptra lightfield --inputs` takes from an n x n grid."""
+    m, e = n // 2, n - 1
+    if inputs == 5:
+        return [(0, 0), (0, e), (m, m), (e, 0), (e, e)]
+    if inputs == 9:
+        return [(0, 0), (0, m), (0, e), (m, 0), (m, m), (m, e), (e, 0), (e, m), (e, e)]
+    raise SystemExit(f"--inputs takes 5 or 9, not {inputs}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--set", required=True, help="directory made by generate_lf.py")
+    ap.add_argument("--binary", required=True, help="the dioptra binary")
+    ap.add_argument("--inputs", default="9,5", help="input view counts, comma-separated")
+    ap.add_argument("--out", help="write the table here (markdown) as well as printing it")
+    a = ap.parse_args()
+    counts = [int(k) for k in a.inputs.split(",")]
+    scenes = sorted(os.path.dirname(p) for p in glob.glob(os.path.join(a.set, "*", "lightfield.json")))
+    if not scenes:
+        raise SystemExit(f"no scenes (*/lightfield.json) under {a.set}: run generate_lf.py first")
+    cols = [c for k in counts for c in (f"nearest input ({k})", f"classical ({k} inputs)")]
+    rows, times = [], {k: [] for k in counts}
+    for d in scenes:
+        meta = json.load(open(os.path.join(d, "lightfield.json")))
+        n = meta["grid"]
+        truth = {(r, c): srgb(read_pfm(os.path.join(d, f"view_{r:02}_{c:02}.pfm")))
+                 for r in range(n) for c in range(n)}
+        row = []
+        for k in counts:
+            ins = picks(n, k)
+            novel = [v for v in truth if v not in ins]
+            near = []
+            for (r, c) in novel:
+                nr, nc = min(ins, key=lambda p: (p[0] - r) ** 2 + (p[1] - c) ** 2)
+                shown = read_png_srgb(os.path.join(d, f"view_{nr:02}_{nc:02}.png"))
+                near.append(psnr(shown, truth[(r, c)]))
+            with tempfile.TemporaryDirectory() as out:
+                cmd = [a.binary, "lightfield", "--views", d, "--inputs", str(k),
+                       "--span", str(meta["span_m"]), "--grid", str(n),
+                       "--fov-deg", str(meta["fov_deg"]), "--backend", "cpu", "--out", out]
+                res = subprocess.run(cmd, capture_output=True, text=True)
+                if res.returncode != 0:
+                    raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
+                ms = re.search(r"in (\d+) ms", res.stdout)
+                if ms:
+                    times[k].append(float(ms.group(1)))
+                syn = [psnr(read_png_srgb(os.path.join(out, f"view_{r:02}_{c:02}.png")), truth[(r, c)])
+                       for (r, c) in novel]
+            row += [float(np.mean(near)), float(np.mean(syn))]
+        rows.append((os.path.basename(d), row))
+        print(os.path.basename(d), " ".join(f"{v:.2f}" for v in row), flush=True)
+    lines = ["| scene | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for name, row in rows:
+        lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    mean = np.mean([r for _, r in rows], axis=0)
+    lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " |")
+    for k in counts:
+        if times[k]:
+            lines.append("")
+            lines.append(f"{k} inputs: {np.median(times[k]):.0f} ms median per light field "
+                         f"(`dioptra lightfield --backend cpu`, {n} x {n} views of "
+                         f"{meta['size']} px)")
+    table = "\n".join(lines)
+    print(table)
+    if a.out:
+        with open(a.out, "w") as f:
+            f.write(table + "\n")
+
+
+if __name__ == "__main__":
+    main()
