@@ -8,7 +8,7 @@ images clipped to [0, 1], mean over the novel views. Beside it, the nearest inpu
 unchanged in place of each novel view (the baseline a light field without synthesis gives).
 
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
-      [--inputs 9,5] [--out lf_scores.md]
+      [--inputs 9,5] [--backend cpu|gpu] [--out lf_scores.md]
 """
 import argparse
 import glob
@@ -65,6 +65,7 @@ def main():
     ap.add_argument("--set", required=True, help="directory made by generate_lf.py")
     ap.add_argument("--binary", required=True, help="the dioptra binary")
     ap.add_argument("--inputs", default="9,5", help="input view counts, comma-separated")
+    ap.add_argument("--backend", default="cpu", help="dioptra's backend: cpu or gpu")
     ap.add_argument("--out", help="write the table here (markdown) as well as printing it")
     a = ap.parse_args()
     counts = [int(k) for k in a.inputs.split(",")]
@@ -90,7 +91,7 @@ def main():
             with tempfile.TemporaryDirectory() as out:
                 cmd = [a.binary, "lightfield", "--views", d, "--inputs", str(k),
                        "--span", str(meta["span_m"]), "--grid", str(n),
-                       "--fov-deg", str(meta["fov_deg"]), "--backend", "cpu", "--out", out]
+                       "--fov-deg", str(meta["fov_deg"]), "--backend", a.backend, "--out", out]
                 res = subprocess.run(cmd, capture_output=True, text=True)
                 if res.returncode != 0:
                     raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
@@ -111,7 +112,7 @@ def main():
         if times[k]:
             lines.append("")
             lines.append(f"{k} inputs: {np.median(times[k]):.0f} ms median per light field "
-                         f"(`dioptra lightfield --backend cpu`, {n} x {n} views of "
+                         f"(`dioptra lightfield --backend {a.backend}`, {n} x {n} views of "
                          f"{meta['size']} px)")
     table = "\n".join(lines)
     print(table)
