@@ -9,10 +9,19 @@ unchanged in place of each novel view (the baseline a light field without synthe
 
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
       [--inputs 9,5] [--backend cpu|gpu] [--out lf_scores.md]
+  python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
+      --foveate 2 [--inputs 9] [--out fv_scores.md]
+
+With --foveate S, `dioptra lightfield --foveate S` keeps each synthesised view's log-polar
+samples around the image centre and interpolates the rest; the table then gives, per region
+(fovea: the disk of diameter 0.1 image diagonal around the gaze; periphery 1 the ring out to
+0.4; periphery 2 out to 1), the PSNR of the full and of the foveated synthesis against the
+truth (of the mean squared error over the novel views), and the fraction of rays kept.
 """
 import argparse
 import glob
 import json
+import math
 import os
 import re
 import subprocess
@@ -60,18 +69,79 @@ def picks(n, inputs):
     raise SystemExit(f"--inputs takes 5 or 9, not {inputs}")
 
 
+REGIONS = [("fovea", 0.0, 0.1), ("periphery 1", 0.1, 0.4), ("periphery 2", 0.4, 1.0)]
+
+
+def region_masks(h, w):
+    """Rings around the image centre, diameters as fractions of the image diagonal."""
+    diag = math.hypot(w, h)
+    yy, xx = np.mgrid[0:h, 0:w]
+    r = np.hypot(xx + 0.5 - w / 2, yy + 0.5 - h / 2)
+    return [((r > 0.5 * a * diag) | (a == 0)) & (r <= 0.5 * b * diag) for _, a, b in REGIONS]
+
+
+def foveated(a, scenes):
+    k = int(a.inputs.split(",")[0])
+    cols = [f"full: {n}" for n, _, _ in REGIONS] + [f"S={a.foveate:g}: {n}" for n, _, _ in REGIONS] + ["rays kept %"]
+    rows = []
+    for d in scenes:
+        meta = json.load(open(os.path.join(d, "lightfield.json")))
+        n = meta["grid"]
+        novel = [(r, c) for r in range(n) for c in range(n) if (r, c) not in picks(n, k)]
+        err = {}
+        frac = None
+        for mode in ("full", "fov"):
+            with tempfile.TemporaryDirectory() as out:
+                cmd = [a.binary, "lightfield", "--views", d, "--inputs", str(k), "--span",
+                       str(meta["span_m"]), "--grid", str(n), "--fov-deg", str(meta["fov_deg"]),
+                       "--backend", a.backend, "--out", out]
+                if mode == "fov":
+                    cmd += ["--foveate", str(a.foveate)]
+                res = subprocess.run(cmd, capture_output=True, text=True)
+                if res.returncode != 0:
+                    raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
+                if mode == "fov":
+                    frac = float(re.search(r"([0-9.]+) % of the rays kept", res.stdout).group(1))
+                se = np.zeros(3)
+                cnt = np.zeros(3)
+                for (r, c) in novel:
+                    t = srgb(read_pfm(os.path.join(d, f"view_{r:02}_{c:02}.pfm")))
+                    y = read_png_srgb(os.path.join(out, f"view_{r:02}_{c:02}.png"))
+                    for i, m in enumerate(region_masks(*t.shape[:2])):
+                        se[i] += float(np.sum((y[m] - t[m]) ** 2))
+                        cnt[i] += m.sum() * 3
+                err[mode] = [10 * np.log10(1.0 / (se[i] / cnt[i])) for i in range(3)]
+        rows.append((os.path.basename(d), err["full"] + err["fov"] + [frac]))
+        print(os.path.basename(d), " ".join(f"{v:.2f}" for v in rows[-1][1]), flush=True)
+    return cols, rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", required=True, help="directory made by generate_lf.py")
     ap.add_argument("--binary", required=True, help="the dioptra binary")
     ap.add_argument("--inputs", default="9,5", help="input view counts, comma-separated")
     ap.add_argument("--backend", default="cpu", help="dioptra's backend: cpu or gpu")
+    ap.add_argument("--foveate", type=float, help="log-buffer scale S: score foveated synthesis")
     ap.add_argument("--out", help="write the table here (markdown) as well as printing it")
     a = ap.parse_args()
     counts = [int(k) for k in a.inputs.split(",")]
     scenes = sorted(os.path.dirname(p) for p in glob.glob(os.path.join(a.set, "*", "lightfield.json")))
     if not scenes:
         raise SystemExit(f"no scenes (*/lightfield.json) under {a.set}: run generate_lf.py first")
+    if a.foveate is not None:
+        cols, rows = foveated(a, scenes)
+        lines = ["| scene | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+        for name, row in rows:
+            lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
+        mean = np.mean([r for _, r in rows], axis=0)
+        lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " |")
+        table = "\n".join(lines)
+        print(table)
+        if a.out:
+            with open(a.out, "w") as f:
+                f.write(table + "\n")
+        return
     cols = [c for k in counts for c in (f"nearest input ({k})", f"classical ({k} inputs)")]
     rows, times = [], {k: [] for k in counts}
     for d in scenes:

@@ -164,6 +164,51 @@ fn scene_render_metrics_round_trip() {
     );
     assert!(!ok && text.contains("prior"), "{text}");
 
+    // Light-field synthesis from the scene's 2 x 2 views into 3 x 3, plain and foveated
+    // (issue 41): the foveated run says what fraction of the rays it kept and its PSNR per
+    // region against the full synthesis; --gaze without --foveate and a bad S are refused.
+    let lf = |extra: &[&str]| {
+        let out = d("synth");
+        let views = d("lightfield");
+        let mut args = vec![
+            "lightfield",
+            "--views",
+            &views,
+            "--inputs",
+            "5",
+            "--grid",
+            "3",
+            "--backend",
+            "cpu",
+            "--out",
+            &out,
+        ];
+        args.extend_from_slice(extra);
+        dioptra(&args)
+    };
+    let (ok, text) = lf(&[]);
+    assert!(ok && text.contains("synthesised 9 views"), "{text}");
+    assert!(Path::new(&d("synth/view_02_02.png")).exists(), "{text}");
+    assert!(!text.contains("rays kept"), "{text}");
+    let (ok, text) = lf(&["--foveate", "2", "--gaze", "20,20"]);
+    assert!(ok, "{text}");
+    let kept: f64 = text
+        .split_once("): ")
+        .and_then(|(_, r)| r.split_once(" % of the rays kept"))
+        .and_then(|(v, _)| v.parse().ok())
+        .unwrap_or_else(|| panic!("no fraction in {text}"));
+    assert!(kept > 0.0 && kept < 100.0, "{text}");
+    for region in ["fovea", "periphery 1", "periphery 2"] {
+        assert!(
+            text.lines().any(|l| l.starts_with(region)),
+            "{region} missing: {text}"
+        );
+    }
+    let (ok, text) = lf(&["--gaze", "20,20"]);
+    assert!(!ok && text.contains("--foveate"), "{text}");
+    let (ok, text) = lf(&["--foveate", "0"]);
+    assert!(!ok && text.contains("--foveate"), "{text}");
+
     // Clear errors: a missing file, an unreadable format, an unknown backend.
     let (ok, text) = dioptra(&[
         "render",
