@@ -30,17 +30,9 @@ import tempfile
 import mitsuba as mi
 import numpy as np
 
+from score import read as read_pfm, srgb  # the multifocal scorer's PFM reader and sRGB encoding
+
 mi.set_variant("scalar_rgb")
-
-
-def read_pfm(path):
-    with open(path, "rb") as f:
-        magic = f.readline().strip()
-        w, h = map(int, f.readline().split())
-        scale = float(f.readline())
-        c = 3 if magic == b"PF" else 1
-        a = np.frombuffer(f.read(), dtype="<f4" if scale < 0 else ">f4").reshape(h, w, c)
-        return a[::-1].astype(np.float64)
 
 
 def read_png_srgb(path):
@@ -49,12 +41,8 @@ def read_png_srgb(path):
     return a / 255.0
 
 
-def srgb(linear):
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
 def psnr(a, b):
+    """PSNR of two sRGB-encoded images in [0, 1]."""
     mse = float(np.mean((a - b) ** 2))
     return 100.0 if mse == 0 else 10 * np.log10(1.0 / mse)
 

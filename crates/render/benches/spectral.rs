@@ -82,6 +82,16 @@ fn benches(c: &mut Criterion) {
                 })
             });
         }
+        // 10 iterations of optimized blending from linear blending (its time included).
+        let optimized_10 = |stack: &[dioptra_core::RgbImage], foci: &[Diopters]| {
+            let lin = cpu.linear_blend(&input, &planes).expect("linear");
+            let p = OptimizeParams {
+                iterations: 10,
+                tolerance: 0.0,
+            };
+            cpu.optimized_blend(stack, foci, &planes, &eye, Some(&lin), p, &|_| {})
+                .expect("optimized")
+        };
         let foci = default_focal_samples();
         g.bench_function("optimized_gather_10", |b| {
             b.iter(|| {
@@ -94,13 +104,7 @@ fn benches(c: &mut Criterion) {
                         &|_| {},
                     )
                     .expect("stack");
-                let lin = cpu.linear_blend(&input, &planes).expect("linear");
-                let p = OptimizeParams {
-                    iterations: 10,
-                    tolerance: 0.0,
-                };
-                cpu.optimized_blend(&stack, &foci, &planes, &eye, Some(&lin), p, &|_| {})
-                    .expect("optimized")
+                optimized_10(&stack, &foci)
             })
         });
         // The same 10 iterations fitted to spectral's own targets (its composite stack at its
@@ -109,13 +113,7 @@ fn benches(c: &mut Criterion) {
         g.bench_function("optimized_own_targets_10", |b| {
             b.iter(|| {
                 let stack = target_stack(black_box(&input));
-                let lin = cpu.linear_blend(&input, &planes).expect("linear");
-                let p = OptimizeParams {
-                    iterations: 10,
-                    tolerance: 0.0,
-                };
-                cpu.optimized_blend(&stack, &own_foci, &planes, &eye, Some(&lin), p, &|_| {})
-                    .expect("optimized")
+                optimized_10(&stack, &own_foci)
             })
         });
         g.finish();
