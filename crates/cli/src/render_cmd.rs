@@ -819,36 +819,41 @@ fn foveate_light_field(
     scale: f32,
 ) -> Result<FoveatedLightField> {
     use dioptra_render::foveate::{interpolate, log_polar_mask};
-    use dioptra_render::metrics::quality_by_region;
-    let mut out = Vec::with_capacity(lf.len());
-    let (mut kept, mut psnr) = (0.0, [(0.0f64, 0usize); 3]);
-    let mut names = [""; 3];
+    use dioptra_render::metrics::{psnr, FovealRegion};
+    let Some(first) = lf.first() else {
+        bail!("no views to foveate");
+    };
+    let (w, h) = (first.width(), first.height());
+    // The regions are the same for every view; a region with no pixel (a gaze far off-centre)
+    // is left out.
+    let regions: Vec<(FovealRegion, Plane)> = FovealRegion::ALL
+        .into_iter()
+        .map(|r| (r, r.mask(w, h, centre)))
+        .filter(|(_, m)| m.data().iter().any(|&v| v > 0.5))
+        .collect();
+    let mut views = Vec::with_capacity(lf.len());
+    let mut kept = 0.0;
+    let mut mse = vec![0.0f64; regions.len()];
     for (k, view) in lf.iter().enumerate() {
-        let (w, h) = (view.width(), view.height());
         let p = dioptra_net::fv::view_mask(centre, w, scale, k);
         let (mask, fraction) = log_polar_mask(w, h, &p)?;
         let f = interpolate(view, &mask)?;
         kept += fraction;
-        for (i, (region, q)) in quality_by_region(&f, view, centre)?.into_iter().enumerate() {
-            names[i] = region.name();
-            if let Some(q) = q {
-                // Back to the mean squared error (peak 1), so identical views average in.
-                psnr[i].0 += 10f64.powf(-q.psnr / 10.0);
-                psnr[i].1 += 1;
-            }
+        for ((_, m), e) in regions.iter().zip(&mut mse) {
+            // Back to the mean squared error (peak 1), so identical views average in.
+            *e += 10f64.powf(-psnr(&f, view, Some(m))? / 10.0);
         }
-        out.push(f);
+        views.push(f);
     }
-    let regions = names
-        .into_iter()
-        .zip(psnr)
-        .filter(|(_, (_, n))| *n > 0)
-        .map(|(name, (mse, n))| (name, -10.0 * (mse / n as f64).log10()))
-        .collect();
+    let n = lf.len() as f64;
     Ok(FoveatedLightField {
-        views: out,
-        fraction: kept / lf.len().max(1) as f64,
-        regions,
+        views,
+        fraction: kept / n,
+        regions: regions
+            .iter()
+            .zip(mse)
+            .map(|((r, _), e)| (r.name(), -10.0 * (e / n).log10()))
+            .collect(),
     })
 }
 
@@ -909,8 +914,9 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
     let mut images: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
     let mut foveated = None;
     if let Some(scale) = a.foveate {
-        if !(scale.is_finite() && scale >= 0.05) {
-            bail!("--foveate takes a log-buffer scale S >= 0.05 (2: about 10 % of the rays), not {scale}");
+        let min = dioptra_render::foveate::MIN_SCALE;
+        if !(scale.is_finite() && scale >= min) {
+            bail!("--foveate takes a log-buffer scale S >= {min} (2: about 10 % of the rays), not {scale}");
         }
         let (w, h) = (images[0].width(), images[0].height());
         let centre = gaze_point(&a.gaze, w, h)?;

@@ -10,6 +10,9 @@ use rayon::prelude::*;
 /// host code's and (through `gpu::context::shared_wgsl`) shaders/foveate.wgsl's.
 pub(crate) const FOV_CELL: usize = 8;
 
+/// The smallest log-buffer scale S a mask takes (a W/S x W/S buffer).
+pub const MIN_SCALE: f32 = 0.05;
+
 /// Parameters of a log-polar mask.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LogPolar {
@@ -57,9 +60,9 @@ pub fn log_polar_mask(
     ]
     .iter()
     .all(|v| v.is_finite());
-    if !finite || p.scale < 0.05 || p.kernel <= 0.0 || p.r_offset <= 0.0 {
+    if !finite || p.scale < MIN_SCALE || p.kernel <= 0.0 || p.r_offset <= 0.0 {
         return Err(invalid(format!(
-            "log-polar parameters {p:?} are invalid: need finite values, S >= 0.05, K > 0, r' > 0"
+            "log-polar parameters {p:?} are invalid: need finite values, S >= {MIN_SCALE}, K > 0, r' > 0"
         )));
     }
     // L: the farthest image corner from the fovea.
