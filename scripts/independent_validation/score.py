@@ -93,6 +93,16 @@ def psnr(a, b):
     return 10 * math.log10(1 / max(mse, 1e-20))
 
 
+def scenes(set_dir):
+    """Each scene of a generate.py set: its name, its directory, its foci as their file names
+    write them (e.g. "0.10") and the truth's thin-lens images at them."""
+    for d in sorted(glob.glob(os.path.join(set_dir, "*", "color.pfm"))):
+        scene = os.path.dirname(d)
+        stack = sorted(glob.glob(os.path.join(scene, "stack", "focus_*D.pfm")))
+        foci = [re.search(r"focus_([0-9.]+)D", s).group(1) for s in stack]
+        yield os.path.basename(scene), scene, foci, [read(s) for s in stack]
+
+
 def write_table(rows, methods, out):
     """Prints the scores (rows of [scene, score per method]) as a markdown table with the
     mean over scenes, and writes it to `out` if given."""
@@ -130,12 +140,8 @@ def main():
     # The layers go to a temporary directory, not the set's scene folders: scorers running
     # at once on one set would overwrite each other's.
     with tempfile.TemporaryDirectory() as tmp:
-        for d in sorted(glob.glob(os.path.join(a.set, "*", "color.pfm"))):
-            scene = os.path.dirname(d)
-            name = os.path.basename(scene)
-            stack = sorted(glob.glob(os.path.join(scene, "stack", "focus_*D.pfm")))
-            foci = [float(re.search(r"focus_([0-9.]+)D", s).group(1)) for s in stack]
-            truth = [read(s) for s in stack]
+        for name, scene, foci, truth in scenes(a.set):
+            foci = [float(q) for q in foci]
             width = truth[0].shape[1]
             row = [name]
             for m, args in runs:

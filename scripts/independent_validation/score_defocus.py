@@ -13,15 +13,13 @@ A method is `gather`, `lightfield:N` (N views), `refine` (C1R with the shipped w
 `refine=FILE` (C1R with other weights).
 """
 import argparse
-import glob
 import os
-import re
 import subprocess
 import tempfile
 
 import numpy as np
 
-from score import psnr, read, write_table
+from score import psnr, read, scenes, write_table
 
 
 def render_args(method):
@@ -42,12 +40,7 @@ def main():
     methods = a.methods.split(",")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for d in sorted(glob.glob(os.path.join(a.set, "*", "color.pfm"))):
-            scene = os.path.dirname(d)
-            name = os.path.basename(scene)
-            stack = sorted(glob.glob(os.path.join(scene, "stack", "focus_*D.pfm")))
-            foci = [re.search(r"focus_([0-9.]+)D", s).group(1) for s in stack]
-            truth = [read(s) for s in stack]
+        for name, scene, foci, truth in scenes(a.set):
             row = [name]
             for m in methods:
                 scores = []
