@@ -57,6 +57,17 @@ def picks(n, inputs):
     raise SystemExit(f"--inputs takes 5 or 9, not {inputs}")
 
 
+def synthesise(a, scene, meta, inputs, out, extra=()):
+    """`dioptra lightfield` on `scene` from `inputs` of its views into `out`; its run."""
+    cmd = [a.binary, "lightfield", "--views", scene, "--inputs", str(inputs),
+           "--span", str(meta["span_m"]), "--grid", str(meta["grid"]),
+           "--fov-deg", str(meta["fov_deg"]), "--backend", a.backend, "--out", out, *extra]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
+    return res
+
+
 REGIONS = [("fovea", 0.0, 0.1), ("periphery 1", 0.1, 0.4), ("periphery 2", 0.4, 1.0)]
 
 
@@ -80,14 +91,8 @@ def foveated(a, scenes):
         frac = None
         for mode in ("full", "fov"):
             with tempfile.TemporaryDirectory() as out:
-                cmd = [a.binary, "lightfield", "--views", d, "--inputs", str(k), "--span",
-                       str(meta["span_m"]), "--grid", str(n), "--fov-deg", str(meta["fov_deg"]),
-                       "--backend", a.backend, "--out", out]
-                if mode == "fov":
-                    cmd += ["--foveate", str(a.foveate)]
-                res = subprocess.run(cmd, capture_output=True, text=True)
-                if res.returncode != 0:
-                    raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
+                extra = ["--foveate", str(a.foveate)] if mode == "fov" else []
+                res = synthesise(a, d, meta, k, out, extra)
                 if mode == "fov":
                     frac = float(re.search(r"([0-9.]+) % of the rays kept", res.stdout).group(1))
                 se = np.zeros(3)
@@ -147,12 +152,7 @@ def main():
                 shown = read_png_srgb(os.path.join(d, f"view_{nr:02}_{nc:02}.png"))
                 near.append(psnr(shown, truth[(r, c)]))
             with tempfile.TemporaryDirectory() as out:
-                cmd = [a.binary, "lightfield", "--views", d, "--inputs", str(k),
-                       "--span", str(meta["span_m"]), "--grid", str(n),
-                       "--fov-deg", str(meta["fov_deg"]), "--backend", a.backend, "--out", out]
-                res = subprocess.run(cmd, capture_output=True, text=True)
-                if res.returncode != 0:
-                    raise SystemExit(f"{' '.join(cmd)} failed:\n{res.stderr}")
+                res = synthesise(a, d, meta, k, out)
                 ms = re.search(r"in (\d+) ms", res.stdout)
                 if ms:
                     times[k].append(float(ms.group(1)))
