@@ -1,7 +1,8 @@
 //! A binocular frame against a mono one, on the CPU backend: each eye's views made from a
 //! content frame (the scene ray cast at each eye, or synthesised from one RGB-D: once per
 //! content frame), and one eye's render against a mono render per method, at 256 and 512 px.
-//! A stereo frame costs its two eye renders plus, on each new content frame, its views.
+//! A stereo frame costs its two eye renders plus, on each new content frame, its views. The
+//! light-field panel from a 3 x 3 view grid (`content.views`) is timed beside them.
 //! `cargo bench -p dioptra-rig --bench stereo`
 
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -11,7 +12,7 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use dioptra_core::{Diopters, Side, Timestamp};
 use dioptra_rig::config::{Method, Mode, RigConfig, EXAMPLE_SIM_BINOCULAR_RIG};
 use dioptra_rig::content::stereo::EyeViews;
-use dioptra_rig::content::{scene::Pacing, ContentFrame};
+use dioptra_rig::content::{scene::Pacing, ContentFrame, ContentView};
 use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_sched::RenderMethod;
 
@@ -84,6 +85,45 @@ fn stereo(c: &mut Criterion) {
                 );
             }
         }
+        // Light-field content (`content.views = 3`): the panel from a 3 x 3 grid of the
+        // scene's pinhole views over the panel's 4 mm, against the one RGB-D above.
+        let scene = scene_frame.scene.clone().unwrap();
+        let cam = dioptra_rig::content::scene::camera(&cfg).unwrap();
+        let grid: std::sync::Arc<[ContentView]> =
+            dioptra_sim::scene::light_field_positions(3, 0.004)
+                .unwrap()
+                .into_iter()
+                .map(|position| {
+                    let (c, d) =
+                        dioptra_sim::scene::render_pinhole(&scene, &cam, position, 1).unwrap();
+                    ContentView {
+                        eye: None,
+                        position,
+                        rgbd: std::sync::Arc::new(dioptra_core::Rgbd::new(c, d).unwrap()),
+                    }
+                })
+                .collect();
+        let gridded = ContentFrame {
+            views: Some(grid.clone()),
+            ..ContentFrame::new(0, grid[4].rgbd.clone())
+        };
+        g.bench_function(
+            format!("{size} px lightfield views: 3 x 3 view grid, mono"),
+            |b| {
+                b.iter(|| {
+                    renderer
+                        .render_frame(
+                            &fresh(&gridded),
+                            Mode::Lightfield,
+                            Method(RenderMethod::Views),
+                            Diopters(1.0),
+                            None,
+                            false,
+                        )
+                        .unwrap()
+                })
+            },
+        );
     }
     g.finish();
 }

@@ -1139,6 +1139,19 @@ pub enum ContentSource {
 /// and right sequences, e.g. `"stim/%e/color_%04d.png"`).
 pub const EYE_MARK: &str = "%e";
 
+/// In `content.color` and `content.depth` with `content.views`: the view's place in its grid,
+/// `<row>_<column>` with two digits each from `00_00` at the top left (the names `dioptra
+/// lightfield` and `dioptra sim scene` give a light field's views: `"lf/view_%v.png"`).
+pub const VIEW_MARK: &str = "%v";
+
+/// The largest view grid (`content.views`): the light-field panel warps every input view for
+/// each of its views, so the cost grows with the square of the grid.
+pub const MAX_CONTENT_VIEWS: usize = 9;
+
+/// The square a view grid spans when `content.view_span_mm` is not given (DeepFocus's and
+/// the independent light-field set's 10 mm).
+pub const DEFAULT_VIEW_SPAN_MM: f64 = 10.0;
+
 /// `[content]`: the rig's RGB-D content.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1160,6 +1173,14 @@ pub struct ContentConfig {
     pub looped: bool,
     /// A sequence's first number (default 0).
     pub first: Option<usize>,
+    /// Light-field content: each frame is a `views` x `views` grid of RGB-D views over a
+    /// square of the eye's pupil plane, `%v` in `color` and `depth` naming each view; light-field
+    /// mode synthesises the panel's views from all of them, other modes show the grid's
+    /// central view (for an even grid, the one right and below the centre).
+    pub views: Option<usize>,
+    /// The side of the square the view grid spans, millimetres (default 10): views are
+    /// `view_span_mm / (views - 1)` apart, row 0 at the top, column 0 at the left.
+    pub view_span_mm: Option<f64>,
     /// `source = "scene"`: move some of its objects, as the demo does (default true).
     pub animate: Option<bool>,
     /// `source = "stream"`: the shared-memory ring's file (default: beside `api.unix`, or
@@ -1203,6 +1224,8 @@ impl Default for ContentConfig {
             fps: default_content_fps(),
             looped: false,
             first: None,
+            views: None,
+            view_span_mm: None,
             animate: None,
             ring: None,
         }
@@ -1952,6 +1975,7 @@ impl RigConfig {
                     ));
                 }
                 self.check_eye_patterns()?;
+                self.check_view_grid()?;
                 if let Some(u) = &c.depth_units {
                     if !["m", "mm", "D"].contains(&u.as_str()) {
                         return Err(invalid(
@@ -1966,6 +1990,13 @@ impl RigConfig {
                     return Err(invalid(
                         "content.source",
                         "content.color and content.depth are read with source = \"files\"",
+                    ));
+                }
+                if c.views.is_some() || c.view_span_mm.is_some() {
+                    return Err(invalid(
+                        "content.views",
+                        "a view grid is read from files: set source = \"files\" with %v in \
+                         content.color and content.depth",
                     ));
                 }
             }
@@ -2306,6 +2337,65 @@ impl RigConfig {
                      eye's colour needs that eye's depth"
                 ),
             ));
+        }
+        Ok(())
+    }
+
+    /// `content.views` and `content.view_span_mm` against `%v` in the patterns.
+    fn check_view_grid(&self) -> Result<(), ConfigError> {
+        let c = &self.content;
+        let has = |v: &Option<String>| v.as_deref().is_some_and(|p| p.contains(VIEW_MARK));
+        match c.views {
+            None => {
+                for (key, v) in [("content.color", &c.color), ("content.depth", &c.depth)] {
+                    if has(v) {
+                        return Err(invalid(
+                            key,
+                            format!(
+                                "{VIEW_MARK} names the views of a light field's grid: set \
+                                 content.views to the grid's side (views per row)"
+                            ),
+                        ));
+                    }
+                }
+                if c.view_span_mm.is_some() {
+                    return Err(invalid(
+                        "content.view_span_mm",
+                        "it is the span of a view grid: set content.views too, or remove it",
+                    ));
+                }
+            }
+            Some(n) => {
+                if !(2..=MAX_CONTENT_VIEWS).contains(&n) {
+                    return Err(invalid(
+                        "content.views",
+                        format!(
+                            "{n}: expected 2 to {MAX_CONTENT_VIEWS} views per side (every view \
+                             is warped for each of the light-field panel's views)"
+                        ),
+                    ));
+                }
+                for (key, v) in [("content.color", &c.color), ("content.depth", &c.depth)] {
+                    if !has(v) {
+                        return Err(invalid(
+                            key,
+                            format!(
+                                "content.views = {n} needs {VIEW_MARK} in the pattern, where each \
+                                 view's <row>_<column> goes (e.g. \"lf/view_{VIEW_MARK}.png\" for \
+                                 view_00_00.png ...)"
+                            ),
+                        ));
+                    }
+                }
+                if let Some(s) = c.view_span_mm {
+                    if !(s.is_finite() && s > 0.0 && s <= 100.0) {
+                        return Err(invalid(
+                            "content.view_span_mm",
+                            format!("{s}: expected a span of 0 to 100 mm"),
+                        ));
+                    }
+                }
+            }
         }
         Ok(())
     }
@@ -3327,5 +3417,72 @@ pub(crate) mod tests {
         assert!(e.to_string().contains("content.color names"), "{e}");
         let e = err(&files("side-by-side", "c.png", "d_%e.exr"));
         assert_eq!(e.key(), "content.color", "{e}");
+    }
+
+    /// `content.views`: a grid of 2 to 9 views a side with `%v` in both patterns and a span
+    /// of 0 to 100 mm; `%v` without it, or a grid with another source, names the key.
+    #[test]
+    fn a_view_grid_needs_its_mark_its_size_and_files() {
+        let files = |extra: &str, color: &str, depth: &str| {
+            format!(
+                "{SIM_RIG}\n[content]\nsource = \"files\"\ncolor = {color:?}\ndepth = {depth:?}\n{extra}\n"
+            )
+        };
+        let ok = RigConfig::parse(&files("views = 3", "lf/v_%v.png", "lf/v_%v.exr"));
+        assert_eq!(ok.map(|c| c.content.views).ok(), Some(Some(3)));
+        let ok = RigConfig::parse(&files(
+            "views = 2\nview_span_mm = 4.5",
+            "lf/%04d/v_%v.png",
+            "lf/%04d/v_%v.exr",
+        ));
+        assert!(ok.is_ok(), "{ok:?}");
+        for (extra, color, depth, key, says) in [
+            ("", "v_%v.png", "v_%v.exr", "content.color", "content.views"),
+            ("views = 3", "v.png", "v_%v.exr", "content.color", "%v"),
+            ("views = 3", "v_%v.png", "v.exr", "content.depth", "%v"),
+            (
+                "views = 1",
+                "v_%v.png",
+                "v_%v.exr",
+                "content.views",
+                "2 to 9",
+            ),
+            (
+                "views = 12",
+                "v_%v.png",
+                "v_%v.exr",
+                "content.views",
+                "2 to 9",
+            ),
+            (
+                "view_span_mm = 4",
+                "v.png",
+                "v.exr",
+                "content.view_span_mm",
+                "views",
+            ),
+            (
+                "views = 3\nview_span_mm = -1",
+                "v_%v.png",
+                "v_%v.exr",
+                "content.view_span_mm",
+                "0 to 100",
+            ),
+            (
+                "views = 3\nview_span_mm = nan",
+                "v_%v.png",
+                "v_%v.exr",
+                "content.view_span_mm",
+                "0 to 100",
+            ),
+        ] {
+            let e = err(&files(extra, color, depth));
+            assert_eq!(e.key(), key, "{extra} {color} {depth}: {e}");
+            assert!(e.to_string().contains(says), "{e}");
+        }
+        let e = err(&format!(
+            "{SIM_RIG}\n[content]\nsource = \"stream\"\nviews = 3\n"
+        ));
+        assert_eq!(e.key(), "content.views", "{e}");
     }
 }

@@ -8,6 +8,12 @@
 //! ([`ContentFrame::eyes`]), its `rgbd` the left eye's. Without `%e` a stereo rig shows one
 //! view and each eye's is synthesised from it.
 //!
+//! Light-field content (`content.views = N`): `%v` in both patterns stands for each view's
+//! `<row>_<column>` in an N x N grid (`"lf/%04d/view_%v.png"`: view_00_00.png ...), the views
+//! `content.view_span_mm` apart over the square; each frame is then every view
+//! ([`ContentFrame::views`]), its `rgbd` the grid's central one. With `%e` too, each eye has
+//! its own grid, centred on that eye.
+//!
 //! At start every file of the sequence (each eye's) must exist and the first frame must decode
 //! and match the display's (one eye's) size: otherwise the rig does not start, naming the path
 //! and the reason. A frame that fails later (corrupt, wrong size) is skipped and counted, and
@@ -23,14 +29,14 @@ use dioptra_core::{lock, Rgbd, Side, Timestamp};
 use dioptra_render::io::{read_color, read_depth, DepthUnits};
 use serde::Serialize;
 
-use super::{Arrival, Content, ContentError, ContentFrame};
-use crate::config::{ContentConfig, RigConfig, EYE_MARK};
+use super::{Arrival, Content, ContentError, ContentFrame, ContentView};
+use crate::config::{ContentConfig, RigConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
 
 /// One frame's files: a colour and a depth file per view (one, or the left and the right
-/// eye's).
+/// eye's; with a view grid, each eye's grid row by row).
 type FrameFiles = Vec<(PathBuf, PathBuf)>;
 
 /// One frame decoded: its views, in [`FrameFiles`]' order.
@@ -42,6 +48,8 @@ pub struct ContentStatus {
     pub source: &'static str,
     /// Each frame a left and a right eye's view (`%e` in the patterns).
     pub stereo: bool,
+    /// Light-field content: views per side of each frame's grid (`content.views`).
+    pub views: Option<usize>,
     pub frames_in_sequence: usize,
     /// The sequence index on show.
     pub index: usize,
@@ -81,6 +89,99 @@ fn eye_pattern(pattern: &str, eye: Option<Side>) -> String {
     match eye {
         Some(e) => pattern.replace(EYE_MARK, e.as_str()),
         None => pattern.to_string(),
+    }
+}
+
+/// `pattern` for the view at `row`, `column` of a grid (`%v` replaced by `<row>_<column>`).
+fn view_pattern(pattern: &str, row: usize, column: usize) -> String {
+    pattern.replace(VIEW_MARK, &format!("{row:02}_{column:02}"))
+}
+
+/// How each frame's views are laid out: one or two eyes, each one view or a grid.
+#[derive(Debug, Clone)]
+struct ViewLayout {
+    eyes: Vec<Option<Side>>,
+    /// Views per side and each view's position (metres, row by row); `None`: one view.
+    grid: Option<(usize, Vec<[f32; 2]>)>,
+}
+
+impl ViewLayout {
+    fn new(eyes: bool, grid: Option<usize>, span_mm: f64) -> Result<ViewLayout, ContentError> {
+        let grid = grid
+            .map(|n| {
+                dioptra_sim::scene::light_field_positions(n, (span_mm * 1e-3) as f32)
+                    .map(|p| (n, p))
+                    .map_err(|e| ContentError::Config(format!("content.views: {e}")))
+            })
+            .transpose()?;
+        Ok(ViewLayout {
+            eyes: if eyes {
+                vec![Some(Side::Left), Some(Side::Right)]
+            } else {
+                vec![None]
+            },
+            grid,
+        })
+    }
+
+    /// Views per eye.
+    fn per_eye(&self) -> usize {
+        self.grid.as_ref().map_or(1, |(n, _)| n * n)
+    }
+
+    /// The index of an eye's central view among its views (0 without a grid).
+    fn centre(&self) -> usize {
+        self.grid.as_ref().map_or(0, |(n, _)| (n / 2) * n + n / 2)
+    }
+
+    /// Each view's pattern, in [`FrameFiles`]' order.
+    fn patterns(&self, pattern: &str) -> Vec<String> {
+        let mut out = Vec::new();
+        for &eye in &self.eyes {
+            let p = eye_pattern(pattern, eye);
+            match &self.grid {
+                None => out.push(p),
+                Some((n, _)) => {
+                    for k in 0..n * n {
+                        out.push(view_pattern(&p, k / n, k % n));
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// The content frame `number` of the decoded `views`: each eye's central view as its
+    /// RGB-D, every view of a grid as the frame's views.
+    fn frame(&self, number: u64, views: &[Arc<Rgbd>]) -> ContentFrame {
+        let per_eye = self.per_eye();
+        let centre = self.centre();
+        let central: Vec<Arc<Rgbd>> = (0..self.eyes.len())
+            .map(|e| views[e * per_eye + centre].clone())
+            .collect();
+        ContentFrame {
+            eyes: match &central[..] {
+                [left, right] => Some([left.clone(), right.clone()]),
+                _ => None,
+            },
+            views: self.grid.as_ref().map(|(_, positions)| {
+                self.eyes
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(e, &eye)| {
+                        positions
+                            .iter()
+                            .enumerate()
+                            .map(move |(k, &position)| ContentView {
+                                eye,
+                                position,
+                                rgbd: views[e * per_eye + k].clone(),
+                            })
+                    })
+                    .collect()
+            }),
+            ..ContentFrame::new(number, central[0].clone())
+        }
     }
 }
 
@@ -153,30 +254,29 @@ fn pair_up(a: &Found, b: &Found, first: usize) -> Result<(), ContentError> {
     })
 }
 
-/// Each frame's files: one view's, or (`eyes`) the left and the right eye's.
+/// Each frame's files, one pair per view of `layout`.
 fn sequence(
     color: &str,
     depth: &str,
     first: usize,
-    eyes: bool,
+    layout: &ViewLayout,
 ) -> Result<Vec<FrameFiles>, ContentError> {
-    let views: &[Option<Side>] = if eyes {
-        &[Some(Side::Left), Some(Side::Right)]
-    } else {
-        &[None]
-    };
     let mut each = Vec::new();
-    for &eye in views {
-        let c = Found::new("content.color", eye_pattern(color, eye), first)?;
-        let d = Found::new("content.depth", eye_pattern(depth, eye), first)?;
+    for (c, d) in layout
+        .patterns(color)
+        .into_iter()
+        .zip(layout.patterns(depth))
+    {
+        let c = Found::new("content.color", c, first)?;
+        let d = Found::new("content.depth", d, first)?;
         each.push((c, d));
     }
-    // The left eye's colour against its depth, then each of the right eye's files against
-    // the left eye's: a missing file is named beside its partner.
+    // The first view's colour against its depth, then every other view's files against the
+    // first view's: a missing file is named beside its partner.
     pair_up(&each[0].0, &each[0].1, first)?;
-    if let [(lc, ld), (rc, rd)] = &each[..] {
-        pair_up(lc, rc, first)?;
-        pair_up(ld, rd, first)?;
+    for (c, d) in &each[1..] {
+        pair_up(&each[0].0, c, first)?;
+        pair_up(&each[0].1, d, first)?;
     }
     let n = each[0].0.paths.len();
     Ok((0..n)
@@ -281,6 +381,7 @@ struct Worker {
 /// A file sequence being played.
 pub struct FileFrames {
     pairs: Arc<Vec<FrameFiles>>,
+    layout: ViewLayout,
     fps: f64,
     looped: bool,
     shared: Arc<Shared>,
@@ -330,7 +431,12 @@ impl FileFrames {
                  one image"
             )));
         }
-        let pairs = Arc::new(sequence(color, depth, first, eyes)?);
+        let layout = ViewLayout::new(
+            eyes,
+            c.views,
+            c.view_span_mm.unwrap_or(DEFAULT_VIEW_SPAN_MM),
+        )?;
+        let pairs = Arc::new(sequence(color, depth, first, &layout)?);
         let size = (cfg.display.width as usize, cfg.display.height as usize);
         let first_frame = decode_views(&pairs[0], units, size, stereo)?;
         let shared = Arc::new(Shared {
@@ -357,11 +463,13 @@ impl FileFrames {
             status: Mutex::new(ContentStatus {
                 source: "files",
                 stereo: eyes,
+                views: c.views,
                 frames_in_sequence: pairs.len(),
                 decoded: 1,
                 ..Default::default()
             }),
             pairs,
+            layout,
             shared,
             on_show: Mutex::new((None, 0, first_frame)),
             late_index: Mutex::new(None),
@@ -375,16 +483,16 @@ impl FileFrames {
         lock(&self.arrival).take()
     }
 
-    /// The frame on show now (stereo: the left eye's view).
+    /// The frame on show now (stereo: the left eye's view; a grid: its central view).
     pub fn current(&self) -> Arc<Rgbd> {
-        lock(&self.on_show).2[0].clone()
+        lock(&self.on_show).2[self.layout.centre()].clone()
     }
 
     /// The frame on show at `now` (stereo: the left eye's view), and whether it changed since
     /// the last call. The first call starts the sequence.
     pub fn frame_at(&self, now: Timestamp) -> (Arc<Rgbd>, bool) {
         let (views, changed) = self.views_at(now);
-        (views[0].clone(), changed)
+        (views[self.layout.centre()].clone(), changed)
     }
 
     /// [`FileFrames::frame_at`] with each of the frame's views.
@@ -464,11 +572,7 @@ impl Content for FileFrames {
         polled.0 += 1;
         Some(ContentFrame {
             arrival: self.take_arrival(),
-            eyes: match &views[..] {
-                [left, right] => Some([left.clone(), right.clone()]),
-                _ => None,
-            },
-            ..ContentFrame::new(polled.0, views[0].clone())
+            ..self.layout.frame(polled.0, &views)
         })
     }
     fn next_due(&self) -> Option<Timestamp> {
@@ -813,5 +917,122 @@ mod tests {
         let f = FileFrames::open(&one).unwrap();
         let fr = f.poll(Timestamp(0)).unwrap();
         assert!(fr.eyes.is_none() && !f.status().stereo);
+    }
+
+    /// A view grid's files in `dir` (`c_<frame>_<row>_<col>.exr`, `d_...`; `eye`: in that
+    /// eye's folder): view k of frame i has red `v0 + 0.1 i + 0.01 k` and depth 1 + that D.
+    fn write_grid(dir: &Path, eye: Option<&str>, v0: f32, side: usize, frames: usize) {
+        let dir = eye.map_or(dir.to_path_buf(), |e| dir.join(e));
+        std::fs::create_dir_all(&dir).unwrap();
+        for i in 0..frames {
+            for k in 0..side * side {
+                let (c, d) = frame(v0 + 0.1 * i as f32 + 0.01 * k as f32, 96, 96);
+                let name = |kind: &str| {
+                    dir.join(format!("{kind}_{i:03}_{:02}_{:02}.exr", k / side, k % side))
+                };
+                write_color(&name("c"), &c).unwrap();
+                write_depth(&name("d"), &d).unwrap();
+            }
+        }
+    }
+
+    fn red(v: &Rgbd) -> f32 {
+        v.color.channels[0].data()[0]
+    }
+
+    /// `content.views`: each frame brings every view of its grid, row by row, at its place
+    /// over `view_span_mm` (x right, y down, from the centre), its `rgbd` the central view;
+    /// a view file missing for one frame stops the start naming it.
+    #[test]
+    fn a_view_grid_is_every_view_of_each_frame() {
+        let dir = tempfile::tempdir().unwrap();
+        write_grid(dir.path(), None, 0.0, 3, 2);
+        let extra = "views = 3\nview_span_mm = 6\nfps = 10";
+        let cfg = config(dir.path(), "c_%03d_%v.exr", "d_%03d_%v.exr", extra);
+        let f = FileFrames::open(&cfg).unwrap();
+        let st = f.status();
+        assert_eq!((st.views, st.frames_in_sequence), (Some(3), 2), "{st:?}");
+        let ms = |m: u64| Timestamp(m * 1_000_000);
+        let first = f.poll(ms(0)).expect("the first frame");
+        cached(&f, 2);
+        let second = f.poll(ms(100)).expect("frame 1 at 100 ms");
+        for (frame, i) in [(first, 0), (second, 1)] {
+            let views = frame.views.clone().expect("a view grid");
+            assert_eq!(views.len(), 9);
+            for (k, v) in views.iter().enumerate() {
+                let (row, col) = ((k / 3) as f32, (k % 3) as f32);
+                let want = [(col - 1.0) * 3e-3, (row - 1.0) * 3e-3];
+                assert!(
+                    (v.position[0] - want[0]).abs() < 1e-7
+                        && (v.position[1] - want[1]).abs() < 1e-7,
+                    "view {k}: {:?} against {want:?}",
+                    v.position
+                );
+                assert!(v.eye.is_none());
+                let r = 0.1 * i as f32 + 0.01 * k as f32;
+                assert!((red(&v.rgbd) - r).abs() < 1e-6, "frame {i} view {k}");
+                assert!((v.rgbd.depth.data()[0] - (1.0 + r)).abs() < 1e-6);
+            }
+            assert!(
+                Arc::ptr_eq(&frame.rgbd, &views[4].rgbd),
+                "rgbd is the centre"
+            );
+            assert!(frame.eyes.is_none());
+        }
+        assert!(
+            (red(&f.current()) - 0.14).abs() < 1e-6,
+            "current is the centre"
+        );
+        drop(f);
+        std::fs::remove_file(dir.path().join("c_001_02_01.exr")).unwrap();
+        let e = FileFrames::open(&cfg).unwrap_err();
+        assert!(
+            matches!(&e, ContentError::File { key: "content.color", path, .. }
+                if path.ends_with("c_001_02_01.exr")),
+            "{e}"
+        );
+    }
+
+    /// With `%e` and `%v` each eye has its own grid: the frame's views are the left eye's
+    /// then the right eye's, each tagged with its eye, and `eyes` their central views.
+    #[test]
+    fn each_eye_may_have_its_own_view_grid() {
+        let dir = tempfile::tempdir().unwrap();
+        write_grid(dir.path(), Some("left"), 0.0, 2, 1);
+        write_grid(dir.path(), Some("right"), 0.5, 2, 1);
+        let text = crate::config::EXAMPLE_SIM_RIG.replacen(
+            "[display]",
+            "[display]\nlayout = \"two-outputs\"",
+            1,
+        ) + &format!(
+            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\nviews = 2\n",
+            dir.path().join("%e/c_%03d_%v.exr").display().to_string(),
+            dir.path().join("%e/d_%03d_%v.exr").display().to_string()
+        );
+        let f = FileFrames::open(&RigConfig::parse(&text).unwrap()).unwrap();
+        let frame = f.poll(Timestamp(0)).unwrap();
+        let views = frame.views.clone().unwrap();
+        assert_eq!(views.len(), 8);
+        for (k, v) in views.iter().enumerate() {
+            let (eye, v0) = if k < 4 {
+                (Side::Left, 0.0)
+            } else {
+                (Side::Right, 0.5)
+            };
+            assert_eq!(v.eye, Some(eye), "view {k}");
+            assert!(
+                (red(&v.rgbd) - (v0 + 0.01 * (k % 4) as f32)).abs() < 1e-6,
+                "view {k}"
+            );
+            // 10 mm by default: the corners 5 mm from the eye's centre.
+            assert!(
+                (v.position[0].abs() - 5e-3).abs() < 1e-7,
+                "{:?}",
+                v.position
+            );
+        }
+        let [left, right] = frame.eyes.unwrap();
+        assert!(Arc::ptr_eq(&left, &views[3].rgbd) && Arc::ptr_eq(&right, &views[7].rgbd));
+        assert!(Arc::ptr_eq(&frame.rgbd, &left));
     }
 }

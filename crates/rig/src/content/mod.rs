@@ -32,6 +32,16 @@ pub struct Arrival {
     pub ready: Timestamp,
 }
 
+/// One view of light-field content: an RGB-D image seen from `position` (metres in the pupil
+/// plane, x right and y down, from `eye`'s centre; `eye` `None`: from the centre between the
+/// eyes, or a mono rig's eye).
+#[derive(Debug, Clone)]
+pub struct ContentView {
+    pub eye: Option<Side>,
+    pub position: [f32; 2],
+    pub rgbd: Arc<Rgbd>,
+}
+
 /// One frame of content, as the loop takes it up.
 #[derive(Debug, Clone)]
 pub struct ContentFrame {
@@ -56,6 +66,10 @@ pub struct ContentFrame {
     /// The procedural scene as this frame shows it: light-field mode ray casts its own views
     /// from it instead of synthesising them from the RGB-D.
     pub scene: Option<Arc<dioptra_sim::scene::Scene>>,
+    /// Light-field content (`content.views`): every view of the frame's grid (a stereo rig's
+    /// `%e` grids: each eye's), from which light-field mode synthesises the panel's views;
+    /// `rgbd` (and `eyes`) are the grid's central view. `None`: one view per eye.
+    pub views: Option<Arc<[ContentView]>>,
 }
 
 impl ContentFrame {
@@ -69,6 +83,7 @@ impl ContentFrame {
             arrival: None,
             scene_time: None,
             scene: None,
+            views: None,
         }
     }
 

@@ -449,6 +449,7 @@ impl Content for AnimatedScene {
             arrival,
             scene_time: Some(time),
             scene: Some(Arc::new(self.scene_at(time))),
+            views: None,
         })
     }
     fn next_due(&self) -> Option<Timestamp> {

@@ -33,7 +33,7 @@ use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
 use crate::config::{Method, Mode, RenderBackend, RigConfig};
-use crate::content::ContentFrame;
+use crate::content::{ContentFrame, ContentView};
 use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
@@ -387,6 +387,25 @@ impl RgbdRenderer {
         }
     }
 
+    /// The input views for `eye`'s light field from a frame's view grids: the eye's own grid
+    /// where it has one, else the one grid, its positions taken from the eye's centre.
+    fn eye_inputs(&self, views: &[ContentView], eye: Option<Side>) -> Vec<RgbdView> {
+        let own = eye.is_some() && views.iter().any(|v| v.eye == eye);
+        let centre = match (own, eye) {
+            (false, Some(Side::Left)) => -self.half_ipd_m,
+            (false, Some(Side::Right)) => self.half_ipd_m,
+            _ => 0.0,
+        };
+        views
+            .iter()
+            .filter(|v| if own { v.eye == eye } else { v.eye.is_none() })
+            .map(|v| RgbdView {
+                position: [v.position[0] - centre, v.position[1]],
+                rgbd: v.rgbd.as_ref().clone(),
+            })
+            .collect()
+    }
+
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
     fn panel(&self, content: &ContentFrame) -> Result<Arc<RgbImage>, RenderError> {
@@ -418,11 +437,15 @@ impl RgbdRenderer {
                 (images, vcam.eye.pixel_pitch_tan())
             }
             None => {
-                // The frame as the view from the pupil's centre, warped to each lens position.
-                let input = [RgbdView {
-                    position: [0.0, 0.0],
-                    rgbd: content.rgbd.as_ref().clone(),
-                }];
+                // The frame's views (a view grid), or the frame as the view from the pupil's
+                // centre, warped to each lens position.
+                let input = match &content.views {
+                    Some(views) => self.eye_inputs(views, content.eye),
+                    None => vec![RgbdView {
+                        position: [0.0, 0.0],
+                        rgbd: content.rgbd.as_ref().clone(),
+                    }],
+                };
                 let views = self.on_backend("views", |gpu| {
                     backend_of(gpu).synthesize_light_field(
                         &input,
@@ -914,5 +937,101 @@ mod tests {
         assert_eq!(panel(&one), first);
         let two = send(2, &|i| (i * 13 % 241) as u8);
         assert_ne!(panel(&two), first);
+    }
+
+    /// Light-field mode on a view grid (`content.views`): the panel is synthesised from every
+    /// view, and is nearer the scene's own light field (its 5 x 5 pinhole views, ray cast)
+    /// than the panel made from the central view alone.
+    #[test]
+    fn a_view_grid_makes_a_truer_panel_than_its_central_view() {
+        use dioptra_sim::scene::{light_field_positions, render_pinhole, Camera};
+        let text = EXAMPLE_SIM_RIG.to_string()
+            + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        let r = RgbdRenderer::new(&cfg).unwrap();
+        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let scene = content.poll(Timestamp::ZERO).unwrap().scene.unwrap();
+        let (w, h) = r.size;
+        let cam = Camera::new(r.eye, w, h);
+        let view = |p: [f32; 2]| render_pinhole(&scene, &cam, p, 2).unwrap();
+        let grid: Arc<[ContentView]> = light_field_positions(3, LF_SPAN_M)
+            .unwrap()
+            .into_iter()
+            .map(|position| {
+                let (c, d) = view(position);
+                ContentView {
+                    eye: None,
+                    position,
+                    rgbd: Arc::new(Rgbd::new(c, d).unwrap()),
+                }
+            })
+            .collect();
+        let truth: Vec<RgbImage> = light_field_positions(LF_GRID, LF_SPAN_M)
+            .unwrap()
+            .into_iter()
+            .map(|p| view(p).0)
+            .collect();
+        let truth = lenslet_panel(&truth, r.eye.pixel_pitch_tan(), (w, h)).unwrap();
+        let centre = ContentFrame::new(1, grid[4].rgbd.clone());
+        let all = ContentFrame {
+            views: Some(grid.clone()),
+            ..ContentFrame::new(2, grid[4].rgbd.clone())
+        };
+        let score = |frame: &ContentFrame| {
+            let out = r
+                .render_frame(
+                    frame,
+                    Mode::Lightfield,
+                    Method(RenderMethod::Views),
+                    Diopters(1.0),
+                    None,
+                    false,
+                )
+                .unwrap();
+            let panel = out.images[0].to_host().unwrap().into_owned();
+            dioptra_render::metrics::psnr(&panel, &truth, None).unwrap()
+        };
+        let (one, nine) = (score(&centre), score(&all));
+        eprintln!("panel against the scene's: central view {one:.2} dB, 3 x 3 grid {nine:.2} dB");
+        assert!(
+            nine > one + 2.0,
+            "{nine:.2} dB from the grid, {one:.2} from its centre"
+        );
+    }
+
+    /// A stereo rig's eye takes its own grid as it is, or the one grid from its own centre
+    /// (IPD / 2 to the side).
+    #[test]
+    fn each_eye_takes_its_own_grid_or_the_one_grid_from_its_centre() {
+        let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG.to_string()
+            + "\n[render]\nbackend = \"cpu\"\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        let r = RgbdRenderer::new(&cfg).unwrap();
+        let rgbd = Arc::new(
+            Rgbd::new(
+                RgbImage::new(4, 4, [0.5; 3]),
+                dioptra_core::DepthMap::from_diopters(dioptra_core::Plane::new(4, 4, 1.0)).unwrap(),
+            )
+            .unwrap(),
+        );
+        let at = |eye, x: f32| ContentView {
+            eye,
+            position: [x, 0.002],
+            rgbd: rgbd.clone(),
+        };
+        let half = r.half_ipd_m;
+        let xs = |v: Vec<RgbdView>| v.iter().map(|v| v.position).collect::<Vec<_>>();
+        let one = [at(None, -0.001), at(None, 0.001)];
+        assert_eq!(
+            xs(r.eye_inputs(&one, None)),
+            [[-0.001, 0.002], [0.001, 0.002]]
+        );
+        let left = xs(r.eye_inputs(&one, Some(Side::Left)));
+        assert_eq!(left, [[-0.001 + half, 0.002], [0.001 + half, 0.002]]);
+        let right = xs(r.eye_inputs(&one, Some(Side::Right)));
+        assert_eq!(right, [[-0.001 - half, 0.002], [0.001 - half, 0.002]]);
+        let own = [at(Some(Side::Left), -0.001), at(Some(Side::Right), 0.003)];
+        assert_eq!(xs(r.eye_inputs(&own, Some(Side::Right))), [[0.003, 0.002]]);
+        assert_eq!(xs(r.eye_inputs(&own, Some(Side::Left))), [[-0.001, 0.002]]);
     }
 }
