@@ -173,7 +173,7 @@ class Dioptra:
     def send_rgbd(self, color, depth, depth_units: str = "m", near: Optional[float] = None,
                   far: Optional[float] = None, app_time_ns: Optional[int] = None,
                   encoding: str = "raw", eye: Optional[str] = None,
-                  seq: Optional[int] = None) -> int:
+                  seq: Optional[int] = None, view: Optional[tuple] = None) -> int:
         """Shows one frame; returns its sequence number, or raises :class:`FrameRefused`
         with the daemon's reason (the frame on show stays).
 
@@ -191,9 +191,28 @@ class Dioptra:
         unless it is the partner (the other eye) of the half sent last, which it then shares:
         ``send_rgbd(l, ld, eye="left")`` then ``send_rgbd(r, rd, eye="right")`` is one pair.
         ``eye`` on a mono rig is refused (:class:`FrameRefused`, 422).
+
+        Light-field content (``content.views = N``): ``view=(row, column)`` with ``seq`` makes
+        the frame that view of frame ``seq``'s N x N grid, shown once every view of ``seq``
+        arrived (:meth:`send_grid` sends a whole grid).
         """
         return self._sender().send(color, depth, depth_units, near, far, app_time_ns,
-                                   encoding, eye, seq)
+                                   encoding, eye, seq, view)
+
+    def send_grid(self, views, depth_units: str = "m", eye: Optional[str] = None,
+                  seq: Optional[int] = None, **kwargs) -> int:
+        """Shows one frame of light-field content (``content.views = N``): ``views`` is N rows
+        of N ``(color, depth)`` pairs, row 0 at the top, column 0 at the left, each as
+        :meth:`send_rgbd` takes them. All share one sequence number (``seq``, or the next),
+        which is returned; on a stereo rig send each eye's grid with its ``eye`` and the same
+        ``seq``. Other keywords go to :meth:`send_rgbd`."""
+        sender = self._sender()
+        seq = sender.seq + 1 if seq is None else int(seq)
+        for r, row in enumerate(views):
+            for c, (color, depth) in enumerate(row):
+                self.send_rgbd(color, depth, depth_units, eye=eye, seq=seq, view=(r, c),
+                               **kwargs)
+        return seq
 
     def close(self) -> None:
         """Closes the connection and unmaps the ring."""

@@ -28,21 +28,22 @@ RING_VERSION = 1
 SLOT_FIELDS = (("seq", 0, "u64"), ("color_format", 8, "u32"), ("depth_kind", 12, "u32"),
                ("near", 16, "f32"), ("far", 20, "f32"), ("width", 24, "u32"),
                ("height", 28, "u32"), ("app_time_ns", 32, "u64"), ("color_bytes", 40, "u64"),
-               ("depth_bytes", 48, "u64"), ("eye", 56, "u32"))
-_SLOT_FORMAT = "<QIIffIIQQQI"
+               ("depth_bytes", 48, "u64"), ("eye", 56, "u32"), ("view", 60, "u32"))
+_SLOT_FORMAT = "<QIIffIIQQQII"
 SLOT_HEADER_BYTES = 64
 
 
 def pack_slot_header(seq: int, color_format: int, depth_kind: int, near: Optional[float],
                      far: Optional[float], width: int, height: int,
                      app_time_ns: Optional[int], color_bytes: int, depth_bytes: int,
-                     eye: int = 0) -> bytes:
+                     eye: int = 0, view: int = 0) -> bytes:
     """A slot header's 64 bytes (``near``/``far`` ``None``: NaN; ``app_time_ns`` ``None``: 0;
-    ``eye`` an ``EYE_CODES`` value, 0 for a whole frame)."""
+    ``eye`` an ``EYE_CODES`` value, 0 for a whole frame; ``view`` 1 + row x N + column for a
+    view of an N x N grid, 0 for none)."""
     head = struct.pack(_SLOT_FORMAT, seq, color_format, depth_kind,
                        float("nan") if near is None else near,
                        float("nan") if far is None else far,
-                       width, height, app_time_ns or 0, color_bytes, depth_bytes, eye)
+                       width, height, app_time_ns or 0, color_bytes, depth_bytes, eye, view)
     return head.ljust(SLOT_HEADER_BYTES, b"\0")
 
 
@@ -116,7 +117,10 @@ class FrameSender:
     On a stereo rig a frame may be one eye's half (``eye="left"`` or ``"right"``): the two
     halves of a pair share a sequence number, which the daemon pairs them by. Without ``seq``
     a half gets a new number, unless it is the partner of the half this sender sent last
-    (the other eye, not yet paired): then that half's number."""
+    (the other eye, not yet paired): then that half's number.
+
+    Light-field content (``content.views = N``): a frame may be N x N views, each sent with
+    ``view=(row, column)`` and the frame's ``seq`` (required; :meth:`send_grid` numbers them)."""
 
     def __init__(self, http: Http, use_ring: bool):
         self._http = http
@@ -129,6 +133,7 @@ class FrameSender:
             except OSError:
                 self.ring = None  # Not on this machine, no permission, another layout.
         self.stereo = bool(ring.get("stereo"))
+        self.views = ring.get("views")
         content = http.request("GET", "/status").get("content", {})
         self.seq = int(content.get("newest_seq") or 0)
         # The half sent last, waiting for its partner: (seq, eye).
@@ -150,10 +155,33 @@ class FrameSender:
         self._open_half = (seq, eye) if opened else None
         return seq
 
+    def _view(self, view, seq) -> Optional[str]:
+        """``view`` ``(row, column)`` as ``PUT /frame`` names it (``None``: a whole frame)."""
+        if view is None:
+            return None
+        if seq is None:
+            raise ValueError("a view needs its frame's seq (send_grid numbers a grid's views)")
+        row, column = (int(x) for x in view)
+        return f"{row}_{column}"
+
+    def _view_code(self, view: Optional[str]) -> int:
+        """A slot's ``view``: 1 + row x N + column (0: none)."""
+        if view is None:
+            return 0
+        if not self.views:
+            raise ValueError("this daemon's content has no view grid (content.views)")
+        row, column = (int(x) for x in view.split("_"))
+        if not (0 <= row < self.views and 0 <= column < self.views):
+            raise ValueError(f"view {view}: the grid is {self.views} x {self.views}")
+        return 1 + row * self.views + column
+
     def send(self, color, depth, depth_units: str, near, far, app_time_ns, encoding,
-             eye: Optional[str] = None, seq: Optional[int] = None) -> int:
+             eye: Optional[str] = None, seq: Optional[int] = None, view=None) -> int:
+        view = self._view(view, seq)
+        if view is not None:
+            self.seq = max(self.seq, int(seq))
         if encoding == "png":
-            return self._send_png(color, depth, depth_units, app_time_ns, eye, seq)
+            return self._send_png(color, depth, depth_units, app_time_ns, eye, seq, view)
         if encoding != "raw":
             raise ValueError(f"encoding {encoding!r}: expected 'raw' or 'png'")
         color = np.asarray(color)
@@ -175,18 +203,19 @@ class FrameSender:
         color = np.ascontiguousarray(color)
         depth = np.ascontiguousarray(depth.astype("<f4", copy=False))
         h, w = depth.shape
-        seq = self._number(eye, seq)
+        seq = int(seq) if view is not None else self._number(eye, seq)
         if self.ring is not None:
-            slot = seq % self.ring.slots
+            # A grid's views share their frame's number: each its own slot, in turn.
+            slot = (seq + self._view_code(view)) % self.ring.slots
             header = pack_slot_header(seq, COLOR_CODES[fmt], DEPTH_CODES[depth_units], near,
                                       far, w, h, app_time_ns, color.nbytes, depth.nbytes,
-                                      EYE_CODES[eye or "none"])
+                                      EYE_CODES[eye or "none"], self._view_code(view))
             self.ring.write(slot, seq, header, color, depth)
             r = self._http.request("POST", "/frame", {"slot": slot, "seq": seq}, frame=True)
         else:
             q = {"width": w, "height": h, "color": fmt, "depth": depth_units, "seq": seq}
             for k, v in (("near", near), ("far", far), ("app_time_ns", app_time_ns),
-                         ("eye", eye)):
+                         ("eye", eye), ("view", view)):
                 if v is not None:
                     q[k] = "inf" if v == float("inf") else v
             r = self._http.request("PUT", "/frame?" + urllib.parse.urlencode(q),
@@ -194,7 +223,7 @@ class FrameSender:
                                    content_type="application/octet-stream", frame=True)
         return int(r["seq"])
 
-    def _send_png(self, color, depth, depth_units, app_time_ns, eye, seq) -> int:
+    def _send_png(self, color, depth, depth_units, app_time_ns, eye, seq, view=None) -> int:
         color = np.asarray(color)
         depth = np.asarray(depth, dtype=np.float64)
         if color.dtype != np.uint8 or color.ndim != 3 or color.shape[2] not in (3, 4):
@@ -211,11 +240,13 @@ class FrameSender:
         colour_png = png(np.ascontiguousarray(color[:, :, :3]), 2, 8)
         depth_png = png(np.ascontiguousarray(mm), 0, 16)
         q = {"width": w, "height": h, "color": "png", "color_bytes": len(colour_png),
-             "depth": "mm", "seq": self._number(eye, seq)}
+             "depth": "mm", "seq": int(seq) if view is not None else self._number(eye, seq)}
         if app_time_ns is not None:
             q["app_time_ns"] = app_time_ns
         if eye is not None:
             q["eye"] = eye
+        if view is not None:
+            q["view"] = view
         r = self._http.request("PUT", "/frame?" + urllib.parse.urlencode(q),
                                body=colour_png + depth_png,
                                content_type="application/octet-stream", frame=True)

@@ -133,3 +133,45 @@ def test_an_eye_on_a_mono_rig_is_refused(ring_client):
     with pytest.raises(FrameRefused) as e:
         d.send_rgbd(color, depth, eye="left")
     assert e.value.status == 422 and 'display.layout = "one"' in e.value.message
+
+
+@pytest.mark.parametrize("use_ring", [True, False])
+def test_a_light_field_grid_is_shown_once_every_view_arrived(rigs, use_ring):
+    """Light-field content (``content.views = 2``): a grid's four views share a sequence number
+    and the frame counts once, when the last arrives; a lone view waits; a view outside the
+    grid, or without its frame's number, is refused with the reason."""
+    rig = rigs.start(content="stream", append="views = 2\n")
+    with rig.client(use_ring=use_ring) as d:
+        assert d.uses_ring == use_ring
+        before = d.status()["content"]
+        assert before["views"] == 2
+        grid = [[frame(d, 10 * r + c) for c in range(2)] for r in range(2)]
+        seq = d.send_grid(grid)
+        st = d.status()["content"]
+        assert st["received"] == before["received"] + 1 and st["newest_seq"] == seq, st
+        assert st["views_received"] == before["views_received"] + 4, st
+        assert st["halves_waiting"] == 0, st
+        # One view of the next frame: it waits for the other three.
+        d.send_rgbd(*frame(d, 1), seq=seq + 1, view=(1, 0))
+        st = d.status()["content"]
+        assert st["halves_waiting"] == 1 and st["received"] == before["received"] + 1, st
+        # The same view again: stale (409).
+        with pytest.raises(FrameRefused) as e:
+            d.send_rgbd(*frame(d, 1), seq=seq + 1, view=(1, 0))
+        assert e.value.status == 409 and "view 2" in e.value.message
+        with pytest.raises(ValueError):
+            d.send_rgbd(*frame(d, 1), view=(0, 0))
+        if use_ring:
+            with pytest.raises(ValueError):
+                d.send_rgbd(*frame(d, 1), seq=seq + 1, view=(2, 0))
+        else:
+            with pytest.raises(FrameRefused) as e:
+                d.send_rgbd(*frame(d, 1), seq=seq + 1, view=(2, 0))
+            assert e.value.status == 422 and "content.views = 2" in e.value.message
+
+
+def test_a_view_on_a_rig_without_a_grid_is_refused(put_client):
+    d = put_client
+    with pytest.raises(FrameRefused) as e:
+        d.send_rgbd(*frame(d, 1), seq=10_000, view=(0, 0))
+    assert e.value.status == 422 and "content.views" in e.value.message

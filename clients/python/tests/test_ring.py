@@ -58,3 +58,17 @@ def test_the_client_packs_the_golden_eye_field():
     assert head.hex() == g["slot_header_right_eye"]["hex"]
     assert struct.unpack_from("<I", head, 56) == (2,)
     assert frames.EYE_CODES == g["eyes"]
+
+
+def test_the_client_packs_the_golden_view_field():
+    """View 6 of a 4 x 4 grid (row 1, column 1): ``view`` 6 at offset 60, as the daemon reads it."""
+    g = golden()["slot_header_view"]
+    v = g["values"]
+    num = {"inf": math.inf, "nan": math.nan}
+    head = frames.pack_slot_header(
+        v["seq"], frames.COLOR_CODES[v["color_format"]], frames.DEPTH_CODES[v["depth_kind"]],
+        num.get(v["near"], v["near"]), num.get(v["far"], v["far"]), v["width"], v["height"],
+        v["app_time_ns"], v["color_bytes"], v["depth_bytes"], frames.EYE_CODES[v["eye"]],
+        v["view"])
+    assert head.hex() == g["hex"]
+    assert struct.unpack_from("<I", head, 60) == (6,)

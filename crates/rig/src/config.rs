@@ -1174,7 +1174,8 @@ pub struct ContentConfig {
     /// A sequence's first number (default 0).
     pub first: Option<usize>,
     /// Light-field content: each frame is a `views` x `views` grid of RGB-D views over a
-    /// square of the eye's pupil plane, `%v` in `color` and `depth` naming each view; light-field
+    /// square of the eye's pupil plane, `%v` in `color` and `depth` naming each view's file
+    /// (a stream: each view sent naming its place, `view=ROW_COLUMN`); light-field
     /// mode synthesises the panel's views from all of them, other modes show the grid's
     /// central view (for an even grid, the one right and below the centre).
     pub views: Option<usize>,
@@ -1992,11 +1993,13 @@ impl RigConfig {
                         "content.color and content.depth are read with source = \"files\"",
                     ));
                 }
-                if c.views.is_some() || c.view_span_mm.is_some() {
+                if c.source == ContentSource::Stream {
+                    self.check_view_grid()?;
+                } else if c.views.is_some() || c.view_span_mm.is_some() {
                     return Err(invalid(
                         "content.views",
-                        "a view grid is read from files: set source = \"files\" with %v in \
-                         content.color and content.depth",
+                        "a view grid comes from files (source = \"files\", %v in content.color \
+                         and content.depth) or a stream (source = \"stream\")",
                     ));
                 }
             }
@@ -2341,7 +2344,7 @@ impl RigConfig {
         Ok(())
     }
 
-    /// `content.views` and `content.view_span_mm` against `%v` in the patterns.
+    /// `content.views` and `content.view_span_mm`, and (files) `%v` in the patterns.
     fn check_view_grid(&self) -> Result<(), ConfigError> {
         let c = &self.content;
         let has = |v: &Option<String>| v.as_deref().is_some_and(|p| p.contains(VIEW_MARK));
@@ -2376,7 +2379,7 @@ impl RigConfig {
                     ));
                 }
                 for (key, v) in [("content.color", &c.color), ("content.depth", &c.depth)] {
-                    if !has(v) {
+                    if c.source == ContentSource::Files && !has(v) {
                         return Err(invalid(
                             key,
                             format!(
@@ -3481,8 +3484,16 @@ pub(crate) mod tests {
             assert!(e.to_string().contains(says), "{e}");
         }
         let e = err(&format!(
-            "{SIM_RIG}\n[content]\nsource = \"stream\"\nviews = 3\n"
+            "{SIM_RIG}\n[content]\nsource = \"scene\"\nviews = 3\n"
         ));
         assert_eq!(e.key(), "content.views", "{e}");
+        // A stream takes a grid without patterns.
+        let stream = |extra: &str| format!("{SIM_RIG}\n[content]\nsource = \"stream\"\n{extra}\n");
+        assert!(RigConfig::parse(&stream("views = 3\nview_span_mm = 4")).is_ok());
+        assert_eq!(err(&stream("views = 10")).key(), "content.views");
+        assert_eq!(
+            err(&stream("view_span_mm = 4")).key(),
+            "content.view_span_mm"
+        );
     }
 }

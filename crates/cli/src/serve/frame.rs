@@ -4,7 +4,7 @@
 //! |---|---|---|---|
 //! | GET | `/frame/ring` | | the shared-memory ring's path and layout |
 //! | POST | `/frame` | `{"slot": 0, "seq": 12}` | the frame written into ring slot 0 with sequence number 12 |
-//! | PUT | `/frame?width=&height=&color=&depth=[&color_bytes=&near=&far=&seq=&app_time_ns=&eye=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
+//! | PUT | `/frame?width=&height=&color=&depth=[&color_bytes=&near=&far=&seq=&app_time_ns=&eye=&view=]` | colour bytes, then depth bytes (`application/octet-stream`) | one frame, without the ring |
 //!
 //! `color` is `rgb8` or `rgba8` (sRGB) or `rgbf32` (linear, little-endian), the depth then
 //! little-endian f32; or `png` (sRGB), `exr` or `pfm` (linear): the body is then a colour
@@ -20,6 +20,11 @@
 //! other half of the same `seq` arrived; without `eye` a frame of one eye's size is mono
 //! (each eye's view synthesised) and one 2 x width wide is both eyes side by side. `eye` on a
 //! mono rig, an unknown eye and a size that is none of these are refused (422).
+//!
+//! Light-field content (`content.views = N`): `view=ROW_COLUMN` (each 0 to N - 1) makes the
+//! frame that view of frame `seq`'s grid (required; with `eye`, of that eye's grid), shown
+//! once every view of the same `seq` arrived. A view on a rig without a grid, or outside it,
+//! is refused (422); one older than the newest complete frame is stale (409).
 
 use std::sync::Arc;
 
@@ -39,9 +44,10 @@ use super::api::ApiError;
 
 fn refused(e: FrameError) -> ApiError {
     let status = match e {
-        FrameError::Stale { .. } | FrameError::StaleHalf { .. } | FrameError::NotStreaming => {
-            StatusCode::CONFLICT
-        }
+        FrameError::Stale { .. }
+        | FrameError::StaleHalf { .. }
+        | FrameError::StaleView { .. }
+        | FrameError::NotStreaming => StatusCode::CONFLICT,
         FrameError::MediaType => StatusCode::UNSUPPORTED_MEDIA_TYPE,
         FrameError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
         FrameError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
@@ -103,6 +109,8 @@ pub struct FrameQuery {
     color_bytes: Option<usize>,
     /// A stereo rig: `left` or `right`, the eye whose half of pair `seq` this is.
     eye: Option<String>,
+    /// Light-field content: `ROW_COLUMN`, the view of frame `seq`'s grid this is.
+    view: Option<String>,
 }
 
 /// An encoded frame's body may hold this much more than the frame's f32 colour and depth
@@ -119,7 +127,7 @@ pub async fn put(
         return Err(not_streaming());
     };
     // Refusals before the frame is read are counted as the stream counts its own.
-    let (desc, eye, color_len, body) = match read_put(stream, query, &headers, body).await {
+    let (desc, (eye, view), color_len, body) = match read_put(stream, query, &headers, body).await {
         Ok(r) => r,
         Err(e) => return Err(refused(stream.refuse(e))),
     };
@@ -128,21 +136,29 @@ pub async fn put(
         let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
         // A color_bytes beyond the body leaves the depth file empty: refused as such.
         let split = color_len.min(body.len());
-        stream.submit_eye(&desc, eye, &body[..split], &body[split..], now)
+        stream.submit_part(&desc, eye, view, &body[..split], &body[split..], now)
     })
     .await
     .map_err(|e| ApiError::new(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
     r.map(|seq| Json(json!({ "seq": seq }))).map_err(refused)
 }
 
-/// A `PUT /frame` request's frame: its description, its eye, where its colour ends, and its
-/// body (bounded by the frame's size, which must be the display's).
+/// A `PUT /frame` request's frame: its description, its eye and view, where its colour ends,
+/// and its body (bounded by the frame's size, which must be the display's).
 async fn read_put(
     stream: &StreamFrames,
     query: Result<Query<FrameQuery>, axum::extract::rejection::QueryRejection>,
     headers: &HeaderMap,
     body: Body,
-) -> Result<(FrameDesc, Option<Side>, usize, axum::body::Bytes), FrameError> {
+) -> Result<
+    (
+        FrameDesc,
+        (Option<Side>, Option<usize>),
+        usize,
+        axum::body::Bytes,
+    ),
+    FrameError,
+> {
     let Query(q) = query.map_err(|e| {
         FrameError::Request(format!(
             "{}; PUT /frame?width=W&height=H&color=rgb8&depth=m (or color=png&color_bytes=N)",
@@ -162,6 +178,7 @@ async fn read_put(
         ))
     })?;
     let eye = stream.parse_eye(q.eye.as_deref())?;
+    let view = stream.parse_view(q.view.as_deref())?;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -220,5 +237,5 @@ async fn read_put(
         seq: q.seq,
         app_time_ns: q.app_time_ns,
     };
-    Ok((desc, eye, color_len, body))
+    Ok((desc, (eye, view), color_len, body))
 }

@@ -186,6 +186,17 @@ pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, 
                     path,
                 }
             })?;
+            let s = match cfg.content.views {
+                Some(n) => s
+                    .with_view_grid(
+                        n,
+                        cfg.content
+                            .view_span_mm
+                            .unwrap_or(crate::config::DEFAULT_VIEW_SPAN_MM),
+                    )
+                    .map_err(|e| ContentError::Config(format!("content.views: {e}")))?,
+                None => s,
+            };
             Arc::new(s)
         }
     })

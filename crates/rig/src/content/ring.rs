@@ -69,6 +69,7 @@ pub const SLOT_FIELDS: &[Field] = &[
     ("color_bytes", 40, "u64"),
     ("depth_bytes", 48, "u64"),
     ("eye", 56, "u32"),
+    ("view", 60, "u32"),
 ];
 
 fn offset(fields: &[Field], name: &str) -> usize {
@@ -158,6 +159,8 @@ pub struct SlotHeader {
     pub depth_bytes: u64,
     /// Which eye's view ([`EYE_CODES`]; 0: none).
     pub eye: u32,
+    /// Which view of a view grid (`content.views`): 1 + row x views + column; 0: none.
+    pub view: u32,
 }
 
 impl SlotHeader {
@@ -175,6 +178,7 @@ impl SlotHeader {
         put(&mut b, f, "color_bytes", &self.color_bytes.to_le_bytes());
         put(&mut b, f, "depth_bytes", &self.depth_bytes.to_le_bytes());
         put(&mut b, f, "eye", &self.eye.to_le_bytes());
+        put(&mut b, f, "view", &self.view.to_le_bytes());
         b
     }
 
@@ -193,6 +197,7 @@ impl SlotHeader {
             color_bytes: u64::from_le_bytes(get(b, f, "color_bytes")),
             depth_bytes: u64::from_le_bytes(get(b, f, "depth_bytes")),
             eye: u32::from_le_bytes(get(b, f, "eye")),
+            view: u32::from_le_bytes(get(b, f, "view")),
         }
     }
 }
@@ -270,6 +275,7 @@ mod tests {
             } else {
                 Side::parse(eye)
             }),
+            view: v.get("view").map_or(0, |x| x.as_u64().unwrap() as u32),
         }
     }
 
@@ -344,6 +350,23 @@ mod tests {
         );
         assert_eq!(header.slot_bytes, v["slot_bytes"].as_u64().unwrap());
         assert_eq!(hex(&header.encode()), stereo["hex"].as_str().unwrap());
+    }
+
+    /// A slot of one view of a grid: its `view` field's bytes, which the daemon reads back.
+    #[test]
+    fn the_golden_view_bytes_are_what_the_daemon_reads() {
+        let slot = &golden()["slot_header_view"];
+        let h = slot_of(&slot["values"]);
+        let want = slot["hex"].as_str().unwrap();
+        assert_eq!(hex(&h.encode()), want);
+        // The field's own bytes: u32 6 (row 1, column 1 of a 4 x 4 grid) at offset 60.
+        assert_eq!(&want[120..128], "06000000");
+        let bytes: [u8; SLOT_HEADER] = (0..SLOT_HEADER)
+            .map(|i| u8::from_str_radix(&want[2 * i..2 * i + 2], 16).unwrap())
+            .collect::<Vec<_>>()
+            .try_into()
+            .unwrap();
+        assert_eq!(SlotHeader::decode(&bytes).view, 6);
     }
 
     /// RING.md's tables are the layout's.

@@ -23,6 +23,11 @@
 //! pair is shown only once both halves arrived, in either order; a half waits until its
 //! partner comes or a newer pair or whole frame completes (then it is dropped, counted under
 //! `halves_dropped`); a half older than the newest complete pair is refused as stale.
+//!
+//! Light-field content (`content.views = N`): a frame may be an N x N grid of views, each sent
+//! on its own naming its view (`view=ROW_COLUMN`, a slot's `view`) and the frame's `seq` (on a
+//! stereo rig also its eye: each eye's own grid), collected as halves are and shown once
+//! every view arrived ([`ContentFrame::views`]).
 
 use std::fs::OpenOptions;
 use std::io::Write;
@@ -37,7 +42,7 @@ use serde::Serialize;
 
 use super::ring::{eye_of_code, RingHeader, SlotHeader};
 pub use super::ring::{RING_HEADER, RING_MAGIC, RING_SLOTS, RING_VERSION, SLOT_HEADER};
-use super::{Arrival, Content, ContentFrame};
+use super::{Arrival, Content, ContentFrame, ContentView};
 
 /// The colour's encoding: raw pixels, or (`PUT /frame` only) an image file, whose frame's
 /// depth is an image file too.
@@ -275,6 +280,16 @@ pub enum FrameError {
         eye.as_str()
     )]
     StaleHalf { eye: Side, seq: u64, newest: u64 },
+    /// A view of a grid not newer than the newest of the same view (and eye), the newest
+    /// complete frame or the newest frame dropped incomplete.
+    #[error(
+        "view {view}'s sequence number {seq} is not newer than {newest}: that view's newest, \
+         or a frame already complete or dropped (it can no longer be shown)"
+    )]
+    StaleView { view: String, seq: u64, newest: u64 },
+    /// A view the rig has no place for, or one that does not fit its frame's other parts.
+    #[error("{0}")]
+    View(String),
     /// A stereo rig's frame of the wrong size: one eye's (`eye`) or a whole one.
     #[error(
         "the {}frame is {got_w}x{got_h}; {}",
@@ -321,7 +336,8 @@ impl FrameError {
     pub fn kind(&self) -> &'static str {
         match self {
             FrameError::WrongSize { .. } | FrameError::WrongEyeSize { .. } => "wrong_size",
-            FrameError::StaleHalf { .. } => "stale",
+            FrameError::StaleHalf { .. } | FrameError::StaleView { .. } => "stale",
+            FrameError::View(_) => "view",
             FrameError::Eye(_) => "eye",
             FrameError::Length { .. } => "length",
             FrameError::Depth { .. } => "depth",
@@ -706,7 +722,9 @@ pub struct StreamStatus {
     pub replaced: u64,
     /// One eye's halves accepted (stereo rig).
     pub halves_received: u64,
-    /// Halves waiting for the other eye's half of the same sequence number.
+    /// Light-field content: views of a grid accepted (`content.views`).
+    pub views_received: u64,
+    /// Halves (and views of a grid) waiting for the rest of their frame's.
     pub halves_waiting: u64,
     /// Halves whose partner never came: dropped, never shown, when a newer pair or frame
     /// completed (or more than [`MAX_WAITING`] sequence numbers waited).
@@ -723,6 +741,8 @@ pub struct StreamStatus {
     /// How old the newest accepted frame is, ms (at the time of asking).
     pub newest_age_ms: Option<f64>,
     pub ring: Option<String>,
+    /// Light-field content: views per side of a frame's grid.
+    pub views: Option<usize>,
     #[serde(skip)]
     newest_at: Option<std::time::Instant>,
 }
@@ -731,12 +751,25 @@ pub struct StreamStatus {
 /// oldest (each waiting half holds a frame's memory).
 pub const MAX_WAITING: usize = 4;
 
-/// A frame ready to show: one view, or (`eyes`) a pair whose `frame` is the left eye's.
+/// A frame ready to show: one view, or (`eyes`) a pair whose `frame` is the left eye's; with
+/// `views`, a grid's (each eye's) whose `frame` and `eyes` are its central views.
 struct Pending {
     frame: Arc<Rgbd>,
     eyes: Option<[Arc<Rgbd>; 2]>,
+    views: Option<Arc<[ContentView]>>,
     seq: u64,
     arrival: Arrival,
+}
+
+impl Pending {
+    /// Every image it holds, once each (for giving their memory back).
+    fn images(self) -> Vec<Arc<Rgbd>> {
+        match (self.views, self.eyes) {
+            (Some(views), _) => views.iter().map(|v| v.rgbd.clone()).collect(),
+            (None, Some([l, r])) => vec![l, r],
+            (None, None) => vec![self.frame],
+        }
+    }
 }
 
 /// A frame decoded, before it is paired or shown.
@@ -748,15 +781,82 @@ enum Decoded {
     Pair([Rgbd; 2]),
     /// One eye's half of a pair.
     Half(Side, Rgbd),
+    /// One view of a grid (index row by row; an eye's own grid, or the one grid).
+    View(Option<Side>, usize, Rgbd),
 }
 
 impl Decoded {
-    fn eye(&self) -> Option<Side> {
+    /// The part of a frame it is; `None`: a whole frame.
+    fn part(&self) -> Option<Part> {
         match self {
-            Decoded::Half(e, _) => Some(*e),
+            Decoded::Half(e, _) => Some(Part {
+                eye: Some(*e),
+                view: None,
+            }),
+            Decoded::View(eye, v, _) => Some(Part {
+                eye: *eye,
+                view: Some(*v),
+            }),
             _ => None,
         }
     }
+}
+
+/// A part of a frame sent on its own: an eye's half (`view` `None`) or a view of a grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Part {
+    eye: Option<Side>,
+    view: Option<usize>,
+}
+
+impl Part {
+    /// The key of its newest sequence number.
+    fn key(self) -> (u32, Option<usize>) {
+        (super::ring::eye_code(self.eye), self.view)
+    }
+
+    /// What its frame is made of, and its place there, for a grid of `per_eye` views.
+    fn place(self, per_eye: usize) -> (Parts, usize) {
+        match (self.eye, self.view) {
+            (Some(e), None) => (Parts::Halves, eye_index(e)),
+            (None, Some(v)) => (Parts::Grid, v),
+            (Some(e), Some(v)) => (Parts::EyeGrids, eye_index(e) * per_eye + v),
+            // Not a part: never asked.
+            (None, None) => (Parts::Halves, 0),
+        }
+    }
+}
+
+/// What a frame sent in parts is made of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Parts {
+    /// A stereo pair's two halves.
+    Halves,
+    /// The views of one grid.
+    Grid,
+    /// Each eye's views of its own grid, the left eye's first.
+    EyeGrids,
+}
+
+impl Parts {
+    fn count(self, per_eye: usize) -> usize {
+        match self {
+            Parts::Halves => 2,
+            Parts::Grid => per_eye,
+            Parts::EyeGrids => 2 * per_eye,
+        }
+    }
+}
+
+/// A frame's parts as they arrive.
+struct Waiting {
+    parts: Parts,
+    got: Vec<Option<Arc<Rgbd>>>,
+}
+
+/// The part of a frame an eye and a view name (`None`: a whole frame).
+fn part_of(eye: Option<Side>, view: Option<usize>) -> Option<Part> {
+    (eye.is_some() || view.is_some()).then_some(Part { eye, view })
 }
 
 fn eye_index(e: Side) -> usize {
@@ -766,23 +866,24 @@ fn eye_index(e: Side) -> usize {
     }
 }
 
-/// A stereo rig's pairing of halves, and the sequence numbers that make a half stale.
+/// The collecting of frames sent in parts (a stereo rig's halves, a grid's views), and the
+/// sequence numbers that make a part stale.
 #[derive(Default)]
 struct Pairing {
-    /// Each eye's newest half accepted (left, right).
-    newest_half: [Option<u64>; 2],
-    /// Pairs up to this number can no longer be shown: the newest frame or pair complete
-    /// (accepted whole, or both halves arrived), or the newest half dropped unpaired.
+    /// Each part's newest accepted (an eye's half, a view of a grid), by [`Part::key`].
+    newest_part: std::collections::BTreeMap<(u32, Option<usize>), u64>,
+    /// Frames up to this number can no longer be shown: the newest frame complete (accepted
+    /// whole, or its last part arrived), or the newest dropped incomplete.
     floor: Option<u64>,
-    /// Halves waiting for the other eye's of the same sequence number.
-    waiting: std::collections::BTreeMap<u64, [Option<Arc<Rgbd>>; 2]>,
+    /// Parts waiting for the rest of their frame's (the same sequence number).
+    waiting: std::collections::BTreeMap<u64, Waiting>,
 }
 
 impl Pairing {
     fn halves_waiting(&self) -> u64 {
         self.waiting
             .values()
-            .map(|h| h.iter().flatten().count() as u64)
+            .map(|w| w.got.iter().flatten().count() as u64)
             .sum()
     }
 }
@@ -861,6 +962,8 @@ pub struct StreamFrames {
     /// One eye's image (the display's on a mono rig).
     size: (usize, usize),
     stereo: bool,
+    /// Light-field content: views per side and each view's position (metres, row by row).
+    grid: Option<(usize, Vec<[f32; 2]>)>,
     ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
     status: Mutex<StreamStatus>,
@@ -906,6 +1009,7 @@ impl StreamFrames {
         Ok(StreamFrames {
             size: (width, height),
             stereo,
+            grid: None,
             status: Mutex::new(StreamStatus {
                 source: "stream",
                 stereo,
@@ -920,6 +1024,58 @@ impl StreamFrames {
             arrivals: Arc::new(tokio::sync::Notify::new()),
             on_show: Mutex::new((Vec::new(), 0)),
         })
+    }
+
+    /// The stream with light-field content: frames may be a grid of `views` x `views` views
+    /// over a square of `span_mm`, each sent on its own naming its view.
+    pub fn with_view_grid(mut self, views: usize, span_mm: f64) -> Result<Self, String> {
+        let positions = dioptra_sim::scene::light_field_positions(views, (span_mm * 1e-3) as f32)
+            .map_err(|e| e.to_string())?;
+        self.grid = Some((views, positions));
+        lock(&self.status).views = Some(views);
+        Ok(self)
+    }
+
+    /// Views per eye of a grid (1 without one).
+    fn per_eye(&self) -> usize {
+        self.grid.as_ref().map_or(1, |(n, _)| n * n)
+    }
+
+    /// The view `PUT /frame?view=ROW_COLUMN` names (`None`: a whole frame), or why it is
+    /// refused.
+    pub fn parse_view(&self, view: Option<&str>) -> Result<Option<usize>, FrameError> {
+        let Some(name) = view else {
+            return Ok(None);
+        };
+        let n = self.grid.as_ref().map_or(0, |(n, _)| *n);
+        let parsed = name
+            .split_once('_')
+            .and_then(|(r, c)| Some((r.parse::<usize>().ok()?, c.parse::<usize>().ok()?)));
+        match parsed {
+            Some((r, c)) if r < n && c < n => self.check_view(Some(r * n + c)),
+            _ if n == 0 => self.check_view(Some(0)),
+            _ => Err(FrameError::View(format!(
+                "view={name:?}: expected ROW_COLUMN, each 0 to {} (content.views = {n})",
+                n - 1
+            ))),
+        }
+    }
+
+    /// A view is refused on a rig without a grid, and past its grid.
+    fn check_view(&self, view: Option<usize>) -> Result<Option<usize>, FrameError> {
+        match (view, &self.grid) {
+            (None, _) => Ok(None),
+            (Some(_), None) => Err(FrameError::View(
+                "this rig's content is one view a frame: send frames without a view, or set \
+                 content.views for light-field content"
+                    .into(),
+            )),
+            (Some(v), Some((n, _))) if v >= n * n => Err(FrameError::View(format!(
+                "view {v}: the grid has views 0 to {} (content.views = {n})",
+                n * n - 1
+            ))),
+            (Some(v), _) => Ok(Some(v)),
+        }
     }
 
     /// The frame shown before any arrives: black at optical infinity.
@@ -941,6 +1097,7 @@ impl StreamFrames {
                 "width": self.size.0,
                 "height": self.size.1,
                 "stereo": self.stereo,
+                "views": self.grid.as_ref().map(|(n, _)| n),
             }),
             Some(r) => serde_json::json!({
                 "path": r.path.display().to_string(),
@@ -950,6 +1107,7 @@ impl StreamFrames {
                 "width": self.size.0,
                 "height": self.size.1,
                 "stereo": self.stereo,
+                "views": self.grid.as_ref().map(|(n, _)| n),
                 "header_bytes": RING_HEADER,
                 "slot_header_bytes": SLOT_HEADER,
                 "slot_bytes": r.slot_bytes,
@@ -1039,22 +1197,49 @@ impl StreamFrames {
         depth: &[u8],
         now: Timestamp,
     ) -> Result<u64, FrameError> {
+        self.submit_part(desc, eye, None, color, depth, now)
+    }
+
+    /// A frame from `PUT /frame?eye=&view=`: a view of a grid (`view`; `eye`'s own grid on a
+    /// stereo rig), `eye`'s half of a pair, or (both `None`) a whole frame.
+    pub fn submit_part(
+        &self,
+        desc: &FrameDesc,
+        eye: Option<Side>,
+        view: Option<usize>,
+        color: &[u8],
+        depth: &[u8],
+        now: Timestamp,
+    ) -> Result<u64, FrameError> {
         let t0 = std::time::Instant::now();
         let r = self
             .check_eye(eye)
-            .and_then(|eye| self.check_seq(desc.seq, eye))
-            .and_then(|seq| Ok((seq, self.decode(desc, eye, color, depth)?)));
+            .and_then(|eye| Ok((eye, self.check_view(view)?)))
+            .and_then(|(eye, view)| Ok((self.check_seq(desc.seq, part_of(eye, view))?, eye, view)))
+            .and_then(|(seq, eye, view)| Ok((seq, self.decode(desc, eye, view, color, depth)?)));
         self.accept(r, desc.app_time_ns, now, t0)
     }
 
-    /// Decodes a frame for `eye`: a side-by-side one split into the two eyes'.
+    /// Decodes a frame for `eye` (and `view`): a side-by-side one split into the two eyes'.
     fn decode(
         &self,
         desc: &FrameDesc,
         eye: Option<Side>,
+        view: Option<usize>,
         color: &[u8],
         depth: &[u8],
     ) -> Result<Decoded, FrameError> {
+        if let Some(v) = view {
+            let (w, h) = self.size;
+            if (desc.width, desc.height) != (w, h) {
+                return Err(FrameError::View(format!(
+                    "the view's frame is {}x{}; a view is one eye's image, {w}x{h}",
+                    desc.width, desc.height
+                )));
+            }
+            let frame = decode_frame_into(desc, color, depth, self.size, &self.planes)?;
+            return Ok(Decoded::View(eye, v, frame));
+        }
         if self.side_by_side(desc.width, desc.height, eye)? {
             let (w, h) = self.size;
             let wide = decode_frame_into(desc, color, depth, (2 * w, h), &self.wide_planes)?;
@@ -1147,7 +1332,8 @@ impl StreamFrames {
             ))
         })?;
         let eye = self.check_eye(eye)?;
-        let seq = self.check_seq(Some(seq), eye)?;
+        let view = self.check_view(h.view.checked_sub(1).map(|v| v as usize))?;
+        let seq = self.check_seq(Some(seq), part_of(eye, view))?;
         let color = ColorFormat::from_code(h.color_format).ok_or_else(|| {
             FrameError::Invalid(format!(
                 "slot {slot}: unknown colour format {}",
@@ -1180,15 +1366,15 @@ impl StreamFrames {
         if ring.seq(slot) != seq {
             return Err(FrameError::Torn(slot));
         }
-        let frame = self.decode(&desc, eye, &color_bytes, &depth_bytes)?;
+        let frame = self.decode(&desc, eye, view, &color_bytes, &depth_bytes)?;
         Ok((seq, frame, desc.app_time_ns))
     }
 
-    /// The sequence number a frame (or `eye`'s half) gets: its own if new, or the next.
-    fn check_seq(&self, seq: Option<u64>, eye: Option<Side>) -> Result<u64, FrameError> {
+    /// The sequence number a frame (or a part of one) gets: its own if new, or the next.
+    fn check_seq(&self, seq: Option<u64>, part: Option<Part>) -> Result<u64, FrameError> {
         let st = lock(&self.status);
         let pairing = lock(&self.pairing);
-        next_seq(&st, &pairing, seq, eye)
+        next_seq(&st, &pairing, seq, part)
     }
 
     fn accept(
@@ -1209,8 +1395,25 @@ impl StreamFrames {
             Ok(r) => r,
         };
         let mut pairing = lock(&self.pairing);
-        // Two requests may race past check_seq: the newer wins.
-        if let Err(e) = next_seq(&st, &pairing, Some(seq), decoded.eye()) {
+        // Two requests may race past check_seq: the newer wins. A part must fit the parts
+        // of its frame already in (a grid's view with an eye, or without, as the first).
+        let per_eye = self.per_eye();
+        let misfit = decoded.part().and_then(|part| {
+            let (parts, _) = part.place(per_eye);
+            let first = pairing.waiting.get(&seq).map(|w| w.parts)?;
+            (first != parts).then(|| {
+                FrameError::View(format!(
+                    "frame {seq}'s parts so far are {}, and this one is {}: send each eye's \
+                     views with eye= (or none with it), for every view of a frame alike",
+                    parts_name(first),
+                    parts_name(parts)
+                ))
+            })
+        });
+        if let Some(e) = next_seq(&st, &pairing, Some(seq), decoded.part())
+            .err()
+            .or(misfit)
+        {
             drop(pairing);
             self.give_back(decoded);
             return Err(count_refusal(&mut st, e));
@@ -1220,44 +1423,42 @@ impl StreamFrames {
         st.newest_at = Some(std::time::Instant::now());
         st.newest_app_time_ns = app_time_ns;
         let complete = match decoded {
-            Decoded::Whole(f) => Some((Arc::new(f), None, arrival)),
+            Decoded::Whole(f) => Some((Arc::new(f), None, None)),
             Decoded::Pair([l, r]) => {
                 let l = Arc::new(l);
-                Some((l.clone(), Some([l, Arc::new(r)]), arrival))
+                Some((l.clone(), Some([l, Arc::new(r)]), None))
             }
             Decoded::Half(eye, f) => {
                 st.halves_received += 1;
-                let i = eye_index(eye);
-                pairing.newest_half[i] = Some(seq);
-                let halves = pairing.waiting.entry(seq).or_default();
-                halves[i] = Some(Arc::new(f));
-                if let [Some(_), Some(_)] = halves {
-                    let [l, r] = pairing.waiting.remove(&seq).unwrap_or_default();
-                    // A pair arrives with its second half.
-                    l.zip(r).map(|(l, r)| (l.clone(), Some([l, r]), arrival))
-                } else {
-                    if pairing.waiting.len() > MAX_WAITING {
-                        if let Some((k, oldest)) = pairing.waiting.pop_first() {
-                            st.halves_dropped += self.drop_halves(oldest);
-                            pairing.floor = pairing.floor.max(Some(k));
-                        }
-                    }
-                    None
-                }
+                self.add_part(
+                    &mut st,
+                    &mut pairing,
+                    seq,
+                    Part {
+                        eye: Some(eye),
+                        view: None,
+                    },
+                    f,
+                )
+            }
+            Decoded::View(eye, v, f) => {
+                st.views_received += 1;
+                self.add_part(&mut st, &mut pairing, seq, Part { eye, view: Some(v) }, f)
             }
         };
-        if let Some((frame, eyes, arrival)) = complete {
-            // Halves older than a complete frame can no longer be shown.
+        if let Some((frame, eyes, views)) = complete {
+            // Parts older than a complete frame can no longer be shown.
             let newer = pairing.waiting.split_off(&(seq + 1));
             let older = std::mem::replace(&mut pairing.waiting, newer);
-            for (_, halves) in older {
-                st.halves_dropped += self.drop_halves(halves);
+            for (_, parts) in older {
+                st.halves_dropped += self.drop_halves(parts);
             }
             pairing.floor = Some(seq);
             st.received += 1;
             let old = lock(&self.pending).replace(Pending {
                 frame,
                 eyes,
+                views,
                 seq,
                 arrival,
             });
@@ -1271,10 +1472,82 @@ impl StreamFrames {
         Ok(seq)
     }
 
-    /// Gives back the memory of halves dropped; how many there were.
-    fn drop_halves(&self, halves: [Option<Arc<Rgbd>>; 2]) -> u64 {
+    /// Files `part` of frame `seq` among its frame's parts: the frame (its view, its eyes'
+    /// views and every view of a grid) when it was the last one missing.
+    #[allow(clippy::type_complexity)]
+    fn add_part(
+        &self,
+        st: &mut StreamStatus,
+        pairing: &mut Pairing,
+        seq: u64,
+        part: Part,
+        frame: Rgbd,
+    ) -> Option<(
+        Arc<Rgbd>,
+        Option<[Arc<Rgbd>; 2]>,
+        Option<Arc<[ContentView]>>,
+    )> {
+        let per_eye = self.per_eye();
+        let (parts, i) = part.place(per_eye);
+        pairing.newest_part.insert(part.key(), seq);
+        let waiting = pairing.waiting.entry(seq).or_insert_with(|| Waiting {
+            parts,
+            got: vec![None; parts.count(per_eye)],
+        });
+        waiting.got[i] = Some(Arc::new(frame));
+        if waiting.got.iter().any(Option::is_none) {
+            if pairing.waiting.len() > MAX_WAITING {
+                if let Some((k, oldest)) = pairing.waiting.pop_first() {
+                    st.halves_dropped += self.drop_halves(oldest);
+                    pairing.floor = pairing.floor.max(Some(k));
+                }
+            }
+            return None;
+        }
+        // The frame arrives with its last part.
+        let got: Vec<Arc<Rgbd>> = pairing
+            .waiting
+            .remove(&seq)?
+            .got
+            .into_iter()
+            .flatten()
+            .collect();
+        let centre = self.grid.as_ref().map_or(0, |(n, _)| (n / 2) * n + n / 2);
+        Some(match parts {
+            Parts::Halves => (got[0].clone(), Some([got[0].clone(), got[1].clone()]), None),
+            Parts::Grid | Parts::EyeGrids => {
+                let positions = self.grid.as_ref().map_or(&[][..], |(_, p)| &p[..]);
+                let eyes: &[Option<Side>] = if parts == Parts::Grid {
+                    &[None]
+                } else {
+                    &[Some(Side::Left), Some(Side::Right)]
+                };
+                let views: Arc<[ContentView]> = eyes
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(e, &eye)| {
+                        let got = &got;
+                        positions
+                            .iter()
+                            .enumerate()
+                            .map(move |(k, &position)| ContentView {
+                                eye,
+                                position,
+                                rgbd: got[e * per_eye + k].clone(),
+                            })
+                    })
+                    .collect();
+                let pair = (parts == Parts::EyeGrids)
+                    .then(|| [got[centre].clone(), got[per_eye + centre].clone()]);
+                (got[centre].clone(), pair, Some(views))
+            }
+        })
+    }
+
+    /// Gives back the memory of a frame's parts dropped; how many there were.
+    fn drop_halves(&self, waiting: Waiting) -> u64 {
         let mut n = 0;
-        for h in halves.into_iter().flatten() {
+        for h in waiting.got.into_iter().flatten() {
             self.planes.give_frame(h);
             n += 1;
         }
@@ -1283,7 +1556,9 @@ impl StreamFrames {
 
     fn give_back(&self, d: Decoded) {
         match d {
-            Decoded::Whole(f) | Decoded::Half(_, f) => self.planes.give_frame(Arc::new(f)),
+            Decoded::Whole(f) | Decoded::Half(_, f) | Decoded::View(_, _, f) => {
+                self.planes.give_frame(Arc::new(f))
+            }
             Decoded::Pair(p) => p
                 .into_iter()
                 .for_each(|f| self.planes.give_frame(Arc::new(f))),
@@ -1291,15 +1566,10 @@ impl StreamFrames {
     }
 
     fn give_pending(&self, p: Pending) {
-        let Pending { frame, eyes, .. } = p;
-        // A pair's `frame` is its left eye's view: given back with the eyes.
-        match eyes {
-            Some([l, r]) => {
-                drop(frame);
-                self.planes.give_frame(l);
-                self.planes.give_frame(r);
-            }
-            None => self.planes.give_frame(frame),
+        // A pair's `frame` is one of its eyes' views, a grid's one of its views: each image
+        // is given back once.
+        for image in p.images() {
+            self.planes.give_frame(image);
         }
     }
 
@@ -1336,16 +1606,16 @@ impl StreamFrames {
     }
 }
 
-/// The sequence number a frame (or `eye`'s half) gets: its own if newer than the newest
-/// accepted (a half: than its eye's newest half and the newest complete frame), else stale;
-/// a frame without one gets the next. A half must carry its own.
+/// The sequence number a frame (or a part of one) gets: its own if newer than the newest
+/// accepted (a part: than the newest of the same part and the newest complete frame), else
+/// stale; a frame without one gets the next. A part must carry its own.
 fn next_seq(
     st: &StreamStatus,
     pairing: &Pairing,
     seq: Option<u64>,
-    eye: Option<Side>,
+    part: Option<Part>,
 ) -> Result<u64, FrameError> {
-    let Some(eye) = eye else {
+    let Some(part) = part else {
         return match (seq, st.newest_seq) {
             (Some(s), Some(n)) if s <= n => Err(FrameError::Stale { seq: s, newest: n }),
             (Some(s), _) => Ok(s),
@@ -1353,19 +1623,46 @@ fn next_seq(
         };
     };
     let seq = seq.ok_or_else(|| {
-        FrameError::Request(format!(
-            "the {} eye's frame needs its sequence number (seq=N): a pair's two halves share it",
-            eye.as_str()
-        ))
+        FrameError::Request(match (part.eye, part.view) {
+            (Some(eye), None) => format!(
+                "the {} eye's frame needs its sequence number (seq=N): a pair's two halves \
+                 share it",
+                eye.as_str()
+            ),
+            _ => {
+                "a view needs its frame's sequence number (seq=N): a frame's views share it".into()
+            }
+        })
     })?;
-    let newest = pairing.newest_half[eye_index(eye)].max(pairing.floor);
-    match newest {
-        Some(n) if seq <= n => Err(FrameError::StaleHalf {
+    let newest = pairing
+        .newest_part
+        .get(&part.key())
+        .copied()
+        .max(pairing.floor);
+    match (newest, part.eye, part.view) {
+        (Some(n), Some(eye), None) if seq <= n => Err(FrameError::StaleHalf {
             eye,
             seq,
             newest: n,
         }),
+        (Some(n), eye, Some(v)) if seq <= n => Err(FrameError::StaleView {
+            view: match eye {
+                Some(e) => format!("{v} of the {} eye", e.as_str()),
+                None => v.to_string(),
+            },
+            seq,
+            newest: n,
+        }),
         _ => Ok(seq),
+    }
+}
+
+/// What a frame's parts are, in an error's words.
+fn parts_name(parts: Parts) -> &'static str {
+    match parts {
+        Parts::Halves => "an eye's halves",
+        Parts::Grid => "views of one grid",
+        Parts::EyeGrids => "views of each eye's grid",
     }
 }
 
@@ -1374,24 +1671,37 @@ impl Content for StreamFrames {
     /// black placeholder if none arrived. The views it replaces are given back for reuse.
     fn poll(&self, _now: Timestamp) -> Option<ContentFrame> {
         let mut on_show = lock(&self.on_show);
-        let (frame, eyes, arrival) = match self.take_pending() {
-            Some(p) => (p.frame, p.eyes, Some(p.arrival)),
-            None if on_show.1 == 0 => (Arc::new(self.placeholder()), None, None),
+        let (p, arrival) = match self.take_pending() {
+            Some(p) => {
+                let arrival = Some(p.arrival);
+                (p, arrival)
+            }
+            None if on_show.1 == 0 => (
+                Pending {
+                    frame: Arc::new(self.placeholder()),
+                    eyes: None,
+                    views: None,
+                    seq: 0,
+                    arrival: Arrival {
+                        arrived: Timestamp::ZERO,
+                        ready: Timestamp::ZERO,
+                    },
+                },
+                None,
+            ),
             None => return None,
         };
-        let views = match &eyes {
-            Some([l, r]) => vec![l.clone(), r.clone()],
-            None => vec![frame.clone()],
+        let frame = ContentFrame {
+            arrival,
+            eyes: p.eyes.clone(),
+            views: p.views.clone(),
+            ..ContentFrame::new(on_show.1 + 1, p.frame.clone())
         };
-        for old in std::mem::replace(&mut on_show.0, views) {
+        for old in std::mem::replace(&mut on_show.0, p.images()) {
             self.recycle(old);
         }
         on_show.1 += 1;
-        Some(ContentFrame {
-            arrival,
-            eyes,
-            ..ContentFrame::new(on_show.1, frame)
-        })
+        Some(frame)
     }
     fn arrivals(&self) -> Option<Arc<tokio::sync::Notify>> {
         Some(self.arrivals.clone())
@@ -1679,6 +1989,19 @@ mod tests {
         color: &[u8],
         depth: &[u8],
     ) {
+        write_part_slot(ring, slot, (seq, eye, 0), w, h, color, depth)
+    }
+
+    /// [`write_slot`] with the slot's `eye` and `view` codes.
+    fn write_part_slot(
+        ring: &Ring,
+        slot: usize,
+        (seq, eye, view): (u64, u32, u32),
+        w: u32,
+        h: u32,
+        color: &[u8],
+        depth: &[u8],
+    ) {
         let base = RING_HEADER + slot * ring.slot_bytes;
         let head = SlotHeader {
             seq,
@@ -1692,6 +2015,7 @@ mod tests {
             color_bytes: color.len() as u64,
             depth_bytes: depth.len() as u64,
             eye,
+            view,
         };
         let mut bytes = head.encode().to_vec();
         bytes.extend_from_slice(color);
@@ -1993,5 +2317,201 @@ mod tests {
         let e = mono.submit_slot(0, 1, Timestamp(0)).unwrap_err();
         assert_eq!(e.kind(), "eye", "{e}");
         assert_eq!(mono.status().refused.get("eye"), Some(&1));
+    }
+
+    /// A 2 x 1 stream's view `v` of frame `seq` (`eye`'s grid, or the one grid): red `r`
+    /// (sRGB byte), `d` D.
+    fn view(
+        s: &StreamFrames,
+        eye: Option<Side>,
+        v: &str,
+        seq: u64,
+        r: u8,
+        d: f32,
+    ) -> Result<u64, FrameError> {
+        let desc = FrameDesc {
+            seq: Some(seq),
+            ..desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        let v = s.parse_view(Some(v))?;
+        s.submit_part(&desc, eye, v, &[r; 6], &f32s(&[d; 2]), Timestamp(seq))
+    }
+
+    /// Light-field content (`content.views = 2`): a frame's views, sent in any order, are
+    /// shown together once the last arrives, each at its place in the grid, the central one
+    /// as the frame's RGB-D; one view twice, a view of a frame overtaken by a newer one, a
+    /// view outside the grid or of another size is refused; views of an overtaken frame are
+    /// dropped and counted.
+    #[test]
+    fn a_grids_views_are_shown_together_once_all_arrived() {
+        let s = StreamFrames::open(2, 1, None)
+            .unwrap()
+            .with_view_grid(2, 4.0)
+            .unwrap();
+        let lut = srgb_lut();
+        assert!(
+            s.poll(Timestamp(0)).unwrap().views.is_none(),
+            "the placeholder"
+        );
+        for (k, name) in [(3, "1_1"), (0, "0_0"), (2, "1_0")] {
+            assert_eq!(view(&s, None, name, 1, 10 + k, 1.0 + f32::from(k)), Ok(1));
+            assert!(s.poll(Timestamp(0)).is_none(), "view {name} of 4: not yet");
+        }
+        assert_eq!(s.status().halves_waiting, 3);
+        view(&s, None, "0_1", 1, 11, 2.0).unwrap();
+        let f = s.poll(Timestamp(0)).expect("frame 1 complete");
+        let views = f.views.clone().expect("its views");
+        assert_eq!(views.len(), 4);
+        let positions = dioptra_sim::scene::light_field_positions(2, 0.004).unwrap();
+        for (k, v) in views.iter().enumerate() {
+            assert_eq!(v.position, positions[k], "view {k}");
+            assert!(v.eye.is_none());
+            assert_eq!(v.rgbd.color.channels[0].data()[0], lut[10 + k], "view {k}");
+            assert_eq!(v.rgbd.depth.data()[0], 1.0 + k as f32, "view {k}");
+        }
+        // Row 1, column 1: the central view of an even grid (right of and below the centre).
+        assert!(Arc::ptr_eq(&f.rgbd, &views[3].rgbd));
+        let st = s.status();
+        assert_eq!(
+            (st.views_received, st.received, st.halves_waiting),
+            (4, 1, 0),
+            "{st:?}"
+        );
+        // The same view again for frame 1: stale.
+        let e = view(&s, None, "0_0", 1, 0, 1.0).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                FrameError::StaleView {
+                    seq: 1,
+                    newest: 1,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        // Frame 2 half in, then a whole frame 3: 2's views are dropped, later ones refused.
+        view(&s, None, "0_0", 2, 0, 1.0).unwrap();
+        view(&s, None, "1_1", 2, 0, 1.0).unwrap();
+        let whole = FrameDesc {
+            seq: Some(3),
+            ..desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        s.submit(&whole, &[7; 6], &f32s(&[0.5; 2]), Timestamp(3))
+            .unwrap();
+        let f = s.poll(Timestamp(0)).unwrap();
+        assert!(f.views.is_none(), "a whole frame is one view");
+        let st = s.status();
+        assert_eq!((st.halves_dropped, st.halves_waiting), (2, 0), "{st:?}");
+        assert!(matches!(
+            view(&s, None, "0_1", 2, 0, 1.0),
+            Err(FrameError::StaleView {
+                seq: 2,
+                newest: 3,
+                ..
+            })
+        ));
+        // Outside the grid, no sequence number, another size: refused naming why.
+        for bad in ["2_0", "0", "a_b", "0_-1"] {
+            let e = view(&s, None, bad, 4, 0, 1.0).unwrap_err();
+            assert!(matches!(e, FrameError::View(_)), "{bad}: {e}");
+            assert!(e.to_string().contains("content.views = 2"), "{e}");
+        }
+        let no_seq = desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters);
+        let e = s
+            .submit_part(
+                &no_seq,
+                None,
+                Some(0),
+                &[0; 6],
+                &f32s(&[1.0; 2]),
+                Timestamp(5),
+            )
+            .unwrap_err();
+        assert!(
+            matches!(e, FrameError::Request(_)) && e.to_string().contains("seq=N"),
+            "{e}"
+        );
+        let wide = FrameDesc {
+            seq: Some(6),
+            ..desc(4, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+        };
+        let e = s
+            .submit_part(
+                &wide,
+                None,
+                Some(0),
+                &[0; 12],
+                &f32s(&[1.0; 4]),
+                Timestamp(6),
+            )
+            .unwrap_err();
+        assert!(e.to_string().contains("one eye's image, 2x1"), "{e}");
+        // (A view=... that does not parse is counted by PUT /frame, before the frame is read.)
+        assert_eq!(s.status().refused.get("view"), Some(&1));
+        // A rig without a grid refuses views.
+        let plain = StreamFrames::open(2, 1, None).unwrap();
+        let e = view(&plain, None, "0_0", 1, 0, 1.0).unwrap_err();
+        assert!(e.to_string().contains("content.views"), "{e}");
+    }
+
+    /// A stereo rig: each eye's own grid (views with `eye`), the frame's eyes their central
+    /// views; a frame's views with and without an eye do not mix. Ring slots name their view.
+    #[test]
+    fn each_eye_may_stream_its_own_grid_and_slots_name_their_view() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("frames");
+        let s = StreamFrames::with_eyes(2, 1, true, Some(&path))
+            .unwrap()
+            .with_view_grid(2, 10.0)
+            .unwrap();
+        assert_eq!(s.ring_json()["views"], 2);
+        s.poll(Timestamp(0));
+        for (eye, base) in [(Side::Left, 20u8), (Side::Right, 40)] {
+            for k in 0..4u8 {
+                let name = format!("{}_{}", k / 2, k % 2);
+                view(&s, Some(eye), &name, 1, base + k, 1.0).unwrap();
+            }
+        }
+        let f = s.poll(Timestamp(0)).expect("both grids complete");
+        let views = f.views.clone().unwrap();
+        assert_eq!(views.len(), 8);
+        let lut = srgb_lut();
+        for (k, v) in views.iter().enumerate() {
+            let (eye, base) = if k < 4 {
+                (Side::Left, 20)
+            } else {
+                (Side::Right, 40)
+            };
+            assert_eq!(v.eye, Some(eye));
+            assert_eq!(v.rgbd.color.channels[0].data()[0], lut[base + k % 4]);
+        }
+        let [l, r] = f.eyes.clone().unwrap();
+        assert!(Arc::ptr_eq(&l, &views[3].rgbd) && Arc::ptr_eq(&r, &views[7].rgbd));
+        // Frame 2: a view of the one grid, then one of an eye's: refused.
+        view(&s, None, "0_0", 2, 0, 1.0).unwrap();
+        let e = view(&s, Some(Side::Left), "0_1", 2, 0, 1.0).unwrap_err();
+        assert!(e.to_string().contains("views of one grid"), "{e}");
+        // Frame 3 through the ring: slot `view` 1 + index, the right eye's.
+        let ring = s.ring.as_ref().unwrap();
+        for k in 0..4u32 {
+            write_part_slot(
+                ring,
+                0,
+                (3, 0, 1 + k),
+                2,
+                1,
+                &[60 + k as u8; 6],
+                &f32s(&[1.0; 2]),
+            );
+            s.submit_slot(0, 3, Timestamp(3)).unwrap();
+        }
+        let f = s.poll(Timestamp(0)).expect("frame 3 from the ring");
+        let views = f.views.clone().unwrap();
+        assert!(views.iter().all(|v| v.eye.is_none()) && views.len() == 4);
+        assert_eq!(views[2].rgbd.color.channels[0].data()[0], lut[62]);
+        write_part_slot(ring, 1, (4, 0, 5), 2, 1, &[0; 6], &f32s(&[1.0; 2]));
+        let e = s.submit_slot(1, 4, Timestamp(4)).unwrap_err();
+        assert!(matches!(e, FrameError::View(_)), "{e}");
     }
 }
