@@ -801,62 +801,6 @@ pub struct LightFieldArgs {
     out: PathBuf,
 }
 
-/// A foveated light field and what foveation cost.
-struct FoveatedLightField {
-    views: Vec<RgbImage>,
-    /// Fraction of the rays kept, over all views.
-    fraction: f64,
-    /// Per foveal region (name), the PSNR of the foveated views against the full ones (of the
-    /// mean squared error over the views; infinite where identical).
-    regions: Vec<(&'static str, f64)>,
-}
-
-/// The light field `lf` foveated around `centre` with log-buffer scale `scale`: each view
-/// keeps its own log-polar samples (FV's per-view offsets) and interpolates the rest.
-fn foveate_light_field(
-    lf: &[RgbImage],
-    centre: [f32; 2],
-    scale: f32,
-) -> Result<FoveatedLightField> {
-    use dioptra_render::foveate::{interpolate, log_polar_mask};
-    use dioptra_render::metrics::{psnr, FovealRegion};
-    let Some(first) = lf.first() else {
-        bail!("no views to foveate");
-    };
-    let (w, h) = (first.width(), first.height());
-    // The regions are the same for every view; a region with no pixel (a gaze far off-centre)
-    // is left out.
-    let regions: Vec<(FovealRegion, Plane)> = FovealRegion::ALL
-        .into_iter()
-        .map(|r| (r, r.mask(w, h, centre)))
-        .filter(|(_, m)| m.data().iter().any(|&v| v > 0.5))
-        .collect();
-    let mut views = Vec::with_capacity(lf.len());
-    let mut kept = 0.0;
-    let mut mse = vec![0.0f64; regions.len()];
-    for (k, view) in lf.iter().enumerate() {
-        let p = dioptra_net::fv::view_mask(centre, w, scale, k);
-        let (mask, fraction) = log_polar_mask(w, h, &p)?;
-        let f = interpolate(view, &mask)?;
-        kept += fraction;
-        for ((_, m), e) in regions.iter().zip(&mut mse) {
-            // Back to the mean squared error (peak 1), so identical views average in.
-            *e += 10f64.powf(-psnr(&f, view, Some(m))? / 10.0);
-        }
-        views.push(f);
-    }
-    let n = lf.len() as f64;
-    Ok(FoveatedLightField {
-        views,
-        fraction: kept / n,
-        regions: regions
-            .iter()
-            .zip(mse)
-            .map(|((r, _), e)| (r.name(), -10.0 * (e / n).log10()))
-            .collect(),
-    })
-}
-
 pub fn lightfield(a: LightFieldArgs) -> Result<()> {
     use dioptra_render::views::RgbdView;
     let mut n = 0;
@@ -920,9 +864,10 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
         }
         let (w, h) = (images[0].width(), images[0].height());
         let centre = gaze_point(&a.gaze, w, h)?;
-        let f = foveate_light_field(&images, centre, scale)?;
-        images = f.views;
-        foveated = Some((scale, centre, f.fraction, f.regions));
+        let (views, fraction) = dioptra_net::fv::foveate_light_field(&images, centre, scale)?;
+        let regions = dioptra_net::fv::region_psnr(&views, &images, centre)?;
+        images = views;
+        foveated = Some((scale, centre, fraction, regions));
     }
     ensure_dir(&a.out)?;
     for (k, v) in images.iter().enumerate() {

@@ -192,9 +192,51 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         "{misses:?} vs {baseline:?}"
     );
 
+    // Light fields: the classical synthesis beats the nearest input on every scene and input
+    // count; the GPU's views are the CPU's within 1e-3; foveation keeps fewer rays as S grows.
+    let lf = read_csv(&out.join("lightfield.csv"));
+    let psnr = |r: &HashMap<String, String>| r["psnr_novel_db"].parse::<f64>().unwrap();
+    for k in ["5", "9"] {
+        let of = |m: &str, b: &str| {
+            lf.iter()
+                .find(|r| r["method"] == m && r["backend"] == b && r["inputs"] == k)
+                .unwrap_or_else(|| panic!("no {m} {b} row for {k} inputs: {lf:?}"))
+        };
+        let (near, cpu) = (of("nearest input", ""), of("classical", "cpu"));
+        finite_in(
+            &cpu["psnr_novel_db"],
+            15.0,
+            60.0,
+            "classical light field PSNR",
+        );
+        assert!(psnr(cpu) > psnr(near) + 2.0, "{cpu:?} against {near:?}");
+        if let Some(gpu) = lf
+            .iter()
+            .find(|r| r["method"] == "classical" && r["backend"] == "gpu" && r["inputs"] == k)
+        {
+            finite_in(
+                &gpu["max_abs_diff_from_cpu"],
+                0.0,
+                1e-3,
+                "light field GPU - CPU",
+            );
+        }
+    }
+    let fov = read_csv(&out.join("lightfield_foveated.csv"));
+    let kept: Vec<f64> = fov
+        .iter()
+        .map(|r| r["rays_kept"].parse::<f64>().unwrap())
+        .collect();
+    assert_eq!(kept.len(), 4, "{fov:?}");
+    assert!(
+        kept[0] == 1.0 && kept.windows(2).all(|w| w[1] < w[0]),
+        "{kept:?}"
+    );
+
     let report = std::fs::read_to_string(out.join("report.md")).expect("report");
     assert!(report.contains("## Speed against accuracy"));
     assert!(report.contains("## Where methods fail"));
+    assert!(report.contains("## Light fields from sparse views"));
     for chart in [
         "speed_accuracy_128",
         "psnr_by_focus_128",

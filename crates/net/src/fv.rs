@@ -41,6 +41,64 @@ pub fn view_mask(centre: [f32; 2], width: usize, scale: f32, k: usize) -> LogPol
     }
 }
 
+/// The light field `lf` foveated as FV samples its views: each view keeps its own log-polar
+/// samples around `centre` (log-buffer scale `scale`, the view's offsets from [`view_mask`])
+/// and interpolates the rest. The views, and the fraction of the rays kept over all of them.
+pub fn foveate_light_field(
+    lf: &[RgbImage],
+    centre: [f32; 2],
+    scale: f32,
+) -> Result<(Vec<RgbImage>, f64), NetError> {
+    let Some(first) = lf.first() else {
+        return Err(input("no views to foveate"));
+    };
+    let (w, h) = (first.width(), first.height());
+    let mut kept = 0.0;
+    let views = lf
+        .iter()
+        .enumerate()
+        .map(|(k, view)| {
+            let (mask, fraction) = log_polar_mask(w, h, &view_mask(centre, w, scale, k))?;
+            kept += fraction;
+            Ok(interpolate(view, &mask)?)
+        })
+        .collect::<Result<Vec<_>, NetError>>()?;
+    Ok((views, kept / lf.len() as f64))
+}
+
+/// Per foveal region around `centre` (fovea, periphery 1 and 2, by name), the PSNR of `views`
+/// against `reference`, of the mean squared error over the views (infinite where identical);
+/// a region with no pixel (a gaze far off-centre) is left out.
+pub fn region_psnr(
+    views: &[RgbImage],
+    reference: &[RgbImage],
+    centre: [f32; 2],
+) -> Result<Vec<(&'static str, f64)>, NetError> {
+    use dioptra_render::metrics::{psnr, FovealRegion};
+    let (Some(first), true) = (views.first(), views.len() == reference.len()) else {
+        return Err(input(format!(
+            "{} views against {} references: expected as many, at least one",
+            views.len(),
+            reference.len()
+        )));
+    };
+    let (w, h) = (first.width(), first.height());
+    let mut out = Vec::new();
+    for region in FovealRegion::ALL {
+        let mask = region.mask(w, h, centre);
+        if !mask.data().iter().any(|&v| v > 0.5) {
+            continue;
+        }
+        let mut mse = 0.0;
+        for (v, r) in views.iter().zip(reference) {
+            // Back to the mean squared error (peak 1), so identical views average in.
+            mse += 10f64.powf(-psnr(v, r, Some(&mask))? / 10.0);
+        }
+        out.push((region.name(), -10.0 * (mse / views.len() as f64).log10()));
+    }
+    Ok(out)
+}
+
 /// One foveated input view: its sampling mask (1 = sampled), the depth at the sampled pixels
 /// (diopters, 0 elsewhere, as in the paper) and the interpolated colour.
 #[derive(Debug, Clone)]
