@@ -1,10 +1,12 @@
 //! Speed of the CPU backend at 512 x 512 RGB-D (a sim test scene). Targets from issue 6:
 //! gather <= 30 ms; lightfield 36 views <= 80 ms; linear blending 4 planes <= 10 ms;
-//! optimized blending 100 iterations <= 10 s; retina per focus <= 20 ms.
+//! optimized blending 100 iterations <= 10 s; retina per focus <= 20 ms. Beside them (issue
+//! 41): a 9 x 9 light field of 256 px views over 1 cm synthesised from 9 of its views.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use dioptra_render::multifocal::{default_focal_samples, MultifocalRetina, DEFAULT_PLANES};
+use dioptra_render::views::RgbdView;
 use dioptra_render::{backend, DefocusMethod, LightFieldParams, OptimizeParams};
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
 use std::hint::black_box;
@@ -88,6 +90,32 @@ fn benches(c: &mut Criterion) {
                 &|_| {},
             )
             .expect("opt")
+        })
+    });
+    g.finish();
+
+    // DeepFocus's light field: 9 x 9 views over 1 cm from 9 (corners, edge midpoints, centre).
+    let cam = Camera::square(eye, 256);
+    let scene = Scene::generate(Split::Test.seed(0));
+    let (step, picks) = (0.01 / 8.0, [0usize, 4, 8]);
+    let inputs: Vec<RgbdView> = picks
+        .iter()
+        .flat_map(|&r| picks.iter().map(move |&c| (r, c)))
+        .map(|(r, c)| {
+            let position = [(c as f32 - 4.0) * step, (r as f32 - 4.0) * step];
+            let (color, depth) = render_pinhole(&scene, &cam, position, 1).expect("view");
+            RgbdView {
+                position,
+                rgbd: Rgbd::new(color, depth).expect("same size"),
+            }
+        })
+        .collect();
+    let mut g = c.benchmark_group("256x256_lightfield");
+    g.sample_size(10).measurement_time(Duration::from_secs(20));
+    g.bench_function("synthesize_9x9_from_9", |b| {
+        b.iter(|| {
+            cpu.synthesize_light_field(black_box(&inputs), 9, 0.01, &eye, &|_| {})
+                .expect("light field")
         })
     });
     g.finish();
