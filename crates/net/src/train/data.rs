@@ -408,7 +408,7 @@ pub fn sample_batch(
         Task::C5 { .. } | Task::Fv { .. } => {
             return sample_light_field_batch(task, scenes, rng, n, patch, align)
         }
-        Task::C1r { .. } | Task::C4r { .. } => {
+        Task::C1r { .. } | Task::C4r { .. } | Task::C5r { .. } => {
             return Err(NetError::Data(format!(
                 "{} batches come from train::refine_data",
                 task.name()
