@@ -796,6 +796,13 @@ pub struct LightFieldArgs {
     /// Gaze (fovea centre) in pixels, x,y, for --foveate; the image centre by default.
     #[arg(long, requires = "foveate")]
     gaze: Option<String>,
+    /// classical (forward warp of every input, the default) or refine (the classical views
+    /// corrected by a C5R net where the warp's error map says they are likely wrong).
+    #[arg(long, default_value = "classical")]
+    method: String,
+    /// C5R weights for --method refine (train them with `dioptra train --config c5r`).
+    #[arg(long)]
+    weights: Option<PathBuf>,
     /// Output directory (view_<r>_<c>.png).
     #[arg(long)]
     out: PathBuf,
@@ -900,15 +907,36 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
             })
         })
         .collect::<Result<Vec<_>>>()?;
+    let backend = a.eye.backend_or_cpu()?;
+    let eye = a.eye.eye()?;
     let t = std::time::Instant::now();
     let pb = bar(a.grid * a.grid, "views")?;
-    let lf = a.eye.backend_or_cpu()?.synthesize_light_field(
-        &inputs,
-        a.grid,
-        a.span,
-        &a.eye.eye()?,
-        &|k| pb.set_position(k as u64),
-    )?;
+    let progress = |k: usize| pb.set_position(k as u64);
+    let lf = match a.method.as_str() {
+        "classical" => {
+            if a.weights.is_some() {
+                bail!("--weights applies to --method refine");
+            }
+            backend.synthesize_light_field(&inputs, a.grid, a.span, &eye, &progress)?
+        }
+        "refine" => {
+            use dioptra_net::refine::refine_light_field;
+            let net = dioptra_net::load_net(a.weights.as_deref(), "c5r")?;
+            // The warp and its error map run on the CPU; the net on the chosen backend.
+            if backend.name() == "gpu" {
+                let gpu = GpuNet::on(
+                    dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
+                    net.weights().clone(),
+                )?;
+                let refine = |v: &Rgbd, e: &_| gpu.refine_view(v, e);
+                refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?
+            } else {
+                let refine = |v: &Rgbd, e: &_| net.refine_view(v, e);
+                refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?
+            }
+        }
+        m => bail!("--method {m}: expected classical or refine"),
+    };
     pb.finish();
     let ms = t.elapsed().as_secs_f64() * 1e3;
     let mut images: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
