@@ -113,23 +113,33 @@ pub fn refine_defocus_input(
     let d = rgbd.depth.data();
     // CoC per diopter of defocus, once (coc_px evaluates a tangent per call).
     let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
-    let mut data = vec![0.0; w * h * 8];
-    data.par_chunks_mut(w * 8).enumerate().for_each(|(y, row)| {
-        for (x, px) in row.chunks_exact_mut(8).enumerate() {
-            let i = y * w + x;
-            px.copy_from_slice(&[
-                c[0][i],
-                c[1][i],
-                c[2][i],
-                d[i] / DEPTH_NORM,
-                px_per_d * (d[i] - focus.0).abs() / COC_NORM,
-                k[0][i],
-                k[1][i],
-                k[2][i],
-            ]);
+    hwc_input(w, h, |i| {
+        [
+            c[0][i],
+            c[1][i],
+            c[2][i],
+            d[i] / DEPTH_NORM,
+            px_per_d * (d[i] - focus.0).abs() / COC_NORM,
+            k[0][i],
+            k[1][i],
+            k[2][i],
+        ]
+    })
+}
+
+/// A `w` x `h` HWC input of `C` channels, pixel `i` (row-major) holding `pixel(i)`.
+fn hwc_input<const C: usize>(
+    w: usize,
+    h: usize,
+    pixel: impl Fn(usize) -> [f32; C] + Sync,
+) -> Result<Act, NetError> {
+    let mut data = vec![0.0; w * h * C];
+    data.par_chunks_mut(w * C).enumerate().for_each(|(y, row)| {
+        for (x, px) in row.chunks_exact_mut(C).enumerate() {
+            px.copy_from_slice(&pixel(y * w + x));
         }
     });
-    Act::new(h, w, 8, data)
+    Act::new(h, w, C, data)
 }
 
 /// C4R input: [R, G, B, depth / 4, then each classical layer's R, G, B] per pixel.
@@ -173,24 +183,19 @@ pub fn refine_view_input(view: &Rgbd, errors: &WarpErrors) -> Result<Act, NetErr
     let c = view.color.channels.each_ref().map(|p| p.data());
     let d = view.depth.data();
     let [ox, oy] = errors.offset_px.map(|o| o / PARALLAX_NORM);
-    let mut data = vec![0.0; w * h * 9];
-    data.par_chunks_mut(w * 9).enumerate().for_each(|(y, row)| {
-        for (x, px) in row.chunks_exact_mut(9).enumerate() {
-            let i = y * w + x;
-            px.copy_from_slice(&[
-                c[0][i],
-                c[1][i],
-                c[2][i],
-                d[i] / DEPTH_NORM,
-                f32::from(u8::from(errors.hole[i])),
-                errors.edge_px[i] / PARALLAX_NORM,
-                errors.spread[i],
-                ox,
-                oy,
-            ]);
-        }
-    });
-    Act::new(h, w, 9, data)
+    hwc_input(w, h, |i| {
+        [
+            c[0][i],
+            c[1][i],
+            c[2][i],
+            d[i] / DEPTH_NORM,
+            f32::from(u8::from(errors.hole[i])),
+            errors.edge_px[i] / PARALLAX_NORM,
+            errors.spread[i],
+            ox,
+            oy,
+        ]
+    })
 }
 
 /// The tiles C5R runs on: those holding a pixel the warp's error map marks, whose pixels take
