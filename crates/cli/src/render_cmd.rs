@@ -920,20 +920,31 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
             backend.synthesize_light_field(&inputs, a.grid, a.span, &eye, &progress)?
         }
         "refine" => {
-            use dioptra_net::refine::refine_light_field;
+            use dioptra_net::refine::{refine_light_field, view_tiles};
             let net = dioptra_net::load_net(a.weights.as_deref(), "c5r")?;
             // The warp and its error map run on the CPU; the net on the chosen backend.
-            if backend.name() == "gpu" {
-                let gpu = GpuNet::on(
+            let gpu = if backend.name() == "gpu" {
+                Some(GpuNet::on(
                     dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
                     net.weights().clone(),
-                )?;
-                let refine = |v: &Rgbd, e: &_| gpu.refine_view(v, e);
-                refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?
+                )?)
             } else {
-                let refine = |v: &Rgbd, e: &_| net.refine_view(v, e);
-                refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?
-            }
+                None
+            };
+            let tiles = std::cell::Cell::new(0.0);
+            let refine = |v: &Rgbd, e: &_| {
+                tiles.set(tiles.get() + view_tiles(e)?.fraction());
+                match &gpu {
+                    Some(g) => g.refine_view(v, e),
+                    None => net.refine_view(v, e),
+                }
+            };
+            let lf = refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?;
+            println!(
+                "refined {:.1} % of the tiles (the warp's error map)",
+                100.0 * tiles.get() / lf.len().max(1) as f64
+            );
+            lf
         }
         m => bail!("--method {m}: expected classical or refine"),
     };
