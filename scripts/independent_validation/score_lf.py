@@ -11,6 +11,14 @@ unchanged in place of each novel view (the baseline a light field without synthe
       [--inputs 9,5] [--backend cpu|gpu] [--out lf_scores.md]
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
       --foveate 2 [--inputs 9] [--out fv_scores.md]
+  python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
+      --method refine --weights c5r.safetensors [--inputs 9]
+
+With --method refine, each light field is also synthesised with `dioptra lightfield --method
+refine --weights PATH` (a C5R net on the classical views) and scored beside the classical one;
+the table adds, per input count, the refined PSNR and the worst novel view's change against
+classical (refined minus classical, dB), and says whether any scene's mean or any view fell
+below classical.
 
 With --foveate S, `dioptra lightfield --foveate S` keeps each synthesised view's log-polar
 samples around the image centre and interpolates the rest; the table then gives, per region
@@ -116,8 +124,16 @@ def main():
     ap.add_argument("--inputs", default="9,5", help="input view counts, comma-separated")
     ap.add_argument("--backend", default="cpu", help="dioptra's backend: cpu or gpu")
     ap.add_argument("--foveate", type=float, help="log-buffer scale S: score foveated synthesis")
+    ap.add_argument("--method", default="classical", choices=["classical", "refine"],
+                    help="refine: score a C5R net's refinement beside the classical synthesis")
+    ap.add_argument("--weights", help="C5R weights for --method refine")
     ap.add_argument("--out", help="write the table here (markdown) as well as printing it")
     a = ap.parse_args()
+    if (a.method == "refine") != (a.weights is not None):
+        raise SystemExit("--method refine takes --weights PATH (and --weights needs --method refine)")
+    if a.method == "refine" and a.foveate is not None:
+        raise SystemExit("--method refine scores the full synthesis: leave out --foveate")
+    refine = ["--method", "refine", "--weights", a.weights] if a.weights else None
     counts = [int(k) for k in a.inputs.split(",")]
     scenes = sorted(os.path.dirname(p) for p in glob.glob(os.path.join(a.set, "*", "lightfield.json")))
     if not scenes:
@@ -135,8 +151,10 @@ def main():
             with open(a.out, "w") as f:
                 f.write(table + "\n")
         return
-    cols = [c for k in counts for c in (f"nearest input ({k})", f"classical ({k} inputs)")]
+    cols = [c for k in counts for c in (f"nearest input ({k})", f"classical ({k} inputs)")
+            + ((f"refine ({k} inputs)", f"worst view refine - classical ({k})") if refine else ())]
     rows, times = [], {k: [] for k in counts}
+    rtimes = {k: [] for k in counts}
     for d in scenes:
         meta = json.load(open(os.path.join(d, "lightfield.json")))
         n = meta["grid"]
@@ -151,14 +169,20 @@ def main():
                 nr, nc = min(ins, key=lambda p: (p[0] - r) ** 2 + (p[1] - c) ** 2)
                 shown = read_png_srgb(os.path.join(d, f"view_{nr:02}_{nc:02}.png"))
                 near.append(psnr(shown, truth[(r, c)]))
-            with tempfile.TemporaryDirectory() as out:
-                res = synthesise(a, d, meta, k, out)
-                ms = re.search(r"in (\d+) ms", res.stdout)
-                if ms:
-                    times[k].append(float(ms.group(1)))
-                syn = [psnr(read_png_srgb(os.path.join(out, f"view_{r:02}_{c:02}.png")), truth[(r, c)])
-                       for (r, c) in novel]
+            syn, ref = [], []
+            for extra, scores, ts in ((), syn, times[k]), (refine, ref, rtimes[k]):
+                if extra is None:
+                    continue
+                with tempfile.TemporaryDirectory() as out:
+                    res = synthesise(a, d, meta, k, out, extra)
+                    ms = re.search(r"in (\d+) ms", res.stdout)
+                    if ms:
+                        ts.append(float(ms.group(1)))
+                    scores += [psnr(read_png_srgb(os.path.join(out, f"view_{r:02}_{c:02}.png")),
+                                    truth[(r, c)]) for (r, c) in novel]
             row += [float(np.mean(near)), float(np.mean(syn))]
+            if refine:
+                row += [float(np.mean(ref)), float(min(np.subtract(ref, syn)))]
         rows.append((os.path.basename(d), row))
         print(os.path.basename(d), " ".join(f"{v:.2f}" for v in row), flush=True)
     lines = ["| scene | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
@@ -167,11 +191,21 @@ def main():
     mean = np.mean([r for _, r in rows], axis=0)
     lines.append("| **mean** | " + " | ".join(f"**{v:.2f}**" for v in mean) + " |")
     for k in counts:
-        if times[k]:
+        for method, ts in (("classical", times[k]), ("refine", rtimes[k])):
+            if ts:
+                lines.append("")
+                lines.append(f"{k} inputs, {method}: {np.median(ts):.0f} ms median per light field "
+                             f"(`dioptra lightfield --method {method} --backend {a.backend}`, "
+                             f"{n} x {n} views of {meta['size']} px)")
+    if refine:
+        # Per input count: columns classical, refine, worst view at 4i + 1, 4i + 2, 4i + 3.
+        for i, k in enumerate(counts):
+            below = [name for name, r in rows if r[4 * i + 2] < r[4 * i + 1]]
+            worst = min(r[4 * i + 3] for _, r in rows)
             lines.append("")
-            lines.append(f"{k} inputs: {np.median(times[k]):.0f} ms median per light field "
-                         f"(`dioptra lightfield --backend {a.backend}`, {n} x {n} views of "
-                         f"{meta['size']} px)")
+            lines.append(f"{k} inputs: refine below classical on {len(below)} of {len(rows)} scenes' "
+                         f"means{' (' + ', '.join(below) + ')' if below else ''}; worst novel view "
+                         f"{worst:+.2f} dB ({a.weights})")
     table = "\n".join(lines)
     print(table)
     if a.out:

@@ -796,6 +796,13 @@ pub struct LightFieldArgs {
     /// Gaze (fovea centre) in pixels, x,y, for --foveate; the image centre by default.
     #[arg(long, requires = "foveate")]
     gaze: Option<String>,
+    /// classical (forward warp of every input, the default) or refine (the classical views
+    /// corrected by a C5R net where the warp's error map says they are likely wrong).
+    #[arg(long, default_value = "classical")]
+    method: String,
+    /// C5R weights for --method refine (train them with `dioptra train --config c5r`).
+    #[arg(long)]
+    weights: Option<PathBuf>,
     /// Output directory (view_<r>_<c>.png).
     #[arg(long)]
     out: PathBuf,
@@ -844,15 +851,47 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
             })
         })
         .collect::<Result<Vec<_>>>()?;
+    let backend = a.eye.backend_or_cpu()?;
+    let eye = a.eye.eye()?;
     let t = std::time::Instant::now();
     let pb = bar(a.grid * a.grid, "views")?;
-    let lf = a.eye.backend_or_cpu()?.synthesize_light_field(
-        &inputs,
-        a.grid,
-        a.span,
-        &a.eye.eye()?,
-        &|k| pb.set_position(k as u64),
-    )?;
+    let progress = |k: usize| pb.set_position(k as u64);
+    let lf = match a.method.as_str() {
+        "classical" => {
+            if a.weights.is_some() {
+                bail!("--weights applies to --method refine");
+            }
+            backend.synthesize_light_field(&inputs, a.grid, a.span, &eye, &progress)?
+        }
+        "refine" => {
+            use dioptra_net::refine::{refine_light_field, view_tiles};
+            let net = dioptra_net::load_net(a.weights.as_deref(), "c5r")?;
+            // The warp and its error map run on the CPU; the net on the chosen backend.
+            let gpu = if backend.name() == "gpu" {
+                Some(GpuNet::on(
+                    dioptra_render::gpu::GpuContext::shared(a.eye.adapter.as_deref())?,
+                    net.weights().clone(),
+                )?)
+            } else {
+                None
+            };
+            let tiles = std::cell::Cell::new(0.0);
+            let refine = |v: &Rgbd, e: &_| {
+                tiles.set(tiles.get() + view_tiles(e)?.fraction());
+                match &gpu {
+                    Some(g) => g.refine_view(v, e),
+                    None => net.refine_view(v, e),
+                }
+            };
+            let lf = refine_light_field(&inputs, a.grid, a.span, &eye, &refine, &progress)?;
+            println!(
+                "refined {:.1} % of the tiles (the warp's error map)",
+                100.0 * tiles.get() / lf.len().max(1) as f64
+            );
+            lf
+        }
+        m => bail!("--method {m}: expected classical or refine"),
+    };
     pb.finish();
     let ms = t.elapsed().as_secs_f64() * 1e3;
     let mut images: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();

@@ -14,7 +14,8 @@ use std::path::PathBuf;
 pub struct Args {
     /// Configuration: c1 (defocus), c3 (focal stack), c4 (multifocal), c5 (light field from
     /// RGB-D views), fv (foveated view synthesis), c1r (defocus refinement of a classical
-    /// render), c4r (multifocal refinement of a classical decomposition).
+    /// render), c4r (multifocal refinement of a classical decomposition), c5r (light-field
+    /// refinement of the forward-warp synthesis).
     #[arg(long)]
     config: String,
     /// Total steps; rerunning with a larger count resumes and continues.
@@ -56,12 +57,15 @@ pub struct Args {
     /// Render cache (default OUT/cache).
     #[arg(long)]
     cache: Option<PathBuf>,
-    /// C5/FV: side of the view grid (odd, 3 to 9; default 9 for c5, 3 for fv).
+    /// C5/FV/C5R: side of the view grid (odd, 3 to 9; default 9 for c5 and c5r, 3 for fv).
     #[arg(long)]
     grid: Option<usize>,
-    /// C5/FV: input views, 5 (corners + centre) or 9 (+ edge midpoints).
+    /// C5/FV/C5R: input views, 5 (corners + centre) or 9 (+ edge midpoints).
     #[arg(long)]
     views: Option<usize>,
+    /// c5r: novel views per training light field (drawn once from --seed's stream).
+    #[arg(long)]
+    novel_views: Option<usize>,
     /// FV: channels of the U-Net's first level.
     #[arg(long)]
     unet_channels: Option<usize>,
@@ -69,8 +73,8 @@ pub struct Args {
     #[arg(long, default_value_t = 4)]
     supersample: usize,
     /// Fields of view of the training scenes, degrees, comma-separated: scene i uses the
-    /// (i mod n)-th (default: 20 for all; c1r: 20,10, so the net sees 512 px blur sizes on
-    /// 256 px renders).
+    /// (i mod n)-th (default: 20 for all; c1r and c5r: 20,10, so the net sees the blur sizes
+    /// and parallax of views twice as wide).
     #[arg(long, value_delimiter = ',')]
     fovs: Option<Vec<f32>>,
     /// c4r: steps distilling optimized blending's layers before the retinal loss.
@@ -84,16 +88,16 @@ pub struct Args {
     /// Lower the learning rate from --lr to this by a cosine over --steps.
     #[arg(long)]
     lr_final: Option<f64>,
-    /// c1r: fraction of patches drawn by the classical render's error (the rest uniformly
-    /// over the tiles the net runs on).
+    /// c1r and c5r: fraction of patches drawn by the classical render's error (the rest
+    /// uniformly over the tiles the net runs on).
     #[arg(long, default_value_t = 0.5)]
     error_weighted: f64,
     /// c1r: the error map's own-blur threshold for training, CoC diameter in pixels (default:
     /// the one inference uses; the shipped C1R trained under 2 px).
     #[arg(long)]
     own_blur_px: Option<f32>,
-    /// c1r: weight of a penalty on patches the net makes worse than its classical input
-    /// (their relative rise in squared error; 0: off).
+    /// c1r and c5r: weight of a penalty on patches the net makes worse than its classical
+    /// input (their relative rise in squared error; 0: off).
     #[arg(long, default_value_t = 0.0)]
     no_worse: f64,
     /// Training scenes of the occluder family (thin rods and large boxes before a far
@@ -122,16 +126,23 @@ fn parse_classical(s: &str) -> Result<Classical> {
 
 pub fn run(a: Args) -> Result<()> {
     let mut arch = Arch::preset(&a.config)
-        .with_context(|| "--config: choose c1, c3, c4, c5 or fv".to_string())?;
+        .with_context(|| "--config: choose c1, c3, c4, c5, fv, c1r, c4r or c5r".to_string())?;
     match &mut arch.task {
-        Task::C5 { views, grid } | Task::Fv { views, grid } => {
+        Task::C5 { views, grid } | Task::Fv { views, grid } | Task::C5r { views, grid } => {
             *grid = a.grid.unwrap_or(*grid);
             *views = a.views.unwrap_or(*views);
         }
         _ if a.grid.is_some() || a.views.is_some() => {
-            bail!("--grid and --views apply to c5 and fv only")
+            bail!("--grid and --views apply to c5, fv and c5r only")
         }
         _ => {}
+    }
+    let c5r = matches!(arch.task, Task::C5r { .. });
+    if a.novel_views.is_some() && !c5r {
+        bail!("--novel-views applies to c5r only");
+    }
+    if a.novel_views == Some(0) {
+        bail!("--novel-views 0: expected at least one novel view per light field");
     }
     if let Some(c) = &a.classical {
         match &mut arch.task {
@@ -186,21 +197,26 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.no_worse.is_finite() && a.no_worse >= 0.0) {
         bail!("--no-worse {}: expected a weight of 0 or more", a.no_worse);
     }
-    if a.no_worse > 0.0 && !arch_task_is_c1r {
-        bail!("--no-worse applies to c1r only");
+    if a.no_worse > 0.0 && !(arch_task_is_c1r || c5r) {
+        bail!("--no-worse applies to c1r and c5r only");
     }
     cfg.no_worse = a.no_worse;
-    if a.occluder_scenes > 0 && matches!(cfg.arch.task, Task::C5 { .. } | Task::Fv { .. }) {
+    cfg.novel_views = a.novel_views.unwrap_or(cfg.novel_views);
+    let light_field = matches!(
+        cfg.arch.task,
+        Task::C5 { .. } | Task::Fv { .. } | Task::C5r { .. }
+    );
+    if a.occluder_scenes > 0 && light_field {
         bail!(
             "--occluder-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)"
         );
     }
     cfg.occluder_scenes = a.occluder_scenes;
-    if a.wide_scenes > 0 && matches!(cfg.arch.task, Task::C5 { .. } | Task::Fv { .. }) {
+    if a.wide_scenes > 0 && light_field {
         bail!("--wide-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)");
     }
     cfg.wide_scenes = a.wide_scenes;
-    cfg.fovs = match (&a.fovs, &arch_task_is_c1r) {
+    cfg.fovs = match (&a.fovs, arch_task_is_c1r || c5r) {
         (Some(f), _) => f.clone(),
         (None, true) => vec![20.0, 10.0],
         (None, false) => Vec::new(),
@@ -328,5 +344,10 @@ mod tests {
         }
         let e = refused(&["--config", "c1", "--own-blur-px", "2"]);
         assert!(e.contains("c1r only"), "{e}");
+        // C5R's own flag elsewhere, or asking for no novel views.
+        let e = refused(&["--config", "c1r", "--novel-views", "4"]);
+        assert!(e.contains("c5r only"), "{e}");
+        let e = refused(&["--config", "c5r", "--novel-views", "0"]);
+        assert!(e.contains("--novel-views 0"), "{e}");
     }
 }

@@ -209,6 +209,48 @@ fn scene_render_metrics_round_trip() {
     let (ok, text) = lf(&["--foveate", "0"]);
     assert!(!ok && text.contains("--foveate"), "{text}");
 
+    // --method refine (C5R): an untrained net (its last layer zero) writes the classical views
+    // byte for byte; one with random weights throughout changes some, so the refinement ran;
+    // without --weights the error names the flag and how to train.
+    let views = |dir: &str| -> Vec<Vec<u8>> {
+        (0..9)
+            .map(|k| std::fs::read(format!("{dir}/view_{:02}_{:02}.png", k / 3, k % 3)).unwrap())
+            .collect()
+    };
+    let (ok, text) = lf(&[]);
+    assert!(ok, "{text}");
+    let classical = views(&d("synth"));
+    let arch = dioptra_net::Arch::preset("c5r").unwrap();
+    let mut nets = [
+        dioptra_net::Weights::random(&arch, 1).unwrap(),
+        dioptra_net::Weights::random(&arch, 2).unwrap(),
+    ];
+    let mut r = dioptra_net::weights::SplitMix(3);
+    for v in nets[1].convs.iter_mut().flat_map(|c| c.weight.iter_mut()) {
+        if *v == 0.0 {
+            *v = 0.05 * r.uniform();
+        }
+    }
+    for (k, net) in nets.iter().enumerate() {
+        let path = d(&format!("c5r{k}.safetensors"));
+        net.save(Path::new(&path)).unwrap();
+        let (ok, text) = lf(&["--method", "refine", "--weights", &path]);
+        assert!(ok && text.contains("synthesised 9 views"), "{text}");
+        let refined = views(&d("synth"));
+        if k == 0 {
+            assert!(refined == classical, "the untrained net changed a view");
+        } else {
+            assert!(refined != classical, "the random net changed no view");
+        }
+    }
+    let (ok, text) = lf(&["--method", "refine"]);
+    assert!(
+        !ok && text.contains("--weights") && text.contains("dioptra train --config c5r"),
+        "{text}"
+    );
+    let (ok, text) = lf(&["--method", "warp"]);
+    assert!(!ok && text.contains("classical or refine"), "{text}");
+
     // Clear errors: a missing file, an unreadable format, an unknown backend.
     let (ok, text) = dioptra(&[
         "render",

@@ -31,6 +31,10 @@ use serde::{Deserialize, Serialize};
 /// Input normalisation, as in DeepFocus: depth in diopters / 4, CoC in pixels / 30.
 pub const DEPTH_NORM: f32 = 4.0;
 pub const COC_NORM: f32 = 30.0;
+/// C5R's parallax inputs (pixels) / 4: about the largest between a novel view and its
+/// nearest input per diopter, or across a depth step, on the 9 x 9 light fields over 1 cm
+/// it trains on.
+pub const PARALLAX_NORM: f32 = 4.0;
 
 /// The classical defocus method a C1R net refines.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -106,6 +110,12 @@ pub enum Task {
         #[serde(default, skip_serializing_if = "ClassicalLayers::is_linear")]
         classical: ClassicalLayers,
     },
+    /// Light-field refinement: per novel view, its classical synthesis from `views` (5 or 9)
+    /// RGB-D inputs (RGB and warped depth), the warp's error map (hole, parallax across a depth
+    /// step, the inputs' colour spread) and the view's parallax per diopter from its nearest
+    /// input (x, y): 9 channels -> a correction of the view (3). Trained on `grid` x `grid`
+    /// light fields; runs on any grid.
+    C5r { views: usize, grid: usize },
 }
 
 /// Convolutions of the FV U-Net (see the module docs).
@@ -121,11 +131,12 @@ impl Task {
             Task::Fv { .. } => "fv",
             Task::C1r { .. } => "c1r",
             Task::C4r { .. } => "c4r",
+            Task::C5r { .. } => "c5r",
         }
     }
     /// Refinement nets output a correction of a classical result, not an image.
     pub fn residual(&self) -> bool {
-        matches!(self, Task::C1r { .. } | Task::C4r { .. })
+        matches!(self, Task::C1r { .. } | Task::C4r { .. } | Task::C5r { .. })
     }
     /// The display planes of a multifocal net (C4, C4R).
     pub fn planes(&self) -> Option<&[f32]> {
@@ -142,6 +153,7 @@ impl Task {
             Task::Fv { views, .. } => 5 * views,
             Task::C1r { .. } => 8,
             Task::C4r { planes, .. } => 4 + 3 * planes.len(),
+            Task::C5r { .. } => 9,
         }
     }
     pub fn out_channels(&self) -> usize {
@@ -149,15 +161,17 @@ impl Task {
             Task::C1 => 3,
             Task::C3 { foci } => 3 * foci.len(),
             Task::C4 { planes, .. } | Task::C4r { planes, .. } => 3 * planes.len(),
-            Task::C1r { .. } => 3,
+            Task::C1r { .. } | Task::C5r { .. } => 3,
             Task::C5 { grid, .. } | Task::Fv { grid, .. } => 3 * grid * grid,
         }
     }
-    /// Grid indices (row-major, `row * grid + col`) of the input views of C5 and FV: the four
+    /// Grid indices (row-major, `row * grid + col`) of the input views of C5, FV and C5R: the four
     /// corners and the centre (5), plus the edge midpoints (9), as in DeepFocus's light-field
     /// configurations. Empty for the other tasks.
     pub fn input_views(&self) -> Vec<usize> {
-        let (Task::C5 { views, grid } | Task::Fv { views, grid }) = self else {
+        let (Task::C5 { views, grid } | Task::Fv { views, grid } | Task::C5r { views, grid }) =
+            self
+        else {
             return Vec::new();
         };
         let (g, m) = (*grid, grid / 2);
@@ -199,7 +213,7 @@ impl Task {
                     Err(format!("{views} light-field views: expected 1 to 256"))
                 }
             },
-            Task::C5 { views, grid } | Task::Fv { views, grid } => {
+            Task::C5 { views, grid } | Task::Fv { views, grid } | Task::C5r { views, grid } => {
                 if ![5, 9].contains(views) || !(3..=9).contains(grid) || grid % 2 == 0 {
                     Err(format!(
                         "{views} input views on a {grid}x{grid} grid: expected 5 or 9 views, an odd grid 3 to 9"
@@ -278,9 +292,11 @@ impl Arch {
                 foci: stack(0.1, 2.2, 22),
                 classical: ClassicalLayers::Linear,
             },
+            // DeepFocus's light field: 9 x 9 views from 9.
+            "c5r" => Task::C5r { views: 9, grid: 9 },
             _ => {
                 return Err(NetError::BadArch(format!(
-                    "unknown configuration {name:?}: expected c1, c3, c4, c5, fv, c1r or c4r"
+                    "unknown configuration {name:?}: expected c1, c3, c4, c5, fv, c1r, c4r or c5r"
                 )))
             }
         };
@@ -289,7 +305,8 @@ impl Arch {
         // C1R's is the shipped net's size: its tiles must cost less than the light field it
         // refines (issue 21's time target).
         let (layers, channels) = match task {
-            Task::C1r { .. } => (6, 16),
+            // C5R runs per novel view: 72 of them in a 9 x 9 light field.
+            Task::C1r { .. } | Task::C5r { .. } => (6, 16),
             Task::C4r { .. } => (6, 32),
             _ => (8, 32),
         };
@@ -456,7 +473,7 @@ mod tests {
 
     #[test]
     fn json_round_trip_keeps_every_field() {
-        for name in ["c1", "c3", "c4", "c5", "fv"] {
+        for name in ["c1", "c3", "c4", "c5", "fv", "c5r"] {
             let mut a = Arch::preset(name).unwrap();
             a.rate = 4;
             a.layers = 5;
@@ -501,6 +518,14 @@ mod tests {
         // 5 views x RGB-D in, concatenated before the last layer; 81 RGB views out.
         assert_eq!(c5.conv_in(7), 32 + 80);
         assert_eq!(c5.conv_out(7), 243 * 4);
+        // C5R: a view's RGB, depth, 3 error channels and offset in; an RGB correction out.
+        let c5r = Arch::preset("c5r").unwrap();
+        assert_eq!((c5r.conv_in(0), c5r.conv_out(5)), (36, 12));
+        assert!(c5r.task.residual());
+        assert_eq!(
+            c5r.task.input_views(),
+            vec![0, 4, 8, 36, 40, 44, 72, 76, 80]
+        );
     }
 
     #[test]

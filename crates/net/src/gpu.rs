@@ -9,12 +9,13 @@ use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
 use crate::refine::{
     check_planes, classical_composite, compose_defocus, compose_layers, error_tiles,
-    refine_defocus_input, refine_layers_input, Refined,
+    refine_defocus_input, refine_layers_input, refine_view_input, view_tiles, Refined,
 };
 use crate::tasks::{defocus_input, rgb_at, rgbd_input};
 use crate::weights::Weights;
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::gpu::{BufRef, Frame, FrameStats, GpuContext, ShaderKernel};
+use dioptra_render::views::WarpErrors;
 use dioptra_render::{GpuError, Layers, RenderError};
 use std::cell::RefCell;
 use std::path::Path;
@@ -297,6 +298,19 @@ impl GpuNet {
         check_planes(&self.arch().task, classical)?;
         let y = self.forward(&refine_layers_input(rgbd, classical)?)?;
         compose_layers(classical, &y)
+    }
+
+    /// C5R on the GPU: the net on the whole view, its correction kept on the pixels the
+    /// warp's error map marks, so the result equals [`crate::CpuNet::refine_view`] (which
+    /// evaluates only those tiles).
+    pub fn refine_view(&self, view: &Rgbd, errors: &WarpErrors) -> Result<RgbImage, NetError> {
+        self.arch().expect_task("c5r")?;
+        let tiles = view_tiles(errors)?;
+        if !tiles.on.contains(&true) {
+            return Ok(view.color.clone());
+        }
+        let y = self.forward(&refine_view_input(view, errors)?)?;
+        compose_defocus(&view.color, &y, &tiles)
     }
 }
 

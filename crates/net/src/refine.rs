@@ -8,12 +8,16 @@
 //! receptive field needs ([`crate::CpuNet::forward_tiles`]), so its output there equals a
 //! full-image pass exactly.
 
-use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM};
+use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM, PARALLAX_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
 pub use crate::tiles::{TileMap, TILE};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::composite::{compose, step_reach};
+use dioptra_render::retina::LfView;
+use dioptra_render::views::{
+    light_field_positions, synthesize_view_with_errors, RgbdView, WarpErrors,
+};
 use dioptra_render::{eye_for, Backend, DefocusMethod, Layers, LightFieldParams, SpectralParams};
 use rayon::prelude::*;
 
@@ -43,15 +47,7 @@ pub fn error_tiles_with(
     min_own_blur_px: f32,
 ) -> Result<TileMap, NetError> {
     let reach = step_reach(depth, focus, eye, min_own_blur_px)?;
-    let mut map = TileMap::none(depth.width(), depth.height());
-    for (y, row) in reach.lacking.chunks(map.width).enumerate() {
-        for (tx, tile) in row.chunks(TILE).enumerate() {
-            if tile.contains(&true) {
-                map.on[(y / TILE) * map.cols + tx] = true;
-            }
-        }
-    }
-    map.pixels = reach.lacking;
+    let mut map = TileMap::from_pixels(depth.width(), depth.height(), reach.lacking);
     map.reached = reach.reached;
     Ok(map)
 }
@@ -117,23 +113,33 @@ pub fn refine_defocus_input(
     let d = rgbd.depth.data();
     // CoC per diopter of defocus, once (coc_px evaluates a tangent per call).
     let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
-    let mut data = vec![0.0; w * h * 8];
-    data.par_chunks_mut(w * 8).enumerate().for_each(|(y, row)| {
-        for (x, px) in row.chunks_exact_mut(8).enumerate() {
-            let i = y * w + x;
-            px.copy_from_slice(&[
-                c[0][i],
-                c[1][i],
-                c[2][i],
-                d[i] / DEPTH_NORM,
-                px_per_d * (d[i] - focus.0).abs() / COC_NORM,
-                k[0][i],
-                k[1][i],
-                k[2][i],
-            ]);
+    hwc_input(w, h, |i| {
+        [
+            c[0][i],
+            c[1][i],
+            c[2][i],
+            d[i] / DEPTH_NORM,
+            px_per_d * (d[i] - focus.0).abs() / COC_NORM,
+            k[0][i],
+            k[1][i],
+            k[2][i],
+        ]
+    })
+}
+
+/// A `w` x `h` HWC input of `C` channels, pixel `i` (row-major) holding `pixel(i)`.
+fn hwc_input<const C: usize>(
+    w: usize,
+    h: usize,
+    pixel: impl Fn(usize) -> [f32; C] + Sync,
+) -> Result<Act, NetError> {
+    let mut data = vec![0.0; w * h * C];
+    data.par_chunks_mut(w * C).enumerate().for_each(|(y, row)| {
+        for (x, px) in row.chunks_exact_mut(C).enumerate() {
+            px.copy_from_slice(&pixel(y * w + x));
         }
     });
-    Act::new(h, w, 8, data)
+    Act::new(h, w, C, data)
 }
 
 /// C4R input: [R, G, B, depth / 4, then each classical layer's R, G, B] per pixel.
@@ -158,6 +164,80 @@ pub fn refine_layers_input(rgbd: &Rgbd, layers: &Layers) -> Result<Act, NetError
         }
     }
     Act::new(h, w, 4 + 3 * m, data)
+}
+
+/// C5R input per pixel: the classical view's R, G, B, its warped depth / 4, then the warp's
+/// error map (hole 0/1, parallax across a depth step / [`PARALLAX_NORM`], the inputs' colour
+/// spread) and the view's parallax per diopter from its nearest input (x, y) /
+/// [`PARALLAX_NORM`].
+pub fn refine_view_input(view: &Rgbd, errors: &WarpErrors) -> Result<Act, NetError> {
+    let (w, h) = (view.width(), view.height());
+    if (errors.width, errors.height) != (w, h)
+        || [errors.hole.len(), errors.edge_px.len(), errors.spread.len()] != [w * h; 3]
+    {
+        return Err(input(format!(
+            "a {}x{} error map for a {w}x{h} view",
+            errors.width, errors.height
+        )));
+    }
+    let c = view.color.channels.each_ref().map(|p| p.data());
+    let d = view.depth.data();
+    let [ox, oy] = errors.offset_px.map(|o| o / PARALLAX_NORM);
+    hwc_input(w, h, |i| {
+        [
+            c[0][i],
+            c[1][i],
+            c[2][i],
+            d[i] / DEPTH_NORM,
+            f32::from(u8::from(errors.hole[i])),
+            errors.edge_px[i] / PARALLAX_NORM,
+            errors.spread[i],
+            ox,
+            oy,
+        ]
+    })
+}
+
+/// The tiles C5R runs on: those holding a pixel the warp's error map marks, whose pixels take
+/// the correction.
+pub fn view_tiles(errors: &WarpErrors) -> Result<TileMap, NetError> {
+    if errors.marked.len() != errors.width * errors.height {
+        return Err(input(format!(
+            "{} marks for a {}x{} error map",
+            errors.marked.len(),
+            errors.width,
+            errors.height
+        )));
+    }
+    Ok(TileMap::from_pixels(
+        errors.width,
+        errors.height,
+        errors.marked.clone(),
+    ))
+}
+
+/// A `grid` x `grid` light field over a `span` metres square (the positions of
+/// [`dioptra_render::views::synthesize_light_field`]), each view synthesised from `inputs`
+/// with its error map and then passed to `refine` (a C5R net's `refine_view`); `progress` is
+/// called with the views done.
+pub fn refine_light_field(
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    refine: &dyn Fn(&Rgbd, &WarpErrors) -> Result<RgbImage, NetError>,
+    progress: &dyn Fn(usize),
+) -> Result<Vec<LfView>, NetError> {
+    light_field_positions(grid, span)?
+        .into_iter()
+        .enumerate()
+        .map(|(k, position)| {
+            let (view, errors) = synthesize_view_with_errors(inputs, position, eye)?;
+            let image = refine(&view, &errors)?;
+            progress(k + 1);
+            Ok(LfView { position, image })
+        })
+        .collect()
 }
 
 /// `clamp(base + correction, 0, 1)` per value, `correction` channels `3k..3k+3` of `y`.
@@ -231,7 +311,7 @@ pub fn classical_composite(
 }
 
 /// The refined image: the classical render with the net's correction on the pixels `tiles`
-/// corrects (the net's output `y`, channels 0..3).
+/// corrects (the net's output `y`, channels 0..3); C5R's refined view too.
 pub fn compose_defocus(
     classical: &RgbImage,
     y: &Act,
@@ -301,6 +381,19 @@ impl CpuNet {
             tiles,
             classical: base,
         })
+    }
+
+    /// C5R: the classical view `view` (its colour and warped depth, from
+    /// [`synthesize_view_with_errors`]) refined on the tiles its error map marks; every other
+    /// pixel keeps the classical value.
+    pub fn refine_view(&self, view: &Rgbd, errors: &WarpErrors) -> Result<RgbImage, NetError> {
+        self.arch().expect_task("c5r")?;
+        let tiles = view_tiles(errors)?;
+        if !tiles.on.contains(&true) {
+            return Ok(view.color.clone());
+        }
+        let y = self.forward_tiles(&refine_view_input(view, errors)?, &tiles)?;
+        compose_defocus(&view.color, &y, &tiles)
     }
 
     /// C4R: `classical` (the layers of the net's classical decomposition for its planes,
@@ -696,6 +789,64 @@ mod tests {
         let other = linear_blend(&s, &[Diopters(0.5), Diopters(1.5)]).unwrap();
         let err = c4r.refine_decompose(&s, &other).unwrap_err().to_string();
         assert!(err.contains("0.5") && err.contains("0.2"), "{err}");
+    }
+
+    /// A test scene's nine inputs (corners, edge middles, centre) of a 9 x 9 light field over
+    /// 1 cm at `w` px, and its eye.
+    fn lf_inputs(w: usize) -> (Vec<RgbdView>, EyeModel) {
+        use dioptra_sim::scene::{render_light_field, Camera, Scene, Split};
+        let eye = EyeModel::default();
+        let truth = render_light_field(
+            &Scene::generate(Split::Test.seed(4)),
+            &Camera::square(eye, w),
+            9,
+            0.01,
+            1,
+        )
+        .unwrap();
+        let inputs = [0, 4, 8, 36, 40, 44, 72, 76, 80]
+            .map(|k| RgbdView {
+                position: truth[k].position,
+                rgbd: Rgbd::new(truth[k].color.clone(), truth[k].depth.clone()).unwrap(),
+            })
+            .to_vec();
+        (inputs, eye)
+    }
+
+    #[test]
+    fn an_untrained_c5r_returns_the_classical_light_field_exactly() {
+        let (inputs, eye) = lf_inputs(48);
+        let classical =
+            dioptra_render::views::synthesize_light_field(&inputs, 9, 0.01, &eye, |_| {}).unwrap();
+        let c5r = CpuNet::new(Weights::random(&Arch::preset("c5r").unwrap(), 3).unwrap()).unwrap();
+        let refine = |v: &Rgbd, e: &WarpErrors| c5r.refine_view(v, e);
+        let done = std::cell::Cell::new(0);
+        let out = refine_light_field(&inputs, 9, 0.01, &eye, &refine, &|k| done.set(k)).unwrap();
+        assert_eq!(out, classical);
+        assert_eq!(done.get(), 81);
+        // The net did run: some novel view has marked tiles.
+        let (v, e) = synthesize_view_with_errors(&inputs, [0.0025, 0.00125], &eye).unwrap();
+        let tiles = view_tiles(&e).unwrap();
+        assert!(tiles.fraction() > 0.0, "nothing marked");
+        // A net with random weights throughout corrects exactly the marked pixels.
+        let net = trained_like(&Arch::preset("c5r").unwrap(), 4);
+        let r = net.refine_view(&v, &e).unwrap();
+        let mut changed = 0;
+        for (i, &m) in e.marked.iter().enumerate() {
+            for c in 0..3 {
+                let (a, b) = (r.channels[c].data()[i], v.color.channels[c].data()[i]);
+                assert!(m || a == b, "unmarked pixel {i} changed");
+                changed += usize::from(a != b);
+            }
+        }
+        assert!(changed > 0, "the random net corrects nothing");
+        // Other nets, and an error map of another size, are refused.
+        let c1r = CpuNet::new(Weights::random(&Arch::preset("c1r").unwrap(), 5).unwrap()).unwrap();
+        assert!(c1r.refine_view(&v, &e).is_err());
+        let (_, small) =
+            synthesize_view_with_errors(&lf_inputs(32).0, [0.0025, 0.00125], &eye).unwrap();
+        let err = net.refine_view(&v, &small).unwrap_err().to_string();
+        assert!(err.contains("32x32") && err.contains("48x48"), "{err}");
     }
 
     #[test]

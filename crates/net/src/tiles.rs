@@ -43,6 +43,22 @@ impl TileMap {
         }
     }
 
+    /// The tiles holding a pixel of `pixels` (row-major, `width * height`), which are the
+    /// pixels corrected and reached.
+    pub fn from_pixels(width: usize, height: usize, pixels: Vec<bool>) -> TileMap {
+        let mut map = TileMap::none(width, height);
+        for (y, row) in pixels.chunks(width.max(1)).enumerate() {
+            for (tx, tile) in row.chunks(TILE).enumerate() {
+                if tile.contains(&true) {
+                    map.on[(y / TILE) * map.cols + tx] = true;
+                }
+            }
+        }
+        map.reached.clone_from(&pixels);
+        map.pixels = pixels;
+        map
+    }
+
     pub fn all(width: usize, height: usize) -> TileMap {
         let mut t = TileMap::none(width, height);
         t.on.fill(true);

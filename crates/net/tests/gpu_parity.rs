@@ -364,3 +364,47 @@ fn refinement_nets_match_cpu() {
         .flat_map(|l| l.channels.iter().flat_map(|p| p.data()))
         .all(|v| (0.0..=1.0).contains(v)));
 }
+
+#[test]
+fn c5r_matches_cpu() {
+    if !gpu_ok() {
+        return;
+    }
+    use dioptra_render::views::{synthesize_view_with_errors, RgbdView};
+    // Two inputs 1 cm apart of a box before a wall; the view between them has holes and
+    // depth edges for the map to mark.
+    let (w, h) = (44, 30);
+    let mut near = rgbd(w, h, 9);
+    let d: Vec<f32> = (0..w * h)
+        .map(|i| {
+            if (14..26).contains(&(i % w)) {
+                3.0
+            } else {
+                0.3
+            }
+        })
+        .collect();
+    near.depth = DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap();
+    let inputs = [-0.005, 0.005].map(|x| RgbdView {
+        position: [x, 0.0],
+        rgbd: near.clone(),
+    });
+    let eye = EyeModel::default();
+    let (view, errors) = synthesize_view_with_errors(&inputs, [0.001, 0.0], &eye).unwrap();
+    let c5r = weights_all_random(&Arch::preset("c5r").unwrap(), 6);
+    let (cpu, gpu) = (
+        CpuNet::new(c5r.clone()).unwrap(),
+        GpuNet::new(c5r, None).unwrap(),
+    );
+    let (a, b) = (
+        cpu.refine_view(&view, &errors).unwrap(),
+        gpu.refine_view(&view, &errors).unwrap(),
+    );
+    assert_ne!(a, view.color, "the random net corrects");
+    let err = (0..3)
+        .flat_map(|c| a.channels[c].data().iter().zip(b.channels[c].data()))
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    eprintln!("c5r: max |gpu - cpu| = {err:e}");
+    assert!(err < 1e-3, "c5r: {err}");
+}

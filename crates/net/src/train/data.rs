@@ -242,12 +242,14 @@ pub fn load_or_render(
     Ok(s)
 }
 
-/// The grid views of scene `seed` (a training seed) for a `grid` x `grid` grid over the
-/// pupil, rendered or read from `cache`, as a [`SceneData`] whose `rgbd` is the centre view.
+/// The grid views of scene `seed` (a training seed) for a `grid` x `grid` grid over a `span`
+/// metres square (C5, FV: the pupil), rendered or read from `cache`, as a [`SceneData`] whose
+/// `rgbd` is the centre view.
 pub fn load_or_render_views(
     cache: &Path,
     seed: u64,
     grid: usize,
+    span: f32,
     spec: &DataSpec,
 ) -> Result<SceneData, NetError> {
     if Split::of(seed) == Split::Test {
@@ -255,7 +257,7 @@ pub fn load_or_render_views(
             "seed {seed} is a test seed: training uses only training seeds"
         )));
     }
-    let positions = grid_positions(grid, spec.pupil_mm * 1e-3);
+    let positions = grid_positions(grid, span);
     let key = fnv(positions
         .iter()
         .flatten()
@@ -408,7 +410,7 @@ pub fn sample_batch(
         Task::C5 { .. } | Task::Fv { .. } => {
             return sample_light_field_batch(task, scenes, rng, n, patch, align)
         }
-        Task::C1r { .. } | Task::C4r { .. } => {
+        Task::C1r { .. } | Task::C4r { .. } | Task::C5r { .. } => {
             return Err(NetError::Data(format!(
                 "{} batches come from train::refine_data",
                 task.name()

@@ -36,7 +36,8 @@ impl LossKind {
             | crate::Task::C5 { .. }
             | crate::Task::Fv { .. }
             | crate::Task::C1r { .. }
-            | crate::Task::C4r { .. } => LossKind::LogL2,
+            | crate::Task::C4r { .. }
+            | crate::Task::C5r { .. } => LossKind::LogL2,
         }
     }
 }

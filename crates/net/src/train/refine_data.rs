@@ -14,14 +14,18 @@
 
 use super::data::{fnv, Batch, SceneData};
 use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM};
+use crate::cpu::Act;
 use crate::error::NetError;
+use crate::fv::grid_positions;
 use crate::refine::{
-    c4r_input, classical_defocus, classical_layers, error_tiles_with, TileMap, TILE,
+    c4r_input, classical_defocus, classical_layers, error_tiles_with, refine_view_input,
+    view_tiles, TileMap, TILE,
 };
 use crate::weights::SplitMix;
 use dioptra_core::image::linear_to_srgb;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
 use dioptra_render::multifocal::{linear_blend, optimized_blend};
+use dioptra_render::views::{synthesize_view_with_errors, RgbdView};
 use dioptra_render::{Cpu, OptimizeParams, SpectralParams};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::path::Path;
@@ -49,6 +53,35 @@ pub struct TileSampler {
 }
 
 impl TileSampler {
+    /// Tiles `entries` (sample, slot, tile) with the classical result's squared error
+    /// `errors` there: drawn uniformly, and `error_weighted` of the draws in proportion to
+    /// the error.
+    fn new(
+        entries: Vec<(usize, usize, usize)>,
+        errors: &[f64],
+        error_weighted: f64,
+    ) -> Result<TileSampler, NetError> {
+        if entries.is_empty() {
+            return Err(NetError::Data(
+                "no training sample has a tile the error map marks: nothing to refine".into(),
+            ));
+        }
+        let (n, sum) = (entries.len() as f64, errors.iter().sum::<f64>().max(1e-12));
+        let k = error_weighted.clamp(0.0, 1.0);
+        let mut acc = 0.0;
+        let cumulative = errors
+            .iter()
+            .map(|e| {
+                acc += (1.0 - k) / n + k * e / sum;
+                acc
+            })
+            .collect();
+        Ok(TileSampler {
+            entries,
+            cumulative,
+        })
+    }
+
     pub fn len(&self) -> usize {
         self.entries.len()
     }
@@ -117,25 +150,84 @@ pub fn prepare_c1r(
             "no training scene has a depth discontinuity inside the blur: nothing to refine".into(),
         ));
     }
-    // Uniform over the tiles that run, and `error_weighted` of it by the classical render's
-    // error there.
-    let (n, sum) = (entries.len() as f64, errors.iter().sum::<f64>().max(1e-12));
-    let k = error_weighted.clamp(0.0, 1.0);
-    let mut acc = 0.0;
-    let cumulative = errors
-        .iter()
-        .map(|e| {
-            acc += (1.0 - k) / n + k * e / sum;
-            acc
-        })
-        .collect();
-    Ok((
-        out,
-        TileSampler {
-            entries,
-            cumulative,
-        },
-    ))
+    Ok((out, TileSampler::new(entries, &errors, error_weighted)?))
+}
+
+/// C5R: one novel view of a training light field with what the net sees of it.
+pub struct C5rView {
+    /// The net's input ([`refine_view_input`]: the classical view, its warped depth, the
+    /// warp's error map, the offset from the nearest input), HWC.
+    pub input: Act,
+    /// The view rendered (the target).
+    pub target: RgbImage,
+    /// The tiles the error map marks.
+    pub tiles: TileMap,
+}
+
+/// C5R: `novel_views` novel views of each scene's light field (its `views`, a grid over
+/// `span` metres; drawn from `seed`, the same on every run), each synthesised from the
+/// task's input views with its error map, and the tile sampler over them.
+pub fn prepare_c5r(
+    scenes: Vec<(SceneData, EyeModel)>,
+    task: &Task,
+    span: f32,
+    novel_views: usize,
+    error_weighted: f64,
+    seed: u64,
+    on: &mut dyn FnMut(usize, usize),
+) -> Result<(Vec<C5rView>, TileSampler), NetError> {
+    let Task::C5r { grid, .. } = task else {
+        return Err(NetError::Input(format!("{} is not c5r", task.name())));
+    };
+    let picks = task.input_views();
+    let positions = grid_positions(*grid, span);
+    let total = scenes.len();
+    let mut out = Vec::new();
+    let (mut entries, mut errors) = (Vec::new(), Vec::new());
+    for (si, (data, eye)) in scenes.into_iter().enumerate() {
+        if data.views.len() != positions.len() {
+            return Err(NetError::Data(format!(
+                "scene {} has {} views for a {grid}x{grid} grid",
+                data.seed,
+                data.views.len()
+            )));
+        }
+        let inputs: Vec<RgbdView> = picks
+            .iter()
+            .map(|&k| RgbdView {
+                position: positions[k],
+                rgbd: data.views[k].clone(),
+            })
+            .collect();
+        // A partial Fisher-Yates shuffle of the novel views, from the scene's seed.
+        let mut novel: Vec<usize> = (0..positions.len())
+            .filter(|k| !picks.contains(k))
+            .collect();
+        let mut rng = SplitMix(seed ^ data.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15));
+        let m = novel_views.min(novel.len());
+        for i in 0..m {
+            let r = i + (rng.next_u64() % (novel.len() - i) as u64) as usize;
+            novel.swap(i, r);
+        }
+        for &k in &novel[..m] {
+            let (view, map) = synthesize_view_with_errors(&inputs, positions[k], &eye)?;
+            let tiles = view_tiles(&map)?;
+            let target = data.views[k].color.clone();
+            for (t, _) in tiles.on.iter().enumerate().filter(|(_, &on)| on) {
+                let (tx, ty) = ((t % tiles.cols) * TILE, (t / tiles.cols) * TILE);
+                let (x1, y1) = ((tx + TILE).min(tiles.width), (ty + TILE).min(tiles.height));
+                entries.push((out.len(), 0, t));
+                errors.push(sq_err_srgb(&view.color, &target, tx, ty, x1, y1));
+            }
+            out.push(C5rView {
+                input: refine_view_input(&view, &map)?,
+                target,
+                tiles,
+            });
+        }
+        on(si + 1, total);
+    }
+    Ok((out, TileSampler::new(entries, &errors, error_weighted)?))
 }
 
 fn images_to_bytes(images: &[RgbImage]) -> Vec<u8> {
@@ -306,12 +398,7 @@ pub fn sample_c1r_batch(
     align: usize,
     halo: usize,
 ) -> Result<Batch, NetError> {
-    if patch < 2 * halo + TILE {
-        return Err(NetError::Input(format!(
-            "patch {patch} leaves no room for a {TILE} px tile inside the net's {halo} px halo: use at least {}",
-            2 * halo + TILE
-        )));
-    }
+    check_tile_patch(patch, halo)?;
     let mut input = Vec::with_capacity(n * 8 * patch * patch);
     let mut target = Vec::with_capacity(n * 3 * patch * patch);
     let mut mask = Vec::with_capacity(n * patch * patch);
@@ -325,15 +412,7 @@ pub fn sample_c1r_batch(
             )));
         }
         let map = &s.tiles[k];
-        let (tx, ty) = ((t % map.cols) * TILE, (t / map.cols) * TILE);
-        // The tile anywhere inside the patch's interior, the origin on the rate's grid.
-        let slack = patch - 2 * halo - TILE;
-        let mut origin = |c: usize, size: usize| {
-            let j = (rng.next_u64() % (slack as u64 + 1)) as usize;
-            let o = (c + TILE + halo + j).saturating_sub(patch);
-            (o.min(size - patch) / align) * align
-        };
-        let (x0, y0) = (origin(tx, w), origin(ty, h));
+        let (x0, y0) = tile_patch_origin(map, t, rng, patch, align, halo);
         let q = Diopters(s.data.foci[k]);
         let rgbd = &s.data.rgbd;
         for c in &rgbd.color.channels {
@@ -351,27 +430,126 @@ pub fn sample_c1r_batch(
         for c in &s.data.stack[k].channels {
             crop(c, x0, y0, patch, &mut target, |v| v);
         }
-        let lo = |o: usize| if o == 0 { 0 } else { halo };
-        let hi = |o: usize, size: usize| {
-            if o + patch == size {
-                patch
-            } else {
-                patch - halo
-            }
-        };
-        let (xa, xb, ya, yb) = (lo(x0), hi(x0, w), lo(y0), hi(y0, h));
-        for py in 0..patch {
-            for px in 0..patch {
-                let inside = (xa..xb).contains(&px) && (ya..yb).contains(&py);
-                mask.push(f32::from(u8::from(
-                    inside && map.corrects(x0 + px, y0 + py),
-                )));
-            }
-        }
+        push_tile_mask(map, x0, y0, patch, halo, &mut mask);
     }
     Ok(Batch {
         input,
         in_channels: 8,
+        target,
+        target_channels: 3,
+        n,
+        patch,
+        mask: Some(mask),
+        distill: None,
+        foci: None,
+    })
+}
+
+/// Refuses a patch with no room for a tile inside the net's `halo`.
+fn check_tile_patch(patch: usize, halo: usize) -> Result<(), NetError> {
+    if patch < 2 * halo + TILE {
+        return Err(NetError::Input(format!(
+            "patch {patch} leaves no room for a {TILE} px tile inside the net's {halo} px halo: use at least {}",
+            2 * halo + TILE
+        )));
+    }
+    Ok(())
+}
+
+/// The origin of a `patch` window holding tile `t` of `map` anywhere inside its interior
+/// (`halo` px from its edges), drawn from `rng` (x, then y), on the `align` grid. The caller
+/// checks that the patch fits the image and `patch >= 2 halo + TILE`.
+fn tile_patch_origin(
+    map: &TileMap,
+    t: usize,
+    rng: &mut SplitMix,
+    patch: usize,
+    align: usize,
+    halo: usize,
+) -> (usize, usize) {
+    let (tx, ty) = ((t % map.cols) * TILE, (t / map.cols) * TILE);
+    let slack = patch - 2 * halo - TILE;
+    let mut origin = |c: usize, size: usize| {
+        let j = (rng.next_u64() % (slack as u64 + 1)) as usize;
+        let o = (c + TILE + halo + j).saturating_sub(patch);
+        (o.min(size - patch) / align) * align
+    };
+    let x0 = origin(tx, map.width);
+    (x0, origin(ty, map.height))
+}
+
+/// Appends the loss mask of the `patch` window at `(x0, y0)`: the pixels `map` corrects, away
+/// from the patch edges the zero padding reaches (`halo` px) except where the patch edge is
+/// the image's.
+fn push_tile_mask(
+    map: &TileMap,
+    x0: usize,
+    y0: usize,
+    patch: usize,
+    halo: usize,
+    mask: &mut Vec<f32>,
+) {
+    let lo = |o: usize| if o == 0 { 0 } else { halo };
+    let hi = |o: usize, size: usize| {
+        if o + patch == size {
+            patch
+        } else {
+            patch - halo
+        }
+    };
+    let (xa, xb, ya, yb) = (lo(x0), hi(x0, map.width), lo(y0), hi(y0, map.height));
+    for py in 0..patch {
+        for px in 0..patch {
+            let inside = (xa..xb).contains(&px) && (ya..yb).contains(&py);
+            mask.push(f32::from(u8::from(
+                inside && map.corrects(x0 + px, y0 + py),
+            )));
+        }
+    }
+}
+
+/// A batch of C5R patches centred (with jitter) on sampled tiles, as C1R's: inputs (9
+/// channels), the rendered views (3) and the loss mask (the pixels the error map marks,
+/// inside the halo).
+pub fn sample_c5r_batch(
+    views: &[C5rView],
+    sampler: &TileSampler,
+    rng: &mut SplitMix,
+    n: usize,
+    patch: usize,
+    align: usize,
+    halo: usize,
+) -> Result<Batch, NetError> {
+    check_tile_patch(patch, halo)?;
+    let cin = 9;
+    let mut input = Vec::with_capacity(n * cin * patch * patch);
+    let mut target = Vec::with_capacity(n * 3 * patch * patch);
+    let mut mask = Vec::with_capacity(n * patch * patch);
+    for _ in 0..n {
+        let (vi, _, t) = sampler.pick(rng);
+        let v = &views[vi];
+        let (w, h) = (v.input.w, v.input.h);
+        if w < patch || h < patch || v.input.c != cin {
+            return Err(NetError::Data(format!(
+                "patch {patch} of a {w}x{h}x{} input",
+                v.input.c
+            )));
+        }
+        let (x0, y0) = tile_patch_origin(&v.tiles, t, rng, patch, align, halo);
+        for c in 0..cin {
+            for y in y0..y0 + patch {
+                let row = &v.input.data[(y * w + x0) * cin..(y * w + x0 + patch) * cin];
+                input.extend(row.iter().skip(c).step_by(cin));
+            }
+        }
+        for c in &v.target.channels {
+            crop(c, x0, y0, patch, &mut target, |v| v);
+        }
+        push_tile_mask(&v.tiles, x0, y0, patch, halo, &mut mask);
+    }
+    Ok(Batch {
+        input,
+        in_channels: cin,
         target,
         target_channels: 3,
         n,

@@ -5,8 +5,8 @@ use super::data::{
 };
 use super::model::{Adam, CandleNet};
 use super::refine_data::{
-    prepare_c1r, prepare_c4r, sample_c1r_batch, sample_c4r_batch, RefineScene, TileSampler,
-    DISTILL_ITERATIONS,
+    prepare_c1r, prepare_c4r, prepare_c5r, sample_c1r_batch, sample_c4r_batch, sample_c5r_batch,
+    C5rView, RefineScene, TileSampler, DISTILL_ITERATIONS,
 };
 use super::retina::Retina;
 use super::{log_mse, loss, srgb, LossKind};
@@ -69,7 +69,13 @@ pub struct TrainConfig {
     /// Scenes of the wide family ([`dioptra_sim::scene::Scene::generate_wide`], seeds
     /// `first_seed ..`) after the occluder scenes.
     pub wide_scenes: u64,
+    /// C5R: novel views per training light field (drawn from `seed`).
+    pub novel_views: usize,
 }
+
+/// C5R's training light fields span this square (metres): DeepFocus's 9 x 9 over 1 cm, the
+/// default of `dioptra lightfield --span`.
+pub const C5R_SPAN_M: f32 = 0.01;
 
 impl TrainConfig {
     pub fn new(arch: Arch, out: PathBuf) -> TrainConfig {
@@ -95,6 +101,7 @@ impl TrainConfig {
             no_worse: 0.0,
             occluder_scenes: 0,
             wide_scenes: 0,
+            novel_views: 16,
         }
     }
 
@@ -257,7 +264,10 @@ pub fn load_scenes(
             let spec = cfg.spec_of(i);
             let s = match &cfg.arch.task {
                 Task::C5 { grid, .. } | Task::Fv { grid, .. } => {
-                    load_or_render_views(&cfg.cache, seed, *grid, &spec)
+                    load_or_render_views(&cfg.cache, seed, *grid, spec.pupil_mm * 1e-3, &spec)
+                }
+                Task::C5r { grid, .. } => {
+                    load_or_render_views(&cfg.cache, seed, *grid, C5R_SPAN_M, &spec)
                 }
                 task => {
                     let mut foci = scene_foci(task, seed, cfg.foci_per_scene);
@@ -288,6 +298,7 @@ enum Data {
     /// The scenes grouped by field of view ([`TrainConfig::distinct_fovs`]'s order), each
     /// group trained through its own retinal model.
     C4r(Vec<Vec<RefineScene>>),
+    C5r(Vec<C5rView>, TileSampler),
 }
 
 /// One step's loss on a batch (the forward pass and, for C4 and C4R, the retinal model).
@@ -309,8 +320,15 @@ fn batch_loss(
     let t = Tensor::from_vec(b.target.clone(), shape(b.target_channels), dev)?;
     let y = net.forward(&x)?;
     Ok(match &net.arch.task {
-        Task::C1r { .. } => {
-            let pred = (x.narrow(1, 5, 3)? + &y)?.clamp(0f32, 1f32)?;
+        // Refined pixels against the target on the map's pixels; the classical result is
+        // input channels 5..8 of C1R's, 0..3 of C5R's.
+        task @ (Task::C1r { .. } | Task::C5r { .. }) => {
+            let at = if matches!(task, Task::C1r { .. }) {
+                5
+            } else {
+                0
+            };
+            let pred = (x.narrow(1, at, 3)? + &y)?.clamp(0f32, 1f32)?;
             let mask = match &b.mask {
                 Some(m) => Some(Tensor::from_vec(m.clone(), shape(1), dev)?),
                 None => None,
@@ -318,7 +336,7 @@ fn batch_loss(
             let (pred, t) = (srgb(&pred)?, srgb(&t)?);
             let l = log_mse(&pred, &t, mask.as_ref())?;
             if no_worse > 0.0 {
-                let base = srgb(&x.narrow(1, 5, 3)?.clamp(0f32, 1f32)?)?;
+                let base = srgb(&x.narrow(1, at, 3)?.clamp(0f32, 1f32)?)?;
                 (l + (no_worse_penalty(&pred, &base, &t, mask.as_ref())? * no_worse)?)?
             } else {
                 l
@@ -406,7 +424,7 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         )));
     }
     let halo = cfg.arch.layers * cfg.arch.rate;
-    if matches!(cfg.arch.task, Task::C1r { .. }) && cfg.patch < 2 * halo + TILE {
+    if matches!(cfg.arch.task, Task::C1r { .. } | Task::C5r { .. }) && cfg.patch < 2 * halo + TILE {
         return Err(NetError::Input(format!(
             "patch {} leaves no room for a {TILE} px tile inside the net's {halo} px halo ({} layers x rate {}): use at least {}",
             cfg.patch,
@@ -492,6 +510,18 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             }
             Data::C4r(groups)
         }
+        Task::C5r { .. } => {
+            let (v, sampler) = prepare_c5r(
+                with_eyes(scenes)?,
+                &cfg.arch.task,
+                C5R_SPAN_M,
+                cfg.novel_views,
+                cfg.error_weighted,
+                cfg.seed,
+                &mut prep,
+            )?;
+            Data::C5r(v, sampler)
+        }
         _ => Data::Plain(scenes),
     };
     for r in &retinas {
@@ -568,6 +598,9 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             Data::C4r(groups) => {
                 sample_c4r_batch(&groups[group], &mut rng, cfg.batch, cfg.patch, align)?
             }
+            Data::C5r(views, sampler) => {
+                sample_c5r_batch(views, sampler, &mut rng, cfg.batch, cfg.patch, align, halo)?
+            }
         };
         let t1 = Instant::now();
         let distilling = step < cfg.distill_steps;
@@ -630,6 +663,10 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         );
     }
     let data = match &cfg.arch.task {
+        Task::C5r { grid, views } => format!(
+            "{}px pinhole light fields on a {grid}x{grid} grid over {C5R_SPAN_M} m, {}x{} supersampled, fovs {:?} deg; {} novel views per scene synthesised from {views} inputs",
+            cfg.data.size, cfg.data.supersample, cfg.data.supersample, cfg.distinct_fovs(), cfg.novel_views.min(grid * grid - views)
+        ),
         Task::C5 { grid, .. } | Task::Fv { grid, .. } => format!(
             "{}px pinhole views on a {grid}x{grid} grid over the {} mm pupil, {}x{} supersampled, fov {} deg{}",
             cfg.data.size, cfg.data.pupil_mm, cfg.data.supersample, cfg.data.supersample, cfg.data.fov_deg,
@@ -665,21 +702,31 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
             ),
         );
     }
+    // C1R and C5R: the loss on the map's pixels, the tiles they sample.
+    let tile_loss = format!(
+        "loss: sRGB MSE (log10) of clamp(classical + net) on the pixels {}{}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
+        match &cfg.arch.task {
+            Task::C1r { .. } => format!("the error map corrects (own-blur threshold {} px)", cfg.own_blur_px),
+            _ => "the warp's error map marks".to_string(),
+        },
+        if cfg.no_worse > 0.0 {
+            format!(", plus {} x the error added in the 16 x 16 tiles made worse, over the classical error", cfg.no_worse)
+        } else {
+            String::new()
+        },
+        100.0 * cfg.error_weighted
+    );
     match &cfg.arch.task {
         Task::C1r { classical } => {
             p.insert(
                 "refines".into(),
-                format!(
-                    "{} at the target focus; loss: sRGB MSE (log10) of clamp(classical + net) on the pixels the error map corrects (own-blur threshold {} px){}, patches centred on its tiles ({:.0} % drawn by the classical error there, the rest uniformly)",
-                    classical.label(),
-                    cfg.own_blur_px,
-                    if cfg.no_worse > 0.0 {
-                        format!(", plus {} x the error added in the 16 x 16 tiles made worse, over the classical error", cfg.no_worse)
-                    } else {
-                        String::new()
-                    },
-                    100.0 * cfg.error_weighted
-                ),
+                format!("{} at the target focus; {tile_loss}", classical.label()),
+            );
+        }
+        Task::C5r { .. } => {
+            p.insert(
+                "refines".into(),
+                format!("dioptra_render::views' forward-warp synthesis; {tile_loss}"),
             );
         }
         Task::C4r { classical, .. } => {
