@@ -114,7 +114,7 @@ impl From<Method> for String {
 
 /// The methods the daemon renders.
 pub const RENDERED: &str = "gather, lightfield-defocus, network or refine (varifocal), linear, \
-     optimized, spectral, network or refine (multifocal), views (light field)";
+     optimized, spectral, network or refine (multifocal), views or refine (light field)";
 
 /// Every method's name, for messages.
 pub fn methods() -> String {

@@ -102,7 +102,7 @@ impl RenderMethod {
         match mode {
             Mode::Varifocal => matches!(self, Gather | LightFieldDefocus | Network | Refine),
             Mode::Multifocal => matches!(self, Linear | Optimized | Spectral | Network | Refine),
-            Mode::LightField => matches!(self, Views | Network),
+            Mode::LightField => matches!(self, Views | Network | Refine),
         }
     }
 

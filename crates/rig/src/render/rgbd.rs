@@ -60,8 +60,9 @@ pub struct RgbdRenderer {
     nets: CpuNets,
 }
 
-/// A light-field panel: its content frame's number, its eye, the panel.
-type CachedPanel = (u64, Option<Side>, Arc<RgbImage>);
+/// A light-field panel: its content frame's number, its eye, the method that made it (views
+/// or refine), the panel.
+type CachedPanel = (u64, Option<Side>, RenderMethod, Arc<RgbImage>);
 
 /// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
@@ -222,6 +223,41 @@ impl RgbdRenderer {
         Ok(r.image)
     }
 
+    /// C5R (light field): each panel view synthesised from `inputs` on the CPU with the warp's
+    /// error map, refined on the tiles it marks by the net on the GPU when the rig renders
+    /// there, else on the CPU.
+    fn refine_light_field(
+        &self,
+        inputs: &[RgbdView],
+    ) -> Result<Vec<dioptra_render::retina::LfView>, RenderError> {
+        let key = (Mode::Lightfield, RenderMethod::Refine);
+        let cpu = self.net(key)?;
+        let gpu = lock(&self.compute).gpu_net(key);
+        let tiles = std::sync::Mutex::new((0usize, 0usize));
+        let views = dioptra_net::refine::refine_light_field(
+            inputs,
+            LF_GRID,
+            LF_SPAN_M,
+            &self.eye,
+            &|view, errors| {
+                let t = dioptra_net::refine::view_tiles(errors)?;
+                let mut n = lock(&tiles);
+                n.0 += t.on.iter().filter(|&&o| o).count();
+                n.1 += t.on.len();
+                drop(n);
+                match &gpu {
+                    Some(g) => g.refine_view(view, errors),
+                    None => cpu.refine_view(view, errors),
+                }
+            },
+            &|_| {},
+        )
+        .map_err(net_error)?;
+        let (on, all) = *lock(&tiles);
+        lock(&self.compute).refine_tiles = Some(on as f64 / all.max(1) as f64);
+        Ok(views)
+    }
+
     /// C4R (multifocal): the classical decomposition its weights name (linear blending or
     /// spectral) on the rig's backend, refined by the net on the GPU when the rig renders
     /// there, else on the CPU.
@@ -307,7 +343,7 @@ impl RgbdRenderer {
         let n = content.number;
         if self.newest.fetch_max(n, Ordering::AcqRel) < n {
             lock(&self.layers).retain(|l| l.frame >= n);
-            lock(&self.panel).retain(|(k, _, _)| *k >= n);
+            lock(&self.panel).retain(|(k, _, _, _)| *k >= n);
         }
     }
 
@@ -371,7 +407,9 @@ impl RgbdRenderer {
     ) -> Result<Vec<FrameImage>, RenderError> {
         let input = content.rgbd.as_ref();
         match (mode, method.0) {
-            (_, RenderMethod::Views) => Ok(vec![self.panel(content)?.as_ref().clone().into()]),
+            (_, RenderMethod::Views) | (Mode::Lightfield, RenderMethod::Refine) => {
+                Ok(vec![self.panel(content, method.0)?.as_ref().clone().into()])
+            }
             (Mode::Multifocal, _) => Ok(self.layers(content, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
@@ -408,10 +446,16 @@ impl RgbdRenderer {
 
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
-    fn panel(&self, content: &ContentFrame) -> Result<Arc<RgbImage>, RenderError> {
-        if let Some((_, _, p)) = lock(&self.panel)
+    /// With `Refine`, file and stream content's views are the classical ones refined by C5R
+    /// (the procedural scene's own views need no synthesis).
+    fn panel(
+        &self,
+        content: &ContentFrame,
+        method: RenderMethod,
+    ) -> Result<Arc<RgbImage>, RenderError> {
+        if let Some((_, _, _, p)) = lock(&self.panel)
             .iter()
-            .find(|(n, e, _)| *n == content.number && *e == content.eye)
+            .find(|(n, e, m, _)| *n == content.number && *e == content.eye && *m == method)
         {
             return Ok(p.clone());
         }
@@ -446,15 +490,19 @@ impl RgbdRenderer {
                         rgbd: content.rgbd.as_ref().clone(),
                     }],
                 };
-                let views = self.on_backend("views", |gpu| {
-                    backend_of(gpu).synthesize_light_field(
-                        &input,
-                        LF_GRID,
-                        LF_SPAN_M,
-                        &self.eye,
-                        &|_| {},
-                    )
-                })?;
+                let views = if method == RenderMethod::Refine {
+                    self.refine_light_field(&input)?
+                } else {
+                    self.on_backend("views", |gpu| {
+                        backend_of(gpu).synthesize_light_field(
+                            &input,
+                            LF_GRID,
+                            LF_SPAN_M,
+                            &self.eye,
+                            &|_| {},
+                        )
+                    })?
+                };
                 let images = views.into_iter().map(|v| v.image).collect();
                 (images, self.eye.pixel_pitch_tan())
             }
@@ -462,7 +510,7 @@ impl RgbdRenderer {
         let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
-            lock(&self.panel).push((content.number, content.eye, panel.clone()));
+            lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
         }
         Ok(panel)
     }
@@ -617,17 +665,18 @@ fn net_error(e: dioptra_net::NetError) -> RenderError {
 }
 
 /// The nets the daemon loads: which mode and method each serves, and its configuration.
-const NET_CONFIGS: [(Mode, RenderMethod, &str); 4] = [
+const NET_CONFIGS: [(Mode, RenderMethod, &str); 5] = [
     (Mode::Varifocal, RenderMethod::Network, "c1"),
     (Mode::Multifocal, RenderMethod::Network, "c4"),
     (Mode::Varifocal, RenderMethod::Refine, "c1r"),
     (Mode::Multifocal, RenderMethod::Refine, "c4r"),
+    (Mode::Lightfield, RenderMethod::Refine, "c5r"),
 ];
 
 /// A net's mode and method.
 type NetKey = (Mode, RenderMethod);
 
-/// Loads the net of `config` (`c1`, `c4`, `c1r`, `c4r`) from `render.weights`, checking that
+/// Loads the net of `config` (`c1`, `c4`, `c1r`, `c4r`, `c5r`) from `render.weights`, checking that
 /// a multifocal net's planes are the rig's `optics.planes`.
 fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, String> {
     let path = cfg.render.weights_file(config);
@@ -635,6 +684,7 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
         "c1" => "varifocal mode's network (C1)",
         "c4" => "multifocal mode's network (C4)",
         "c1r" => "varifocal mode's refinement net (C1R)",
+        "c5r" => "light-field mode's refinement net (C5R; none ships)",
         _ => "multifocal mode's refinement net (C4R)",
     };
     if !path.exists() {
@@ -1033,5 +1083,62 @@ mod tests {
         let own = [at(Some(Side::Left), -0.001), at(Some(Side::Right), 0.003)];
         assert_eq!(xs(r.eye_inputs(&own, Some(Side::Right))), [[0.003, 0.002]]);
         assert_eq!(xs(r.eye_inputs(&own, Some(Side::Left))), [[-0.001, 0.002]]);
+    }
+
+    /// Light-field mode's `refine` (C5R from `render.weights`): an untrained net (its last
+    /// layer zero) makes the classical panel exactly, a net with a nonzero last layer another
+    /// one; without the weights file the frame fails naming render.weights and how to train.
+    #[test]
+    fn light_field_refine_is_the_classical_panel_corrected_by_c5r() {
+        let dir = tempfile::tempdir().unwrap();
+        let arch = dioptra_net::Arch::preset("c5r").unwrap();
+        let rig = |weights: &std::path::Path| {
+            let text = format!(
+                "{EXAMPLE_SIM_RIG}\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\nweights = {:?}\n",
+                weights.display().to_string()
+            );
+            RgbdRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap()
+        };
+        let r = rig(dir.path());
+        let content = ContentFrame::new(1, Arc::new(scene_rgbd(&r)));
+        let panel = |r: &RgbdRenderer, m: RenderMethod| {
+            r.render_frame(
+                &content,
+                Mode::Lightfield,
+                Method(m),
+                Diopters(1.0),
+                None,
+                false,
+            )
+            .map(|out| out.images[0].to_host().unwrap().into_owned())
+        };
+        let e = panel(&r, RenderMethod::Refine).unwrap_err().to_string();
+        assert!(
+            e.contains("render.weights") && e.contains("dioptra train --config c5r"),
+            "{e}"
+        );
+        let classical = panel(&r, RenderMethod::Views).unwrap();
+        let untrained = dioptra_net::Weights::random(&arch, 1).unwrap();
+        untrained.save(&dir.path().join("c5r.safetensors")).unwrap();
+        let r = rig(dir.path());
+        assert_eq!(panel(&r, RenderMethod::Refine).unwrap(), classical);
+        let mut moved = untrained.clone();
+        let last = moved.convs.last_mut().unwrap();
+        for (k, v) in last.weight.iter_mut().enumerate() {
+            *v = 0.02 * ((k % 7) as f32 - 3.0);
+        }
+        moved.save(&dir.path().join("c5r.safetensors")).unwrap();
+        let r = rig(dir.path());
+        assert_ne!(panel(&r, RenderMethod::Refine).unwrap(), classical);
+        let tiles = r.backend_status()["refine_tiles_run"].as_f64().unwrap();
+        assert!(tiles > 0.0 && tiles <= 1.0, "{tiles}");
+    }
+
+    /// The example rig's procedural scene as one RGB-D frame of the renderer's size.
+    fn scene_rgbd(r: &RgbdRenderer) -> Rgbd {
+        let scene = dioptra_sim::scene::Scene::generate(dioptra_sim::scene::Split::Test.seed(3));
+        let cam = dioptra_sim::scene::Camera::new(r.eye, r.size.0, r.size.1);
+        let (c, d) = dioptra_sim::scene::render_pinhole(&scene, &cam, [0.0, 0.0], 1).unwrap();
+        Rgbd::new(c, d).unwrap()
     }
 }
