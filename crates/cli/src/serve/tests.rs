@@ -1341,10 +1341,17 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
     stop(d).await;
 }
 
-/// Random (untrained) C1 and C4 weights in `dir`, as `render.weights` expects them.
+/// Random weights of every net the daemon loads (C1, C4, C1R, C4R, C5R) in `dir`, as
+/// `render.weights` expects them.
 fn random_weights(dir: &Path) {
     std::fs::create_dir_all(dir).unwrap();
-    for (config, seed) in [("c1", 11), ("c4", 12), ("c1r", 13), ("c4r", 14)] {
+    for (config, seed) in [
+        ("c1", 11),
+        ("c4", 12),
+        ("c1r", 13),
+        ("c4r", 14),
+        ("c5r", 15),
+    ] {
         let arch = dioptra_net::Arch::preset(config).unwrap();
         let mut w = dioptra_net::Weights::random(&arch, seed).unwrap();
         // A refinement net's last layer starts at zero; give it weights, so it corrects.
