@@ -10,7 +10,7 @@ unchanged in place of each novel view (the baseline a light field without synthe
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
       [--inputs 9,5] [--backend cpu|gpu] [--out lf_scores.md]
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
-      --foveate 2 [--inputs 9] [--out fv_scores.md]
+      --foveate 2 [--fill across|within] [--inputs 9] [--out fv_scores.md]
   python3 scripts/independent_validation/score_lf.py --set ivlf --binary target/release/dioptra
       --method refine --weights c5r.safetensors [--inputs 9]
 
@@ -21,7 +21,9 @@ classical (refined minus classical, dB), and says whether any scene's mean or an
 below classical.
 
 With --foveate S, `dioptra lightfield --foveate S` keeps each synthesised view's log-polar
-samples around the image centre and interpolates the rest; the table then gives, per region
+samples around the image centre and fills the rest (--fill across: every view's samples
+reprojected into each view by their depth, then interpolated, the default; within: each view
+from its own samples, the paper's interpolation); the table then gives, per region
 (fovea: the disk of diameter 0.1 image diagonal around the gaze; periphery 1 the ring out to
 0.4; periphery 2 out to 1), the PSNR of the full and of the foveated synthesis against the
 truth (of the mean squared error over the novel views), and the fraction of rays kept.
@@ -99,7 +101,7 @@ def foveated(a, scenes):
         frac = None
         for mode in ("full", "fov"):
             with tempfile.TemporaryDirectory() as out:
-                extra = ["--foveate", str(a.foveate)] if mode == "fov" else []
+                extra = ["--foveate", str(a.foveate), "--foveate-fill", a.fill] if mode == "fov" else []
                 res = synthesise(a, d, meta, k, out, extra)
                 if mode == "fov":
                     frac = float(re.search(r"([0-9.]+) % of the rays kept", res.stdout).group(1))
@@ -124,6 +126,8 @@ def main():
     ap.add_argument("--inputs", default="9,5", help="input view counts, comma-separated")
     ap.add_argument("--backend", default="cpu", help="dioptra's backend: cpu or gpu")
     ap.add_argument("--foveate", type=float, help="log-buffer scale S: score foveated synthesis")
+    ap.add_argument("--fill", default="across", choices=["across", "within"],
+                    help="with --foveate: fill unsampled rays across views or within each view")
     ap.add_argument("--method", default="classical", choices=["classical", "refine"],
                     help="refine: score a C5R net's refinement beside the classical synthesis")
     ap.add_argument("--weights", help="C5R weights for --method refine")

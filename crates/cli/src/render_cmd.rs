@@ -788,14 +788,20 @@ pub struct LightFieldArgs {
     eye: EyeArgs,
     /// Foveate the synthesised light field (Thumuluri & Sharma 2020): keep each view's
     /// log-polar samples around --gaze, with the view's own offsets r' and theta', and
-    /// interpolate the rest. S is the log-buffer scale (2: about 10 % of the rays; 4: about 4
-    /// %). Prints the fraction of rays kept and the foveated views' PSNR per region (fovea,
-    /// periphery 1 and 2) against the full synthesis. Every ray is still synthesised.
+    /// fill the rest (--foveate-fill). S is the log-buffer scale (2: about 10 % of the rays;
+    /// 4: about 4 %). Prints the fraction of rays kept and the foveated views' PSNR per
+    /// region (fovea, periphery 1 and 2) against the full synthesis. Every ray is still
+    /// synthesised.
     #[arg(long, value_name = "S")]
     foveate: Option<f32>,
     /// Gaze (fovea centre) in pixels, x,y, for --foveate; the image centre by default.
     #[arg(long, requires = "foveate")]
     gaze: Option<String>,
+    /// How --foveate fills the rays a view did not sample: across (every view's samples
+    /// reprojected into each view by their depth, then interpolation; the default) or within
+    /// (each view from its own samples only, the paper's interpolation).
+    #[arg(long, requires = "foveate", default_value = "across")]
+    foveate_fill: String,
     /// classical (forward warp of every input, the default) or refine (the classical views
     /// corrected by a C5R net where the warp's error map says they are likely wrong).
     #[arg(long, default_value = "classical")]
@@ -894,6 +900,7 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
     };
     pb.finish();
     let ms = t.elapsed().as_secs_f64() * 1e3;
+    let positions: Vec<[f32; 2]> = lf.iter().map(|v| v.position).collect();
     let mut images: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
     let mut foveated = None;
     if let Some(scale) = a.foveate {
@@ -903,10 +910,35 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
         }
         let (w, h) = (images[0].width(), images[0].height());
         let centre = gaze_point(&a.gaze, w, h)?;
-        let (views, fraction) = dioptra_net::fv::foveate_light_field(&images, centre, scale)?;
+        use dioptra_net::fv::{foveate_light_field, Fill};
+        let tf = std::time::Instant::now();
+        let (views, fraction) = match a.foveate_fill.as_str() {
+            "within" => foveate_light_field(&images, centre, scale, Fill::WithinViews)?,
+            "across" => {
+                // The classical warp's depth of every view (a refined view keeps it), on the CPU.
+                let depths = positions
+                    .iter()
+                    .map(|&p| {
+                        Ok(
+                            dioptra_render::views::synthesize_rgbd_view(&inputs, p, &eye)?
+                                .depth
+                                .into_plane(),
+                        )
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                let fill = Fill::AcrossViews {
+                    depths: &depths,
+                    positions: &positions,
+                    eye: &eye,
+                };
+                foveate_light_field(&images, centre, scale, fill)?
+            }
+            f => bail!("--foveate-fill {f}: expected across or within"),
+        };
+        let fill_ms = tf.elapsed().as_secs_f64() * 1e3;
         let regions = dioptra_net::fv::region_psnr(&views, &images, centre)?;
         images = views;
-        foveated = Some((scale, centre, fraction, regions));
+        foveated = Some((scale, centre, fraction, fill_ms, regions));
     }
     ensure_dir(&a.out)?;
     for (k, v) in images.iter().enumerate() {
@@ -922,12 +954,13 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
         inputs.len(),
         a.out.display()
     );
-    if let Some((scale, centre, fraction, regions)) = foveated {
+    if let Some((scale, centre, fraction, fill_ms, regions)) = foveated {
         println!(
-            "foveated (S = {scale}, gaze {:.0},{:.0}): {:.2} % of the rays kept; PSNR against the full synthesis, over all views:",
+            "foveated (S = {scale}, gaze {:.0},{:.0}): {:.2} % of the rays kept, filled {} in {fill_ms:.0} ms; PSNR against the full synthesis, over all views:",
             centre[0],
             centre[1],
-            100.0 * fraction
+            100.0 * fraction,
+            a.foveate_fill
         );
         for (name, p) in regions {
             if p.is_finite() {

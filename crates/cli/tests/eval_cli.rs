@@ -223,15 +223,30 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         }
     }
     let fov = read_csv(&out.join("lightfield_foveated.csv"));
-    let kept: Vec<f64> = fov
-        .iter()
-        .map(|r| r["rays_kept"].parse::<f64>().unwrap())
-        .collect();
-    assert_eq!(kept.len(), 4, "{fov:?}");
-    assert!(
-        kept[0] == 1.0 && kept.windows(2).all(|w| w[1] < w[0]),
-        "{kept:?}"
+    // The full synthesis, then each scale filled within views and across them.
+    assert_eq!(fov.len(), 7, "{fov:?}");
+    assert_eq!(
+        (fov[0]["scale"].as_str(), fov[0]["rays_kept"].as_str()),
+        ("full", "1.00000")
     );
+    for fill in ["within", "across"] {
+        let of: Vec<_> = fov.iter().filter(|r| r["fill"] == fill).collect();
+        let kept: Vec<f64> = of.iter().map(|r| r["rays_kept"].parse().unwrap()).collect();
+        assert!(
+            kept.len() == 3 && kept.windows(2).all(|w| w[1] < w[0]) && kept[0] < 0.2,
+            "{fill}: {kept:?}"
+        );
+    }
+    // Both fills keep the same rays; across views is the better fovea at every scale.
+    for pair in fov[1..].chunks(2) {
+        assert_eq!(
+            (pair[0]["fill"].as_str(), pair[1]["fill"].as_str()),
+            ("within", "across")
+        );
+        assert_eq!(pair[0]["rays_kept"], pair[1]["rays_kept"]);
+        let fovea = |r: &HashMap<String, String>| -> f64 { r["fovea_vs_full_db"].parse().unwrap() };
+        assert!(fovea(&pair[1]) > fovea(&pair[0]), "{pair:?}");
+    }
 
     let report = std::fs::read_to_string(out.join("report.md")).expect("report");
     assert!(report.contains("## Speed against accuracy"));

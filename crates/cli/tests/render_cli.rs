@@ -204,6 +204,11 @@ fn scene_render_metrics_round_trip() {
             "{region} missing: {text}"
         );
     }
+    assert!(text.contains("filled across"), "the default fill: {text}");
+    let (ok, text) = lf(&["--foveate", "2", "--foveate-fill", "within"]);
+    assert!(ok && text.contains("filled within"), "{text}");
+    let (ok, text) = lf(&["--foveate", "2", "--foveate-fill", "nearest"]);
+    assert!(!ok && text.contains("across or within"), "{text}");
     let (ok, text) = lf(&["--gaze", "20,20"]);
     assert!(!ok && text.contains("--foveate"), "{text}");
     let (ok, text) = lf(&["--foveate", "0"]);

@@ -7,7 +7,9 @@ use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
 use crate::tasks::rgb_at;
 use dioptra_core::{Plane, RgbImage, Rgbd};
-use dioptra_render::foveate::{interpolate, log_polar_mask, LogPolar};
+use dioptra_render::foveate::{
+    interpolate, interpolate_across_views, log_polar_mask, LogPolar, SampledView,
+};
 
 /// Lens-plane positions (metres) of a `grid` x `grid` view grid spanning `span` metres in x
 /// and y, centred on the axis; row-major (row = y).
@@ -41,29 +43,74 @@ pub fn view_mask(centre: [f32; 2], width: usize, scale: f32, k: usize) -> LogPol
     }
 }
 
+/// How a foveated light field fills the rays its views did not sample.
+#[derive(Debug, Clone, Copy)]
+pub enum Fill<'a> {
+    /// Each view from its own samples (eq. 9), as the seed does.
+    WithinViews,
+    /// Every view's samples reprojected into each view by their depth (diopters, one plane
+    /// per view), then eq. 9 for what none reaches
+    /// ([`dioptra_render::foveate::interpolate_across_views`]).
+    AcrossViews {
+        depths: &'a [Plane],
+        positions: &'a [[f32; 2]],
+        eye: &'a dioptra_core::EyeModel,
+    },
+}
+
 /// The light field `lf` foveated as FV samples its views: each view keeps its own log-polar
 /// samples around `centre` (log-buffer scale `scale`, the view's offsets from [`view_mask`])
-/// and interpolates the rest. The views, and the fraction of the rays kept over all of them.
+/// and the rest is filled as `fill` says. The views, and the fraction of the rays kept over
+/// all of them.
 pub fn foveate_light_field(
     lf: &[RgbImage],
     centre: [f32; 2],
     scale: f32,
+    fill: Fill,
 ) -> Result<(Vec<RgbImage>, f64), NetError> {
     let Some(first) = lf.first() else {
         return Err(input("no views to foveate"));
     };
     let (w, h) = (first.width(), first.height());
-    let mut kept = 0.0;
-    let views = lf
-        .iter()
-        .enumerate()
-        .map(|(k, view)| {
-            let (mask, fraction) = log_polar_mask(w, h, &view_mask(centre, w, scale, k))?;
-            kept += fraction;
-            Ok(interpolate(view, &mask)?)
-        })
+    let masks = (0..lf.len())
+        .map(|k| Ok(log_polar_mask(w, h, &view_mask(centre, w, scale, k))?))
         .collect::<Result<Vec<_>, NetError>>()?;
-    Ok((views, kept / lf.len() as f64))
+    let kept = masks.iter().map(|m| m.1).sum::<f64>() / lf.len() as f64;
+    let views = match fill {
+        Fill::WithinViews => lf
+            .iter()
+            .zip(&masks)
+            .map(|(view, (mask, _))| Ok(interpolate(view, mask)?))
+            .collect::<Result<Vec<_>, NetError>>()?,
+        Fill::AcrossViews {
+            depths,
+            positions,
+            eye,
+        } => {
+            if depths.len() != lf.len() || positions.len() != lf.len() {
+                return Err(input(format!(
+                    "{} views with {} depths and {} positions: expected one each",
+                    lf.len(),
+                    depths.len(),
+                    positions.len()
+                )));
+            }
+            let sampled: Vec<SampledView> = lf
+                .iter()
+                .zip(depths)
+                .zip(positions)
+                .zip(&masks)
+                .map(|(((image, depth), &position), (mask, _))| SampledView {
+                    position,
+                    image,
+                    depth,
+                    mask,
+                })
+                .collect();
+            interpolate_across_views(&sampled, eye)?
+        }
+    };
+    Ok((views, kept))
 }
 
 /// Per foveal region around `centre` (fovea, periphery 1 and 2, by name), the PSNR of `views`

@@ -18,7 +18,7 @@ pub struct RgbdView {
 }
 
 /// Candidates within this many diopters of the nearest one are the same surface.
-const SAME_SURFACE_D: f32 = 0.03;
+pub(crate) const SAME_SURFACE_D: f32 = 0.03;
 
 /// The view from `target` synthesised from `inputs`.
 pub fn synthesize_view(

@@ -2,13 +2,15 @@
 //! field from 5 or 9 of its views, scored on the novel views against the test scenes' own
 //! ray-cast views, beside the nearest input shown in place of each novel view; its time on
 //! each backend and the GPU's largest difference from the CPU; and the foveated light field
-//! (FV's per-view log-polar samples, the rest interpolated) per foveal region, against the
+//! (FV's per-view log-polar samples, the rest filled within each view or across views) per
+//! foveal region, against the
 //! truth and against the full synthesis, with the fraction of the rays kept.
 
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use dioptra_core::{EyeModel, RgbImage, Rgbd};
+use dioptra_net::fv::{foveate_light_field, region_psnr, Fill};
 use dioptra_net::Task;
 use dioptra_render::views::RgbdView;
 use dioptra_render::Backend;
@@ -58,6 +60,9 @@ pub struct LightFieldRow {
 pub struct FoveatedRow {
     pub seed: u64,
     pub scale: Option<f32>,
+    /// How the unsampled rays were filled: "within" each view, or "across" views (empty for
+    /// the full synthesis).
+    pub fill: &'static str,
     pub fraction: f64,
     pub truth: Vec<(&'static str, f64)>,
     pub full: Vec<(&'static str, f64)>,
@@ -169,21 +174,45 @@ pub fn run(
                 foveated.push(FoveatedRow {
                     seed,
                     scale: None,
+                    fill: "",
                     fraction: 1.0,
-                    truth: dioptra_net::fv::region_psnr(&full_novel, &truth_novel, centre)?,
+                    truth: region_psnr(&full_novel, &truth_novel, centre)?,
                     full: Vec::new(),
                 });
+                // Each view's depth from the same warp, for the fill across views.
+                let depths = positions
+                    .iter()
+                    .map(|&p| {
+                        Ok(
+                            dioptra_render::views::synthesize_rgbd_view(&inputs, p, &eye)?
+                                .depth
+                                .into_plane(),
+                        )
+                    })
+                    .collect::<Result<Vec<_>>>()?;
                 for &scale in &plan.foveate {
-                    let (views, fraction) =
-                        dioptra_net::fv::foveate_light_field(full, centre, scale)?;
-                    let views = pick(&views);
-                    foveated.push(FoveatedRow {
-                        seed,
-                        scale: Some(scale),
-                        fraction,
-                        truth: dioptra_net::fv::region_psnr(&views, &truth_novel, centre)?,
-                        full: dioptra_net::fv::region_psnr(&views, &full_novel, centre)?,
-                    });
+                    for (name, fill) in [
+                        ("within", Fill::WithinViews),
+                        (
+                            "across",
+                            Fill::AcrossViews {
+                                depths: &depths,
+                                positions: &positions,
+                                eye: &eye,
+                            },
+                        ),
+                    ] {
+                        let (views, fraction) = foveate_light_field(full, centre, scale, fill)?;
+                        let views = pick(&views);
+                        foveated.push(FoveatedRow {
+                            seed,
+                            scale: Some(scale),
+                            fill: name,
+                            fraction,
+                            truth: region_psnr(&views, &truth_novel, centre)?,
+                            full: region_psnr(&views, &full_novel, centre)?,
+                        });
+                    }
                 }
             }
         }
@@ -227,9 +256,10 @@ pub fn table(rows: &[LightFieldRow]) -> Table {
     t
 }
 
-pub const FOVEATED_HEADER: [&str; 9] = [
+pub const FOVEATED_HEADER: [&str; 10] = [
     "seed",
     "scale",
+    "fill",
     "rays_kept",
     "fovea_db",
     "periphery1_db",
@@ -247,6 +277,11 @@ pub fn foveated_table(rows: &[FoveatedRow]) -> Table {
         let mut row = vec![
             r.seed.to_string(),
             r.scale.map_or("full".into(), |s| format!("{s}")),
+            if r.fill.is_empty() {
+                "-".into()
+            } else {
+                r.fill.into()
+            },
             format!("{:.5}", r.fraction),
         ];
         for v in [&r.truth, &r.full] {

@@ -540,7 +540,9 @@ fn lightfield_report(
     let _ = writeln!(
         md,
         "Foveated (FV's sampling: each view keeps its own log-polar samples around the image \
-         centre at log-buffer scale S, the rest interpolated), from the CPU's synthesis with {} \
+         centre at log-buffer scale S; the rest filled within each view by the paper's \
+         interpolation, or across views: every view's samples reprojected into each view by \
+         their depth, then that interpolation), from the CPU's synthesis with {} \
          inputs, novel views, per region (fovea, periphery 1 and 2: rings of diameter 0.1, 0.4 \
          and 1 image diagonal): PSNR against the truth, and against the full synthesis \
          (`lightfield_foveated.csv`). The target is the fovea within 1 dB of the full \
@@ -548,23 +550,25 @@ fn lightfield_report(
          on its data, with its network.\n",
         plan.inputs.iter().max().copied().unwrap_or(0)
     );
-    let mut scales: Vec<Option<f32>> = Vec::new();
+    let mut scales: Vec<(Option<f32>, &str)> = Vec::new();
     for r in foveated {
-        if !scales.contains(&r.scale) {
-            scales.push(r.scale);
+        if !scales.contains(&(r.scale, r.fill)) {
+            scales.push((r.scale, r.fill));
         }
     }
     let region = |v: &[(&str, f64)], name: &str| v.iter().find(|(n, _)| *n == name).map(|p| p.1);
     let table: Vec<Vec<String>> = scales
         .iter()
-        .map(|&s| {
-            let of: Vec<&lightfield::FoveatedRow> =
-                foveated.iter().filter(|r| r.scale == s).collect();
+        .map(|&(s, fill)| {
+            let of: Vec<&lightfield::FoveatedRow> = foveated
+                .iter()
+                .filter(|r| (r.scale, r.fill) == (s, fill))
+                .collect();
             let avg = |f: &dyn Fn(&lightfield::FoveatedRow) -> Option<f64>| {
                 mean(&of.iter().filter_map(|r| f(r)).collect::<Vec<_>>())
             };
             let mut row = vec![
-                s.map_or("full synthesis".into(), |s| format!("S = {s}")),
+                s.map_or("full synthesis".into(), |s| format!("S = {s}, {fill}")),
                 num(avg(&|r| Some(100.0 * r.fraction)), 2),
             ];
             for name in ["fovea", "periphery 1", "periphery 2"] {
