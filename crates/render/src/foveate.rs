@@ -180,6 +180,9 @@ pub struct SampledView<'a> {
     pub mask: &'a Plane,
 }
 
+/// A sampled ray: its pixel centre, diopters and colour.
+type Sample = ([f32; 2], f32, [f32; 3]);
+
 /// Sub-pixel spread (pixels) of the weight a reprojected sample gets by its distance from
 /// the pixel centre it lands in: the nearest landings dominate.
 const REPROJECT_SIGMA_PX: f32 = 0.2;
@@ -215,8 +218,8 @@ pub fn interpolate_across_views(
         }
     }
     let pitch = eye_for(eye, w)?.pixel_pitch_tan();
-    // Each view's samples: pixel centre, diopters, colour.
-    let samples: Vec<Vec<([f32; 2], f32, [f32; 3])>> = views
+    // Each view's samples.
+    let samples: Vec<Vec<Sample>> = views
         .iter()
         .map(|v| {
             let ch = v.image.channels.each_ref().map(|p| p.data());
