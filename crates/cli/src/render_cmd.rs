@@ -916,16 +916,7 @@ pub fn lightfield(a: LightFieldArgs) -> Result<()> {
             "within" => foveate_light_field(&images, centre, scale, Fill::WithinViews)?,
             "across" => {
                 // The classical warp's depth of every view (a refined view keeps it), on the CPU.
-                let depths = positions
-                    .iter()
-                    .map(|&p| {
-                        Ok(
-                            dioptra_render::views::synthesize_rgbd_view(&inputs, p, &eye)?
-                                .depth
-                                .into_plane(),
-                        )
-                    })
-                    .collect::<Result<Vec<_>>>()?;
+                let depths = dioptra_render::views::light_field_depths(&inputs, &positions, &eye)?;
                 let fill = Fill::AcrossViews {
                     depths: &depths,
                     positions: &positions,

@@ -339,6 +339,19 @@ pub fn synthesize_light_field(
     Ok(out)
 }
 
+/// The depth (diopters) of the view from each of `positions`, as [`synthesize_rgbd_view`]
+/// makes it: what a foveated light field reprojects its samples by.
+pub fn light_field_depths(
+    inputs: &[RgbdView],
+    positions: &[[f32; 2]],
+    eye: &EyeModel,
+) -> Result<Vec<dioptra_core::Plane>, RenderError> {
+    positions
+        .iter()
+        .map(|&p| Ok(synthesize_rgbd_view(inputs, p, eye)?.depth.into_plane()))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

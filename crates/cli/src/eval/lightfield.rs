@@ -180,16 +180,7 @@ pub fn run(
                     full: Vec::new(),
                 });
                 // Each view's depth from the same warp, for the fill across views.
-                let depths = positions
-                    .iter()
-                    .map(|&p| {
-                        Ok(
-                            dioptra_render::views::synthesize_rgbd_view(&inputs, p, &eye)?
-                                .depth
-                                .into_plane(),
-                        )
-                    })
-                    .collect::<Result<Vec<_>>>()?;
+                let depths = dioptra_render::views::light_field_depths(&inputs, &positions, &eye)?;
                 for &scale in &plan.foveate {
                     for (name, fill) in [
                         ("within", Fill::WithinViews),
