@@ -164,22 +164,10 @@ impl ViewLayout {
                 [left, right] => Some([left.clone(), right.clone()]),
                 _ => None,
             },
-            views: self.grid.as_ref().map(|(_, positions)| {
-                self.eyes
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(e, &eye)| {
-                        positions
-                            .iter()
-                            .enumerate()
-                            .map(move |(k, &position)| ContentView {
-                                eye,
-                                position,
-                                rgbd: views[e * per_eye + k].clone(),
-                            })
-                    })
-                    .collect()
-            }),
+            views: self
+                .grid
+                .as_ref()
+                .map(|(_, positions)| ContentView::grid(&self.eyes, positions, views)),
             ..ContentFrame::new(number, central[0].clone())
         }
     }

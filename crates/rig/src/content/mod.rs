@@ -42,6 +42,31 @@ pub struct ContentView {
     pub rgbd: Arc<Rgbd>,
 }
 
+impl ContentView {
+    /// The views of an N x N grid per eye: `rgbds` holds each of `eyes`' grid in turn, in
+    /// `positions`' order.
+    pub fn grid(
+        eyes: &[Option<Side>],
+        positions: &[[f32; 2]],
+        rgbds: &[Arc<Rgbd>],
+    ) -> Arc<[ContentView]> {
+        let per_eye = positions.len();
+        eyes.iter()
+            .enumerate()
+            .flat_map(|(e, &eye)| {
+                positions
+                    .iter()
+                    .enumerate()
+                    .map(move |(k, &position)| ContentView {
+                        eye,
+                        position,
+                        rgbd: rgbds[e * per_eye + k].clone(),
+                    })
+            })
+            .collect()
+    }
+}
+
 /// One frame of content, as the loop takes it up.
 #[derive(Debug, Clone)]
 pub struct ContentFrame {

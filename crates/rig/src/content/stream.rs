@@ -1522,21 +1522,7 @@ impl StreamFrames {
                 } else {
                     &[Some(Side::Left), Some(Side::Right)]
                 };
-                let views: Arc<[ContentView]> = eyes
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(e, &eye)| {
-                        let got = &got;
-                        positions
-                            .iter()
-                            .enumerate()
-                            .map(move |(k, &position)| ContentView {
-                                eye,
-                                position,
-                                rgbd: got[e * per_eye + k].clone(),
-                            })
-                    })
-                    .collect();
+                let views = ContentView::grid(eyes, positions, &got);
                 let pair = (parts == Parts::EyeGrids)
                     .then(|| [got[centre].clone(), got[per_eye + centre].clone()]);
                 (got[centre].clone(), pair, Some(views))
