@@ -960,19 +960,8 @@ mod tests {
                 .unwrap();
             content.poll(Timestamp(seq)).expect("the frame is taken up")
         };
-        let panel = |frame: &ContentFrame| {
-            let out = r
-                .render_frame(
-                    frame,
-                    Mode::Lightfield,
-                    Method(RenderMethod::Views),
-                    Diopters(1.0),
-                    None,
-                    false,
-                )
-                .unwrap();
-            out.images[0].to_host().unwrap().into_owned()
-        };
+        let panel =
+            |frame: &ContentFrame| light_field_panel(&r, frame, RenderMethod::Views).unwrap();
         let one = send(1, &|i| (i * 7 % 251) as u8);
         let first = panel(&one);
         let copies = vec![one.rgbd.color.clone(); LF_GRID * LF_GRID];
@@ -1028,17 +1017,7 @@ mod tests {
             ..ContentFrame::new(2, grid[4].rgbd.clone())
         };
         let score = |frame: &ContentFrame| {
-            let out = r
-                .render_frame(
-                    frame,
-                    Mode::Lightfield,
-                    Method(RenderMethod::Views),
-                    Diopters(1.0),
-                    None,
-                    false,
-                )
-                .unwrap();
-            let panel = out.images[0].to_host().unwrap().into_owned();
+            let panel = light_field_panel(&r, frame, RenderMethod::Views).unwrap();
             dioptra_render::metrics::psnr(&panel, &truth, None).unwrap()
         };
         let (one, nine) = (score(&centre), score(&all));
@@ -1101,17 +1080,7 @@ mod tests {
         };
         let r = rig(dir.path());
         let content = ContentFrame::new(1, Arc::new(scene_rgbd(&r)));
-        let panel = |r: &RgbdRenderer, m: RenderMethod| {
-            r.render_frame(
-                &content,
-                Mode::Lightfield,
-                Method(m),
-                Diopters(1.0),
-                None,
-                false,
-            )
-            .map(|out| out.images[0].to_host().unwrap().into_owned())
-        };
+        let panel = |r: &RgbdRenderer, m: RenderMethod| light_field_panel(r, &content, m);
         let e = panel(&r, RenderMethod::Refine).unwrap_err().to_string();
         assert!(
             e.contains("render.weights") && e.contains("dioptra train --config c5r"),
@@ -1132,6 +1101,23 @@ mod tests {
         assert_ne!(panel(&r, RenderMethod::Refine).unwrap(), classical);
         let tiles = r.backend_status()["refine_tiles_run"].as_f64().unwrap();
         assert!(tiles > 0.0 && tiles <= 1.0, "{tiles}");
+    }
+
+    /// The light-field panel `r` shows for `frame` with `method`.
+    fn light_field_panel(
+        r: &RgbdRenderer,
+        frame: &ContentFrame,
+        method: RenderMethod,
+    ) -> Result<RgbImage, RenderError> {
+        r.render_frame(
+            frame,
+            Mode::Lightfield,
+            Method(method),
+            Diopters(1.0),
+            None,
+            false,
+        )
+        .map(|out| out.images[0].to_host().unwrap().into_owned())
     }
 
     /// The example rig's procedural scene as one RGB-D frame of the renderer's size.
