@@ -202,19 +202,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     cfg.no_worse = a.no_worse;
     cfg.novel_views = a.novel_views.unwrap_or(cfg.novel_views);
-    let light_field = matches!(
-        cfg.arch.task,
-        Task::C5 { .. } | Task::Fv { .. } | Task::C5r { .. }
-    );
-    if a.occluder_scenes > 0 && light_field {
-        bail!(
-            "--occluder-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)"
-        );
-    }
     cfg.occluder_scenes = a.occluder_scenes;
-    if a.wide_scenes > 0 && light_field {
-        bail!("--wide-scenes applies to c1, c3, c4, c1r and c4r (nets trained on focal stacks)");
-    }
     cfg.wide_scenes = a.wide_scenes;
     cfg.fovs = match (&a.fovs, arch_task_is_c1r || c5r) {
         (Some(f), _) => f.clone(),

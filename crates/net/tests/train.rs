@@ -413,6 +413,33 @@ fn c5r_training_lowers_the_loss_from_the_classical_synthesis() {
     assert!(back.provenance["data"].contains("4 novel views per scene"));
 }
 
+/// Light-field nets train on every scene family: each training light field is its own
+/// family's scene (seeds numbered per family, cached apart).
+#[test]
+fn light_field_training_scenes_come_from_their_family() {
+    use dioptra_net::train::trainer::load_scenes;
+    use dioptra_sim::scene::{render_pinhole, Camera, Family, Scene};
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = tiny_config("c5r", dir.path(), 1);
+    cfg.arch.task = Task::C5r { views: 5, grid: 3 };
+    (cfg.scenes, cfg.occluder_scenes, cfg.wide_scenes) = (1, 1, 1);
+    cfg.data.size = 16;
+    let scenes = load_scenes(&cfg, &mut |_| {}).unwrap();
+    let families: Vec<Family> = scenes.iter().map(|s| s.family).collect();
+    assert_eq!(families, [Family::Random, Family::Occluders, Family::Wide]);
+    for s in &scenes {
+        let cam = Camera::square(cfg.data.eye().unwrap(), 16);
+        let (centre, _) =
+            render_pinhole(&Scene::of_family(s.family, s.seed), &cam, [0.0; 2], 1).unwrap();
+        assert_eq!(s.rgbd.color, centre, "{:?}", s.family);
+    }
+    // All three share seed 0, so each family's scene differs from the random one.
+    assert!(scenes[1].rgbd.color != scenes[0].rgbd.color);
+    assert!(scenes[2].rgbd.color != scenes[0].rgbd.color);
+    let cached = std::fs::read_dir(&cfg.cache).unwrap().count();
+    assert_eq!(cached, 3, "one cache file per family's light field");
+}
+
 #[test]
 fn c4r_training_distils_then_lowers_the_retinal_loss() {
     let dir = tempfile::tempdir().unwrap();

@@ -242,9 +242,9 @@ pub fn load_or_render(
     Ok(s)
 }
 
-/// The grid views of scene `seed` (a training seed) for a `grid` x `grid` grid over a `span`
-/// metres square (C5, FV: the pupil), rendered or read from `cache`, as a [`SceneData`] whose
-/// `rgbd` is the centre view.
+/// The grid views of scene `seed` (a training seed of `spec.family`) for a `grid` x `grid`
+/// grid over a `span` metres square (C5, FV: the pupil), rendered or read from `cache`, as a
+/// [`SceneData`] whose `rgbd` is the centre view.
 pub fn load_or_render_views(
     cache: &Path,
     seed: u64,
@@ -263,8 +263,13 @@ pub fn load_or_render_views(
         .flatten()
         .chain(&[spec.fov_deg])
         .flat_map(|f| f.to_le_bytes()));
+    // The random family keeps the names it was cached under before the others could train here.
+    let family = match spec.family {
+        Family::Random => String::new(),
+        f => format!("{}-", f.name()),
+    };
     let path = cache.join(format!(
-        "views-{seed}-{grid}x{grid}-{}px-{}ss-{key:016x}.safetensors",
+        "views-{family}{seed}-{grid}x{grid}-{}px-{}ss-{key:016x}.safetensors",
         spec.size, spec.supersample
     ));
     let views = match read_views(&path, positions.len()) {
@@ -272,7 +277,7 @@ pub fn load_or_render_views(
         Ok(v) => v,
         Err(_) => {
             let cam = Camera::square(spec.eye()?, spec.size);
-            let scene = Scene::generate(seed);
+            let scene = Scene::of_family(spec.family, seed);
             let views = positions
                 .iter()
                 .map(|&p| {
@@ -290,7 +295,7 @@ pub fn load_or_render_views(
     };
     Ok(SceneData {
         seed,
-        family: Family::Random,
+        family: spec.family,
         rgbd: views[views.len() / 2].clone(),
         foci: Vec::new(),
         stack: Vec::new(),

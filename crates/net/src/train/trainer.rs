@@ -653,10 +653,16 @@ pub fn train(cfg: &TrainConfig, on: &mut dyn FnMut(TrainEvent)) -> Result<Weight
         );
     }
     if cfg.occluder_scenes > 0 {
+        // Only C1 and C1R put a focus at the wall (see `load_scenes`).
+        let wall_focus = if matches!(cfg.arch.task, Task::C1 | Task::C1r { .. }) {
+            ", one focus at the wall"
+        } else {
+            ""
+        };
         p.insert(
             "train_occluder_seeds".into(),
             format!(
-                "{}..{} (Scene::generate_occluders, one focus at the wall)",
+                "{}..{} (Scene::generate_occluders{wall_focus})",
                 cfg.first_seed,
                 cfg.first_seed + cfg.occluder_scenes
             ),
