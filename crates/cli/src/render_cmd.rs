@@ -806,7 +806,8 @@ pub struct LightFieldArgs {
     /// corrected by a C5R net where the warp's error map says they are likely wrong).
     #[arg(long, default_value = "classical")]
     method: String,
-    /// C5R weights for --method refine (train them with `dioptra train --config c5r`).
+    /// C5R weights for --method refine (default: the shipped ones; train others with
+    /// `dioptra train --config c5r`).
     #[arg(long)]
     weights: Option<PathBuf>,
     /// Output directory (view_<r>_<c>.png).

@@ -210,15 +210,31 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
             "classical light field PSNR",
         );
         assert!(psnr(cpu) > psnr(near) + 2.0, "{cpu:?} against {near:?}");
-        if let Some(gpu) = lf
-            .iter()
-            .find(|r| r["method"] == "classical" && r["backend"] == "gpu" && r["inputs"] == k)
-        {
+        for method in ["classical", "refine"] {
+            if let Some(gpu) = lf
+                .iter()
+                .find(|r| r["method"] == method && r["backend"] == "gpu" && r["inputs"] == k)
+            {
+                finite_in(
+                    &gpu["max_abs_diff_from_cpu"],
+                    0.0,
+                    1e-3,
+                    "light field GPU - CPU",
+                );
+            }
+        }
+        // The shipped C5R refines the classical synthesis; it has rows whenever it ships.
+        if dioptra_net::shipped_weights("c5r").exists() {
+            let refine = of("refine", "cpu");
             finite_in(
-                &gpu["max_abs_diff_from_cpu"],
-                0.0,
-                1e-3,
-                "light field GPU - CPU",
+                &refine["psnr_novel_db"],
+                15.0,
+                60.0,
+                "refined light field PSNR",
+            );
+            assert!(
+                (psnr(refine) - psnr(cpu)).abs() < 3.0,
+                "{refine:?} against {cpu:?}"
             );
         }
     }

@@ -167,7 +167,7 @@ fn scene_render_metrics_round_trip() {
     // Light-field synthesis from the scene's 2 x 2 views into 3 x 3, plain and foveated
     // (issue 41): the foveated run says what fraction of the rays it kept and its PSNR per
     // region against the full synthesis; --gaze without --foveate and a bad S are refused.
-    let lf = |extra: &[&str]| {
+    let lf_on = |backend: &str, extra: &[&str]| {
         let out = d("synth");
         let views = d("lightfield");
         let mut args = vec![
@@ -179,13 +179,14 @@ fn scene_render_metrics_round_trip() {
             "--grid",
             "3",
             "--backend",
-            "cpu",
+            backend,
             "--out",
             &out,
         ];
         args.extend_from_slice(extra);
         dioptra(&args)
     };
+    let lf = |extra: &[&str]| lf_on("cpu", extra);
     let (ok, text) = lf(&[]);
     assert!(ok && text.contains("synthesised 9 views"), "{text}");
     assert!(Path::new(&d("synth/view_02_02.png")).exists(), "{text}");
@@ -216,7 +217,7 @@ fn scene_render_metrics_round_trip() {
 
     // --method refine (C5R): an untrained net (its last layer zero) writes the classical views
     // byte for byte; one with random weights throughout changes some, so the refinement ran;
-    // without --weights the error names the flag and how to train.
+    // without --weights the shipped net refines.
     let views = |dir: &str| -> Vec<Vec<u8>> {
         (0..9)
             .map(|k| std::fs::read(format!("{dir}/view_{:02}_{:02}.png", k / 3, k % 3)).unwrap())
@@ -249,10 +250,30 @@ fn scene_render_metrics_round_trip() {
         }
     }
     let (ok, text) = lf(&["--method", "refine"]);
-    assert!(
-        !ok && text.contains("--weights") && text.contains("dioptra train --config c5r"),
-        "{text}"
-    );
+    assert!(ok && text.contains("% of the tiles"), "{text}");
+    let shipped_cpu = views(&d("synth"));
+    assert!(shipped_cpu != classical, "the shipped net changed no view");
+    // The shipped net on the GPU backend: the same views within one 8-bit level.
+    let (ok, text) = lf_on("gpu", &["--method", "refine"]);
+    if !no_gpu(ok, &text) {
+        assert!(ok, "{text}");
+        for (k, (a, b)) in shipped_cpu.iter().zip(views(&d("synth"))).enumerate() {
+            let decode = |bytes: &[u8]| {
+                let mut r = png::Decoder::new(std::io::Cursor::new(bytes))
+                    .read_info()
+                    .unwrap();
+                let mut buf = vec![0; r.output_buffer_size().unwrap()];
+                r.next_frame(&mut buf).unwrap();
+                buf
+            };
+            let (a, b) = (decode(a), decode(&b));
+            let worst = a.iter().zip(&b).map(|(x, y)| x.abs_diff(*y)).max();
+            assert!(
+                worst <= Some(1),
+                "view {k}: GPU and CPU differ by {worst:?} levels"
+            );
+        }
+    }
     let (ok, text) = lf(&["--method", "warp"]);
     assert!(!ok && text.contains("classical or refine"), "{text}");
 

@@ -391,20 +391,29 @@ fn c5r_matches_cpu() {
     });
     let eye = EyeModel::default();
     let (view, errors) = synthesize_view_with_errors(&inputs, [0.001, 0.0], &eye).unwrap();
-    let c5r = weights_all_random(&Arch::preset("c5r").unwrap(), 6);
-    let (cpu, gpu) = (
-        CpuNet::new(c5r.clone()).unwrap(),
-        GpuNet::new(c5r, None).unwrap(),
-    );
-    let (a, b) = (
-        cpu.refine_view(&view, &errors).unwrap(),
-        gpu.refine_view(&view, &errors).unwrap(),
-    );
-    assert_ne!(a, view.color, "the random net corrects");
-    let err = (0..3)
-        .flat_map(|c| a.channels[c].data().iter().zip(b.channels[c].data()))
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f32::max);
-    eprintln!("c5r: max |gpu - cpu| = {err:e}");
-    assert!(err < 1e-3, "c5r: {err}");
+    // Random weights throughout, and the shipped net.
+    let shipped = Weights::load(&dioptra_net::shipped_weights("c5r")).unwrap();
+    for (name, c5r) in [
+        (
+            "random",
+            weights_all_random(&Arch::preset("c5r").unwrap(), 6),
+        ),
+        ("shipped", shipped),
+    ] {
+        let (cpu, gpu) = (
+            CpuNet::new(c5r.clone()).unwrap(),
+            GpuNet::new(c5r, None).unwrap(),
+        );
+        let (a, b) = (
+            cpu.refine_view(&view, &errors).unwrap(),
+            gpu.refine_view(&view, &errors).unwrap(),
+        );
+        assert_ne!(a, view.color, "the {name} net corrects");
+        let err = (0..3)
+            .flat_map(|c| a.channels[c].data().iter().zip(b.channels[c].data()))
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max);
+        eprintln!("c5r ({name}): max |gpu - cpu| = {err:e}");
+        assert!(err < 1e-3, "c5r ({name}): {err}");
+    }
 }

@@ -1,9 +1,9 @@
-//! The shipped C1, C4, C1R and C4R weights (`crates/net/weights/`): they load with their
+//! The shipped C1, C4, C1R, C4R and C5R weights (`crates/net/weights/`): they load with their
 //! provenance, and their accuracy on simulator test seeds is held against the classical
 //! methods on the same scenes. The regression guards pin what the shipped weights measured (a
 //! margin below it); the issues' targets (issue 7: C1 >= gather + 4 dB, C4 >= linear + 6 dB;
 //! issue 21: C1R >= the 36-view light field + 0.5 dB, C4R >= optimized blending with 10
-//! iterations) are the ignored tests, which fail until weights that meet them are shipped:
+//! iterations; issue 41: C5R >= the classical light field + 1.5 dB) are the ignored tests, which fail until weights that meet them are shipped:
 //! `cargo test --release -p dioptra-net --test shipped -- --include-ignored`.
 
 use dioptra_core::{Diopters, EyeModel, Millimeters, RgbImage, Rgbd};
@@ -78,7 +78,7 @@ fn c4_vs_linear(net: &CpuNet, scenes: u64, size: usize, rays: u32) -> (f64, f64)
 
 #[test]
 fn shipped_weights_load_with_their_provenance() {
-    for config in ["c1", "c4", "c1r", "c4r"] {
+    for config in ["c1", "c4", "c1r", "c4r", "c5r"] {
         let net = load_net(None, config).unwrap();
         assert_eq!(net.arch().task.name(), config);
         let w = dioptra_net::Weights::load(&dioptra_net::shipped_weights(config)).unwrap();
@@ -398,6 +398,80 @@ fn c4r_matches_optimized_blending_with_10_iterations() {
         assert!(
             r >= opt,
             "test scene {i}: refined {r:.2} dB < optimized 10 it {opt:.2} dB"
+        );
+    }
+}
+
+/// Mean PSNR over the novel views of test scene `i`'s 9 x 9 light field over 1 cm at `size`
+/// px (as `dioptra eval --suite lightfield` renders it), synthesised from its 9 inputs:
+/// (classical, refined by the shipped C5R).
+fn c5r_on_test_scene(i: u64, size: usize) -> (f64, f64) {
+    use dioptra_render::views::{light_field_positions, synthesize_light_field, RgbdView};
+    let net = load_net(None, "c5r").unwrap();
+    let e = EyeModel::default();
+    let scene = Scene::generate(Split::Test.seed(i));
+    let cam = Camera::square(e, size);
+    let positions = light_field_positions(9, 0.01).unwrap();
+    let truth: Vec<(RgbImage, Rgbd)> = positions
+        .iter()
+        .map(|&p| {
+            let (c, d) = render_pinhole(&scene, &cam, p, 2).unwrap();
+            (c.clone(), Rgbd::new(c, d).unwrap())
+        })
+        .collect();
+    let picks = Task::C5 { views: 9, grid: 9 }.input_views();
+    let inputs: Vec<RgbdView> = picks
+        .iter()
+        .map(|&k| RgbdView {
+            position: positions[k],
+            rgbd: truth[k].1.clone(),
+        })
+        .collect();
+    let classical = synthesize_light_field(&inputs, 9, 0.01, &e, |_| {}).unwrap();
+    let refined = dioptra_net::refine::refine_light_field(
+        &inputs,
+        9,
+        0.01,
+        &e,
+        &|v, er| net.refine_view(v, er),
+        &|_| {},
+    )
+    .unwrap();
+    // PSNR of the mean squared error over the novel views.
+    let novel_psnr = |views: &[dioptra_render::retina::LfView]| {
+        let novel = (0..positions.len()).filter(|k| !picks.contains(k));
+        let mse: f64 = novel
+            .map(|k| 10f64.powf(-psnr(&views[k].image, &truth[k].0) / 10.0))
+            .sum::<f64>()
+            / (positions.len() - picks.len()) as f64;
+        -10.0 * mse.log10()
+    };
+    (novel_psnr(&classical), novel_psnr(&refined))
+}
+
+/// Issue 41's rule for shipping C5R (never below the classical synthesis on any scene), held
+/// on the simulator's test scenes too; the independent Mitsuba set's scores are in
+/// `crates/net/weights/README.md`.
+#[test]
+fn shipped_c5r_is_never_below_the_classical_light_field() {
+    for i in 0..2 {
+        let (c, r) = c5r_on_test_scene(i, 128);
+        eprintln!("C5R, test scene {i}, 128 px: classical {c:.2} dB, refined {r:.2} dB");
+        assert!(
+            r >= c,
+            "test scene {i}: refined {r:.2} dB below classical {c:.2} dB"
+        );
+    }
+}
+
+#[test]
+#[ignore = "issue 41's target, not met by the shipped weights: C5R >= classical + 1.5 dB"]
+fn c5r_beats_the_classical_light_field_by_1_5_db() {
+    for i in 0..2 {
+        let (c, r) = c5r_on_test_scene(i, 256);
+        assert!(
+            r >= c + 1.5,
+            "test scene {i}: refined {r:.2} dB, classical {c:.2} dB"
         );
     }
 }

@@ -1,5 +1,5 @@
 //! Light fields from sparse RGB-D views (issue 41): the classical synthesis of a 9 x 9 light
-//! field from 5 or 9 of its views, scored on the novel views against the test scenes' own
+//! field from 5 or 9 of its views, and the shipped C5R's refinement of it, scored on the novel views against the test scenes' own
 //! ray-cast views, beside the nearest input shown in place of each novel view; its time on
 //! each backend and the GPU's largest difference from the CPU; and the foveated light field
 //! (FV's per-view log-polar samples, the rest filled within each view or across views) per
@@ -11,8 +11,10 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use dioptra_core::{EyeModel, RgbImage, Rgbd};
 use dioptra_net::fv::{foveate_light_field, region_psnr, Fill};
-use dioptra_net::Task;
-use dioptra_render::views::RgbdView;
+use dioptra_net::gpu::GpuNet;
+use dioptra_net::refine::refine_light_field;
+use dioptra_net::{CpuNet, Task};
+use dioptra_render::views::{RgbdView, WarpErrors};
 use dioptra_render::Backend;
 use dioptra_sim::scene::{light_field_positions, render_pinhole, Camera, Scene, Split};
 use indicatif::ProgressBar;
@@ -36,9 +38,11 @@ pub struct LightFieldPlan {
 }
 
 impl LightFieldPlan {
-    /// Progress units: per scene, its truth, then each input count on each backend.
-    pub fn units(&self, backends: usize) -> u64 {
-        (self.scenes * (1 + self.inputs.len() * backends)) as u64
+    /// Progress units: per scene, its truth, then each input count on each backend, once
+    /// classical and once refined when a C5R net runs.
+    pub fn units(&self, backends: usize, refine: bool) -> u64 {
+        let runs = if refine { 2 } else { 1 };
+        (self.scenes * (1 + self.inputs.len() * backends * runs)) as u64
     }
 }
 
@@ -78,11 +82,21 @@ fn novel_psnr(views: &[RgbImage], truth: &[RgbImage], novel: &[usize]) -> Result
     Ok(-10.0 * (mse / novel.len() as f64).log10())
 }
 
+/// `c5r`: the refinement net whose rows (`refine`) sit beside the classical ones: the warp and
+/// its error map on the CPU, the net on each backend (as `dioptra lightfield --method refine`).
 pub fn run(
     plan: &LightFieldPlan,
     backends: &[&dyn Backend],
+    c5r: Option<&CpuNet>,
     bar: &ProgressBar,
 ) -> Result<(Vec<LightFieldRow>, Vec<FoveatedRow>)> {
+    // The net on the GPU, once (a GPU backend that cannot take it gets no refine row).
+    let gpu_net = match c5r {
+        Some(n) if backends.iter().any(|b| b.name() == "gpu") => {
+            Some(GpuNet::new(n.weights().clone(), None).context("the C5R net on the GPU")?)
+        }
+        _ => None,
+    };
     let eye = EyeModel::default();
     let cam = Camera::square(eye, plan.size);
     let positions = light_field_positions(plan.grid, plan.span)?;
@@ -164,6 +178,40 @@ pub fn run(
                 });
                 if backend.name() == "cpu" {
                     cpu_views = Some(views);
+                }
+                bar.inc(1);
+            }
+            let mut cpu_refined: Option<Vec<RgbImage>> = None;
+            for backend in backends {
+                let Some(net) = c5r else { break };
+                let refine = |v: &Rgbd, e: &WarpErrors| match (&gpu_net, backend.name()) {
+                    (Some(g), "gpu") => g.refine_view(v, e),
+                    _ => net.refine_view(v, e),
+                };
+                bar.set_message(format!(
+                    "light field {}px scene {seed}: {k} inputs refined on {}",
+                    plan.size,
+                    backend.name()
+                ));
+                let t = Instant::now();
+                let lf = refine_light_field(&inputs, plan.grid, plan.span, &eye, &refine, &|_| {})?;
+                let time_ms = t.elapsed().as_secs_f64() * 1e3;
+                let views: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
+                let max_diff = match (&cpu_refined, backend.name()) {
+                    (Some(c), "gpu") => Some(max_difference(c, &views)),
+                    _ => None,
+                };
+                rows.push(LightFieldRow {
+                    method: "refine",
+                    backend: backend.name(),
+                    inputs: k,
+                    seed,
+                    psnr: novel_psnr(&views, &truth_images, &novel)?,
+                    time_ms: Some(time_ms),
+                    max_diff,
+                });
+                if backend.name() == "cpu" {
+                    cpu_refined = Some(views);
                 }
                 bar.inc(1);
             }

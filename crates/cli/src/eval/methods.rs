@@ -128,11 +128,13 @@ pub struct Nets {
     c4: Option<CpuNet>,
     c1r: Option<CpuNet>,
     c4r: Option<CpuNet>,
+    c5r: Option<CpuNet>,
     /// Why the shipped weights are not used, when they are not.
     c1_missing: String,
     c4_missing: String,
     c1r_missing: String,
     c4r_missing: String,
+    c5r_missing: String,
 }
 
 fn load_shipped(config: &str) -> (Option<CpuNet>, String) {
@@ -162,6 +164,7 @@ impl Nets {
         let (c4, c4_missing) = load_shipped("c4");
         let (c1r, c1r_missing) = load_shipped("c1r");
         let (c4r, c4r_missing) = load_shipped("c4r");
+        let (c5r, c5r_missing) = load_shipped("c5r");
         Nets {
             c1,
             c4,
@@ -171,7 +174,14 @@ impl Nets {
             c4_missing,
             c1r_missing,
             c4r_missing,
+            c5r,
+            c5r_missing,
         }
+    }
+
+    /// The shipped C5R net (light-field refinement), or why there is none.
+    pub fn c5r(&self) -> Result<&CpuNet, &str> {
+        self.c5r.as_ref().ok_or(self.c5r_missing.as_str())
     }
 
     /// The shipped C1 net's interleave rate, when there is one.

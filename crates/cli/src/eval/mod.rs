@@ -312,12 +312,13 @@ pub fn run(a: Args) -> Result<()> {
         if let Some(g) = &lf_gpu {
             lf_backends.push(g);
         }
-        let pb = bar(plan.units(lf_backends.len()))?;
-        let (rows, foveated) = lightfield::run(plan, &lf_backends, &pb)?;
+        let c5r = nets.c5r();
+        let pb = bar(plan.units(lf_backends.len(), c5r.is_ok()))?;
+        let (rows, foveated) = lightfield::run(plan, &lf_backends, c5r.ok(), &pb)?;
         pb.finish_with_message("light fields done");
         lightfield::table(&rows).write(&a.out.join("lightfield.csv"))?;
         lightfield::foveated_table(&foveated).write(&a.out.join("lightfield_foveated.csv"))?;
-        lightfield_report(&mut md, plan, &rows, &foveated);
+        lightfield_report(&mut md, plan, &rows, &foveated, c5r.err());
     }
     let _ = writeln!(
         md,
@@ -468,6 +469,7 @@ fn lightfield_report(
     plan: &lightfield::LightFieldPlan,
     rows: &[lightfield::LightFieldRow],
     foveated: &[lightfield::FoveatedRow],
+    c5r_missing: Option<&str>,
 ) {
     let _ = writeln!(
         md,
@@ -482,12 +484,18 @@ fn lightfield_report(
          mean squared error; time: one run, wall clock (`lightfield.csv`). The nearest input, \
          shown in place of each novel view, is what a light field without synthesis gives. \
          DeepFocus reports 33.7 dB in 19.7 ms (C5, 9 inputs; Kalantari et al. 32.6 dB in 338 \
-         ms) on its own data and GPU. No C5 or refinement weights ship.\n",
+         ms) on its own data and GPU. No C5 weights ship; {refine}\n",
         g = plan.grid,
         n = plan.size,
         span = plan.span * 1e3,
         inputs = plan.inputs,
         scenes = plan.scenes,
+        refine = match c5r_missing {
+            None => "refine is the shipped C5R on the classical synthesis (the warp and its \
+                     error map on the CPU, the net on the backend named)."
+                .to_string(),
+            Some(why) => format!("no refine rows: C5R {why}."),
+        },
     );
     let mut keys: Vec<(&str, &str, usize)> = Vec::new();
     for r in rows {

@@ -684,7 +684,7 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
         "c1" => "varifocal mode's network (C1)",
         "c4" => "multifocal mode's network (C4)",
         "c1r" => "varifocal mode's refinement net (C1R)",
-        "c5r" => "light-field mode's refinement net (C5R; none ships)",
+        "c5r" => "light-field mode's refinement net (C5R)",
         _ => "multifocal mode's refinement net (C4R)",
     };
     if !path.exists() {
@@ -1066,7 +1066,8 @@ mod tests {
 
     /// Light-field mode's `refine` (C5R from `render.weights`): an untrained net (its last
     /// layer zero) makes the classical panel exactly, a net with a nonzero last layer another
-    /// one; without the weights file the frame fails naming render.weights and how to train.
+    /// one; without the weights file the frame fails naming render.weights and how to train;
+    /// without render.weights the shipped net refines.
     #[test]
     fn light_field_refine_is_the_classical_panel_corrected_by_c5r() {
         let dir = tempfile::tempdir().unwrap();
@@ -1101,6 +1102,12 @@ mod tests {
         assert_ne!(panel(&r, RenderMethod::Refine).unwrap(), classical);
         let tiles = r.backend_status()["refine_tiles_run"].as_f64().unwrap();
         assert!(tiles > 0.0 && tiles <= 1.0, "{tiles}");
+        // Without render.weights the shipped C5R refines.
+        let text = format!(
+            "{EXAMPLE_SIM_RIG}\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n"
+        );
+        let shipped = RgbdRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap();
+        assert_ne!(panel(&shipped, RenderMethod::Refine).unwrap(), classical);
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.
