@@ -273,6 +273,9 @@ fn scene_render_metrics_round_trip() {
                 "view {k}: GPU and CPU differ by {worst:?} levels"
             );
         }
+        // Refined and foveated on the GPU backend.
+        let (ok, text) = lf_on("gpu", &["--method", "refine", "--foveate", "2"]);
+        assert!(ok && text.contains("% of the rays kept"), "{text}");
     }
     let (ok, text) = lf(&["--method", "warp"]);
     assert!(!ok && text.contains("classical or refine"), "{text}");
