@@ -151,69 +151,70 @@ pub fn run(
                 time_ms: None,
                 max_diff: None,
             });
+            // Classical on each backend, then (when a C5R ships) refined on each; the GPU's
+            // views compared with the CPU's of the same method.
             let mut cpu_views: Option<Vec<RgbImage>> = None;
-            for backend in backends {
-                bar.set_message(format!(
-                    "light field {}px scene {seed}: {k} inputs on {}",
-                    plan.size,
-                    backend.name()
-                ));
-                let t = Instant::now();
-                let lf =
-                    backend.synthesize_light_field(&inputs, plan.grid, plan.span, &eye, &|_| {})?;
-                let time_ms = t.elapsed().as_secs_f64() * 1e3;
-                let views: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
-                let max_diff = match (&cpu_views, backend.name()) {
-                    (Some(c), "gpu") => Some(max_difference(c, &views)),
-                    _ => None,
+            for method in ["classical", "refine"] {
+                let net = match (method, c5r) {
+                    ("classical", _) => None,
+                    (_, Some(n)) => Some(n),
+                    (_, None) => break,
                 };
-                rows.push(LightFieldRow {
-                    method: "classical",
-                    backend: backend.name(),
-                    inputs: k,
-                    seed,
-                    psnr: novel_psnr(&views, &truth_images, &novel)?,
-                    time_ms: Some(time_ms),
-                    max_diff,
-                });
-                if backend.name() == "cpu" {
-                    cpu_views = Some(views);
+                let mut cpu_of_method: Option<Vec<RgbImage>> = None;
+                for backend in backends {
+                    bar.set_message(format!(
+                        "light field {}px scene {seed}: {k} inputs, {method} on {}",
+                        plan.size,
+                        backend.name()
+                    ));
+                    let t = Instant::now();
+                    let lf = match net {
+                        None => backend.synthesize_light_field(
+                            &inputs,
+                            plan.grid,
+                            plan.span,
+                            &eye,
+                            &|_| {},
+                        )?,
+                        Some(net) => {
+                            let refine = |v: &Rgbd, e: &WarpErrors| match (&gpu_net, backend.name())
+                            {
+                                (Some(g), "gpu") => g.refine_view(v, e),
+                                _ => net.refine_view(v, e),
+                            };
+                            refine_light_field(
+                                &inputs,
+                                plan.grid,
+                                plan.span,
+                                &eye,
+                                &refine,
+                                &|_| {},
+                            )?
+                        }
+                    };
+                    let time_ms = t.elapsed().as_secs_f64() * 1e3;
+                    let views: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
+                    let max_diff = match (&cpu_of_method, backend.name()) {
+                        (Some(c), "gpu") => Some(max_difference(c, &views)),
+                        _ => None,
+                    };
+                    rows.push(LightFieldRow {
+                        method,
+                        backend: backend.name(),
+                        inputs: k,
+                        seed,
+                        psnr: novel_psnr(&views, &truth_images, &novel)?,
+                        time_ms: Some(time_ms),
+                        max_diff,
+                    });
+                    if backend.name() == "cpu" {
+                        cpu_of_method = Some(views);
+                    }
+                    bar.inc(1);
                 }
-                bar.inc(1);
-            }
-            let mut cpu_refined: Option<Vec<RgbImage>> = None;
-            for backend in backends {
-                let Some(net) = c5r else { break };
-                let refine = |v: &Rgbd, e: &WarpErrors| match (&gpu_net, backend.name()) {
-                    (Some(g), "gpu") => g.refine_view(v, e),
-                    _ => net.refine_view(v, e),
-                };
-                bar.set_message(format!(
-                    "light field {}px scene {seed}: {k} inputs refined on {}",
-                    plan.size,
-                    backend.name()
-                ));
-                let t = Instant::now();
-                let lf = refine_light_field(&inputs, plan.grid, plan.span, &eye, &refine, &|_| {})?;
-                let time_ms = t.elapsed().as_secs_f64() * 1e3;
-                let views: Vec<RgbImage> = lf.into_iter().map(|v| v.image).collect();
-                let max_diff = match (&cpu_refined, backend.name()) {
-                    (Some(c), "gpu") => Some(max_difference(c, &views)),
-                    _ => None,
-                };
-                rows.push(LightFieldRow {
-                    method: "refine",
-                    backend: backend.name(),
-                    inputs: k,
-                    seed,
-                    psnr: novel_psnr(&views, &truth_images, &novel)?,
-                    time_ms: Some(time_ms),
-                    max_diff,
-                });
-                if backend.name() == "cpu" {
-                    cpu_refined = Some(views);
+                if method == "classical" {
+                    cpu_views = cpu_of_method;
                 }
-                bar.inc(1);
             }
             // Foveation of the CPU's full synthesis from the most inputs (novel views only).
             if let (Some(full), true) = (&cpu_views, Some(&k) == plan.inputs.iter().max()) {
