@@ -109,9 +109,15 @@ class Dioptra:
     def wait_settled(self, timeout: float = 2.0, target_d: Optional[float] = None,
                      tolerance_d: float = 1e-3) -> LensEvent:
         """Returns the first lens read-back from now on that reports the lens settled at its
-        target (at the focus ``target_d``, as given to :meth:`set_focus`, within
-        ``tolerance_d``, when given); with a lens per eye, once each eye's has (the later
-        one is returned). Raises :class:`NotSettled` after ``timeout`` seconds without."""
+        target; with a lens per eye, once each eye's has (the later one is returned).
+        Raises :class:`NotSettled` after ``timeout`` seconds without.
+
+        "Settled" is the daemon's verdict on each read-back (:attr:`LensEvent.settled`): the
+        lens's power within the scheduler's ``settled_tolerance_d`` (0.03 D) of the power
+        it was commanded to, and the lens not reporting itself moving. ``target_d`` (a focus,
+        as given to :meth:`set_focus`) also requires the read-back's target to be that
+        focus, within ``tolerance_d``: ``tolerance_d`` compares targets, not the lens's
+        power with its target."""
         deadline = time.monotonic() + timeout
         last = None
         focus = self.status().get("focus", {})
@@ -162,8 +168,9 @@ class Dioptra:
 
     @property
     def seq(self) -> int:
-        """The sequence number of the newest frame this client sent (or of the newest the
-        daemon had accepted when the client first sent)."""
+        """The highest sequence number this client used in a frame the daemon accepted (or
+        the newest the daemon had accepted when the client first sent): the next automatic
+        number is one more. Setting it starts the numbering over from there."""
         return self._sender().seq
 
     @seq.setter
@@ -187,10 +194,13 @@ class Dioptra:
         A stereo rig (``display.layout`` side-by-side or two-outputs; H x W one eye's image)
         also takes both eyes side by side, H x 2W, and one eye's half of a pair:
         ``eye="left"`` or ``"right"``. The daemon shows a pair once both halves of the same
-        sequence number arrived. ``seq`` names the number; without it a half gets a new one,
-        unless it is the partner (the other eye) of the half sent last, which it then shares:
-        ``send_rgbd(l, ld, eye="left")`` then ``send_rgbd(r, rd, eye="right")`` is one pair.
-        ``eye`` on a mono rig is refused (:class:`FrameRefused`, 422).
+        sequence number arrived. ``seq`` names the number; without it a frame gets the
+        number after the highest this client used (explicit or automatic), and a half the
+        number of the half sent last when it is its partner (the other eye) and no higher
+        number was used since: ``send_rgbd(l, ld, eye="left")`` then ``send_rgbd(r, rd,
+        eye="right")`` is one pair. A refused send (or one that never reached the daemon)
+        uses no number, so a corrected half sent again still pairs with its partner. ``eye``
+        on a mono rig is refused (:class:`FrameRefused`, 422).
 
         Light-field content (``content.views = N``): ``view=(row, column)`` with ``seq`` makes
         the frame that view of frame ``seq``'s N x N grid, shown once every view of ``seq``

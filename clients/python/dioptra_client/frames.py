@@ -8,7 +8,7 @@ import os
 import struct
 import urllib.parse
 import zlib
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
 
@@ -115,9 +115,18 @@ class FrameSender:
     ``PUT /frame``. Sequence numbers continue after the newest the daemon accepted.
 
     On a stereo rig a frame may be one eye's half (``eye="left"`` or ``"right"``): the two
-    halves of a pair share a sequence number, which the daemon pairs them by. Without ``seq``
-    a half gets a new number, unless it is the partner of the half this sender sent last
-    (the other eye, not yet paired): then that half's number.
+    halves of a pair share a sequence number, which the daemon pairs them by.
+
+    Automatic numbers (no ``seq``), the rule:
+
+    - a frame gets the number after the highest this sender used, explicit or automatic (at
+      the start, the newest the daemon had accepted);
+    - a half takes the number of the open half instead (the other eye's, the last frame this
+      sender sent, not yet paired) when no higher number was used since, so an automatic
+      number never repeats an older explicit one;
+    - a send that raises (the daemon refused it, or it never reached the daemon) uses no
+      number: the counter and the open half stay as they were, so a retried half still pairs
+      with its partner.
 
     Light-field content (``content.views = N``): a frame may be N x N views, each sent with
     ``view=(row, column)`` and the frame's ``seq`` (required; :meth:`send_grid` numbers them)."""
@@ -139,21 +148,28 @@ class FrameSender:
         # The half sent last, waiting for its partner: (seq, eye).
         self._open_half: Optional[tuple] = None
 
-    def _number(self, eye: Optional[str], seq: Optional[int]) -> int:
-        """The frame's sequence number: ``seq``, a half's partner's, or the next."""
+    def _number(self, eye: Optional[str], seq: Optional[int]) -> Tuple[int, Tuple]:
+        """The frame's sequence number (``seq``, its open partner's, or the next) and the
+        sender's state (counter, open half) once the daemon has accepted the frame."""
         if eye is not None and eye not in ("left", "right"):
             raise ValueError(f"eye {eye!r}: expected 'left', 'right' or None")
+        half = self._open_half
         if seq is None:
-            half = self._open_half
-            if eye is not None and half is not None and half[1] != eye:
+            if (eye is not None and half is not None and half[1] != eye
+                    and half[0] == self.seq):
                 seq = half[0]
             else:
                 seq = self.seq + 1
         seq = int(seq)
-        self.seq = max(self.seq, seq)
-        opened = eye is not None and (self._open_half is None or self._open_half[0] != seq)
-        self._open_half = (seq, eye) if opened else None
-        return seq
+        if eye is None or (half is not None and half[0] == seq and half[1] != eye):
+            open_half = None  # a whole frame, or the pair is complete
+        else:
+            open_half = (seq, eye)
+        return seq, (max(self.seq, seq), open_half)
+
+    def _accepted(self, state: Tuple) -> None:
+        """The daemon took the frame: its number is used."""
+        self.seq, self._open_half = state
 
     def _view(self, view, seq) -> Optional[str]:
         """``view`` ``(row, column)`` as ``PUT /frame`` names it (``None``: a whole frame)."""
@@ -179,11 +195,23 @@ class FrameSender:
              eye: Optional[str] = None, seq: Optional[int] = None, view=None) -> int:
         view = self._view(view, seq)
         if view is not None:
-            self.seq = max(self.seq, int(seq))
+            # A grid's view: numbered by the caller (send_grid); the open half stays.
+            number, state = int(seq), (max(self.seq, int(seq)), self._open_half)
+        else:
+            number, state = self._number(eye, seq)
         if encoding == "png":
-            return self._send_png(color, depth, depth_units, app_time_ns, eye, seq, view)
-        if encoding != "raw":
+            r = self._send_png(color, depth, depth_units, app_time_ns, eye, number, view)
+        elif encoding == "raw":
+            r = self._send_raw(color, depth, depth_units, near, far, app_time_ns, eye, number,
+                               view)
+        else:
             raise ValueError(f"encoding {encoding!r}: expected 'raw' or 'png'")
+        # Only now, after the daemon accepted it (a refusal raised above).
+        self._accepted(state)
+        return r
+
+    def _send_raw(self, color, depth, depth_units, near, far, app_time_ns, eye, seq,
+                  view) -> int:
         color = np.asarray(color)
         depth = np.asarray(depth)
         if color.ndim != 3 or color.shape[2] not in (3, 4):
@@ -203,7 +231,6 @@ class FrameSender:
         color = np.ascontiguousarray(color)
         depth = np.ascontiguousarray(depth.astype("<f4", copy=False))
         h, w = depth.shape
-        seq = int(seq) if view is not None else self._number(eye, seq)
         if self.ring is not None:
             # A grid's views share their frame's number: each its own slot, in turn.
             slot = (seq + self._view_code(view)) % self.ring.slots
@@ -240,7 +267,7 @@ class FrameSender:
         colour_png = png(np.ascontiguousarray(color[:, :, :3]), 2, 8)
         depth_png = png(np.ascontiguousarray(mm), 0, 16)
         q = {"width": w, "height": h, "color": "png", "color_bytes": len(colour_png),
-             "depth": "mm", "seq": int(seq) if view is not None else self._number(eye, seq)}
+             "depth": "mm", "seq": seq}
         if app_time_ns is not None:
             q["app_time_ns"] = app_time_ns
         if eye is not None:

@@ -127,6 +127,58 @@ def test_stereo_halves_pair_up_by_sequence_number(stereo_rig, use_ring):
             d.send_rgbd(color, depth, eye="cyclops")
 
 
+@pytest.mark.parametrize("use_ring", [True, False])
+def test_a_refused_half_uses_no_sequence_number(stereo_rig, use_ring):
+    """The lab's case: a left half takes n, a right half of the wrong size is refused (422),
+    the corrected right half sent again takes n too and completes the pair."""
+    with stereo_rig.client(use_ring=use_ring) as d:
+        color, depth = frame(d, 2)
+        before = d.status()["content"]
+        n = d.send_rgbd(color, depth, eye="left")
+        with pytest.raises(FrameRefused) as e:
+            d.send_rgbd(color[:-1], depth[:-1], eye="right")
+        assert e.value.status == 422
+        assert d.seq == n
+        assert d.send_rgbd(color, depth, eye="right") == n
+        st = d.status()["content"]
+        assert st["received"] == before["received"] + 1 and st["halves_waiting"] == 0, st
+        assert st["newest_seq"] == n
+        # A refused whole frame uses none either: the next one takes the number after n.
+        wide = (np.hstack([color, color]), np.hstack([depth, depth]))
+        with pytest.raises(FrameRefused):
+            d.send_rgbd(color[:-1], depth[:-1])
+        assert d.send_rgbd(*wide) == n + 1
+
+
+def test_explicit_and_automatic_numbers_do_not_collide(stereo_rig):
+    """Automatic numbers continue after the highest used, explicit or automatic; a half
+    joins the open half only while nothing higher was used."""
+    with stereo_rig.client() as d:
+        color, depth = frame(d, 3)
+        n = d.send_rgbd(color, depth, eye="left")
+        assert d.send_rgbd(color, depth, eye="right") == n
+        # An explicit number below the newest pair: refused (409), and it leaves nothing
+        # behind: the next automatic half is new, not the refused one's (that was a 409 too).
+        with pytest.raises(FrameRefused) as e:
+            d.send_rgbd(color, depth, eye="left", seq=n - 1)
+        assert e.value.status == 409
+        m = d.send_rgbd(color, depth, eye="right")
+        assert m == n + 1
+        assert d.send_rgbd(color, depth, eye="left") == m
+        # An explicit number ahead of the counter: the partner shares it, then numbering
+        # continues after it.
+        k = m + 10
+        assert d.send_rgbd(color, depth, eye="left", seq=k) == k
+        assert d.send_rgbd(color, depth, eye="right") == k
+        assert d.send_rgbd(color, depth, eye="left") == k + 1
+        # A lone half accepted out of order (explicit, below the counter) is not joined by
+        # an automatic half: that takes a new number.
+        assert d.send_rgbd(color, depth, eye="right", seq=k + 5) == k + 5
+        assert d.send_rgbd(color, depth, eye="left", seq=k + 3) == k + 3
+        assert d.send_rgbd(color, depth, eye="right") == k + 6
+        assert d.status()["content"]["halves_waiting"] >= 1
+
+
 def test_an_eye_on_a_mono_rig_is_refused(ring_client):
     d = ring_client
     color, depth = frame(d, 5)
