@@ -358,8 +358,13 @@ impl OptotuneSim {
                 if t < lo || t > hi {
                     s |= TEMPERATURE_OUTSIDE_LIMITS;
                 }
-                if let (MODE_FOCAL_POWER, DriveMode::FocalPower(d)) = (self.mode, self.lens.mode())
-                {
+                // Bit 6 is about the focal power a client asked for (`PwDA`): outside what the
+                // limits guarantee, it may drift as the lens warms or cools. Entering focal-
+                // power mode without one (the session's first `MwCA`, after the handshake
+                // reset the current) raises nothing: an independent client tested on a Lens
+                // Driver 4 (elhananby/optotune-lens) refuses any non-zero status byte in the
+                // `PwTA` and `MwCA` replies of its connect, which does exactly that.
+                if let (MODE_FOCAL_POWER, Some(d)) = (self.mode, self.focal_power_target) {
                     if d < min || d > max {
                         s |= FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE;
                     }
@@ -670,14 +675,11 @@ mod tests {
         let r = payload(&ask(&mut sim, &cmd(b"PwTA\x02\x80\x01\x40"))).to_vec();
         assert_eq!(r[2], 0, "{r:?}");
         let r = payload(&ask(&mut sim, &cmd(b"MwCA"))).to_vec();
-        // Holding the zero-current -2 D is outside what 20 °C allows (-1.9 D): bit 6, a
-        // warning; no error bits.
-        assert_eq!(
-            r[3],
-            status_bit::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE as u8,
-            "{r:?}"
-        );
+        // Entering focal-power mode raises nothing: no focal power was asked for yet (the
+        // lens holds its zero-current -2 D, below the -1.9 D that 20 °C guarantees).
+        assert_eq!(r[3], 0, "{r:?}");
         assert_eq!(payload(&ask(&mut sim, &cmd(b"MMA"))), b"MMA\x05");
+        assert_eq!(payload(&ask(&mut sim, &cmd(b"Sr"))), b"S\0\0\0\0");
         // Limits too wide for the current window (upper current limit raw 512 = 36.6 mA): the
         // holdable range inverts (bit 4).
         ask(&mut sim, &cmd(b"CwUA\x02\x00"));
@@ -687,6 +689,59 @@ mod tests {
             0x10,
             "{r:?}"
         );
+    }
+
+    #[test]
+    fn the_guaranteed_range_bit_follows_the_power_asked_for_not_the_connect() {
+        let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+        // What a client does at connect: handshake, limits 20..40 °C, focal-power mode.
+        let connect = |sim: &mut OptotuneSim| {
+            assert_eq!(ask(sim, b"Start"), b"Ready\r\n");
+            let pt = payload(&ask(sim, &cmd(b"PwTA\x02\x80\x01\x40"))).to_vec();
+            let mca = payload(&ask(sim, &cmd(b"MwCA"))).to_vec();
+            let sr = payload(&ask(sim, &cmd(b"Sr"))).to_vec();
+            (pt[2], mca[3], sr[4])
+        };
+        let sr = |sim: &mut OptotuneSim| payload(&ask(sim, &cmd(b"Sr")))[4];
+        // Firmware type A: raw = (D + 5) x 200.
+        let set = |sim: &mut OptotuneSim, d: f32| {
+            let raw = ((d + 5.0) * 200.0).round() as i16;
+            let mut body = b"PwDA".to_vec();
+            body.extend_from_slice(&raw.to_be_bytes());
+            body.extend_from_slice(&[0, 0]);
+            assert!(ask(sim, &cmd(&body)).is_empty());
+        };
+        let bit6 = status_bit::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE as u8;
+        // The guaranteed range at 25 °C for 20..40 °C: -2 + 0.02 x 5 = -1.9 D up to
+        // -2 + 0.03 x 292.84 - 0.02 x 15 = 6.49 D (the lens model's defaults).
+        let (min, max) = sim_range(&mut sim);
+        assert!(
+            (min + 1.9).abs() < 1e-3 && (max - 6.485).abs() < 1e-2,
+            "{min} {max}"
+        );
+        for d in [0.0, 0.5, 1.0] {
+            assert_eq!(connect(&mut sim), (0, 0, 0), "connect before {d} D");
+            set(&mut sim, d);
+            assert_eq!(sr(&mut sim), 0, "{d} D is within the guaranteed range");
+        }
+        // Asked for outside the range, either side: bit 6, until a power inside it.
+        for d in [6.6, -1.95] {
+            set(&mut sim, d);
+            assert_eq!(sr(&mut sim), bit6, "{d} D");
+        }
+        set(&mut sim, 1.0);
+        assert_eq!(sr(&mut sim), 0);
+        // A new session's handshake clears the request with the current.
+        set(&mut sim, 6.6);
+        assert_eq!(connect(&mut sim), (0, 0, 0));
+    }
+
+    /// The range the simulated unit reports for its temperature limits, D.
+    fn sim_range(sim: &mut OptotuneSim) -> (f32, f32) {
+        sim.temperature_limits_c = Some((20.0, 40.0));
+        let r = sim.holdable_range().unwrap();
+        sim.temperature_limits_c = None;
+        r
     }
 
     #[test]

@@ -19,6 +19,22 @@ pub struct LensState {
     pub host_time: Timestamp,
 }
 
+/// A condition a device reported that does not stop it (a status warning), for the caller to
+/// report once, naming the device: drivers do not know which eye a device serves.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeviceWarning {
+    /// What the device said, in its own terms (e.g. a status bit's name).
+    pub condition: String,
+    /// What it means for the user, and what to do about it.
+    pub meaning: String,
+}
+
+impl std::fmt::Display for DeviceWarning {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.condition, self.meaning)
+    }
+}
+
 /// A focus-tunable lens. Implementations enforce [`VarifocalLens::power_range`] themselves:
 /// a request outside it is clamped or refused, and never sent.
 pub trait VarifocalLens: Send {
@@ -31,6 +47,10 @@ pub trait VarifocalLens: Send {
     ) -> impl Future<Output = Result<Timestamp, DeviceError>> + Send;
     /// Reads back power, current and temperature.
     fn state(&mut self) -> impl Future<Output = Result<LensState, DeviceError>> + Send;
+    /// Warnings the device raised since the last call, each once per (re)connect.
+    fn take_warnings(&mut self) -> Vec<DeviceWarning> {
+        Vec::new()
+    }
 }
 
 /// Which eye.

@@ -14,8 +14,8 @@ pub mod units;
 
 pub use clock_sync::ClockMapper;
 pub use device::{
-    EyeRay, GazeSample, GazeSource, LensState, LightEdge, LightEvent, LightQueue, Photodiode,
-    PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault, Side, VarifocalLens,
+    DeviceWarning, EyeRay, GazeSample, GazeSource, LensState, LightEdge, LightEvent, LightQueue,
+    Photodiode, PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault, Side, VarifocalLens,
 };
 pub use error::{DeviceError, InputError, LinkError};
 pub use image::{DepthMap, Plane, RgbImage, Rgbd};

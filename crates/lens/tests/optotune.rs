@@ -158,6 +158,64 @@ async fn configured_temperature_limits_are_what_is_sent() {
     );
 }
 
+/// A status warning is the caller's to report, typed and once per connect: the driver names
+/// no lens (it does not know which eye it serves) and logs nothing above debug itself.
+#[tokio::test(start_paused = true)]
+async fn status_warnings_are_taken_once_per_connect_with_what_they_mean() {
+    // A plain connect raises nothing, whatever power is then commanded within the range.
+    let (mut d, _, _) = driver().await;
+    assert_eq!(d.take_warnings(), vec![]);
+    for p in [0.0, 0.5, 1.0] {
+        d.set_power(Diopters(p)).await.unwrap();
+        assert_eq!(d.status().await.unwrap(), protocol::Status(0), "{p} D");
+    }
+    assert_eq!(d.take_warnings(), vec![]);
+    assert_eq!(d.warned(), protocol::Status(0));
+
+    // Limits 30..40 °C on a lens at 25 °C: bit 7 in the PwTA, MwCA and Sr replies of one
+    // connect, and in every later status read; one warning per (re)connect.
+    let opens = Arc::new(Mutex::new(Vec::<Faults>::new()));
+    let opens_in = opens.clone();
+    let opener = Opener::new(move || {
+        let host = spawn_sim(OptotuneSimConfig::default());
+        opens_in.lock().unwrap().push(host.faults());
+        async move { Ok::<_, LinkError>(host) }
+    });
+    let warm = cfg().with_temperature_limits_c(30.0, 40.0);
+    let mut d = Optotune::connect_with(opener, warm, Arc::new(TokioClock::new()))
+        .await
+        .unwrap();
+    let w = d.take_warnings();
+    assert_eq!(w.len(), 1, "{w:?}");
+    assert_eq!(
+        w[0].condition,
+        "the Lens Driver 4 reports temperature outside the user's limits"
+    );
+    assert!(
+        w[0].meaning.contains("30..40 °C")
+            && w[0].meaning.contains("devices.lens.temperature_limits_c"),
+        "{}",
+        w[0].meaning
+    );
+    assert_eq!(
+        d.warned(),
+        protocol::Status(protocol::Status::TEMPERATURE_OUTSIDE_LIMITS)
+    );
+    assert!(d
+        .status()
+        .await
+        .unwrap()
+        .contains(protocol::Status::TEMPERATURE_OUTSIDE_LIMITS));
+    assert_eq!(d.take_warnings(), vec![], "reported once");
+    // Unplugged and replugged: a new session reports it again, once.
+    let first = opens.lock().unwrap()[0].clone();
+    first.disconnect("unplugged");
+    assert!(d.state().await.unwrap_err().needs_reconnect());
+    d.state().await.unwrap();
+    assert_eq!(d.reconnects(), 1);
+    assert_eq!(d.take_warnings().len(), 1);
+}
+
 /// Status error bits at connect are refusals in the device's words, told apart from a broken
 /// link.
 #[tokio::test(start_paused = true)]

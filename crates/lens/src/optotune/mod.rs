@@ -17,7 +17,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use dioptra_core::{
-    Clock, DeviceError, Diopters, LensState, LinkError, PowerRange, Timestamp, VarifocalLens,
+    Clock, DeviceError, DeviceWarning, Diopters, LensState, LinkError, PowerRange, Timestamp,
+    VarifocalLens,
 };
 use dioptra_transport::ByteLink;
 use tokio::time::Instant;
@@ -89,6 +90,10 @@ pub struct Optotune<L: ByteLink> {
     last_power: Option<Diopters>,
     /// Status error bits last seen; focal-power control stays stopped while set.
     fault: Option<Status>,
+    /// Warning bits reported since the last (re)connect: each is reported once per session.
+    warned: Status,
+    /// Warnings not yet taken by the caller ([`VarifocalLens::take_warnings`]).
+    warnings: Vec<DeviceWarning>,
     /// The reply being read, kept here rather than on the exchange's stack: an exchange
     /// dropped mid-reply (a state read cut short by a new command) leaves what it read, and
     /// the next exchange reads the rest of that frame before its own.
@@ -146,6 +151,8 @@ impl<L: ByteLink> Optotune<L> {
             mode: Mode::Other(0),
             last_power: None,
             fault: None,
+            warned: Status(0),
+            warnings: Vec::new(),
             reply: None,
             buf: Vec::with_capacity(protocol::MAX_COMMAND_LEN),
             stray_crc_errors: 0,
@@ -200,8 +207,14 @@ impl<L: ByteLink> Optotune<L> {
         self.fault
     }
 
-    /// Records `s`'s error bits (or their absence) and logs its warnings. A status byte from a
-    /// `PwTA`/`MwCA` reply (`full_word` false) says nothing about the bits above byte #1.
+    /// The warning bits the device raised since the last (re)connect.
+    pub fn warned(&self) -> Status {
+        self.warned
+    }
+
+    /// Records `s`'s error bits (or their absence) and queues its warning bits not yet
+    /// reported this session for the caller, who knows which lens this is. A status byte from
+    /// a `PwTA`/`MwCA` reply (`full_word` false) says nothing about the bits above byte #1.
     fn note_status(&mut self, s: Status, full_word: bool) {
         let kept = if full_word {
             0
@@ -209,8 +222,20 @@ impl<L: ByteLink> Optotune<L> {
             self.fault.map_or(0, |f| f.0 & !0xff)
         };
         self.fault = Some(Status(s.errors().0 | kept)).filter(|e| e.0 != 0);
-        if s.warnings().0 != 0 {
-            tracing::warn!("Lens Driver 4 status: {}", s.warnings().names().join(", "));
+        let new = s.warnings().0 & !self.warned.0;
+        if new == 0 {
+            return;
+        }
+        self.warned = Status(self.warned.0 | new);
+        tracing::debug!(status = new, "Lens Driver 4 status warning");
+        for bit in (0..9).map(|b| 1u32 << b).filter(|b| new & b != 0) {
+            self.warnings.push(DeviceWarning {
+                condition: format!(
+                    "the Lens Driver 4 reports {}",
+                    Status(bit).names().join(", ")
+                ),
+                meaning: warning_meaning(bit, self.cfg.temperature_limits_c),
+            });
         }
     }
 
@@ -264,6 +289,8 @@ impl<L: ByteLink> Optotune<L> {
     }
 
     async fn session_setup(&mut self) -> Result<(), DeviceError> {
+        // A new session reports its warnings again, once.
+        self.warned = Status(0);
         self.handshake().await?;
         let firmware_type = self.exchange(&protocol::GetFirmwareType).await?.0;
         let firmware_version = self.exchange(&protocol::GetFirmwareVersion).await?.0;
@@ -587,6 +614,31 @@ fn check_status(s: Status, when: &str) -> Result<(), DeviceError> {
     })
 }
 
+/// What a status warning bit means for the person running the rig, and what to do.
+fn warning_meaning(bit: u32, (lower_c, upper_c): (f32, f32)) -> String {
+    match bit {
+        Status::CANNOT_REACH_FOCAL_POWER => "the lens cannot reach the focal power it was \
+            commanded to within its current limits: it holds the nearest power it can, so the \
+            focus is not the one asked for"
+            .into(),
+        Status::TEMPERATURE_OUTSIDE_SPEC => "the lens is outside its product's temperature \
+            specification: its focal power is not calibrated there; let it return to room \
+            temperature before trusting its focus"
+            .into(),
+        Status::FOCAL_POWER_OUTSIDE_GUARANTEED_RANGE => format!(
+            "the commanded focal power is outside the range the driver can hold at every \
+             temperature between {lower_c} and {upper_c} °C (devices.lens.temperature_limits_c): \
+             it may drift as the lens warms or cools; narrower limits widen that range"
+        ),
+        Status::TEMPERATURE_OUTSIDE_LIMITS => format!(
+            "the lens temperature is outside the limits {lower_c}..{upper_c} °C \
+             (devices.lens.temperature_limits_c): its temperature compensation no longer \
+             guarantees the focal power; widen the limits or let the lens settle"
+        ),
+        _ => "a condition Optotune's protocol sheet does not describe further".into(),
+    }
+}
+
 fn protocol_error(e: ProtocolError) -> DeviceError {
     match e {
         ProtocolError::CommandError { code } => DeviceError::Refused {
@@ -646,5 +698,9 @@ impl<L: ByteLink> VarifocalLens for Optotune<L> {
         }
         .await;
         self.note(r)
+    }
+
+    fn take_warnings(&mut self) -> Vec<DeviceWarning> {
+        std::mem::take(&mut self.warnings)
     }
 }

@@ -6,8 +6,9 @@ use std::future::Future;
 use std::pin::Pin;
 
 use dioptra_core::{
-    DeviceError, Diopters, GazeSample, GazeSource, LensState, LightEvent, Photodiode,
-    PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
+    DeviceError, DeviceWarning, Diopters, GazeSample, GazeSource, LensState, LightEvent,
+    Photodiode, PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp,
+    VarifocalLens,
 };
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
@@ -17,6 +18,7 @@ pub trait DynLens: Send {
     fn power_range(&self) -> PowerRange;
     fn set_power(&mut self, power: Diopters) -> BoxFuture<'_, Result<Timestamp, DeviceError>>;
     fn state(&mut self) -> BoxFuture<'_, Result<LensState, DeviceError>>;
+    fn take_warnings(&mut self) -> Vec<DeviceWarning>;
 }
 
 impl<T: VarifocalLens> DynLens for T {
@@ -28,6 +30,9 @@ impl<T: VarifocalLens> DynLens for T {
     }
     fn state(&mut self) -> BoxFuture<'_, Result<LensState, DeviceError>> {
         Box::pin(VarifocalLens::state(self))
+    }
+    fn take_warnings(&mut self) -> Vec<DeviceWarning> {
+        VarifocalLens::take_warnings(self)
     }
 }
 
@@ -46,6 +51,9 @@ impl VarifocalLens for BoxLens {
     }
     fn state(&mut self) -> impl Future<Output = Result<LensState, DeviceError>> + Send {
         self.0.state()
+    }
+    fn take_warnings(&mut self) -> Vec<DeviceWarning> {
+        self.0.take_warnings()
     }
 }
 

@@ -71,6 +71,7 @@ where
             }
         }
         dev.ok();
+        report_warnings(&mut lens, &dev);
         let _ = out.send(DeviceInput::LensLink(id, true)).await;
         let mut poll = tokio::time::interval(settings.lens_poll);
         poll.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -111,6 +112,7 @@ where
                     match read {
                         Ok(s) => {
                             health.ok();
+                            report_warnings(&mut lens, &dev);
                             let _ = out.try_send(DeviceInput::LensState(id, s));
                         }
                         Err(e) => match health.judge(&e) {
@@ -124,6 +126,19 @@ where
         dev.lost(&lost);
         let _ = out.send(DeviceInput::LensLink(id, false)).await;
     }
+}
+
+/// Logs the warnings the driver raised (each once per connect), naming the lens; returns
+/// the lines logged.
+pub(super) fn report_warnings<D: VarifocalLens>(lens: &mut D, dev: &DeviceHandle) -> Vec<String> {
+    lens.take_warnings()
+        .into_iter()
+        .map(|w| {
+            let line = format!("{}: {w}", dev.name);
+            tracing::warn!(device = %dev.name, "{line}");
+            line
+        })
+        .collect()
 }
 
 /// Sends `order` and reports it on the wire.

@@ -403,3 +403,32 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
     let report = rig.wait().await;
     assert!(report.ok(), "{:?}", report.problems());
 }
+
+/// A Lens Driver 4 status warning is logged once per connect, naming the lens (the driver
+/// does not know which eye it serves) and saying what it means.
+#[tokio::test(start_paused = true)]
+async fn a_lens_status_warning_names_the_lens_once_per_connect() {
+    let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+    let (host, mut end) = dioptra_transport::memory::pair(4096);
+    let c = clock.clone();
+    tokio::spawn(async move {
+        let mut sim = dioptra_sim::optotune::OptotuneSim::new(Default::default());
+        let _ = dioptra_sim::serve::serve(&mut end, &mut sim, c.as_ref()).await;
+    });
+    let range = PowerRange::new(Diopters(-1.0), Diopters(4.0)).unwrap();
+    // Limits of 30..40 °C on a lens at 25 °C: the device says the temperature is outside them.
+    let cfg = OptotuneConfig::new(LensLimits::new(range)).with_temperature_limits_c(30.0, 40.0);
+    let mut lens = Optotune::connect(host, cfg, clock).await.unwrap();
+    let registry = Arc::new(Registry::default());
+    let dev = registry.add("right lens", "optotune", &Port::Sim);
+    let lines = lens::report_warnings(&mut lens, &dev);
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    assert!(
+        lines[0].starts_with(
+            "right lens: the Lens Driver 4 reports temperature outside the user's limits: "
+        ) && lines[0].contains("devices.lens.temperature_limits_c"),
+        "{}",
+        lines[0]
+    );
+    assert_eq!(lens::report_warnings(&mut lens, &dev), Vec::<String>::new());
+}
