@@ -645,6 +645,7 @@ async fn a_device_that_never_answers_the_handshake() {
 
 mod pty {
     use super::*;
+    use dioptra_transport::discovery::SerialIdentity;
     use dioptra_transport::pty::PtyPair;
     use dioptra_transport::serial::{SerialLink, SerialSettings};
 
@@ -682,6 +683,145 @@ mod pty {
             .unwrap();
         tokio::time::sleep(Duration::from_millis(150)).await;
         assert!((d.state().await.unwrap().power.0 + 2.0).abs() <= 0.01);
+    }
+
+    /// A simulator on a new pty, as [`serve_on_pty`], with the task serving it: aborting the
+    /// task closes the pty's master, which hangs up the driver as an unplug does.
+    fn plug_on_pty() -> (std::path::PathBuf, tokio::task::JoinHandle<()>) {
+        let PtyPair {
+            mut master,
+            slave_path,
+        } = PtyPair::open().unwrap();
+        let task = tokio::spawn(async move {
+            let mut sim = OptotuneSim::new(OptotuneSimConfig::default());
+            let clock = TokioClock::new();
+            let _ = serve(&mut master, &mut sim, &clock).await;
+        });
+        (slave_path, task)
+    }
+
+    /// A sysfs tree in which the tty at `/dev/pts/N` belongs to a USB device with a serial
+    /// number, as `/sys/class/tty/ttyACM0` belongs to a Lens Driver 4.
+    struct FakeSys(tempfile::TempDir);
+
+    impl FakeSys {
+        fn new() -> Self {
+            let d = tempfile::tempdir().unwrap();
+            std::fs::create_dir_all(d.path().join("class/tty")).unwrap();
+            FakeSys(d)
+        }
+        /// sysfs's name for the tty at `path` ("/dev/pts/5" is "pts!5").
+        fn name(path: &std::path::Path) -> String {
+            let rest = path.strip_prefix("/dev").unwrap();
+            rest.to_string_lossy().replace('/', "!")
+        }
+        fn plug(&self, tty: &std::path::Path, usb_serial: &str) {
+            let usb = self.0.path().join("devices/usb1").join(usb_serial);
+            std::fs::create_dir_all(usb.join("if0")).unwrap();
+            for (k, v) in [
+                ("idVendor", "03eb"),
+                ("idProduct", "2018"),
+                ("serial", usb_serial),
+            ] {
+                std::fs::write(usb.join(k), format!("{v}\n")).unwrap();
+            }
+            let class = self
+                .0
+                .path()
+                .join("devices/virtual/tty")
+                .join(Self::name(tty));
+            std::fs::create_dir_all(&class).unwrap();
+            std::os::unix::fs::symlink(usb.join("if0"), class.join("device")).unwrap();
+            std::os::unix::fs::symlink(
+                &class,
+                self.0.path().join("class/tty").join(Self::name(tty)),
+            )
+            .unwrap();
+        }
+        fn unplug(&self, tty: &std::path::Path) {
+            std::fs::remove_file(self.0.path().join("class/tty").join(Self::name(tty))).unwrap();
+        }
+        fn root(&self) -> std::path::PathBuf {
+            self.0.path().to_path_buf()
+        }
+    }
+
+    /// Calls `state` until it answers: the first call after an unplug reports the loss, the
+    /// next reopens (a deadline for a real pty, not a timing assertion).
+    async fn until_answered(d: &mut Optotune<SerialLink>) -> dioptra_core::LensState {
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        loop {
+            match d.state().await {
+                Ok(s) => return s,
+                Err(e) if std::time::Instant::now() < deadline => {
+                    let _ = e;
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                Err(e) => panic!("no answer after the replug: {e}"),
+            }
+        }
+    }
+
+    #[tokio::test]
+    async fn a_lens_known_by_its_serial_number_is_found_again_on_a_new_tty() {
+        let sys = FakeSys::new();
+        let (first, task) = plug_on_pty();
+        sys.plug(&first, "LD4-RIGHT");
+        let opener = Opener::serial_in(
+            sys.root(),
+            SerialIdentity::at(&first).with_usb_serial("LD4-RIGHT"),
+            SerialSettings::baud(115_200),
+        );
+        let mut d = Optotune::connect_with(opener, cfg(), Arc::new(TokioClock::new()))
+            .await
+            .unwrap();
+        assert!(
+            format!("{d:?}").contains(&*first.to_string_lossy()),
+            "{d:?}"
+        );
+        d.set_power(Diopters(1.5)).await.unwrap();
+        // Unplugged; it comes back on another tty, and the old one is gone.
+        task.abort();
+        sys.unplug(&first);
+        let (second, _task) = plug_on_pty();
+        assert_ne!(first, second);
+        sys.plug(&second, "LD4-RIGHT");
+        until_answered(&mut d).await;
+        assert_eq!(d.reconnects(), 1);
+        assert!(
+            format!("{d:?}").contains(&*second.to_string_lossy()),
+            "{d:?}"
+        );
+        // The last commanded power was sent again after the new session's handshake.
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        let s = d.state().await.unwrap();
+        assert!((s.power.0 - 1.5).abs() <= 0.01, "{s:?}");
+    }
+
+    #[tokio::test]
+    async fn another_unit_on_the_configured_path_is_refused_naming_both_serial_numbers() {
+        let sys = FakeSys::new();
+        let (path, _task) = plug_on_pty();
+        sys.plug(&path, "LD4-LEFT");
+        let opener = Opener::serial_in(
+            sys.root(),
+            SerialIdentity::at(&path).with_usb_serial("LD4-RIGHT"),
+            SerialSettings::baud(115_200),
+        );
+        let e = Optotune::connect_with(opener, cfg(), Arc::new(TokioClock::new()))
+            .await
+            .unwrap_err();
+        let m = e.to_string();
+        assert!(
+            m.contains(&*path.to_string_lossy())
+                && m.contains("\"LD4-LEFT\"")
+                && m.contains("\"LD4-RIGHT\""),
+            "{m}"
+        );
+        assert!(
+            e.needs_reconnect(),
+            "the right unit may still be plugged in: {e:?}"
+        );
     }
 
     /// The exact bytes the `opto`-family Python clients send, with the reply sizes their

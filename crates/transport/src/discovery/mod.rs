@@ -12,11 +12,11 @@
 use std::fmt;
 use std::path::Path;
 
+mod identity;
 mod sysfs;
 
-pub use sysfs::serial_port_by_id;
-
-pub use sysfs::serial_ports;
+pub use identity::SerialIdentity;
+pub use sysfs::{serial_port_by_id, serial_port_by_usb_serial, serial_ports, usb_serial_of};
 
 /// How a driver talks to a device.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]

@@ -72,6 +72,52 @@ pub fn serial_port_by_id(sys_root: &Path, vid: u16, pid: u16) -> Result<PathBuf,
     }
 }
 
+/// The tty of the USB serial device whose serial number (its USB `iSerialNumber`, as
+/// `/dev/serial/by-id/` names and `dioptra devices` show it) is `serial`, under `sys_root`:
+/// wherever it came back after an unplug. Err says why not: nothing listed, no such device
+/// plugged in, or several ttys with that serial number (a device with more than one serial
+/// interface: give its path).
+pub fn serial_port_by_usb_serial(sys_root: &Path, serial: &str) -> Result<PathBuf, String> {
+    let ports = serial_ports(sys_root)?;
+    let mut hits: Vec<_> = ports
+        .into_iter()
+        .filter(|d| d.serial.as_deref() == Some(serial))
+        .map(|d| d.location)
+        .collect();
+    hits.sort();
+    match hits.len() {
+        0 => Err(format!(
+            "no USB serial device with serial number {serial:?} is plugged in (`dioptra devices` lists what is)"
+        )),
+        1 => Ok(PathBuf::from(hits.remove(0))),
+        _ => Err(format!(
+            "several serial ports belong to the USB device with serial number {serial:?} ({}): give the port's path",
+            hits.join(", ")
+        )),
+    }
+}
+
+/// The USB serial number of the device behind the tty at `tty` (`/dev/ttyACM0`, or a link
+/// to one such as `/dev/serial/by-id/usb-...-if00`), read under `sys_root`. `Ok(None)` for a
+/// tty that is not on USB (a pty, an on-board UART) or whose USB device has no serial number;
+/// Err when `tty` does not exist.
+pub fn usb_serial_of(sys_root: &Path, tty: &Path) -> Result<Option<String>, String> {
+    let real = fs::canonicalize(tty).map_err(|e| format!("{}: {e}", tty.display()))?;
+    // The class entry's name: the path below /dev with '/' written '!', as sysfs does.
+    let name = match real.strip_prefix("/dev") {
+        Ok(rest) => rest.to_string_lossy().replace('/', "!"),
+        Err(_) => match real.file_name() {
+            Some(n) => n.to_string_lossy().into_owned(),
+            None => return Ok(None),
+        },
+    };
+    let Ok(device) = fs::canonicalize(sys_root.join("class/tty").join(&name).join("device")) else {
+        return Ok(None);
+    };
+    let root = fs::canonicalize(sys_root).unwrap_or_else(|_| sys_root.to_path_buf());
+    Ok(usb_device_above(&device, &root).and_then(|usb| read_attr(&usb, "serial")))
+}
+
 fn usb_device_above(device: &Path, root: &Path) -> Option<PathBuf> {
     device
         .ancestors()
@@ -240,6 +286,88 @@ mod tests {
             two.contains("/dev/ttyACM0, /dev/ttyACM2") && two.contains("device path"),
             "{two}"
         );
+    }
+
+    #[test]
+    fn a_port_is_found_by_usb_serial_number_wherever_it_is_now() {
+        let sys = FakeSys::new();
+        // Two Lens Driver 4s: same VID:PID, told apart by serial number only.
+        let (a, b) = ("devices/usb1/1-2", "devices/usb1/1-3");
+        for (usb, serial) in [(a, "LD4-A"), (b, "LD4-B")] {
+            sys.usb_device(
+                usb,
+                &[
+                    ("idVendor", "03eb"),
+                    ("idProduct", "2018"),
+                    ("serial", serial),
+                ],
+            );
+        }
+        sys.tty("ttyACM0", Some(&format!("{a}/1-2:1.0")));
+        sys.tty("ttyACM1", Some(&format!("{b}/1-3:1.0")));
+        assert_eq!(
+            serial_port_by_usb_serial(sys.root(), "LD4-B").unwrap(),
+            PathBuf::from("/dev/ttyACM1")
+        );
+        // VID:PID cannot tell them apart; the serial number can.
+        assert!(serial_port_by_id(sys.root(), 0x03eb, 0x2018).is_err());
+        let none = serial_port_by_usb_serial(sys.root(), "LD4-C").unwrap_err();
+        assert!(
+            none.contains("\"LD4-C\"") && none.contains("plugged in"),
+            "{none}"
+        );
+        // B comes back on another tty after an unplug.
+        fs::remove_file(sys.root().join("class/tty/ttyACM1")).unwrap();
+        sys.tty("ttyACM2", Some(&format!("{b}/1-3:1.0")));
+        assert_eq!(
+            serial_port_by_usb_serial(sys.root(), "LD4-B").unwrap(),
+            PathBuf::from("/dev/ttyACM2")
+        );
+        // A composite device with two serial interfaces: ambiguous.
+        sys.tty("ttyACM3", Some(&format!("{b}/1-3:1.2")));
+        let two = serial_port_by_usb_serial(sys.root(), "LD4-B").unwrap_err();
+        assert!(two.contains("/dev/ttyACM2, /dev/ttyACM3"), "{two}");
+    }
+
+    #[test]
+    fn the_serial_number_behind_a_tty_path_or_a_link_to_it() {
+        let sys = FakeSys::new();
+        let usb = "devices/usb1/1-2";
+        sys.usb_device(
+            usb,
+            &[
+                ("idVendor", "03eb"),
+                ("idProduct", "2018"),
+                ("serial", "LD4-A"),
+            ],
+        );
+        sys.tty("ttyACM0", Some(&format!("{usb}/1-2:1.0")));
+        sys.tty("ttyS0", Some("devices/platform/serial8250"));
+        // A stand-in /dev: the tty, and a by-id link to it as udev makes them.
+        let dev = tempfile::tempdir().unwrap();
+        fs::write(dev.path().join("ttyACM0"), "").unwrap();
+        fs::write(dev.path().join("ttyS0"), "").unwrap();
+        let by_id = dev.path().join("serial/by-id");
+        fs::create_dir_all(&by_id).unwrap();
+        let link = by_id.join("usb-Optotune_Lens_Driver_4_LD4-A-if00");
+        symlink("../../ttyACM0", &link).unwrap();
+        let tty = dev.path().join("ttyACM0");
+        assert_eq!(
+            usb_serial_of(sys.root(), &tty).unwrap().as_deref(),
+            Some("LD4-A")
+        );
+        assert_eq!(
+            usb_serial_of(sys.root(), &link).unwrap().as_deref(),
+            Some("LD4-A")
+        );
+        // Not on USB, not a tty sysfs knows: no serial number.
+        assert_eq!(
+            usb_serial_of(sys.root(), &dev.path().join("ttyS0")).unwrap(),
+            None
+        );
+        assert_eq!(usb_serial_of(sys.root(), dev.path()).unwrap(), None);
+        let gone = usb_serial_of(sys.root(), &dev.path().join("ttyACM9")).unwrap_err();
+        assert!(gone.contains("ttyACM9"), "{gone}");
     }
 
     #[test]
