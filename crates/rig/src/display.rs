@@ -18,9 +18,10 @@ use dioptra_core::{Diopters, RgbImage, Timestamp};
 use serde::Serialize;
 use thiserror::Error;
 
-use crate::config::{Corner, DisplayLayout, MarkerEvent, MarkerPatch};
 use crate::render::FrameImage;
+use config::{Corner, DisplayLayout, MarkerEvent, MarkerPatch};
 
+pub mod config;
 pub mod placement;
 
 use placement::{PlaceError, PlacementConfig, Placer};
@@ -238,7 +239,7 @@ impl HeadlessSink {
 
     /// The sink `display` asks for: its layout, scale and offsets on a panel of its size
     /// (`side-by-side`: 2 x `width` wide; `two-outputs`: an output `width` x `height` per eye).
-    pub fn for_display(d: &crate::config::Display) -> Result<Self, DisplayError> {
+    pub fn for_display(d: &config::Display) -> Result<Self, DisplayError> {
         let surface = match d.layout {
             DisplayLayout::SideBySide => (d.width.saturating_mul(2), d.height),
             DisplayLayout::One | DisplayLayout::TwoOutputs => (d.width, d.height),
@@ -610,15 +611,15 @@ mod tests {
 
     fn display(
         layout: DisplayLayout,
-        scale: crate::config::Scale,
+        scale: config::Scale,
         dir: &std::path::Path,
-    ) -> crate::config::Display {
-        crate::config::Display {
+    ) -> config::Display {
+        config::Display {
             width: 10,
             height: 8,
             layout,
             scale,
-            eye_offset_px: crate::config::EyeOffsets {
+            eye_offset_px: config::EyeOffsets {
                 left: [1, 0],
                 right: [-1, 1],
             },
@@ -640,7 +641,7 @@ mod tests {
 
     #[test]
     fn side_by_side_writes_the_panel_with_each_eye_at_its_place() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,
@@ -691,7 +692,7 @@ mod tests {
 
     #[test]
     fn two_outputs_write_an_image_per_eye() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::TwoOutputs,
@@ -738,7 +739,7 @@ mod tests {
 
     #[test]
     fn layout_one_writes_the_image_byte_for_byte_as_before() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let (old, new) = (dir.path().join("old"), dir.path().join("new"));
         let mut d = display(DisplayLayout::One, Scale::Exact, &new);
@@ -776,7 +777,7 @@ mod tests {
 
     #[test]
     fn a_misfit_is_not_shown_and_is_counted_with_its_reason() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,
@@ -819,7 +820,7 @@ mod tests {
 
     #[test]
     fn one_view_on_a_stereo_layout_goes_to_both_eyes_and_is_counted() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,

@@ -16,8 +16,10 @@ use serde_json::json;
 
 pub use dioptra_sched::Command;
 
-use crate::config::{Lenses, Method, Mode, RigConfig};
+use crate::config::RigConfig;
+use crate::devices::config::{LensDevice, Lenses};
 use crate::devices::DeviceInput;
+use crate::mode::{Method, Mode};
 use crate::Control;
 
 /// What the daemon gives the scheduler.
@@ -72,7 +74,7 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     let r = cfg.optics.lens_range;
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;
-    let dynamics = |l: &crate::config::LensDevice| LensDynamics {
+    let dynamics = |l: &LensDevice| LensDynamics {
         settle_time: Duration::from_secs_f64(l.model_settle_ms() / 1000.0),
         ..LensDynamics::default()
     };

@@ -18,13 +18,13 @@ use std::time::{Duration, Instant};
 use dioptra_core::{Diopters, Side, Timestamp};
 use tokio::sync::mpsc;
 
-use crate::config::MarkerEvent;
-use crate::config::{Method, Mode};
 use crate::content::stereo::EyeViews;
 use crate::content::{Content, ContentFrame};
 use crate::devices::{DeviceInput, DeviceLinks, LensOrder};
+use crate::display::config::MarkerEvent;
 use crate::display::{DisplaySink, Frame, Marker};
 use crate::engine::{Command, Engine, Input};
+use crate::mode::{Method, Mode};
 use crate::render::{Planned, RenderJob, RenderOutput, Renderer};
 use crate::{Control, ControlMsg, LoopCmd, PendingRecording, RigState};
 
@@ -850,7 +850,7 @@ mod tests {
             + &text[i..].replacen("sim_settle_ms = 15.0", "sim_settle_ms = 60.0", 1)
             + "\n[content]\nanimate = false\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        assert!(cfg.stereo());
+        assert!(cfg.display.stereo());
         let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
         let (renders, frames, requests) = (Arc::default(), Arc::default(), Arc::default());
         let mut setup = RigSetup::new(cfg);
@@ -908,7 +908,14 @@ mod tests {
         let text = crate::config::EXAMPLE_SIM_RIG.to_string()
             + "\n[content]\nsource = \"stream\"\nring = \"none\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
         let log = Log::default();
         let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
         let mut setup = RigSetup::new(cfg);

@@ -27,6 +27,7 @@
 //! parks the lens and waits for it, the sync task stops the sequence), and [`Rig::wait`]
 //! finishes the recording.
 
+pub mod api;
 pub mod config;
 pub mod content;
 pub mod devices;
@@ -34,7 +35,9 @@ pub mod display;
 pub mod engine;
 pub mod executor;
 pub mod lsl;
+pub mod mode;
 pub mod observers;
+pub mod optics;
 pub mod photons;
 pub mod recording;
 pub mod render;
@@ -959,9 +962,10 @@ impl Rig {
                         .into(),
                 ))
             }
-            None if cfg.lsl.enabled => {
-                Some(lsl::LslOutlets::start(&cfg, clock.clone()).map_err(RigError::Lsl)?)
-            }
+            None if cfg.lsl.enabled => Some(
+                lsl::LslOutlets::start(&cfg.lsl, &cfg.devices, clock.clone())
+                    .map_err(RigError::Lsl)?,
+            ),
             None => None,
         };
         let content: Arc<dyn Content> = match content {
@@ -973,19 +977,23 @@ impl Rig {
                 } else {
                     content::scene::Pacing::RealTime
                 };
-                tokio::task::spawn_blocking(move || content::open(&c, pacing))
-                    .await
-                    .map_err(|e| RigError::Task(e.to_string()))??
+                tokio::task::spawn_blocking(move || {
+                    content::open(&c.content, &c.display, &c.eye, &c.api, pacing)
+                })
+                .await
+                .map_err(|e| RigError::Task(e.to_string()))??
             }
         };
         let renderer: Arc<dyn Renderer> = match renderer {
             Some(r) => r,
             None => {
                 let c = cfg.clone();
-                let r = tokio::task::spawn_blocking(move || render::rgbd::RgbdRenderer::new(&c))
-                    .await
-                    .map_err(|e| RigError::Task(e.to_string()))?
-                    .map_err(RigError::Renderer)?;
+                let r = tokio::task::spawn_blocking(move || {
+                    render::rgbd::RgbdRenderer::new(&c.render, &c.eye, &c.display, &c.optics)
+                })
+                .await
+                .map_err(|e| RigError::Task(e.to_string()))?
+                .map_err(RigError::Renderer)?;
                 Arc::new(r)
             }
         };
@@ -1015,9 +1023,9 @@ impl Rig {
         };
         let spec = match sim {
             Some(s) => s,
-            None => SimSpec::from_config(&cfg)?,
+            None => SimSpec::from_config(&cfg, engine.scheduler().config().display.latency)?,
         };
-        let settings = DeviceSettings::from_config(&cfg);
+        let settings = DeviceSettings::from_config(&cfg.devices);
         let (controls_tx, controls_rx) = mpsc::channel(64);
         let (websocket, _) = broadcast::channel(1024);
         let registry = Arc::new(Registry::default());
@@ -1044,9 +1052,10 @@ impl Rig {
             auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
             content: content.clone(),
             renderer: renderer.clone(),
-            eye_views: match cfg.stereo() {
+            eye_views: match cfg.display.stereo() {
                 true => Some(Arc::new(
-                    content::stereo::EyeViews::new(&cfg).map_err(RigError::Renderer)?,
+                    content::stereo::EyeViews::new(&cfg.eye, &cfg.display)
+                        .map_err(RigError::Renderer)?,
                 )),
                 false => None,
             },
@@ -1081,7 +1090,7 @@ impl Rig {
         let panel_feed = spec
             .panel
             .clone()
-            .map(|p| Box::new(devices::simulators::PanelFeed(p)) as Box<dyn LoopHook>);
+            .map(|p| Box::new(observers::PanelFeed(p)) as Box<dyn LoopHook>);
         let looper = tokio::spawn(executor::run_loop(executor::LoopParts {
             state: state.clone(),
             engine,

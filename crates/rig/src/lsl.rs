@@ -16,36 +16,14 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 
 use dioptra_core::{lock, Clock, Diopters, GazeSample, LensState, OpticsMap, Timestamp};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use serde_json::{json, Value};
 
-use crate::config::RigConfig;
+use crate::devices::config::{Devices, Port};
 use crate::devices::LensId;
 
-/// `[lsl]` in the rig config.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LslConfig {
-    #[serde(default)]
-    pub enabled: bool,
-    /// The streams are `<name>-gaze`, `<name>-lens` and `<name>-markers`; their source ids
-    /// derive from it, so a consumer picks the streams up again after a restart.
-    #[serde(default = "default_name")]
-    pub name: String,
-}
-
-fn default_name() -> String {
-    "dioptra".into()
-}
-
-impl Default for LslConfig {
-    fn default() -> Self {
-        LslConfig {
-            enabled: false,
-            name: default_name(),
-        }
-    }
-}
+pub mod config;
+pub use config::LslConfig;
 
 /// Whether this build links liblsl.
 pub const BUILT_WITH_LSL: bool = cfg!(feature = "lsl");
@@ -152,15 +130,15 @@ pub const LENS_EVENT_READ_BACK: f64 = 2.0;
 /// The codes of the gaze stream's `eye_phase` channel, in code order.
 pub const EYE_PHASES: [&str; 6] = ["unknown", "fixation", "pursuit", "saccade", "blink", "lost"];
 
-/// The outlets a rig with `cfg` makes, whether or not LSL is enabled in it.
-pub fn stream_specs(cfg: &RigConfig) -> Vec<StreamSpec> {
-    let name = &cfg.lsl.name;
+/// The outlets a rig with `[lsl]` and `devices` makes, whether or not LSL is enabled in it.
+pub fn stream_specs(lsl: &LslConfig, devices: &Devices) -> Vec<StreamSpec> {
+    let name = &lsl.name;
     vec![StreamSpec {
         name: format!("{name}-gaze"),
         kind: "Gaze",
         // A real tracker's rate is known only once it is connected: irregular.
-        rate_hz: if cfg.devices.gaze.port == crate::config::Port::Sim {
-            cfg.devices.gaze.sim_rate_hz
+        rate_hz: if devices.gaze.port == Port::Sim {
+            devices.gaze.sim_rate_hz
         } else {
             0.0
         },
@@ -172,8 +150,8 @@ pub fn stream_specs(cfg: &RigConfig) -> Vec<StreamSpec> {
     }]
     .into_iter()
     // A lens outlet per lens: `<name>-lens`, or `<name>-lens-left` and `<name>-lens-right`.
-    .chain((0..cfg.devices.lens.count()).map(|i| {
-        let stream = match cfg.devices.lens.side(i) {
+    .chain((0..devices.lens.count()).map(|i| {
+        let stream = match devices.lens.side(i) {
             None => format!("{name}-lens"),
             Some(eye) => format!("{name}-lens-{}", eye.as_str()),
         };
@@ -249,9 +227,13 @@ pub struct LslOutlets {
 const QUEUE: usize = 8192;
 
 impl LslOutlets {
-    /// Starts the outlets `cfg` declares on an LSL thread of their own.
-    pub fn start(cfg: &RigConfig, clock: Arc<dyn Clock>) -> Result<LslOutlets, String> {
-        let specs = stream_specs(cfg);
+    /// Starts the outlets `[lsl]` and `devices` declare on an LSL thread of their own.
+    pub fn start(
+        lsl: &LslConfig,
+        devices: &Devices,
+        clock: Arc<dyn Clock>,
+    ) -> Result<LslOutlets, String> {
+        let specs = stream_specs(lsl, devices);
         let (tx, rx) = sync_channel(QUEUE);
         let pushed = Arc::new(Mutex::new(PushStatus::default()));
         outlet_thread(specs.clone(), rx, clock, pushed.clone())?;
@@ -264,12 +246,15 @@ impl LslOutlets {
     }
 
     /// Outlets whose samples go to `rx` instead of liblsl (tests).
-    pub fn to_channel(cfg: &RigConfig) -> (LslOutlets, Receiver<LslSample>) {
+    pub fn to_channel(lsl: &LslConfig, devices: &Devices) -> (LslOutlets, Receiver<LslSample>) {
         let (tx, rx) = sync_channel(QUEUE);
         let outlets = LslOutlets {
             tx,
             counts: Counts::default(),
-            names: stream_specs(cfg).into_iter().map(|s| s.name).collect(),
+            names: stream_specs(lsl, devices)
+                .into_iter()
+                .map(|s| s.name)
+                .collect(),
             pushed: Arc::default(),
         };
         (outlets, rx)
@@ -579,6 +564,7 @@ mod liblsl {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::RigConfig;
     use dioptra_core::EyeRay;
 
     fn sample() -> GazeSample {
@@ -606,10 +592,13 @@ mod tests {
     #[test]
     fn a_lens_per_eye_has_a_lens_outlet_per_eye() {
         let one = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
-        let names: Vec<String> = stream_specs(&one).into_iter().map(|s| s.name).collect();
+        let names: Vec<String> = stream_specs(&one.lsl, &one.devices)
+            .into_iter()
+            .map(|s| s.name)
+            .collect();
         assert_eq!(names, ["dioptra-gaze", "dioptra-lens", "dioptra-markers"]);
         let two = RigConfig::parse(crate::config::EXAMPLE_SIM_BINOCULAR_RIG).unwrap();
-        let specs = stream_specs(&two);
+        let specs = stream_specs(&two.lsl, &two.devices);
         let names: Vec<&str> = specs.iter().map(|s| s.name.as_str()).collect();
         assert_eq!(
             names,
@@ -679,7 +668,7 @@ mod tests {
     fn the_specs_name_three_streams_by_the_configured_name() {
         let mut cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
         cfg.lsl.name = "rig7".into();
-        let s = stream_specs(&cfg);
+        let s = stream_specs(&cfg.lsl, &cfg.devices);
         let names: Vec<_> = s.iter().map(|s| (s.name.as_str(), s.kind)).collect();
         assert_eq!(
             names,
@@ -695,7 +684,7 @@ mod tests {
     #[test]
     fn markers_are_json_with_the_event_first() {
         let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
-        let (o, rx) = LslOutlets::to_channel(&cfg);
+        let (o, rx) = LslOutlets::to_channel(&cfg.lsl, &cfg.devices);
         o.marker(Timestamp(7), "frame", json!({ "frame": 3 }));
         match rx.try_recv().unwrap() {
             LslSample::Marker { t, text } => {
@@ -713,7 +702,7 @@ mod tests {
         use crate::{Control, Rig, RigSetup};
         let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
         let rate = cfg.devices.gaze.sim_rate_hz;
-        let (outlets, rx) = LslOutlets::to_channel(&cfg);
+        let (outlets, rx) = LslOutlets::to_channel(&cfg.lsl, &cfg.devices);
         let mut setup = RigSetup::new(cfg);
         setup.simulated_time = true;
         setup.lsl = Some(outlets);
@@ -786,14 +775,16 @@ mod tests {
     fn without_the_feature_starting_outlets_says_how_to_build_them() {
         let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
         let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
-        let e = LslOutlets::start(&cfg, clock).err().expect("no liblsl");
+        let e = LslOutlets::start(&cfg.lsl, &cfg.devices, clock)
+            .err()
+            .expect("no liblsl");
         assert!(e.contains("--features lsl"), "{e}");
     }
 
     #[test]
     fn a_full_queue_drops_and_counts_rather_than_blocking_the_loop() {
         let cfg = RigConfig::parse(crate::config::EXAMPLE_SIM_RIG).unwrap();
-        let (o, _rx) = LslOutlets::to_channel(&cfg);
+        let (o, _rx) = LslOutlets::to_channel(&cfg.lsl, &cfg.devices);
         for _ in 0..QUEUE + 5 {
             o.marker(Timestamp(0), "x", json!({}));
         }

@@ -1,5 +1,5 @@
-//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages
-//! and the Lab Streaming Layer outlets, each a [`LoopHook`] the loop calls as it goes. The
+//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages,
+//! the Lab Streaming Layer outlets and a simulated panel's marker patch, each a [`LoopHook`] the loop calls as it goes. The
 //! loop itself ([`crate::executor`]) only steps the scheduler and carries out its commands.
 
 use std::collections::HashMap;
@@ -9,13 +9,13 @@ use std::time::Duration;
 use dioptra_core::{lock, Timestamp};
 use serde_json::json;
 
-use crate::config::{Method, Mode};
 use crate::content::ContentFrame;
 use crate::devices::DeviceInput;
 use crate::devices::LensId;
 use crate::display::DisplaySink;
 use crate::engine::{self, Command, Engine};
 use crate::executor::{LoopHook, Presented, RenderReport};
+use crate::mode::{Method, Mode};
 use crate::recording::{
     ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensStateRec, LensWireRec, Marker,
     PresentRec, Rec, RenderRec,
@@ -601,6 +601,18 @@ impl LoopHook for Lsl {
                     "repeat": p.repeat,
                 }),
             );
+        }
+    }
+}
+
+/// Shows each presented frame's marker patch on the simulated panel, so that a simulated
+/// photodiode sees what the display draws (whichever sink draws it).
+pub struct PanelFeed(pub dioptra_sim::panel::SharedPanel);
+
+impl LoopHook for PanelFeed {
+    fn presented(&mut self, _now: Timestamp, shown: &Presented, _sink: &dyn DisplaySink) {
+        if let Some(white) = shown.marker_white {
+            self.0.lock().present(shown.shown, shown.frame, white);
         }
     }
 }

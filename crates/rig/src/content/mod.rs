@@ -11,6 +11,7 @@
 //! - [`stereo`]: each eye's view on a stereo layout (the content's own two, the scene ray
 //!   cast per eye, or synthesised from one RGB-D).
 
+pub mod config;
 pub mod files;
 pub mod ring;
 pub mod scene;
@@ -22,7 +23,10 @@ use std::sync::Arc;
 
 use dioptra_core::{DepthMap, RgbImage, Rgbd, Side, Timestamp};
 
-use crate::config::{ContentSource, RigConfig};
+use crate::api::Api;
+use crate::display::config::Display;
+use crate::optics::config::Eye;
+use config::{ContentConfig, ContentSource, DEFAULT_VIEW_SPAN_MM};
 
 /// When a content frame arrived (a stream frame's request, a file frame's due time, the
 /// scene's frame time) and when it was ready to show, on the rig's clock.
@@ -171,33 +175,40 @@ pub enum ContentError {
     Scene(#[source] dioptra_render::RenderError),
 }
 
-/// The content source `cfg` describes; `pacing` says whether the loop waits for the animated
-/// scene's frames (on a simulated clock). CPU work (the scene's first frame is ray cast, the
-/// first file decoded): call it from a blocking thread.
-pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, ContentError> {
-    let d = &cfg.display;
-    Ok(match cfg.content.source {
+/// The content source `[content]` describes, at the display's size, seen by `eye` (the scene;
+/// `api`: where a stream's ring goes by default); `pacing` says whether the loop waits for the
+/// animated scene's frames (on a simulated clock). CPU work (the scene's first frame is ray
+/// cast, the first file decoded): call it from a blocking thread.
+pub fn open(
+    c: &ContentConfig,
+    display: &Display,
+    eye: &Eye,
+    api: &Api,
+    pacing: scene::Pacing,
+) -> Result<Arc<dyn Content>, ContentError> {
+    let d = display;
+    Ok(match c.source {
         ContentSource::Scene => {
-            let animate = cfg.content.animate.unwrap_or(true);
-            let cam = scene::camera(cfg).map_err(ContentError::Scene)?;
+            let animate = c.animate.unwrap_or(true);
+            let cam = scene::camera(eye, display).map_err(ContentError::Scene)?;
             Arc::new(
                 scene::AnimatedScene::start_with_eyes(
                     d.scene_seed,
                     cam,
                     animate,
                     pacing,
-                    cfg.stereo().then_some(cfg.eye.ipd_mm * 0.5e-3),
+                    d.stereo().then_some(eye.ipd_mm * 0.5e-3),
                 )
                 .map_err(ContentError::Scene)?,
             )
         }
-        ContentSource::Files => Arc::new(files::FileFrames::open(cfg)?),
+        ContentSource::Files => Arc::new(files::FileFrames::open(c, display)?),
         ContentSource::Stream => {
-            let ring = cfg.content.ring_path(&cfg.api);
+            let ring = c.ring_path(api);
             let s = stream::StreamFrames::with_eyes(
                 d.width as usize,
                 d.height as usize,
-                cfg.stereo(),
+                d.stereo(),
                 ring.as_deref(),
             )
             .map_err(|e| {
@@ -211,14 +222,9 @@ pub fn open(cfg: &RigConfig, pacing: scene::Pacing) -> Result<Arc<dyn Content>, 
                     path,
                 }
             })?;
-            let s = match cfg.content.views {
+            let s = match c.views {
                 Some(n) => s
-                    .with_view_grid(
-                        n,
-                        cfg.content
-                            .view_span_mm
-                            .unwrap_or(crate::config::DEFAULT_VIEW_SPAN_MM),
-                    )
+                    .with_view_grid(n, c.view_span_mm.unwrap_or(DEFAULT_VIEW_SPAN_MM))
                     .map_err(|e| ContentError::Config(format!("content.views: {e}")))?,
                 None => s,
             };

@@ -20,7 +20,8 @@ use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use serde::Serialize;
 
 use super::{Arrival, Content, ContentFrame};
-use crate::config::RigConfig;
+use crate::display::config::Display;
+use crate::optics::config::Eye;
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -115,12 +116,14 @@ struct Polled {
     at: Option<Timestamp>,
 }
 
-/// The camera the rig's scene is seen through: the eye model of `cfg` over the display's
-/// pixels.
-pub fn camera(cfg: &RigConfig) -> Result<Camera, RenderError> {
-    let d = &cfg.display;
-    let eye = cfg.eye_model().validated()?;
-    Ok(Camera::new(eye, d.width as usize, d.height as usize))
+/// The camera the rig's scene is seen through: `eye` over the display's pixels.
+pub fn camera(eye: &Eye, display: &Display) -> Result<Camera, RenderError> {
+    let model = eye.model(display.width).validated()?;
+    Ok(Camera::new(
+        model,
+        display.width as usize,
+        display.height as usize,
+    ))
 }
 
 impl std::fmt::Debug for AnimatedScene {

@@ -18,7 +18,8 @@ use dioptra_render::RenderError;
 use dioptra_sim::scene::Camera;
 
 use super::ContentFrame;
-use crate::config::RigConfig;
+use crate::display::config::Display;
+use crate::optics::config::Eye;
 
 /// Where each eye's view comes from, for the `/status` and the log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -68,15 +69,15 @@ impl std::fmt::Debug for EyeViews {
 }
 
 impl EyeViews {
-    /// The eyes of `cfg`: `eye.ipd_mm` apart, seeing the display's field.
-    pub fn new(cfg: &RigConfig) -> Result<EyeViews, RenderError> {
+    /// The eyes of `[eye]`: `ipd_mm` apart, seeing the display's field.
+    pub fn new(eye: &Eye, display: &Display) -> Result<EyeViews, RenderError> {
         Ok(EyeViews {
-            cam: super::scene::camera(cfg)?,
-            eye: cfg.eye_model().validated()?,
-            half_ipd_m: cfg.eye.ipd_mm * 0.5e-3,
+            cam: super::scene::camera(eye, display)?,
+            eye: eye.model(display.width).validated()?,
+            half_ipd_m: eye.ipd_mm * 0.5e-3,
             newest: Mutex::new(None),
             status: Mutex::new(EyeViewsStatus {
-                half_ipd_mm: cfg.eye.ipd_mm * 0.5,
+                half_ipd_mm: eye.ipd_mm * 0.5,
                 ..EyeViewsStatus::default()
             }),
         })
@@ -177,7 +178,7 @@ mod tests {
     fn a_point_appears_in_the_two_eyes_shifted_by_the_disparity_the_geometry_predicts() {
         use dioptra_sim::scene::{Object, Pattern, Rot, Scene, Shape, Texture};
         let cfg = binocular();
-        assert!(cfg.stereo());
+        assert!(cfg.display.stereo());
         // Two fronto-parallel plates (front faces at 0.4 m and 1.25 m, the far one lower in the
         // field, +y down), before a wall at 2 m.
         let plate = |x: f32, y: f32, z: f32, half: f32| Object {
@@ -214,7 +215,7 @@ mod tests {
                 }),
             )
         };
-        let views = EyeViews::new(&cfg).unwrap();
+        let views = EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         let ([l, r], source) = views.of(&frame).unwrap();
         assert_eq!(source, ViewSource::SceneRayCast);
         // 63 mm at 20 degrees over 96 px: 17.1 px per diopter, by hand.
@@ -243,9 +244,16 @@ mod tests {
     #[test]
     fn one_rgbd_gives_each_eye_a_view_close_to_the_one_ray_cast_there() {
         let cfg = binocular();
-        let content = crate::content::open(&cfg, Pacing::Simulated).unwrap();
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            Pacing::Simulated,
+        )
+        .unwrap();
         let scene_frame = content.poll(Timestamp::ZERO).unwrap();
-        let views = EyeViews::new(&cfg).unwrap();
+        let views = EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         let (cast, source) = views.of(&scene_frame).unwrap();
         // The animated scene cast them on its worker, as they are cast here.
         assert_eq!(source, ViewSource::SceneRayCast);

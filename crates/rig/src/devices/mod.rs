@@ -9,6 +9,7 @@
 //! link for `port = "sim"`, a serial port or HID device otherwise) and a connected driver.
 
 mod boxed;
+pub mod config;
 mod forward;
 mod lens;
 pub mod open;
@@ -31,8 +32,9 @@ use tokio_util::sync::CancellationToken;
 pub use boxed::{BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
 pub use lens::ParkReport;
 
-use crate::config::{Port, RigConfig};
+use crate::config::RigConfig;
 use crate::devices::simulators::{SimDevices, SimSpec};
+use config::{ConfiguredDevice, Devices, Port};
 pub use dioptra_sched::LensId;
 
 /// A device's connection state, as the API shows it.
@@ -89,11 +91,11 @@ impl Registry {
 /// fails at once).
 pub async fn wait_for_required(
     registry: &Registry,
-    devices: &[crate::config::ConfiguredDevice],
+    devices: &[ConfiguredDevice],
     timeout: Duration,
 ) -> Result<(), String> {
     let required: Vec<_> = devices.iter().filter(|d| d.required).collect();
-    let why_required = |d: &crate::config::ConfiguredDevice| {
+    let why_required = |d: &ConfiguredDevice| {
         format!(
             "the rig requires it ({0}.required, true by default for a real port; set it to \
              false to start without it, or port = \"sim\")",
@@ -251,10 +253,10 @@ pub struct DeviceSettings {
 }
 
 impl DeviceSettings {
-    pub fn from_config(cfg: &RigConfig) -> DeviceSettings {
+    pub fn from_config(devices: &Devices) -> DeviceSettings {
         DeviceSettings {
             link: LinkPolicy::default(),
-            lens_poll: Duration::from_secs_f64(cfg.devices.lens.first().poll_ms / 1000.0),
+            lens_poll: Duration::from_secs_f64(devices.lens.first().poll_ms / 1000.0),
             park_timeout: Duration::from_secs(1),
         }
     }
@@ -430,7 +432,7 @@ pub fn spawn_devices(
     stop: &CancellationToken,
 ) -> Result<(SimDevices, DeviceLinks, DeviceTasks), DeviceError> {
     let mut sims = SimDevices::default();
-    let (mf_tx, mf_rx) = watch::channel(cfg.mode == crate::config::Mode::Multifocal);
+    let (mf_tx, mf_rx) = watch::channel(cfg.mode == crate::mode::Mode::Multifocal);
     let ctx = open::Context {
         cfg: cfg.clone(),
         clock,
@@ -503,6 +505,7 @@ pub fn spawn_devices(
         let row = open::row(&open::SYNC, s.driver)?;
         let dev = registry.add("sync", row.name, &s.port);
         let schedule = cfg
+            .optics
             .plane_schedule()
             .map_err(|e| DeviceError::Invalid(e.to_string()))?;
         let connect = open::device_connector(

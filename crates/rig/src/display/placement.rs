@@ -12,7 +12,7 @@
 use dioptra_core::{RgbImage, Side};
 use serde::Serialize;
 
-use crate::config::{Display, DisplayLayout, EyeOffsets, Scale};
+use super::config::{Display, DisplayLayout, EyeOffsets, Scale};
 use crate::display::Frame;
 use crate::render::FrameImage;
 

@@ -2,6 +2,7 @@
 //! ([`Renderer`]; the rig's own is [`rgbd::RgbdRenderer`]), and the job and result that travel
 //! between the loop and the worker thread.
 
+pub mod config;
 pub mod rgbd;
 
 use std::borrow::Cow;
@@ -11,8 +12,8 @@ use dioptra_core::{Diopters, RgbImage, Timestamp};
 use dioptra_render::gpu::GpuImage;
 use dioptra_render::RenderError;
 
-use crate::config::{Method, Mode};
 use crate::content::ContentFrame;
+use crate::mode::{Method, Mode};
 
 /// A frame to render.
 #[derive(Debug, Clone, PartialEq)]
