@@ -14,6 +14,9 @@ import unittest
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import check_layers  # noqa: E402
 
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
 class CrateTest(unittest.TestCase):
     def setUp(self):
         self._tmp = tempfile.TemporaryDirectory()
@@ -283,6 +286,20 @@ class Layers(CrateTest):
         rc, out, _ = self.run_check("--layers", self.layers("error kernel\nmethod\ngpu\n"))
         self.assertEqual(rc, 1)
         self.assertIn("cycle of 2 modules: error, kernel", out)
+
+
+class ThisRepository(unittest.TestCase):
+    def test_render_keeps_its_layers(self):
+        src = os.path.join(REPO, "crates", "render", "src")
+        layers = os.path.join(REPO, "crates", "render", "LAYERS")
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            rc = check_layers.main([src, "--layers", layers])
+        self.assertEqual(rc, 0, out.getvalue())
+        # Not vacuous: the crate has its modules and their imports.
+        crate = check_layers.Crate(src)
+        self.assertGreater(len(crate.modules), 20)
+        self.assertGreater(len(crate.edges()), 80)
 
 
 if __name__ == "__main__":
