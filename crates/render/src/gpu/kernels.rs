@@ -10,8 +10,7 @@ use crate::backend::Foveated;
 use crate::backend::Progress;
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, mismatch, RenderError};
-use crate::foveate::LogPolar;
-use crate::foveate::FOV_CELL;
+use crate::foveate::{log_polar_tables, LogPolar, FOV_CELL};
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
 use crate::lightfield::{halton_disk, LightFieldParams, LEVEL_SIGMA, PREFILTER};
 use crate::metrics::Quality;
@@ -19,7 +18,7 @@ use crate::multifocal::{
     check_optimize_inputs, check_planes, Layers, OptimizeParams, OptimizeReport,
 };
 use crate::retina::LfView;
-use crate::views::RgbdView;
+use crate::views::{check_inputs, light_field_positions, RgbdView};
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 
@@ -874,38 +873,12 @@ pub(super) fn synthesize_light_field(
     eye: &EyeModel,
     progress: Progress,
 ) -> Out<Vec<LfView>> {
-    if grid == 0 || grid > 64 || !(span.is_finite() && span >= 0.0) {
-        return Err(invalid(format!(
-            "grid {grid} (expected 1..=64) or span {span} m is invalid"
-        )));
-    }
-    let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
-    let (w, h) = (first.rgbd.width(), first.rgbd.height());
-    if w == 0
-        || h == 0
-        || inputs
-            .iter()
-            .any(|v| (v.rgbd.width(), v.rgbd.height()) != (w, h))
-    {
-        return Err(mismatch("input views are empty or differ in size"));
-    }
-    if !inputs
-        .iter()
-        .flat_map(|v| v.position.iter())
-        .all(|p| p.is_finite())
-    {
-        return Err(invalid("view positions must be finite"));
-    }
+    let positions = light_field_positions(grid, span)?;
+    let (w, h) = check_inputs(inputs)?;
     let pitch = eye_for(eye, w)?.pixel_pitch_tan();
     let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
     let n = (w * h) as u64;
     let ni = inputs.len();
-    let step = if grid > 1 {
-        span / (grid - 1) as f32
-    } else {
-        0.0
-    };
-    let half = (grid - 1) as f32 * 0.5;
     let mut depths = Vec::with_capacity(ni * w * h);
     let mut colors = Vec::with_capacity(3 * ni * w * h);
     for v in inputs {
@@ -915,11 +888,7 @@ pub(super) fn synthesize_light_field(
     let mut total = FrameStats::default();
     let mut out = Vec::with_capacity(grid * grid);
     let mut shared: Option<(BufRef, BufRef)> = None;
-    for k in 0..grid * grid {
-        let target = [
-            ((k % grid) as f32 - half) * step,
-            ((k / grid) as f32 - half) * step,
-        ];
+    for (k, target) in positions.into_iter().enumerate() {
         let shifts: Vec<[f32; 4]> = inputs
             .iter()
             .map(|v| {
@@ -1004,55 +973,6 @@ pub(super) struct FovP {
     pub(super) cy: f32,
     pub(super) gw: u32,
     pub(super) gh: u32,
-}
-
-/// The log-polar tables: rho per ring and (cos, sin) per angle, computed in f32 exactly as
-/// the CPU's mask does (so the GPU's reduced-precision transcendentals never move a sample),
-/// after the CPU's parameter checks.
-fn log_polar_tables(
-    w: usize,
-    h: usize,
-    p: &LogPolar,
-) -> Result<(Vec<f32>, Vec<[f32; 2]>), RenderError> {
-    if w == 0 || h == 0 {
-        return Err(invalid("mask size is empty"));
-    }
-    let finite = [
-        p.centre[0],
-        p.centre[1],
-        p.scale,
-        p.kernel,
-        p.r_offset,
-        p.theta_offset,
-    ]
-    .iter()
-    .all(|v| v.is_finite());
-    if !finite || p.scale < 0.05 || p.kernel <= 0.0 || p.r_offset <= 0.0 {
-        return Err(invalid(format!(
-            "log-polar parameters {p:?} are invalid: need finite values, S >= 0.05, K > 0, r' > 0"
-        )));
-    }
-    let corners = [
-        [0.0, 0.0],
-        [w as f32, 0.0],
-        [0.0, h as f32],
-        [w as f32, h as f32],
-    ];
-    let l = corners
-        .iter()
-        .map(|c| (c[0] - p.centre[0]).hypot(c[1] - p.centre[1]))
-        .fold(1.0f32, f32::max);
-    let rr = (w as f32 / p.scale).round().clamp(1.0, 1e5) as usize;
-    let rho = (0..rr)
-        .map(|r| p.r_offset * ((r as f32).powf(1.0 / p.kernel) * l.ln() / rr as f32).exp())
-        .collect();
-    let dir = (0..rr)
-        .map(|t| {
-            let a = std::f32::consts::TAU * t as f32 / rr as f32 + p.theta_offset;
-            [a.cos(), a.sin()]
-        })
-        .collect();
-    Ok((rho, dir))
 }
 
 /// Where a foveation frame's sampling mask comes from.
