@@ -42,7 +42,7 @@ pub mod spectral;
 pub mod views;
 
 pub use backend::{Backend, Foveated};
-pub use common::eye_for;
+pub use common::{check_focus, eye_for};
 pub use cpu::Cpu;
 pub use defocus::DefocusMethod;
 pub use error::{GpuError, RenderError};
