@@ -26,7 +26,8 @@ What counts as an import (the rules, decided here once):
 - An edge A -> B is any path in A's code (a `use` item, or a path in expressions, types, impls and
   attributes' code, tests included) that names an item defined in B: `crate::b::X`, `super::X`,
   `self::b::X`, `b::X` with b a child, `$crate::b::X`. Comments, doc comments and strings are not
-  code: a doc link is not an import. Paths into other crates are not edges.
+  code: a doc link is not an import. Paths into other crates are not edges, nor is the path of
+  a visibility (`pub(in crate::b)`).
 - A path is resolved to where its item is defined, through `use` imports and re-exports: `crate::X`
   where lib.rs has `pub use b::X` is an import of b, not of the root, so a facade that only
   re-exports never becomes a cycle's hub. A path that ends at a module (`use super::kernels`) is an
@@ -42,6 +43,7 @@ What counts as an import (the rules, decided here once):
   of a module in the same or a lower layer is allowed; an import of a higher layer is an error.
 
 Standard library only; the lexer knows Rust's comments, strings, raw strings, chars and lifetimes.
+Its tests: python3 -m unittest scripts/test_check_layers.py
 """
 
 from __future__ import annotations
