@@ -45,7 +45,7 @@ pub enum Cmd {
         /// With a lens per eye, the eye's lens.
         #[serde(
             skip_serializing_if = "Option::is_none",
-            serialize_with = "dioptra_rig::config::side_serde::serialize"
+            serialize_with = "dioptra_rig::recording::side_serde::serialize"
         )]
         eye: Option<Side>,
     },

@@ -42,7 +42,6 @@ pub use crate::lsl::config::LslConfig;
 pub use crate::mode::{methods, Method, Mode, RENDERED};
 pub use crate::optics::config::{Eye, EyeOptics, Layout, Optics, Range, Tables};
 pub use crate::recording::config::Recording;
-pub use crate::recording::side_serde;
 pub use crate::render::config::{Render, RenderBackend};
 pub use error::ConfigError;
 use error::{invalid, one_line};

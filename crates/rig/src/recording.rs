@@ -439,7 +439,7 @@ pub struct StartRec {
     pub manual_focus_d: Option<f32>,
     /// Whether the recording began with the daemon (a replay then starts from the same state).
     pub from_start: bool,
-    /// The device tasks' settings ([`crate::devices::DeviceSettings`]); absent in older
+    /// The device tasks' settings (`devices::DeviceSettings`); absent in older
     /// recordings.
     #[serde(default)]
     pub device_tasks: serde_json::Value,

@@ -30,7 +30,8 @@ use dioptra_render::io::{read_color, read_depth, DepthUnits};
 use serde::Serialize;
 
 use super::config::{ContentConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
-use super::{Arrival, Content, ContentError, ContentFrame, ContentView};
+use super::frame::{Arrival, ContentFrame, ContentView};
+use super::source::{Content, ContentError};
 use crate::display::config::Display;
 
 /// Frames decoded ahead of the one on show.

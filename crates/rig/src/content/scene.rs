@@ -19,7 +19,8 @@ use dioptra_sim::scene::animation::Animation;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use serde::Serialize;
 
-use super::{Arrival, Content, ContentFrame};
+use super::frame::{Arrival, ContentFrame};
+use super::source::Content;
 use crate::display::config::Display;
 use crate::optics::config::Eye;
 
@@ -177,7 +178,7 @@ fn render(
 
 /// The left and the right eye's views of `scene`, the eyes `2 x half_ipd_m` apart with
 /// parallel axes, cast side by side: the animated scene's on its worker, and
-/// [`super::stereo::EyeViews`]'s for a frame that brings its scene without them.
+/// `stereo::EyeViews`'s for a frame that brings its scene without them.
 pub fn cast_eyes(
     scene: &Scene,
     cam: &Camera,

@@ -1,6 +1,9 @@
 use super::*;
 use crate::config::tests::SIM_RIG;
-use dioptra_core::{PowerRange, SequencerEvent};
+use config::Port;
+use std::sync::Mutex;
+
+use dioptra_core::{LinkError, PowerRange, SequencerEvent};
 use dioptra_lens::{LensLimits, Optotune, OptotuneConfig};
 
 #[test]

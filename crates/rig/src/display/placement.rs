@@ -13,7 +13,7 @@ use dioptra_core::{RgbImage, Side};
 use serde::Serialize;
 
 use super::config::{Display, DisplayLayout, EyeOffsets, Scale};
-use crate::display::Frame;
+use super::frame::Frame;
 use crate::render::FrameImage;
 
 /// A rectangle of surface pixels: `x`, `y` of its top-left corner (rows from the top).

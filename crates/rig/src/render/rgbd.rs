@@ -33,11 +33,11 @@ use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
 use super::config::{Render, RenderBackend};
-use crate::content::{ContentFrame, ContentView};
+use super::job::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+use crate::content::frame::{ContentFrame, ContentView};
 use crate::display::config::Display;
 use crate::mode::{Method, Mode};
 use crate::optics::config::{Eye, Optics};
-use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use dioptra_sched::RenderMethod;
 
 /// Renders frames of RGB-D content (the procedural scene, a lab's files, a stream) by the
