@@ -99,6 +99,18 @@ impl Coefficients {
         ((xd, yd), j)
     }
 
+    /// Whether the radial map stops growing anywhere from the axis out to radius `r`
+    /// (checked at 64 radii: a fold narrower than `r / 64` that unfolds again is missed,
+    /// which no lens's smooth distortion has).
+    fn folds_within(&self, r: f64) -> bool {
+        (1..=64).any(|i| {
+            let q = r * f64::from(i) / 64.0;
+            let (rr, dr) = self.radial(q * q);
+            let slope = rr + 2.0 * q * q * dr;
+            slope.is_nan() || slope <= 0.0 || !rr.is_finite()
+        })
+    }
+
     /// The radius (in tangent units) where the radial map `r R(r²)` stops growing, if it does
     /// before `limit`: beyond it two directions land on one pixel and the model has no
     /// inverse. Scanned in steps of 1e-4 (a radius known to that).
@@ -154,8 +166,7 @@ impl ChannelModel {
             if err < tol {
                 let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
                 let r = (x * x + y * y).sqrt();
-                let folded = c.fold_radius(r + 1e-4).is_some_and(|f| f <= r);
-                return (det > 0.0 && !folded && r <= MAX_TANGENT).then_some((x, y));
+                return (det > 0.0 && !c.folds_within(r) && r <= MAX_TANGENT).then_some((x, y));
             }
             let det = j[0][0] * j[1][1] - j[0][1] * j[1][0];
             if det.abs() < 1e-300 {

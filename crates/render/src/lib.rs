@@ -19,7 +19,9 @@ pub mod multifocal;
 pub mod planner;
 pub mod retina;
 pub mod spectral;
+pub mod transfer;
 pub mod views;
+pub mod warp;
 
 pub use backend::{backend, backend_on, Backend, Cpu, DefocusMethod, Foveated};
 pub use common::eye_for;
