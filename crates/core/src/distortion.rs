@@ -293,7 +293,8 @@ impl EyepieceModel {
 }
 
 /// `[optics.distortion]` as rig.toml (and `dioptra optics --distortion FILE`) spells it: the
-/// render intrinsics and shared coefficients, each channel's table overriding any of them.
+/// render intrinsics and the coefficients shared by every channel (0 when absent), each
+/// channel's table overriding any of them.
 #[cfg(feature = "serde")]
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -305,8 +306,14 @@ pub struct DistortionSection {
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
-    #[serde(flatten)]
-    pub coefficients: CoefficientKeys,
+    pub k1: Option<f64>,
+    pub k2: Option<f64>,
+    pub p1: Option<f64>,
+    pub p2: Option<f64>,
+    pub k3: Option<f64>,
+    pub k4: Option<f64>,
+    pub k5: Option<f64>,
+    pub k6: Option<f64>,
     pub red: Option<ChannelKeys>,
     pub green: Option<ChannelKeys>,
     pub blue: Option<ChannelKeys>,
@@ -321,22 +328,6 @@ pub enum DistortionKind {
     Opencv,
 }
 
-/// The coefficients as keys, each optional (0 when absent at the top; the top's value when
-/// absent in a channel).
-#[cfg(feature = "serde")]
-#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CoefficientKeys {
-    pub k1: Option<f64>,
-    pub k2: Option<f64>,
-    pub p1: Option<f64>,
-    pub p2: Option<f64>,
-    pub k3: Option<f64>,
-    pub k4: Option<f64>,
-    pub k5: Option<f64>,
-    pub k6: Option<f64>,
-}
-
 /// `[optics.distortion.red|green|blue]`: any intrinsic or coefficient of that channel.
 #[cfg(feature = "serde")]
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
@@ -346,24 +337,14 @@ pub struct ChannelKeys {
     pub fy: Option<f64>,
     pub cx: Option<f64>,
     pub cy: Option<f64>,
-    #[serde(flatten)]
-    pub coefficients: CoefficientKeys,
-}
-
-#[cfg(feature = "serde")]
-impl CoefficientKeys {
-    fn over(&self, base: &Coefficients) -> Coefficients {
-        Coefficients {
-            k1: self.k1.unwrap_or(base.k1),
-            k2: self.k2.unwrap_or(base.k2),
-            p1: self.p1.unwrap_or(base.p1),
-            p2: self.p2.unwrap_or(base.p2),
-            k3: self.k3.unwrap_or(base.k3),
-            k4: self.k4.unwrap_or(base.k4),
-            k5: self.k5.unwrap_or(base.k5),
-            k6: self.k6.unwrap_or(base.k6),
-        }
-    }
+    pub k1: Option<f64>,
+    pub k2: Option<f64>,
+    pub p1: Option<f64>,
+    pub p2: Option<f64>,
+    pub k3: Option<f64>,
+    pub k4: Option<f64>,
+    pub k5: Option<f64>,
+    pub k6: Option<f64>,
 }
 
 #[cfg(feature = "serde")]
@@ -377,7 +358,17 @@ impl DistortionSection {
             cx: self.cx,
             cy: self.cy,
         };
-        let shared = self.coefficients.over(&Coefficients::default());
+        let z = |v: Option<f64>| v.unwrap_or(0.0);
+        let shared = Coefficients {
+            k1: z(self.k1),
+            k2: z(self.k2),
+            p1: z(self.p1),
+            p2: z(self.p2),
+            k3: z(self.k3),
+            k4: z(self.k4),
+            k5: z(self.k5),
+            k6: z(self.k6),
+        };
         let channel = |keys: &Option<ChannelKeys>| {
             let k = keys.unwrap_or_default();
             ChannelModel {
@@ -387,7 +378,16 @@ impl DistortionSection {
                     cx: k.cx.unwrap_or(render.cx),
                     cy: k.cy.unwrap_or(render.cy),
                 },
-                coefficients: k.coefficients.over(&shared),
+                coefficients: Coefficients {
+                    k1: k.k1.unwrap_or(shared.k1),
+                    k2: k.k2.unwrap_or(shared.k2),
+                    p1: k.p1.unwrap_or(shared.p1),
+                    p2: k.p2.unwrap_or(shared.p2),
+                    k3: k.k3.unwrap_or(shared.k3),
+                    k4: k.k4.unwrap_or(shared.k4),
+                    k5: k.k5.unwrap_or(shared.k5),
+                    k6: k.k6.unwrap_or(shared.k6),
+                },
             }
         };
         EyepieceModel {

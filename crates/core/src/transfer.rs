@@ -407,7 +407,7 @@ pub struct TransferFit {
 
 impl TransferFit {
     /// Fits measured (level, luminance) readings: a power law's exponent first (log-log, on
-    /// the levels between black and white), then a least-squares polynomial of degree 1 to 5
+    /// the levels between black and white), then a least-squares polynomial of degree 1 to 3
     /// in `level^γ` (a power law is degree 1; a panel that departs from one, an sRGB-like toe
     /// or an S-curve, takes more), the degree chosen by the Bayesian information criterion.
     /// Refused when too few levels, not monotone, or noisier than `limits`.
@@ -457,7 +457,7 @@ impl TransferFit {
         let t: Vec<f64> = measured.iter().map(|p| p.0.powf(gamma)).collect();
         let y: Vec<f64> = measured.iter().map(|p| p.1).collect();
         let mut best: Option<(f64, Vec<f64>)> = None;
-        for degree in 1..=5.min(n - 3) {
+        for degree in 1..=3.min(n - 3) {
             let Some(coef) = least_squares(&t, &y, degree) else {
                 continue;
             };
@@ -500,7 +500,7 @@ impl TransferFit {
             max_residual,
             coefficients,
         };
-        fit.check_monotone()?;
+        // Noise first: a curve bent by noisy readings is a noise problem.
         if max_residual.abs() > limits.max_residual {
             return Err(TransferFitError::Noisy {
                 what: format!(
@@ -520,6 +520,7 @@ impl TransferFit {
                 ),
             });
         }
+        fit.check_monotone()?;
         Ok(fit)
     }
 
@@ -744,6 +745,26 @@ mod tests {
         )
         .unwrap();
         assert!(ok.rms < 0.002, "{}", ok.rms);
+    }
+
+    #[test]
+    fn a_panel_whose_light_turns_down_is_refused_as_not_monotonic() {
+        // Smooth readings that peak at 92 % of full scale and fall 3 % by white (a panel's
+        // dynamic contrast, or a photometer clipping): the fit follows them closely, and the
+        // refusal says where the light stops rising.
+        let points: Vec<(f64, f64)> = (0..=16)
+            .map(|k| {
+                let c = k as f64 / 16.0;
+                (
+                    c,
+                    0.5 + 100.0 * (1.15 * std::f64::consts::FRAC_PI_2 * c.powf(2.4)).sin(),
+                )
+            })
+            .collect();
+        match TransferFit::fit(&points, Default::default()) {
+            Err(TransferFitError::NotMonotonic { at, .. }) => assert!(at > 0.85, "{at}"),
+            other => panic!("{other:?}"),
+        }
     }
 
     #[test]
