@@ -117,7 +117,7 @@ pub fn upload_image(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::{rust_uniform, wgsl_uniform};
+    use crate::gpu::uniforms::{rust_uniform, wgsl_uniform};
 
     #[test]
     fn the_uniform_matches_the_shader() {

@@ -397,7 +397,7 @@ pub fn warp_to_image(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gpu::{rust_uniform, wgsl_uniform};
+    use crate::gpu::uniforms::{rust_uniform, wgsl_uniform};
 
     #[test]
     fn the_uniform_and_the_vertex_match_the_shader() {
