@@ -396,6 +396,12 @@ fn frame_level(path: &Path) -> Result<f64> {
         .read_info()
         .with_context(|| format!("{} is not a PNG", path.display()))?;
     let (w, h) = (reader.info().width as usize, reader.info().height as usize);
+    if w * h > 64 << 20 {
+        bail!(
+            "{}: a {w}x{h} frame is larger than any panel",
+            path.display()
+        );
+    }
     let (color, depth) = (reader.info().color_type, reader.info().bit_depth);
     if color != png::ColorType::Grayscale
         || !matches!(depth, png::BitDepth::Eight | png::BitDepth::Sixteen)

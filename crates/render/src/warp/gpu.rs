@@ -299,6 +299,14 @@ pub fn warp_to_image(
     let ctx = &pipeline.ctx;
     let (device, queue) = (ctx.device(), ctx.queue());
     let [w, h] = mesh.panel;
+    let max = device.limits().max_texture_dimension_2d as usize;
+    if w > max || h > max {
+        return Err(GpuError::TooLarge {
+            what: format!("a {w}x{h} warp target"),
+            bytes: (16 * w * h) as u64,
+            max: (16 * max * max) as u64,
+        });
+    }
     let size = wgpu::Extent3d {
         width: w as u32,
         height: h as u32,

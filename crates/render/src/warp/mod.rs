@@ -44,6 +44,9 @@ pub struct WarpVertex {
 /// at 1080p, 4.7 MB.
 pub const DEFAULT_STEP_PX: usize = 4;
 
+/// Most vertices a mesh may have (a 4K panel at the default step has 2.1 million).
+pub const MAX_VERTICES: usize = 4 << 20;
+
 /// The pre-warp mesh of one eye: built once from the eyepiece's model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct WarpMesh {
@@ -98,6 +101,15 @@ impl WarpMesh {
             )));
         }
         let (xs, ys) = (grid(panel[0], step_px), grid(panel[1], step_px));
+        if xs.len() * ys.len() > MAX_VERTICES {
+            return Err(invalid(format!(
+                "a mesh every {step_px} px over a {}x{} panel has {} vertices, more than \
+                 {MAX_VERTICES}: use a larger step",
+                panel[0],
+                panel[1],
+                xs.len() * ys.len()
+            )));
+        }
         let to_source = source_scale(panel, source);
         let rows: Vec<(Vec<WarpVertex>, usize)> = ys
             .par_iter()
@@ -238,8 +250,13 @@ impl WarpMesh {
     /// Where channel `c` of panel pixel (x, y) is read in the source, interpolated as drawn,
     /// and whether its triangle is drawn (`None`: black).
     pub fn source_at(&self, x: f32, y: f32, c: usize) -> Option<[f32; 2]> {
-        let (i, fx) = cell(&self.xs, x);
-        let (j, fy) = cell(&self.ys, y);
+        self.sources_in(cell(&self.xs, x), cell(&self.ys, y))
+            .map(|s| s[c.min(2)])
+    }
+
+    /// Every channel's source position at the point `fx`, `fy` of cell (`i`, `j`) (as
+    /// [`cell`] gives them), `None` where the triangle is black.
+    fn sources_in(&self, (i, fx): (usize, f32), (j, fy): (usize, f32)) -> Option<[[f32; 2]; 3]> {
         let cols = self.xs.len();
         let at = |di: usize, dj: usize| &self.vertices[(j + dj) * cols + i + di];
         let (a, b, cc, d) = (at(0, 0), at(1, 0), at(0, 1), at(1, 1));
@@ -250,24 +267,25 @@ impl WarpMesh {
                 va + fy * (vc - va) + fx * (vd - vc)
             }
         };
-        let valid = lerp(a.valid, b.valid, cc.valid, d.valid);
-        if valid <= 0.999 {
+        if lerp(a.valid, b.valid, cc.valid, d.valid) <= 0.999 {
             return None;
         }
-        Some([
-            lerp(
-                a.source[c][0],
-                b.source[c][0],
-                cc.source[c][0],
-                d.source[c][0],
-            ),
-            lerp(
-                a.source[c][1],
-                b.source[c][1],
-                cc.source[c][1],
-                d.source[c][1],
-            ),
-        ])
+        Some(std::array::from_fn(|c| {
+            [
+                lerp(
+                    a.source[c][0],
+                    b.source[c][0],
+                    cc.source[c][0],
+                    d.source[c][0],
+                ),
+                lerp(
+                    a.source[c][1],
+                    b.source[c][1],
+                    cc.source[c][1],
+                    d.source[c][1],
+                ),
+            ]
+        }))
     }
 
     /// The largest distance, source pixels, between the mesh's interpolated source position
@@ -395,18 +413,21 @@ pub fn warp_cpu(
     let mut out = vec![0.0f32; 3 * pw * ph];
     let (r, rest) = out.split_at_mut(pw * ph);
     let (g, b) = rest.split_at_mut(pw * ph);
+    // Each column's cell, once.
+    let columns: Vec<(usize, f32)> = (0..pw).map(|x| cell(&mesh.xs, x as f32)).collect();
     r.par_chunks_mut(pw)
         .zip(g.par_chunks_mut(pw))
         .zip(b.par_chunks_mut(pw))
         .enumerate()
         .for_each(|(y, ((r, g), b))| {
-            for x in 0..pw {
+            let row = cell(&mesh.ys, y as f32);
+            for (x, &column) in columns.iter().enumerate() {
                 let mut rgb = [0.0f32; 3];
-                for (ch, v) in rgb.iter_mut().enumerate() {
-                    // The vertices' positions are scaled before interpolation on the GPU; the
-                    // map is affine, so scaling after is the same.
-                    if let Some(p) = mesh.source_at(x as f32, y as f32, ch) {
-                        *v = bilinear(&source.channels[ch], scaled(p));
+                if let Some(p) = mesh.sources_in(column, row) {
+                    for (ch, v) in rgb.iter_mut().enumerate() {
+                        // The vertices' positions are scaled before interpolation on the
+                        // GPU; the map is affine, so scaling after is the same.
+                        *v = bilinear(&source.channels[ch], scaled(p[ch]));
                     }
                 }
                 if let Some(lut) = draw.encode {
@@ -542,6 +563,8 @@ mod tests {
         let m = hmd_eyepiece();
         assert!(WarpMesh::new(&m, [0, 10], [10, 10], 8).is_err());
         assert!(WarpMesh::new(&m, [10, 10], [10, 10], 0).is_err());
+        let e = WarpMesh::new(&m, [16384, 16384], [10, 10], 1).unwrap_err();
+        assert!(e.to_string().contains("larger step"), "{e}");
         let mesh = WarpMesh::identity([10, 10], [10, 10], [4.5, 4.5]).unwrap();
         let img = RgbImage::new(8, 8, [0.0; 3]);
         assert!(warp_cpu(&img, &mesh, &WarpDraw::default()).is_err());
