@@ -18,7 +18,8 @@
 //! `W` wide spans -0.5 to W - 0.5. Each channel has its own model (lateral colour is a
 //! different magnification, `fx`, or different radial terms per channel). [`ChannelModel::project`]
 //! is that map; [`ChannelModel::unproject`] its inverse (panel pixel to direction, as
-//! `cv2.undistortPoints` with the camera matrix as `P`... but iterated to convergence).
+//! `cv2.undistortPoints` gives it without `P`, but iterated to convergence: OpenCV stops after
+//! five fixed-point steps by default).
 //!
 //! Pre-warping: the renderer draws the ideal image, in which direction `(x, y)` is at
 //! `(fx x + cx, fy y + cy)` with [`EyepieceModel::render`]'s intrinsics. The panel pixel `u`
