@@ -56,7 +56,7 @@ enum Command {
     Sim(sim_cmd::Args),
     /// Talk to multifocal sync hardware: status, program, start, stop, events.
     Sync(sync_cmd::Args),
-    /// Depth of field from RGB-D at one focus (gather or lightfield).
+    /// Depth of field from RGB-D at one focus (gather, lightfield, network or refine).
     Render(render_cmd::RenderArgs),
     /// A focal stack from RGB-D (default 40 slices over 0.1-4.0 D).
     Focalstack(render_cmd::FocalStackArgs),
@@ -71,12 +71,23 @@ enum Command {
     /// Log-polar foveated sampling and inverse-distance interpolation of an image.
     Foveate(render_cmd::FoveateArgs),
     /// The display-control daemon: devices, scheduler, display, control API, recording.
+    ///
+    /// The control API listens on api.listen in the rig config (127.0.0.1:7420 by default; a
+    /// path for a Unix socket): GET /status, POST /focus, PUT /frame, GET /stream and the rest.
+    ///
+    /// Logs go to stderr: info and up, or as RUST_LOG says (RUST_LOG=debug adds the loop's and
+    /// the scheduler's events; RUST_LOG=dioptra_rig::scheduler=debug only the scheduler's; an
+    /// invalid RUST_LOG is an error).
+    ///
+    /// SIGTERM, SIGINT (Ctrl-C) and SIGHUP stop it as POST /shutdown does: the lens is parked,
+    /// the sync sequence stopped and the recording finished; a second signal during the
+    /// shutdown exits as soon as the lens is parked.
     Serve(serve::Args),
     /// Drive a scheduler from a `serve` recording (MCAP) and compare its commands.
     Replay(replay::Args),
     /// Recordings: `recover` rewrites a cut-off one (the daemon killed) into a complete file.
     Recording(recording_cmd::Args),
-    /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4).
+    /// Train a DeepFocus-family network on simulated scenes (c1, c3, c4, c5, fv, c1r, c4r, c5r).
     Train(train::Args),
     /// Speed against accuracy of every render method, and the failure-case suite: CSV, charts, report.
     Eval(eval::Args),
@@ -124,14 +135,35 @@ impl std::error::Error for Exit {}
 /// The crates' `tracing` events (devices lost and reconnected, display misfits, failed
 /// renders, lens status warnings) on stderr: from `level` up, or as `RUST_LOG` says
 /// (`RUST_LOG=debug`, `RUST_LOG=dioptra_lens=trace`). Without a subscriber they went nowhere.
-fn log_to_stderr(level: &str) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
+/// A `RUST_LOG` that does not parse is an error, not a silent fall back to the default.
+fn log_to_stderr(level: &str) -> Result<(), Exit> {
+    let rust_log = std::env::var("RUST_LOG").ok();
+    let filter = log_filter(rust_log.as_deref(), level).map_err(|e| Exit::new(2, e))?;
     // Fails only if a subscriber is already set, which nothing else does.
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .try_init();
+    Ok(())
+}
+
+/// The log filter `RUST_LOG` gives (`level` where it is unset or empty), or why it does not
+/// parse.
+fn log_filter(
+    rust_log: Option<&str>,
+    level: &str,
+) -> Result<tracing_subscriber::EnvFilter, String> {
+    let Some(text) = rust_log.filter(|t| !t.trim().is_empty()) else {
+        return Ok(tracing_subscriber::EnvFilter::new(level));
+    };
+    tracing_subscriber::EnvFilter::builder()
+        .parse(text)
+        .map_err(|e| {
+            format!(
+                "RUST_LOG={text:?}: {e}: give a level (error, warn, info, debug, trace), or \
+                 targets with levels (dioptra_rig=debug,dioptra_lens=trace), or unset it"
+            )
+        })
 }
 
 /// A closed pipe on stdout (`dioptra replay --json | head`) ends the command quietly, as it
@@ -168,7 +200,10 @@ fn main() -> std::process::ExitCode {
     }
     dioptra_render::alloc::keep_freed_memory();
     let drives_a_rig = matches!(cli.command, Command::Serve(_) | Command::Hil(_));
-    log_to_stderr(if drives_a_rig { "info" } else { "warn" });
+    if let Err(e) = log_to_stderr(if drives_a_rig { "info" } else { "warn" }) {
+        eprintln!("error: {e}");
+        return std::process::ExitCode::from(e.code);
+    }
     if !drives_a_rig {
         quiet_broken_pipes();
     }
@@ -220,6 +255,65 @@ mod tests {
                 .find(|(name, _)| *name == k)
                 .map(|(_, v)| OsString::from(v))
         }
+    }
+
+    /// The lab's report: `render --help` said "gather or lightfield", `train --help` listed
+    /// c1, c3, c4 only, `serve --help` said nothing of the API address, RUST_LOG or signals.
+    #[test]
+    fn help_names_every_method_config_and_the_daemons_address_logs_and_signals() {
+        use clap::CommandFactory;
+        let cli = super::Cli::command();
+        let about = |name: &str| {
+            let c = cli.find_subcommand(name).unwrap();
+            format!(
+                "{} {}",
+                c.get_about().map(|s| s.to_string()).unwrap_or_default(),
+                c.get_long_about()
+                    .map(|s| s.to_string())
+                    .unwrap_or_default()
+            )
+        };
+        let render = about("render");
+        for m in ["gather", "lightfield", "network", "refine"] {
+            assert!(render.contains(m), "{render}");
+        }
+        // Each a method `render --method` takes: the classical ones parse as such.
+        assert!("gather".parse::<dioptra_render::DefocusMethod>().is_ok());
+        assert!("lightfield"
+            .parse::<dioptra_render::DefocusMethod>()
+            .is_ok());
+        let train = about("train");
+        for c in dioptra_net::arch::CONFIGS {
+            assert!(dioptra_net::Arch::preset(c).is_ok(), "{c}");
+            assert!(
+                train.contains(&format!("{c},")) || train.contains(&format!("{c})")),
+                "{c}: {train}"
+            );
+        }
+        let serve = about("serve");
+        for words in [
+            dioptra_rig::config::DEFAULT_LISTEN,
+            "api.listen",
+            "RUST_LOG",
+            "SIGTERM",
+            "SIGINT",
+            "SIGHUP",
+        ] {
+            assert!(serve.contains(words), "{words}: {serve}");
+        }
+    }
+
+    #[test]
+    fn an_invalid_rust_log_is_an_error_naming_it() {
+        use super::log_filter;
+        for bad in ["dioptra_rig=verbose", "debug,[{", "=info"] {
+            let e = log_filter(Some(bad), "info").unwrap_err();
+            assert!(e.starts_with(&format!("RUST_LOG={bad:?}: ")), "{e}");
+        }
+        for good in ["debug", "dioptra_rig::scheduler=debug,info", "warn", ""] {
+            assert!(log_filter(Some(good), "info").is_ok(), "{good}");
+        }
+        assert!(log_filter(None, "info").is_ok());
     }
 
     #[test]

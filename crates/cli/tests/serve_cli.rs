@@ -531,3 +531,39 @@ fn a_second_signal_during_shutdown_exits_once_the_lens_is_parked() {
     assert!(rest.contains("SIGINT during shutdown"), "{rest}");
     assert!(rest.contains("lens parked; exiting"), "{rest}");
 }
+
+/// A required lens on a path that does not exist ends the start with one error naming the
+/// key, and nothing before it says the lens was lost and is being retried.
+#[test]
+fn a_missing_port_ends_the_start_without_a_lost_warning_first() {
+    let dir = tempfile::tempdir().unwrap();
+    for _ in 0..5 {
+        let err = serve_fails(
+            dir.path(),
+            |t| t.replacen("port = \"sim\"", "port = \"/dev/dioptra-no-such-lens\"", 1),
+            &[("RUST_LOG", None)],
+        );
+        assert!(
+            err.contains(
+                "devices.lens.port = \"/dev/dioptra-no-such-lens\": the lens device is not present"
+            ),
+            "{err}"
+        );
+        assert!(!err.contains("retrying") && !err.contains("lost"), "{err}");
+    }
+}
+
+/// An invalid `RUST_LOG` is an error naming it, not a silent fall back to the default.
+#[test]
+fn an_invalid_rust_log_is_reported_as_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let err = serve_fails(
+        dir.path(),
+        |t| t,
+        &[("RUST_LOG", Some("dioptra_rig=verbose"))],
+    );
+    assert!(
+        err.starts_with("error: RUST_LOG=\"dioptra_rig=verbose\": "),
+        "{err}"
+    );
+}

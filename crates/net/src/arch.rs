@@ -249,6 +249,9 @@ fn is_zero(v: &usize) -> bool {
     *v == 0
 }
 
+/// Every configuration [`Arch::preset`] knows, as `dioptra train --config` takes them.
+pub const CONFIGS: &[&str] = &["c1", "c3", "c4", "c5", "fv", "c1r", "c4r", "c5r"];
+
 impl Arch {
     /// The small defocus net this project starts from: 8 layers x 32 channels, r = 2.
     pub fn c1_small() -> Arch {
@@ -262,7 +265,7 @@ impl Arch {
         }
     }
 
-    /// Default architecture of each configuration (`c1`, `c3`, `c4`, `c5`, `fv`).
+    /// Default architecture of each configuration ([`CONFIGS`]).
     pub fn preset(name: &str) -> Result<Arch, NetError> {
         let stack = |lo: f32, hi: f32, n: usize| -> Vec<f32> {
             (0..n)

@@ -55,6 +55,7 @@ pub mod optics;
 pub mod photons;
 pub mod recording;
 pub mod render;
+pub mod repeats;
 #[cfg(feature = "simulated")]
 pub mod simulated_rig;
 pub mod state;

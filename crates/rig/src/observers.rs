@@ -35,6 +35,11 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
         }),
         Box::new(WebSocket(state.clone())),
     ];
+    hooks.push(Box::new(DebugLog {
+        state: state.clone(),
+        late_frames: 0,
+        misses: 0,
+    }));
     if state.lsl.is_some() {
         hooks.push(Box::new(Lsl {
             state: state.clone(),
@@ -42,6 +47,137 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
         }));
     }
     hooks
+}
+
+/// The loop's and the scheduler's events at debug level (`RUST_LOG=debug`, or
+/// `RUST_LOG=dioptra_rig::scheduler=debug` / `dioptra_rig::loop=debug` for one of them): the
+/// scheduler's lens commands, render requests and late frames; the lenses' read-backs and
+/// links, content arrivals and renders as the loop sees them.
+struct DebugLog {
+    state: Arc<RigState>,
+    /// The scheduler's counts of late frames and misses at the last step.
+    late_frames: u64,
+    misses: u64,
+}
+
+impl DebugLog {
+    /// How log lines name lens `lens`: `right lens`, or `lens` on a rig with one.
+    fn lens(&self, lens: LensId) -> String {
+        match self.state.cfg.devices.lens.side(lens.index()) {
+            Some(side) => format!("{} lens", side.as_str()),
+            None => "lens".into(),
+        }
+    }
+}
+
+impl LoopHook for DebugLog {
+    fn command(&mut self, _now: Timestamp, cmd: &Command) {
+        match cmd {
+            Command::SetLensPower {
+                lens,
+                power,
+                reason,
+                ..
+            } => tracing::debug!(
+                target: "dioptra_rig::scheduler",
+                "{}: command {:.3} D ({reason:?})",
+                self.lens(*lens),
+                power.0
+            ),
+            Command::RenderFrame(r) => tracing::debug!(
+                target: "dioptra_rig::scheduler",
+                "render frame {} ({:?}, {:?}{})",
+                r.frame.0,
+                r.mode,
+                r.method,
+                r.focus.map_or(String::new(), |f| format!(", focus {:.3} D", f.0))
+            ),
+            _ => {}
+        }
+    }
+    fn input(&mut self, _now: Timestamp, input: &DeviceInput, _engine: &Engine) {
+        match input {
+            DeviceInput::LensState(lens, s) => tracing::debug!(
+                target: "dioptra_rig::loop",
+                "{}: read back {:.3} D{}",
+                self.lens(*lens),
+                s.power.0,
+                match s.settled {
+                    Some(true) => ", settled",
+                    Some(false) => ", moving",
+                    None => "",
+                }
+            ),
+            DeviceInput::LensWire {
+                lens, requested, ..
+            } => tracing::debug!(
+                target: "dioptra_rig::loop",
+                "{}: {:.3} D on the wire",
+                self.lens(*lens),
+                requested.0
+            ),
+            DeviceInput::LensLink(lens, up) => tracing::debug!(
+                target: "dioptra_rig::loop",
+                "{}: link {}",
+                self.lens(*lens),
+                if *up { "up" } else { "down" }
+            ),
+            _ => {}
+        }
+    }
+    fn content(&mut self, _now: Timestamp, frame: &ContentFrame) {
+        let waited = frame
+            .arrival
+            .map(|a| a.ready.saturating_since(a.arrived).as_secs_f64() * 1e3);
+        tracing::debug!(
+            target: "dioptra_rig::loop",
+            "content frame {} arrived{}",
+            frame.number,
+            waited.map_or(String::new(), |ms| format!(" ({ms:.1} ms after it was due)"))
+        );
+    }
+    fn rendered(&mut self, _now: Timestamp, report: &RenderReport<'_>) {
+        match report.outcome {
+            Ok(_) => tracing::debug!(
+                target: "dioptra_rig::loop",
+                "frame {} rendered in {:.1} ms",
+                report.job.frame,
+                report.took.as_secs_f64() * 1e3
+            ),
+            Err(f) => tracing::debug!(
+                target: "dioptra_rig::loop",
+                "frame {} failed to render ({}): {}",
+                report.job.frame,
+                f.kind,
+                f.message
+            ),
+        }
+    }
+    fn stepped(&mut self, _now: Timestamp, engine: &Engine) {
+        // The scheduler's status is made only for a log that shows it.
+        if !tracing::enabled!(target: "dioptra_rig::scheduler", tracing::Level::DEBUG) {
+            return;
+        }
+        let c = engine.scheduler().status().counters;
+        if c.late_frames > self.late_frames {
+            tracing::debug!(
+                target: "dioptra_rig::scheduler",
+                "{} frame(s) shown later than the slot they were rendered for ({} in all)",
+                c.late_frames - self.late_frames,
+                c.late_frames
+            );
+        }
+        if c.misses > self.misses {
+            tracing::debug!(
+                target: "dioptra_rig::scheduler",
+                "{} presentation(s) showed the frame before again: the next was not ready ({} \
+                 in all)",
+                c.misses - self.misses,
+                c.misses
+            );
+        }
+        (self.late_frames, self.misses) = (c.late_frames, c.misses);
+    }
 }
 
 /// Writes what the scheduler got and what it commanded into the recording in progress
@@ -266,6 +402,17 @@ impl LoopHook for Status {
                 }
                 if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
                     *p = Some(s.power.0);
+                }
+            }
+            // A lens whose link is down reports nothing: its last read-back is no longer
+            // where it is.
+            DeviceInput::LensLink(lens, false) => {
+                if *lens == LensId::FIRST {
+                    st.lens_power_d = None;
+                    st.lens_settled = None;
+                }
+                if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
+                    *p = None;
                 }
             }
             DeviceInput::Sync(e) => {

@@ -37,7 +37,9 @@ use serde::Deserialize;
 use serde_json::json;
 
 use dioptra_core::Side;
-use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, FrameError, StreamFrames};
+use dioptra_rig::content::stream::{
+    ColorFormat, DepthKind, FrameDesc, FrameError, FrameLabel, StreamFrames,
+};
 use dioptra_rig::RigState;
 
 use super::api::ApiError;
@@ -81,7 +83,8 @@ pub async fn from_slot(
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
     let f: SlotBody = super::api::body(&b).inspect_err(|e| {
-        stream.refuse(FrameError::Request(e.message().to_string()));
+        let e = FrameError::Request(e.message().to_string());
+        stream.refuse(FrameLabel::default(), e, s.clock.now());
     })?;
     let now = s.clock.now();
     // Copying and converting a frame is CPU work: off the runtime's threads.
@@ -126,10 +129,13 @@ pub async fn put(
     let Some(stream) = s.content.frame_ingest() else {
         return Err(not_streaming());
     };
-    // Refusals before the frame is read are counted as the stream counts its own.
-    let (desc, (eye, view), color_len, body) = match read_put(stream, query, &headers, body).await {
+    // Refusals before the frame is read are counted (and logged, naming what is known of the
+    // frame) as the stream counts its own.
+    let mut label = FrameLabel::default();
+    let read = read_put(stream, query, &headers, body, &mut label).await;
+    let (desc, (eye, view), color_len, body) = match read {
         Ok(r) => r,
-        Err(e) => return Err(refused(stream.refuse(e))),
+        Err(e) => return Err(refused(stream.refuse(label, e, s.clock.now()))),
     };
     let now = s.clock.now();
     let r = tokio::task::spawn_blocking(move || {
@@ -150,6 +156,7 @@ async fn read_put(
     query: Result<Query<FrameQuery>, axum::extract::rejection::QueryRejection>,
     headers: &HeaderMap,
     body: Body,
+    label: &mut FrameLabel,
 ) -> Result<
     (
         FrameDesc,
@@ -177,8 +184,11 @@ async fn read_put(
             q.depth
         ))
     })?;
+    label.seq = q.seq;
     let eye = stream.parse_eye(q.eye.as_deref())?;
+    label.eye = eye;
     let view = stream.parse_view(q.view.as_deref())?;
+    label.view = view;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())

@@ -210,6 +210,10 @@ impl Daemon {
     pub async fn start(setup: RigSetup) -> Result<Daemon> {
         let listen = setup.cfg.api.listen()?;
         let token = setup.cfg.api.bearer_token()?;
+        // A required device whose path does not exist ends the start before its task could
+        // log it as lost and retrying.
+        dioptra_rig::devices::required_present(&setup.cfg.devices.list())
+            .map_err(|why| anyhow::anyhow!("{why}"))?;
         let rig = Rig::start(setup).await?;
         let shared = rig.state().clone();
         // A required device (every real port, unless the config says otherwise) must be

@@ -795,6 +795,8 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
             .contains("unplugged"),
         "{v}"
     );
+    // The lost lens's last read-back is not shown as where it is (issue 56: a stale lens_d).
+    assert_eq!(v["focus"]["lens_d"], json!(null), "{v}");
     // ... and comes back when plugged in again.
     assert_eq!(sh.status_json()["sim_lens"]["plugged"], json!(false));
     let (s, v) = call(&app, "POST", "/sim/lens/replug", "").await;
@@ -804,6 +806,13 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     })
     .await;
     assert_eq!(sh.registry.snapshot()["lens"].connects, 2);
+    // Back: the loss's error is gone from /status (it stayed after a recovery), and the lens
+    // reports where it is again.
+    assert_eq!(sh.registry.snapshot()["lens"].last_error, None);
+    eventually("a read-back after the reconnect", || {
+        sh.status_json()["focus"]["lens_d"].is_number().then_some(())
+    })
+    .await;
     d.cancel_token().cancel();
     let report = d.wait().await;
     assert!(report.ok(), "{report:?}");
@@ -2108,6 +2117,14 @@ async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
         ),
     ];
     for (method, path, ctype, body, status, reason, words) in cases {
+        // `last_error` names the frame (what the request said of it), then the reason.
+        let named = match serde_json::from_slice::<Value>(&body) {
+            Ok(v) if method == "POST" && v["seq"].is_u64() => {
+                format!("ring slot {}'s frame {}", v["slot"], v["seq"])
+            }
+            _ if path.contains("seq=5") => "frame 5".to_string(),
+            _ => "a frame without a sequence number".to_string(),
+        };
         let before = content();
         let (s, v) = call_with(&app, method, &path, ctype, body).await;
         assert_eq!(s, status, "{method} {path}: {v}");
@@ -2119,7 +2136,8 @@ async fn every_bad_frame_is_refused_with_its_reason_and_counted() {
         let after = content();
         let count = |c: &Value| c["refused"][reason].as_u64().unwrap_or(0);
         assert_eq!(count(&after), count(&before) + 1, "{reason}: {after}");
-        assert_eq!(after["last_error"], json!(msg), "{after}");
+        let want = format!("{named} refused: {msg}");
+        assert_eq!(after["last_error"], json!(want), "{method} {path}: {after}");
         assert_eq!(after["received"], before["received"], "{after}");
         assert_eq!(
             after["on_show_seq"],
@@ -2281,6 +2299,7 @@ async fn an_api_marker_toggles_the_patch_once() {
     cfg.devices.photodiode = Some(PhotodiodeDevice {
         driver: dioptra_rig::config::PhotodiodeDriver::SerialLine,
         port: Some(dioptra_rig::config::Port::Sim),
+        serial: None,
         threshold: None,
         hysteresis: None,
     });

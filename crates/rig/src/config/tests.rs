@@ -976,3 +976,26 @@ fn a_view_grid_needs_its_mark_its_size_and_files() {
         "content.view_span_mm"
     );
 }
+
+#[test]
+fn a_serial_number_is_taken_for_a_real_port_and_refused_for_sim() {
+    let with = |port: &str, serial: &str| {
+        RigConfig::parse(&EXAMPLE_SIM_RIG.replacen(
+            "port = \"sim\"",
+            &format!("port = \"{port}\"\nserial = \"{serial}\"\nrequired = false"),
+            1,
+        ))
+    };
+    let cfg = with("/dev/serial/by-id/usb-Optotune_LD4-if00", "LD4-0042").unwrap();
+    let lens = &cfg.devices.list()[0];
+    assert_eq!(lens.serial.as_deref(), Some("LD4-0042"));
+    for (port, serial, words) in [
+        ("sim", "LD4-0042", "has no USB serial number"),
+        ("/dev/ttyACM0", "two words", "printable ASCII"),
+        ("usb:AAA", "BBB", "names another"),
+    ] {
+        let e = with(port, serial).unwrap_err();
+        assert_eq!(e.key(), "devices.lens.serial", "{e}");
+        assert!(e.to_string().contains(words), "{e}");
+    }
+}

@@ -33,6 +33,7 @@ use super::config::{ContentConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
 use super::frame::{Arrival, ContentFrame, ContentView};
 use super::source::{Content, ContentError};
 use crate::display::config::Display;
+use crate::repeats::{Note, Repeats};
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
@@ -278,27 +279,42 @@ fn sequence(
         .collect())
 }
 
+/// How a sequence's frames are decoded: their depth units, one eye's size, and whether the
+/// display is stereo (its size is then one eye's).
+#[derive(Debug, Clone, Copy)]
+struct Decoding {
+    units: Option<DepthUnits>,
+    size: (usize, usize),
+    stereo: bool,
+}
+
+/// Which frame is decoded: the first, which decides whether the rig starts, or a later one,
+/// which is skipped if it fails.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Which {
+    First,
+    Later,
+}
+
 /// A frame's views, each decoded and checked against one eye's size.
 fn decode_views(
     files: &[(PathBuf, PathBuf)],
-    units: Option<DepthUnits>,
-    size: (usize, usize),
-    stereo: bool,
+    how: Decoding,
+    which: Which,
 ) -> Result<Views, ContentError> {
     files
         .iter()
-        .map(|(c, d)| decode(c, d, units, size, stereo).map(Arc::new))
+        .map(|(c, d)| decode(c, d, how, which).map(Arc::new))
         .collect()
 }
 
-/// One colour and depth file pair; `stereo`: the display's size is one eye's.
-fn decode(
-    color: &Path,
-    depth: &Path,
-    units: Option<DepthUnits>,
-    size: (usize, usize),
-    stereo: bool,
-) -> Result<Rgbd, ContentError> {
+/// One colour and depth file pair.
+fn decode(color: &Path, depth: &Path, how: Decoding, which: Which) -> Result<Rgbd, ContentError> {
+    let Decoding {
+        units,
+        size,
+        stereo,
+    } = how;
     // One message per file: the config key, then the path once (the readers' errors start
     // with it), then why, in the config's words.
     let err = |key: &'static str, path: &Path, e: &dyn std::fmt::Display| {
@@ -321,15 +337,24 @@ fn decode(
     let c = read_color(color).map_err(|e| err("content.color", color, &e))?;
     let d = read_depth(depth, units).map_err(|e| err("content.depth", depth, &e))?;
     if (c.width(), c.height()) != size {
+        let eye = if stereo { " (one eye's image)" } else { "" };
+        let fix = match which {
+            // The whole sequence is another size, as far as the rig can tell.
+            Which::First => "set them to the content's size".to_string(),
+            // One file is: the display is right for the others.
+            Which::Later => format!(
+                "so is the sequence's first frame: this one is skipped (the one before stays \
+                 on show); write it at {} x {}",
+                size.0, size.1
+            ),
+        };
         return Err(err(
             "content.color",
             color,
             &format!(
-                "it is {} x {} pixels, and display.width x display.height{} is {} x {}: set \
-                 them to the content's size",
+                "it is {} x {} pixels, and display.width x display.height{eye} is {} x {}: {fix}",
                 c.width(),
                 c.height(),
-                if stereo { " (one eye's image)" } else { "" },
                 size.0,
                 size.1
             ),
@@ -371,6 +396,8 @@ struct Worker {
 /// A file sequence being played.
 pub struct FileFrames {
     pairs: Arc<Vec<FrameFiles>>,
+    /// The first frame's file number (`content.first`).
+    first: usize,
     layout: ViewLayout,
     fps: f64,
     looped: bool,
@@ -380,6 +407,8 @@ pub struct FileFrames {
     /// The index last counted late (each late frame counts once).
     late_index: Mutex<Option<usize>>,
     status: Mutex<ContentStatus>,
+    /// Frames skipped, for the log: each in full once, then a summary a minute.
+    skips: Mutex<Repeats>,
     /// The due time of the frame taken up last, and when it was, until the loop asks.
     arrival: Mutex<Option<Arrival>>,
     /// Frames handed to the loop, and the latest poll ([`Content::poll`]).
@@ -426,8 +455,12 @@ impl FileFrames {
             c.view_span_mm.unwrap_or(DEFAULT_VIEW_SPAN_MM),
         )?;
         let pairs = Arc::new(sequence(color, depth, first, &layout)?);
-        let size = (display.width as usize, display.height as usize);
-        let first_frame = decode_views(&pairs[0], units, size, stereo)?;
+        let how = Decoding {
+            units,
+            size: (display.width as usize, display.height as usize),
+            stereo,
+        };
+        let first_frame = decode_views(&pairs[0], how, Which::First)?;
         let shared = Arc::new(Shared {
             state: Mutex::new(Worker {
                 want: 0,
@@ -443,7 +476,7 @@ impl FileFrames {
             let looped = c.looped;
             std::thread::Builder::new()
                 .name("dioptra-content".into())
-                .spawn(move || decode_ahead(&pairs, &shared, units, size, stereo, looped))
+                .spawn(move || decode_ahead(&pairs, &shared, how, looped))
                 .map_err(|e| ContentError::Config(format!("cannot start the decoder: {e}")))?;
         }
         Ok(FileFrames {
@@ -458,6 +491,8 @@ impl FileFrames {
                 ..Default::default()
             }),
             pairs,
+            first,
+            skips: Mutex::new(Repeats::new("content: frames skipped")),
             layout,
             shared,
             on_show: Mutex::new((None, 0, first_frame)),
@@ -523,8 +558,15 @@ impl FileFrames {
                 (show.2.clone(), true)
             }
             Some(Err(e)) => {
-                // Skipped: counted once, the frame before stays.
+                // Skipped: counted and logged once each time it is due, the frame before stays.
                 if st.index != k {
+                    let number = self.first + k;
+                    let e = format!("frame {number} skipped: {e}");
+                    match lock(&self.skips).note(&format!("frame {number}"), &e, now) {
+                        Note::First => tracing::warn!("content: {e}"),
+                        Note::Summary(s) => tracing::warn!("{s}"),
+                        Note::Counted => {}
+                    }
                     st.skipped += 1;
                     st.last_error = Some(e);
                     st.index = k;
@@ -537,6 +579,11 @@ impl FileFrames {
                 if *late != Some(k) {
                     *late = Some(k);
                     st.late += 1;
+                    tracing::debug!(
+                        frame = self.first + k,
+                        "content: frame {} not decoded when due; the one before stays",
+                        self.first + k
+                    );
                 }
                 (show.2.clone(), false)
             }
@@ -589,14 +636,7 @@ impl Drop for FileFrames {
 }
 
 /// The worker: keeps frames `want..want + AHEAD` decoded, drops the ones behind.
-fn decode_ahead(
-    pairs: &[FrameFiles],
-    shared: &Shared,
-    units: Option<DepthUnits>,
-    size: (usize, usize),
-    stereo: bool,
-    looped: bool,
-) {
+fn decode_ahead(pairs: &[FrameFiles], shared: &Shared, how: Decoding, looped: bool) {
     let n = pairs.len();
     let mut w = lock(&shared.state);
     loop {
@@ -620,7 +660,7 @@ fn decode_ahead(
             continue;
         };
         drop(w);
-        let r = decode_views(&pairs[next], units, size, stereo).map_err(|e| e.to_string());
+        let r = decode_views(&pairs[next], how, Which::Later).map_err(|e| e.to_string());
         w = lock(&shared.state);
         if r.is_ok() {
             w.decoded += 1;
@@ -737,6 +777,60 @@ mod tests {
         let (fr, changed) = f.frame_at(Timestamp(250_000_000));
         assert!(changed && (fr.color.channels[0].data()[0] - 0.2).abs() < 1e-6);
         assert!(!f.frame_at(Timestamp(900_000_000)).1);
+    }
+
+    /// The lab's report: one frame of a looping sequence was 96 x 80; `/status` counted it
+    /// and nothing was logged, and `last_error` said to change the display's size.
+    #[test]
+    fn a_wrong_size_frame_in_a_looping_sequence_is_logged_once_then_summarised() {
+        let dir = tempfile::tempdir().unwrap();
+        write_sequence(dir.path(), 3);
+        let (c, d) = frame(0.5, 96, 80);
+        write_color(&dir.path().join("c_001.exr"), &c).unwrap();
+        write_depth(&dir.path().join("d_001.exr"), &d).unwrap();
+        let cfg = config(
+            dir.path(),
+            "c_%03d.exr",
+            "d_%03d.exr",
+            "fps = 10\nloop = true",
+        );
+        let (logs, _guard) = crate::repeats::capture::logs(tracing::Level::INFO);
+        let f = open_cfg(&cfg).unwrap();
+        f.frame_at(Timestamp(0));
+        cached(&f, 3);
+        // 10 fps, 3 frames: frame 1 is due at 100 ms, 400 ms, 700 ms ... : 10 minutes of it.
+        let mut t = 0u64;
+        while t < 600_000_000_000 {
+            t += 50_000_000;
+            f.frame_at(Timestamp(t));
+            cached(&f, 3);
+        }
+        let st = f.status();
+        assert_eq!(st.skipped, 2000, "{st:?}");
+        // last_error names the frame and the file, and does not blame the display's size.
+        let e = st.last_error.unwrap();
+        assert!(
+            e.starts_with("frame 1 skipped: content.color: ") && e.contains("c_001.exr"),
+            "{e}"
+        );
+        assert!(
+            e.contains("96 x 80") && e.contains("96 x 96") && !e.contains("set them"),
+            "{e}"
+        );
+        // Logged once in full, then at most once a minute: 9 summaries in 10 minutes.
+        let skipped = logs.with("skipped");
+        assert_eq!(skipped.len(), 10, "{skipped:#?}");
+        assert!(
+            skipped[0].contains("WARN") && skipped[0].contains(&e),
+            "{}",
+            skipped[0]
+        );
+        assert!(
+            skipped[1].contains("frames skipped again in the last 6")
+                && skipped[1].contains("frame 1: 20"),
+            "{}",
+            skipped[1]
+        );
     }
 
     #[test]

@@ -52,7 +52,7 @@ use super::source::Content;
 use assembly::Pending;
 pub use assembly::MAX_WAITING;
 pub use decode::{decode_frame, ColorFormat, DepthKind, FrameDesc, FrameError};
-pub use ingest::{StreamFrames, StreamStatus};
+pub use ingest::{FrameLabel, StreamFrames, StreamStatus};
 
 impl Content for StreamFrames {
     /// The newest accepted frame (or complete pair) not taken up yet; at the first call, the

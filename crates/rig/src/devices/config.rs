@@ -20,38 +20,61 @@ pub struct ConfiguredDevice {
     pub name: String,
     /// Its config section: `devices.lens` (`devices.lens.left`, ...), ...
     pub section: String,
+    /// Its driver's name (`optotune`): the drivers' match tables give its USB ids.
+    pub driver: &'static str,
     pub port: Port,
+    /// Its USB serial number (`serial`), if the config gives one.
+    pub serial: Option<String>,
     pub required: bool,
 }
 
 impl Devices {
     /// The configured devices, lenses first.
     pub fn list(&self) -> Vec<ConfiguredDevice> {
-        let dev =
-            |name: String, section: String, port: &Port, required: Option<bool>| ConfiguredDevice {
-                name,
-                section,
-                port: port.clone(),
-                required: required.unwrap_or(*port != Port::Sim),
-            };
+        let dev = |name: String,
+                   section: String,
+                   driver: &'static str,
+                   port: &Port,
+                   serial: &Option<String>,
+                   required: Option<bool>| ConfiguredDevice {
+            name,
+            section,
+            driver,
+            port: port.clone(),
+            serial: serial.clone(),
+            required: required.unwrap_or(*port != Port::Sim),
+        };
         let mut v: Vec<_> = self
             .lens
             .each()
             .into_iter()
             .enumerate()
-            .map(|(i, l)| dev(self.lens.name(i), self.lens.key(i), &l.port, l.required))
+            .map(|(i, l)| {
+                dev(
+                    self.lens.name(i),
+                    self.lens.key(i),
+                    l.driver.name(),
+                    &l.port,
+                    &l.serial,
+                    l.required,
+                )
+            })
             .collect();
         v.push(dev(
             "gaze".into(),
             "devices.gaze".into(),
+            self.gaze.driver.name(),
             &self.gaze.port,
+            &self.gaze.serial,
             self.gaze.required,
         ));
         if let Some(s) = &self.sync {
             v.push(dev(
                 "sync".into(),
                 "devices.sync".into(),
+                s.driver.name(),
                 &s.port,
+                &s.serial,
                 s.required,
             ));
         }
@@ -189,6 +212,11 @@ pub enum SyncDriver {
 pub struct LensDevice {
     pub driver: LensDriver,
     pub port: Port,
+    /// The device's USB serial number (`dioptra devices` shows it): the device is then found
+    /// on whatever tty it comes back on, and another unit answering on `port` is refused,
+    /// naming both numbers. With a path `port`, the path is tried first; with a VID:PID, the
+    /// unit with this number.
+    pub serial: Option<String>,
     /// Power the lens is parked at on shutdown, diopters (inside `optics.lens_range`).
     pub park_power: f32,
     /// Settle time of the simulated lens, ms (sim only).
@@ -230,6 +258,11 @@ impl LensDevice {
 pub struct GazeDevice {
     pub driver: GazeDriver,
     pub port: Port,
+    /// The device's USB serial number (`dioptra devices` shows it): the device is then found
+    /// on whatever tty it comes back on, and another unit answering on `port` is refused,
+    /// naming both numbers. With a path `port`, the path is tried first; with a VID:PID, the
+    /// unit with this number.
+    pub serial: Option<String>,
     /// Scenario of the simulated tracker (sim only): saccades, fixation, pursuit, vergence, blinks.
     #[serde(default = "default_scenario")]
     pub sim_scenario: String,
@@ -253,6 +286,11 @@ pub struct GazeDevice {
 pub struct SyncDevice {
     pub driver: SyncDriver,
     pub port: Port,
+    /// The device's USB serial number (`dioptra devices` shows it): the device is then found
+    /// on whatever tty it comes back on, and another unit answering on `port` is refused,
+    /// naming both numbers. With a path `port`, the path is tried first; with a VID:PID, the
+    /// unit with this number.
+    pub serial: Option<String>,
     /// Whether the rig needs the device present: `serve` does not start without it, and
     /// while a required lens is down `POST /focus` answers 503. Default: true for a real port,
     /// false for `port = "sim"` (always present).
@@ -300,6 +338,11 @@ pub struct PhotodiodeDevice {
     /// `serial-line`: the microcontroller's port, or "sim". `sync`: none to use the input of
     /// the board of `[devices.sync]`; a port for a board used only for its photodiode.
     pub port: Option<Port>,
+    /// The device's USB serial number (`dioptra devices` shows it): the device is then found
+    /// on whatever tty it comes back on, and another unit answering on `port` is refused,
+    /// naming both numbers. With a path `port`, the path is tried first; with a VID:PID, the
+    /// unit with this number.
+    pub serial: Option<String>,
     /// `sync` only: the comparator's threshold and half band, fractions of the sensor's full
     /// scale (a serial-line board's comparator is set by its own trimmer).
     pub threshold: Option<f32>,
@@ -622,6 +665,20 @@ impl Devices {
         for (i, l) in self.lens.each().into_iter().enumerate() {
             check_lens(&self.lens.key(i), l, optics)?;
         }
+        for d in self.list() {
+            check_serial(&d.section, &d.port, d.serial.as_deref())?;
+        }
+        if let Some(p) = &self.photodiode {
+            if let Some(port) = &p.port {
+                check_serial("devices.photodiode", port, p.serial.as_deref())?;
+            } else if p.serial.is_some() {
+                return Err(invalid(
+                    "devices.photodiode.serial",
+                    "the photodiode has no port of its own (it is read through the sync \
+                     board): give the board's serial number in devices.sync.serial",
+                ));
+            }
+        }
         let g = &self.gaze;
         if g.port == Port::Sim && !dioptra_sim::gaze::SCENARIOS.contains(&g.sim_scenario.as_str()) {
             return Err(invalid(
@@ -894,6 +951,34 @@ fn check_sync(s: &SyncDevice, optics: &Optics) -> Result<(), ConfigError> {
 }
 
 /// One lens's section (`key`: `devices.lens`, `devices.lens.left` or `.right`).
+/// A device's `serial`: a USB serial number, for a port that reaches a USB device.
+fn check_serial(section: &str, port: &Port, serial: Option<&str>) -> Result<(), ConfigError> {
+    let Some(serial) = serial else {
+        return Ok(());
+    };
+    let key = format!("{section}.serial");
+    if serial.is_empty() || !serial.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err(invalid(
+            &key,
+            format!("{serial:?}: a USB serial number is printable ASCII without spaces, as `dioptra devices` shows it"),
+        ));
+    }
+    match port {
+        Port::Sim | Port::Net(_) => Err(invalid(
+            &key,
+            format!(
+                "port = \"{port}\" has no USB serial number: give serial with a device path \
+                 (/dev/ttyACM0, /dev/serial/by-id/...), a VID:PID or \"usb\""
+            ),
+        )),
+        Port::Usb(Some(s)) if s != serial => Err(invalid(
+            &key,
+            format!("{serial:?}, and {section}.port = \"usb:{s}\" names another: give one"),
+        )),
+        _ => Ok(()),
+    }
+}
+
 fn check_lens(key: &str, l: &LensDevice, optics: &Optics) -> Result<(), ConfigError> {
     let r = optics.lens_range;
     let k = |field: &str| format!("{key}.{field}");

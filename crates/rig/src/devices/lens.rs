@@ -133,8 +133,8 @@ pub(super) fn report_warnings<D: VarifocalLens>(lens: &mut D, dev: &DeviceHandle
     lens.take_warnings()
         .into_iter()
         .map(|w| {
-            let line = format!("{}: {w}", dev.name);
-            tracing::warn!(device = %dev.name, "{line}");
+            let line = format!("{}: {w}", dev.label);
+            tracing::warn!("{line}");
             line
         })
         .collect()

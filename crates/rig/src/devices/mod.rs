@@ -25,12 +25,15 @@ use std::time::Duration;
 use dioptra_core::{Clock, DeviceError, Diopters};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
+use tracing::Instrument;
 
 pub use boxed::{BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
 pub use input::{DeviceInput, LensId, LensOrder};
 pub use lens::ParkReport;
 pub use link::{Backoff, DeviceSettings, LinkHealth, LinkPolicy, Verdict};
-pub use registry::{wait_for_required, DeviceHandle, DeviceStatus, Registry, State};
+pub use registry::{
+    required_present, wait_for_required, DeviceHandle, DeviceStatus, Registry, State,
+};
 
 use crate::config::RigConfig;
 use simulators::{SimDevices, SimSpec};
@@ -83,6 +86,7 @@ pub fn spawn_devices(
         let connect = open::device_connector(
             row,
             &l.port,
+            l.serial.as_deref(),
             open::Context {
                 lens: i,
                 ..ctx.clone()
@@ -97,16 +101,20 @@ pub fn spawn_devices(
             lens_poll: Duration::from_secs_f64(l.poll_ms / 1000.0),
             ..settings
         };
-        lenses.push(tokio::spawn(lens::lens_task(
-            connect,
-            id,
-            dev,
-            lens_settings,
-            rx,
-            out.clone(),
-            Diopters(l.park_power),
-            stop.clone(),
-        )));
+        let span = device_span(&dev);
+        lenses.push(tokio::spawn(
+            lens::lens_task(
+                connect,
+                id,
+                dev,
+                lens_settings,
+                rx,
+                out.clone(),
+                Diopters(l.park_power),
+                stop.clone(),
+            )
+            .instrument(span),
+        ));
         lens_commands.push(tx);
     }
 
@@ -117,18 +125,16 @@ pub fn spawn_devices(
     let connect = open::device_connector(
         row,
         &g.port,
+        g.serial.as_deref(),
         ctx.clone(),
         spec,
         &mut sims.gaze,
         &mut sims.gaze_truth,
     );
-    others.push(tokio::spawn(forward::forward_task(
-        connect,
-        dev,
-        settings,
-        out.clone(),
-        stop.clone(),
-    )));
+    let span = device_span(&dev);
+    others.push(tokio::spawn(
+        forward::forward_task(connect, dev, settings, out.clone(), stop.clone()).instrument(span),
+    ));
 
     if let Some(s) = &cfg.devices.sync {
         let row = open::row(&open::SYNC, s.driver)?;
@@ -140,6 +146,7 @@ pub fn spawn_devices(
         let connect = open::device_connector(
             row,
             &s.port,
+            s.serial.as_deref(),
             ctx.clone(),
             spec,
             &mut sims.sync,
@@ -151,18 +158,22 @@ pub fn spawn_devices(
             .photodiode
             .as_ref()
             .is_some_and(|p| p.on_sync_board());
-        others.push(tokio::spawn(sync::sync_task(
-            connect,
-            dev,
-            settings,
-            sync::SyncWork {
-                schedule,
-                multifocal: mf_rx,
-                light,
-            },
-            out.clone(),
-            stop.clone(),
-        )));
+        let span = device_span(&dev);
+        others.push(tokio::spawn(
+            sync::sync_task(
+                connect,
+                dev,
+                settings,
+                sync::SyncWork {
+                    schedule,
+                    multifocal: mf_rx,
+                    light,
+                },
+                out.clone(),
+                stop.clone(),
+            )
+            .instrument(span),
+        ));
     }
     if let Some(p) = cfg.devices.photodiode.as_ref() {
         if let Some(port) = &p.port {
@@ -171,18 +182,17 @@ pub fn spawn_devices(
             let connect = open::device_connector(
                 row,
                 port,
+                p.serial.as_deref(),
                 ctx.clone(),
                 spec,
                 &mut sims.photodiode,
                 &mut sims.gaze_truth,
             );
-            others.push(tokio::spawn(forward::forward_task(
-                connect,
-                dev,
-                settings,
-                out.clone(),
-                stop.clone(),
-            )));
+            let span = device_span(&dev);
+            others.push(tokio::spawn(
+                forward::forward_task(connect, dev, settings, out.clone(), stop.clone())
+                    .instrument(span),
+            ));
         }
     }
     sims.panel = spec.panel.clone();
@@ -194,6 +204,12 @@ pub fn spawn_devices(
         },
         DeviceTasks { lenses, others },
     ))
+}
+
+/// The span a device's task runs in: every line logged in it (the drivers' too, which do
+/// not know which eye they serve) names the device.
+fn device_span(dev: &DeviceHandle) -> tracing::Span {
+    tracing::info_span!("device", name = %dev.label)
 }
 
 #[cfg(test)]

@@ -242,23 +242,34 @@ pub fn names<K, D>(rows: &'static [Row<K, D>]) -> String {
 /// endpoints (`usb`, `usb:SERIAL`) or a network address. Blocking (a USB or serial open).
 /// Not for `port = "sim"`, whose link the device task makes from the simulator.
 pub fn device_link<K, D>(row: &Row<K, D>, port: &Port) -> Result<Link, DeviceError> {
+    device_link_serial(row, port, None)
+}
+
+/// [`device_link`] to the unit with USB serial number `serial` (the config's `serial`): found
+/// wherever it is now, and another unit at `port` refused, naming both numbers.
+pub fn device_link_serial<K, D>(
+    row: &Row<K, D>,
+    port: &Port,
+    serial: Option<&str>,
+) -> Result<Link, DeviceError> {
     let what = row.what;
     match (port, row.transport) {
-        (Port::Usb(serial), _) => {
+        (Port::Usb(in_port), _) => {
+            let serial = in_port.as_deref().or(serial);
             let Some((vid, pid)) = row.usb else {
                 return Err(unsupported_port(what, port));
             };
             let mut sel = dioptra_transport::usb::UsbSelector::new(vid, pid);
             if let Some(s) = serial {
-                sel = sel.serial(s.clone());
+                sel = sel.serial(s.to_string());
             }
             let link = dioptra_transport::usb::UsbBulkLink::open(&sel).map_err(|e| {
                 DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
             })?;
             Ok(Link::Byte(link.into()))
         }
-        (_, Transport::Serial) => Ok(Link::Byte(serial_at(what, port)?.into())),
-        (_, Transport::Hid) => Ok(Link::Hid(hid_at(what, port)?.into())),
+        (_, Transport::Serial) => Ok(Link::Byte(serial_at(what, port, serial)?.into())),
+        (_, Transport::Hid) => Ok(Link::Hid(hid_at(what, port, serial)?.into())),
         (_, Transport::Net) => net_at(what, port).map(Link::Net),
     }
 }
@@ -268,6 +279,7 @@ pub fn device_link<K, D>(row: &Row<K, D>, port: &Port) -> Result<Link, DeviceErr
 pub(crate) fn device_connector<K: Sync, D: Send + 'static>(
     row: &'static Row<K, D>,
     port: &Port,
+    serial: Option<&str>,
     ctx: Context,
     spec: &SimSpec,
     slot: &mut Option<SimSlot>,
@@ -296,8 +308,8 @@ pub(crate) fn device_connector<K: Sync, D: Send + 'static>(
             })
         }
         port => {
-            let port = port.clone();
-            Box::new(move || device_link(row, &port))
+            let (port, serial) = (port.clone(), serial.map(str::to_string));
+            Box::new(move || device_link_serial(row, &port, serial.as_deref()))
         }
     };
     let connect = row.connect;
@@ -324,35 +336,68 @@ fn net_at(what: &str, port: &Port) -> Result<String, DeviceError> {
     }
 }
 
-/// The HID link at a device's port: a hidraw path, or the first HID interface with that VID:PID.
-fn hid_at(what: &str, port: &Port) -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
+/// The HID link at a device's port: a hidraw path, or the first HID interface with that VID:PID
+/// (with `serial`, the one with that serial number).
+fn hid_at(
+    what: &str,
+    port: &Port,
+    serial: Option<&str>,
+) -> Result<dioptra_transport::hid::HidapiLink, DeviceError> {
     Ok(match port {
-        Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, None)?,
+        Port::VidPid(v, p) => dioptra_transport::hid::HidapiLink::open(*v, *p, serial)?,
+        Port::Path(p) if serial.is_some() => {
+            return Err(DeviceError::Link(LinkError::Unavailable(format!(
+                "the {what} at {}: a HID device is found by serial number through its VID:PID \
+                 (port = \"VID:PID\" with serial), not a hidraw path",
+                p.display()
+            ))))
+        }
         Port::Path(p) => dioptra_transport::hid::HidapiLink::open_path(&p.display().to_string())?,
         Port::Sim | Port::Net(_) | Port::Usb(_) => return Err(unsupported_port(what, port)),
     })
 }
 
-/// The serial link at a device's port: a path, or the one USB serial port with that VID:PID
-/// (looked up in sysfs at every attempt, so a replugged device that moved is found again).
+/// The serial link at a device's port: a path, or the one USB serial port with that VID:PID;
+/// with `serial`, the unit with that USB serial number (looked up in sysfs at every attempt,
+/// so a replugged device that moved is found again, and another unit on the path refused).
 pub(crate) fn serial_at(
     what: &str,
     port: &Port,
+    serial: Option<&str>,
 ) -> Result<dioptra_transport::serial::SerialLink, DeviceError> {
-    let path = match port {
-        Port::Path(p) => p.clone(),
-        Port::VidPid(v, p) => {
-            dioptra_transport::discovery::serial_port_by_id(std::path::Path::new("/sys"), *v, *p)
-                .map_err(|e| {
-                    DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
-                })?
-        }
-        Port::Sim | Port::Net(_) | Port::Usb(_) => return Err(unsupported_port(what, port)),
-    };
+    let path = serial_path_in(std::path::Path::new("/sys"), what, port, serial)?;
     Ok(dioptra_transport::serial::SerialLink::open(
         &path,
         dioptra_transport::serial::SerialSettings::baud(115_200),
     )?)
+}
+
+/// The tty [`serial_at`] opens, with sysfs at `sys`.
+fn serial_path_in(
+    sys: &std::path::Path,
+    what: &str,
+    port: &Port,
+    serial: Option<&str>,
+) -> Result<std::path::PathBuf, DeviceError> {
+    use dioptra_transport::discovery::SerialIdentity;
+    let located = |id: SerialIdentity| {
+        id.locate_in(sys).map_err(|e| match e {
+            LinkError::Unavailable(m) => {
+                DeviceError::Link(LinkError::Unavailable(format!("the {what}: {m}")))
+            }
+            e => DeviceError::Link(e),
+        })
+    };
+    Ok(match (port, serial) {
+        (Port::Path(p), Some(s)) => located(SerialIdentity::at(p).with_usb_serial(s))?,
+        (Port::VidPid(..), Some(s)) => located(SerialIdentity::usb_serial(s))?,
+        (Port::Path(p), None) => p.clone(),
+        (Port::VidPid(v, p), None) => dioptra_transport::discovery::serial_port_by_id(sys, *v, *p)
+            .map_err(|e| {
+                DeviceError::Link(LinkError::Unavailable(format!("the {what} at {port}: {e}")))
+            })?,
+        (Port::Sim | Port::Net(_) | Port::Usb(_), _) => return Err(unsupported_port(what, port)),
+    })
 }
 
 /// The rig's lens range as the drivers' limits.
@@ -703,6 +748,61 @@ fn sim_hid_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
 mod tests {
     use super::*;
 
+    /// A sysfs tree with a USB serial device per `(tty, USB serial number)` under `sys`, and a
+    /// stand-in for each tty in `dev`.
+    fn plug(sys: &std::path::Path, dev: &std::path::Path, tty: &str, serial: &str) {
+        let usb = sys.join("devices/usb1").join(serial);
+        std::fs::create_dir_all(usb.join("if0")).unwrap();
+        std::fs::write(usb.join("idVendor"), "03eb\n").unwrap();
+        std::fs::write(usb.join("idProduct"), "2018\n").unwrap();
+        std::fs::write(usb.join("serial"), format!("{serial}\n")).unwrap();
+        let class = sys.join("class/tty").join(tty);
+        std::fs::create_dir_all(&class).unwrap();
+        std::os::unix::fs::symlink(usb.join("if0"), class.join("device")).unwrap();
+        std::fs::write(dev.join(tty), b"").unwrap();
+    }
+
+    /// The config's `serial` reaches the lookup: the lens with that number is found on its new
+    /// tty; another unit answering on the configured path is refused naming both numbers.
+    #[test]
+    fn a_serial_number_finds_its_device_and_refuses_another_on_the_path() {
+        let (sys, dev) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+        let (sys, dev) = (sys.path(), dev.path());
+        plug(sys, dev, "ttyACM0", "LD4-RIGHT");
+        let port = Port::Path(dev.join("ttyACM0"));
+        let what = "right lens";
+        // Its own number on its path: the path.
+        assert_eq!(
+            serial_path_in(sys, what, &port, Some("LD4-RIGHT")).unwrap(),
+            dev.join("ttyACM0")
+        );
+        // Another unit on the path, the configured one nowhere: refused, naming both.
+        let e = serial_path_in(sys, what, &port, Some("LD4-LEFT"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("\"LD4-RIGHT\"") && e.contains("\"LD4-LEFT\"") && e.contains("refused"),
+            "{e}"
+        );
+        // The configured unit back on another tty: found there.
+        plug(sys, dev, "ttyACM3", "LD4-LEFT");
+        assert_eq!(
+            serial_path_in(sys, what, &port, Some("LD4-LEFT")).unwrap(),
+            std::path::PathBuf::from("/dev/ttyACM3")
+        );
+        // By VID:PID and serial number: that unit.
+        let by_id = Port::VidPid(0x03eb, 0x2018);
+        assert_eq!(
+            serial_path_in(sys, what, &by_id, Some("LD4-RIGHT")).unwrap(),
+            std::path::PathBuf::from("/dev/ttyACM0")
+        );
+        // Without a serial number the path is opened as given, whoever answers there.
+        assert_eq!(
+            serial_path_in(sys, what, &port, None).unwrap(),
+            dev.join("ttyACM0")
+        );
+    }
+
     #[test]
     fn every_driver_the_config_names_has_a_row() {
         for d in [LensDriver::Optotune, LensDriver::Lens] {
@@ -723,7 +823,7 @@ mod tests {
     #[test]
     fn a_serial_device_by_vid_pid_that_is_absent_is_a_link_error_naming_it() {
         // No machine has feed:beef; without sysfs the error still names the port.
-        let e = serial_at("lens controller", &Port::VidPid(0xfeed, 0xbeef)).unwrap_err();
+        let e = serial_at("lens controller", &Port::VidPid(0xfeed, 0xbeef), None).unwrap_err();
         assert!(matches!(e, DeviceError::Link(_)), "{e:?}");
         let text = e.to_string();
         assert!(text.contains("lens controller at feed:beef"), "{text}");

@@ -378,8 +378,12 @@ impl fmt::Display for Line<'_> {
         if !product.is_empty() {
             write!(f, "  \"{product}\"")?;
         }
-        if let Some(s) = &d.serial {
-            write!(f, "  serial {s}")?;
+        // The number a rig config's `serial = "..."` takes; a device a driver handles without
+        // one can be told from another of its model only by where it is plugged.
+        match (&d.serial, d.known) {
+            (Some(s), _) => write!(f, "  serial {s}")?,
+            (None, Some(_)) => write!(f, "  no serial number")?,
+            (None, None) => {}
         }
         for (page, usage) in &d.usages {
             write!(f, "  usage {page:04x}:{usage:04x}")?;
@@ -524,6 +528,7 @@ mod tests {
         let mut d = Discovery {
             devices: vec![
                 acm,
+                dev(Interface::Serial, "/dev/ttyACM1", 0x03eb, 0x2018, &[]),
                 dev(Interface::Hid, "/dev/hidraw0", 0x046d, 0xc31c, &[(1, 6)]),
             ],
             notes: vec!["USB unavailable: libusb could not start".into()],
@@ -533,6 +538,7 @@ mod tests {
         assert_eq!(
             text,
             "optotune     serial /dev/ttyACM0  03eb:2018  Optotune Lens Driver 4  \"Lens Driver\"  serial LD400123\n\
+             optotune     serial /dev/ttyACM1  03eb:2018  Optotune Lens Driver 4  no serial number\n\
              (1 other device without a dioptra driver: 0 serial, 0 USB, 1 HID)\n\
              note: USB unavailable: libusb could not start\n"
         );

@@ -167,13 +167,14 @@ pub(super) fn per_eye(grid: Option<&(usize, Vec<[f32; 2]>)>) -> usize {
 impl Pairing {
     /// Files `part` of frame `seq` among its frame's parts: the frame (its view, its eyes'
     /// views and every view of a grid) when it was the last one missing.
-    /// `grid`: a light field's views per side and their positions; a frame's parts dropped
-    /// (their memory given back to `planes`) are counted in `dropped`.
+    /// `grid`: a light field's views per side and their positions; a frame whose parts are
+    /// dropped (their memory given back to `planes`) is added to `dropped`: its sequence
+    /// number and how many parts it had.
     pub(super) fn add_part(
         &mut self,
         grid: Option<&(usize, Vec<[f32; 2]>)>,
         planes: &Planes,
-        dropped: &mut u64,
+        dropped: &mut Vec<(u64, u64)>,
         seq: u64,
         part: Part,
         frame: Rgbd,
@@ -190,7 +191,7 @@ impl Pairing {
         if waiting.got.iter().any(Option::is_none) {
             if pairing.waiting.len() > MAX_WAITING {
                 if let Some((k, oldest)) = pairing.waiting.pop_first() {
-                    *dropped += drop_parts(planes, oldest);
+                    dropped.push((k, drop_parts(planes, oldest)));
                     pairing.floor = pairing.floor.max(Some(k));
                 }
             }

@@ -18,11 +18,56 @@ use crate::content::ring::{
     eye_of_code, layout_json, Ring, RingHeader, SlotHeader, EYE_CODES, RING_HEADER, RING_MAGIC,
     RING_SLOTS, RING_VERSION, SLOT_FIELDS, SLOT_HEADER,
 };
+use crate::repeats::{Note, Repeats};
 
-fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
-    *st.refused.entry(e.kind()).or_default() += 1;
-    st.last_error = Some(e.to_string());
-    e
+/// Which frame (or part of one) a refusal or a drop is about, in its log line and
+/// `last_error`: "frame 14", "frame 14's right half", "frame 14's view 1_2", "ring slot 3's
+/// frame 14", "a frame without a sequence number".
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FrameLabel {
+    pub seq: Option<u64>,
+    pub eye: Option<Side>,
+    pub view: Option<usize>,
+    pub slot: Option<usize>,
+}
+
+impl FrameLabel {
+    fn describe(&self, grid: Option<usize>) -> String {
+        let mut s = match self.slot {
+            Some(k) => format!("ring slot {k}'s "),
+            None => String::new(),
+        };
+        match self.seq {
+            Some(n) => s += &format!("frame {n}"),
+            None if s.is_empty() => s += "a frame without a sequence number",
+            None => s += "frame",
+        }
+        let view = match (self.view, grid) {
+            (Some(v), Some(n)) if n > 0 => Some(format!("view {}_{}", v / n, v % n)),
+            (Some(v), _) => Some(format!("view {v}")),
+            (None, _) => None,
+        };
+        match (self.eye, view) {
+            (Some(e), Some(v)) => s += &format!("'s {} eye's {v}", e.as_str()),
+            (Some(e), None) => s += &format!("'s {} half", e.as_str()),
+            (None, Some(v)) => s += &format!("'s {v}"),
+            (None, None) => {}
+        }
+        s
+    }
+}
+
+/// What the stream logs: each kind of refusal and drop in full once, then a summary a minute.
+struct StreamLog(Repeats);
+
+impl StreamLog {
+    fn note(&mut self, kind: &str, message: &str, now: Timestamp) {
+        match self.0.note(kind, message, now) {
+            Note::First => tracing::warn!("content: {message}"),
+            Note::Summary(s) => tracing::warn!("{s}"),
+            Note::Counted => {}
+        }
+    }
 }
 
 /// What `/status` shows under `content` for a stream.
@@ -76,6 +121,8 @@ pub struct StreamFrames {
     status: Mutex<StreamStatus>,
     /// Locked only while `status` is.
     pairing: Mutex<Pairing>,
+    /// Locked only while `status` is.
+    log: Mutex<StreamLog>,
     /// Memory of frames done with, for the next ones.
     pub(super) planes: Planes,
     /// The same for side-by-side frames (2 x width), before they are split.
@@ -126,6 +173,9 @@ impl StreamFrames {
             ring,
             pending: Mutex::new(None),
             pairing: Mutex::new(Pairing::default()),
+            log: Mutex::new(StreamLog(Repeats::new(
+                "content: stream frames refused or dropped",
+            ))),
             planes: Planes::new(width * height),
             wide_planes: Planes::new(2 * width * height),
             arrivals: Arc::new(tokio::sync::Notify::new()),
@@ -324,7 +374,13 @@ impl StreamFrames {
             .and_then(|eye| Ok((eye, self.check_view(view)?)))
             .and_then(|(eye, view)| Ok((self.check_seq(desc.seq, part_of(eye, view))?, eye, view)))
             .and_then(|(seq, eye, view)| Ok((seq, self.decode(desc, eye, view, color, depth)?)));
-        self.accept(r, desc.app_time_ns, now, t0)
+        let label = FrameLabel {
+            seq: desc.seq,
+            eye,
+            view,
+            slot: None,
+        };
+        self.accept(r, label, desc.app_time_ns, now, t0)
     }
 
     /// Decodes a frame for `eye` (and `view`): a side-by-side one split into the two eyes'.
@@ -397,7 +453,12 @@ impl StreamFrames {
         let t0 = std::time::Instant::now();
         let r = self.read_slot(slot, seq);
         let app = r.as_ref().ok().and_then(|(_, _, a)| *a);
-        self.accept(r.map(|(s, f, _)| (s, f)), app, now, t0)
+        let label = FrameLabel {
+            seq: Some(seq),
+            slot: Some(slot),
+            ..Default::default()
+        };
+        self.accept(r.map(|(s, f, _)| (s, f)), label, app, now, t0)
     }
 
     fn read_slot(&self, slot: usize, seq: u64) -> Result<(u64, Decoded, Option<u64>), FrameError> {
@@ -478,6 +539,39 @@ impl StreamFrames {
     }
 
     /// The sequence number a frame (or a part of one) gets: its own if new, or the next.
+    /// Counts and logs a refusal of `frame`; `last_error` names it.
+    fn count_refusal(
+        &self,
+        st: &mut StreamStatus,
+        frame: FrameLabel,
+        e: FrameError,
+        now: Timestamp,
+    ) -> FrameError {
+        *st.refused.entry(e.kind()).or_default() += 1;
+        let grid = self.grid.as_ref().map(|(n, _)| *n);
+        let message = format!("{} refused: {e}", frame.describe(grid));
+        lock(&self.log).note(&format!("refused ({})", e.kind()), &message, now);
+        st.last_error = Some(message);
+        e
+    }
+
+    /// Counts and logs the parts of frame `seq` dropped unshown (`n` of them): their frame
+    /// never completed before a newer one did (or too many waited).
+    fn count_dropped(&self, st: &mut StreamStatus, seq: u64, n: u64, now: Timestamp) {
+        if n == 0 {
+            return;
+        }
+        st.halves_dropped += n;
+        let what = if self.grid.is_some() { "views" } else { "half" };
+        let message =
+            format!(
+            "frame {seq}'s {} {what} dropped unshown: the rest of its parts never came before a \
+             newer frame completed",
+            if n == 1 && what == "half" { "one" } else { "received" }
+        );
+        lock(&self.log).note("dropped", &message, now);
+    }
+
     fn check_seq(&self, seq: Option<u64>, part: Option<Part>) -> Result<u64, FrameError> {
         let st = lock(&self.status);
         let pairing = lock(&self.pairing);
@@ -487,6 +581,7 @@ impl StreamFrames {
     fn accept(
         &self,
         r: Result<(u64, Decoded), FrameError>,
+        label: FrameLabel,
         app_time_ns: Option<u64>,
         now: Timestamp,
         started: std::time::Instant,
@@ -498,13 +593,14 @@ impl StreamFrames {
         };
         let mut st = lock(&self.status);
         let (seq, decoded) = match r {
-            Err(e) => return Err(count_refusal(&mut st, e)),
+            Err(e) => return Err(self.count_refusal(&mut st, label, e, now)),
             Ok(r) => r,
         };
         let mut pairing = lock(&self.pairing);
         // Two requests may race past check_seq: the newer wins. A part must fit the parts
         // of its frame already in (a grid's view with an eye, or without, as the first).
         let per_eye = self.per_eye();
+        let mut dropped = Vec::new();
         let misfit = decoded.part().and_then(|part| {
             let (parts, _) = part.place(per_eye);
             let first = pairing.waiting.get(&seq).map(|w| w.parts)?;
@@ -522,8 +618,12 @@ impl StreamFrames {
             .or(misfit)
         {
             drop(pairing);
+            let label = FrameLabel {
+                seq: Some(seq),
+                ..label
+            };
             self.give_back(decoded);
-            return Err(count_refusal(&mut st, e));
+            return Err(self.count_refusal(&mut st, label, e, now));
         }
         st.newest_seq = Some(st.newest_seq.map_or(seq, |n| n.max(seq)));
         st.newest_received_ns = Some(now.0);
@@ -540,7 +640,7 @@ impl StreamFrames {
                 pairing.add_part(
                     self.grid.as_ref(),
                     &self.planes,
-                    &mut st.halves_dropped,
+                    &mut dropped,
                     seq,
                     Part {
                         eye: Some(eye),
@@ -554,7 +654,7 @@ impl StreamFrames {
                 pairing.add_part(
                     self.grid.as_ref(),
                     &self.planes,
-                    &mut st.halves_dropped,
+                    &mut dropped,
                     seq,
                     Part { eye, view: Some(v) },
                     f,
@@ -565,8 +665,8 @@ impl StreamFrames {
             // Parts older than a complete frame can no longer be shown.
             let newer = pairing.waiting.split_off(&(seq + 1));
             let older = std::mem::replace(&mut pairing.waiting, newer);
-            for (_, parts) in older {
-                st.halves_dropped += drop_parts(&self.planes, parts);
+            for (k, parts) in older {
+                dropped.push((k, drop_parts(&self.planes, parts)));
             }
             pairing.floor = Some(seq);
             st.received += 1;
@@ -584,6 +684,16 @@ impl StreamFrames {
             self.arrivals.notify_one();
         }
         st.halves_waiting = pairing.halves_waiting();
+        drop(pairing);
+        for (k, n) in dropped {
+            self.count_dropped(&mut st, k, n, now);
+        }
+        let label = FrameLabel {
+            seq: Some(seq),
+            ..label
+        };
+        let grid = self.grid.as_ref().map(|(n, _)| *n);
+        tracing::debug!(seq, "content: {} accepted", label.describe(grid));
         Ok(seq)
     }
 
@@ -612,10 +722,11 @@ impl StreamFrames {
         self.planes.give_frame(frame);
     }
 
-    /// Counts a frame refused before it was read (a request that does not describe one, or
-    /// one of the wrong size), as [`StreamFrames::submit`] counts its own refusals.
-    pub fn refuse(&self, e: FrameError) -> FrameError {
-        count_refusal(&mut lock(&self.status), e)
+    /// Counts and logs a frame refused before it was read (a request that does not describe
+    /// one, or one of the wrong size), as [`StreamFrames::submit`] counts its own refusals;
+    /// `frame` says what is known of it.
+    pub fn refuse(&self, frame: FrameLabel, e: FrameError, now: Timestamp) -> FrameError {
+        self.count_refusal(&mut lock(&self.status), frame, e, now)
     }
 
     /// The newest frame not yet taken up by the display, if any, and when it arrived (a pair:

@@ -799,3 +799,95 @@ fn each_eye_may_stream_its_own_grid_and_slots_name_their_view() {
     let e = s.submit_slot(1, 4, Timestamp(4)).unwrap_err();
     assert!(matches!(e, FrameError::View(_)), "{e}");
 }
+
+/// Every refused or dropped frame is logged naming its sequence number (and its half), each
+/// kind in full once and then at most a summary a minute; `last_error` names the frame.
+#[test]
+fn refused_and_dropped_frames_are_logged_naming_them_and_summarised_when_they_repeat() {
+    let (logs, _guard) = crate::repeats::capture::logs(tracing::Level::INFO);
+    let s = StreamFrames::with_eyes(2, 1, true, None).unwrap();
+    let secs = |t: f64| Timestamp((t * 1e9) as u64);
+    // The lab's case: the left half of 13 in, its right half the wrong size.
+    let left = FrameDesc {
+        seq: Some(13),
+        ..desc(2, 1, ColorFormat::Rgb8, DepthKind::Diopters)
+    };
+    s.submit_eye(
+        &left,
+        Some(Side::Left),
+        &[0; 6],
+        &f32s(&[1.0; 2]),
+        secs(0.0),
+    )
+    .unwrap();
+    let wrong = FrameDesc {
+        width: 1,
+        ..left.clone()
+    };
+    let e = s
+        .submit_eye(
+            &wrong,
+            Some(Side::Right),
+            &[0; 3],
+            &f32s(&[1.0]),
+            secs(0.01),
+        )
+        .unwrap_err();
+    assert!(matches!(e, FrameError::WrongEyeSize { .. }), "{e}");
+    let last = s.status().last_error.unwrap();
+    assert!(
+        last.starts_with("frame 13's right half refused: the right eye's frame is 1x1"),
+        "{last}"
+    );
+    let refused = logs.with("refused");
+    assert_eq!(refused.len(), 1, "{refused:#?}");
+    assert!(
+        refused[0].contains("WARN") && refused[0].contains(&last),
+        "{}",
+        refused[0]
+    );
+    // Pair 14 completes before 13's right half came: 13's left half is dropped, logged.
+    for eye in [Side::Left, Side::Right] {
+        let d = FrameDesc {
+            seq: Some(14),
+            ..left.clone()
+        };
+        s.submit_eye(&d, Some(eye), &[0; 6], &f32s(&[1.0; 2]), secs(0.02))
+            .unwrap();
+    }
+    let dropped = logs.with("dropped");
+    assert_eq!(dropped.len(), 1, "{dropped:#?}");
+    assert!(
+        dropped[0].contains("frame 13's one half dropped unshown"),
+        "{}",
+        dropped[0]
+    );
+    // An application sending the wrong size at 30 Hz for 5 minutes: one summary a minute.
+    let mut t = 1.0;
+    let mut seq = 15;
+    while t < 301.0 {
+        let d = FrameDesc {
+            seq: Some(seq),
+            width: 3,
+            ..left.clone()
+        };
+        s.submit_eye(&d, Some(Side::Left), &[0; 9], &f32s(&[1.0; 3]), secs(t))
+            .unwrap_err();
+        seq += 1;
+        t += 1.0 / 30.0;
+    }
+    assert_eq!(s.status().refused.get("wrong_size"), Some(&9001));
+    let refused = logs.with("refused");
+    assert_eq!(refused.len(), 1 + 5, "{refused:#?}");
+    // The first summary a minute after the first refusal (0.01 s): at 1 s + 1771 / 30 s, the
+    // 1772nd repeat.
+    assert!(
+        refused[1].contains("frames refused or dropped again in the last 60 s")
+            && refused[1].contains("refused (wrong_size): 1772 times (1773 in all"),
+        "{}",
+        refused[1]
+    );
+    // 9000 of them, numbered 15 to 9014.
+    let last = s.status().last_error.unwrap();
+    assert!(last.starts_with("frame 9014's left half refused"), "{last}");
+}
