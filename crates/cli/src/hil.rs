@@ -489,7 +489,23 @@ async fn measure(
     skew.note = format!(
         "{n_skew} focus changes sent to both lenses: the right lens's command written less the left's (wall clock, from the same gaze sample); the loop hands both to their lens tasks back to back, left first"
     );
-    println!("gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples)");
+    // Gaze decides how many focus changes there are: fewer than asked is said, with why.
+    let fewer = (gaze_commands < args.trials as u64).then(|| {
+        format!(
+            "{gaze_commands} of the {} asked for: this phase ends after {} s (--trials / 4, \
+             30 to 300 s), and the tracker's fixations caused no more focus changes in that \
+             time (the other measures take --trials each)",
+            args.trials,
+            phase_limit.as_secs()
+        )
+    });
+    if let Some(why) = &fewer {
+        host_path.note = format!("{}; {why}", host_path.note);
+    }
+    println!(
+        "gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples){}",
+        fewer.map_or(String::new(), |w| format!(": {w}"))
+    );
     let optical = if photodiode {
         let until = state.clock.now();
         let log = std::mem::take(&mut *dioptra_core::lock(&photon_log));

@@ -163,6 +163,8 @@ pub trait DisplaySink: Send {
 #[derive(Debug)]
 pub struct HeadlessSink {
     png_every: u32,
+    /// The frame number the next PNG is due at: the next multiple of `png_every`.
+    next_png: u64,
     dir: Option<PathBuf>,
     shown: u64,
     recent: VecDeque<Shown>,
@@ -210,6 +212,7 @@ impl HeadlessSink {
         }
         Ok(HeadlessSink {
             png_every,
+            next_png: 0,
             dir,
             shown: 0,
             recent: VecDeque::with_capacity(RECENT),
@@ -324,8 +327,13 @@ impl DisplaySink for HeadlessSink {
             shown_ns: now.0,
             marker_white: frame.marker.map(|m| m.white),
         });
+        // By frame number, not by presentation: a frame shown again (a deadline miss) does not
+        // shift the frames written. A frame number the scheduler skipped (its slot not
+        // rendered) gives way to the next one shown.
         if let (true, Some(dir)) = (self.png_every > 0, self.dir.clone()) {
-            if (self.shown - 1).is_multiple_of(u64::from(self.png_every)) {
+            if frame.number >= self.next_png {
+                let every = u64::from(self.png_every);
+                self.next_png = (frame.number / every + 1) * every;
                 self.write_pngs(&dir, frame)?;
             }
         }
@@ -372,16 +380,90 @@ impl DisplaySink for HeadlessSink {
     }
     fn describe(&self) -> String {
         match (&self.dir, self.png_every) {
-            (Some(d), n) if n > 0 => format!("headless (every {n}th frame to {})", d.display()),
+            (Some(d), 1) => format!("headless (every frame to {})", d.display()),
+            (Some(d), n) if n > 0 => {
+                format!("headless (every {} frame to {})", ordinal(n), d.display())
+            }
             _ => "headless".into(),
         }
     }
+}
+
+/// `n` as an English ordinal: 2nd, 3rd, 11th, 21st, 30th.
+fn ordinal(n: u32) -> String {
+    let suffix = match (n % 10, n % 100) {
+        (_, 11..=13) => "th",
+        (1, _) => "st",
+        (2, _) => "nd",
+        (3, _) => "rd",
+        _ => "th",
+    };
+    format!("{n}{suffix}")
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use config::Corner;
+
+    /// The lab's report: `png_every = 30` wrote frames 0, 33, 61, 89 (each deadline miss shows
+    /// a frame again and shifted the count) and `/status` said "every 1th frame".
+    #[test]
+    fn png_every_writes_by_frame_number_and_says_its_ordinal() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut s = HeadlessSink::new(30, Some(dir.path().join("f"))).unwrap();
+        let frame = |n: u64| Frame {
+            number: n,
+            focus: Diopters(1.0),
+            layers: vec![dioptra_core::RgbImage::new(4, 4, [0.5; 3]).into()].into(),
+            right: None,
+            marker: None,
+        };
+        let mut t = 0;
+        for n in 0..=100u64 {
+            // Frames 5, 29, 30 and 59 shown twice (their successors were late); 90 never
+            // rendered (the scheduler skipped its slot).
+            let times = if [5, 29, 30, 59].contains(&n) { 2 } else { 1 };
+            for _ in 0..times {
+                if n != 90 {
+                    s.present(&frame(n), Timestamp(t)).unwrap();
+                    t += 1000;
+                }
+            }
+        }
+        let mut written: Vec<String> = std::fs::read_dir(dir.path().join("f"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        written.sort();
+        assert_eq!(
+            written,
+            [
+                "frame_000000.png",
+                "frame_000030.png",
+                "frame_000060.png",
+                "frame_000091.png"
+            ]
+        );
+        assert!(
+            s.describe().starts_with("headless (every 30th frame to "),
+            "{}",
+            s.describe()
+        );
+        let names: Vec<String> = [1, 2, 3, 4, 11, 12, 13, 21, 22, 23, 30, 101, 111]
+            .into_iter()
+            .map(ordinal)
+            .collect();
+        assert_eq!(
+            names,
+            [
+                "1st", "2nd", "3rd", "4th", "11th", "12th", "13th", "21st", "22nd", "23rd", "30th",
+                "101st", "111th"
+            ]
+        );
+        let every = HeadlessSink::new(1, Some(dir.path().join("g"))).unwrap();
+        assert!(every.describe().starts_with("headless (every frame to "));
+    }
     use dioptra_core::Diopters;
 
     #[test]
