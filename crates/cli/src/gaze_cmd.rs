@@ -20,7 +20,7 @@ use dioptra_sim::gaze::csv;
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene, SCENARIOS};
 use dioptra_transport::HidLink;
 
-use crate::device_spec::{self, Target};
+use crate::common::device_spec::{self, Target};
 
 /// What `--device` takes, for messages.
 const USAGE: &str = "sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT";
@@ -81,7 +81,7 @@ enum Action {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
 /// The simulators' setup for `sim[:WHAT]`: WHAT a scenario or a recorded CSV trace (the

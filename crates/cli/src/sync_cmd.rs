@@ -14,7 +14,7 @@ use dioptra_rig::devices::simulators::SimSpec;
 use dioptra_rig::devices::BoxSequencer;
 use dioptra_sync::dlpc350::Dlpc350Config;
 
-use crate::device_spec::{self, Target};
+use crate::common::device_spec::{self, Target};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -87,7 +87,7 @@ impl ScheduleArgs {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
 async fn run_async(args: Args) -> Result<()> {

@@ -56,6 +56,18 @@ use dioptra_rig::render::FrameImage;
 
 pub use dioptra_rig::config::MonitorChoice;
 
+/// The window draws layouts `one` and `side-by-side`; a window per monitor is not built yet.
+pub fn window_layout_supported(layout: dioptra_rig::config::DisplayLayout) -> anyhow::Result<()> {
+    if layout == dioptra_rig::config::DisplayLayout::TwoOutputs {
+        anyhow::bail!(
+            "display.layout = \"two-outputs\" with display.kind = \"window\" is not supported \
+             yet (the window draws one monitor): use layout = \"side-by-side\" on one panel \
+             spanning both eyes, or kind = \"headless\" (an image per eye)"
+        );
+    }
+    Ok(())
+}
+
 #[derive(Debug, Error)]
 pub enum WindowError {
     #[error(
@@ -1371,13 +1383,13 @@ mod tests {
     #[test]
     fn two_outputs_in_a_window_is_refused_naming_the_key() {
         use dioptra_rig::config::DisplayLayout;
-        let e = super::super::window_layout_supported(DisplayLayout::TwoOutputs).unwrap_err();
+        let e = super::window_layout_supported(DisplayLayout::TwoOutputs).unwrap_err();
         assert!(
             e.to_string().contains("display.layout = \"two-outputs\""),
             "{e}"
         );
-        assert!(super::super::window_layout_supported(DisplayLayout::SideBySide).is_ok());
-        assert!(super::super::window_layout_supported(DisplayLayout::One).is_ok());
+        assert!(super::window_layout_supported(DisplayLayout::SideBySide).is_ok());
+        assert!(super::window_layout_supported(DisplayLayout::One).is_ok());
     }
 
     fn fit(image: (u32, u32), surface: (u32, u32)) -> Rect {

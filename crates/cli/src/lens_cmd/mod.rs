@@ -1,6 +1,6 @@
 //! `dioptra lens --device DRIVER:PORT info|get|set|sweep|temp|calibrate`: talk to one
-//! varifocal lens, opened through the rig's drivers' table (`crate::device_spec`);
-//! `calibrate` is in [`crate::lens_calibrate`].
+//! varifocal lens, opened through the rig's drivers' table (`crate::common::device_spec`);
+//! `calibrate` is in [`calibrate`].
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -11,7 +11,9 @@ use dioptra_core::{Clock, Diopters, LensState, PowerRange, SystemClock, Timestam
 use dioptra_lens::{LensLimits, OutOfRange};
 use dioptra_rig::devices::open::{self, Context, LensSetup};
 
-use crate::device_spec;
+use crate::common::device_spec;
+
+mod calibrate;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -60,11 +62,11 @@ enum Action {
     Temp,
     /// Measure the accommodation demand at each of a range of commands and write the rig's
     /// calibration table (`optics.calibration`).
-    Calibrate(crate::lens_calibrate::CalibrateArgs),
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
 async fn run_async(args: Args) -> Result<()> {
@@ -88,11 +90,11 @@ async fn run_async(args: Args) -> Result<()> {
         Action::Info => device_spec::print_facts(&d.about().await?),
         Action::Temp => device_spec::print_facts(&d.condition().await?),
         Action::Calibrate(c) => {
-            let who = crate::lens_calibrate::LensIdentity {
+            let who = calibrate::LensIdentity {
                 description: d.identity(),
                 device: args.device.clone(),
             };
-            return crate::lens_calibrate::run(&mut d, c, &who).await;
+            return calibrate::run(&mut d, c, &who).await;
         }
         action => return common(&mut d, action, &limits, &*clock).await,
     }
