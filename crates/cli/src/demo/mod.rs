@@ -12,6 +12,8 @@ mod args;
 mod frames;
 mod plots;
 #[cfg(feature = "simulated")]
+mod render;
+#[cfg(feature = "simulated")]
 mod run;
 
 use anyhow::Result;
