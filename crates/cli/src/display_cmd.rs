@@ -20,6 +20,7 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use dioptra_core::transfer::{TransferFit, TransferFitLimits, MIN_LEVELS};
 use dioptra_sim::eye_camera::{PanelResponse, Photometer};
+use crate::common;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -106,7 +107,7 @@ pub struct SimPhotometerArgs {
 
 pub fn run(args: Args) -> Result<()> {
     match args.command {
-        DisplayCommand::Calibrate(a) => crate::block_on(calibrate(a)),
+        DisplayCommand::Calibrate(a) => common::block_on(calibrate(a)),
         DisplayCommand::SimPhotometer(a) => sim_photometer(a),
     }
 }
