@@ -28,7 +28,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "--group {g:?} is not a valid group name (letters, digits, '_' and '-')"
         );
     }
-    let table = crate::devices::known_devices();
+    let table = dioptra_rig::devices::open::known_devices();
     print!("{}", rules(&table, args.group.as_deref()));
     if let Some(path) = &args.config {
         let cfg = RigConfig::load(path)?;
@@ -151,7 +151,7 @@ mod tests {
     fn committed_rules_file_is_up_to_date() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../udev/70-dioptra.rules");
         let committed = std::fs::read_to_string(path).unwrap_or_default();
-        let fresh = rules(&crate::devices::known_devices(), None);
+        let fresh = rules(&dioptra_rig::devices::open::known_devices(), None);
         assert!(
             committed == fresh,
             "udev/70-dioptra.rules is out of date: run `cargo run -- udev > udev/70-dioptra.rules`"
@@ -175,7 +175,11 @@ mod tests {
                 1,
             );
         let cfg = RigConfig::parse(&text).unwrap();
-        let out = device_links(&cfg.devices.list(), &crate::devices::known_devices(), None);
+        let out = device_links(
+            &cfg.devices.list(),
+            &dioptra_rig::devices::open::known_devices(),
+            None,
+        );
         let left: Vec<&str> = out.lines().filter(|l| l.contains("lens_left")).collect();
         assert_eq!(
             left[1],
@@ -195,7 +199,10 @@ mod tests {
 
     #[test]
     fn serial_devices_are_hidden_from_modemmanager_and_hid_uses_hidraw() {
-        let text = rules(&crate::devices::known_devices(), Some("dioptra"));
+        let text = rules(
+            &dioptra_rig::devices::open::known_devices(),
+            Some("dioptra"),
+        );
         let optotune = text.lines().find(|l| l.contains("\"2018\"")).unwrap();
         assert!(optotune.contains("ID_MM_DEVICE_IGNORE"), "{optotune}");
         assert!(

@@ -19,6 +19,7 @@ use thiserror::Error;
 
 use config::{DisplayLayout, MarkerEvent, MarkerPatch};
 
+pub mod blit;
 pub mod config;
 pub mod frame;
 pub mod placement;

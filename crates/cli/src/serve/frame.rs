@@ -42,7 +42,7 @@ use dioptra_rig::content::stream::{
 };
 use dioptra_rig::RigState;
 
-use super::api::ApiError;
+use super::error::ApiError;
 
 fn refused(e: FrameError) -> ApiError {
     let status = match e {
@@ -82,7 +82,7 @@ pub async fn from_slot(
     b: axum::body::Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
-    let f: SlotBody = super::api::body(&b).inspect_err(|e| {
+    let f: SlotBody = super::error::body(&b).inspect_err(|e| {
         let e = FrameError::Request(e.message().to_string());
         stream.refuse(FrameLabel::default(), e, s.clock.now());
     })?;

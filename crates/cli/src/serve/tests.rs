@@ -810,7 +810,9 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     // reports where it is again.
     assert_eq!(sh.registry.snapshot()["lens"].last_error, None);
     eventually("a read-back after the reconnect", || {
-        sh.status_json()["focus"]["lens_d"].is_number().then_some(())
+        sh.status_json()["focus"]["lens_d"]
+            .is_number()
+            .then_some(())
     })
     .await;
     d.cancel_token().cancel();
