@@ -820,10 +820,7 @@ fn refused_and_dropped_frames_are_logged_naming_them_and_summarised_when_they_re
         secs(0.0),
     )
     .unwrap();
-    let wrong = FrameDesc {
-        width: 1,
-        ..left.clone()
-    };
+    let wrong = FrameDesc { width: 1, ..left };
     let e = s
         .submit_eye(
             &wrong,
@@ -850,7 +847,7 @@ fn refused_and_dropped_frames_are_logged_naming_them_and_summarised_when_they_re
     for eye in [Side::Left, Side::Right] {
         let d = FrameDesc {
             seq: Some(14),
-            ..left.clone()
+            ..left
         };
         s.submit_eye(&d, Some(eye), &[0; 6], &f32s(&[1.0; 2]), secs(0.02))
             .unwrap();
@@ -869,7 +866,7 @@ fn refused_and_dropped_frames_are_logged_naming_them_and_summarised_when_they_re
         let d = FrameDesc {
             seq: Some(seq),
             width: 3,
-            ..left.clone()
+            ..left
         };
         s.submit_eye(&d, Some(Side::Left), &[0; 9], &f32s(&[1.0; 3]), secs(t))
             .unwrap_err();
