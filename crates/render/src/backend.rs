@@ -19,6 +19,9 @@ use std::str::FromStr;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DefocusMethod {
     Gather,
+    /// Gather's sums with every blur of 4 px or more spread at the resolution it leaves:
+    /// bounded work per pixel (see [`crate::pyramid`]); foveated around a gaze when asked.
+    Pyramid(crate::pyramid::PyramidParams),
     LightField(LightFieldParams),
 }
 
@@ -27,9 +30,10 @@ impl FromStr for DefocusMethod {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "gather" => Ok(DefocusMethod::Gather),
+            "pyramid" => Ok(DefocusMethod::Pyramid(Default::default())),
             "lightfield" => Ok(DefocusMethod::LightField(LightFieldParams::default())),
             _ => Err(invalid(format!(
-                "unknown defocus method {s:?}: expected gather or lightfield"
+                "unknown defocus method {s:?}: expected gather, pyramid or lightfield"
             ))),
         }
     }
@@ -67,6 +71,15 @@ pub trait Backend: Send + Sync {
             DefocusMethod::Gather => {
                 for &q in foci {
                     out.push(gather(input, q, eye)?);
+                    progress(out.len());
+                }
+            }
+            DefocusMethod::Pyramid(p) => {
+                for &q in foci {
+                    out.push(match p.foveation {
+                        None => crate::pyramid::pyramid(input, q, eye)?,
+                        Some(f) => crate::foveated::foveated(input, q, eye, &f)?.image,
+                    });
                     progress(out.len());
                 }
             }
