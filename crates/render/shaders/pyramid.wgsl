@@ -23,7 +23,7 @@ struct Params {
     out: vec4<u32>,
     // Band edges rho_0 .. rho_BANDS.
     edges: array<vec4<f32>, 4>,
-    // Per level (index m - 1): width, height (cells), scale, offset of kind 0's image.
+    // Per level m: grid width, height (texels), texel side (px), offset of kind 0's image.
     levels: array<vec4<u32>, 8>,
 }
 
@@ -48,8 +48,10 @@ fn ramp_disk_m2(r: f32) -> f32 {
     return 0.15 * (5.0 * r2 * r2 + 2.5 * r2 + 0.0625) / (3.0 * r2 + 0.25);
 }
 
-fn spread_radius(r: f32, s: f32) -> f32 {
-    let m = ramp_disk_m2(r) / (s * s) - 1.0 / 12.0;
+fn spread_radius(r: f32, cell: f32, grid: f32) -> f32 {
+    var tent = 0.0;
+    if grid > 1.0 { tent = grid * grid / 6.0; }
+    let m = (ramp_disk_m2(r) + (cell * cell - 1.0) / 12.0 - tent) / (grid * grid);
     let b = 3.0 * m - 0.375;
     let u = (b + sqrt(max(b * b - 3.0 * (0.009375 - 0.25 * m), 0.0))) / 1.5;
     return sqrt(max(u, 0.25));
@@ -65,7 +67,7 @@ fn kind_weight(sr: f32, m: u32, first: u32, kind: u32) -> f32 {
     let r = abs(sr);
     if r < EXACT_RADIUS { return 0.0; }
     let b = band_of(r);
-    let own = b / BANDS_PER_OCTAVE + 1u == m;
+    let own = b / BANDS_PER_OCTAVE == m;
     if sr > 0.0 {
         return select(0.0, 1.0 / (r * r), own && kind == 0u);
     }
@@ -84,8 +86,9 @@ fn aggregate(@builtin(global_invocation_id) g: vec3<u32>) {
     let n = p.w * p.h;
     let cx = p.rec.x + g.x;
     let cy = p.rec.y + g.y;
-    let s = 1u << p.level;
-    let first = BANDS_PER_OCTAVE * (p.level - 1u);
+    let grid = 2u << p.level;
+    let s = grid;
+    let first = BANDS_PER_OCTAVE * p.level;
     var c = vec3<f32>(0.0);
     var wsum = 0.0;
     var pos = vec2<f32>(0.0);
@@ -117,8 +120,9 @@ fn aggregate(@builtin(global_invocation_id) g: vec3<u32>) {
         radius = rho;
         weight = 1.0 / (rho * rho);
     }
-    let sf = f32(s);
-    a_rec[o] = vec4<f32>(pos.x * inv / sf, pos.y * inv / sf, spread_radius(radius, sf), 0.0);
+    let gf = f32(grid);
+    let r = spread_radius(radius, f32(s), gf);
+    a_rec[o] = vec4<f32>(pos.x * inv / gf, pos.y * inv / gf, r, 0.0);
     a_rec[o + 1u] = vec4<f32>(c * weight, wsum * weight);
 }
 
@@ -135,10 +139,12 @@ fn spread(@builtin(global_invocation_id) g: vec3<u32>) {
     let fx = f32(X) + 0.5;
     let fy = f32(Y) + 0.5;
     var acc = vec4<f32>(0.0);
-    let y0 = max(select(0u, Y - SPREAD_REACH, Y >= SPREAD_REACH), p.rec.y);
-    let y1 = min(Y + SPREAD_REACH + 1u, p.rec.w);
-    let x0 = max(select(0u, X - SPREAD_REACH, X >= SPREAD_REACH), p.rec.x);
-    let x1 = min(X + SPREAD_REACH + 1u, p.rec.z);
+    // The cells within SPREAD_REACH texels (a cell is `ratio` texels a side).
+    let ratio = 1u;
+    let y0 = max(select(0u, Y - SPREAD_REACH, Y >= SPREAD_REACH) / ratio, p.rec.y);
+    let y1 = min((Y + SPREAD_REACH) / ratio + 1u, p.rec.w);
+    let x0 = max(select(0u, X - SPREAD_REACH, X >= SPREAD_REACH) / ratio, p.rec.x);
+    let x1 = min((X + SPREAD_REACH) / ratio + 1u, p.rec.z);
     for (var cy = y0; cy < y1; cy++) {
         for (var cx = x0; cx < x1; cx++) {
             let o = 2u * ((cy - p.rec.y) * rw + (cx - p.rec.x));
@@ -151,7 +157,7 @@ fn spread(@builtin(global_invocation_id) g: vec3<u32>) {
             acc += cover * v;
         }
     }
-    let l = p.levels[p.level - 1u];
+    let l = p.levels[p.level];
     s_img[l.w + p.kind * l.x * l.y + Y * l.x + X] = acc;
 }
 

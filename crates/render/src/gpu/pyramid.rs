@@ -234,7 +234,7 @@ fn record(
     n_off: usize,
 ) -> Result<(), RenderError> {
     let (w, h) = (setup.w, setup.h);
-    let grids: Vec<LevelGrid> = (1..=setup.top)
+    let grids: Vec<LevelGrid> = (0..setup.top)
         .map(|m| LevelGrid::new(m, w, h, region))
         .collect();
     let mut levels = [[0u32; 4]; 8];
@@ -290,7 +290,7 @@ fn record(
         };
         for kind in 0..KINDS {
             let p = PyramidP {
-                level: dim(li + 1, "level")?,
+                level: dim(li, "level")?,
                 kind: kind as u32,
                 rec: to_u32(g.rec)?,
                 out: to_u32(g.out)?,
