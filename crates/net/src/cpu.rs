@@ -406,16 +406,7 @@ impl CpuNet {
     /// [`Arch::size_multiple`] internally, cropped back).
     pub fn forward(&self, x: &Act) -> Result<Act, NetError> {
         let arch = self.arch();
-        if x.c != arch.in_channels() || x.h == 0 || x.w == 0 {
-            return Err(input(format!(
-                "{} network expects a non-empty input of {} channels, got {}x{}x{}",
-                arch.task.name(),
-                arch.in_channels(),
-                x.w,
-                x.h,
-                x.c
-            )));
-        }
+        check_input(arch, x)?;
         let padded = x.pad_to_multiple(arch.size_multiple());
         let y = forward(arch, self, padded.as_ref())?;
         Ok(y.into_crop(x.h, x.w))
@@ -585,6 +576,21 @@ pub fn upsample2(x: &Act) -> Result<Act, NetError> {
         }
     });
     Act::new(x.h * 2, w, c, out)
+}
+
+/// A network input's shape checked against `arch` (CPU and GPU inference alike).
+pub(crate) fn check_input(arch: &Arch, x: &Act) -> Result<(), NetError> {
+    if x.c != arch.in_channels() || x.h == 0 || x.w == 0 {
+        return Err(input(format!(
+            "{} network expects a non-empty input of {} channels, got {}x{}x{}",
+            arch.task.name(),
+            arch.in_channels(),
+            x.w,
+            x.h,
+            x.c
+        )));
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -3,15 +3,14 @@
 //! a forward pass is one frame (one submission): the input is uploaded, every layer's
 //! tensor stays on the GPU, and only the output is read back. Kernels: `shaders/net.wgsl`.
 
-use crate::arch::{Arch, Task};
-use crate::cpu::Act;
+use crate::arch::Arch;
+use crate::cpu::{check_input, Act};
 use crate::error::{input, NetError};
 use crate::graph::{forward, Ops};
-use crate::refine::{
-    check_planes, classical_composite, compose_defocus, compose_layers, error_tiles,
-    refine_defocus_input, refine_layers_input, refine_view_input, view_tiles, Refined,
-};
-use crate::tasks::{defocus_input, rgb_at, rgbd_input};
+use crate::infer::Infer;
+use crate::refine::{self, Refined};
+use crate::tasks;
+use crate::tiles::TileMap;
 use crate::weights::Weights;
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::gpu::{BufRef, Frame, FrameStats, GpuContext, ShaderKernel};
@@ -196,16 +195,7 @@ impl GpuNet {
     /// to the interleave rate, cropped back), exactly as [`crate::CpuNet::forward`].
     pub fn forward(&self, x: &Act) -> Result<Act, NetError> {
         let arch = self.arch();
-        if x.c != arch.in_channels() || x.h == 0 || x.w == 0 {
-            return Err(input(format!(
-                "{} network expects a non-empty input of {} channels, got {}x{}x{}",
-                arch.task.name(),
-                arch.in_channels(),
-                x.w,
-                x.h,
-                x.c
-            )));
-        }
+        check_input(arch, x)?;
         let padded = x.pad_to_multiple(arch.rate);
         let mut frame = Frame::new(&self.ctx).map_err(gpu_err)?;
         let buf = frame
@@ -241,24 +231,28 @@ impl GpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<RgbImage, NetError> {
-        self.arch().expect_task("c1")?;
-        rgb_at(&self.forward(&defocus_input(rgbd, focus, eye)?)?, 0)
+        tasks::defocus(self, rgbd, focus, eye)
     }
 
     /// C4: multifocal layers for the network's display planes (as
     /// [`crate::CpuNet::decompose`]).
     pub fn decompose(&self, rgbd: &Rgbd) -> Result<Layers, NetError> {
-        self.arch().expect_task("c4")?;
-        let Task::C4 { planes, .. } = &self.arch().task else {
-            return Err(input("not a multifocal network"));
-        };
-        let y = self.forward(&rgbd_input(rgbd)?)?;
-        Ok(Layers {
-            planes: planes.iter().map(|&p| Diopters(p)).collect(),
-            images: (0..planes.len())
-                .map(|k| rgb_at(&y, k))
-                .collect::<Result<_, _>>()?,
-        })
+        tasks::decompose(self, rgbd)
+    }
+}
+
+impl Infer for GpuNet {
+    fn arch(&self) -> &Arch {
+        GpuNet::arch(self)
+    }
+
+    fn forward(&self, x: &Act) -> Result<Act, NetError> {
+        GpuNet::forward(self, x)
+    }
+
+    /// The whole image: the GPU has no tiled evaluation.
+    fn forward_on(&self, x: &Act, _: &TileMap) -> Result<Act, NetError> {
+        GpuNet::forward(self, x)
     }
 }
 
@@ -266,7 +260,7 @@ impl GpuNet {
     /// C1R on the GPU: the net runs on the whole image and its correction is kept on the
     /// pixels the error map corrects, so the result equals [`crate::CpuNet::refine_defocus`]
     /// (which evaluates only those tiles). The classical composite's smooth part
-    /// ([`classical_composite`]) is computed on the CPU, as the map is.
+    /// ([`crate::refine::classical_composite`]) is computed on the CPU, as the map is.
     pub fn refine_defocus(
         &self,
         rgbd: &Rgbd,
@@ -274,43 +268,19 @@ impl GpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<Refined, NetError> {
-        self.arch().expect_task("c1r")?;
-        let tiles = error_tiles(&rgbd.depth, focus, eye)?;
-        let base = classical_composite(rgbd, classical, &tiles, focus, eye)?;
-        if !tiles.on.contains(&true) {
-            return Ok(Refined {
-                image: base.clone(),
-                tiles,
-                classical: base,
-            });
-        }
-        let y = self.forward(&refine_defocus_input(rgbd, classical, focus, eye)?)?;
-        Ok(Refined {
-            image: compose_defocus(&base, &y, &tiles)?,
-            tiles,
-            classical: base,
-        })
+        refine::refine_defocus(self, rgbd, classical, focus, eye)
     }
 
     /// C4R on the GPU (as [`crate::CpuNet::refine_decompose`]).
     pub fn refine_decompose(&self, rgbd: &Rgbd, classical: &Layers) -> Result<Layers, NetError> {
-        self.arch().expect_task("c4r")?;
-        check_planes(&self.arch().task, classical)?;
-        let y = self.forward(&refine_layers_input(rgbd, classical)?)?;
-        compose_layers(classical, &y)
+        refine::refine_decompose(self, rgbd, classical)
     }
 
     /// C5R on the GPU: the net on the whole view, its correction kept on the pixels the
     /// warp's error map marks, so the result equals [`crate::CpuNet::refine_view`] (which
     /// evaluates only those tiles).
     pub fn refine_view(&self, view: &Rgbd, errors: &WarpErrors) -> Result<RgbImage, NetError> {
-        self.arch().expect_task("c5r")?;
-        let tiles = view_tiles(errors)?;
-        if !tiles.on.contains(&true) {
-            return Ok(view.color.clone());
-        }
-        let y = self.forward(&refine_view_input(view, errors)?)?;
-        compose_defocus(&view.color, &y, &tiles)
+        refine::refine_view(self, view, errors)
     }
 }
 

@@ -10,6 +10,7 @@ pub mod error;
 pub mod fv;
 pub mod gpu;
 pub mod graph;
+mod infer;
 pub mod refine;
 pub mod tasks;
 pub mod tiles;

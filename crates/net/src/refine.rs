@@ -11,6 +11,7 @@
 use crate::arch::{Classical, ClassicalLayers, Task, COC_NORM, DEPTH_NORM, PARALLAX_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
+use crate::infer::Infer;
 pub use crate::tiles::{TileMap, TILE};
 use dioptra_core::{DepthMap, Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::composite::{compose, step_reach};
@@ -354,9 +355,69 @@ pub(crate) fn check_planes(task: &Task, layers: &Layers) -> Result<(), NetError>
     Ok(())
 }
 
+/// C1R: `classical` (the net's classical method at `focus`, its input) refined on the pixels
+/// the error map corrects; every other pixel is [`classical_composite`]'s. The classical
+/// composite and the map are computed on the CPU whatever evaluates the net.
+pub(crate) fn refine_defocus(
+    net: &impl Infer,
+    rgbd: &Rgbd,
+    classical: &RgbImage,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<Refined, NetError> {
+    net.arch().expect_task("c1r")?;
+    let tiles = error_tiles(&rgbd.depth, focus, eye)?;
+    let base = classical_composite(rgbd, classical, &tiles, focus, eye)?;
+    if !tiles.on.contains(&true) {
+        return Ok(Refined {
+            image: base.clone(),
+            tiles,
+            classical: base,
+        });
+    }
+    let x = refine_defocus_input(rgbd, classical, focus, eye)?;
+    let y = net.forward_on(&x, &tiles)?;
+    Ok(Refined {
+        image: compose_defocus(&base, &y, &tiles)?,
+        tiles,
+        classical: base,
+    })
+}
+
+/// C5R: the classical view `view` (its colour and warped depth, from
+/// [`synthesize_view_with_errors`]) refined on the tiles its error map marks; every other
+/// pixel keeps the classical value.
+pub(crate) fn refine_view(
+    net: &impl Infer,
+    view: &Rgbd,
+    errors: &WarpErrors,
+) -> Result<RgbImage, NetError> {
+    net.arch().expect_task("c5r")?;
+    let tiles = view_tiles(errors)?;
+    if !tiles.on.contains(&true) {
+        return Ok(view.color.clone());
+    }
+    let y = net.forward_on(&refine_view_input(view, errors)?, &tiles)?;
+    compose_defocus(&view.color, &y, &tiles)
+}
+
+/// C4R: `classical` (the layers of the net's classical decomposition for its planes,
+/// [`classical_layers`]) refined.
+pub(crate) fn refine_decompose(
+    net: &impl Infer,
+    rgbd: &Rgbd,
+    classical: &Layers,
+) -> Result<Layers, NetError> {
+    net.arch().expect_task("c4r")?;
+    check_planes(&net.arch().task, classical)?;
+    let y = net.forward(&refine_layers_input(rgbd, classical)?)?;
+    compose_layers(classical, &y)
+}
+
 impl CpuNet {
     /// C1R: `classical` (the net's classical method at `focus`, its input) refined on the
-    /// pixels the error map corrects; every other pixel is [`classical_composite`]'s.
+    /// pixels the error map corrects; every other pixel is [`classical_composite`]'s. The net
+    /// is evaluated only on the tiles the map corrects ([`CpuNet::forward_tiles`]).
     pub fn refine_defocus(
         &self,
         rgbd: &Rgbd,
@@ -364,45 +425,20 @@ impl CpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<Refined, NetError> {
-        self.arch().expect_task("c1r")?;
-        let tiles = error_tiles(&rgbd.depth, focus, eye)?;
-        let base = classical_composite(rgbd, classical, &tiles, focus, eye)?;
-        if !tiles.on.contains(&true) {
-            return Ok(Refined {
-                image: base.clone(),
-                tiles,
-                classical: base,
-            });
-        }
-        let x = refine_defocus_input(rgbd, classical, focus, eye)?;
-        let y = self.forward_tiles(&x, &tiles)?;
-        Ok(Refined {
-            image: compose_defocus(&base, &y, &tiles)?,
-            tiles,
-            classical: base,
-        })
+        refine_defocus(self, rgbd, classical, focus, eye)
     }
 
     /// C5R: the classical view `view` (its colour and warped depth, from
     /// [`synthesize_view_with_errors`]) refined on the tiles its error map marks; every other
     /// pixel keeps the classical value.
     pub fn refine_view(&self, view: &Rgbd, errors: &WarpErrors) -> Result<RgbImage, NetError> {
-        self.arch().expect_task("c5r")?;
-        let tiles = view_tiles(errors)?;
-        if !tiles.on.contains(&true) {
-            return Ok(view.color.clone());
-        }
-        let y = self.forward_tiles(&refine_view_input(view, errors)?, &tiles)?;
-        compose_defocus(&view.color, &y, &tiles)
+        refine_view(self, view, errors)
     }
 
     /// C4R: `classical` (the layers of the net's classical decomposition for its planes,
     /// [`classical_layers`]) refined.
     pub fn refine_decompose(&self, rgbd: &Rgbd, classical: &Layers) -> Result<Layers, NetError> {
-        self.arch().expect_task("c4r")?;
-        check_planes(&self.arch().task, classical)?;
-        let y = self.forward(&refine_layers_input(rgbd, classical)?)?;
-        compose_layers(classical, &y)
+        refine_decompose(self, rgbd, classical)
     }
 }
 
@@ -425,6 +461,7 @@ mod tests {
     use crate::weights::{SplitMix, Weights};
     use crate::Arch;
     use dioptra_core::Plane;
+    use dioptra_render::composite::StepScan;
     use dioptra_render::multifocal::linear_blend;
 
     /// The default eye with a 5 degree field of view: these small test images then blur by
@@ -445,8 +482,8 @@ mod tests {
         eye: &EyeModel,
     ) -> Result<TileMap, NetError> {
         let (w, h) = (depth.width(), depth.height());
-        let eye = eye_for(eye, w)?;
-        let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
+        let scan = StepScan::new(depth, focus, eye)?;
+        let px_per_d = scan.px_per_d();
         let d = depth.data();
         let q = focus.0;
         let mut map = TileMap::none(w, h);
@@ -457,45 +494,27 @@ mod tests {
         let mut near_middle = vec![f32::INFINITY; w * h];
         let mut far_middle = vec![f32::NEG_INFINITY; w * h];
         for y in 0..h {
-            for x in 0..w {
-                let a = d[y * w + x];
-                for (nx, ny) in [(x + 1, y), (x, y + 1)] {
-                    if nx >= w || ny >= h {
-                        continue;
-                    }
-                    let b = d[ny * w + nx];
-                    if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
-                        continue;
-                    }
-                    // Diopters: the nearer side is the larger.
-                    let (near, far) = (a.max(b), a.min(b));
-                    let r_near = 0.5 * (near - q).abs() * px_per_d;
-                    let r_far = 0.5 * (far - q).abs() * px_per_d;
-                    if r_near.max(r_far) < 0.5 {
-                        continue;
-                    }
-                    let (x, y) = (x as isize, y as isize);
-                    let middle = 0.5 * (near + far);
-                    if r_near >= 0.5 {
-                        let r = r_near.ceil() as isize + 1;
-                        for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
-                            if r_far >= 0.5 {
-                                near_reach[row].fill(true)
-                            } else {
-                                for m in &mut near_middle[row] {
-                                    *m = m.min(middle);
-                                }
+            for s in scan.row(y) {
+                let (x, y) = (s.x as isize, y as isize);
+                if let Some(r) = s.near {
+                    let r = r as isize;
+                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                        if s.far.is_some() {
+                            near_reach[row].fill(true)
+                        } else {
+                            for m in &mut near_middle[row] {
+                                *m = m.min(s.middle);
                             }
-                        });
-                    }
-                    if r_far >= 0.5 {
-                        let r = r_far.ceil() as isize + 1;
-                        for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
-                            for m in &mut far_middle[row] {
-                                *m = m.max(middle);
-                            }
-                        });
-                    }
+                        }
+                    });
+                }
+                if let Some(r) = s.far {
+                    let r = r as isize;
+                    for_box(w, h, x - r, y - r, x + 1 + r, y + 1 + r, |row| {
+                        for m in &mut far_middle[row] {
+                            *m = m.max(s.middle);
+                        }
+                    });
                 }
             }
         }

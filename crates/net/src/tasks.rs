@@ -4,19 +4,9 @@
 use crate::arch::{Task, COC_NORM, DEPTH_NORM};
 use crate::cpu::{Act, CpuNet};
 use crate::error::{input, NetError};
+use crate::infer::Infer;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
-use dioptra_render::{eye_for, Layers};
-
-fn check_focus(q: Diopters) -> Result<(), NetError> {
-    // As the renderer's: below 0 D the eye focuses beyond optical infinity.
-    if q.0.is_finite() && q.0.abs() < 1000.0 {
-        Ok(())
-    } else {
-        Err(input(format!(
-            "focus {q} is invalid: expected finite and -1000 < q < 1000 D"
-        )))
-    }
-}
+use dioptra_render::{check_focus, eye_for, Layers};
 
 /// C3/C4 input: [R, G, B, depth / 4] per pixel.
 pub fn rgbd_input(rgbd: &Rgbd) -> Result<Act, NetError> {
@@ -64,6 +54,32 @@ pub fn rgb_at(a: &Act, k: usize) -> Result<RgbImage, NetError> {
     Ok(RgbImage::from_planes(plane(0)?, plane(1)?, plane(2)?)?)
 }
 
+/// C1: what the eye focused at `focus` sees of `rgbd`.
+pub(crate) fn defocus(
+    net: &impl Infer,
+    rgbd: &Rgbd,
+    focus: Diopters,
+    eye: &EyeModel,
+) -> Result<RgbImage, NetError> {
+    net.arch().expect_task("c1")?;
+    rgb_at(&net.forward(&defocus_input(rgbd, focus, eye)?)?, 0)
+}
+
+/// C4: multifocal layers for the network's display planes.
+pub(crate) fn decompose(net: &impl Infer, rgbd: &Rgbd) -> Result<Layers, NetError> {
+    net.arch().expect_task("c4")?;
+    let Task::C4 { planes, .. } = &net.arch().task else {
+        return Err(input("not a multifocal network"));
+    };
+    let y = net.forward(&rgbd_input(rgbd)?)?;
+    Ok(Layers {
+        planes: planes.iter().map(|&p| Diopters(p)).collect(),
+        images: (0..planes.len())
+            .map(|k| rgb_at(&y, k))
+            .collect::<Result<_, _>>()?,
+    })
+}
+
 impl CpuNet {
     /// C1: what the eye focused at `focus` sees of `rgbd`.
     pub fn defocus(
@@ -72,8 +88,7 @@ impl CpuNet {
         focus: Diopters,
         eye: &EyeModel,
     ) -> Result<RgbImage, NetError> {
-        self.arch().expect_task("c1")?;
-        rgb_at(&self.forward(&defocus_input(rgbd, focus, eye)?)?, 0)
+        defocus(self, rgbd, focus, eye)
     }
 
     /// C3: the focal stack at the network's foci.
@@ -91,17 +106,7 @@ impl CpuNet {
 
     /// C4: multifocal layers for the network's display planes.
     pub fn decompose(&self, rgbd: &Rgbd) -> Result<Layers, NetError> {
-        self.arch().expect_task("c4")?;
-        let Task::C4 { planes, .. } = &self.arch().task else {
-            return Err(input("not a multifocal network"));
-        };
-        let y = self.forward(&rgbd_input(rgbd)?)?;
-        Ok(Layers {
-            planes: planes.iter().map(|&p| Diopters(p)).collect(),
-            images: (0..planes.len())
-                .map(|k| rgb_at(&y, k))
-                .collect::<Result<_, _>>()?,
-        })
+        decompose(self, rgbd)
     }
 }
 

@@ -12,8 +12,8 @@ pub fn eye_for(eye: &EyeModel, width: usize) -> Result<EyeModel, RenderError> {
 
 /// An eye's focus. 0 D is optical infinity; below it the eye focuses beyond infinity (a
 /// relaxed hyperopic eye, or a lens set to a negative power), and the circle of confusion
-/// still follows from |depth - focus|.
-pub(crate) fn check_focus(q: Diopters) -> Result<(), RenderError> {
+/// still follows from |depth - focus|. (The networks of `dioptra-net` take the same range.)
+pub fn check_focus(q: Diopters) -> Result<(), RenderError> {
     if q.0.is_finite() && q.0.abs() < 1000.0 {
         Ok(())
     } else {

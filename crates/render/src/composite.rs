@@ -30,15 +30,94 @@ pub struct StepReach {
     pub lacking: Vec<bool>,
 }
 
-/// A depth step from a pixel to its right or lower neighbour.
-struct Step {
-    x: usize,
-    /// Reach (pixels) of the nearer side's blur, when it blurs by half a pixel or more.
-    near: Option<usize>,
+/// A depth step from a pixel to its right or lower neighbour (see [`StepScan`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Step {
+    /// The pixel's column (its row is the row scanned).
+    pub x: usize,
+    /// Reach (pixels) of the nearer side's blur, when it blurs by half a pixel or more: its
+    /// disk (radius CoC / 2, plus one pixel) covers the box [x - r, x + 1 + r] x
+    /// [y - r, y + 1 + r].
+    pub near: Option<usize>,
     /// Reach of the farther side's blur, likewise.
-    far: Option<usize>,
+    pub far: Option<usize>,
     /// The step's middle, diopters.
-    middle: f32,
+    pub middle: f32,
+}
+
+/// The depth-edge scan of a depth map at one focus: the one definition of which pairs of
+/// neighbouring pixels are blurred depth steps and how far their blur reaches, used by
+/// [`step_reach`] and by the refinement nets' plain reference of it (`dioptra_net`).
+pub struct StepScan<'a> {
+    depth: &'a [f32],
+    width: usize,
+    height: usize,
+    focus: f32,
+    /// CoC diameter (pixels) per diopter of defocus.
+    px_per_d: f32,
+}
+
+impl<'a> StepScan<'a> {
+    pub fn new(depth: &'a DepthMap, focus: Diopters, eye: &EyeModel) -> Result<Self, RenderError> {
+        check_focus(focus)?;
+        let eye = eye_for(eye, depth.width())?;
+        Ok(StepScan {
+            depth: depth.data(),
+            width: depth.width(),
+            height: depth.height(),
+            focus: focus.0,
+            px_per_d: eye.coc_px(Diopters(1.0), Diopters(0.0)),
+        })
+    }
+
+    /// CoC diameter (pixels) per diopter of defocus.
+    pub fn px_per_d(&self) -> f32 {
+        self.px_per_d
+    }
+
+    /// The steps from each pixel of row `y` to its right and lower neighbours: a pair is a
+    /// step when their depths differ by at least [`EDGE_BLUR_PX`] of blur and one side blurs
+    /// by half a pixel or more.
+    pub fn row(&self, y: usize) -> Vec<Step> {
+        let (w, h, d, q, px_per_d) = (
+            self.width,
+            self.height,
+            self.depth,
+            self.focus,
+            self.px_per_d,
+        );
+        let mut row = Vec::new();
+        if y >= h {
+            return row;
+        }
+        for x in 0..w {
+            let a = d[y * w + x];
+            for (nx, ny) in [(x + 1, y), (x, y + 1)] {
+                if nx >= w || ny >= h {
+                    continue;
+                }
+                let b = d[ny * w + nx];
+                if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
+                    continue;
+                }
+                // Diopters: the nearer side is the larger.
+                let (near, far) = (a.max(b), a.min(b));
+                let r_near = 0.5 * (near - q).abs() * px_per_d;
+                let r_far = 0.5 * (far - q).abs() * px_per_d;
+                if r_near.max(r_far) < 0.5 {
+                    continue;
+                }
+                let reach = |r: f32| (r >= 0.5).then(|| r.ceil() as usize + 1);
+                row.push(Step {
+                    x,
+                    near: reach(r_near),
+                    far: reach(r_far),
+                    middle: 0.5 * (near + far),
+                });
+            }
+        }
+        row
+    }
 }
 
 /// The pixels the blurred depth steps reach at focus `focus`, from depth alone (BokehMe's
@@ -65,46 +144,14 @@ pub fn step_reach(
             "the own-blur threshold must be a finite number of pixels >= 0, not {min_own_blur_px}"
         )));
     }
+    let scan = StepScan::new(depth, focus, eye)?;
     let (w, h) = (depth.width(), depth.height());
-    let eye = eye_for(eye, w)?;
-    let px_per_d = eye.coc_px(Diopters(1.0), Diopters(0.0));
+    let px_per_d = scan.px_per_d();
     let d = depth.data();
     let q = focus.0;
     // Pass 1, rows in parallel: the steps from each pixel to its right and lower neighbours
     // that blur by half a pixel or more.
-    let steps: Vec<Vec<Step>> = (0..h)
-        .into_par_iter()
-        .map(|y| {
-            let mut row = Vec::new();
-            for x in 0..w {
-                let a = d[y * w + x];
-                for (nx, ny) in [(x + 1, y), (x, y + 1)] {
-                    if nx >= w || ny >= h {
-                        continue;
-                    }
-                    let b = d[ny * w + nx];
-                    if (a - b).abs() * px_per_d < EDGE_BLUR_PX {
-                        continue;
-                    }
-                    // Diopters: the nearer side is the larger.
-                    let (near, far) = (a.max(b), a.min(b));
-                    let r_near = 0.5 * (near - q).abs() * px_per_d;
-                    let r_far = 0.5 * (far - q).abs() * px_per_d;
-                    if r_near.max(r_far) < 0.5 {
-                        continue;
-                    }
-                    let reach = |r: f32| (r >= 0.5).then(|| r.ceil() as usize + 1);
-                    row.push(Step {
-                        x,
-                        near: reach(r_near),
-                        far: reach(r_far),
-                        middle: 0.5 * (near + far),
-                    });
-                }
-            }
-            row
-        })
-        .collect();
+    let steps: Vec<Vec<Step>> = (0..h).into_par_iter().map(|y| scan.row(y)).collect();
     let mut out = StepReach {
         width: w,
         height: h,

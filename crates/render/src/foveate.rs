@@ -50,6 +50,31 @@ pub fn log_polar_mask(
     height: usize,
     p: &LogPolar,
 ) -> Result<(Plane, f64), RenderError> {
+    let (rho, dir) = log_polar_tables(width, height, p)?;
+    let mut mask = Plane::new(width, height, 0.0);
+    for &rho in &rho {
+        for &[cos, sin] in &dir {
+            let x = (p.centre[0] + rho * cos).floor();
+            let y = (p.centre[1] + rho * sin).floor();
+            if x >= 0.0 && y >= 0.0 && (x as usize) < width && (y as usize) < height {
+                mask.data_mut()[y as usize * width + x as usize] = 1.0;
+            }
+        }
+    }
+    let fraction =
+        mask.data().iter().filter(|&&v| v > 0.5).count() as f64 / (width * height) as f64;
+    Ok((mask, fraction))
+}
+
+/// The log-polar sampling pattern of a `width` x `height` image, after the parameters'
+/// checks: rho (pixels from the fovea) per ring and (cos, sin) per angle, in f32. The one
+/// definition the CPU's mask and the GPU's mask kernel both sample (the GPU takes the tables
+/// so that its reduced-precision transcendentals never move a sample).
+pub(crate) fn log_polar_tables(
+    width: usize,
+    height: usize,
+    p: &LogPolar,
+) -> Result<(Vec<f32>, Vec<[f32; 2]>), RenderError> {
     if width == 0 || height == 0 {
         return Err(invalid("mask size is empty"));
     }
@@ -79,24 +104,19 @@ pub fn log_polar_mask(
         .iter()
         .map(|c| (c[0] - p.centre[0]).hypot(c[1] - p.centre[1]))
         .fold(1.0f32, f32::max);
+    // R rings and as many angles (Theta = R).
     let rr = (width as f32 / p.scale).round().clamp(1.0, 1e5) as usize;
-    let big_theta = rr;
-    let mut mask = Plane::new(width, height, 0.0);
-    for r in 0..rr {
-        // eq. 5-6: rho = r' exp(r^(1/K) log L / R)
-        let rho = p.r_offset * ((r as f32).powf(1.0 / p.kernel) * l.ln() / rr as f32).exp();
-        for t in 0..big_theta {
-            let a = std::f32::consts::TAU * t as f32 / big_theta as f32 + p.theta_offset;
-            let x = (p.centre[0] + rho * a.cos()).floor();
-            let y = (p.centre[1] + rho * a.sin()).floor();
-            if x >= 0.0 && y >= 0.0 && (x as usize) < width && (y as usize) < height {
-                mask.data_mut()[y as usize * width + x as usize] = 1.0;
-            }
-        }
-    }
-    let fraction =
-        mask.data().iter().filter(|&&v| v > 0.5).count() as f64 / (width * height) as f64;
-    Ok((mask, fraction))
+    // eq. 5-6: rho = r' exp(r^(1/K) log L / R)
+    let rho = (0..rr)
+        .map(|r| p.r_offset * ((r as f32).powf(1.0 / p.kernel) * l.ln() / rr as f32).exp())
+        .collect();
+    let dir = (0..rr)
+        .map(|t| {
+            let a = std::f32::consts::TAU * t as f32 / rr as f32 + p.theta_offset;
+            [a.cos(), a.sin()]
+        })
+        .collect();
+    Ok((rho, dir))
 }
 
 /// Keeps the masked pixels of `img` and fills every other pixel by inverse-distance weighting

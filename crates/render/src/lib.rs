@@ -1,12 +1,32 @@
 //! Optics methods (defocus, focal stacks, multifocal decomposition, retina, light fields,
 //! foveation, metrics) behind a [`Backend`] seam, with the CPU backend as the reference.
 //! All colour maths is in linear light; sRGB appears only in [`io`] and in the metrics.
+//!
+//! # Layers
+//!
+//! A module imports only modules of its own layer or lower ones, and no two modules import
+//! each other (`python3 scripts/check_layers.py crates/render/src --layers crates/render/LAYERS`
+//! checks both in CI; `LAYERS` is this list). Lowest first:
+//!
+//! 1. [`error`] (the GPU's errors too, so that everything below the backends can return them);
+//! 2. `alloc`, `common`, `fft2`, [`io`]: support with no optics method in it;
+//! 3. [`kernel`]: blur kernels and convolution;
+//! 4. [`gather`], [`lightfield`], [`metrics`], [`pyramid`]: methods on one image;
+//! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`],
+//!    [`foveated`]: methods built on those; [`planner`], which predicts them;
+//! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
+//! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
+//! 8. [`cpu`] and [`gpu`]: the two backends;
+//! 9. [`factory`]: a backend chosen by name.
 
 pub mod alloc;
 pub mod backend;
 mod common;
 pub mod composite;
+pub mod cpu;
+pub mod defocus;
 pub mod error;
+pub mod factory;
 mod fft2;
 pub mod foveate;
 pub mod foveated;
@@ -23,10 +43,13 @@ pub mod retina;
 pub mod spectral;
 pub mod views;
 
-pub use backend::{backend, backend_on, Backend, Cpu, DefocusMethod, Foveated};
-pub use common::eye_for;
-pub use error::RenderError;
-pub use gpu::{Gpu, GpuError};
+pub use backend::{Backend, Foveated};
+pub use common::{check_focus, eye_for};
+pub use cpu::Cpu;
+pub use defocus::DefocusMethod;
+pub use error::{GpuError, RenderError};
+pub use factory::{backend, backend_on};
+pub use gpu::Gpu;
 pub use lightfield::LightFieldParams;
 pub use multifocal::{Layers, OptimizeParams, OptimizeReport};
 pub use spectral::{SpectralParams, SpectralPlan, SpectralReport};

@@ -52,14 +52,6 @@ use crate::error::{invalid, RenderError};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use rayon::prelude::*;
 
-/// Settings of the pyramid method.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct PyramidParams {
-    /// Render at full resolution only around this gaze, coarser outside as acuity falls
-    /// ([`crate::foveated`]); `None`: every pixel at full resolution.
-    pub foveation: Option<crate::foveated::Foveation>,
-}
-
 /// Radius (px) below which sources are gathered exactly at full resolution. Level `m` takes
 /// radii in `[EXACT_RADIUS 2^m, EXACT_RADIUS 2^(m+1))`: it sums cells of `2^(m+1)` pixels a side
 /// and spreads them on a grid of that scale, where they are `EXACT_RADIUS / 2` to

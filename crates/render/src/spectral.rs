@@ -24,8 +24,8 @@
 //! (FISTA, step 1 / max eigenvalue) on the same objective may follow, kept only where they
 //! lower it.
 
-use crate::backend::DefocusMethod;
 use crate::common::eye_for;
+use crate::defocus::DefocusMethod;
 use crate::error::{invalid, mismatch, RenderError};
 use crate::fft2::{fft_size, Fft2, HalfSpectrum};
 use crate::kernel::disk_kernel;
@@ -962,16 +962,29 @@ pub fn plan_for(
     Ok(p)
 }
 
-/// Spectral decomposition of `input` onto `planes` on the CPU (the plan built once and
-/// reused; a rendered target stack made by the CPU backend).
+/// Spectral decomposition of `input` onto `planes` on the CPU (the CPU backend's
+/// [`crate::Backend::spectral_blend`]): the plan built once and reused; a rendered target
+/// stack made on the CPU.
 pub fn spectral_blend(
     input: &Rgbd,
     planes: &[Diopters],
     eye: &EyeModel,
     params: SpectralParams,
 ) -> Result<(Layers, SpectralReport), RenderError> {
-    use crate::backend::Backend;
-    crate::backend::Cpu.spectral_blend(input, planes, eye, params)
+    crate::common::check_rgbd(input)?;
+    let plan = plan_for(eye, planes, input.width(), input.height(), params)?;
+    let t = match params.targets {
+        SpectralTargets::Defocus(m) => {
+            let stack = crate::defocus::defocus(input, &params.foci(), eye, m, |_| {})?;
+            plan.targets_stack(input, &stack)?
+        }
+        SpectralTargets::Composite(lp) => {
+            let stack = crate::composite::composite_stack(input, &params.foci(), eye, lp)?;
+            plan.targets_stack(input, &stack)?
+        }
+        SpectralTargets::Slices | SpectralTargets::NormalizedSlices => plan.targets_rgbd(input)?,
+    };
+    plan.solve(&t)
 }
 
 #[cfg(test)]

@@ -145,15 +145,9 @@ fn local_range(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
         .collect()
 }
 
-/// Every input warped to `target` and blended, holes filled: width, height and per pixel the
-/// colour and depth (diopters); with `ERRORS`, per pixel also whether it was a hole and the
-/// blended inputs' colour spread ([`WarpErrors`]), else nothing.
-#[allow(clippy::type_complexity)]
-fn warp_to<const ERRORS: bool>(
-    inputs: &[RgbdView],
-    target: [f32; 2],
-    eye: &EyeModel,
-) -> Result<(usize, usize, Vec<([f32; 3], f32)>, Vec<(bool, f32)>), RenderError> {
+/// The size the sparse RGB-D `inputs` share: there is one at least, all are the same size
+/// and not empty, and their positions are finite (the CPU's and the GPU's check).
+pub(crate) fn check_inputs(inputs: &[RgbdView]) -> Result<(usize, usize), RenderError> {
     let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
     let (w, h) = (first.rgbd.width(), first.rgbd.height());
     if w == 0
@@ -164,11 +158,27 @@ fn warp_to<const ERRORS: bool>(
     {
         return Err(mismatch("input views are empty or differ in size"));
     }
-    if !target
+    if !inputs
         .iter()
-        .chain(inputs.iter().flat_map(|v| v.position.iter()))
+        .flat_map(|v| v.position.iter())
         .all(|p| p.is_finite())
     {
+        return Err(invalid("view positions must be finite"));
+    }
+    Ok((w, h))
+}
+
+/// Every input warped to `target` and blended, holes filled: width, height and per pixel the
+/// colour and depth (diopters); with `ERRORS`, per pixel also whether it was a hole and the
+/// blended inputs' colour spread ([`WarpErrors`]), else nothing.
+#[allow(clippy::type_complexity)]
+fn warp_to<const ERRORS: bool>(
+    inputs: &[RgbdView],
+    target: [f32; 2],
+    eye: &EyeModel,
+) -> Result<(usize, usize, Vec<([f32; 3], f32)>, Vec<(bool, f32)>), RenderError> {
+    let (w, h) = check_inputs(inputs)?;
+    if !target.iter().all(|p| p.is_finite()) {
         return Err(invalid("view positions must be finite"));
     }
     let pitch = eye_for(eye, w)?.pixel_pitch_tan();

@@ -5,11 +5,11 @@
 
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use dioptra_render::composite::{composite_stack, step_reach};
+use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveate::{log_polar_mask, LogPolar};
 use dioptra_render::foveated::{Foveation, FoveationPlan};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
-use dioptra_render::pyramid::PyramidParams;
 use dioptra_render::retina::LfView;
 use dioptra_render::spectral::{SpectralPlan, SpectralReport, SpectralTargets};
 use dioptra_render::views::RgbdView;

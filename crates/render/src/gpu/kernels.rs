@@ -10,8 +10,7 @@ use crate::backend::Foveated;
 use crate::backend::Progress;
 use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
 use crate::error::{invalid, mismatch, RenderError};
-use crate::foveate::LogPolar;
-use crate::foveate::FOV_CELL;
+use crate::foveate::{log_polar_tables, LogPolar, FOV_CELL};
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
 use crate::lightfield::{halton_disk, LightFieldParams, LEVEL_SIGMA, PREFILTER};
 use crate::metrics::Quality;
@@ -19,7 +18,7 @@ use crate::multifocal::{
     check_optimize_inputs, check_planes, Layers, OptimizeParams, OptimizeReport,
 };
 use crate::retina::LfView;
-use crate::views::RgbdView;
+use crate::views::{check_inputs, light_field_positions, RgbdView};
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 
@@ -140,24 +139,24 @@ pub(super) fn on_gpu(
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct GatherP {
-    w: u32,
-    h: u32,
-    n_off: u32,
-    reach: u32,
-    focus: f32,
-    pupil_m: f32,
-    pitch: f32,
-    _pad: u32,
+pub(super) struct GatherP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) n_off: u32,
+    pub(super) reach: u32,
+    pub(super) focus: f32,
+    pub(super) pupil_m: f32,
+    pub(super) pitch: f32,
+    pub(super) _pad: u32,
 }
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct SizeP {
-    w: u32,
-    h: u32,
-    k: u32,
-    _pad: u32,
+pub(super) struct SizeP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) k: u32,
+    pub(super) _pad: u32,
 }
 
 /// Gather blur, one frame per focus; colour and depth are uploaded once.
@@ -524,20 +523,20 @@ pub(super) fn quality(
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct LfP {
-    w: u32,
-    h: u32,
-    nv: u32,
-    v0: u32,
-    focus: f32,
-    pupil_m: f32,
-    pitch: f32,
-    spacing: f32,
-    lens_f: f32,
-    top: u32,
-    nlev: u32,
+pub(super) struct LfP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) nv: u32,
+    pub(super) v0: u32,
+    pub(super) focus: f32,
+    pub(super) pupil_m: f32,
+    pub(super) pitch: f32,
+    pub(super) spacing: f32,
+    pub(super) lens_f: f32,
+    pub(super) top: u32,
+    pub(super) nlev: u32,
     /// Stride between the splat kernels' depth maps: 0 (one map) or w * h (one per view).
-    dstride: u32,
+    pub(super) dstride: u32,
 }
 
 /// Light-field depth of field: the pyramid once per call, then one frame per focus.
@@ -653,15 +652,15 @@ pub(super) fn lightfield(
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct OptP {
-    pw: u32,
-    ph: u32,
-    np: u32,
-    nf: u32,
-    step: f32,
-    mom: f32,
-    len: u32,
-    _pad: u32,
+pub(super) struct OptP {
+    pub(super) pw: u32,
+    pub(super) ph: u32,
+    pub(super) np: u32,
+    pub(super) nf: u32,
+    pub(super) step: f32,
+    pub(super) mom: f32,
+    pub(super) len: u32,
+    pub(super) _pad: u32,
 }
 
 /// Adds `len` squared values of `src` into per-workgroup partials and reads them back.
@@ -874,38 +873,12 @@ pub(super) fn synthesize_light_field(
     eye: &EyeModel,
     progress: Progress,
 ) -> Out<Vec<LfView>> {
-    if grid == 0 || grid > 64 || !(span.is_finite() && span >= 0.0) {
-        return Err(invalid(format!(
-            "grid {grid} (expected 1..=64) or span {span} m is invalid"
-        )));
-    }
-    let first = inputs.first().ok_or_else(|| invalid("no input views"))?;
-    let (w, h) = (first.rgbd.width(), first.rgbd.height());
-    if w == 0
-        || h == 0
-        || inputs
-            .iter()
-            .any(|v| (v.rgbd.width(), v.rgbd.height()) != (w, h))
-    {
-        return Err(mismatch("input views are empty or differ in size"));
-    }
-    if !inputs
-        .iter()
-        .flat_map(|v| v.position.iter())
-        .all(|p| p.is_finite())
-    {
-        return Err(invalid("view positions must be finite"));
-    }
+    let positions = light_field_positions(grid, span)?;
+    let (w, h) = check_inputs(inputs)?;
     let pitch = eye_for(eye, w)?.pixel_pitch_tan();
     let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
     let n = (w * h) as u64;
     let ni = inputs.len();
-    let step = if grid > 1 {
-        span / (grid - 1) as f32
-    } else {
-        0.0
-    };
-    let half = (grid - 1) as f32 * 0.5;
     let mut depths = Vec::with_capacity(ni * w * h);
     let mut colors = Vec::with_capacity(3 * ni * w * h);
     for v in inputs {
@@ -915,11 +888,7 @@ pub(super) fn synthesize_light_field(
     let mut total = FrameStats::default();
     let mut out = Vec::with_capacity(grid * grid);
     let mut shared: Option<(BufRef, BufRef)> = None;
-    for k in 0..grid * grid {
-        let target = [
-            ((k % grid) as f32 - half) * step,
-            ((k / grid) as f32 - half) * step,
-        ];
+    for (k, target) in positions.into_iter().enumerate() {
         let shifts: Vec<[f32; 4]> = inputs
             .iter()
             .map(|v| {
@@ -995,64 +964,15 @@ pub(super) fn synthesize_light_field(
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct FovP {
-    w: u32,
-    h: u32,
-    rings: u32,
-    angles: u32,
-    cx: f32,
-    cy: f32,
-    gw: u32,
-    gh: u32,
-}
-
-/// The log-polar tables: rho per ring and (cos, sin) per angle, computed in f32 exactly as
-/// the CPU's mask does (so the GPU's reduced-precision transcendentals never move a sample),
-/// after the CPU's parameter checks.
-fn log_polar_tables(
-    w: usize,
-    h: usize,
-    p: &LogPolar,
-) -> Result<(Vec<f32>, Vec<[f32; 2]>), RenderError> {
-    if w == 0 || h == 0 {
-        return Err(invalid("mask size is empty"));
-    }
-    let finite = [
-        p.centre[0],
-        p.centre[1],
-        p.scale,
-        p.kernel,
-        p.r_offset,
-        p.theta_offset,
-    ]
-    .iter()
-    .all(|v| v.is_finite());
-    if !finite || p.scale < 0.05 || p.kernel <= 0.0 || p.r_offset <= 0.0 {
-        return Err(invalid(format!(
-            "log-polar parameters {p:?} are invalid: need finite values, S >= 0.05, K > 0, r' > 0"
-        )));
-    }
-    let corners = [
-        [0.0, 0.0],
-        [w as f32, 0.0],
-        [0.0, h as f32],
-        [w as f32, h as f32],
-    ];
-    let l = corners
-        .iter()
-        .map(|c| (c[0] - p.centre[0]).hypot(c[1] - p.centre[1]))
-        .fold(1.0f32, f32::max);
-    let rr = (w as f32 / p.scale).round().clamp(1.0, 1e5) as usize;
-    let rho = (0..rr)
-        .map(|r| p.r_offset * ((r as f32).powf(1.0 / p.kernel) * l.ln() / rr as f32).exp())
-        .collect();
-    let dir = (0..rr)
-        .map(|t| {
-            let a = std::f32::consts::TAU * t as f32 / rr as f32 + p.theta_offset;
-            [a.cos(), a.sin()]
-        })
-        .collect();
-    Ok((rho, dir))
+pub(super) struct FovP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) rings: u32,
+    pub(super) angles: u32,
+    pub(super) cx: f32,
+    pub(super) cy: f32,
+    pub(super) gw: u32,
+    pub(super) gh: u32,
 }
 
 /// Where a foveation frame's sampling mask comes from.
@@ -1169,73 +1089,4 @@ pub(super) fn foveate(ctx: &GpuContext, img: &RgbImage, p: &LogPolar) -> Out<Fov
 pub(super) fn interpolate(ctx: &GpuContext, img: &RgbImage, mask: &Plane) -> Out<RgbImage> {
     let ((out, _), s) = foveate_frame(ctx, img, MaskFrom::Given(mask))?;
     Ok((out, s))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::super::spectral::SpecP;
-    use super::super::{rust_uniform, wgsl_uniform};
-    use super::*;
-
-    /// Every shader's uniform as naga lays it out is the Rust struct the host writes: the
-    /// same members (by name, where the struct is the shader's own) at the same offsets.
-    #[test]
-    fn uniform_layouts_match_the_shaders() {
-        let sizes = || rust_uniform!(SizeP; w, h, k, _pad);
-        let named = [
-            (
-                Kernel::Gather,
-                rust_uniform!(GatherP; w, h, n_off, reach, focus, pupil_m, pitch, _pad),
-            ),
-            (
-                Kernel::LfPrefilter,
-                rust_uniform!(LfP; w, h, nv, v0, focus, pupil_m, pitch, spacing, lens_f, top,
-                    nlev, dstride),
-            ),
-            (
-                Kernel::OptStep,
-                rust_uniform!(OptP; pw, ph, np, nf, step, mom, len, _pad),
-            ),
-            (
-                Kernel::FovMask,
-                rust_uniform!(FovP; w, h, rings, angles, cx, cy, gw, gh),
-            ),
-            (
-                Kernel::SpFftPass,
-                rust_uniform!(SpecP; n, lines, ns, radix, tw_off, inverse, pw, ph, hw, count, w,
-                    h, margin, rows, cols, off, row_pitch, plane_pitch, dst, img_pitch, scale,
-                    step, mom, flag),
-            ),
-        ];
-        // Kernels whose shader reads SizeP under names of its own (w, h, a count, padding).
-        let sized = [
-            Kernel::LinearBlend,
-            Kernel::Convolve,
-            Kernel::BlurH,
-            Kernel::PsnrSum,
-            Kernel::ViewResolve,
-        ];
-        let mut checked = Vec::new();
-        for (k, (rust, size)) in &named {
-            let (wgsl, wsize) = wgsl_uniform(k.spec().0);
-            assert_eq!(&wgsl, rust, "{k:?}'s Params against the host's");
-            assert_eq!(wsize, *size, "{k:?}'s Params size");
-            checked.push(k.spec().0.as_ptr());
-        }
-        for k in sized {
-            let (wgsl, wsize) = wgsl_uniform(k.spec().0);
-            let (rust, size) = sizes();
-            let layout =
-                |v: &[(String, u32, u32)]| v.iter().map(|m| (m.1, m.2)).collect::<Vec<_>>();
-            assert_eq!(layout(&wgsl), layout(&rust), "{k:?}'s Params against SizeP");
-            assert_eq!(wsize, size, "{k:?}'s Params size");
-            checked.push(k.spec().0.as_ptr());
-        }
-        for k in Kernel::ALL {
-            assert!(
-                checked.contains(&k.spec().0.as_ptr()),
-                "{k:?}'s shader has no uniform check"
-            );
-        }
-    }
 }

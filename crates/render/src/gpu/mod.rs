@@ -7,6 +7,8 @@ mod image;
 mod kernels;
 mod pyramid;
 mod spectral;
+#[cfg(test)]
+mod uniforms;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
@@ -15,7 +17,9 @@ pub use context::{
 pub use image::{GpuImage, ImageLayout};
 use kernels::Keep;
 
-use crate::backend::{Backend, DefocusMethod, Foveated, Progress};
+use crate::backend::{Backend, Foveated, Progress};
+use crate::defocus::DefocusMethod;
+pub use crate::error::GpuError;
 use crate::error::RenderError;
 use crate::foveate::LogPolar;
 use crate::metrics::Quality;
@@ -26,82 +30,6 @@ use crate::views::RgbdView;
 use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use thiserror::Error;
-
-/// The uniform `Params` of a shader file of this crate, as naga lays it out: (member, offset,
-/// size) and the struct's size.
-#[cfg(test)]
-pub(crate) fn wgsl_uniform(src: &str) -> (Vec<(String, u32, u32)>, u32) {
-    let module = naga::front::wgsl::parse_str(&context::with_shared(src))
-        .unwrap_or_else(|e| panic!("WGSL does not parse: {e}"));
-    let mut layouter = naga::proc::Layouter::default();
-    layouter.update(module.to_ctx()).expect("layout");
-    let (_, ty) = module
-        .types
-        .iter()
-        .find(|(_, t)| t.name.as_deref() == Some("Params"))
-        .expect("a uniform struct named Params");
-    match &ty.inner {
-        naga::TypeInner::Struct { members, span } => (
-            members
-                .iter()
-                .map(|m| {
-                    (
-                        m.name.clone().unwrap_or_default(),
-                        m.offset,
-                        layouter[m.ty].size,
-                    )
-                })
-                .collect(),
-            *span,
-        ),
-        other => panic!("Params is {other:?}"),
-    }
-}
-
-/// A uniform struct of the host code in [`wgsl_uniform`]'s form: each listed field's name,
-/// offset and size, and the struct's size.
-#[cfg(test)]
-macro_rules! rust_uniform {
-    ($t:ty; $($f:ident),* $(,)?) => {{
-        let z: $t = bytemuck::Zeroable::zeroed();
-        let fields: Vec<(String, u32, u32)> = vec![$((
-            stringify!($f).to_string(),
-            std::mem::offset_of!($t, $f) as u32,
-            std::mem::size_of_val(&z.$f) as u32,
-        )),*];
-        (fields, std::mem::size_of::<$t>() as u32)
-    }};
-}
-#[cfg(test)]
-pub(crate) use rust_uniform;
-
-/// What can go wrong on the GPU, with what to do about it.
-#[derive(Debug, Error)]
-pub enum GpuError {
-    #[error("no GPU adapter (Vulkan, Metal or DX12) found: install a GPU driver (on Debian, mesa-vulkan-drivers gives a software one) or use --backend cpu")]
-    NoAdapter,
-    #[error("no GPU adapter matches {want:?}; available: {available}")]
-    AdapterNotFound { want: String, available: String },
-    #[error("this process already runs on the GPU adapter {have:?}, not {want:?}")]
-    AdapterAlreadyChosen { have: String, want: String },
-    #[error("the GPU adapter's {what} is {have}; dioptra needs at least {need}")]
-    Limit {
-        what: &'static str,
-        have: u32,
-        need: u32,
-    },
-    #[error("{what} needs {bytes} but this GPU allows at most {max}: use a smaller image or --backend cpu")]
-    TooLarge { what: String, bytes: u64, max: u64 },
-    #[error("could not open the GPU device: {0}")]
-    Device(String),
-    #[error("the GPU device was lost (driver reset or removal): restart, or use --backend cpu")]
-    DeviceLost,
-    #[error("GPU error: {0}")]
-    Validation(String),
-    #[error("the GPU context's lock was poisoned by an earlier panic")]
-    Poisoned,
-}
 
 /// The wgpu backend on the process's [`GpuContext`].
 pub struct Gpu {
