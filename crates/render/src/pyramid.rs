@@ -1285,44 +1285,129 @@ impl FlatDisk {
     }
 }
 
-/// Maximum of `v` (a `w`-wide image) over the `(2r+1)^2` window around each pixel of `rect`
-/// (`[x0, y0, x1, y1)`), rows then columns; the result is `rect`-sized.
+/// Maximum of `v` (a `w`-wide image, values >= 0) over the `(2r+1)^2` window around each pixel
+/// of `rect` (`[x0, y0, x1, y1)`), rows then columns, each in O(1) per pixel (van Herk /
+/// Gil-Werman: block prefix and suffix maxima); the result is `rect`-sized.
 fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
     let [x0, y0, x1, y1] = rect;
     let h = v.len() / w.max(1);
     let rw = x1 - x0;
-    // Rows of the rectangle widened by r (clipped), max over x.
     let (ty0, ty1) = (y0.saturating_sub(r), (y1 + r).min(h));
+    // Rows of the rectangle widened by r, max over x.
     let mut tmp = vec![0.0f32; rw * (ty1 - ty0)];
-    tmp.par_chunks_mut(rw.max(1))
-        .enumerate()
-        .for_each(|(row, o)| {
+    tmp.par_chunks_mut(rw.max(1)).enumerate().for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(pre, suf), (row, o)| {
             let src = &v[(ty0 + row) * w..(ty0 + row + 1) * w];
+            sliding_max(src, r, pre, suf);
             for (i, o) in o.iter_mut().enumerate() {
                 let x = x0 + i;
-                *o = src[x.saturating_sub(r)..(x + r + 1).min(w)]
-                    .iter()
-                    .copied()
-                    .fold(0.0, f32::max);
+                *o = window_at(pre, suf, x, r);
             }
-        });
-    let mut out = vec![0.0f32; rw * (y1 - y0)];
-    out.par_chunks_mut(rw.max(1))
+        },
+    );
+    // Columns: the same along each column of `tmp`, as rows of a transposed copy.
+    let th = ty1 - ty0;
+    let mut cols = vec![0.0f32; rw * th];
+    for (y, row) in tmp.chunks(rw.max(1)).enumerate() {
+        for (x, &t) in row.iter().enumerate() {
+            cols[x * th + y] = t;
+        }
+    }
+    let mut outt = vec![0.0f32; rw * (y1 - y0)];
+    outt.par_chunks_mut((y1 - y0).max(1))
         .enumerate()
-        .for_each(|(row, o)| {
-            let y = y0 + row;
-            for yy in y.saturating_sub(r).max(ty0)..(y + r + 1).min(ty1) {
-                for (a, &t) in o.iter_mut().zip(&tmp[(yy - ty0) * rw..(yy - ty0 + 1) * rw]) {
-                    *a = a.max(t);
+        .for_each_init(
+            || (Vec::new(), Vec::new()),
+            |(pre, suf), (x, o)| {
+                let src = &cols[x * th..(x + 1) * th];
+                sliding_max(src, r, pre, suf);
+                for (i, o) in o.iter_mut().enumerate() {
+                    *o = window_at(pre, suf, y0 + i - ty0, r);
                 }
-            }
-        });
+            },
+        );
+    let mut out = vec![0.0f32; rw * (y1 - y0)];
+    let oh = y1 - y0;
+    for (x, col) in outt.chunks(oh.max(1)).enumerate() {
+        for (y, &t) in col.iter().enumerate() {
+            out[y * rw + x] = t;
+        }
+    }
     out
+}
+
+/// Prefix and suffix maxima of `src` padded with `r` zeros on each side (its values are not
+/// negative, so the padding never wins), within blocks of `2r + 1` (van Herk / Gil-Werman):
+/// every window, clipped at the edges or not, is then one block long in the padded array.
+fn sliding_max(src: &[f32], r: usize, pre: &mut Vec<f32>, suf: &mut Vec<f32>) {
+    let k = 2 * r + 1;
+    pre.clear();
+    pre.resize(r, 0.0);
+    pre.extend_from_slice(src);
+    pre.resize(src.len() + 2 * r, 0.0);
+    suf.clear();
+    suf.extend_from_slice(pre);
+    let n = pre.len();
+    for i in 1..n {
+        if i % k != 0 && pre[i - 1] > pre[i] {
+            pre[i] = pre[i - 1];
+        }
+    }
+    for i in (0..n.saturating_sub(1)).rev() {
+        if (i + 1) % k != 0 && suf[i + 1] > suf[i] {
+            suf[i] = suf[i + 1];
+        }
+    }
+}
+
+/// The maximum over `[x - r, x + r]` of the source (clipped to it) from [`sliding_max`]'s
+/// arrays: the padded window `[x, x + 2r]` spans at most two blocks, the suffix of the first's
+/// and the prefix of the second's.
+#[inline]
+fn window_at(pre: &[f32], suf: &[f32], x: usize, r: usize) -> f32 {
+    let (a, b) = (suf[x], pre[x + 2 * r]);
+    if a > b {
+        a
+    } else {
+        b
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The O(1) sliding maximum equals the brute-force window maximum, inner rectangles and
+    /// edges alike.
+    #[test]
+    fn window_max_is_the_brute_force_maximum() {
+        let (w, h) = (23usize, 17usize);
+        let v: Vec<f32> = (0..w * h)
+            .map(|i| ((i * 7919 + 13) % 101) as f32 * 0.1)
+            .collect();
+        for r in [0usize, 1, 3, 7, 30] {
+            for rect in [[0, 0, w, h], [3, 2, 19, 15], [10, 16, 11, 17], [0, 5, 5, 6]] {
+                let got = window_max(&v, w, rect, r);
+                let [x0, y0, x1, y1] = rect;
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let mut want = 0.0f32;
+                        for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                            for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                                want = want.max(v[yy * w + xx]);
+                            }
+                        }
+                        assert_eq!(
+                            got[(y - y0) * (x1 - x0) + x - x0],
+                            want,
+                            "r {r} {rect:?} ({x},{y})"
+                        );
+                    }
+                }
+            }
+        }
+    }
     use crate::gather::gather;
     use crate::metrics::psnr;
     use dioptra_core::{DepthMap, Plane};
