@@ -11,16 +11,18 @@ multifocal methods: PSNR on sRGB-encoded images clipped to [0, 1], mean over the
 
 A method is `gather`, `pyramid` (bounded cost per pixel), `lightfield:N` (N views), `refine`
 (C1R with the shipped weights), `refine=FILE` (C1R with other weights) or `foveated` (the
-pyramid foveated around the image centre, 5 degrees at full resolution: `dioptra render` has
-no gaze option, so it runs the render crate's `foveated_render` example, built with
-`cargo build --release -p dioptra-render --example foveated_render`, named by --foveated).
+pyramid foveated around the image centre, 5 degrees at full resolution). `dioptra render` has
+no gaze option, so `foveated` runs the render crate's `ival_render` example (`cargo build
+--release -p dioptra-render --example ival_render`), named by --library; with --library,
+gather and pyramid run through it too (the functions the CLI's CPU backend calls), so that
+no `dioptra` binary is needed for them.
 
 With `--fovea-deg R`, every method is also scored in the fovea (pixels within R degrees of the
 centre) and the periphery (the rest) separately: columns `M fovea` and `M periphery`.
 
   python3 scripts/independent_validation/score_defocus.py --set ival512 \\
-      --binary target/release/dioptra --methods gather,pyramid,foveated \\
-      --foveated target/release/examples/foveated_render --fovea-deg 5
+      --library target/release/examples/ival_render --methods gather,pyramid,foveated \\
+      --fovea-deg 5
 """
 import argparse
 import os
@@ -58,17 +60,20 @@ def render_args(method):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", required=True)
-    ap.add_argument("--binary", required=True)
+    ap.add_argument("--binary", default=None, help="the dioptra binary")
     ap.add_argument("--methods", default="gather,lightfield:12,lightfield:36,refine")
-    ap.add_argument("--foveated", default=None,
-                    help="the foveated_render example binary, for --methods foveated")
+    ap.add_argument("--library", default=None,
+                    help="the ival_render example binary: foveated, and gather and pyramid")
     ap.add_argument("--fovea-deg", type=float, default=None,
                     help="also score the fovea (this radius, degrees) and the periphery")
     ap.add_argument("--out", default=None)
     a = ap.parse_args()
     methods = a.methods.split(",")
-    if "foveated" in methods and not a.foveated:
-        ap.error("--methods foveated needs --foveated (the foveated_render example binary)")
+    if "foveated" in methods and not a.library:
+        ap.error("--methods foveated needs --library (the ival_render example binary)")
+    by_library = {"foveated"} | ({"gather", "pyramid"} if a.library else set())
+    if not a.binary and any(m not in by_library for m in methods):
+        ap.error("--binary (the dioptra binary) is needed for " + a.methods)
     columns = []
     for m in methods:
         columns += [m] + ([f"{m} fovea", f"{m} periphery"] if a.fovea_deg else [])
@@ -81,9 +86,9 @@ def main():
                 scores = []
                 for q, t in zip(foci, truth):
                     out = os.path.join(tmp, "out.pfm")
-                    if m == "foveated":
+                    if m in by_library:
                         h, w = t.shape[:2]
-                        cmd = [a.foveated, color, depth, q, str(w / 2), str(h / 2), out]
+                        cmd = [a.library, m, color, depth, q, str(w / 2), str(h / 2), out]
                     else:
                         cmd = [a.binary, "render", "--color", color, "--depth", depth,
                                "--focus", q, "--backend", "cpu", "--out", out] + render_args(m)

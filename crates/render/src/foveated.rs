@@ -375,59 +375,80 @@ pub fn foveated(
     Ok(FoveatedImage { image, plan })
 }
 
-/// Every pixel: the layers with weight there, each read bilinearly, summed.
+/// Every pixel: the layers with weight there, each read bilinearly, summed. Row by row: the
+/// acuity levels first, then each layer with weight somewhere on the row, its two texel rows
+/// interpolated once and read at each pixel through a per-column table.
 fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage, RenderError> {
     let (w, h) = (plan.width, plan.height);
+    let top = plan.top;
     let planes: Vec<Option<[&[f32]; 3]>> = renders
         .iter()
         .map(|r| r.as_ref().map(|i| i.channels.each_ref().map(|p| p.data())))
         .collect();
+    // Per layer, per column: the two texels a pixel reads and the second's weight.
+    let columns: Vec<Vec<(usize, usize, f32)>> = (0..planes.len())
+        .map(|k| {
+            let s = 1usize << k;
+            let lw = w.div_ceil(s);
+            (0..w).map(|x| axis(x, s, lw)).collect()
+        })
+        .collect();
     let mut out = vec![[0.0f32; 3]; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let l = plan.level_at(x, y);
-            let mut acc = [0.0f32; 3];
+    out.par_chunks_mut(w).enumerate().for_each_init(
+        || (Vec::new(), Vec::new()),
+        |(lev, texels): &mut (Vec<f32>, Vec<[f32; 3]>), (y, row)| {
+            lev.clear();
+            lev.extend((0..w).map(|x| plan.level_at(x, y)));
+            let (lo, hi) = lev
+                .iter()
+                .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &l| {
+                    (a.min(l), b.max(l))
+                });
             for (k, p) in planes.iter().enumerate() {
-                let wt = layer_weight(l, k, plan.top);
-                if wt <= 0.0 {
+                let Some(p) = p else { continue };
+                // Layer k has weight where k < l < k + 1 + BLEND (open at the ends).
+                let kf = k as f32;
+                if (k > 0 && hi <= kf) || (k < top && lo >= kf + 1.0 + BLEND) {
                     continue;
                 }
-                let Some(p) = p else { continue };
                 let s = 1usize << k;
                 let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
-                let v = bilinear(p, lw, lh, s, x, y);
-                for c in 0..3 {
-                    acc[c] += wt * v[c];
+                // The layer's row at this pixel row, interpolated between its two texel rows.
+                let (y0, y1, fy) = axis(y, s, lh);
+                texels.clear();
+                texels.extend((0..lw).map(|i| {
+                    std::array::from_fn(|c| {
+                        let (a, b) = (p[c][y0 * lw + i], p[c][y1 * lw + i]);
+                        a + fy * (b - a)
+                    })
+                }));
+                for ((o, &l), &(x0, x1, fx)) in row.iter_mut().zip(lev.iter()).zip(&columns[k]) {
+                    let wt = layer_weight(l, k, top);
+                    if wt <= 0.0 {
+                        continue;
+                    }
+                    let (a, b) = (texels[x0], texels[x1]);
+                    for c in 0..3 {
+                        o[c] += wt * (a[c] + fx * (b[c] - a[c]));
+                    }
                 }
             }
-            *o = acc;
-        }
-    });
+        },
+    );
     Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
 }
 
-/// Planar image `p` (`lw` x `lh`, scale `s`) read bilinearly at full-resolution pixel
-/// `(x, y)`, edges clamped: [`crate::pyramid`]'s level read.
+/// The two texels of a layer of scale `s` (`n` texels along the axis) that full-resolution
+/// pixel `x` reads bilinearly, edges clamped, and the second's weight: [`crate::pyramid`]'s
+/// level read. At scale 1 the pixel's own texel.
 #[inline]
-fn bilinear(p: &[&[f32]; 3], lw: usize, lh: usize, s: usize, x: usize, y: usize) -> [f32; 3] {
+fn axis(x: usize, s: usize, n: usize) -> (usize, usize, f32) {
     if s == 1 {
-        let i = y * lw + x;
-        return [p[0][i], p[1][i], p[2][i]];
+        return (x, x, 0.0);
     }
-    let inv = 1.0 / s as f32;
-    let u = ((x as f32 + 0.5) * inv - 0.5).clamp(0.0, (lw - 1) as f32);
-    let v = ((y as f32 + 0.5) * inv - 0.5).clamp(0.0, (lh - 1) as f32);
-    let (x0, y0) = (u as usize, v as usize);
-    let (x1, y1) = ((x0 + 1).min(lw - 1), (y0 + 1).min(lh - 1));
-    let (fx, fy) = (u - x0 as f32, v - y0 as f32);
-    std::array::from_fn(|c| {
-        let q = p[c];
-        let (a, b) = (q[y0 * lw + x0], q[y0 * lw + x1]);
-        let (cc, d) = (q[y1 * lw + x0], q[y1 * lw + x1]);
-        let top = a + fx * (b - a);
-        let bot = cc + fx * (d - cc);
-        top + fy * (bot - top)
-    })
+    let u = ((x as f32 + 0.5) / s as f32 - 0.5).clamp(0.0, (n - 1) as f32);
+    let x0 = u as usize;
+    (x0, (x0 + 1).min(n - 1), u - x0 as f32)
 }
 
 #[cfg(test)]
