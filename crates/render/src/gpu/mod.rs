@@ -8,7 +8,7 @@ mod kernels;
 mod pyramid;
 mod spectral;
 #[cfg(test)]
-mod uniforms;
+pub(crate) mod uniforms;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
