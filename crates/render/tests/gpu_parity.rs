@@ -9,7 +9,7 @@ use dioptra_render::foveate::{log_polar_mask, LogPolar};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
 use dioptra_render::retina::LfView;
-use dioptra_render::spectral::{SpectralPlan, SpectralReport, SpectralTargets};
+use dioptra_render::spectral::{SpectralPlan, SpectralReport, SpectralSolver, SpectralTargets};
 use dioptra_render::views::RgbdView;
 use dioptra_render::{
     Backend, Cpu, DefocusMethod, Gpu, GpuError, LightFieldParams, OptimizeParams, RenderError,
@@ -640,16 +640,21 @@ fn spectral_blend_matches_cpu() {
             SpectralTargets::Defocus(DefocusMethod::Gather),
             SpectralTargets::Slices,
         ] {
-            for iterations in [0, 5] {
+            for (solver, iterations) in [
+                (SpectralSolver::ProjectedGradient, 0),
+                (SpectralSolver::ProjectedGradient, 5),
+                (SpectralSolver::Admm { rho: 0.3 }, 3),
+            ] {
                 let params = SpectralParams {
                     targets,
                     iterations,
+                    solver,
                     ..SpectralParams::default()
                 };
                 let (cl, cr) = Cpu.spectral_blend(input, &planes, eye, params).unwrap();
                 let (gl, gr) = g.spectral_blend(input, &planes, eye, params).unwrap();
                 let max = layers_diff(&cl, &gl);
-                let what = format!("{name}, {targets:?}, {iterations} steps");
+                let what = format!("{name}, {targets:?}, {solver:?}, {iterations} steps");
                 eprintln!("spectral {what}: max |gpu - cpu| = {max:e}; {gr:?}");
                 assert!(max < 1e-3, "spectral {what}: {max}");
                 same_report(&cr, &gr, &what);

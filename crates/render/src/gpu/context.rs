@@ -53,6 +53,8 @@ pub(crate) enum Kernel {
     SpRowsToReal,
     SpApply,
     SpGradStep,
+    SpAdmmStep,
+    SpAdmmUpdate,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -67,7 +69,7 @@ const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
 
 impl Kernel {
-    pub(crate) const ALL: [Kernel; 35] = [
+    pub(crate) const ALL: [Kernel; 37] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -103,6 +105,8 @@ impl Kernel {
         Kernel::SpRowsToReal,
         Kernel::SpApply,
         Kernel::SpGradStep,
+        Kernel::SpAdmmStep,
+        Kernel::SpAdmmUpdate,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -144,6 +148,8 @@ impl Kernel {
             SpRowsToReal => (SPECTRAL_WGSL, "rows_to_real", 1, 2),
             SpApply => (SPECTRAL_WGSL, "apply", 2, 1),
             SpGradStep => (SPECTRAL_WGSL, "grad_step", 2, 2),
+            SpAdmmStep => (SPECTRAL_WGSL, "admm_step", 3, 2),
+            SpAdmmUpdate => (SPECTRAL_WGSL, "admm_update", 1, 3),
         }
     }
 }
