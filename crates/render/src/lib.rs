@@ -15,6 +15,7 @@
 //! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`]: methods
 //!    built on those;
 //! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
+//!    [`hybrid`]: spectral near the gaze, linear blending elsewhere;
 //! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
 //! 8. [`cpu`] and [`gpu`]: the two backends;
 //! 9. [`factory`]: a backend chosen by name.
@@ -31,6 +32,7 @@ mod fft2;
 pub mod foveate;
 pub mod gather;
 pub mod gpu;
+pub mod hybrid;
 pub mod io;
 pub mod kernel;
 pub mod lightfield;
