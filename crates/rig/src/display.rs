@@ -21,6 +21,7 @@ use thiserror::Error;
 use crate::config::{Corner, DisplayLayout, MarkerEvent, MarkerPatch};
 use crate::render::FrameImage;
 
+pub mod blit;
 pub mod placement;
 
 use placement::{PlaceError, PlacementConfig, Placer};
