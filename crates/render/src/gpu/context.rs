@@ -55,6 +55,11 @@ pub(crate) enum Kernel {
     SpGradStep,
     SpAdmmStep,
     SpAdmmUpdate,
+    PyAggregate,
+    PySpread,
+    PyCompose,
+    FvDownsample,
+    FvBlend,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -67,9 +72,11 @@ const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
 const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
+const PYRAMID_WGSL: &str = include_str!("../../shaders/pyramid.wgsl");
+const FOVEATED_WGSL: &str = include_str!("../../shaders/foveated.wgsl");
 
 impl Kernel {
-    pub(crate) const ALL: [Kernel; 37] = [
+    pub(crate) const ALL: [Kernel; 42] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -107,6 +114,11 @@ impl Kernel {
         Kernel::SpGradStep,
         Kernel::SpAdmmStep,
         Kernel::SpAdmmUpdate,
+        Kernel::PyAggregate,
+        Kernel::PySpread,
+        Kernel::PyCompose,
+        Kernel::FvDownsample,
+        Kernel::FvBlend,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -150,6 +162,11 @@ impl Kernel {
             SpGradStep => (SPECTRAL_WGSL, "grad_step", 2, 2),
             SpAdmmStep => (SPECTRAL_WGSL, "admm_step", 3, 2),
             SpAdmmUpdate => (SPECTRAL_WGSL, "admm_update", 1, 3),
+            PyAggregate => (PYRAMID_WGSL, "aggregate", 2, 1),
+            PySpread => (PYRAMID_WGSL, "spread", 1, 1),
+            PyCompose => (PYRAMID_WGSL, "compose", 4, 1),
+            FvDownsample => (FOVEATED_WGSL, "downsample", 2, 2),
+            FvBlend => (FOVEATED_WGSL, "blend", 2, 1),
         }
     }
 }
@@ -575,9 +592,10 @@ pub(crate) fn shared_wgsl() -> String {
     use crate::multifocal::MAX_PLANES;
     let sigma: Vec<String> = LEVEL_SIGMA.iter().map(|s| format!("{s:?}")).collect();
     format!(
-        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n",
+        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n{}",
         LEVEL_SIGMA.len(),
-        sigma.join(", ")
+        sigma.join(", "),
+        crate::pyramid::shared_wgsl() + &crate::foveated::shared_wgsl()
     )
 }
 
@@ -1024,7 +1042,18 @@ mod tests {
         assert!(prelude.contains("const MAX_PLANES: u32 = 16u;"));
         for k in Kernel::ALL {
             let (src, entry, _, _) = k.spec();
-            for name in ["PREFILTER", "LEVEL_SIGMA", "FOV_CELL", "WG1", "MAX_PLANES"] {
+            for name in [
+                "PREFILTER",
+                "LEVEL_SIGMA",
+                "FOV_CELL",
+                "WG1",
+                "MAX_PLANES",
+                "EXACT_RADIUS",
+                "BANDS_PER_OCTAVE",
+                "SPREAD_REACH",
+                "GRID",
+                "BLEND",
+            ] {
                 assert!(
                     !src.contains(&format!("const {name}")),
                     "{entry}'s shader defines {name} itself"
