@@ -1,5 +1,5 @@
-//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages
-//! and the Lab Streaming Layer outlets, each a [`LoopHook`] the loop calls as it goes. The
+//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages,
+//! the Lab Streaming Layer outlets and a simulated panel's marker patch, each a [`LoopHook`] the loop calls as it goes. The
 //! loop itself ([`crate::executor`]) only steps the scheduler and carries out its commands.
 
 use std::collections::HashMap;
@@ -9,18 +9,19 @@ use std::time::Duration;
 use dioptra_core::{lock, Timestamp};
 use serde_json::json;
 
-use crate::config::{Method, Mode};
 use crate::content::ContentFrame;
 use crate::devices::DeviceInput;
 use crate::devices::LensId;
 use crate::display::DisplaySink;
-use crate::engine::{self, Command, Engine};
+use crate::engine::{self, Command, Control, Engine};
 use crate::executor::{LoopHook, Presented, RenderReport};
+use crate::mode::{Method, Mode};
 use crate::recording::{
     ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensStateRec, LensWireRec, Marker,
     PresentRec, Rec, RenderRec,
 };
-use crate::{Control, RigState};
+use crate::render::RenderErrorNote;
+use crate::state::{lens_settled, RigState, SUBFRAME_TOLERANCE_D};
 use dioptra_core::Side;
 
 /// The observers every rig has, in the order the loop calls them.
@@ -116,7 +117,7 @@ impl LoopHook for Recording {
                 power_d: power.0,
                 apply_at_ns: apply_at.0,
                 reason: engine::reason_name(reason),
-                focus_d: Some(self.0.optics_of(lens).focus_of(power).0),
+                focus_d: Some(self.0.optics.of(lens).focus_of(power).0),
                 eye: self.eye(lens),
             }),
             Command::RenderFrame(req) => Rec::Render(RenderRec {
@@ -174,7 +175,9 @@ impl LoopHook for Recording {
 /// A kind of render error (method and kind) is logged at most once per this long.
 const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
 
-/// Keeps [`crate::LoopStatus`] (what `/status` shows of the loop) and logs failed renders.
+/// Keeps what `/status` shows of the loop ([`crate::state::LoopStatus`]) and what the loop
+/// hands the parts to publish (the lenses' focus, the renders, the display), and logs failed
+/// renders.
 struct Status {
     state: Arc<RigState>,
     /// Per (method, error kind): when it was last logged, and how many since.
@@ -191,13 +194,13 @@ const SCHEDULER_STATUS_EVERY: std::time::Duration = std::time::Duration::from_mi
 
 impl Status {
     fn refresh_scheduler(&mut self, now: Timestamp, engine: &Engine) {
-        lock(&self.state.status).scheduler = engine.status();
+        lock(&self.state.loop_status).scheduler = engine.status();
         self.scheduler_at = Some(now);
         self.scheduler_due = false;
     }
 
     fn modes(&self, engine: &Engine) {
-        let mut st = lock(&self.state.status);
+        let mut st = lock(&self.state.loop_status);
         st.mode = Some(engine.mode());
         st.method = Some(engine.method());
         st.manual_focus_d = engine.scheduler().status().manual_focus.map(|d| d.0);
@@ -246,27 +249,21 @@ impl Status {
 impl LoopHook for Status {
     fn started(&mut self, _now: Timestamp, engine: &Engine, sink: &dyn DisplaySink) {
         self.modes(engine);
-        lock(&self.state.status).display = sink.status();
+        self.state.display.sink_status(sink.status());
     }
     fn input(&mut self, _now: Timestamp, input: &DeviceInput, engine: &Engine) {
         let sh = &self.state;
-        let mut st = lock(&sh.status);
+        let mut st = lock(&sh.loop_status);
         match input {
             DeviceInput::Gaze(..) => st.gaze_samples += 1,
             DeviceInput::LensState(lens, s) => {
                 let target = lens_target(engine, *lens);
-                let settled = crate::lens_settled(
+                let settled = lens_settled(
                     s,
                     target.map(|d| d.0),
                     engine.scheduler().config().settled_tolerance_d,
                 );
-                if *lens == LensId::FIRST {
-                    st.lens_power_d = Some(s.power.0);
-                    st.lens_settled = settled;
-                }
-                if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
-                    *p = Some(s.power.0);
-                }
+                sh.optics.reported(*lens, s.power, settled);
             }
             DeviceInput::Sync(e) => {
                 st.sync_events += 1;
@@ -280,7 +277,7 @@ impl LoopHook for Status {
                         let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
                         if let (Some(p), Some(l)) = (plane, lens_power) {
                             st.subframes_measured += 1;
-                            if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
+                            if (l.0 - p).abs() > SUBFRAME_TOLERANCE_D {
                                 st.subframes_off_target += 1;
                             }
                         }
@@ -301,15 +298,10 @@ impl LoopHook for Status {
         self.scheduler_at = None;
     }
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
-        let mut st = lock(&self.state.status);
+        let mut st = lock(&self.state.loop_status);
         match cmd {
             Command::SetLensPower { lens, power, .. } => {
-                if *lens == LensId::FIRST {
-                    st.commanded_power_d = Some(power.0);
-                }
-                if let Some(p) = st.commanded_by_lens.get_mut(lens.index()) {
-                    *p = Some(power.0);
-                }
+                self.state.optics.commanded(*lens, *power);
                 st.lens_commands += 1;
             }
             Command::RenderFrame(_) => st.frames_requested += 1,
@@ -317,46 +309,30 @@ impl LoopHook for Status {
         }
     }
     fn rendered(&mut self, now: Timestamp, r: &RenderReport<'_>) {
-        {
-            let mut st = lock(&self.state.status);
-            st.last_render_ms = Some(r.took.as_secs_f64() * 1e3);
-            match &r.outcome {
-                Ok(planned) => {
-                    if let Some(p) = planned {
-                        st.planned = Some((*p).clone());
-                    }
-                }
-                Err(f) => {
-                    let method = r.job.method.as_str().to_string();
-                    st.render_errors += 1;
-                    *st.render_errors_by_method
-                        .entry(method.clone())
-                        .or_default() += 1;
-                    st.last_render_error = Some(crate::RenderErrorNote {
-                        frame: r.job.frame,
-                        method,
-                        kind: f.kind,
-                        error: f.message.clone(),
-                        focus_d: r.job.focus.0,
-                    });
-                    if f.fallback {
-                        st.fallback_frames += 1;
-                    }
-                }
-            }
+        match &r.outcome {
+            Ok(planned) => self.state.render.made(r.took, *planned),
+            Err(f) => self.state.render.failed(
+                r.took,
+                RenderErrorNote {
+                    frame: r.job.frame,
+                    method: r.job.method.as_str().to_string(),
+                    kind: f.kind,
+                    error: f.message.clone(),
+                    focus_d: r.job.focus.0,
+                },
+                f.fallback,
+            ),
         }
         if let Err(f) = &r.outcome {
             self.log_failure(now, r, f.kind, &f.message);
         }
     }
     fn presented(&mut self, _now: Timestamp, _p: &Presented, sink: &dyn DisplaySink) {
-        let mut st = lock(&self.state.status);
-        st.frames_shown = sink.shown();
-        st.display = sink.status();
+        self.state.display.presented(sink.status(), sink.shown());
     }
     fn not_shown(&mut self, _now: Timestamp, _frame: u64, sink: &dyn DisplaySink) {
         // The misfit count and reason reach /status though nothing is shown.
-        lock(&self.state.status).display = sink.status();
+        self.state.display.not_shown(sink.status());
     }
     fn stepped(&mut self, now: Timestamp, engine: &Engine) {
         let fresh = self
@@ -379,7 +355,7 @@ impl LoopHook for Status {
         }
     }
     fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
-        lock(&self.state.status).scheduler = engine.status();
+        lock(&self.state.loop_status).scheduler = engine.status();
     }
 }
 
@@ -431,7 +407,7 @@ impl LoopHook for WebSocket {
                 self.0.publish(|| {
                     let target = lens_target(engine, *lens);
                     let tolerance = engine.scheduler().config().settled_tolerance_d;
-                    let optics = self.0.optics_of(*lens);
+                    let optics = self.0.optics.of(*lens);
                     let mut m = json!({
                         "type": "lens",
                         "host_ns": s.host_time.0,
@@ -439,7 +415,7 @@ impl LoopHook for WebSocket {
                         "focus_d": optics.focus_of(s.power).0,
                         "target_d": target.map(|d| d.0),
                         "target_focus_d": target.map(|d| optics.focus_of(d).0),
-                        "settled": crate::lens_settled(s, target.map(|d| d.0), tolerance),
+                        "settled": lens_settled(s, target.map(|d| d.0), tolerance),
                         "current_ma": s.current_ma,
                         "temperature_c": s.temperature_c,
                     });
@@ -493,7 +469,7 @@ impl LoopHook for WebSocket {
                     "type": "focus",
                     "host_ns": now.0,
                     "commanded_d": power.0,
-                    "focus_d": self.0.optics_of(lens).focus_of(power).0,
+                    "focus_d": self.0.optics.of(lens).focus_of(power).0,
                     "reason": engine::reason_name(reason),
                 });
                 if let Some(e) = eye {
@@ -543,14 +519,14 @@ impl LoopHook for Lsl {
             }
             DeviceInput::LensState(lens, s) => {
                 let commanded = self.commanded.get(lens.index()).copied().flatten();
-                l.lens_state(*lens, s, commanded, self.state.optics_of(*lens))
+                l.lens_state(*lens, s, commanded, self.state.optics.of(*lens))
             }
             DeviceInput::LensWire {
                 lens,
                 requested,
                 wire_time,
                 ..
-            } => l.lens_wire(*lens, *wire_time, *requested, self.state.optics_of(*lens)),
+            } => l.lens_wire(*lens, *wire_time, *requested, self.state.optics.of(*lens)),
             DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
                 frame,
                 plane_index,
@@ -601,6 +577,18 @@ impl LoopHook for Lsl {
                     "repeat": p.repeat,
                 }),
             );
+        }
+    }
+}
+
+/// Shows each presented frame's marker patch on the simulated panel, so that a simulated
+/// photodiode sees what the display draws (whichever sink draws it).
+pub struct PanelFeed(pub dioptra_sim::panel::SharedPanel);
+
+impl LoopHook for PanelFeed {
+    fn presented(&mut self, _now: Timestamp, shown: &Presented, _sink: &dyn DisplaySink) {
+        if let Some(white) = shown.marker_white {
+            self.0.lock().present(shown.shown, shown.frame, white);
         }
     }
 }

@@ -20,7 +20,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use dioptra_core::{
     Diopters, EyeRay, GazeSample, LensState, LightEdge, LightEvent, SequencerEvent, SequencerFault,
@@ -28,9 +28,32 @@ use dioptra_core::{
 };
 use serde::{Deserialize, Serialize};
 
-use dioptra_core::Side;
+use dioptra_core::{lock, Side};
 use thiserror::Error;
 use tokio::sync::mpsc;
+
+use crate::problem::Problem;
+
+pub mod config;
+
+/// An eye (`left`/`right`) in serialized records: core's [`Side`], which has no serde.
+pub mod side_serde {
+    use dioptra_core::Side;
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(side: &Option<Side>, s: S) -> Result<S::Ok, S::Error> {
+        side.map(Side::as_str).serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Side>, D::Error> {
+        match Option::<String>::deserialize(d)? {
+            None => Ok(None),
+            Some(s) => Side::parse(&s).map(Some).ok_or_else(|| {
+                serde::de::Error::custom(format!("{s:?}: expected \"left\" or \"right\""))
+            }),
+        }
+    }
+}
 
 #[derive(Debug, Error)]
 pub enum RecordingError {
@@ -117,11 +140,7 @@ pub struct LensStateRec {
     pub host_ns: u64,
     /// With a lens per eye, the eye whose lens it is (its topics are `/lens/left/...` and
     /// `/lens/right/...`); absent for a rig's one lens.
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -352,11 +371,7 @@ pub struct LensWireRec {
     pub requested_d: f32,
     pub wire_ns: u64,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -365,11 +380,7 @@ pub struct LensWireRec {
 pub struct LensLinkRec {
     pub up: bool,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -384,11 +395,7 @@ pub struct LensCommandRec {
     #[serde(default)]
     pub focus_d: Option<f32>,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -434,7 +441,7 @@ pub struct StartRec {
     pub manual_focus_d: Option<f32>,
     /// Whether the recording began with the daemon (a replay then starts from the same state).
     pub from_start: bool,
-    /// The device tasks' settings ([`crate::devices::DeviceSettings`]); absent in older
+    /// The device tasks' settings (`devices::DeviceSettings`); absent in older
     /// recordings.
     #[serde(default)]
     pub device_tasks: serde_json::Value,
@@ -745,6 +752,11 @@ impl Recorder {
         &self.path
     }
 
+    /// Messages dropped so far (the channel to the writer was full).
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
     /// Queues one message; never waits.
     pub fn record(&self, t: Timestamp, rec: Rec) {
         if self.tx.try_send((t.0, rec)).is_err() {
@@ -769,6 +781,55 @@ impl Recorder {
             messages,
             dropped: dropped.load(Ordering::Relaxed),
         })
+    }
+}
+
+/// What the recording part publishes: the recording in progress, if any; `/status`'s
+/// `recording` (its path), and messages it dropped.
+#[derive(Default)]
+pub struct RecordingHandle(Mutex<Option<Recorder>>);
+
+impl RecordingHandle {
+    /// The recording in progress (`None`: not recording), locked.
+    pub fn current(&self) -> std::sync::MutexGuard<'_, Option<Recorder>> {
+        lock(&self.0)
+    }
+
+    /// Where the recording in progress goes.
+    pub fn path(&self) -> Option<PathBuf> {
+        self.current().as_ref().map(|r| r.path().to_path_buf())
+    }
+
+    /// Queues `rec` at `t` in the recording in progress (none: nothing).
+    pub fn record(&self, t: Timestamp, rec: Rec) {
+        if let Some(r) = self.current().as_ref() {
+            r.record(t, rec);
+        }
+    }
+
+    /// `/status`'s `recording`: the path of the recording in progress.
+    pub fn status(&self, out: &mut serde_json::Map<String, serde_json::Value>) {
+        out.insert(
+            "recording".into(),
+            serde_json::json!(self.path().map(|p| p.display().to_string())),
+        );
+    }
+
+    /// The recording in progress dropped messages: the disk did not keep up.
+    pub fn problems(&self) -> Vec<Problem> {
+        let current = self.current();
+        let Some(r) = current.as_ref().filter(|r| r.dropped() > 0) else {
+            return Vec::new();
+        };
+        vec![Problem::new(
+            "recording",
+            "recording.dir",
+            format!(
+                "the recording {} dropped {} messages: the disk does not keep up with the rig",
+                r.path().display(),
+                r.dropped()
+            ),
+        )]
     }
 }
 

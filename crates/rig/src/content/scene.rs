@@ -19,8 +19,11 @@ use dioptra_sim::scene::animation::Animation;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use serde::Serialize;
 
-use super::{Arrival, Content, ContentFrame};
-use crate::config::RigConfig;
+use super::frame::{Arrival, ContentFrame};
+use super::source::Content;
+use crate::display::config::Display;
+use crate::optics::config::Eye;
+use crate::problem::Problem;
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -61,6 +64,9 @@ pub struct SceneStatus {
     pub since_ns: u64,
     /// How long the frame on show has been on show, ms (at the time of asking).
     pub newest_age_ms: Option<f64>,
+    /// The newest frame failed to render (the next one rendered clears it).
+    #[serde(skip)]
+    pub failing: bool,
 }
 
 struct Shared {
@@ -115,12 +121,14 @@ struct Polled {
     at: Option<Timestamp>,
 }
 
-/// The camera the rig's scene is seen through: the eye model of `cfg` over the display's
-/// pixels.
-pub fn camera(cfg: &RigConfig) -> Result<Camera, RenderError> {
-    let d = &cfg.display;
-    let eye = cfg.eye_model().validated()?;
-    Ok(Camera::new(eye, d.width as usize, d.height as usize))
+/// The camera the rig's scene is seen through: `eye` over the display's pixels.
+pub fn camera(eye: &Eye, display: &Display) -> Result<Camera, RenderError> {
+    let model = eye.model(display.width).validated()?;
+    Ok(Camera::new(
+        model,
+        display.width as usize,
+        display.height as usize,
+    ))
 }
 
 impl std::fmt::Debug for AnimatedScene {
@@ -174,7 +182,7 @@ fn render(
 
 /// The left and the right eye's views of `scene`, the eyes `2 x half_ipd_m` apart with
 /// parallel axes, cast side by side: the animated scene's on its worker, and
-/// [`super::stereo::EyeViews`]'s for a frame that brings its scene without them.
+/// `stereo::EyeViews`'s for a frame that brings its scene without them.
 pub fn cast_eyes(
     scene: &Scene,
     cam: &Camera,
@@ -381,6 +389,7 @@ impl AnimatedScene {
                 on.since = Instant::now();
                 on.status.shown += 1;
                 on.status.since_ns = now.0;
+                on.status.failing = false;
                 Some((
                     frame,
                     Arrival {
@@ -395,6 +404,7 @@ impl AnimatedScene {
                 }
                 on.status.failed += 1;
                 on.status.last_error = Some(e);
+                on.status.failing = true;
                 None
             }
         }
@@ -460,6 +470,17 @@ impl Content for AnimatedScene {
     }
     fn status(&self) -> serde_json::Value {
         serde_json::to_value(AnimatedScene::status(self)).unwrap_or_default()
+    }
+    fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.on_show).status.clone();
+        match (st.failing, st.last_error) {
+            (true, Some(e)) => vec![Problem::new(
+                "content",
+                "content.source",
+                format!("the procedural scene's newest frame did not render (the one before stays): {e}"),
+            )],
+            _ => Vec::new(),
+        }
     }
 }
 

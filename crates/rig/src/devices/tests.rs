@@ -1,6 +1,9 @@
 use super::*;
 use crate::config::tests::SIM_RIG;
-use dioptra_core::{PowerRange, SequencerEvent};
+use config::Port;
+use std::sync::Mutex;
+
+use dioptra_core::{LinkError, PowerRange, SequencerEvent};
 use dioptra_lens::{LensLimits, Optotune, OptotuneConfig};
 
 #[test]
@@ -68,12 +71,13 @@ fn start(edit: impl Fn(&str) -> String) -> Started {
     let text = edit(SIM_RIG);
     assert_ne!(text, SIM_RIG, "the edit changed nothing");
     let cfg = Arc::new(RigConfig::parse(&text).unwrap());
-    let spec = SimSpec::from_config(&cfg).unwrap();
+    let latency = crate::engine::sched_config(&cfg).unwrap().display.latency;
+    let spec = SimSpec::from_config(&cfg, latency).unwrap();
     let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
     let registry = Arc::new(Registry::default());
     let (out, inputs) = mpsc::channel(4096);
     let stop = CancellationToken::new();
-    let settings = DeviceSettings::from_config(&cfg);
+    let settings = DeviceSettings::from_config(&cfg.devices);
     let (sims, links, tasks) =
         spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
     Started {
@@ -376,8 +380,8 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
     let mut powers: Vec<f32> = Vec::new();
     let r = tokio::time::timeout(Duration::from_secs(90), async {
         loop {
-            let s = dioptra_core::lock(&state.status).clone();
-            if let Some(p) = s.commanded_power_d {
+            let s = state.loop_status();
+            if let Some(p) = state.optics().focus().commanded_power_d {
                 if powers.last() != Some(&p) {
                     powers.push(p);
                 }
@@ -398,7 +402,10 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
         )
     });
     assert!(status.lens_commands >= 2, "{status:?}");
-    assert_eq!(state.registry.snapshot()["gaze"].driver, "pupil");
+    assert_eq!(
+        state.devices().registry().snapshot()["gaze"].driver,
+        "pupil"
+    );
     state.cancel.cancel();
     let report = rig.wait().await;
     assert!(report.ok(), "{:?}", report.problems());
