@@ -9,12 +9,15 @@ thin-lens truth at every focus of the stack, PSNR on sRGB-encoded images clipped
 
   python3 scripts/independent_validation/score.py --set ival --binary target/release/dioptra
       [--methods linear,spectral,optimized,refine] [--weights C4R.safetensors] [--variant LABEL='ARGS' ...]
-      [--out scores.md]
+      [--fovea-deg R] [--out scores.md]
 
 A variant is one more column: `decompose` with ARGS (shell words) instead of `--method M`, e.g.
 --variant "spectral gather 8=--method spectral --target-method gather --focal-samples 8";
 `{scene}` in ARGS is the scene's directory (`--targets {scene}/stack` fits the truth itself: an
 oracle no rig has, scored at the foci it fitted).
+
+--fovea-deg R adds, per method, the same score inside a disk of R degrees around the image
+centre (the gaze `decompose --method hybrid` assumes): a column "M fovea" beside each "M".
 """
 import argparse
 import glob
@@ -88,9 +91,19 @@ def srgb(x):
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def psnr(a, b):
-    mse = np.mean((srgb(a) - srgb(b)) ** 2)
+def psnr(a, b, mask=None):
+    d = (srgb(a) - srgb(b)) ** 2
+    mse = np.mean(d) if mask is None else np.mean(d[mask])
     return 10 * math.log10(1 / max(mse, 1e-20))
+
+
+def fovea_mask(h, w, deg):
+    """Pixels whose centre lies within `deg` degrees of the image centre (the tangent plane's
+    angle, FOV_DEG over the width)."""
+    pitch = 2 * math.tan(math.radians(FOV_DEG) / 2) / w
+    r = math.tan(math.radians(deg)) / pitch
+    y, x = np.mgrid[0:h, 0:w]
+    return (x + 0.5 - w / 2) ** 2 + (y + 0.5 - h / 2) ** 2 <= r * r
 
 
 def scenes(set_dir):
@@ -126,6 +139,8 @@ def main():
     ap.add_argument("--variant", action="append", default=[],
                     help="LABEL=ARGS: a column from `decompose ARGS` (ARGS as shell words)")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--fovea-deg", type=float, default=0.0,
+                    help="also score inside this many degrees of the image centre")
     ap.add_argument("--weights", default=None,
                     help="the C4R weights `refine` runs (default: the binary's shipped c4r)")
     a = ap.parse_args()
@@ -136,6 +151,8 @@ def main():
             ap.error(f"--variant {v!r}: expected LABEL=ARGS")
         runs.append((label.strip(), shlex.split(args)))
     methods = [m for m, _ in runs]
+    if a.fovea_deg > 0:
+        methods = [c for m in methods for c in (m, m + " fovea")]
     rows = []
     # The layers go to a temporary directory, not the set's scene folders: scorers running
     # at once on one set would overwrite each other's.
@@ -154,11 +171,15 @@ def main():
                     cmd += ["--weights", a.weights]
                 r = subprocess.run(cmd, capture_output=True, text=True)
                 if r.returncode != 0:
-                    row.append(float("nan"))
+                    row += [float("nan")] * (2 if a.fovea_deg > 0 else 1)
                     print(f"{name} {m}: failed: {r.stderr.strip()[-300:]}", flush=True)
                     continue
                 layers = [read(os.path.join(out, f"layer_{p:.2f}D.exr")) for p in PLANES]
-                row.append(np.mean([psnr(retina(layers, q, width), t) for q, t in zip(foci, truth)]))
+                seen = [retina(layers, q, width) for q in foci]
+                row.append(np.mean([psnr(s, t) for s, t in zip(seen, truth)]))
+                if a.fovea_deg > 0:
+                    mask = fovea_mask(truth[0].shape[0], width, a.fovea_deg)
+                    row.append(np.mean([psnr(s, t, mask) for s, t in zip(seen, truth)]))
             rows.append(row)
             print(" | ".join([row[0]] + [f"{v:.2f}" for v in row[1:]]), flush=True)
     write_table(rows, methods, a.out)

@@ -296,10 +296,15 @@ pub struct DecomposeArgs {
     #[arg(long, default_value = "0.2,0.8,1.4,2.0")]
     planes: String,
     /// linear (Akeley), optimized (Narain), spectral (the per-frequency least squares, after
-    /// Mercier et al. 2017: real time), network (DeepFocus C4; its planes are fixed) or refine
-    /// (C4R: linear blending corrected by a small net; its planes are fixed).
+    /// Mercier et al. 2017: real time), hybrid (spectral in a window around --gaze when a
+    /// blurred depth step reaches the fovea, linear blending elsewhere, after Yu et al. 2019;
+    /// the spectral options apply to its window), network (DeepFocus C4; its planes are fixed)
+    /// or refine (C4R: linear blending corrected by a small net; its planes are fixed).
     #[arg(long, default_value = "optimized")]
     method: String,
+    /// Hybrid: the gaze point, pixels "X,Y" (default: the image centre).
+    #[arg(long)]
+    gaze: Option<String>,
     /// Network weights for --method network or refine (default: the shipped ones).
     #[arg(long)]
     weights: Option<PathBuf>,
@@ -444,6 +449,41 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
     let linear = b.linear_blend(&input, &planes)?;
     let layers = match a.method.as_str() {
         "linear" => linear,
+        "hybrid" => {
+            if a.targets.is_some() {
+                bail!("--targets applies to --method spectral or optimized, not hybrid");
+            }
+            let gaze = match a.gaze.as_deref() {
+                Some(g) => match parse_list(g)?[..] {
+                    [x, y] => Some([x, y]),
+                    _ => bail!("--gaze {g:?}: expected X,Y in pixels"),
+                },
+                None => None,
+            };
+            let params = dioptra_render::hybrid::HybridParams {
+                spectral: a.spectral_params()?,
+                ..Default::default()
+            };
+            let (layers, rep) = b.hybrid_blend(&input, &planes, &eye, gaze, &params)?;
+            match rep.window {
+                Some(w) => println!(
+                    "hybrid decomposition on the {}: spectral in {}x{} px at ({}, {}), solved at 1/{}, around the gaze ({:.0}, {:.0})",
+                    b.name(),
+                    w.width,
+                    w.height,
+                    w.x0,
+                    w.y0,
+                    w.scale,
+                    rep.gaze[0],
+                    rep.gaze[1]
+                ),
+                None => println!(
+                    "hybrid decomposition: no blurred depth step reaches the fovea around ({:.0}, {:.0}): linear blending",
+                    rep.gaze[0], rep.gaze[1]
+                ),
+            }
+            layers
+        }
         "network" => {
             let l = if b.name() == "gpu" {
                 load_gpu_net(a.weights.as_deref(), "c4", a.eye.adapter.as_deref())?
@@ -579,7 +619,7 @@ pub fn decompose(a: DecomposeArgs) -> Result<()> {
             layers
         }
         m => bail!(
-            "unknown decomposition method {m:?}: expected linear, optimized, spectral, network or refine"
+            "unknown decomposition method {m:?}: expected linear, optimized, spectral, hybrid, network or refine"
         ),
     };
     ensure_dir(&a.out)?;

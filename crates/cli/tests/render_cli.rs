@@ -164,6 +164,43 @@ fn scene_render_metrics_round_trip() {
     );
     assert!(!ok && text.contains("prior"), "{text}");
 
+    // The gaze-contingent hybrid (issue 54): the window around the gaze is solved, or the
+    // frame is linear blending where no depth step reaches the fovea; either way it says
+    // which. A malformed --gaze is refused naming it.
+    let out = d("hybrid");
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "decompose",
+            "--method",
+            "hybrid",
+            "--gaze",
+            "30,20",
+            "--out",
+            &out,
+        ],
+    );
+    assert!(ok && text.contains("hybrid decomposition"), "{text}");
+    for p in ["0.20", "0.80", "1.40", "2.00"] {
+        assert!(
+            Path::new(&format!("{out}/layer_{p}D.exr")).exists(),
+            "{text}"
+        );
+    }
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "decompose",
+            "--method",
+            "hybrid",
+            "--gaze",
+            "30",
+            "--out",
+            &d("bad"),
+        ],
+    );
+    assert!(!ok && text.contains("--gaze"), "{text}");
+
     // Light-field synthesis from the scene's 2 x 2 views into 3 x 3, plain and foveated
     // (issue 41): the foveated run says what fraction of the rays it kept and its PSNR per
     // region against the full synthesis; --gaze without --foveate and a bad S are refused.

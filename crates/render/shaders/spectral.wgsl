@@ -12,6 +12,8 @@
 // rows_to_real:  complex rows -> real images, clamped to [0, 1]; the FISTA update with them
 // apply:         per frequency, out[c][a] (+)= scale sum_d mat[a][d] in[c][d]
 // grad_step:     per frequency, S <- S - step A (S - Y0); partial sums of the objective
+// admm_step:     per frequency, S <- Y0 + B (S - Y0) (B = rho (A + rho I)^-1); the objective too
+// admm_update:   per pixel, z = clamp(x + u), u = x + u - z, v = z - u (the next step's input)
 
 struct Params {
     // Line length (fft_pass) or frequencies per spectrum (apply, grad_step).
@@ -399,4 +401,75 @@ fn grad_step(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: 
         workgroupBarrier();
     }
     if l == 0u { gs_part[wg.y * nw.x + wg.x] = part[0]; }
+}
+
+@group(0) @binding(1) var<storage, read> as_y0: array<vec2<f32>>;
+@group(0) @binding(2) var<storage, read> as_a: array<f32>;
+@group(0) @binding(3) var<storage, read> as_b: array<f32>;
+@group(0) @binding(4) var<storage, read_write> as_s: array<vec2<f32>>;
+@group(0) @binding(5) var<storage, read_write> as_part: array<f32>;
+
+// ADMM's x-update S <- Y0 + B (S - Y0) per channel and frequency (`rows` layers), B the plan's
+// rho (A + rho I)^-1; the objective (S - Y0)^H A (S - Y0) at S summed per workgroup, as
+// grad_step sums it.
+@compute @workgroup_size(WG1)
+fn admm_step(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>,
+             @builtin(local_invocation_index) l: u32) {
+    let i = flat_index(wg, nw, l);
+    var sum = 0.0;
+    if i < 3u * p.n {
+        let f = i % p.n;
+        let c = i / p.n;
+        let np = p.rows;
+        var d: array<vec2<f32>, MAX_PLANES>;
+        for (var a = 0u; a < np; a++) {
+            let o = (c * np + a) * p.n + f;
+            d[a] = as_s[o] - as_y0[o];
+        }
+        let kx = f / p.ph;
+        var twice = 2.0;
+        if kx == 0u || (p.pw % 2u == 0u && kx == p.hw - 1u) { twice = 1.0; }
+        var acc = 0.0;
+        for (var a = 0u; a < np; a++) {
+            var g = vec2<f32>(0.0);
+            var h = vec2<f32>(0.0);
+            for (var b = 0u; b < np; b++) {
+                g += as_a[(a * np + b) * p.n + f] * d[b];
+                h += as_b[(a * np + b) * p.n + f] * d[b];
+            }
+            acc += dot(d[a], g);
+            let o = (c * np + a) * p.n + f;
+            as_s[o] = as_y0[o] + h;
+        }
+        sum = twice * acc;
+    }
+    part[l] = sum;
+    workgroupBarrier();
+    for (var k = WG1 / 2u; k > 0u; k >>= 1u) {
+        if l < k { part[l] += part[l + k]; }
+        workgroupBarrier();
+    }
+    if l == 0u { as_part[wg.y * nw.x + wg.x] = part[0]; }
+}
+
+@group(0) @binding(1) var<storage, read> au_x: array<f32>;
+@group(0) @binding(2) var<storage, read_write> au_z: array<f32>;
+@group(0) @binding(3) var<storage, read_write> au_u: array<f32>;
+@group(0) @binding(4) var<storage, read_write> au_v: array<f32>;
+
+// ADMM's z- and u-updates per pixel of `count` padded images: z = clamp(x + u, 0, 1),
+// u = x + u - z, and v = z - u for the next x-update. flag 1: u starts at zero (not read).
+@compute @workgroup_size(WG1)
+fn admm_update(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nw: vec3<u32>,
+               @builtin(local_invocation_index) l: u32) {
+    let i = flat_index(wg, nw, l);
+    if i >= p.count * p.pw * p.ph { return; }
+    var u = 0.0;
+    if p.flag != 1u { u = au_u[i]; }
+    let v = au_x[i] + u;
+    let z = clamp(v, 0.0, 1.0);
+    let un = v - z;
+    au_z[i] = z;
+    au_u[i] = un;
+    au_v[i] = z - un;
 }

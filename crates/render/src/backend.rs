@@ -8,6 +8,7 @@
 pub use crate::defocus::DefocusMethod;
 use crate::error::RenderError;
 use crate::foveate::LogPolar;
+use crate::hybrid::{HybridParams, HybridReport};
 use crate::metrics::Quality;
 use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
@@ -66,6 +67,18 @@ pub trait Backend: Send + Sync {
         eye: &EyeModel,
         params: SpectralParams,
     ) -> Result<(Layers, SpectralReport), RenderError>;
+
+    /// The gaze-contingent hybrid ([`crate::hybrid`], after Yu et al. 2019): spectral layers in
+    /// a window around `gaze` (pixels; `None`: the image centre) when a blurred depth step
+    /// reaches the fovea, linear blending elsewhere.
+    fn hybrid_blend(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        gaze: Option<[f32; 2]>,
+        params: &HybridParams,
+    ) -> Result<(Layers, HybridReport), RenderError>;
 
     fn retina_multifocal(
         &self,

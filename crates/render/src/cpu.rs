@@ -4,6 +4,7 @@
 use crate::backend::{Backend, DefocusMethod, Foveated, Progress};
 use crate::error::RenderError;
 use crate::foveate::{interpolate, log_polar_mask, LogPolar};
+use crate::hybrid::{hybrid_blend, HybridParams, HybridReport};
 use crate::metrics::{quality, Quality};
 use crate::multifocal::{linear_blend, optimized_blend, Layers, OptimizeParams, OptimizeReport};
 use crate::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
@@ -56,6 +57,17 @@ impl Backend for Cpu {
         params: SpectralParams,
     ) -> Result<(Layers, SpectralReport), RenderError> {
         spectral_blend(input, planes, eye, params)
+    }
+
+    fn hybrid_blend(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        gaze: Option<[f32; 2]>,
+        params: &HybridParams,
+    ) -> Result<(Layers, HybridReport), RenderError> {
+        hybrid_blend(input, planes, eye, gaze, params)
     }
 
     fn retina_multifocal(

@@ -17,6 +17,7 @@
 //! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`],
 //!    [`foveated`]: methods built on those; [`planner`], which predicts them;
 //! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
+//!    [`hybrid`]: spectral near the gaze, linear blending elsewhere;
 //! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
 //! 8. [`cpu`] and [`gpu`]: the two backends; `transfer::gpu` and `warp::gpu`: those two
 //!    passes on the GPU;
@@ -35,6 +36,7 @@ pub mod foveate;
 pub mod foveated;
 pub mod gather;
 pub mod gpu;
+pub mod hybrid;
 pub mod io;
 pub mod kernel;
 pub mod lightfield;

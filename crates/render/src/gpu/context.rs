@@ -53,6 +53,8 @@ pub(crate) enum Kernel {
     SpRowsToReal,
     SpApply,
     SpGradStep,
+    SpAdmmStep,
+    SpAdmmUpdate,
     PyAggregate,
     PySpread,
     PyCompose,
@@ -74,7 +76,7 @@ const PYRAMID_WGSL: &str = include_str!("../../shaders/pyramid.wgsl");
 const FOVEATED_WGSL: &str = include_str!("../../shaders/foveated.wgsl");
 
 impl Kernel {
-    pub(crate) const ALL: [Kernel; 40] = [
+    pub(crate) const ALL: [Kernel; 42] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -110,6 +112,8 @@ impl Kernel {
         Kernel::SpRowsToReal,
         Kernel::SpApply,
         Kernel::SpGradStep,
+        Kernel::SpAdmmStep,
+        Kernel::SpAdmmUpdate,
         Kernel::PyAggregate,
         Kernel::PySpread,
         Kernel::PyCompose,
@@ -156,6 +160,8 @@ impl Kernel {
             SpRowsToReal => (SPECTRAL_WGSL, "rows_to_real", 1, 2),
             SpApply => (SPECTRAL_WGSL, "apply", 2, 1),
             SpGradStep => (SPECTRAL_WGSL, "grad_step", 2, 2),
+            SpAdmmStep => (SPECTRAL_WGSL, "admm_step", 3, 2),
+            SpAdmmUpdate => (SPECTRAL_WGSL, "admm_update", 1, 3),
             PyAggregate => (PYRAMID_WGSL, "aggregate", 2, 1),
             PySpread => (PYRAMID_WGSL, "spread", 1, 1),
             PyCompose => (PYRAMID_WGSL, "compose", 4, 1),

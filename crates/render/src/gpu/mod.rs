@@ -22,6 +22,7 @@ use crate::defocus::DefocusMethod;
 pub use crate::error::GpuError;
 use crate::error::RenderError;
 use crate::foveate::LogPolar;
+use crate::hybrid::{hybrid_blend_with, HybridParams, HybridReport};
 use crate::metrics::Quality;
 use crate::multifocal::{Layers, OptimizeParams, OptimizeReport};
 use crate::retina::LfView;
@@ -284,6 +285,22 @@ impl Backend for Gpu {
             images: kernels::on_host(images)?,
         };
         Ok((layers, report))
+    }
+
+    /// The window's spectral solve on the GPU ([`Backend::spectral_blend`]); linear blending,
+    /// the depth-edge scan and the cross-fade on the host, as the CPU's (they are a small part
+    /// of the frame's cost).
+    fn hybrid_blend(
+        &self,
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        gaze: Option<[f32; 2]>,
+        params: &HybridParams,
+    ) -> Result<(Layers, HybridReport), RenderError> {
+        hybrid_blend_with(input, planes, eye, gaze, params, |rgbd, e, p| {
+            self.spectral_blend(rgbd, planes, e, p)
+        })
     }
 
     fn retina_multifocal(

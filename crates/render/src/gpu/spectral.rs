@@ -18,7 +18,9 @@ use crate::common::check_rgbd;
 use crate::defocus::DefocusMethod;
 use crate::error::{invalid, mismatch, RenderError};
 use crate::fft2::FFT_PRIMES;
-use crate::spectral::{SpectralParams, SpectralPlan, SpectralReport, SpectralTargets};
+use crate::spectral::{
+    SpectralParams, SpectralPlan, SpectralReport, SpectralSolver, SpectralTargets,
+};
 use bytemuck::{Pod, Zeroable};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 
@@ -94,6 +96,8 @@ pub(super) struct GpuPlan {
     fit: BufRef,
     ainv: BufRef,
     a: BufRef,
+    /// ADMM's x-update matrices (the plan's `admm`), when its solver is ADMM.
+    admm: Option<BufRef>,
     nodes: BufRef,
     roots: BufRef,
     rows: Length,
@@ -130,6 +134,11 @@ impl GpuPlan {
             fit: ctx.upload_resident("spectral fit matrices", &plan.fit)?,
             ainv: ctx.upload_resident("spectral inverse matrices", &plan.ainv)?,
             a: ctx.upload_resident("spectral normal matrices", &plan.a)?,
+            admm: if plan.admm.is_empty() {
+                None
+            } else {
+                Some(ctx.upload_resident("spectral ADMM matrices", &plan.admm)?)
+            },
             nodes: ctx.upload_resident("depth nodes", &plan.nodes)?,
             roots: ctx.upload_resident("FFT roots", bytemuck::cast_slice(&roots))?,
             rows: Length {
@@ -355,6 +364,57 @@ fn grad_step(
     Ok(f.read(&part, 4 * nparts))
 }
 
+/// ADMM's x-update on `spec` in place (see [`SpectralPlan`]'s `admm`); the objective's
+/// per-workgroup partial sums at `spec` before it.
+fn admm_step(
+    f: &mut Frame,
+    g: &GpuPlan,
+    spec: &BufRef,
+    y0: &BufRef,
+) -> Result<super::Readback, RenderError> {
+    let b = g
+        .admm
+        .as_ref()
+        .ok_or_else(|| invalid("this spectral plan was built without ADMM's matrices"))?;
+    let np = g.plan.planes.len();
+    let groups = groups1(3 * g.hn())?;
+    let p = SpecP {
+        n: dim(g.hn(), "spectrum length")?,
+        rows: np as u32,
+        ..g.base()
+    };
+    let nparts = (groups[0] * groups[1]) as u64;
+    let part = f.scratch("objective partial sums", 4 * nparts)?;
+    f.dispatch(Kernel::SpAdmmStep, &p, &[y0, &g.a, b, spec, &part], groups)?;
+    Ok(f.read(&part, 4 * nparts))
+}
+
+/// ADMM's z- and u-updates of `count` padded images from x; `v` = z - u for the next step.
+#[allow(clippy::too_many_arguments)]
+fn admm_update(
+    f: &mut Frame,
+    g: &GpuPlan,
+    count: usize,
+    first: bool,
+    x: &BufRef,
+    z: &BufRef,
+    u: &BufRef,
+    v: &BufRef,
+) -> Result<(), RenderError> {
+    let p = SpecP {
+        count: dim(count, "images")?,
+        flag: first as u32,
+        ..g.base()
+    };
+    f.dispatch(
+        Kernel::SpAdmmUpdate,
+        &p,
+        &[x, z, u, v],
+        groups1(count * g.pn())?,
+    )?;
+    Ok(())
+}
+
 /// Where the targets come from.
 pub(super) enum Targets<'a> {
     /// From the input, as the settings say: rendered on the GPU by their defocus method, or
@@ -555,18 +615,38 @@ pub(super) fn spectral_blend(
         f.copy(&x, 0, &clamped, 0, lbytes);
         let spec = f.scratch("layer spectra", 8 * (3 * np * hn) as u64)?;
         let mut first = None;
-        let mut t_k = 1.0f64;
-        for it in 0..params.iterations {
-            forward(&mut f, &g, &work, &y, 3 * np, &spec)?;
-            let r = grad_step(&mut f, &g, &spec, &y0)?;
-            if it == 0 {
-                first = Some(r);
+        match params.solver {
+            SpectralSolver::ProjectedGradient => {
+                let mut t_k = 1.0f64;
+                for it in 0..params.iterations {
+                    forward(&mut f, &g, &work, &y, 3 * np, &spec)?;
+                    let r = grad_step(&mut f, &g, &spec, &y0)?;
+                    if it == 0 {
+                        first = Some(r);
+                    }
+                    let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t_k * t_k).sqrt());
+                    let mom = ((t_k - 1.0) / t_next) as f32;
+                    inverse(&mut f, &g, &work, &spec, 3 * np, true, mom, &x, &y)?;
+                    t_k = t_next;
+                    report.iterations = it + 1;
+                }
             }
-            let t_next = 0.5 * (1.0 + (1.0 + 4.0 * t_k * t_k).sqrt());
-            let mom = ((t_k - 1.0) / t_next) as f32;
-            inverse(&mut f, &g, &work, &spec, 3 * np, true, mom, &x, &y)?;
-            t_k = t_next;
-            report.iterations = it + 1;
+            SpectralSolver::Admm { .. } => {
+                // z is x (the clamped layers), u starts at zero, y holds z - u; each step's
+                // unclamped x goes to `xs`.
+                let u = f.scratch("ADMM multipliers", lbytes)?;
+                let xs = f.scratch("ADMM x", lbytes)?;
+                for it in 0..params.iterations {
+                    forward(&mut f, &g, &work, &y, 3 * np, &spec)?;
+                    let r = admm_step(&mut f, &g, &spec, &y0)?;
+                    if it == 0 {
+                        first = Some(r);
+                    }
+                    inverse(&mut f, &g, &work, &spec, 3 * np, false, 0.0, &xs, &y)?;
+                    admm_update(&mut f, &g, 3 * np, it == 0, &xs, &x, &u, &y)?;
+                    report.iterations = it + 1;
+                }
+            }
         }
         forward(&mut f, &g, &work, &x, 3 * np, &spec)?;
         let fin = grad_step(&mut f, &g, &spec, &y0)?;

@@ -18,6 +18,7 @@ pub mod link;
 pub mod open;
 pub mod registry;
 pub mod simulators;
+pub mod status;
 mod sync;
 
 use std::sync::Arc;
@@ -35,6 +36,7 @@ pub use link::{Backoff, DeviceSettings, LinkHealth, LinkPolicy, Verdict};
 pub use registry::{
     required_present, wait_for_required, DeviceHandle, DeviceStatus, Registry, State,
 };
+pub use status::DevicesHandle;
 
 use crate::config::RigConfig;
 use simulators::{SimDevices, SimSpec};

@@ -28,7 +28,7 @@ use dioptra_sim::serve::ByteDevice;
 use dioptra_sync::board::{BoardEvent, PhotodiodeBand, SyncBoard};
 use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
 use dioptra_transport::discovery::{Interface, KnownDevice};
-use dioptra_transport::{AnyByteLink, AnyHidLink};
+use dioptra_transport::AnyByteLink;
 
 use super::boxed::{
     About, BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer, Facts, Resume,
@@ -51,13 +51,7 @@ pub enum Transport {
     Net,
 }
 
-/// What a driver connects over: a real device's link or a simulator's.
-pub enum Link {
-    Byte(AnyByteLink),
-    Hid(AnyHidLink),
-    /// The address of a network service.
-    Net(String),
-}
+pub use super::boxed::Link;
 
 impl From<SimLink> for Link {
     fn from(l: SimLink) -> Link {
@@ -65,46 +59,6 @@ impl From<SimLink> for Link {
             SimLink::Byte(l) => Link::Byte(l),
             SimLink::Hid(l) => Link::Hid(l),
             SimLink::Net(a) => Link::Net(a),
-        }
-    }
-}
-
-impl Link {
-    fn kind(&self) -> &'static str {
-        match self {
-            Link::Byte(_) => "a byte link",
-            Link::Hid(_) => "a HID link",
-            Link::Net(_) => "a network address",
-        }
-    }
-    /// The byte link, or an error naming `what` (the driver) and the link it was given.
-    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
-        match self {
-            Link::Byte(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over a byte link, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The HID link, or an error naming `what` and the link it was given.
-    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
-        match self {
-            Link::Hid(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over HID, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The network address, or an error naming `what` and the link it was given.
-    pub fn net(self, what: &str) -> Result<String, DeviceError> {
-        match self {
-            Link::Net(a) => Ok(a),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over the network, and was given {}",
-                other.kind()
-            ))),
         }
     }
 }

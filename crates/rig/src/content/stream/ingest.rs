@@ -107,6 +107,10 @@ pub struct StreamStatus {
     pub views: Option<usize>,
     #[serde(skip)]
     newest_at: Option<std::time::Instant>,
+    /// The newest frame was refused, and the config key its reason is about (the next frame
+    /// accepted clears it).
+    #[serde(skip)]
+    pub refusing: Option<&'static str>,
 }
 
 /// The stream source: the newest accepted frame, waiting for the display.
@@ -118,7 +122,7 @@ pub struct StreamFrames {
     grid: Option<(usize, Vec<[f32; 2]>)>,
     pub(super) ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
-    status: Mutex<StreamStatus>,
+    pub(super) status: Mutex<StreamStatus>,
     /// Locked only while `status` is.
     pairing: Mutex<Pairing>,
     /// Locked only while `status` is.
@@ -552,6 +556,7 @@ impl StreamFrames {
         let message = format!("{} refused: {e}", frame.describe(grid));
         lock(&self.log).note(&format!("refused ({})", e.kind()), &message, now);
         st.last_error = Some(message);
+        st.refusing = Some(e.config_key());
         e
     }
 
@@ -626,6 +631,7 @@ impl StreamFrames {
             return Err(self.count_refusal(&mut st, label, e, now));
         }
         st.newest_seq = Some(st.newest_seq.map_or(seq, |n| n.max(seq)));
+        st.refusing = None;
         st.newest_received_ns = Some(now.0);
         st.newest_at = Some(std::time::Instant::now());
         st.newest_app_time_ns = app_time_ns;
