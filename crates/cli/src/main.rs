@@ -127,11 +127,18 @@ impl std::error::Error for Exit {}
 fn log_to_stderr(level: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(level));
-    // Fails only if a subscriber is already set, which nothing else does.
-    let _ = tracing_subscriber::fmt()
+    let log = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .try_init();
+        .with_writer(std::io::stderr);
+    // Fails only if a subscriber is already set, which nothing else does. Under systemd the
+    // journal stamps each line: no second timestamp, and the level as its priority.
+    let _ = if serve::systemd::stderr_is_the_journal() {
+        let line = tracing_subscriber::fmt::format().without_time();
+        log.event_format(serve::systemd::JournalLine(line))
+            .try_init()
+    } else {
+        log.try_init()
+    };
 }
 
 /// A closed pipe on stdout (`dioptra replay --json | head`) ends the command quietly, as it
