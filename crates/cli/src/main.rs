@@ -9,6 +9,7 @@ mod demo;
 mod device_spec;
 mod devices;
 mod display_cmd;
+mod doctor;
 mod eval;
 mod gaze_cmd;
 mod hil;
@@ -46,6 +47,9 @@ enum Command {
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
     Udev(udev::Args),
+    /// Whether this machine can run a rig: GPU and Vulkan driver, udev rules, device access,
+    /// the configured devices, the API's address. Each failed check prints its fix.
+    Doctor(doctor::Args),
     /// Talk to one varifocal lens: info, get, set, sweep, temp, calibrate.
     Lens(lens_cmd::Args),
     /// An eye's optics map both ways: the lens command for a focus, the focus of a command.
@@ -183,6 +187,7 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => demo::run_demo(args),
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
+        Command::Doctor(args) => doctor::run(args),
         Command::Lens(args) => lens_cmd::run(args),
         Command::Optics(args) => optics_cmd::run(args),
         Command::Gaze(args) => gaze_cmd::run(args),
