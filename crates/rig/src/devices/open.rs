@@ -23,7 +23,7 @@ use dioptra_sync::dlpc350::Dlpc350;
 use dioptra_transport::{AnyByteLink, AnyHidLink};
 
 use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
-use super::DeviceInput;
+use super::input::DeviceInput;
 use crate::config::{GazeDriver, LensDriver, PhotodiodeDriver, Port, RigConfig, SyncDriver};
 use crate::devices::simulators::{
     byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
