@@ -580,7 +580,7 @@ fn network(section: &str, addr: &str) -> Check {
 
 /// The API's address is free to bind (or a Unix socket's folder takes it).
 fn api_address(cfg: &RigConfig) -> Check {
-    match cfg.listen() {
+    match cfg.api.listen() {
         Err(e) => Check::new(Verdict::Fail, "api", e.to_string()).fix("correct the key it names"),
         Ok(Listen::Tcp(addr)) => match std::net::TcpListener::bind(addr) {
             Ok(_) => Check::new(Verdict::Ok, "api.listen", format!("{addr} is free")),

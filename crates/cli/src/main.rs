@@ -5,6 +5,7 @@
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
 //! add a variant to [`Command`] and a module beside this file.
 
+mod config_cmd;
 mod demo;
 mod device_spec;
 mod devices;
@@ -50,6 +51,9 @@ enum Command {
     /// Whether this machine can run a rig: GPU and Vulkan driver, udev rules, device access,
     /// the configured devices, the API's address. Each failed check prints its fix.
     Doctor(doctor::Args),
+    /// Rig configs: `check FILE` (as `serve` reads it, errors naming the key), `schema` (JSON
+    /// Schema for editors), `reference` (every key, Markdown).
+    Config(config_cmd::Args),
     /// Talk to one varifocal lens: info, get, set, sweep, temp, calibrate.
     Lens(lens_cmd::Args),
     /// An eye's optics map both ways: the lens command for a focus, the focus of a command.
@@ -188,6 +192,7 @@ fn main() -> std::process::ExitCode {
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
         Command::Doctor(args) => doctor::run(args),
+        Command::Config(args) => config_cmd::run(args),
         Command::Lens(args) => lens_cmd::run(args),
         Command::Optics(args) => optics_cmd::run(args),
         Command::Gaze(args) => gaze_cmd::run(args),
