@@ -45,7 +45,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 
 fn check(file: &std::path::Path) -> anyhow::Result<()> {
     let cfg = RigConfig::load(file).map_err(|e| {
-        crate::Exit::new(1, format!("dioptra config check: {}: {e}", file.display()))
+        crate::common::Exit::new(1, format!("dioptra config check: {}: {e}", file.display()))
     })?;
     println!("{}: ok", file.display());
     let method = if cfg.auto_method {

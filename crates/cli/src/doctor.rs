@@ -103,7 +103,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     checks.push(udev_rules(&args.udev_rules, real));
     if let Some(cfg) = &cfg {
         // Listing USB and HID devices opens libusb and hidapi: only for a rig that has some.
-        let found = real.then(|| discovery::discover(&crate::devices::known_devices()));
+        let found = real.then(|| discovery::discover(&dioptra_rig::devices::open::known_devices()));
         for d in &devices {
             checks.extend(device(d, found.as_ref()));
         }
@@ -114,7 +114,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     let failed = checks.iter().filter(|c| c.verdict == Verdict::Fail).count();
     if failed > 0 {
-        return Err(crate::Exit::new(
+        return Err(crate::common::Exit::new(
             1,
             format!(
                 "dioptra doctor: {failed} check{} failed: fix {} and run it again",
@@ -214,7 +214,7 @@ fn gpu_checks(infos: &[wgpu::AdapterInfo], backend: RenderBackend, window: bool)
 /// variant (uaccess) or the group variant (`--group NAME`, a service's). `devices`: the rig
 /// has local serial, USB or HID devices, which stay root's without rules.
 fn udev_rules(path: &Path, devices: bool) -> Check {
-    let table = crate::devices::known_devices();
+    let table = dioptra_rig::devices::open::known_devices();
     let missing = if devices {
         Verdict::Fail
     } else {
@@ -741,7 +741,7 @@ mod tests {
 
     #[test]
     fn the_rules_group_is_read_from_the_group_variant_only() {
-        let table = crate::devices::known_devices();
+        let table = dioptra_rig::devices::open::known_devices();
         assert_eq!(
             rules_group(&crate::udev::rules(&table, Some("lab-rig"))).as_deref(),
             Some("lab-rig")

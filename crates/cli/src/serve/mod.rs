@@ -12,13 +12,13 @@
 //! ([`window::run_on_main_thread`]) and the runtime runs on a thread of its own.
 
 pub mod api;
+mod error;
 mod frame;
 pub mod guard;
 mod head_limit;
 pub mod systemd;
 pub mod window;
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -28,6 +28,8 @@ use dioptra_rig::config::{Listen, RigConfig, SinkKind};
 use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_rig::{Rig, RigSetup, RigState, ShutdownReport};
 use tokio_util::sync::CancellationToken;
+
+pub use guard::Listening;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -47,7 +49,7 @@ pub fn run(args: Args) -> Result<()> {
         SinkKind::Headless => serve_blocking(cfg, None, stop),
         // The window's event loop takes this (the main) thread; the daemon runs on another.
         SinkKind::Window => {
-            window_layout_supported(cfg.display.layout)?;
+            window::window_layout_supported(cfg.display.layout)?;
             let choice = cfg.display.monitor.clone();
             window::run_on_main_thread(choice, stop.clone(), move |ready| {
                 serve_blocking(cfg, Some(ready), stop)
@@ -56,34 +58,13 @@ pub fn run(args: Args) -> Result<()> {
     }
 }
 
-/// The window draws layouts `one` and `side-by-side`; a window per monitor is not built yet.
-fn window_layout_supported(layout: dioptra_rig::config::DisplayLayout) -> Result<()> {
-    if layout == dioptra_rig::config::DisplayLayout::TwoOutputs {
-        anyhow::bail!(
-            "display.layout = \"two-outputs\" with display.kind = \"window\" is not supported \
-             yet (the window draws one monitor): use layout = \"side-by-side\" on one panel \
-             spanning both eyes, or kind = \"headless\" (an image per eye)"
-        );
-    }
-    Ok(())
-}
-
-/// The daemon's runtime: one thread for the rig's tasks and the API, so that a gaze sample,
-/// the loop and the lens task hand over without waking another thread (the host path's
-/// largest cost on a multi-threaded runtime); renders run on tokio's blocking threads.
-pub fn runtime() -> Result<tokio::runtime::Runtime> {
-    Ok(tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?)
-}
-
 /// Runs the daemon until Ctrl-C, `POST /shutdown` or `stop`.
 fn serve_blocking(
     cfg: RigConfig,
     window: Option<window::WindowReady>,
     stop: CancellationToken,
 ) -> Result<()> {
-    runtime()?.block_on(async {
+    crate::common::rig_runtime()?.block_on(async {
         let mut setup = RigSetup::new(cfg);
         if let Some(w) = window {
             // The renderer first: the window draws with its GPU device when it has one.
@@ -107,7 +88,7 @@ fn serve_blocking(
             Listening::Tcp(a) => eprintln!("dioptra serve: API on http://{a}"),
             Listening::Unix(p) => eprintln!("dioptra serve: API on unix:{}", p.display()),
         }
-        service.ready(daemon.listening(), daemon.shared().cancel.clone());
+        service.ready(daemon.listening(), daemon.shared().cancel().clone());
         let status = daemon.shared().status_json();
         eprintln!("dioptra serve: display {}", status["display"]["sink"]);
         let signals = Signals::new().context("cannot listen for SIGTERM, SIGINT and SIGHUP")?;
@@ -164,7 +145,7 @@ impl Signals {
 /// second one during the shutdown exits as soon as the lens is parked, without waiting for
 /// the rest (the recording keeps what its closed chunks hold).
 async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: CancellationToken) {
-    let cancel = shared.cancel.clone();
+    let cancel = shared.cancel().clone();
     tokio::select! {
         name = signals.next() => {
             eprintln!("dioptra serve: stopping ({name}): parking the lens, finishing files; a second signal exits once the lens is parked");
@@ -175,8 +156,8 @@ async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: 
     cancel.cancel();
     let name = signals.next().await;
     eprintln!("dioptra serve: {name} during shutdown: exiting once the lens is parked");
-    let limit = shared.settings.park_timeout + Duration::from_secs(1);
-    let parked = tokio::time::timeout(limit, shared.lens_parked.cancelled())
+    let limit = shared.devices().settings().park_timeout + Duration::from_secs(1);
+    let parked = tokio::time::timeout(limit, shared.devices().lens_parked().cancelled())
         .await
         .is_ok();
     if parked {
@@ -185,13 +166,6 @@ async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: 
         eprintln!("dioptra serve: the lens did not park within {limit:?}; exiting");
     }
     std::process::exit(130);
-}
-
-/// Where the API ended up listening.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Listening {
-    Tcp(SocketAddr),
-    Unix(PathBuf),
 }
 
 /// A running daemon: the rig and its API server.
@@ -217,16 +191,17 @@ impl Daemon {
         let shared = rig.state().clone();
         // A required device (every real port, unless the config says otherwise) must be
         // there before the daemon takes commands.
-        let devices = shared.cfg.devices.list();
-        let timeout = shared.settings.link.connect_timeout;
+        let devices = shared.cfg().devices.list();
+        let timeout = shared.devices().settings().link.connect_timeout;
         if let Err(why) =
-            dioptra_rig::devices::wait_for_required(&shared.registry, &devices, timeout).await
+            dioptra_rig::devices::wait_for_required(shared.devices().registry(), &devices, timeout)
+                .await
         {
-            shared.cancel.cancel();
+            shared.cancel().cancel();
             let _ = rig.wait().await;
             anyhow::bail!("{why}");
         }
-        let c = shared.cancel.clone();
+        let c = shared.cancel().clone();
         let bound = match listen {
             Listen::Tcp(addr) => tokio::net::TcpListener::bind(addr)
                 .await
@@ -242,7 +217,7 @@ impl Daemon {
             Ok(b) => b,
             Err(e) => {
                 // The rig is running: stop it (and park the lens) before saying why.
-                shared.cancel.cancel();
+                shared.cancel().cancel();
                 let _ = rig.wait().await;
                 return Err(e);
             }
@@ -271,7 +246,7 @@ impl Daemon {
     }
     #[cfg(test)]
     pub fn cancel_token(&self) -> CancellationToken {
-        self.rig.state().cancel.clone()
+        self.rig.state().cancel().clone()
     }
 
     /// Waits until the daemon is told to stop, then stops the rig (the lens parked, the
