@@ -7,9 +7,11 @@
 //! [`common`]; a command imports that, never another command (`crates/cli/LAYERS`).
 
 mod common;
+mod config_cmd;
 mod demo;
 mod devices;
 mod display_cmd;
+mod doctor;
 mod eval;
 mod gaze_cmd;
 mod hil;
@@ -48,6 +50,12 @@ enum Command {
     Devices(devices::Args),
     /// Print udev rules for every device dioptra has a driver for.
     Udev(udev::Args),
+    /// Whether this machine can run a rig: GPU and Vulkan driver, udev rules, device access,
+    /// the configured devices, the API's address. Each failed check prints its fix.
+    Doctor(doctor::Args),
+    /// Rig configs: `check FILE` (as `serve` reads it, errors naming the key), `schema` (JSON
+    /// Schema for editors), `reference` (every key, Markdown).
+    Config(config_cmd::Args),
     /// Talk to one varifocal lens: info, get, set, sweep, temp, calibrate.
     Lens(lens_cmd::Args),
     /// An eye's optics map both ways: the lens command for a focus, the focus of a command.
@@ -109,11 +117,18 @@ enum Command {
 fn log_to_stderr(level: &str) -> Result<(), Exit> {
     let rust_log = std::env::var("RUST_LOG").ok();
     let filter = log_filter(rust_log.as_deref(), level).map_err(|e| Exit::new(2, e))?;
-    // Fails only if a subscriber is already set, which nothing else does.
-    let _ = tracing_subscriber::fmt()
+    let log = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .try_init();
+        .with_writer(std::io::stderr);
+    // Fails only if a subscriber is already set, which nothing else does. Under systemd the
+    // journal stamps each line: no second timestamp, and the level as its priority.
+    let _ = if serve::systemd::stderr_is_the_journal() {
+        let line = tracing_subscriber::fmt::format().without_time();
+        log.event_format(serve::systemd::JournalLine(line))
+            .try_init()
+    } else {
+        log.try_init()
+    };
     Ok(())
 }
 
@@ -181,6 +196,8 @@ fn main() -> std::process::ExitCode {
         Command::Demo(args) => demo::run_demo(args),
         Command::Devices(args) => devices::run(args),
         Command::Udev(args) => udev::run(args),
+        Command::Doctor(args) => doctor::run(args),
+        Command::Config(args) => config_cmd::run(args),
         Command::Lens(args) => lens_cmd::run(args),
         Command::Optics(args) => optics_cmd::run(args),
         Command::Gaze(args) => gaze_cmd::run(args),

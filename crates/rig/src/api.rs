@@ -9,13 +9,14 @@ use serde::{Deserialize, Serialize};
 use crate::config::error::{invalid, ConfigError};
 
 /// `[api]`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Api {
     /// TCP address; loopback unless `allow_remote` is true.
     pub listen: Option<String>,
     /// Unix socket path (created with 0600 permissions), instead of `listen`.
     pub unix: Option<PathBuf>,
+    /// Listen on an address other than loopback (`listen`); needs a token.
     #[serde(default)]
     pub allow_remote: bool,
     /// A bearer token every request must carry (`Authorization: Bearer ...`); required with

@@ -48,7 +48,7 @@ use error::{invalid, one_line};
 
 /// A rig config: its sections, each owned by the part it configures, and what was read with
 /// it (the folder it came from, its calibration tables).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct RigConfig {
     pub mode: Mode,

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::error::{invalid, ConfigError};
 
 /// How the display shows depth.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Mode {
     Varifocal,
@@ -54,7 +54,7 @@ impl Mode {
 
 /// The render method, by the scheduler's names: gather, lightfield-defocus (varifocal);
 /// linear, optimized (multifocal); views (light field); network (any).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "String", into = "String")]
 pub struct Method(pub RenderMethod);
 

@@ -16,6 +16,7 @@ mod error;
 mod frame;
 pub mod guard;
 mod head_limit;
+pub mod systemd;
 pub mod window;
 
 use std::path::PathBuf;
@@ -81,11 +82,13 @@ fn serve_blocking(
             setup.sink = Some(Box::new(sink));
             setup.renderer = Some(Arc::new(renderer));
         }
+        let service = systemd::Service::from_env(&mut setup);
         let daemon = Daemon::start(setup).await?;
         match daemon.listening() {
             Listening::Tcp(a) => eprintln!("dioptra serve: API on http://{a}"),
             Listening::Unix(p) => eprintln!("dioptra serve: API on unix:{}", p.display()),
         }
+        service.ready(daemon.listening(), daemon.shared().cancel().clone());
         let status = daemon.shared().status_json();
         eprintln!("dioptra serve: display {}", status["display"]["sink"]);
         let signals = Signals::new().context("cannot listen for SIGTERM, SIGINT and SIGHUP")?;

@@ -9,7 +9,9 @@ use crate::api::Api;
 use crate::config::error::{invalid, ConfigError};
 
 /// What the rig shows.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum ContentSource {
     /// The procedural scene of `display.scene_seed`.
@@ -39,7 +41,7 @@ pub const MAX_CONTENT_VIEWS: usize = 9;
 pub const DEFAULT_VIEW_SPAN_MM: f64 = 10.0;
 
 /// `[content]`: the rig's RGB-D content.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ContentConfig {
     #[serde(default)]

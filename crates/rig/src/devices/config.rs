@@ -84,7 +84,7 @@ impl Devices {
 
 /// Where a device is: simulated in-process, a device path, a USB/HID VID:PID, a USB device's
 /// bulk endpoints, or a network address (Pupil Capture's Pupil Remote).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "String", into = "String")]
 pub enum Port {
     Sim,
@@ -178,7 +178,7 @@ impl std::fmt::Display for Port {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum LensDriver {
     /// Optotune Lens Driver 4.
@@ -187,7 +187,7 @@ pub enum LensDriver {
     Lens,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum GazeDriver {
     /// The dioptra binocular tracker.
@@ -198,7 +198,7 @@ pub enum GazeDriver {
     Pupil,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum SyncDriver {
     /// The dioptra sync board.
@@ -207,9 +207,10 @@ pub enum SyncDriver {
     Dlpc350,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LensDevice {
+    /// The lens's driver: `optotune` (Optotune Lens Driver 4) or `lens` (the dioptra lens controller).
     pub driver: LensDriver,
     pub port: Port,
     /// The device's USB serial number (`dioptra devices` shows it): the device is then found
@@ -253,9 +254,10 @@ impl LensDevice {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct GazeDevice {
+    /// The eye tracker's driver: `dioptra-tracker`, `hid` (HID usage page 0x12) or `pupil` (Pupil Capture).
     pub driver: GazeDriver,
     pub port: Port,
     /// The device's USB serial number (`dioptra devices` shows it): the device is then found
@@ -281,9 +283,10 @@ pub struct GazeDevice {
     pub min_confidence: f32,
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SyncDevice {
+    /// The sync hardware's driver: `sync` (the dioptra sync board) or `dlpc350` (TI DLPC350 over USB HID).
     pub driver: SyncDriver,
     pub port: Port,
     /// The device's USB serial number (`dioptra devices` shows it): the device is then found
@@ -320,7 +323,7 @@ impl SyncDevice {
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum PhotodiodeDriver {
     /// A microcontroller with a photodiode and a comparator, speaking the serial line protocol
@@ -331,9 +334,10 @@ pub enum PhotodiodeDriver {
 }
 
 /// A light sensor over the display's marker patch, for `dioptra hil`'s optical figures.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PhotodiodeDevice {
+    /// The light sensor's driver: `serial-line` (a microcontroller) or `sync` (the dioptra sync board's input).
     pub driver: PhotodiodeDriver,
     /// `serial-line`: the microcontroller's port, or "sim". `sync`: none to use the input of
     /// the board of `[devices.sync]`; a port for a board used only for its photodiode.
@@ -346,6 +350,7 @@ pub struct PhotodiodeDevice {
     /// `sync` only: the comparator's threshold and half band, fractions of the sensor's full
     /// scale (a serial-line board's comparator is set by its own trimmer).
     pub threshold: Option<f32>,
+    /// `sync` only: the comparator's half band (default 0.05).
     pub hysteresis: Option<f32>,
 }
 
@@ -434,6 +439,29 @@ impl Lenses {
 impl<'de> Deserialize<'de> for Lenses {
     fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Lenses, D::Error> {
         d.deserialize_map(LensesVisitor)
+    }
+}
+
+/// The schema of what [`Lenses`]'s reader takes: one lens's keys, or `left` and `right`,
+/// each a whole lens section.
+impl schemars::JsonSchema for Lenses {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "Lenses".into()
+    }
+    fn json_schema(g: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        let lens = g.subschema_for::<LensDevice>();
+        schemars::json_schema!({
+            "anyOf": [
+                lens,
+                {
+                    "description": "A lens per eye: `left` and `right`, each with the keys of one lens.",
+                    "type": "object",
+                    "properties": { "left": lens, "right": lens },
+                    "required": ["left", "right"],
+                    "additionalProperties": false
+                }
+            ]
+        })
     }
 }
 
@@ -582,7 +610,7 @@ impl<'de, K: DeserializeSeed<'de>> DeserializeSeed<'de> for OneLensKey<'_, K> {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Devices {
     /// One lens, or a lens per eye.

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::config::error::{invalid, ConfigError};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum SinkKind {
     /// Frame timing (and optionally PNGs) recorded, nothing shown: tests, CI.
@@ -19,7 +19,9 @@ pub enum SinkKind {
 }
 
 /// Where the eyes' images go (`display.layout`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum DisplayLayout {
     /// One image: a monocular bench, or one view both eyes see.
@@ -46,7 +48,9 @@ impl DisplayLayout {
 }
 
 /// How an eye's image meets panel pixels (`display.scale`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Scale {
     /// 1:1 onto panel pixels, so a stimulus subtends the angle it was rendered for; an image
@@ -68,11 +72,15 @@ impl Scale {
 
 /// `display.eye_offset_px`: each eye's image moved from the centre of its place, pixels
 /// (+x right, +y down).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(deny_unknown_fields)]
 pub struct EyeOffsets {
+    /// The left eye's (or the one image's) offset, [right, down] pixels.
     #[serde(default)]
     pub left: [i32; 2],
+    /// The right eye's offset, [right, down] pixels.
     #[serde(default)]
     pub right: [i32; 2],
 }
@@ -88,7 +96,7 @@ impl EyeOffsets {
 
 /// Which monitor the window goes on: its name as the system gives it (e.g. `"HDMI-1"`), or
 /// its index in the system's list.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(
     untagged,
     expecting = "a monitor name such as \"HDMI-1\" or an index such as 0"
@@ -107,7 +115,7 @@ impl std::fmt::Display for MonitorChoice {
     }
 }
 
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Display {
     /// `headless` or `window` (`sink` is the older name of this key).
@@ -117,10 +125,12 @@ pub struct Display {
     pub monitor: Option<MonitorChoice>,
     /// `layout = "two-outputs"`: the left and the right eye's monitors.
     pub monitor_left: Option<MonitorChoice>,
+    /// `layout = "two-outputs"`: the right eye's monitor.
     pub monitor_right: Option<MonitorChoice>,
     /// One eye's image (per eye on a stereo layout), pixels.
     #[serde(default = "default_size")]
     pub width: u32,
+    /// One eye's image height, pixels.
     #[serde(default = "default_size")]
     pub height: u32,
     /// Where the eyes' images go: `one` (one image), `side-by-side` (one panel 2 x width
@@ -162,7 +172,9 @@ pub struct Display {
 }
 
 /// Which corner the marker patch is in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum Corner {
     #[default]
@@ -173,7 +185,7 @@ pub enum Corner {
 }
 
 /// What toggles the marker patch between white and black.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum MarkerEvent {
     /// Every presented frame (a repeated one too).
@@ -198,7 +210,7 @@ impl MarkerEvent {
 }
 
 /// `display.marker_patch = { corner = "top-left", size = 8, toggle_on = ["frame"] }`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MarkerPatch {
     #[serde(default)]

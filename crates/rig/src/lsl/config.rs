@@ -6,9 +6,10 @@ use serde::{Deserialize, Serialize};
 use crate::config::error::{invalid, ConfigError};
 
 /// `[lsl]` in the rig config.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LslConfig {
+    /// Make the LSL outlets (a build with `--features lsl`).
     #[serde(default)]
     pub enabled: bool,
     /// The streams are `<name>-gaze`, `<name>-lens` and `<name>-markers`; their source ids

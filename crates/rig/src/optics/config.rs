@@ -14,16 +14,18 @@ use serde::{Deserialize, Serialize};
 use crate::config::error::{invalid, ConfigError};
 
 /// A range of lens powers, diopters (`optics.lens_range = { min = ..., max = ... }`).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Range {
+    /// The lowest power, diopters.
     pub min: f32,
+    /// The highest power, diopters.
     pub max: f32,
 }
 
 /// `[optics]`: the lens range, the multifocal planes, and both eyes' optics (each eye's own
 /// section overriding them).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Optics {
     /// Powers the rig may drive the lens to, diopters.
@@ -55,7 +57,7 @@ pub struct Optics {
 
 /// `[optics.layout]`: where the display, the tunable lens and the eye's pupil are, as thin
 /// lenses (the demand is `A = (1/d - P) / (1 + s (1/d - P))`, P = fixed + tunable power).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Layout {
     /// Display to the tunable lens, metres.
@@ -68,13 +70,18 @@ pub struct Layout {
 }
 
 /// `[optics.left]` / `[optics.right]`: one eye's optics, each key overriding `[optics]`'s.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct EyeOptics {
+    /// This eye's thin-lens layout.
     pub layout: Option<Layout>,
+    /// This eye's calibration table, relative to the config file.
     pub calibration: Option<PathBuf>,
+    /// This eye's spectacle sphere, diopters.
     pub prescription_sphere_d: Option<f64>,
+    /// Refused unless 0.
     pub prescription_cylinder_d: Option<f64>,
+    /// The vertex distance this eye's prescription was written for, mm.
     pub prescription_vertex_mm: Option<f64>,
 }
 
@@ -139,13 +146,16 @@ fn resolve<'a>(
 }
 
 /// `[eye]`: the viewer's eye (DeepFocus's by default: a 4 mm pupil, a 20 degree field).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Eye {
+    /// The eye's pupil diameter, mm (the blur the renderer draws).
     #[serde(default = "default_pupil")]
     pub pupil_mm: f32,
+    /// The horizontal field one eye's image spans, degrees.
     #[serde(default = "default_fov")]
     pub fov_deg: f32,
+    /// The interpupillary distance, mm (stereo views).
     #[serde(default = "default_ipd")]
     pub ipd_mm: f32,
 }

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::config::error::{invalid, ConfigError};
 
 /// Render settings.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Render {
     /// Directory of the network's weights for `method = "network"`: `c1.safetensors`
@@ -23,7 +23,9 @@ pub struct Render {
 }
 
 /// `[render] backend`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema,
+)]
 #[serde(rename_all = "kebab-case")]
 pub enum RenderBackend {
     #[default]
