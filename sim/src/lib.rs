@@ -8,9 +8,12 @@
 //! - Shared models: [`lens_model`] (tunable-lens physics), [`light`] (light on a photodiode and
 //!   its comparator), [`panel`] (a display panel's light: latency, persistence, dropped
 //!   refreshes), [`protocol_device`] (the device side of dioptra-protocol), [`tokio_clock`].
+//! - The image through the optics: [`eye_camera`] (a camera at the eye behind a simulated
+//!   eyepiece, tunable lens and panel; a simulated photometer).
 //! - Ground truth: [`scene`] (procedural scenes, pinhole, thin-lens and light-field renders).
 
 pub mod dlpc350;
+pub mod eye_camera;
 pub mod gaze;
 pub mod lens_controller;
 pub mod lens_model;

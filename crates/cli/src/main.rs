@@ -8,6 +8,7 @@
 mod demo;
 mod device_spec;
 mod devices;
+mod display_cmd;
 mod eval;
 mod gaze_cmd;
 mod hil;
@@ -84,6 +85,8 @@ enum Command {
     Hil(hil::Args),
     /// Lab Streaming Layer: the outlets a rig config makes (`--list`).
     Lsl(lsl_cmd::Args),
+    /// The panel's light: `calibrate` its transfer function with a photometer; `sim-photometer`.
+    Display(display_cmd::Args),
 }
 
 /// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
@@ -192,6 +195,7 @@ fn main() -> std::process::ExitCode {
         Command::Eval(args) => eval::run(args),
         Command::Hil(args) => hil::run(args),
         Command::Lsl(args) => lsl_cmd::run(args),
+        Command::Display(args) => display_cmd::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -1,19 +1,27 @@
 //! `dioptra optics --config RIG.toml [--eye left|right] (--focus D | --command D) [--json]`:
 //! an eye's optics map both ways, so a lab can check its numbers before a session.
+//!
+//! `dioptra optics --distortion FILE --panel WxH --distortion-grid OUT.png`: the pre-warped
+//! grid a lab puts in front of its eyepiece (straight and fringe-free through it when the
+//! model is right); `--points project|unproject|warp` maps points read on stdin through the
+//! model (the OpenCV check, scripts/check_distortion_opencv.py, drives it).
 
-use std::path::PathBuf;
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use dioptra_core::{Diopters, OpticsMap, Side};
+use dioptra_core::distortion::{DistortionSection, EyepieceModel};
+use dioptra_core::{Diopters, OpticsMap, Plane, RgbImage, Side};
+use dioptra_render::warp::{warp_cpu, WarpDraw, WarpMesh, DEFAULT_STEP_PX};
 use dioptra_rig::config::RigConfig;
 use serde_json::json;
 
 #[derive(clap::Args, Debug)]
-#[command(group(clap::ArgGroup::new("what").required(true).args(["focus", "command"])))]
+#[command(group(clap::ArgGroup::new("what").required(true).args(["focus", "command", "distortion_grid", "points"])))]
 pub struct Args {
-    /// The rig config (TOML).
-    #[arg(long)]
-    config: PathBuf,
+    /// The rig config (TOML); needed for --focus and --command.
+    #[arg(long, required_unless_present = "distortion")]
+    config: Option<PathBuf>,
     /// The eye whose map to use: left or right (default: the rig's one lens; `[optics]`, or
     /// the one per-eye section a monocular bench gives).
     #[arg(long, value_parser = parse_side)]
@@ -29,6 +37,47 @@ pub struct Args {
     /// command, and `magnification` (null where no layout gives it).
     #[arg(long)]
     json: bool,
+    /// The eyepiece's distortion model: a TOML file with the keys of rig.toml's
+    /// `[optics.distortion]` (fx, fy, cx, cy, k1..k6, p1, p2, and [red], [green], [blue]
+    /// overriding any of them), either at its top level or under `[optics.distortion]` /
+    /// `[optics.left.distortion]` as in a rig config. See docs/optics-image.md.
+    #[arg(long)]
+    distortion: Option<PathBuf>,
+    /// Draw the pre-warped grid for the eyepiece into this PNG (the panel's size, sRGB): white
+    /// lines every --grid-step-px of the ideal image and a cross at the optical centre.
+    #[arg(long, requires = "distortion")]
+    distortion_grid: Option<PathBuf>,
+    /// Read points on stdin, two numbers a line, and print where the model takes them, per
+    /// channel (red, green, blue: six numbers a line, `nan` where there is none): `project`
+    /// takes eye directions (x, y tangents) to panel pixels; `unproject` panel pixels to
+    /// directions; `warp` panel pixels to the source pixels the pre-warp mesh reads there.
+    #[arg(long, requires = "distortion", value_parser = ["project", "unproject", "warp"])]
+    points: Option<String>,
+    /// The panel, WIDTHxHEIGHT pixels (for the grid and `--points warp`).
+    #[arg(long, value_parser = parse_size)]
+    panel: Option<[usize; 2]>,
+    /// The rendered (source) image, WIDTHxHEIGHT (default: the panel's size).
+    #[arg(long, value_parser = parse_size)]
+    source: Option<[usize; 2]>,
+    /// The grid's spacing, pixels of the ideal image.
+    #[arg(long, default_value_t = 60)]
+    grid_step_px: usize,
+    /// The pre-warp mesh's vertex spacing, panel pixels.
+    #[arg(long, default_value_t = DEFAULT_STEP_PX)]
+    mesh_step_px: usize,
+}
+
+fn parse_size(s: &str) -> Result<[usize; 2], String> {
+    let bad = || format!("{s:?}: expected WIDTHxHEIGHT in pixels, e.g. 1920x1080");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let (w, h) = (
+        w.trim().parse::<usize>().map_err(|_| bad())?,
+        h.trim().parse::<usize>().map_err(|_| bad())?,
+    );
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        return Err(format!("{s:?}: each side must be 1 to 16384 pixels"));
+    }
+    Ok([w, h])
 }
 
 fn parse_side(s: &str) -> Result<Side, String> {
@@ -36,8 +85,20 @@ fn parse_side(s: &str) -> Result<Side, String> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let cfg = RigConfig::load(&args.config)
-        .with_context(|| format!("in the rig config {}", args.config.display()))?;
+    if let Some(path) = &args.distortion {
+        let model = load_distortion(path, args.eye)?;
+        if let Some(out) = &args.distortion_grid {
+            return draw_grid(&args, &model, out);
+        }
+        if let Some(mode) = &args.points {
+            return map_points(&args, &model, mode);
+        }
+    }
+    let Some(config) = &args.config else {
+        bail!("--focus and --command need --config RIG.toml");
+    };
+    let cfg = RigConfig::load(config)
+        .with_context(|| format!("in the rig config {}", config.display()))?;
     for note in cfg.notices() {
         eprintln!("note: {note}");
     }
@@ -132,4 +193,215 @@ fn focus_span(map: &OpticsMap) -> (f32, f32) {
     let r = map.range();
     let (a, b) = (map.focus_of(r.min).0, map.focus_of(r.max).0);
     (a.max(b), a.min(b))
+}
+
+/// The model from a `--distortion` file: `[optics.<eye>.distortion]`, `[optics.distortion]`,
+/// or the section's keys at the top level, in that order.
+fn load_distortion(path: &Path, eye: Option<Side>) -> Result<EyepieceModel> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read --distortion {}", path.display()))?;
+    let table: toml::Table =
+        toml::from_str(&text).with_context(|| format!("{} is not TOML", path.display()))?;
+    let optics = table.get("optics").and_then(|v| v.as_table());
+    let per_eye = eye.and_then(|side| {
+        optics
+            .and_then(|o| o.get(side.as_str()))
+            .and_then(|e| e.as_table())
+            .and_then(|e| e.get("distortion"))
+            .map(|d| (d, format!("optics.{}.distortion", side.as_str())))
+    });
+    let (value, section) = match per_eye {
+        Some(found) => found,
+        None => match optics.and_then(|o| o.get("distortion")) {
+            Some(d) => (d, "optics.distortion".to_string()),
+            None if optics.is_some() => bail!(
+                "{}: an [optics] table without [optics.distortion]",
+                path.display()
+            ),
+            None => (
+                &toml::Value::Table(table.clone()),
+                "optics.distortion".to_string(),
+            ),
+        },
+    };
+    let section_keys: DistortionSection =
+        serde_path_to_error::deserialize(value.clone()).map_err(|e| {
+            let at = e.path().to_string();
+            anyhow::anyhow!(
+                "{}: {section}{}: {}",
+                path.display(),
+                if at == "." {
+                    String::new()
+                } else {
+                    format!(".{at}")
+                },
+                e.inner()
+            )
+        })?;
+    section_keys
+        .model(&section)
+        .with_context(|| format!("in {}", path.display()))
+}
+
+fn panel_of(args: &Args) -> Result<[usize; 2]> {
+    args.panel
+        .context("give the panel's size, --panel WIDTHxHEIGHT (e.g. 1920x1080)")
+}
+
+/// The ideal image of the grid: lines `step` pixels apart through the optical centre, 2 px
+/// wide (each pixel lit by the fraction of it the line covers), the centre's lines 4 px.
+fn grid_image(size: [usize; 2], centre: [f64; 2], step: f64) -> RgbImage {
+    // Coverage of pixel [p - 0.5, p + 0.5] by lines of half-width `half` at c + k step.
+    let cover = |p: f64, c: f64| -> f32 {
+        let k = ((p - c) / step).round();
+        let d = (p - (c + k * step)).abs();
+        let half = if k == 0.0 { 2.0 } else { 1.0 };
+        (half + 0.5 - d).clamp(0.0, 1.0) as f32
+    };
+    let [w, h] = size;
+    let cols: Vec<f32> = (0..w).map(|x| cover(x as f64, centre[0])).collect();
+    let rows: Vec<f32> = (0..h).map(|y| cover(y as f64, centre[1])).collect();
+    let data: Vec<f32> = (0..w * h).map(|i| cols[i % w].max(rows[i / w])).collect();
+    let p = Plane::from_vec(w, h, data).expect("size");
+    RgbImage::from_planes(p.clone(), p.clone(), p).expect("size")
+}
+
+fn draw_grid(args: &Args, model: &EyepieceModel, out: &Path) -> Result<()> {
+    let panel = panel_of(args)?;
+    let source = args.source.unwrap_or(panel);
+    if args.grid_step_px < 4 {
+        bail!("--grid-step-px must be at least 4");
+    }
+    let mesh = WarpMesh::new(model, panel, source, args.mesh_step_px)?;
+    // The render intrinsics in source pixels.
+    let (sx, sy) = (
+        source[0] as f64 / panel[0] as f64,
+        source[1] as f64 / panel[1] as f64,
+    );
+    let centre = [
+        (model.render.cx + 0.5) * sx - 0.5,
+        (model.render.cy + 0.5) * sy - 0.5,
+    ];
+    let ideal = grid_image(source, centre, args.grid_step_px as f64 * sx);
+    let warped = warp_cpu(&ideal, &mesh, &WarpDraw::default())?;
+    dioptra_render::io::write_color(out, &warped)?;
+    println!(
+        "wrote {} ({}x{} panel, grid every {} px of the ideal image)",
+        out.display(),
+        panel[0],
+        panel[1],
+        args.grid_step_px
+    );
+    println!(
+        "mesh: vertices every {} px, within {:.4} px of the exact model{}",
+        args.mesh_step_px,
+        mesh.interpolation_error(model),
+        match mesh.unreachable() {
+            0 => String::new(),
+            n => format!(
+                "; {n} vertices beyond the model's fold (drawn black: the eye does not see there)"
+            ),
+        }
+    );
+    // Where the eye sees the panel's edges (green), degrees from the optical axis.
+    let g = &model.channels[1];
+    let deg = |t: f64| t.atan().to_degrees();
+    let (w, h) = (panel[0] as f64 - 0.5, panel[1] as f64 - 0.5);
+    let at = |u: f64, v: f64| g.unproject(u, v);
+    match (
+        at(-0.5, g.camera.cy),
+        at(w, g.camera.cy),
+        at(g.camera.cx, -0.5),
+        at(g.camera.cx, h),
+    ) {
+        (Some(l), Some(r), Some(t), Some(b)) => println!(
+            "field (green): {:.1} to {:.1} degrees across, {:.1} to {:.1} down",
+            deg(l.0),
+            deg(r.0),
+            deg(t.1),
+            deg(b.1)
+        ),
+        _ => println!("field (green): an edge of the panel is beyond the model's fold"),
+    }
+    Ok(())
+}
+
+fn map_points(args: &Args, model: &EyepieceModel, mode: &str) -> Result<()> {
+    let mesh = if mode == "warp" {
+        let panel = panel_of(args)?;
+        Some(WarpMesh::new(
+            model,
+            panel,
+            args.source.unwrap_or(panel),
+            args.mesh_step_px,
+        )?)
+    } else {
+        None
+    };
+    let stdin = std::io::stdin();
+    let mut out = String::new();
+    for (n, line) in stdin.lock().lines().enumerate() {
+        let line = line.context("reading stdin")?;
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let v: Vec<f64> = line
+            .split([' ', ',', '\t'])
+            .filter(|c| !c.is_empty())
+            .map(|c| c.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .ok()
+            .filter(|v: &Vec<f64>| v.len() == 2 && v.iter().all(|x| x.is_finite()))
+            .with_context(|| format!("stdin line {}: {line:?} is not two numbers", n + 1))?;
+        let mut cells = Vec::with_capacity(6);
+        for (c, ch) in model.channels.iter().enumerate() {
+            let p = match mode {
+                "project" => Some(ch.project(v[0], v[1])),
+                "unproject" => ch.unproject(v[0], v[1]),
+                _ => mesh
+                    .as_ref()
+                    .and_then(|m| m.source_at(v[0] as f32, v[1] as f32, c))
+                    .map(|s| (f64::from(s[0]), f64::from(s[1]))),
+            };
+            match p {
+                Some((a, b)) => {
+                    cells.push(format!("{a:.12e}"));
+                    cells.push(format!("{b:.12e}"));
+                }
+                None => cells.extend(["nan".to_string(), "nan".to_string()]),
+            }
+        }
+        out += &cells.join(" ");
+        out.push('\n');
+    }
+    print!("{out}");
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_parse() {
+        assert_eq!(parse_size("1920x1080"), Ok([1920, 1080]));
+        for bad in ["1920", "0x10", "ax3", "20000x10"] {
+            assert!(parse_size(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_grid_s_lines_are_where_the_step_puts_them() {
+        let g = grid_image([41, 21], [20.0, 10.0], 10.0);
+        let at = |x, y| g.channels[1].get(x, y).unwrap();
+        // The centre's lines are 4 px wide, the others 2 (a pixel half covered, half lit).
+        assert_eq!(
+            (at(20, 3), at(19, 3), at(18, 3), at(23, 3)),
+            (1.0, 1.0, 0.5, 0.0)
+        );
+        assert_eq!((at(30, 3), at(31, 3), at(32, 3)), (1.0, 0.5, 0.0));
+        assert_eq!(at(5, 0), 1.0);
+        assert_eq!(at(5, 5), 0.0);
+    }
 }

@@ -3,6 +3,7 @@
 
 pub mod clock_sync;
 pub mod device;
+pub mod distortion;
 pub mod error;
 pub mod image;
 pub mod optics;
@@ -10,6 +11,7 @@ pub mod optics_map;
 pub mod sampling;
 pub mod sync;
 pub mod time;
+pub mod transfer;
 pub mod units;
 
 pub use clock_sync::ClockMapper;

@@ -10,13 +10,16 @@
 //!
 //! 1. [`error`] (the GPU's errors too, so that everything below the backends can return them);
 //! 2. `alloc`, `common`, `fft2`, [`io`], [`planner`]: support with no optics method in it;
+//!    [`transfer`]: the panel's transfer function as a table (its CPU pass);
 //! 3. [`kernel`]: blur kernels and convolution;
-//! 4. [`gather`], [`lightfield`], [`metrics`]: methods on one image;
+//! 4. [`gather`], [`lightfield`], [`metrics`]: methods on one image; [`warp`]: the eyepiece
+//!    pre-warp's mesh and its CPU twin;
 //! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`]: methods
 //!    built on those;
 //! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
 //! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
-//! 8. [`cpu`] and [`gpu`]: the two backends;
+//! 8. [`cpu`] and [`gpu`]: the two backends; `transfer::gpu` and `warp::gpu`: those two
+//!    passes on the GPU;
 //! 9. [`factory`]: a backend chosen by name.
 
 pub mod alloc;
@@ -39,7 +42,9 @@ pub mod multifocal;
 pub mod planner;
 pub mod retina;
 pub mod spectral;
+pub mod transfer;
 pub mod views;
+pub mod warp;
 
 pub use backend::{Backend, Foveated};
 pub use common::{check_focus, eye_for};

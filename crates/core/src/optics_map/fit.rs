@@ -219,13 +219,13 @@ impl CalibrationFit {
     }
 }
 
-fn poly(coef: &[f64], u: f64) -> f64 {
+pub(crate) fn poly(coef: &[f64], u: f64) -> f64 {
     coef.iter().rev().fold(0.0, |acc, c| acc * u + c)
 }
 
 /// Least-squares polynomial of `degree` through (u, y), by the normal equations solved with
 /// partial pivoting; `None` if they are singular.
-fn least_squares(u: &[f64], y: &[f64], degree: usize) -> Option<Vec<f64>> {
+pub(crate) fn least_squares(u: &[f64], y: &[f64], degree: usize) -> Option<Vec<f64>> {
     let m = degree + 1;
     let mut a = vec![vec![0.0f64; m + 1]; m];
     for (&u, &y) in u.iter().zip(y) {

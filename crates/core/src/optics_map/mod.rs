@@ -16,6 +16,7 @@
 
 mod fit;
 mod layout;
+mod magnification;
 mod prescription;
 mod table;
 
@@ -23,6 +24,9 @@ pub use fit::{CalibrationFit, FitError, FitLimits, MIN_FIT_POINTS};
 pub use layout::ThinLensLayout;
 pub use prescription::{Prescription, DEFAULT_VERTEX_M};
 pub use table::{CalibrationTable, MAX_GAP_D, MIN_POINTS};
+// Shared with the panel's transfer function (crate::transfer).
+pub(crate) use fit::{least_squares, poly};
+pub(crate) use table::pchip_slopes;
 
 use crate::units::{Diopters, PowerRange};
 

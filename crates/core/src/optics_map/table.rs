@@ -327,7 +327,7 @@ impl CalibrationTable {
 
 /// PCHIP derivatives (Fritsch & Carlson's weighted harmonic mean inside; Fritsch & Butland's
 /// shape-preserving three-point formula at the ends), as SciPy's `PchipInterpolator`.
-fn pchip_slopes(x: &[f64], y: &[f64]) -> Vec<f64> {
+pub(crate) fn pchip_slopes(x: &[f64], y: &[f64]) -> Vec<f64> {
     let n = x.len();
     let h: Vec<f64> = (0..n - 1).map(|k| x[k + 1] - x[k]).collect();
     let delta: Vec<f64> = (0..n - 1).map(|k| (y[k + 1] - y[k]) / h[k]).collect();

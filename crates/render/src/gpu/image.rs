@@ -127,7 +127,7 @@ impl GpuImage {
     }
 
     /// Its buffer's handle (held by a frame that reads the image).
-    pub(super) fn buf(&self) -> &BufRef {
+    pub(crate) fn buf(&self) -> &BufRef {
         &self.buf
     }
 

@@ -7,7 +7,7 @@ mod image;
 mod kernels;
 mod spectral;
 #[cfg(test)]
-mod uniforms;
+pub(crate) mod uniforms;
 
 pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,

@@ -6,8 +6,9 @@ use super::kernels::{FovP, GatherP, LfP, OptP, SizeP};
 use super::spectral::SpecP;
 
 /// The uniform `Params` of a shader file of this crate, as naga lays it out: (member, offset,
-/// size) and the struct's size.
-fn wgsl_uniform(src: &str) -> (Vec<(String, u32, u32)>, u32) {
+/// size) and the struct's size. Also for the passes outside the backend (`transfer::gpu`,
+/// `warp::gpu`).
+pub(crate) fn wgsl_uniform(src: &str) -> (Vec<(String, u32, u32)>, u32) {
     let module = naga::front::wgsl::parse_str(&with_shared(src))
         .unwrap_or_else(|e| panic!("WGSL does not parse: {e}"));
     let mut layouter = naga::proc::Layouter::default();
@@ -48,6 +49,7 @@ macro_rules! rust_uniform {
         (fields, std::mem::size_of::<$t>() as u32)
     }};
 }
+pub(crate) use rust_uniform;
 
 /// Every shader's uniform as naga lays it out is the Rust struct the host writes: the
 /// same members (by name, where the struct is the shader's own) at the same offsets.
