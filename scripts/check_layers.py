@@ -7,7 +7,8 @@ Usage:
     SRC        the crate's source folder (crates/render/src); the root is SRC/lib.rs, else
                SRC/main.rs (--root names another)
     --layers   a layer order file: one line per layer, lowest first, the modules of a layer on one
-               line separated by spaces; `#` starts a comment
+               line separated by spaces (`apart:` first: they may not import each other); `#`
+               starts a comment
     --graph    print the graph as an edge list (`a -> b  file:line`, the first place the import is)
     --dot      print the graph in Graphviz DOT
 
@@ -41,6 +42,9 @@ What counts as an import (the rules, decided here once):
 - In a layer file a name covers the module and its descendants, unless a descendant is named
   itself; the root may be named as `crate`, and if it is not it sits above every layer. An import
   of a module in the same or a lower layer is allowed; an import of a higher layer is an error.
+- A layer line that starts with `apart:` keeps its modules apart: none of them (with what each
+  covers) imports another of that line, though each imports the layers below (a binary's
+  commands, each built on shared helpers and on no other command).
 
 Standard library only; the lexer knows Rust's comments, strings, raw strings, chars and lifetimes.
 Its tests: python3 -m unittest scripts/test_check_layers.py
@@ -491,10 +495,12 @@ def cycles(nodes, edges) -> list[list]:
 # Layers
 
 
-def read_layers(file: str, crate: Crate) -> tuple[dict, int]:
-    """{module path: layer index} for every module of the crate, from the layer file, and the
-    number of layers the file has (the root, when not named, is one above them)."""
+def read_layers(file: str, crate: Crate) -> tuple[dict, int, dict]:
+    """{module path: layer index} for every module of the crate, from the layer file, the
+    number of layers the file has (the root, when not named, is one above them), and for each
+    module of an `apart:` layer the name on that line that covers it."""
     named: dict[tuple, int] = {}
+    apart_layers: set[int] = set()
     problems = []
     with open(file, encoding="utf-8") as f:
         layer = 0
@@ -502,6 +508,11 @@ def read_layers(file: str, crate: Crate) -> tuple[dict, int]:
             line = raw.split("#", 1)[0].split()
             if not line:
                 continue
+            if line[0] == "apart:":
+                apart_layers.add(layer)
+                line = line[1:]
+                if not line:
+                    problems.append(f"{file}:{lineno}: `apart:` names no module")
             for word in line:
                 path = ROOT if word == "crate" else tuple(word.split("::"))
                 if path not in crate.modules:
@@ -513,10 +524,13 @@ def read_layers(file: str, crate: Crate) -> tuple[dict, int]:
             layer += 1
     top = layer
     out = {}
+    apart = {}
     for path in crate.modules:
         cover = next((path[:k] for k in range(len(path), -1, -1) if path[:k] in named), None)
         if cover is not None:
             out[path] = named[cover]
+            if named[cover] in apart_layers:
+                apart[path] = cover
         elif path == ROOT:
             out[path] = top
         else:
@@ -525,7 +539,7 @@ def read_layers(file: str, crate: Crate) -> tuple[dict, int]:
         problems.append(f"{file}: names no module")
     if problems:
         raise LayerError("\n".join(problems))
-    return out, top
+    return out, top, apart
 
 
 # ---------------------------------------------------------------------------------------------
@@ -581,16 +595,23 @@ def main(argv=None) -> int:
     bad = 0
     if args.layers:
         try:
-            layer, count = read_layers(args.layers, crate)
+            layer, count, apart = read_layers(args.layers, crate)
         except (LayerError, OSError) as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
+        across = 0
         for (a, b), (f, line, text) in sorted(edges.items()):
             if layer[b] > layer[a]:
                 bad += 1
                 print(f"{rel(f)}:{line}: `{name(a)}` (layer {layer[a] + 1}) imports "
                       f"`{name(b)}` (layer {layer[b] + 1}), a higher layer: {text}")
-        print(f"{args.layers}: {count} layers, {bad} upward imports")
+            elif a in apart and b in apart and apart[a] != apart[b] and layer[a] == layer[b]:
+                across += 1
+                print(f"{rel(f)}:{line}: `{name(a)}` imports `{name(b)}`, kept apart from it "
+                      f"(layer {layer[a] + 1} is `apart:`): {text}")
+        print(f"{args.layers}: {count} layers, {bad} upward imports"
+              + (f", {across} imports across an `apart:` layer" if apart else ""))
+        bad += across
     return 1 if comps or bad else 0
 
 

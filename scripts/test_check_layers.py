@@ -281,6 +281,26 @@ class Layers(CrateTest):
         self.assertEqual(rc, 2)
         self.assertIn("nope", err)
 
+    def test_the_modules_of_an_apart_layer_may_not_import_each_other(self):
+        # method imports kernel: fine in one plain layer, not in one `apart:` layer; what each
+        # covers (gpu::kern under gpu) is kept apart too, and the layers below stay open.
+        rc, out, _ = self.run_check("--layers", self.layers("error\napart: kernel method\ngpu\n"))
+        self.assertEqual(rc, 1)
+        self.assertRegex(out, r"method\.rs:1: `method` imports `kernel`, kept apart from it")
+        self.assertIn("1 imports across an `apart:` layer", out)
+        rc, out, _ = self.run_check("--layers", self.layers("error\nkernel\napart: method gpu\n"))
+        self.assertEqual(rc, 1)
+        self.assertIn("`gpu::kern` imports `method`, kept apart from it", out)
+        self.write({"gpu/kern.rs": "use crate::kernel::k;\npub fn run() {}\n"})
+        rc, out, _ = self.run_check("--layers", self.layers("error\nkernel\napart: method gpu\n"))
+        self.assertEqual(rc, 0, out)
+        self.assertIn("0 imports across an `apart:` layer", out)
+
+    def test_an_apart_line_naming_nothing_cannot_pass(self):
+        rc, _, err = self.run_check("--layers", self.layers("error\nkernel\napart:\nmethod gpu\n"))
+        self.assertEqual(rc, 2)
+        self.assertIn("`apart:` names no module", err)
+
     def test_a_cycle_fails_even_within_one_layer(self):
         self.write({"error.rs": "pub struct E;\nfn f() { crate::kernel::k() }\n"})
         rc, out, _ = self.run_check("--layers", self.layers("error kernel\nmethod\ngpu\n"))
@@ -289,6 +309,17 @@ class Layers(CrateTest):
 
 
 class ThisRepository(unittest.TestCase):
+    def test_the_cli_keeps_its_layers(self):
+        src = os.path.join(REPO, "crates", "cli", "src")
+        layers = os.path.join(REPO, "crates", "cli", "LAYERS")
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out):
+            rc = check_layers.main([src, "--layers", layers])
+        self.assertEqual(rc, 0, out.getvalue())
+        self.assertIn("0 imports across an `apart:` layer", out.getvalue())
+        crate = check_layers.Crate(src)
+        self.assertGreater(len(crate.modules), 30)
+
     def test_render_keeps_its_layers(self):
         src = os.path.join(REPO, "crates", "render", "src")
         layers = os.path.join(REPO, "crates", "render", "LAYERS")

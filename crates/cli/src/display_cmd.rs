@@ -17,6 +17,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::common;
 use anyhow::{bail, Context, Result};
 use dioptra_core::transfer::{TransferFit, TransferFitLimits, MIN_LEVELS};
 use dioptra_sim::eye_camera::{PanelResponse, Photometer};
@@ -106,7 +107,7 @@ pub struct SimPhotometerArgs {
 
 pub fn run(args: Args) -> Result<()> {
     match args.command {
-        DisplayCommand::Calibrate(a) => crate::block_on(calibrate(a)),
+        DisplayCommand::Calibrate(a) => common::block_on(calibrate(a)),
         DisplayCommand::SimPhotometer(a) => sim_photometer(a),
     }
 }

@@ -8,24 +8,22 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{anyhow, bail, Context as _, Result};
 use clap::Subcommand;
 use dioptra_core::{Clock, DeviceError, GazeSample, GazeSource, SystemClock};
-use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
-use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
-use dioptra_gaze::ids::{DIOPTRA_TRACKER_PID, DIOPTRA_VID};
-use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
 use dioptra_protocol::{BinocularSample, EyeSample};
-use dioptra_rig::config::GazeDriver;
-use dioptra_rig::devices::open;
+use dioptra_rig::config::Port;
+use dioptra_rig::devices::open::{self, Context, GazeSetup, Transport};
+use dioptra_rig::devices::simulators::SimSpec;
 use dioptra_sched::processing::{Angles, GazeProcessor, ProcessorConfig};
-use dioptra_sim::gaze::generator::SampleSource;
-use dioptra_sim::gaze::{csv, dioptra_tracker as sim_dioptra, hid_tracker as sim_hid};
+use dioptra_sim::gaze::csv;
 use dioptra_sim::gaze::{GazeGenerator, GeneratorConfig, Scene, SCENARIOS};
-use dioptra_transport::hid::HidapiLink;
 use dioptra_transport::HidLink;
 
-use crate::device_spec;
+use crate::common::device_spec::{self, Target};
+
+/// What `--device` takes, for messages.
+const USAGE: &str = "sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT";
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -83,33 +81,38 @@ enum Action {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
-fn parse_vid_pid(s: &str) -> Option<(u16, u16)> {
-    let (v, p) = s.split_once(':')?;
-    Some((
-        u16::from_str_radix(v, 16).ok()?,
-        u16::from_str_radix(p, 16).ok()?,
-    ))
-}
-
-fn sim_source(what: &str, args: &Args) -> Result<Box<dyn SampleSource>> {
-    if what.ends_with(".csv") {
-        let text = std::fs::read_to_string(what).with_context(|| format!("cannot read {what}"))?;
-        return Ok(Box::new(csv::Replay::new(csv::parse(&text)?)));
-    }
-    let Some(scene) = Scene::named(what) else {
-        bail!("unknown scenario {what:?}; known: {}", SCENARIOS.join(", "));
-    };
-    let cfg = GeneratorConfig {
+/// The simulators' setup for `sim[:WHAT]`: WHAT a scenario or a recorded CSV trace (the
+/// fixation scenario without one), at the command's rate, noise and seed.
+fn sim_spec(what: Option<&str>, args: &Args) -> Result<SimSpec> {
+    let mut spec = SimSpec::standalone();
+    spec.gaze = GeneratorConfig {
         rate_hz: args.rate,
         noise_deg: args.noise_deg,
         seed: args.seed,
         ..GeneratorConfig::default()
     };
-    let g = GazeGenerator::new(scene, cfg).map_err(anyhow::Error::msg)?;
-    Ok(Box::new(g))
+    match what {
+        Some(what) if what.ends_with(".csv") => {
+            let text =
+                std::fs::read_to_string(what).with_context(|| format!("cannot read {what}"))?;
+            spec.gaze_trace = Some(Arc::new(csv::parse(&text)?));
+        }
+        Some(what) => {
+            let Some(scene) = Scene::named(what) else {
+                bail!("unknown scenario {what:?}; known: {}", SCENARIOS.join(", "));
+            };
+            spec.gaze_scene = scene;
+        }
+        None => {}
+    }
+    if spec.gaze_trace.is_none() {
+        // Checked here, so that a bad rate or noise is a usage error, not a lost link.
+        GazeGenerator::new(spec.gaze_scene.clone(), spec.gaze).map_err(anyhow::Error::msg)?;
+    }
+    Ok(spec)
 }
 
 async fn run_async(args: Args) -> Result<()> {
@@ -119,7 +122,7 @@ async fn run_async(args: Args) -> Result<()> {
                 std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?,
                 path.display().to_string(),
             ),
-            (None, Some(spec)) => (descriptor_of(spec).await?, spec.clone()),
+            (None, Some(spec)) => (descriptor_of(spec, &args).await?, spec.clone()),
             (None, None) => bail!("inspect needs --descriptor FILE or --device hid:/dev/hidrawN"),
         };
         return inspect(&bytes, &what);
@@ -128,123 +131,50 @@ async fn run_async(args: Args) -> Result<()> {
     let device = args
         .device
         .as_deref()
-        .context("--device SPEC is required (sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT)")?;
-    let (kind, rest) = device.split_once(':').context(
-        "--device must be sim:SCENARIO, sim-hid:SCENARIO, hid:VID:PID or pupil:HOST:PORT",
-    )?;
-    match kind {
-        "sim" => {
-            let (link, _sim) = sim_dioptra::spawn(sim_source(rest, &args)?);
-            let t = DioptraTracker::connect(link, DioptraTrackerConfig::default(), clock.clone())
-                .await?;
-            let info = format!(
-                "driver dioptra-tracker (simulated: {rest})\ndevice {}",
-                t.describe()
-            );
-            act(t, &args.action, info, args.noise_deg).await
+        .with_context(|| format!("--device SPEC is required ({USAGE})"))?;
+    let (row, target) = device_spec::parse(device, &open::GAZE, "device kind", USAGE)?;
+    let setup = GazeSetup {
+        rate_hz: matches!(target, Target::Sim(_)).then_some(args.rate as f32),
+        ..GazeSetup::default()
+    };
+    let ctx = Context::new(clock, setup);
+    let (link, _sim, place, noise_deg) = match &target {
+        Target::Sim(what) => {
+            let spec = sim_spec(what.as_deref(), &args)?;
+            let (link, sim) = open::simulated(row, &spec, &ctx)?;
+            let place = format!("simulated: {}", what.as_deref().unwrap_or("fixation"));
+            (link, Some(sim), place, args.noise_deg)
         }
-        "sim-hid" => {
-            let (link, _sim) = sim_hid::spawn(sim_source(rest, &args)?, Default::default());
-            let what = format!("simulated: {rest}");
-            hid12(link, &args.action, clock, what, args.noise_deg).await
+        Target::Port(port) => {
+            let link = device_spec::link(row, port).await?;
+            (link, None, port.to_string(), HARDWARE_NOISE_DEG)
         }
-        _ => {
-            // The dioptra tracker by its VID:PID is the dioptra-tracker driver's, whichever
-            // name it is given.
-            let spec = match (kind, parse_vid_pid(rest)) {
-                ("hid", Some(id)) if id == (DIOPTRA_VID, DIOPTRA_TRACKER_PID) => {
-                    format!("dioptra-tracker:{rest}")
-                }
-                _ => device.to_string(),
-            };
-            let (row, port) = device_spec::parse(
-                &spec,
-                &open::GAZE,
-                "device kind (sim, sim-hid, or a driver)",
-            )?;
-            let link = device_spec::link(row, &port).await?;
-            match row.driver {
-                GazeDriver::DioptraTracker => {
-                    let t = DioptraTracker::connect(
-                        link.hid(row.what)?,
-                        DioptraTrackerConfig::default(),
-                        clock,
-                    )
-                    .await?;
-                    let info = format!("driver dioptra-tracker\ndevice {}", t.describe());
-                    act(t, &args.action, info, HARDWARE_NOISE_DEG).await
-                }
-                GazeDriver::Hid => {
-                    let link = link.hid(row.what)?;
-                    hid12(
-                        link,
-                        &args.action,
-                        clock,
-                        port.to_string(),
-                        HARDWARE_NOISE_DEG,
-                    )
-                    .await
-                }
-                GazeDriver::Pupil => {
-                    let addr = link.net(row.what)?;
-                    let t = PupilCapture::connect(PupilConfig::new(&addr), clock).await?;
-                    let o = t.clock_offset();
-                    let info = format!(
-                        "driver pupil\ndevice Pupil Capture {} at {addr} (IPC publisher port {})\nclock offset {:.6} s (Pupil minus host; sd {:.1} us over {} requests)",
-                        t.version(),
-                        t.sub_port(),
-                        o.mean_s,
-                        o.std_s * 1e6,
-                        o.samples
-                    );
-                    act(t, &args.action, info, HARDWARE_NOISE_DEG).await
-                }
-            }
-        }
-    }
+    };
+    let mut g = (row.connect)(link, ctx).await.map_err(|e| {
+        anyhow!(
+            "cannot start a session with the {} ({place}): {e}",
+            row.what
+        )
+    })?;
+    let mut facts = vec![("driver", format!("{} ({}, {place})", row.name, row.what))];
+    facts.extend(g.about().await?);
+    act(g, &args.action, facts, noise_deg).await
 }
 
 /// Angular noise assumed for real trackers (a conservative HMD tracker figure), degrees.
 const HARDWARE_NOISE_DEG: f64 = 0.5;
 
-async fn hid12<H: HidLink>(
-    link: H,
+/// `noise_deg`: the tracker's angular noise, for the vergence uncertainty.
+async fn act<G: GazeSource>(
+    mut g: G,
     action: &Action,
-    clock: Arc<dyn Clock>,
-    what: String,
+    mut facts: Vec<(&'static str, String)>,
     noise_deg: f64,
 ) -> Result<()> {
-    let t = HidEyeTracker::connect(link, HidTrackerConfig::default(), clock)
-        .await
-        .with_context(|| format!("cannot start a page 0x12 eye tracker session ({what})"))?;
-    let i = t.info();
-    let mm = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{:.1} mm", v / 1000.0));
-    let c = &i.capabilities;
-    let info = format!(
-        "driver hid (usage page 0x12, {what})\ndevice {}\nsampling frequency {}\n\
-         tracker quality {}\ntracking distance min {} optimum {} max {}\n\
-         screen plane max {} x {}; used {:.1} x {:.1} mm\nmodes requested {:#x}",
-        i.device,
-        i.sampling_frequency_hz
-            .map_or("unknown".into(), |f| format!("{f} Hz")),
-        c.tracker_quality.map_or("-".into(), |q| q.to_string()),
-        mm(c.min_tracking_distance_um),
-        mm(c.optimum_tracking_distance_um),
-        mm(c.max_tracking_distance_um),
-        mm(c.max_screen_width_um),
-        mm(c.max_screen_height_um),
-        i.screen_um.0 / 1000.0,
-        i.screen_um.1 / 1000.0,
-        i.modes.0,
-    );
-    act(t, action, info, noise_deg).await
-}
-
-/// `noise_deg`: the tracker's angular noise, for the vergence uncertainty.
-async fn act<G: GazeSource>(mut g: G, action: &Action, info: String, noise_deg: f64) -> Result<()> {
     match *action {
         Action::Info => {
-            println!("{info}\nrate {} Hz", g.rate_hz());
+            facts.push(("rate", format!("{} Hz", g.rate_hz())));
+            device_spec::print_facts(&facts);
             let s = g.next_sample().await?;
             println!("first sample: {}", line(&s, None));
             Ok(())
@@ -268,26 +198,38 @@ async fn act<G: GazeSource>(mut g: G, action: &Action, info: String, noise_deg: 
 }
 
 /// The report descriptor of `spec`: sysfs for a hidraw node (no permission on the node
-/// needed), the device itself for VID:PID, the simulator's for `sim-hid`.
-async fn descriptor_of(spec: &str) -> Result<Vec<u8>> {
-    let (kind, rest) = spec.split_once(':').unwrap_or((spec, ""));
-    match kind {
-        "sim-hid" => Ok(sim_hid::DESCRIPTOR.to_vec()),
-        "hid" => {
-            if let Some((vid, pid)) = parse_vid_pid(rest) {
-                let mut link = HidapiLink::open(vid, pid, None)?;
-                return Ok(link.report_descriptor().await?);
-            }
-            let node = std::path::Path::new(rest)
+/// needed), the device itself for VID:PID, the simulator's for `sim-hid` (any HID driver's
+/// simulator).
+async fn descriptor_of(spec: &str, args: &Args) -> Result<Vec<u8>> {
+    let (row, target) = device_spec::parse(spec, &open::GAZE, "device kind", USAGE)?;
+    if row.transport != Transport::Hid {
+        bail!(
+            "inspect reads hid:/dev/hidrawN, hid:VID:PID or sim-hid; the {} is not a HID device",
+            row.what
+        );
+    }
+    let mut simulator = None;
+    let mut link = match &target {
+        Target::Port(Port::Path(path)) => {
+            let node = path
                 .file_name()
                 .and_then(|n| n.to_str())
                 .filter(|n| n.starts_with("hidraw"))
-                .with_context(|| format!("{rest:?} is not a /dev/hidrawN path"))?;
+                .with_context(|| format!("{:?} is not a /dev/hidrawN path", path.display()))?;
             let sys = format!("/sys/class/hidraw/{node}/device/report_descriptor");
-            std::fs::read(&sys).with_context(|| format!("cannot read {sys}"))
+            return std::fs::read(&sys).with_context(|| format!("cannot read {sys}"));
         }
-        other => bail!("inspect reads hid:/dev/hidrawN, hid:VID:PID or sim-hid, not {other:?}"),
-    }
+        Target::Port(port) => device_spec::link(row, port).await?.hid(row.what)?,
+        Target::Sim(what) => {
+            let ctx = Context::new(Arc::new(SystemClock::new()), GazeSetup::default());
+            let (link, sim) = open::simulated(row, &sim_spec(what.as_deref(), args)?, &ctx)?;
+            simulator = Some(sim);
+            link.hid(row.what)?
+        }
+    };
+    let descriptor = link.report_descriptor().await?;
+    drop(simulator);
+    Ok(descriptor)
 }
 
 /// Prints what the page 0x12 driver finds in `bytes`; an error (exit 1) names what it lacks.
@@ -581,8 +523,17 @@ mod tests {
         assert!(e.contains("sim:SCENARIO"), "{e}");
         let e = run(args("usb:1:2", Action::Info)).unwrap_err().to_string();
         assert!(e.contains("unknown device kind"), "{e}");
-        assert_eq!(parse_vid_pid("1209:d109"), Some((0x1209, 0xd109)));
-        assert_eq!(parse_vid_pid("/dev/hidraw0"), None);
+        let port = |spec| device_spec::parse(spec, &open::GAZE, "device kind", USAGE).unwrap();
+        // The dioptra tracker by its VID:PID is the dioptra-tracker driver's, whatever its name.
+        assert_eq!(port("hid:1209:d109").0.name, "dioptra-tracker");
+        assert_eq!(
+            port("hid:1209:d109").1,
+            Target::Port(Port::VidPid(0x1209, 0xd109))
+        );
+        assert_eq!(
+            port("hid:/dev/hidraw0").1,
+            Target::Port(Port::Path("/dev/hidraw0".into()))
+        );
         let e = run(args(
             "sim:fixation",
             Action::Stream {

@@ -194,7 +194,7 @@ pub fn run(args: Args) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create the output folder {}", args.out.display()))?;
     // The runtime `dioptra serve` runs the rig on.
-    let rt = crate::serve::runtime()?;
+    let rt = crate::common::rig_runtime()?;
     let (measures, optical) = rt.block_on(measure(&cfg, &args, &devices))?;
     write_outputs(
         &args.out,
@@ -925,7 +925,7 @@ fn write_outputs(
 }
 
 fn histogram_png(path: &Path, m: &Measure, simulated: bool) -> Result<()> {
-    crate::demo::plots::font();
+    crate::common::charts::font();
     let h = &m.hist;
     let top = h.value_at_quantile(0.999).max(1);
     let nbins = 40u64;

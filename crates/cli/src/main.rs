@@ -3,16 +3,16 @@
 #![cfg_attr(not(feature = "simulated"), allow(dead_code, unused_imports))]
 
 //! `dioptra`: one binary for the rig. Each command group lives in its own module;
-//! add a variant to [`Command`] and a module beside this file.
+//! add a variant to [`Command`] and a module beside this file. What commands share is in
+//! [`common`]; a command imports that, never another command (`crates/cli/LAYERS`).
 
+mod common;
 mod demo;
-mod device_spec;
 mod devices;
 mod display_cmd;
 mod eval;
 mod gaze_cmd;
 mod hil;
-mod lens_calibrate;
 mod lens_cmd;
 mod lsl_cmd;
 mod optics_cmd;
@@ -88,38 +88,6 @@ enum Command {
     /// The panel's light: `calibrate` its transfer function with a photometer; `sim-photometer`.
     Display(display_cmd::Args),
 }
-
-/// Runs a device command on a single-threaded tokio runtime: one device, one task at a time.
-fn block_on<T>(work: impl std::future::Future<Output = anyhow::Result<T>>) -> anyhow::Result<T> {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?
-        .block_on(work)
-}
-
-/// An error that ends the command with its own exit code (1 is every other error's).
-#[derive(Debug)]
-pub struct Exit {
-    pub code: u8,
-    pub message: String,
-}
-
-impl Exit {
-    pub fn new(code: u8, message: impl Into<String>) -> Exit {
-        Exit {
-            code,
-            message: message.into(),
-        }
-    }
-}
-
-impl std::fmt::Display for Exit {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.message)
-    }
-}
-
-impl std::error::Error for Exit {}
 
 /// The crates' `tracing` events (devices lost and reconnected, display misfits, failed
 /// renders, lens status warnings) on stderr: from `level` up, or as `RUST_LOG` says
@@ -201,7 +169,7 @@ fn main() -> std::process::ExitCode {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e:#}");
-            match e.downcast_ref::<Exit>() {
+            match e.downcast_ref::<common::Exit>() {
                 Some(exit) => std::process::ExitCode::from(exit.code),
                 None => std::process::ExitCode::FAILURE,
             }

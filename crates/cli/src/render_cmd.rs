@@ -1,5 +1,7 @@
 //! `dioptra render | focalstack | decompose | retina | metrics`: the optics methods on files.
 
+use crate::common::progress::bar;
+use crate::common::slice_name;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use dioptra_core::{Diopters, EyeModel, Millimeters, Plane, RgbImage, Rgbd};
@@ -15,7 +17,6 @@ use dioptra_render::spectral::SpectralTargets;
 use dioptra_render::{
     backend_on, Backend, DefocusMethod, LightFieldParams, OptimizeParams, SpectralParams,
 };
-use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 
 /// Eye model and backend options shared by the optics commands.
@@ -149,16 +150,6 @@ impl MethodArgs {
     }
 }
 
-pub fn bar(len: usize, what: &str) -> Result<ProgressBar> {
-    let pb = ProgressBar::new(len as u64);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} {elapsed_precise}")?
-            .progress_chars("=> "),
-    );
-    pb.set_message(what.to_string());
-    Ok(pb)
-}
-
 fn parse_list(s: &str) -> Result<Vec<f32>> {
     s.split(',')
         .map(|v| {
@@ -178,11 +169,6 @@ fn parse_range(s: &str) -> Result<(f32, f32)> {
 
 fn ensure_dir(p: &Path) -> Result<()> {
     std::fs::create_dir_all(p).with_context(|| format!("cannot create directory {}", p.display()))
-}
-
-/// File name of a focal-stack slice (shared with `dioptra sim scene`).
-pub fn slice_name(q: Diopters, ext: &str) -> String {
-    format!("focus_{:.2}D.{ext}", q.0)
 }
 
 #[derive(Args, Debug)]

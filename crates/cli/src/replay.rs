@@ -209,7 +209,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     match report.verdict() {
         Verdict::Identical => Ok(()),
-        Verdict::Differs => Err(crate::Exit::new(
+        Verdict::Differs => Err(crate::common::Exit::new(
             1,
             format!(
                 "the replayed scheduler differs from the recording after {} matching commands",
@@ -217,7 +217,7 @@ pub fn run(args: Args) -> Result<()> {
             ),
         )
         .into()),
-        Verdict::CannotCompare => Err(crate::Exit::new(
+        Verdict::CannotCompare => Err(crate::common::Exit::new(
             2,
             "the recording began mid-run without the scheduler's state (it was started by a \
              daemon older than this one, or not through the API), so the replay (from a fresh \

@@ -1,7 +1,8 @@
 //! `dioptra sim ...`: simulators. `sim scene` writes a procedural scene's ground truth; the
 //! device simulators add their subcommands to [`SimCommand`].
 
-use crate::render_cmd::{bar, slice_name};
+use crate::common::progress::bar;
+use crate::common::slice_name;
 use anyhow::{bail, Context, Result};
 use clap::{Args as ClapArgs, Subcommand};
 use dioptra_core::{EyeModel, Millimeters};
@@ -293,7 +294,7 @@ where
     if !pty {
         bail!("`dioptra {what}` serves other processes on a pseudo-terminal: add --pty");
     }
-    crate::block_on(async {
+    crate::common::block_on(async {
         let pair = dioptra_transport::pty::PtyPair::open()?;
         println!("{}", pair.slave_path.display());
         std::io::stdout().flush()?;
@@ -352,7 +353,7 @@ fn pupil_capture_sim(a: PupilCaptureArgs) -> Result<()> {
         },
     )
     .map_err(anyhow::Error::msg)?;
-    crate::block_on(async move {
+    crate::common::block_on(async move {
         let cfg = PupilCaptureConfig {
             remote_port: a.port,
             pupil_time_at_start_s: a.time_base,

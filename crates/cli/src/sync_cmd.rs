@@ -4,19 +4,17 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Context as _, Result};
 use clap::Subcommand;
 use dioptra_core::{
     Clock, Diopters, PlaneSchedule, PlaneSequencer, SequencerEvent, SequencerFault, SystemClock,
 };
-use dioptra_rig::config::{Port, SyncDriver};
-use dioptra_rig::devices::open;
-use dioptra_sync::board::SyncBoard;
-use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
-use dioptra_sync::ids::{DLPC350_PID, TI_VID};
-use dioptra_transport::{AnyByteLink, HidLink};
+use dioptra_rig::devices::open::{self, Context, SyncSetup};
+use dioptra_rig::devices::simulators::SimSpec;
+use dioptra_rig::devices::BoxSequencer;
+use dioptra_sync::dlpc350::Dlpc350Config;
 
-use crate::device_spec;
+use crate::common::device_spec::{self, Target};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -89,107 +87,94 @@ impl ScheduleArgs {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
 async fn run_async(args: Args) -> Result<()> {
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let dlpc350 = || -> Result<Dlpc350Config> {
-        if !(args.video_hz.is_finite() && args.video_hz >= 1.0) {
-            bail!("--video-hz must be at least 1");
-        }
-        Ok(Dlpc350Config {
+    if !(args.video_hz.is_finite() && args.video_hz >= 1.0) {
+        bail!("--video-hz must be at least 1");
+    }
+    let usage = "DRIVER:PORT, e.g. sync:/dev/ttyACM0, dlpc350:hid or dlpc350:sim";
+    let (row, target) = device_spec::parse(&args.device, &open::SYNC, "sync driver", usage)?;
+    let falling = match &args.action {
+        Action::Program(s) | Action::Events { schedule: s, .. } => s.falling,
+        _ => false,
+    };
+    let setup = SyncSetup {
+        trigger_rising: !falling,
+        dlpc350: Dlpc350Config {
             vsync_hz: args.video_hz,
             ..Default::default()
-        })
+        },
+        light: None,
     };
-    // The in-process simulator, and the first DLPC350 by its VID:PID.
-    let spec = match args.device.as_str() {
-        "dlpc350:sim" => {
-            let cfg = dlpc350()?;
-            let (link, sim) = dioptra_sim::dlpc350::new(dioptra_sim::dlpc350::Dlpc350SimConfig {
-                vsync_hz: args.video_hz,
-                ..Default::default()
-            });
-            let mut d = Dlpc350::new(link, clock.clone(), cfg);
-            let show_log = matches!(args.action, Action::Program(_));
-            // What the simulated projector does, beside what the driver predicts.
-            let mut patterns = sim.subscribe();
-            let printer = tokio::spawn(async move {
-                use tokio::sync::broadcast::error::RecvError;
-                loop {
-                    match patterns.recv().await {
-                        Ok(p) => println!(
-                            "    projector: pattern {} (LUT {}, {}-bit, {} us){}{}",
-                            p.pattern,
-                            p.lut_index,
-                            p.bit_depth,
-                            p.exposure_us,
-                            if p.trig_out1 { "  TRIG_OUT_1" } else { "" },
-                            if p.trig_out2 {
-                                "  TRIG_OUT_2 (sweep start)"
-                            } else {
-                                ""
-                            },
-                        ),
-                        Err(RecvError::Lagged(_)) => continue,
-                        Err(RecvError::Closed) => break,
-                    }
-                }
-            });
-            let result = dlpc350_action(&mut d, args.action, clock.as_ref()).await;
-            printer.abort();
-            result?;
-            if show_log {
-                println!("commands the simulated DLPC350 received:");
-                for l in sim.log() {
-                    println!("  {l}");
-                }
-            }
-            return Ok(());
+    let ctx = Context::new(clock.clone(), setup);
+    let (link, sim) = match &target {
+        Target::Sim(_) => {
+            let mut spec = SimSpec::standalone();
+            spec.dlpc350.vsync_hz = args.video_hz;
+            let (link, sim) = open::simulated(row, &spec, &ctx)?;
+            (link, Some(sim))
         }
-        "dlpc350:hid" => format!("dlpc350:{TI_VID:04x}:{DLPC350_PID:04x}"),
-        other => other.to_string(),
+        Target::Port(port) => {
+            let link = device_spec::link(row, port)
+                .await
+                .with_context(|| format!("cannot open the {} at {port}", row.what))?;
+            (link, None)
+        }
     };
-    let (row, port) = device_spec::parse(&spec, &open::SYNC, "sync driver")?;
-    match row.driver {
-        SyncDriver::Sync => {
-            let falling = match &args.action {
-                Action::Program(s) | Action::Events { schedule: s, .. } => s.falling,
-                _ => false,
-            };
-            let mut board = SyncBoard::connect(open_board(row, &port).await?, clock.clone())
-                .await?
-                .with_trigger_rising(!falling);
-            if let Action::Status = args.action {
-                let s = board.status();
-                if let Some(info) = s.info {
-                    let v = info.firmware_version;
-                    println!(
-                        "dioptra sync board, serial {}, firmware {}.{}.{}, protocol v{}",
-                        info.serial, v.major, v.minor, v.patch, info.protocol_version
-                    );
+    let mut s = (row.connect)(link, ctx).await?;
+    // What a simulated projector does, beside what the driver predicts.
+    let projector = sim.as_ref().and_then(|s| s.projector.clone());
+    let show_log = projector.is_some() && matches!(args.action, Action::Program(_));
+    let printer = projector.as_ref().map(|p| {
+        let mut patterns = p.subscribe();
+        tokio::spawn(async move {
+            use tokio::sync::broadcast::error::RecvError;
+            loop {
+                match patterns.recv().await {
+                    Ok(p) => println!(
+                        "    projector: pattern {} (LUT {}, {}-bit, {} us){}{}",
+                        p.pattern,
+                        p.lut_index,
+                        p.bit_depth,
+                        p.exposure_us,
+                        if p.trig_out1 { "  TRIG_OUT_1" } else { "" },
+                        if p.trig_out2 {
+                            "  TRIG_OUT_2 (sweep start)"
+                        } else {
+                            ""
+                        },
+                    ),
+                    Err(RecvError::Lagged(_)) => continue,
+                    Err(RecvError::Closed) => break,
                 }
-                let synced = board.device_to_host(0).is_some();
-                println!(
-                    "clocks {}; schedule loaded by this session: {}",
-                    if synced {
-                        "synchronised"
-                    } else {
-                        "not synchronised"
-                    },
-                    s.schedule.is_some()
-                );
-                return Ok(());
             }
-            sequencer_action(&mut board, args.action, clock.as_ref(), move |b| {
-                let port = port.clone();
+        })
+    });
+    let what = row.what;
+    let result = match args.action {
+        Action::Status => s
+            .about()
+            .await
+            .map(|f| device_spec::print_facts(&f))
+            .map_err(Into::into),
+        action => {
+            sequencer_action(&mut s, action, clock.as_ref(), move |s| {
+                let port = match &target {
+                    Target::Port(p) => Some(p.clone()),
+                    Target::Sim(_) => None,
+                };
                 Box::pin(async move {
+                    let Some(port) = port.filter(|_| s.resumes()) else {
+                        bail!("the {what} was unplugged; run the command again once it is back")
+                    };
                     // Unplugged: wait for the port to come back and restore the session.
                     loop {
                         tokio::time::sleep(Duration::from_millis(500)).await;
-                        if let Ok(link) = open_board(row, &port).await {
-                            match b.reconnect(link).await {
+                        if let Ok(link) = device_spec::link(row, &port).await {
+                            match s.resume(link).await {
                                 Ok(()) => return Ok(()),
                                 Err(e) if e.needs_reconnect() => continue,
                                 Err(e) => return Err(e.into()),
@@ -200,80 +185,29 @@ async fn run_async(args: Args) -> Result<()> {
             })
             .await
         }
-        SyncDriver::Dlpc350 => {
-            let cfg = dlpc350()?;
-            let link = device_spec::link(row, &port).await?.hid(row.what)?;
-            dlpc350_action(
-                &mut Dlpc350::new(link, clock.clone(), cfg),
-                args.action,
-                clock.as_ref(),
-            )
-            .await
+    };
+    if let Some(p) = printer {
+        p.abort();
+    }
+    result?;
+    if let (true, Some(p)) = (show_log, &projector) {
+        println!("commands the simulated DLPC350 received:");
+        for l in p.log() {
+            println!("  {l}");
         }
     }
-}
-
-/// The sync board's serial link, through the drivers' table.
-async fn open_board(
-    row: &'static open::Row<SyncDriver, dioptra_rig::devices::BoxSequencer>,
-    port: &Port,
-) -> Result<AnyByteLink> {
-    let link = device_spec::link(row, port)
-        .await
-        .and_then(|l| l.byte(row.what));
-    link.with_context(|| format!("cannot open the sync board at {port}"))
-}
-
-async fn dlpc350_action<H: HidLink>(
-    d: &mut Dlpc350<H>,
-    action: Action,
-    clock: &dyn Clock,
-) -> Result<()> {
-    if let Action::Status = action {
-        let v = d.version().await?;
-        let s = d.status().await?;
-        println!(
-            "DLPC350 application {} API {} software config {} sequence config {}",
-            v.application, v.api, v.software_config, v.sequence_config
-        );
-        println!(
-            "hardware init {}, sequencer {}, DMD {}{}",
-            if s.hardware.init_ok() { "ok" } else { "FAILED" },
-            if s.main.sequencer_running() {
-                "running"
-            } else {
-                "stopped"
-            },
-            if s.main.dmd_parked() {
-                "parked"
-            } else {
-                "active"
-            },
-            if s.hardware.sequence_abort() || s.hardware.sequence_error() {
-                ", sequence error/abort flagged"
-            } else {
-                ""
-            }
-        );
-        return Ok(());
-    }
-    sequencer_action(d, action, clock, |_| {
-        Box::pin(async {
-            bail!("the DLPC350 was unplugged; run the command again once it is back")
-        })
-    })
-    .await
+    Ok(())
 }
 
 type Reconnect<'a> = std::pin::Pin<Box<dyn std::future::Future<Output = Result<()>> + 'a>>;
 
 /// Program, start, stop or print events on any sequencer. `reconnect` restores the device
 /// after an unplug while printing events.
-async fn sequencer_action<S: PlaneSequencer>(
-    s: &mut S,
+async fn sequencer_action(
+    s: &mut BoxSequencer,
     action: Action,
     clock: &dyn Clock,
-    reconnect: impl for<'a> Fn(&'a mut S) -> Reconnect<'a>,
+    reconnect: impl for<'a> Fn(&'a mut BoxSequencer) -> Reconnect<'a>,
 ) -> Result<()> {
     match action {
         Action::Status => Ok(()),

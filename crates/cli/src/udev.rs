@@ -22,7 +22,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     }
     print!(
         "{}",
-        rules(&crate::devices::known_devices(), args.group.as_deref())
+        rules(
+            &dioptra_rig::devices::open::known_devices(),
+            args.group.as_deref()
+        )
     );
     Ok(())
 }
@@ -75,7 +78,7 @@ mod tests {
     fn committed_rules_file_is_up_to_date() {
         let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../udev/70-dioptra.rules");
         let committed = std::fs::read_to_string(path).unwrap_or_default();
-        let fresh = rules(&crate::devices::known_devices(), None);
+        let fresh = rules(&dioptra_rig::devices::open::known_devices(), None);
         assert!(
             committed == fresh,
             "udev/70-dioptra.rules is out of date: run `cargo run -- udev > udev/70-dioptra.rules`"
@@ -84,7 +87,10 @@ mod tests {
 
     #[test]
     fn serial_devices_are_hidden_from_modemmanager_and_hid_uses_hidraw() {
-        let text = rules(&crate::devices::known_devices(), Some("dioptra"));
+        let text = rules(
+            &dioptra_rig::devices::open::known_devices(),
+            Some("dioptra"),
+        );
         let optotune = text.lines().find(|l| l.contains("\"2018\"")).unwrap();
         assert!(optotune.contains("ID_MM_DEVICE_IGNORE"), "{optotune}");
         assert!(

@@ -18,6 +18,7 @@ use thiserror::Error;
 
 use config::DisplayLayout;
 
+pub mod blit;
 pub mod config;
 pub mod frame;
 pub mod marker;

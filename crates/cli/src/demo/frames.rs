@@ -1,57 +1,40 @@
-//! The demo's content and renderer: an animated procedural scene, its RGB-D frames, the CPU
-//! render methods per mode, and the few frames kept for scoring against ground truth. It is
-//! the rig runtime's [`Content`] (the loop polls it for the scene as it is now, at most every
-//! 50 ms) and its [`Renderer`] (the rig renders on its worker thread). With `--method auto` (varifocal) each frame's method is
-//! chosen here, where it is rendered, by `dioptra_render::planner` from the frame's depth
-//! around the gaze point and its focus.
+//! The demo's content: an animated procedural scene (four of its objects sliding, the
+//! viewer's gaze targets on still surfaces), its RGB-D frames, each eye's view with `--eyes 2`,
+//! and what scoring a kept frame against ground truth needs (what the eye sees of the frame
+//! the rig's renderer made, a thin-lens render of the same scene). It is the rig runtime's
+//! [`Content`]: the loop polls it for the scene as it is now, at most every 50 ms. Frames are
+//! rendered by the rig's own renderer (`super::render`).
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use dioptra_core::{lock, DepthMap, Diopters, EyeModel, RgbImage, Rgbd, Side, Timestamp};
-use dioptra_render::lightfield::lightfield;
-use dioptra_render::multifocal::linear_blend;
-use dioptra_render::planner::{Choice, FrameStats, Planner};
 use dioptra_render::retina::{retina_lightfield, retina_multifocal, retina_varifocal, LfView};
-use dioptra_render::views::{synthesize_light_field, RgbdView};
-use dioptra_render::LightFieldParams;
-use dioptra_render::RenderError;
-use dioptra_render::{gather::gather, Layers};
+use dioptra_render::Layers;
 use dioptra_rig::config::Mode as RigMode;
 use dioptra_rig::content::{Content, ContentFrame};
-use dioptra_rig::render::{RenderJob, RenderOutput, Renderer};
+use dioptra_rig::render::rgbd::{LF_GRID, LF_SPAN_M};
 use dioptra_sched::depth::{window_depth, DepthWindow};
-use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
 use dioptra_sched::processing::Angles;
 use dioptra_sched::Mode;
 use dioptra_sim::gaze::generator::{Segment, Target};
 use dioptra_sim::scene::animation::{centre, Animation};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, SceneOptions};
 
-/// The light field shown in light-field mode: 5 x 5 views over the 4 mm pupil, synthesised
-/// from 5 sparse RGB-D views (centre and corners).
-const LF_GRID: usize = 5;
-const LF_SPAN_M: f32 = 0.004;
-
-/// A lenslet display in front of the eye: 24 x 24 lenslets of 5 x 5 pixels (one per view).
-const LENSLETS: LensletDisplay = LensletDisplay {
-    lenslets: [24, 24],
-    pixels_per_lenslet: 5,
-    lenslet_pitch_m: 0.00025,
-    gap_m: 0.00094,
-    eye_relief_m: 0.015,
-};
-
 /// The scene's RGB-D input is re-rendered at most this often (20 Hz animation): ray casting
 /// it is the demo's own cost, not the display pipeline's.
 const SCENE_UPDATE: Duration = Duration::from_millis(50);
 
-/// What a frame's renderer made.
+/// What the rig's renderer made of a kept frame.
 pub enum Output {
     Image(RgbImage),
     Layers(Layers),
-    LightField { views: Vec<LfView>, panel: RgbImage },
+    /// The lenslet panel, and the views over the pupil it is made from.
+    LightField {
+        views: Vec<LfView>,
+        panel: RgbImage,
+    },
 }
 
 /// A frame kept for scoring.
@@ -65,60 +48,40 @@ pub struct Kept {
     pub output: Output,
 }
 
-/// The scene as it is at one instant: its RGB-D, and the sparse views light-field mode
-/// synthesises from.
+/// The scene as it is at one instant: its RGB-D, and with `--eyes 2` each eye's.
 struct SceneFrame {
-    /// The content frame's number.
-    number: u64,
     scene: Scene,
     rgbd: Arc<Rgbd>,
-    sparse: Vec<RgbdView>,
     /// `--eyes 2`: each eye's view.
     eyes: Option<[Arc<Rgbd>; 2]>,
 }
-
-/// Scene frames kept for renders still to come (a render may show a frame the loop has
-/// already moved past).
-const FRAMES_KEPT: usize = 4;
 
 pub struct DemoFrames {
     mode: Mode,
     base: Scene,
     movers: Animation,
     cam: Camera,
-    /// Light-field views are made at half size: the lenslet panel (120 px) cannot show more,
-    /// and view synthesis is the slow part.
+    /// The rig renders light-field views at half size (a panel of 5 px per lenslet cannot
+    /// show more): their ground truth is rendered at that size.
     lf_cam: Camera,
     eye: EyeModel,
     planes: Vec<Diopters>,
     targets: Vec<Target>,
     seconds: f64,
     started: Instant,
-    /// `--method auto`: plan each varifocal frame.
-    auto: bool,
     /// `--eyes 2`: half the interpupillary distance, metres: each frame's eyes' views are
     /// ray cast with it, off the render path (as the rig's own scene does).
     half_ipd_m: Option<f32>,
-    /// What changes as the run goes: the loop and the render thread both reach it.
+    /// What changes as the run goes (the loop polls from its thread).
     state: Mutex<DemoState>,
 }
 
 #[derive(Default)]
 struct DemoState {
     printed_second: u64,
-    /// The newest scene frames, oldest first.
-    recent: std::collections::VecDeque<Arc<SceneFrame>>,
     current_at: Option<Timestamp>,
     /// Content frames handed to the loop.
     given: u64,
-    keep_after: Vec<Timestamp>,
-    kept: Vec<Kept>,
-    /// `--method auto`: frames per choice so far.
-    planned: std::collections::BTreeMap<String, u64>,
-    /// `--eyes 2`: each eye's render times, left and right.
-    eye_render: [Vec<Duration>; 2],
-    /// `--eyes 2`: the frame whose left eye was kept: its right eye is kept too.
-    keep_right: Option<u64>,
 }
 
 /// Gaze angles of a scene point (scene: x right, y down, z forward).
@@ -134,7 +97,6 @@ impl DemoFrames {
         seed: u64,
         size: usize,
         seconds: f64,
-        auto: bool,
         eye: EyeModel,
         planes: Vec<Diopters>,
     ) -> Result<Self> {
@@ -147,7 +109,7 @@ impl DemoFrames {
             },
         );
         let cam = Camera::square(eye, size);
-        let lf_cam = Camera::square(eye, (size / 2).max(16));
+        let lf_cam = Camera::square(eye, (size / 2).max(8));
         let (_, depth) =
             render_pinhole(&base, &cam, [0.0, 0.0], 1).context("cannot render the demo scene")?;
         let targets = pick_targets(&depth, eye.fov_horizontal_deg);
@@ -161,10 +123,6 @@ impl DemoFrames {
                 }) > 5.0
             })
         });
-        let keep_after = [0.3, 0.55, 0.8]
-            .iter()
-            .map(|f| Timestamp::ZERO + Duration::from_secs_f64(seconds * f))
-            .collect();
         Ok(DemoFrames {
             mode,
             base,
@@ -176,12 +134,8 @@ impl DemoFrames {
             targets,
             seconds,
             started: Instant::now(),
-            auto,
             half_ipd_m: None,
-            state: Mutex::new(DemoState {
-                keep_after,
-                ..Default::default()
-            }),
+            state: Mutex::new(DemoState::default()),
         })
     }
 
@@ -214,18 +168,17 @@ impl DemoFrames {
         self.movers.at(&self.base, t.as_secs_f64())
     }
 
-    /// `--method auto`: how many frames the planner gave each method.
-    pub fn planned(&self) -> std::collections::BTreeMap<String, u64> {
-        lock(&self.state).planned.clone()
+    /// When the frames kept for scoring are shown: 30 %, 55 % and 80 % into the run.
+    pub fn keep_after(&self) -> Vec<Timestamp> {
+        [0.3, 0.55, 0.8]
+            .iter()
+            .map(|f| Timestamp::ZERO + Duration::from_secs_f64(self.seconds * f))
+            .collect()
     }
 
-    /// `--eyes 2`: the render time of each frame of one eye (`right`: the right eye's).
-    pub fn eye_render_times(&self, right: bool) -> Vec<Duration> {
-        lock(&self.state).eye_render[usize::from(right)].clone()
-    }
-
-    pub fn take_kept(&self) -> Vec<Kept> {
-        std::mem::take(&mut lock(&self.state).kept)
+    /// The rig's multifocal planes, for a kept frame's layers.
+    pub fn planes(&self) -> &[Diopters] {
+        &self.planes
     }
 
     /// What the eye focused at `accommodation` sees of a kept frame, with the lens (varifocal)
@@ -279,73 +232,14 @@ impl DemoFrames {
             Output::LightField { panel, .. } => vec![("rendered".into(), panel.clone())],
         }
     }
-
-    /// The planner's method for a varifocal frame focused at `q`, at the job's gaze point.
-    fn plan(&self, job: &RenderJob, input: &Rgbd, q: Diopters) -> Choice {
-        let (w, h) = (input.width() as f32, input.height() as f32);
-        let gaze = job.gaze.unwrap_or([0.5 * w, 0.5 * h]);
-        let stats = FrameStats::from_rgbd(input, gaze, q, &self.eye);
-        let plan = Planner.plan(&stats, &dioptra_render::planner::Target::default());
-        *lock(&self.state)
-            .planned
-            .entry(plan.choice.to_string())
-            .or_insert(0) += 1;
-        plan.choice
-    }
-
-    fn render_output(&self, job: &RenderJob, input: &Rgbd, sparse: &[RgbdView]) -> Option<Output> {
-        Some(match self.mode {
-            Mode::Varifocal => {
-                let q = Diopters(job.focus.0.max(0.0));
-                let choice = if self.auto {
-                    self.plan(job, input, q)
-                } else {
-                    Choice::Gather
-                };
-                Output::Image(match choice {
-                    Choice::None => input.color.clone(),
-                    Choice::Gather => gather(input, q, &self.eye).ok()?,
-                    Choice::LightField { views } => {
-                        lightfield(input, q, &self.eye, LightFieldParams { views, mip: true })
-                            .ok()?
-                    }
-                })
-            }
-            Mode::Multifocal => Output::Layers(linear_blend(input, &self.planes).ok()?),
-            Mode::LightField => {
-                let views =
-                    synthesize_light_field(sparse, LF_GRID, LF_SPAN_M, &self.eye, |_| {}).ok()?;
-                let images: Vec<RgbImage> = views.iter().map(|v| v.image.clone()).collect();
-                let grid = ViewGrid {
-                    grid: LF_GRID,
-                    spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
-                    views: &images,
-                    pixel_pitch_tan: self.lf_cam.eye.pixel_pitch_tan(),
-                };
-                let panel = elemental_images(&grid, &LENSLETS).ok()?;
-                Output::LightField { views, panel }
-            }
-        })
-    }
 }
 
 impl DemoFrames {
     /// The scene at `t` rendered as the renderer's input.
-    fn content_at(&self, t: Timestamp, number: u64) -> Option<SceneFrame> {
+    fn content_at(&self, t: Timestamp) -> Option<SceneFrame> {
         let scene = self.scene_at(t);
         let (color, depth) = render_pinhole(&scene, &self.cam, [0.0, 0.0], 1).ok()?;
         let rgbd = Arc::new(Rgbd::new(color, depth).ok()?);
-        let mut sparse = Vec::new();
-        if self.mode == Mode::LightField {
-            let h = LF_SPAN_M * 0.5;
-            for position in [[0.0, 0.0], [-h, -h], [h, -h], [-h, h], [h, h]] {
-                let (c, d) = render_pinhole(&scene, &self.lf_cam, position, 1).ok()?;
-                sparse.push(RgbdView {
-                    position,
-                    rgbd: Rgbd::new(c, d).ok()?,
-                });
-            }
-        }
         let eyes = match self.half_ipd_m {
             None => None,
             Some(h) => {
@@ -356,13 +250,7 @@ impl DemoFrames {
                 Some([cast(-h)?, cast(h)?])
             }
         };
-        Some(SceneFrame {
-            number,
-            scene,
-            rgbd,
-            sparse,
-            eyes,
-        })
+        Some(SceneFrame { scene, rgbd, eyes })
     }
 }
 
@@ -388,86 +276,15 @@ impl Content for DemoFrames {
             st.current_at = Some(t);
         }
         let number = lock(&self.state).given + 1;
-        let content = Arc::new(self.content_at(t, number)?);
         // `--eyes 2`: each eye's view, cast here (the loop's step, free in simulated time).
+        let content = self.content_at(t)?;
         let frame = ContentFrame {
-            scene: Some(Arc::new(content.scene.clone())),
-            eyes: content.eyes.clone(),
-            ..ContentFrame::new(number, content.rgbd.clone())
+            scene: Some(Arc::new(content.scene)),
+            eyes: content.eyes,
+            ..ContentFrame::new(number, content.rgbd)
         };
-        let mut st = lock(&self.state);
-        st.given = number;
-        if st.recent.len() == FRAMES_KEPT {
-            st.recent.pop_front();
-        }
-        st.recent.push_back(content);
+        lock(&self.state).given = number;
         Some(frame)
-    }
-}
-
-impl Renderer for DemoFrames {
-    fn render(&self, job: &RenderJob, frame: &ContentFrame) -> Result<RenderOutput, RenderError> {
-        let content = lock(&self.state)
-            .recent
-            .iter()
-            .find(|c| c.number == frame.number)
-            .cloned()
-            .ok_or_else(|| {
-                RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
-                    "the demo's scene frame {} is no longer kept",
-                    frame.number
-                )))
-            })?;
-        // A stereo layout's eye: its own view (the rig made it); else the scene's.
-        let input = match frame.eye {
-            Some(_) => &frame.rgbd,
-            None => &content.rgbd,
-        };
-        let started = Instant::now();
-        let output = self
-            .render_output(job, input, &content.sparse)
-            .ok_or_else(|| {
-                RenderError::Input(dioptra_core::InputError::InvalidValue(
-                    "the demo frame did not render".into(),
-                ))
-            })?;
-        let took = started.elapsed();
-        let images = match &output {
-            Output::Image(img) => vec![img.clone().into()],
-            Output::Layers(l) => l.images.iter().cloned().map(Into::into).collect(),
-            Output::LightField { panel, .. } => vec![panel.clone().into()],
-        };
-        let mut st = lock(&self.state);
-        if let Some(eye) = frame.eye {
-            st.eye_render[usize::from(eye == Side::Right)].push(took);
-        }
-        let kept = |output| Kept {
-            frame: job.frame,
-            eye: frame.eye,
-            display_time: job.display_time,
-            scene: content.scene.clone(),
-            input: input.as_ref().clone(),
-            output,
-        };
-        if frame.eye == Some(Side::Right) {
-            if st.keep_right.take() == Some(job.frame) {
-                st.kept.push(kept(output));
-            }
-        } else if let Some(&after) = st.keep_after.first() {
-            if job.display_time >= after {
-                st.keep_after.remove(0);
-                if frame.eye == Some(Side::Left) {
-                    st.keep_right = Some(job.frame);
-                }
-                st.kept.push(kept(output));
-            }
-        }
-        Ok(RenderOutput {
-            images,
-            planned: None,
-            // The render itself: the copies for the sink and the kept frames are the demo's.
-            cost: Some(took),
-        })
     }
 }
 

@@ -1,26 +1,15 @@
-//! The demo's charts, drawn with plotters' bitmap backend and a bundled font (DejaVu Sans, see
-//! assets/DejaVuSans.LICENSE), so they need no system library.
+//! The demo's charts, drawn with plotters' bitmap backend and the bundled font
+//! ([`crate::common::charts`]), so they need no system library.
 
 use std::path::Path;
-use std::sync::Once;
 
 use anyhow::{anyhow, Result};
 #[cfg(feature = "simulated")]
 use dioptra_rig::simulated_rig::Run;
 use dioptra_sched::{Mode, Stage};
 use plotters::prelude::*;
-use plotters::style::FontStyle;
 
-static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
-static REGISTER: Once = Once::new();
-
-/// Registers the bundled font with plotters (once); every chart calls it first.
-pub(crate) fn font() {
-    REGISTER.call_once(|| {
-        // A font that fails to load only costs the charts their text.
-        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, FONT);
-    });
-}
+use crate::common::charts::font;
 
 fn err<E: std::fmt::Debug>(e: E) -> anyhow::Error {
     anyhow!("drawing a chart failed: {e:?}")

@@ -7,11 +7,13 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::{Diopters, RgbImage, Side, Timestamp};
 use dioptra_render::metrics;
 use dioptra_rig::config::{RigConfig, EXAMPLE_SIM_BINOCULAR_RIG, EXAMPLE_SIM_RIG};
+use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_rig::simulated_rig::{percentile, Run, SimRun};
 use dioptra_sched::{Mode, Stage};
 use hdrhistogram::Histogram;
 
 use super::frames::{self, DemoFrames, Kept};
+use super::render::Observed;
 use super::{plots, Args};
 
 pub(super) fn run_demo(args: Args) -> Result<()> {
@@ -70,7 +72,6 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
             args.seed,
             args.size,
             args.seconds,
-            auto,
             sim.sched.eye,
             sim.cfg
                 .optics
@@ -83,9 +84,23 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
         .with_eyes(binocular.then_some(sim.cfg.eye.ipd_mm * 0.5e-3)),
     );
     sim.spec.gaze_scene = frames.gaze_scene();
+    // The rig's renderer, as `dioptra serve` makes it from the same config, watched.
+    let renderer = std::sync::Arc::new(Observed::new(
+        std::sync::Arc::new(
+            RgbdRenderer::new(
+                &sim.cfg.render,
+                &sim.cfg.eye,
+                &sim.cfg.display,
+                &sim.cfg.optics,
+            )
+            .context("the demo's renderer")?,
+        ),
+        frames.keep_after(),
+        frames.planes().to_vec(),
+    ));
     println!("running the loop (simulated devices; progress every simulated second)...");
     let r: Run = sim
-        .run_paused(Some(frames.clone()), frames.clone(), None)
+        .run_paused(Some(frames.clone()), renderer.clone(), None)
         .context("the simulated rig failed")?;
     println!(
         "\nran {:.1} s of simulated time in {:.1} s of wall time ({:.1}x real time)",
@@ -95,10 +110,10 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
     );
     summary(&r, mode);
     if binocular {
-        per_eye_summary(&r, &frames);
+        per_eye_summary(&r, &renderer);
     }
     if auto {
-        let chosen: Vec<String> = frames
+        let chosen: Vec<String> = renderer
             .planned()
             .iter()
             .map(|(m, n)| format!("{m} {n}"))
@@ -109,7 +124,7 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
             dioptra_render::planner::Target::default().fovea_psnr_db
         );
     }
-    let kept = frames.take_kept();
+    let kept = renderer.take_kept();
     plots::latency(&args.out.join("latency.png"), &r)?;
     plots::focus(&args.out.join("focus.png"), &r, mode)?;
     if binocular {
@@ -129,7 +144,7 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
 }
 
 /// Each eye's figures on the binocular rig: its lens's commands and focus error, its render.
-fn per_eye_summary(r: &Run, frames: &DemoFrames) {
+fn per_eye_summary(r: &Run, renderer: &Observed) {
     println!("\n== per eye ==");
     for (lens, name) in [(0u8, "left"), (1, "right")] {
         let commands = r
@@ -158,7 +173,7 @@ fn per_eye_summary(r: &Run, frames: &DemoFrames) {
             e.sort_by(f64::total_cmp);
             e.get(e.len() / 2).copied()
         };
-        let render = frames.eye_render_times(lens == 1);
+        let render = renderer.eye_render_times(lens == 1);
         let (p50, p99) = (percentile(&render, 50.0), percentile(&render, 99.0));
         println!(
             "{name} eye: lens commands {commands}, median |lens power - vergence| while fixating {}, render {}",
@@ -290,7 +305,10 @@ pub fn demo_config(mode: Mode, size: usize, auto: bool, binocular: bool) -> Resu
     if mode == Mode::LightField {
         edit("frame_hz = 60.0", "frame_hz = 30.0".into())?;
     }
-    RigConfig::parse(&text).context("the demo's rig config")
+    let mut cfg = RigConfig::parse(&text).context("the demo's rig config")?;
+    // The demo's figures are the CPU's, whatever GPU the machine has.
+    cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
+    Ok(cfg)
 }
 
 fn summary(r: &Run, mode: Mode) {

@@ -71,7 +71,7 @@ fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, Shift>, chart: &Chart) -> Res
 
 /// Draws `chart` into `BASE.png` and `BASE.svg`.
 pub fn write(base: &Path, size: (u32, u32), chart: &Chart) -> Result<()> {
-    crate::demo::plots::font();
+    crate::common::charts::font();
     let png = base.with_extension("png");
     let svg = base.with_extension("svg");
     draw(&BitMapBackend::new(&png, size).into_drawing_area(), chart)?;

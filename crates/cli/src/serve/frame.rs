@@ -40,7 +40,7 @@ use dioptra_core::Side;
 use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc, FrameError, StreamFrames};
 use dioptra_rig::RigState;
 
-use super::api::ApiError;
+use super::error::ApiError;
 
 fn refused(e: FrameError) -> ApiError {
     let status = match e {
@@ -88,7 +88,7 @@ pub async fn from_slot(
         .source()
         .frame_ingest()
         .ok_or_else(not_streaming)?;
-    let f: SlotBody = super::api::body(&b).inspect_err(|e| {
+    let f: SlotBody = super::error::body(&b).inspect_err(|e| {
         stream.refuse(FrameError::Request(e.message().to_string()));
     })?;
     let now = s.clock().now();

@@ -13,6 +13,8 @@
 //! Over a Unix socket (which no browser reaches) only the token applies. Every refusal is
 //! JSON, like the API's other errors.
 
+use std::net::SocketAddr;
+use std::path::PathBuf;
 use std::time::Duration;
 
 use axum::body::{Body, Bytes};
@@ -22,8 +24,14 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use http_body_util::{BodyExt, LengthLimitError, Limited};
 
-use super::api::ApiError;
-use super::Listening;
+use super::error::ApiError;
+
+/// Where the API ended up listening.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Listening {
+    Tcp(SocketAddr),
+    Unix(PathBuf),
+}
 
 /// The longest request body the API reads; its bodies are a few bytes of JSON.
 pub const MAX_BODY: usize = 64 * 1024;

@@ -12,12 +12,12 @@
 //! ([`window::run_on_main_thread`]) and the runtime runs on a thread of its own.
 
 pub mod api;
+mod error;
 mod frame;
 pub mod guard;
 mod head_limit;
 pub mod window;
 
-use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
@@ -27,6 +27,8 @@ use dioptra_rig::config::{Listen, RigConfig, SinkKind};
 use dioptra_rig::render::rgbd::RgbdRenderer;
 use dioptra_rig::{Rig, RigSetup, RigState, ShutdownReport};
 use tokio_util::sync::CancellationToken;
+
+pub use guard::Listening;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -46,7 +48,7 @@ pub fn run(args: Args) -> Result<()> {
         SinkKind::Headless => serve_blocking(cfg, None, stop),
         // The window's event loop takes this (the main) thread; the daemon runs on another.
         SinkKind::Window => {
-            window_layout_supported(cfg.display.layout)?;
+            window::window_layout_supported(cfg.display.layout)?;
             let choice = cfg.display.monitor.clone();
             window::run_on_main_thread(choice, stop.clone(), move |ready| {
                 serve_blocking(cfg, Some(ready), stop)
@@ -55,34 +57,13 @@ pub fn run(args: Args) -> Result<()> {
     }
 }
 
-/// The window draws layouts `one` and `side-by-side`; a window per monitor is not built yet.
-fn window_layout_supported(layout: dioptra_rig::config::DisplayLayout) -> Result<()> {
-    if layout == dioptra_rig::config::DisplayLayout::TwoOutputs {
-        anyhow::bail!(
-            "display.layout = \"two-outputs\" with display.kind = \"window\" is not supported \
-             yet (the window draws one monitor): use layout = \"side-by-side\" on one panel \
-             spanning both eyes, or kind = \"headless\" (an image per eye)"
-        );
-    }
-    Ok(())
-}
-
-/// The daemon's runtime: one thread for the rig's tasks and the API, so that a gaze sample,
-/// the loop and the lens task hand over without waking another thread (the host path's
-/// largest cost on a multi-threaded runtime); renders run on tokio's blocking threads.
-pub fn runtime() -> Result<tokio::runtime::Runtime> {
-    Ok(tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()?)
-}
-
 /// Runs the daemon until Ctrl-C, `POST /shutdown` or `stop`.
 fn serve_blocking(
     cfg: RigConfig,
     window: Option<window::WindowReady>,
     stop: CancellationToken,
 ) -> Result<()> {
-    runtime()?.block_on(async {
+    crate::common::rig_runtime()?.block_on(async {
         let mut setup = RigSetup::new(cfg);
         if let Some(w) = window {
             // The renderer first: the window draws with its GPU device when it has one.
@@ -182,13 +163,6 @@ async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: 
         eprintln!("dioptra serve: the lens did not park within {limit:?}; exiting");
     }
     std::process::exit(130);
-}
-
-/// Where the API ended up listening.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Listening {
-    Tcp(SocketAddr),
-    Unix(PathBuf),
 }
 
 /// A running daemon: the rig and its API server.

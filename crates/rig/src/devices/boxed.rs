@@ -1,6 +1,8 @@
 //! The device traits as trait objects, so that the drivers' table can hand any driver of a
-//! kind to that kind's one device task. One boxed future per call: nothing next to a device
-//! exchange.
+//! kind to that kind's one device task, and to the device commands (`dioptra lens|gaze|sync`).
+//! One boxed future per call: nothing next to a device exchange. Beside its kind's trait each
+//! boxed driver says who it is ([`About`]), and a sequencer whether it can take a new link
+//! ([`Resume`]): what the device commands print and do without knowing the driver.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -9,17 +11,102 @@ use dioptra_core::{
     DeviceError, Diopters, GazeSample, GazeSource, LensState, LightEvent, Photodiode,
     PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
 };
+use dioptra_transport::{AnyByteLink, AnyHidLink};
+
+/// What a driver connects over: a real device's link or a simulator's (the drivers' table in
+/// `open.rs` makes it).
+pub enum Link {
+    Byte(AnyByteLink),
+    Hid(AnyHidLink),
+    /// The address of a network service.
+    Net(String),
+}
+
+impl Link {
+    fn kind(&self) -> &'static str {
+        match self {
+            Link::Byte(_) => "a byte link",
+            Link::Hid(_) => "a HID link",
+            Link::Net(_) => "a network address",
+        }
+    }
+    /// The byte link, or an error naming `what` (the driver) and the link it was given.
+    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
+        match self {
+            Link::Byte(l) => Ok(l),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over a byte link, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+    /// The HID link, or an error naming `what` and the link it was given.
+    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
+        match self {
+            Link::Hid(l) => Ok(l),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over HID, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+    /// The network address, or an error naming `what` and the link it was given.
+    pub fn net(self, what: &str) -> Result<String, DeviceError> {
+        match self {
+            Link::Net(a) => Ok(a),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over the network, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+}
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 
-/// [`VarifocalLens`] in a form that can be boxed.
-pub trait DynLens: Send {
+/// What a device says about itself: labelled facts in the device's words ("serial", "ABC123"),
+/// in the order a person reads them.
+pub type Facts = Vec<(&'static str, String)>;
+
+/// Who a connected device is, for the device commands' `info` and `status` and for
+/// provenance (a calibration table names the lens it was measured on). Each driver of the
+/// drivers' table implements it (`devices/about.rs`).
+pub trait About: Send {
+    /// One line naming the device: its kind, serial number and firmware where it said them.
+    fn identity(&self) -> String;
+    /// Its identity, limits and state as facts, read from the device where they need a read.
+    fn about(&mut self) -> BoxFuture<'_, Result<Facts, DeviceError>>;
+    /// Its condition now (temperature, status bits) where it reports one; nothing by default.
+    fn condition(&mut self) -> BoxFuture<'_, Result<Facts, DeviceError>> {
+        Box::pin(async { Ok(Facts::new()) })
+    }
+}
+
+/// A sequencer that can take a new link after an unplug and restore its session (its
+/// schedule, running or not). By default it cannot: the command ends and says so.
+pub trait Resume: Send {
+    /// Whether [`Resume::resume`] can restore a session on a new link.
+    fn resumes(&self) -> bool {
+        false
+    }
+    fn resume(&mut self, link: Link) -> BoxFuture<'_, Result<(), DeviceError>> {
+        drop(link);
+        Box::pin(async {
+            Err(DeviceError::Invalid(
+                "this device cannot resume its session on a new link".into(),
+            ))
+        })
+    }
+}
+
+/// [`VarifocalLens`] and [`About`] in a form that can be boxed.
+pub trait DynLens: About {
     fn power_range(&self) -> PowerRange;
     fn set_power(&mut self, power: Diopters) -> BoxFuture<'_, Result<Timestamp, DeviceError>>;
     fn state(&mut self) -> BoxFuture<'_, Result<LensState, DeviceError>>;
 }
 
-impl<T: VarifocalLens> DynLens for T {
+impl<T: VarifocalLens + About> DynLens for T {
     fn power_range(&self) -> PowerRange {
         VarifocalLens::power_range(self)
     }
@@ -33,6 +120,18 @@ impl<T: VarifocalLens> DynLens for T {
 
 /// Any lens driver.
 pub struct BoxLens(pub Box<dyn DynLens>);
+
+impl BoxLens {
+    pub fn identity(&self) -> String {
+        self.0.identity()
+    }
+    pub async fn about(&mut self) -> Result<Facts, DeviceError> {
+        self.0.about().await
+    }
+    pub async fn condition(&mut self) -> Result<Facts, DeviceError> {
+        self.0.condition().await
+    }
+}
 
 impl VarifocalLens for BoxLens {
     fn power_range(&self) -> PowerRange {
@@ -49,13 +148,13 @@ impl VarifocalLens for BoxLens {
     }
 }
 
-/// [`GazeSource`] in a form that can be boxed.
-pub trait DynGaze: Send {
+/// [`GazeSource`] and [`About`] in a form that can be boxed.
+pub trait DynGaze: About {
     fn rate_hz(&self) -> f32;
     fn next_sample(&mut self) -> BoxFuture<'_, Result<GazeSample, DeviceError>>;
 }
 
-impl<T: GazeSource> DynGaze for T {
+impl<T: GazeSource + About> DynGaze for T {
     fn rate_hz(&self) -> f32 {
         GazeSource::rate_hz(self)
     }
@@ -67,6 +166,15 @@ impl<T: GazeSource> DynGaze for T {
 /// Any eye-tracker driver.
 pub struct BoxGaze(pub Box<dyn DynGaze>);
 
+impl BoxGaze {
+    pub fn identity(&self) -> String {
+        self.0.identity()
+    }
+    pub async fn about(&mut self) -> Result<Facts, DeviceError> {
+        self.0.about().await
+    }
+}
+
 impl GazeSource for BoxGaze {
     fn rate_hz(&self) -> f32 {
         self.0.rate_hz()
@@ -76,8 +184,8 @@ impl GazeSource for BoxGaze {
     }
 }
 
-/// [`PlaneSequencer`] in a form that can be boxed.
-pub trait DynSequencer: Send {
+/// [`PlaneSequencer`], [`About`] and [`Resume`] in a form that can be boxed.
+pub trait DynSequencer: About + Resume {
     fn program<'a>(
         &'a mut self,
         schedule: &'a PlaneSchedule,
@@ -87,7 +195,7 @@ pub trait DynSequencer: Send {
     fn next_event(&mut self) -> BoxFuture<'_, Result<SequencerEvent, DeviceError>>;
 }
 
-impl<T: PlaneSequencer> DynSequencer for T {
+impl<T: PlaneSequencer + About + Resume> DynSequencer for T {
     fn program<'a>(
         &'a mut self,
         schedule: &'a PlaneSchedule,
@@ -107,6 +215,23 @@ impl<T: PlaneSequencer> DynSequencer for T {
 
 /// Any sync-hardware driver.
 pub struct BoxSequencer(pub Box<dyn DynSequencer>);
+
+impl BoxSequencer {
+    pub fn identity(&self) -> String {
+        self.0.identity()
+    }
+    pub async fn about(&mut self) -> Result<Facts, DeviceError> {
+        self.0.about().await
+    }
+    /// Whether [`BoxSequencer::resume`] can restore the session on a new link.
+    pub fn resumes(&self) -> bool {
+        self.0.resumes()
+    }
+    /// Restores the session (schedule, running or not) on a new link after an unplug.
+    pub async fn resume(&mut self, link: Link) -> Result<(), DeviceError> {
+        self.0.resume(link).await
+    }
+}
 
 impl PlaneSequencer for BoxSequencer {
     fn program(

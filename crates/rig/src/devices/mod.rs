@@ -8,6 +8,7 @@
 //! table ([`open`]): the rig config's driver and port become a link (a simulator's in-memory
 //! link for `port = "sim"`, a serial port or HID device otherwise) and a connected driver.
 
+mod about;
 mod boxed;
 pub mod config;
 mod forward;
@@ -27,7 +28,7 @@ use dioptra_core::{Clock, DeviceError, Diopters};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-pub use boxed::{BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
+pub use boxed::{About, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer, Facts, Resume};
 pub use input::{DeviceInput, LensId, LensOrder};
 pub use lens::ParkReport;
 pub use link::{Backoff, DeviceSettings, LinkHealth, LinkPolicy, Verdict};
@@ -64,12 +65,7 @@ pub fn spawn_devices(
 ) -> Result<(SimDevices, DeviceLinks, DeviceTasks), DeviceError> {
     let mut sims = SimDevices::default();
     let (mf_tx, mf_rx) = watch::channel(cfg.mode == crate::mode::Mode::Multifocal);
-    let ctx = open::Context {
-        cfg: cfg.clone(),
-        clock,
-        inputs: Some(out.clone()),
-        lens: 0,
-    };
+    let lens_setup = |i| open::LensSetup::from_rig(cfg, i);
 
     // A task per lens, each with its own link, backoff and read-backs.
     let mut lens_commands = Vec::new();
@@ -85,10 +81,7 @@ pub fn spawn_devices(
         let connect = open::device_connector(
             row,
             &l.port,
-            open::Context {
-                lens: i,
-                ..ctx.clone()
-            },
+            open::Context::new(clock.clone(), lens_setup(i)?),
             &lens_spec,
             &mut slot,
             &mut sims.gaze_truth,
@@ -119,7 +112,7 @@ pub fn spawn_devices(
     let connect = open::device_connector(
         row,
         &g.port,
-        ctx.clone(),
+        open::Context::new(clock.clone(), open::GazeSetup::from_rig(cfg)),
         spec,
         &mut sims.gaze,
         &mut sims.gaze_truth,
@@ -142,7 +135,7 @@ pub fn spawn_devices(
         let connect = open::device_connector(
             row,
             &s.port,
-            ctx.clone(),
+            open::Context::new(clock.clone(), open::SyncSetup::from_rig(cfg, out.clone())),
             spec,
             &mut sims.sync,
             &mut sims.gaze_truth,
@@ -173,7 +166,7 @@ pub fn spawn_devices(
             let connect = open::device_connector(
                 row,
                 port,
-                ctx.clone(),
+                open::Context::new(clock.clone(), open::PhotodiodeSetup::from_rig(cfg)),
                 spec,
                 &mut sims.photodiode,
                 &mut sims.gaze_truth,

@@ -1,11 +1,16 @@
 //! The drivers' table: for each device kind, one row per driver the rig config can name,
 //! saying how its device is reached (serial, HID, the network; USB bulk endpoints for a driver
-//! that has them), how its simulator is made for `port = "sim"`, and how the driver connects
-//! over a link. A device is opened by looking up its row; the port then decides only where the
-//! link comes from. The device commands (`dioptra lens|gaze|sync --device DRIVER:PORT`) open
-//! their links through the same rows and ports ([`row_named`], [`device_link`]), so whatever
-//! the command line reaches a rig config can name.
+//! that has them), how its simulator is made for `port = "sim"`, and the one constructor that
+//! connects the driver over a link: typed per kind (a lens row gives a [`BoxLens`] from a
+//! [`LensSetup`], a sync row a [`BoxSequencer`] from a [`SyncSetup`], ...). The rig's device
+//! tasks and the device commands (`dioptra lens|gaze|sync --device DRIVER:PORT`) both open
+//! devices here: the rig makes each setup from its config, a command from its flags; the
+//! driver enforces the setup's limits whatever it is asked. What users may type besides a
+//! driver's name ([`Alias`]), the `hid` port and which driver a VID:PID belongs to
+//! ([`known_devices`], the driver crates' match tables) are data here too, so the command line
+//! reaches whatever a rig config can name, by the same code.
 
+use std::future::Future;
 use std::sync::{Arc, Mutex};
 
 use dioptra_core::{
@@ -15,19 +20,24 @@ use dioptra_core::{
 use dioptra_gaze::dioptra_tracker::{DioptraTracker, DioptraTrackerConfig};
 use dioptra_gaze::eye_hid::{HidEyeTracker, HidTrackerConfig};
 use dioptra_gaze::pupil::{PupilCapture, PupilConfig};
-use dioptra_lens::{ControllerConfig, LensController, LensLimits, Optotune, OptotuneConfig};
+use dioptra_lens::{
+    ControllerConfig, LensController, LensLimits, Opener, Optotune, OptotuneConfig,
+};
 use dioptra_photodiode::SerialPhotodiode;
 use dioptra_sim::serve::ByteDevice;
-use dioptra_sync::board::{BoardEvent, SyncBoard};
-use dioptra_sync::dlpc350::Dlpc350;
-use dioptra_transport::{AnyByteLink, AnyHidLink};
+use dioptra_sync::board::{BoardEvent, PhotodiodeBand, SyncBoard};
+use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
+use dioptra_transport::discovery::{Interface, KnownDevice};
+use dioptra_transport::AnyByteLink;
 
-use super::boxed::{BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer};
+use super::boxed::{
+    About, BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer, Facts, Resume,
+};
 use super::input::DeviceInput;
 use crate::config::{GazeDriver, LensDriver, PhotodiodeDriver, Port, RigConfig, SyncDriver};
 use crate::devices::simulators::{
     byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
-    SimPupilCapture, SimSlot, SimSpec,
+    SimProjector, SimPupilCapture, SimSlot, SimSpec,
 };
 
 /// How a driver's real device is reached from its port.
@@ -41,72 +51,191 @@ pub enum Transport {
     Net,
 }
 
-/// What a driver connects over: a real device's link or a simulator's.
-pub enum Link {
-    Byte(AnyByteLink),
-    Hid(AnyHidLink),
-    /// The address of a network service.
-    Net(String),
-}
+pub use super::boxed::Link;
 
-impl Link {
-    fn kind(&self) -> &'static str {
-        match self {
-            Link::Byte(_) => "a byte link",
-            Link::Hid(_) => "a HID link",
-            Link::Net(_) => "a network address",
-        }
-    }
-    /// The byte link, or an error naming `what` (the driver) and the link it was given.
-    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
-        match self {
-            Link::Byte(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over a byte link, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The HID link, or an error naming `what` and the link it was given.
-    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
-        match self {
-            Link::Hid(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over HID, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The network address, or an error naming `what` and the link it was given.
-    pub fn net(self, what: &str) -> Result<String, DeviceError> {
-        match self {
-            Link::Net(a) => Ok(a),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over the network, and was given {}",
-                other.kind()
-            ))),
+impl From<SimLink> for Link {
+    fn from(l: SimLink) -> Link {
+        match l {
+            SimLink::Byte(l) => Link::Byte(l),
+            SimLink::Hid(l) => Link::Hid(l),
+            SimLink::Net(a) => Link::Net(a),
         }
     }
 }
 
-/// What a driver's connect gets.
+/// Opens a device's link again after an unplug (see [`Context::reopen`]).
+pub type Reopen = Arc<dyn Fn() -> BoxFuture<'static, Result<Link, DeviceError>> + Send + Sync>;
+
+/// What a driver's connect gets besides its link: the clock, its kind's setup (what the caller
+/// decided about the device: a lens's limits, a sequencer's trigger edge, ...) and, for a
+/// driver that reopens its own link, how.
 #[derive(Clone)]
-pub struct Context {
-    pub cfg: Arc<RigConfig>,
+pub struct Context<S> {
     pub clock: Arc<dyn Clock>,
-    /// The loop's device inputs, for a driver that reports for another device too (the sync
-    /// board's photodiode input); `None` outside a rig.
-    pub inputs: Option<tokio::sync::mpsc::Sender<DeviceInput>>,
-    /// Which of the rig's lenses a lens driver connects to (its index in
-    /// `devices.lens.each()`).
-    pub lens: usize,
+    pub setup: S,
+    /// How to open the link again after an unplug, for a driver that reopens its own (the
+    /// lens drivers, under a device command). `None` in a rig: its device tasks reconnect.
+    pub reopen: Option<Reopen>,
 }
 
-type Connect<D> = fn(Link, Context) -> BoxFuture<'static, Result<D, DeviceError>>;
-type MakeSim = fn(&SimSpec, &Context) -> SimEndpoint;
+impl<S> Context<S> {
+    pub fn new(clock: Arc<dyn Clock>, setup: S) -> Self {
+        Context {
+            clock,
+            setup,
+            reopen: None,
+        }
+    }
+    /// The driver reopens its link with `open` after an unplug.
+    pub fn reopening<F, Fut>(self, open: F) -> Self
+    where
+        F: Fn() -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<Link, DeviceError>> + Send + 'static,
+    {
+        Context {
+            reopen: Some(Arc::new(move || Box::pin(open()))),
+            ..self
+        }
+    }
+}
+
+/// What a lens driver is connected with. The driver keeps every command within `limits`
+/// (clamped or refused, as `limits.policy` says), whatever the caller asks.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LensSetup {
+    pub limits: LensLimits,
+    /// The temperature limits a Lens Driver 4 is given (it derives its focal-power range from
+    /// them); `None`: its default.
+    pub temperature_limits_c: Option<[f32; 2]>,
+}
+
+impl LensSetup {
+    pub fn new(limits: LensLimits) -> Self {
+        LensSetup {
+            limits,
+            temperature_limits_c: None,
+        }
+    }
+    /// Lens `index` of `cfg` (its index in `devices.lens.each()`): the rig's
+    /// `optics.lens_range` and the lens's own keys.
+    pub fn from_rig(cfg: &RigConfig, index: usize) -> Result<Self, DeviceError> {
+        let r = cfg.optics.lens_range;
+        let limits = PowerRange::new(Diopters(r.min), Diopters(r.max))
+            .map(LensLimits::new)
+            .ok_or_else(|| DeviceError::Invalid("optics.lens_range is empty".into()))?;
+        let lens = cfg.devices.lens.each();
+        Ok(LensSetup {
+            limits,
+            temperature_limits_c: lens.get(index).and_then(|l| l.temperature_limits_c),
+        })
+    }
+}
+
+/// What an eye-tracker driver is connected with (Pupil Capture's; the HID trackers take none).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct GazeSetup {
+    /// Datums below this confidence are dropouts; `None`: the driver's recommendation.
+    pub min_confidence: Option<f32>,
+    /// The gaze rate to expect, Hz; `None`: the driver's default.
+    pub rate_hz: Option<f32>,
+}
+
+impl GazeSetup {
+    pub fn from_rig(cfg: &RigConfig) -> Self {
+        let g = &cfg.devices.gaze;
+        GazeSetup {
+            min_confidence: Some(g.min_confidence),
+            rate_hz: (g.port == Port::Sim).then_some(g.sim_rate_hz as f32),
+        }
+    }
+}
+
+/// What a sync driver is connected with.
+#[derive(Debug, Clone)]
+pub struct SyncSetup {
+    /// The sync board's frames start on the rising vsync edge (else the falling one).
+    pub trigger_rising: bool,
+    /// How the DLPC350 is wired into the rig.
+    pub dlpc350: Dlpc350Config,
+    /// The rig's photodiode on the sync board's input: its band, and where its light goes.
+    pub light: Option<BoardLight>,
+}
+
+impl Default for SyncSetup {
+    fn default() -> Self {
+        SyncSetup {
+            trigger_rising: true,
+            dlpc350: Dlpc350Config::default(),
+            light: None,
+        }
+    }
+}
+
+/// A photodiode on the sync board's input, whose light goes straight to the rig's loop.
+#[derive(Debug, Clone)]
+pub struct BoardLight {
+    pub band: PhotodiodeBand,
+    pub inputs: tokio::sync::mpsc::Sender<DeviceInput>,
+}
+
+impl SyncSetup {
+    /// `cfg`'s `[devices.sync]`, its photodiode's light sent to `inputs` when it is on the
+    /// board.
+    pub fn from_rig(cfg: &RigConfig, inputs: tokio::sync::mpsc::Sender<DeviceInput>) -> Self {
+        let d = &cfg.devices;
+        SyncSetup {
+            trigger_rising: true,
+            dlpc350: d
+                .sync
+                .as_ref()
+                .map(|s| s.dlpc350_config())
+                .unwrap_or_default(),
+            light: d
+                .photodiode
+                .as_ref()
+                .filter(|p| p.on_sync_board())
+                .map(|p| BoardLight {
+                    band: p.band(),
+                    inputs,
+                }),
+        }
+    }
+}
+
+/// What a photodiode driver is connected with: the sync board's comparator band (the
+/// serial-line photodiode's is its own trimmer).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PhotodiodeSetup {
+    pub band: PhotodiodeBand,
+}
+
+impl PhotodiodeSetup {
+    pub fn from_rig(cfg: &RigConfig) -> Self {
+        PhotodiodeSetup {
+            band: cfg
+                .devices
+                .photodiode
+                .as_ref()
+                .map(|p| p.band())
+                .unwrap_or_default(),
+        }
+    }
+}
+
+/// Connects a row's driver over a link: typed per kind (the boxed driver `D`, its setup `S`).
+pub type Connect<D, S> = fn(Link, Context<S>) -> BoxFuture<'static, Result<D, DeviceError>>;
+type MakeSim<S> = fn(&SimSpec, &Context<S>) -> SimEndpoint;
+
+/// Another name users give a driver on the command line: `NAME[:REST]` stands for
+/// `DRIVER:PORT[:REST]` (`sim-hid:pursuit` for `hid:sim:pursuit`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Alias {
+    pub name: &'static str,
+    pub port: &'static str,
+}
 
 /// One driver of a device kind.
-pub struct Row<K: 'static, D: 'static> {
+pub struct Row<K: 'static, D: 'static, S: 'static> {
     pub driver: K,
     /// The driver's name in the rig config and the API.
     pub name: &'static str,
@@ -116,17 +245,26 @@ pub struct Row<K: 'static, D: 'static> {
     /// The VID and PID of the device's USB bulk interface, for a driver that also talks over
     /// one (`port = "usb"` or `"usb:SERIAL"`).
     pub usb: Option<(u16, u16)>,
-    pub(crate) sim: MakeSim,
-    pub(crate) connect: Connect<D>,
+    /// Other names for the driver on the command line.
+    pub aliases: &'static [Alias],
+    pub(crate) sim: MakeSim<S>,
+    /// The driver's one constructor: connects it over a link with a setup.
+    pub connect: Connect<D, S>,
 }
 
-pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
+pub type LensRow = Row<LensDriver, BoxLens, LensSetup>;
+pub type GazeRow = Row<GazeDriver, BoxGaze, GazeSetup>;
+pub type SyncRow = Row<SyncDriver, BoxSequencer, SyncSetup>;
+pub type PhotodiodeRow = Row<PhotodiodeDriver, BoxPhotodiode, PhotodiodeSetup>;
+
+pub static LENS: [LensRow; 2] = [
     Row {
         driver: LensDriver::Optotune,
         name: "optotune",
         what: "Lens Driver 4",
         transport: Transport::Serial,
         usb: None,
+        aliases: &[],
         sim: sim_optotune,
         connect: connect_optotune,
     },
@@ -139,18 +277,23 @@ pub static LENS: [Row<LensDriver, BoxLens>; 2] = [
             dioptra_lens::ids::DIOPTRA_VID,
             dioptra_lens::ids::DIOPTRA_LENS_PID,
         )),
+        aliases: &[],
         sim: sim_lens_controller,
         connect: connect_lens_controller,
     },
 ];
 
-pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
+pub static GAZE: [GazeRow; 3] = [
     Row {
         driver: GazeDriver::DioptraTracker,
         name: "dioptra-tracker",
         what: "dioptra eye tracker",
         transport: Transport::Hid,
         usb: None,
+        aliases: &[Alias {
+            name: "sim",
+            port: "sim",
+        }],
         sim: sim_dioptra_tracker,
         connect: connect_dioptra_tracker,
     },
@@ -160,6 +303,10 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
         what: "HID eye tracker",
         transport: Transport::Hid,
         usb: None,
+        aliases: &[Alias {
+            name: "sim-hid",
+            port: "sim",
+        }],
         sim: sim_hid_tracker,
         connect: connect_hid_tracker,
     },
@@ -169,18 +316,20 @@ pub static GAZE: [Row<GazeDriver, BoxGaze>; 3] = [
         what: "Pupil Capture",
         transport: Transport::Net,
         usb: None,
+        aliases: &[],
         sim: sim_pupil_capture,
         connect: connect_pupil,
     },
 ];
 
-pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
+pub static SYNC: [SyncRow; 2] = [
     Row {
         driver: SyncDriver::Sync,
         name: "sync",
         what: "sync board",
         transport: Transport::Serial,
         usb: None,
+        aliases: &[],
         sim: sim_sync_board,
         connect: connect_sync_board,
     },
@@ -190,18 +339,20 @@ pub static SYNC: [Row<SyncDriver, BoxSequencer>; 2] = [
         what: "DLPC350",
         transport: Transport::Hid,
         usb: None,
+        aliases: &[],
         sim: sim_dlpc350,
         connect: connect_dlpc350,
     },
 ];
 
-pub static PHOTODIODE: [Row<PhotodiodeDriver, BoxPhotodiode>; 2] = [
+pub static PHOTODIODE: [PhotodiodeRow; 2] = [
     Row {
         driver: PhotodiodeDriver::SerialLine,
         name: "serial-line",
         what: "serial-line photodiode",
         transport: Transport::Serial,
         usb: None,
+        aliases: &[],
         sim: sim_serial_photodiode,
         connect: connect_serial_photodiode,
     },
@@ -211,16 +362,17 @@ pub static PHOTODIODE: [Row<PhotodiodeDriver, BoxPhotodiode>; 2] = [
         what: "sync board (its photodiode input)",
         transport: Transport::Serial,
         usb: None,
+        aliases: &[],
         sim: sim_photodiode_board,
         connect: connect_photodiode_board,
     },
 ];
 
 /// The row of `driver` in `rows`.
-pub fn row<K: PartialEq + std::fmt::Debug, D>(
-    rows: &'static [Row<K, D>],
+pub fn row<K: PartialEq + std::fmt::Debug, D, S>(
+    rows: &'static [Row<K, D, S>],
     driver: K,
-) -> Result<&'static Row<K, D>, DeviceError> {
+) -> Result<&'static Row<K, D, S>, DeviceError> {
     rows.iter()
         .find(|r| r.driver == driver)
         .ok_or_else(|| DeviceError::Invalid(format!("no driver is registered for {driver:?}")))
@@ -228,20 +380,92 @@ pub fn row<K: PartialEq + std::fmt::Debug, D>(
 
 /// The row of the driver named `name` (its name in the rig config and in `--device
 /// DRIVER:PORT`).
-pub fn row_named<K, D>(rows: &'static [Row<K, D>], name: &str) -> Option<&'static Row<K, D>> {
+pub fn row_named<K, D, S>(
+    rows: &'static [Row<K, D, S>],
+    name: &str,
+) -> Option<&'static Row<K, D, S>> {
     rows.iter().find(|r| r.name == name)
 }
 
 /// The names of `rows`' drivers, for messages ("optotune, lens").
-pub fn names<K, D>(rows: &'static [Row<K, D>]) -> String {
+pub fn names<K, D, S>(rows: &'static [Row<K, D, S>]) -> String {
     rows.iter().map(|r| r.name).collect::<Vec<_>>().join(", ")
+}
+
+/// The aliases of `rows`' drivers, for messages ("sim, sim-hid"; empty without any).
+pub fn alias_names<K, D, S>(rows: &'static [Row<K, D, S>]) -> String {
+    rows.iter()
+        .flat_map(|r| r.aliases.iter().map(|a| a.name))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// `spec` with an alias of one of `rows` spelled out: `NAME[:REST]` becomes
+/// `DRIVER:PORT[:REST]`; `None` when it starts with no alias.
+pub fn unalias<K, D, S>(rows: &'static [Row<K, D, S>], spec: &str) -> Option<String> {
+    let (head, rest) = match spec.split_once(':') {
+        Some((h, r)) => (h, Some(r)),
+        None => (spec, None),
+    };
+    let (row, alias) = rows
+        .iter()
+        .find_map(|r| r.aliases.iter().find(|a| a.name == head).map(|a| (r, a)))?;
+    Some(match rest {
+        Some(rest) => format!("{}:{}:{rest}", row.name, alias.port),
+        None => format!("{}:{}", row.name, alias.port),
+    })
+}
+
+/// Every driver's match table, joined: the devices `dioptra devices` finds and the udev rules
+/// grant access to. A new driver crate adds its `ids::KNOWN_DEVICES` here.
+pub fn known_devices() -> Vec<KnownDevice> {
+    [
+        dioptra_lens::ids::KNOWN_DEVICES,
+        dioptra_gaze::ids::KNOWN_DEVICES,
+        dioptra_sync::ids::KNOWN_DEVICES,
+    ]
+    .concat()
+}
+
+/// The row among `rows` whose driver's match table claims the device at `port` (a VID:PID),
+/// if any: a device is driven by its own driver whichever name it was given.
+pub fn claimed_by<K, D, S>(
+    rows: &'static [Row<K, D, S>],
+    port: &Port,
+) -> Option<&'static Row<K, D, S>> {
+    let Port::VidPid(vid, pid) = *port else {
+        return None;
+    };
+    let name = known_devices()
+        .into_iter()
+        .find(|k| k.vid == Some(vid) && k.pid == Some(pid))?
+        .driver;
+    row_named(rows, name)
+}
+
+/// The port `text` names for `row`: a rig config port, or `hid`, the first HID device with
+/// the VID:PID the driver's match table gives (`dlpc350:hid`).
+pub fn port_for<K, D, S>(row: &Row<K, D, S>, text: &str) -> Result<Port, String> {
+    if text != "hid" {
+        return Port::try_from(text.to_string());
+    }
+    known_devices()
+        .into_iter()
+        .find(|k| k.driver == row.name && k.interface == Interface::Hid)
+        .and_then(|k| Some(Port::VidPid(k.vid?, k.pid?)))
+        .ok_or_else(|| {
+            format!(
+                "port \"hid\": the {} has no HID VID:PID of its own; give its hidraw path or VID:PID",
+                row.what
+            )
+        })
 }
 
 /// The link to `row`'s real device at `port`: a serial port (by path, or the one USB serial
 /// port with a VID:PID), a HID device (by hidraw path or VID:PID), the device's USB bulk
 /// endpoints (`usb`, `usb:SERIAL`) or a network address. Blocking (a USB or serial open).
 /// Not for `port = "sim"`, whose link the device task makes from the simulator.
-pub fn device_link<K, D>(row: &Row<K, D>, port: &Port) -> Result<Link, DeviceError> {
+pub fn device_link<K, D, S>(row: &Row<K, D, S>, port: &Port) -> Result<Link, DeviceError> {
     let what = row.what;
     match (port, row.transport) {
         (Port::Usb(serial), _) => {
@@ -263,12 +487,39 @@ pub fn device_link<K, D>(row: &Row<K, D>, port: &Port) -> Result<Link, DeviceErr
     }
 }
 
+/// A simulator of `row`'s device made from `spec`, in this process, with the one link a
+/// device command needs: for `DRIVER:sim` on the command line. Keep the [`Simulated`] while
+/// the link is used (it holds the simulator).
+pub fn simulated<K, D, S>(
+    row: &Row<K, D, S>,
+    spec: &SimSpec,
+    ctx: &Context<S>,
+) -> Result<(Link, Simulated), DeviceError> {
+    let mut sim = (row.sim)(spec, ctx);
+    let (link, cut) = (sim.open)()?;
+    let projector = sim.projector.as_ref().and_then(|p| p.lock().ok()?.clone());
+    Ok((
+        link.into(),
+        Simulated {
+            _cut: cut,
+            projector,
+        },
+    ))
+}
+
+/// A simulator made by [`simulated`], and its handles a device command may show.
+pub struct Simulated {
+    _cut: Cut,
+    /// The simulated DLPC350: the patterns it shows and the commands it received.
+    pub projector: Option<Arc<dioptra_sim::dlpc350::Dlpc350Sim>>,
+}
+
 /// The connect function a device task retries: opens the link `port` names (a new link to the
 /// simulator for `port = "sim"`, whose handles go into `slot`) and connects `row`'s driver.
-pub(crate) fn device_connector<K: Sync, D: Send + 'static>(
-    row: &'static Row<K, D>,
+pub(crate) fn device_connector<K: Sync, D: Send + 'static, S: Clone + Send + Sync + 'static>(
+    row: &'static Row<K, D, S>,
     port: &Port,
-    ctx: Context,
+    ctx: Context<S>,
     spec: &SimSpec,
     slot: &mut Option<SimSlot>,
     gaze_truth: &mut Option<GazeTruth>,
@@ -286,14 +537,7 @@ pub(crate) fn device_connector<K: Sync, D: Send + 'static>(
                 *gaze_truth = sim.gaze_truth.take();
             }
             let what = row.what;
-            Box::new(move || {
-                let link = plug.open(what, &mut sim.open)?;
-                Ok(match link {
-                    SimLink::Byte(l) => Link::Byte(l),
-                    SimLink::Hid(l) => Link::Hid(l),
-                    SimLink::Net(a) => Link::Net(a),
-                })
-            })
+            Box::new(move || Ok(plug.open(what, &mut sim.open)?.into()))
         }
         port => {
             let port = port.clone();
@@ -355,41 +599,67 @@ pub(crate) fn serial_at(
     )?)
 }
 
-/// The rig's lens range as the drivers' limits.
-fn lens_limits(cfg: &RigConfig) -> Result<LensLimits, DeviceError> {
-    let r = cfg.optics.lens_range;
-    PowerRange::new(Diopters(r.min), Diopters(r.max))
-        .map(LensLimits::new)
-        .ok_or_else(|| DeviceError::Invalid("optics.lens_range is empty".into()))
+/// The opener a driver that reopens its own link is given: `link` first, then `reopen`'s.
+fn byte_opener(link: AnyByteLink, what: &'static str, reopen: Reopen) -> Opener<AnyByteLink> {
+    let mut first = Some(link);
+    Opener::new(move || {
+        let first = first.take();
+        let reopen = reopen.clone();
+        async move {
+            match first {
+                Some(l) => Ok(l),
+                None => reopen()
+                    .await
+                    .and_then(|l| l.byte(what))
+                    .map_err(|e| match e {
+                        DeviceError::Link(l) => l,
+                        other => LinkError::Unavailable(other.to_string()),
+                    }),
+            }
+        }
+    })
 }
 
-fn connect_optotune(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
+fn connect_optotune(
+    link: Link,
+    ctx: Context<LensSetup>,
+) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
+    const WHAT: &str = "Lens Driver 4";
     Box::pin(async move {
-        let mut cfg = OptotuneConfig::new(lens_limits(&ctx.cfg)?);
-        let lens = ctx.cfg.devices.lens.each();
-        let limits = lens.get(ctx.lens).and_then(|l| l.temperature_limits_c);
-        if let Some([lo, hi]) = limits {
+        let mut cfg = OptotuneConfig::new(ctx.setup.limits);
+        if let Some([lo, hi]) = ctx.setup.temperature_limits_c {
             cfg = cfg.with_temperature_limits_c(lo, hi);
         }
-        let d = Optotune::connect(link.byte("Lens Driver 4")?, cfg, ctx.clock).await?;
+        let link = link.byte(WHAT)?;
+        let d = match ctx.reopen {
+            Some(r) => Optotune::connect_with(byte_opener(link, WHAT, r), cfg, ctx.clock).await?,
+            None => Optotune::connect(link, cfg, ctx.clock).await?,
+        };
         Ok(BoxLens(Box::new(d)))
     })
 }
 
 fn connect_lens_controller(
     link: Link,
-    ctx: Context,
+    ctx: Context<LensSetup>,
 ) -> BoxFuture<'static, Result<BoxLens, DeviceError>> {
+    const WHAT: &str = "lens controller";
     Box::pin(async move {
-        let cfg = ControllerConfig::new(lens_limits(&ctx.cfg)?);
-        let d = LensController::connect(link.byte("lens controller")?, cfg, ctx.clock).await?;
+        let cfg = ControllerConfig::new(ctx.setup.limits);
+        let link = link.byte(WHAT)?;
+        let d = match ctx.reopen {
+            Some(r) => {
+                LensController::connect_with(byte_opener(link, WHAT, r), cfg, ctx.clock).await?
+            }
+            None => LensController::connect(link, cfg, ctx.clock).await?,
+        };
         Ok(BoxLens(Box::new(d)))
     })
 }
 
 fn connect_dioptra_tracker(
     link: Link,
-    ctx: Context,
+    ctx: Context<GazeSetup>,
 ) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
     Box::pin(async move {
         let link = link.hid("dioptra eye tracker")?;
@@ -400,7 +670,7 @@ fn connect_dioptra_tracker(
 
 fn connect_hid_tracker(
     link: Link,
-    ctx: Context,
+    ctx: Context<GazeSetup>,
 ) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
     Box::pin(async move {
         let link = link.hid("HID eye tracker")?;
@@ -409,13 +679,17 @@ fn connect_hid_tracker(
     })
 }
 
-fn connect_pupil(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
+fn connect_pupil(
+    link: Link,
+    ctx: Context<GazeSetup>,
+) -> BoxFuture<'static, Result<BoxGaze, DeviceError>> {
     Box::pin(async move {
-        let g = &ctx.cfg.devices.gaze;
         let mut cfg = PupilConfig::new(link.net("Pupil Capture")?);
-        cfg.min_confidence = g.min_confidence;
-        if g.port == Port::Sim {
-            cfg.rate_hz = g.sim_rate_hz as f32;
+        if let Some(c) = ctx.setup.min_confidence {
+            cfg.min_confidence = c;
+        }
+        if let Some(r) = ctx.setup.rate_hz {
+            cfg.rate_hz = r;
         }
         let d = PupilCapture::connect(cfg, ctx.clock).await?;
         Ok(BoxGaze(Box::new(d)))
@@ -424,17 +698,18 @@ fn connect_pupil(link: Link, ctx: Context) -> BoxFuture<'static, Result<BoxGaze,
 
 fn connect_sync_board(
     link: Link,
-    ctx: Context,
+    ctx: Context<SyncSetup>,
 ) -> BoxFuture<'static, Result<BoxSequencer, DeviceError>> {
     Box::pin(async move {
-        let mut d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
-        let photodiode = ctx.cfg.devices.photodiode.as_ref();
-        match (photodiode.filter(|p| p.on_sync_board()), ctx.inputs) {
-            (Some(p), Some(inputs)) => {
-                d.set_photodiode(Some(p.band())).await?;
+        let mut d = SyncBoard::connect(link.byte("sync board")?, ctx.clock)
+            .await?
+            .with_trigger_rising(ctx.setup.trigger_rising);
+        match ctx.setup.light {
+            Some(BoardLight { band, inputs }) => {
+                d.set_photodiode(Some(band)).await?;
                 Ok(BoxSequencer(Box::new(BoardWithLight { board: d, inputs })))
             }
-            _ => Ok(BoxSequencer(Box::new(d))),
+            None => Ok(BoxSequencer(Box::new(d))),
         }
     })
 }
@@ -472,9 +747,27 @@ impl PlaneSequencer for BoardWithLight {
     }
 }
 
+impl About for BoardWithLight {
+    fn identity(&self) -> String {
+        self.board.identity()
+    }
+    fn about(&mut self) -> BoxFuture<'_, Result<Facts, DeviceError>> {
+        self.board.about()
+    }
+}
+
+impl Resume for BoardWithLight {
+    fn resumes(&self) -> bool {
+        self.board.resumes()
+    }
+    fn resume(&mut self, link: Link) -> BoxFuture<'_, Result<(), DeviceError>> {
+        self.board.resume(link)
+    }
+}
+
 fn connect_serial_photodiode(
     link: Link,
-    ctx: Context,
+    ctx: Context<PhotodiodeSetup>,
 ) -> BoxFuture<'static, Result<BoxPhotodiode, DeviceError>> {
     Box::pin(async move {
         let d = SerialPhotodiode::connect(link.byte("serial-line photodiode")?, ctx.clock).await?;
@@ -486,40 +779,26 @@ fn connect_serial_photodiode(
 /// with a port of its own).
 fn connect_photodiode_board(
     link: Link,
-    ctx: Context,
+    ctx: Context<PhotodiodeSetup>,
 ) -> BoxFuture<'static, Result<BoxPhotodiode, DeviceError>> {
     Box::pin(async move {
-        let band = ctx
-            .cfg
-            .devices
-            .photodiode
-            .as_ref()
-            .map(|p| p.band())
-            .unwrap_or_default();
         let mut d = SyncBoard::connect(link.byte("sync board")?, ctx.clock).await?;
-        d.set_photodiode(Some(band)).await?;
+        d.set_photodiode(Some(ctx.setup.band)).await?;
         Ok(BoxPhotodiode(Box::new(d)))
     })
 }
 
 fn connect_dlpc350(
     link: Link,
-    ctx: Context,
+    ctx: Context<SyncSetup>,
 ) -> BoxFuture<'static, Result<BoxSequencer, DeviceError>> {
     Box::pin(async move {
-        let driver_cfg = ctx
-            .cfg
-            .devices
-            .sync
-            .as_ref()
-            .map(|s| s.dlpc350_config())
-            .unwrap_or_default();
-        let d = Dlpc350::new(link.hid("DLPC350")?, ctx.clock, driver_cfg);
+        let d = Dlpc350::new(link.hid("DLPC350")?, ctx.clock, ctx.setup.dlpc350);
         Ok(BoxSequencer(Box::new(d)))
     })
 }
 
-fn sim_optotune(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_optotune(spec: &SimSpec, ctx: &Context<LensSetup>) -> SimEndpoint {
     let dev = Arc::new(Mutex::new(dioptra_sim::optotune::OptotuneSim::new(
         dioptra_sim::optotune::OptotuneSimConfig {
             lens: spec.lens,
@@ -529,12 +808,11 @@ fn sim_optotune(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
     SimEndpoint {
         lens: Some(SimLens::Optotune(dev.clone())),
         open: Box::new(byte_endpoint("Lens Driver 4", dev, ctx.clock.clone())),
-        gaze_truth: None,
-        pupil: None,
+        ..SimEndpoint::default()
     }
 }
 
-fn sim_lens_controller(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_lens_controller(spec: &SimSpec, ctx: &Context<LensSetup>) -> SimEndpoint {
     let dev = Arc::new(Mutex::new(
         dioptra_sim::lens_controller::LensControllerSim::new(
             dioptra_sim::lens_controller::LensControllerSimConfig {
@@ -546,41 +824,32 @@ fn sim_lens_controller(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
     SimEndpoint {
         lens: Some(SimLens::Controller(dev.clone())),
         open: Box::new(byte_endpoint("lens controller", dev, ctx.clock.clone())),
-        gaze_truth: None,
-        pupil: None,
+        ..SimEndpoint::default()
     }
 }
 
-fn sim_sync_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_sync_board(spec: &SimSpec, ctx: &Context<SyncSetup>) -> SimEndpoint {
     let mut sim = dioptra_sim::sync_board::SyncBoardSim::new(spec.board.clone());
     // Its photodiode input sees the simulated panel when the rig's photodiode is on it.
-    let on_board = ctx
-        .cfg
-        .devices
-        .photodiode
-        .as_ref()
-        .is_some_and(|p| p.on_sync_board());
-    if let (true, Some(panel)) = (on_board, &spec.panel) {
+    if let (true, Some(panel)) = (ctx.setup.light.is_some(), &spec.panel) {
         sim = sim.with_light(Arc::new(panel.clone()));
     }
-    byte_sim("sync board", sim, ctx)
+    byte_sim("sync board", sim, &ctx.clock)
 }
 
 /// A byte-speaking simulator with no lens, gaze or pupil of its own.
 fn byte_sim<D: ByteDevice + Send + 'static>(
     what: &'static str,
     sim: D,
-    ctx: &Context,
+    clock: &Arc<dyn Clock>,
 ) -> SimEndpoint {
     SimEndpoint {
-        lens: None,
         open: Box::new(byte_endpoint(
             what,
             Arc::new(Mutex::new(sim)),
-            ctx.clock.clone(),
+            clock.clone(),
         )),
-        gaze_truth: None,
-        pupil: None,
+        ..SimEndpoint::default()
     }
 }
 
@@ -592,39 +861,47 @@ fn panel_light(spec: &SimSpec) -> Arc<dyn dioptra_sim::light::LightSource> {
     }
 }
 
-fn sim_serial_photodiode(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_serial_photodiode(spec: &SimSpec, ctx: &Context<PhotodiodeSetup>) -> SimEndpoint {
     let sim = dioptra_sim::photodiode::SerialPhotodiodeSim::new(spec.serial_photodiode.clone())
         .with_light(panel_light(spec));
-    byte_sim("serial-line photodiode", sim, ctx)
+    byte_sim("serial-line photodiode", sim, &ctx.clock)
 }
 
-fn sim_photodiode_board(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_photodiode_board(spec: &SimSpec, ctx: &Context<PhotodiodeSetup>) -> SimEndpoint {
     let sim = dioptra_sim::sync_board::SyncBoardSim::new(spec.board.clone())
         .with_light(panel_light(spec));
-    byte_sim("sync board", sim, ctx)
+    byte_sim("sync board", sim, &ctx.clock)
 }
 
-fn sim_dlpc350(spec: &SimSpec, _ctx: &Context) -> SimEndpoint {
+fn sim_dlpc350(spec: &SimSpec, _ctx: &Context<SyncSetup>) -> SimEndpoint {
     let cfg = spec.dlpc350;
+    let newest = SimProjector::default();
+    let slot = newest.clone();
     SimEndpoint {
-        lens: None,
         open: Box::new(move || {
             let (link, projector) = dioptra_sim::dlpc350::new(cfg);
+            let projector = Arc::new(projector);
+            *dioptra_core::lock(&slot) = Some(projector.clone());
             let cut: Cut = Box::new(move || projector.unplug("unplugged"));
             Ok((SimLink::Hid(link.into()), cut))
         }),
-        gaze_truth: None,
-        pupil: None,
+        projector: Some(newest),
+        ..SimEndpoint::default()
     }
 }
 
 /// A gaze generator for a new connection to a simulated tracker: the spec's scene from its
-/// start, recording its truth when asked.
+/// start, recording its truth when asked; or the spec's recorded trace, replayed.
 fn gaze_source(
     spec: &SimSpec,
     truth: &Option<GazeTruth>,
     clock: &Arc<dyn Clock>,
 ) -> Result<Box<dyn dioptra_sim::gaze::SampleSource>, LinkError> {
+    if let Some(trace) = &spec.gaze_trace {
+        return Ok(Box::new(dioptra_sim::gaze::csv::Replay::new(
+            trace.as_ref().clone(),
+        )));
+    }
     let gen = dioptra_sim::gaze::GazeGenerator::new(spec.gaze_scene.clone(), spec.gaze)
         .map_err(|e| LinkError::Unavailable(format!("the simulated gaze scene: {e}")))?;
     Ok(match truth {
@@ -639,7 +916,7 @@ fn gaze_source(
 
 fn gaze_endpoint(
     spec: &SimSpec,
-    ctx: &Context,
+    clock: &Arc<dyn Clock>,
     spawn: fn(
         Box<dyn dioptra_sim::gaze::SampleSource>,
         &SimSpec,
@@ -648,21 +925,20 @@ fn gaze_endpoint(
     let truth = spec
         .record_gaze_truth
         .then(|| GazeTruth::new(Mutex::new(Vec::new())));
-    let (spec, clock, t) = (spec.clone(), ctx.clock.clone(), truth.clone());
+    let (spec, clock, t) = (spec.clone(), clock.clone(), truth.clone());
     SimEndpoint {
-        lens: None,
         open: Box::new(move || {
             let (link, cut) = spawn(gaze_source(&spec, &t, &clock)?, &spec);
             Ok((SimLink::Hid(link.into()), cut))
         }),
         gaze_truth: truth,
-        pupil: None,
+        ..SimEndpoint::default()
     }
 }
 
 /// A simulated Pupil Capture on loopback TCP, publishing the spec's gaze scene; each start
 /// of Capture plays the scene from its beginning.
-fn sim_pupil_capture(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
+fn sim_pupil_capture(spec: &SimSpec, ctx: &Context<GazeSetup>) -> SimEndpoint {
     let truth = spec
         .record_gaze_truth
         .then(|| GazeTruth::new(Mutex::new(Vec::new())));
@@ -670,15 +946,15 @@ fn sim_pupil_capture(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
     let capture = SimPupilCapture::new(Box::new(move || gaze_source(&spec, &t, &clock)));
     let c = capture.clone();
     SimEndpoint {
-        lens: None,
         open: Box::new(move || c.open()),
         gaze_truth: truth,
         pupil: Some(capture),
+        ..SimEndpoint::default()
     }
 }
 
-fn sim_dioptra_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
-    gaze_endpoint(spec, ctx, |source, spec| {
+fn sim_dioptra_tracker(spec: &SimSpec, ctx: &Context<GazeSetup>) -> SimEndpoint {
+    gaze_endpoint(spec, &ctx.clock, |source, spec| {
         let (link, tracker) = dioptra_sim::gaze::dioptra_tracker::spawn(source);
         tracker.set_faults(dioptra_sim::gaze::Faults {
             latency_us: spec.gaze_latency_us,
@@ -688,8 +964,8 @@ fn sim_dioptra_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
     })
 }
 
-fn sim_hid_tracker(spec: &SimSpec, ctx: &Context) -> SimEndpoint {
-    gaze_endpoint(spec, ctx, |source, spec| {
+fn sim_hid_tracker(spec: &SimSpec, ctx: &Context<GazeSetup>) -> SimEndpoint {
+    gaze_endpoint(spec, &ctx.clock, |source, spec| {
         let (link, tracker) = dioptra_sim::gaze::hid_tracker::spawn(source, spec.hid_tracker);
         tracker.set_faults(dioptra_sim::gaze::Faults {
             latency_us: spec.gaze_latency_us,
@@ -718,6 +994,38 @@ mod tests {
         for d in [SyncDriver::Sync, SyncDriver::Dlpc350] {
             assert!(row(&SYNC, d).is_ok(), "{d:?}");
         }
+    }
+
+    #[test]
+    fn the_match_tables_name_the_driver_of_a_vid_pid_and_the_hid_port() {
+        let tracker = Port::VidPid(
+            dioptra_gaze::ids::DIOPTRA_VID,
+            dioptra_gaze::ids::DIOPTRA_TRACKER_PID,
+        );
+        assert_eq!(
+            claimed_by(&GAZE, &tracker).map(|r| r.name),
+            Some("dioptra-tracker")
+        );
+        assert!(claimed_by(&GAZE, &Port::VidPid(0xfeed, 0xbeef)).is_none());
+        let dlpc350 = row(&SYNC, SyncDriver::Dlpc350).unwrap();
+        assert_eq!(
+            port_for(dlpc350, "hid"),
+            Ok(Port::VidPid(
+                dioptra_sync::ids::TI_VID,
+                dioptra_sync::ids::DLPC350_PID
+            ))
+        );
+        let board = row(&SYNC, SyncDriver::Sync).unwrap();
+        assert!(port_for(board, "hid").unwrap_err().contains("sync board"));
+        assert_eq!(
+            unalias(&GAZE, "sim-hid:pursuit").as_deref(),
+            Some("hid:sim:pursuit")
+        );
+        assert_eq!(
+            unalias(&GAZE, "sim").as_deref(),
+            Some("dioptra-tracker:sim")
+        );
+        assert_eq!(unalias(&GAZE, "hid:/dev/hidraw0"), None);
     }
 
     #[test]

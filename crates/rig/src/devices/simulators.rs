@@ -56,9 +56,39 @@ pub struct SimSpec {
     pub panel: Option<SharedPanel>,
     /// The simulated serial-line photodiode.
     pub serial_photodiode: SerialPhotodiodeSimConfig,
+    /// A recorded gaze trace the simulated trackers replay instead of `gaze_scene` (`dioptra
+    /// gaze --device sim:TRACE.csv`).
+    pub gaze_trace: Option<Arc<Vec<dioptra_protocol::BinocularSample>>>,
 }
 
 impl SimSpec {
+    /// The simulators' own defaults, for a device command that runs one in this process
+    /// (`dioptra gaze --device sim:SCENARIO`, `dioptra sync --device dlpc350:sim`): no rig
+    /// config, no simulated panel, gaze reports delivered with no added latency, the
+    /// `fixation` scene.
+    pub fn standalone() -> SimSpec {
+        let range = dioptra_core::PowerRange::new(
+            dioptra_core::Diopters(-10.0),
+            dioptra_core::Diopters(10.0),
+        )
+        .expect("a non-empty range");
+        SimSpec {
+            lens: LensModelConfig::default(),
+            optics: dioptra_core::OpticsMap::identity(range),
+            lens_right: None,
+            board: Default::default(),
+            dlpc350: Default::default(),
+            gaze_scene: Scene::named("fixation").expect("a scenario of the simulator"),
+            gaze: GeneratorConfig::default(),
+            gaze_latency_us: (0, 0),
+            hid_tracker: HidTrackerSetup::default(),
+            record_gaze_truth: false,
+            panel: None,
+            serial_photodiode: SerialPhotodiodeSimConfig::default(),
+            gaze_trace: None,
+        }
+    }
+
     /// The simulated lens of lens `index` (0: the one lens or the left; 1: the right).
     pub fn lens_of(&self, index: usize) -> LensModelConfig {
         match (index, &self.lens_right) {
@@ -141,6 +171,7 @@ impl SimSpec {
                 .photodiode_simulated()
                 .then(|| sim_panel(&cfg.display, display_latency)),
             serial_photodiode: SerialPhotodiodeSimConfig::default(),
+            gaze_trace: None,
         })
     }
 }
@@ -412,7 +443,25 @@ pub(crate) struct SimEndpoint {
     pub lens: Option<SimLens>,
     pub gaze_truth: Option<GazeTruth>,
     pub pupil: Option<SimPupilCapture>,
+    /// The simulated DLPC350 of the newest link.
+    pub projector: Option<SimProjector>,
 }
+
+impl Default for SimEndpoint {
+    /// No simulator: every open fails.
+    fn default() -> Self {
+        SimEndpoint {
+            open: Box::new(|| Err(LinkError::Unavailable("no simulator".into()))),
+            lens: None,
+            gaze_truth: None,
+            pupil: None,
+            projector: None,
+        }
+    }
+}
+
+/// The simulated DLPC350 of a device's newest link (each link gets a new projector).
+pub(crate) type SimProjector = Arc<Mutex<Option<Arc<dioptra_sim::dlpc350::Dlpc350Sim>>>>;
 
 /// A byte-speaking simulator shared by every link opened to it, served on `clock`.
 pub(crate) fn byte_endpoint<D: ByteDevice + Send + 'static>(

@@ -29,6 +29,7 @@ use dioptra_render::backend::Backend;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
+use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
@@ -76,8 +77,8 @@ struct CachedLayers {
 }
 
 /// The light field shown in light-field mode: views per side and the pupil span they cover.
-const LF_GRID: usize = 5;
-const LF_SPAN_M: f32 = 0.004;
+pub const LF_GRID: usize = 5;
+pub const LF_SPAN_M: f32 = 0.004;
 
 impl std::fmt::Debug for RgbdRenderer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -237,10 +238,7 @@ impl RgbdRenderer {
     /// C5R (light field): each panel view synthesised from `inputs` on the CPU with the warp's
     /// error map, refined on the tiles it marks by the net on the GPU when the rig renders
     /// there, else on the CPU.
-    fn refine_light_field(
-        &self,
-        inputs: &[RgbdView],
-    ) -> Result<Vec<dioptra_render::retina::LfView>, RenderError> {
+    fn refine_light_field(&self, inputs: &[RgbdView]) -> Result<Vec<LfView>, RenderError> {
         let key = (Mode::Lightfield, RenderMethod::Refine);
         let cpu = self.net(key)?;
         let gpu = lock(&self.compute).gpu_net(key);
@@ -470,8 +468,36 @@ impl RgbdRenderer {
         {
             return Ok(p.clone());
         }
+        let (views, pixel_pitch_tan) = self.views(content, method)?;
+        let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
+        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, self.size)?);
+        // Kept unless the content moved on while it was made.
+        if self.keeps(content) {
+            lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
+        }
+        Ok(panel)
+    }
+
+    /// The `LF_GRID` x `LF_GRID` views over the pupil (`LF_SPAN_M`) that the light-field panel
+    /// of `content` is made from by `method`, each at its position on the pupil: what the eye
+    /// sees through the panel is these, refocused (`dioptra_render::retina::retina_lightfield`).
+    /// Made anew (the panel, not the views, is cached): for scoring a frame, not per frame.
+    pub fn light_field_views(
+        &self,
+        content: &ContentFrame,
+        method: RenderMethod,
+    ) -> Result<Vec<LfView>, RenderError> {
+        Ok(self.views(content, method)?.0)
+    }
+
+    /// The light field's views and their pixel pitch (tangent).
+    fn views(
+        &self,
+        content: &ContentFrame,
+        method: RenderMethod,
+    ) -> Result<(Vec<LfView>, f32), RenderError> {
         let (w, h) = self.size;
-        let (images, pixel_pitch_tan): (Vec<RgbImage>, f32) = match &content.scene {
+        Ok(match &content.scene {
             Some(scene) => {
                 // Views at half size: a panel of 5 px per lenslet cannot show more.
                 let vcam =
@@ -482,14 +508,18 @@ impl RgbdRenderer {
                     Some(Side::Right) => self.half_ipd_m,
                     None => 0.0,
                 };
-                let images = dioptra_sim::scene::light_field_positions(LF_GRID, LF_SPAN_M)?
+                let views = dioptra_sim::scene::light_field_positions(LF_GRID, LF_SPAN_M)?
                     .into_iter()
                     .map(|[x, y]| {
-                        dioptra_sim::scene::render_pinhole(scene, &vcam, [x + centre, y], 1)
-                            .map(|(color, _)| color)
+                        dioptra_sim::scene::render_pinhole(scene, &vcam, [x + centre, y], 1).map(
+                            |(image, _)| LfView {
+                                position: [x, y],
+                                image,
+                            },
+                        )
                     })
                     .collect::<Result<Vec<_>, _>>()?;
-                (images, vcam.eye.pixel_pitch_tan())
+                (views, vcam.eye.pixel_pitch_tan())
             }
             None => {
                 // The frame's views (a view grid), or the frame as the view from the pupil's
@@ -514,16 +544,9 @@ impl RgbdRenderer {
                         )
                     })?
                 };
-                let images = views.into_iter().map(|v| v.image).collect();
-                (images, self.eye.pixel_pitch_tan())
+                (views, self.eye.pixel_pitch_tan())
             }
-        };
-        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, (w, h))?);
-        // Kept unless the content moved on while it was made.
-        if self.keeps(content) {
-            lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
-        }
-        Ok(panel)
+        })
     }
 
     fn layers(

@@ -1,22 +1,19 @@
 //! `dioptra lens --device DRIVER:PORT info|get|set|sweep|temp|calibrate`: talk to one
-//! varifocal lens, opened through the rig's drivers' table (`crate::device_spec`);
-//! `calibrate` is in [`crate::lens_calibrate`].
+//! varifocal lens, opened through the rig's drivers' table (`crate::common::device_spec`);
+//! `calibrate` is in [`calibrate`].
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Context as _, Result};
 use clap::Subcommand;
 use dioptra_core::{Clock, Diopters, LensState, PowerRange, SystemClock, Timestamp, VarifocalLens};
-use dioptra_lens::optotune::protocol::Status;
-use dioptra_lens::{
-    ControllerConfig, LensController, LensLimits, Opener, Optotune, OptotuneConfig, OutOfRange,
-};
-use dioptra_rig::config::LensDriver;
-use dioptra_rig::devices::open;
-use dioptra_transport::ByteLink;
+use dioptra_lens::{LensLimits, OutOfRange};
+use dioptra_rig::devices::open::{self, Context, LensSetup};
 
-use crate::device_spec;
+use crate::common::device_spec;
+
+mod calibrate;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -65,15 +62,15 @@ enum Action {
     Temp,
     /// Measure the accommodation demand at each of a range of commands and write the rig's
     /// calibration table (`optics.calibration`).
-    Calibrate(crate::lens_calibrate::CalibrateArgs),
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 pub fn run(args: Args) -> Result<()> {
-    crate::block_on(run_async(args))
+    crate::common::block_on(run_async(args))
 }
 
 async fn run_async(args: Args) -> Result<()> {
-    let (row, port) = device_spec::parse(&args.device, &open::LENS, "lens driver")?;
+    let (row, port) = device_spec::parse_device(&args.device, &open::LENS, "lens driver")?;
     let power = PowerRange::new(Diopters(args.min_d), Diopters(args.max_d))
         .context("--min-d must not exceed --max-d, and both must be finite")?;
     let policy = if args.refuse {
@@ -83,142 +80,25 @@ async fn run_async(args: Args) -> Result<()> {
     };
     let limits = LensLimits::new(power).with_policy(policy);
     let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let opener = device_spec::byte_opener(row, port.clone());
-    match row.driver {
-        LensDriver::Optotune => {
-            let mut d = Optotune::connect_with(opener, OptotuneConfig::new(limits), clock.clone())
-                .await
-                .with_context(|| {
-                    format!("cannot start an Optotune Lens Driver 4 session on {port}")
-                })?;
-            match &args.action {
-                Action::Info => optotune_info(&mut d).await,
-                Action::Calibrate(c) => {
-                    let who = d.info().map_or("Optotune Lens Driver 4".into(), |i| {
-                        format!(
-                            "Optotune Lens Driver 4, serial {}, firmware type {} version {}",
-                            i.serial_number,
-                            char::from(i.firmware_type),
-                            i.firmware_version
-                        )
-                    });
-                    let who = crate::lens_calibrate::LensIdentity {
-                        description: who,
-                        device: args.device.clone(),
-                    };
-                    crate::lens_calibrate::run(&mut d, c, &who).await
-                }
-                Action::Temp => {
-                    let t = d.temperature_c().await?;
-                    let s = d.status().await?;
-                    println!("temperature {t:.2} °C");
-                    println!("status {:#010x}{}", s.0, describe_status(s));
-                    Ok(())
-                }
-                action => common(&mut d, action, &limits, &*clock).await,
-            }
-        }
-        LensDriver::Lens => controller(opener, ControllerConfig::new(limits), &args, clock).await,
-    }
-}
-
-async fn controller<L: ByteLink + 'static>(
-    opener: Opener<L>,
-    cfg: ControllerConfig,
-    args: &Args,
-    clock: Arc<dyn Clock>,
-) -> Result<()> {
-    let limits = cfg.limits;
-    let mut d = LensController::connect_with(opener, cfg, clock.clone())
-        .await
-        .context("cannot start a dioptra lens controller session")?;
+    // The driver keeps every command within `limits`, and reopens the port after an unplug.
+    let ctx = Context::new(clock.clone(), LensSetup::new(limits));
+    let ctx = device_spec::reopening(ctx, row, port.clone());
+    let session = || format!("cannot start a session with the {} at {port}", row.what);
+    let link = device_spec::link(row, &port).await.with_context(session)?;
+    let mut d = (row.connect)(link, ctx).await.with_context(session)?;
     match &args.action {
-        Action::Info => {
-            if let Some(i) = d.info() {
-                let v = i.firmware_version;
-                println!("device        dioptra lens controller ({:?})", i.kind);
-                println!("serial        {}", i.serial);
-                println!(
-                    "firmware      {}.{}.{} (protocol {})",
-                    v.major, v.minor, v.patch, i.protocol_version
-                );
-                println!("capabilities  {:#x}", i.capabilities.0);
-            }
-            if let Some(l) = d.device_limits() {
-                println!(
-                    "device limits {:.3} .. {:.3} D, max current {:.2} mA",
-                    l.min_power_d, l.max_power_d, l.max_current_ma
-                );
-            }
-            let r = d.power_range();
-            println!("driving range {:.3} .. {:.3} D", r.min.0, r.max.0);
-            Ok(())
-        }
+        Action::Info => device_spec::print_facts(&d.about().await?),
+        Action::Temp => device_spec::print_facts(&d.condition().await?),
         Action::Calibrate(c) => {
-            let who = crate::lens_calibrate::LensIdentity {
-                description: d.info().map_or("dioptra lens controller".into(), |i| {
-                    let v = i.firmware_version;
-                    format!(
-                        "dioptra lens controller ({:?}), serial {}, firmware {}.{}.{}",
-                        i.kind, i.serial, v.major, v.minor, v.patch
-                    )
-                }),
+            let who = calibrate::LensIdentity {
+                description: d.identity(),
                 device: args.device.clone(),
             };
-            crate::lens_calibrate::run(&mut d, c, &who).await
+            return calibrate::run(&mut d, c, &who).await;
         }
-        Action::Temp => {
-            let s = d.state().await?;
-            match s.temperature_c {
-                Some(t) => println!("temperature {t:.2} °C"),
-                None => println!("temperature not measured by this controller"),
-            }
-            Ok(())
-        }
-        action => common(&mut d, action, &limits, &*clock).await,
+        action => return common(&mut d, action, &limits, &*clock).await,
     }
-}
-
-async fn optotune_info<L: ByteLink>(d: &mut Optotune<L>) -> Result<()> {
-    let temp = d.temperature_c().await?;
-    let Some(i) = d.info() else {
-        bail!("not connected")
-    };
-    println!("device        Optotune Lens Driver 4");
-    println!(
-        "firmware      type {} version {}",
-        char::from(i.firmware_type),
-        i.firmware_version
-    );
-    println!("serial        {}", i.serial_number);
-    println!("device id     {}", i.device_id);
-    println!("max current   {:.2} mA", i.max_current_ma);
-    println!(
-        "device range  {:.3} .. {:.3} D (focal-power mode, over its temperature limits)",
-        i.device_range.min.0, i.device_range.max.0
-    );
-    let r = d.power_range();
-    println!("driving range {:.3} .. {:.3} D", r.min.0, r.max.0);
-    println!("mode          {:?}", d.mode());
-    println!("temperature   {temp:.2} °C");
     Ok(())
-}
-
-/// The status word's set bits in the device's words, errors marked (they stop focal-power
-/// control).
-fn describe_status(s: Status) -> String {
-    let mut names: Vec<String> = s
-        .errors()
-        .names()
-        .into_iter()
-        .map(|n| format!("error: {n}"))
-        .collect();
-    names.extend(s.warnings().names());
-    if names.is_empty() {
-        String::new()
-    } else {
-        format!(" ({})", names.join(", "))
-    }
 }
 
 /// get, set and sweep: the same for every driver. `limits` are the driver's, so what is
@@ -273,7 +153,7 @@ async fn common<V: VarifocalLens>(
             }
         }
         Action::Info | Action::Temp | Action::Calibrate(_) => {
-            bail!("{action:?} is handled by each driver")
+            bail!("{action:?} is not a power command")
         }
     }
     Ok(())
@@ -335,16 +215,6 @@ fn line(s: &LensState) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn status_words_are_described_in_the_devices_words() {
-        assert_eq!(describe_status(Status(0)), "");
-        let s = Status(Status::NO_TEMPERATURE_LIMITS | Status::TEMPERATURE_OUTSIDE_LIMITS);
-        assert_eq!(
-            describe_status(s),
-            " (error: no temperature limits received, temperature outside the user's limits)"
-        );
-    }
 
     #[test]
     fn set_says_what_went_out() {
