@@ -1,0 +1,73 @@
+//! Renders a sim test scene at a panel's size with one defocus method, timing each frame: for
+//! profiling (`perf record`) and quick looks; the figures to report come from the criterion
+//! bench (`benches/panel.rs`).
+//!
+//!   cargo run --release -p dioptra-render --example panel_frame -- \
+//!       [pyramid|foveated|gather[,...]] [width] [height] [fov_deg] [focus_D] [frames]
+//!
+//! Prints per method the median wall time and the median CPU time (all threads) per frame.
+
+use dioptra_core::{Diopters, EyeModel, Rgbd};
+use dioptra_render::foveated::{foveated, Foveation};
+use dioptra_render::gather::gather;
+use dioptra_render::pyramid::pyramid;
+use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
+use std::time::Instant;
+
+fn main() {
+    let a: Vec<String> = std::env::args().skip(1).collect();
+    let method = a.first().map_or("pyramid", |s| s.as_str());
+    let num = |i: usize, d: f32| a.get(i).map_or(d, |s| s.parse().expect("a number"));
+    let (w, h) = (num(1, 960.0) as usize, num(2, 1080.0) as usize);
+    let eye = EyeModel {
+        fov_horizontal_deg: num(3, 20.0),
+        ..EyeModel::default()
+    };
+    let q = Diopters(num(4, 1.0));
+    let frames = num(5, 5.0) as usize;
+    dioptra_render::alloc::keep_freed_memory();
+    let cam = Camera::new(eye, w, h);
+    let scene = Scene::generate(Split::Test.seed(0));
+    let (c, d) = render_pinhole(&scene, &cam, [0.0, 0.0], 1).expect("scene");
+    let input = Rgbd::new(c, d).expect("rgbd");
+    let gaze = [0.5 * w as f32, 0.5 * h as f32];
+    for method in method.split(',') {
+        let (mut wall, mut cpu) = (Vec::new(), Vec::new());
+        for _ in 0..frames {
+            let (t, c) = (Instant::now(), cpu_ms());
+            let img = match method {
+                "gather" => gather(&input, q, &eye).expect("gather"),
+                "foveated" => {
+                    foveated(&input, q, &eye, &Foveation::at(gaze))
+                        .expect("foveated")
+                        .image
+                }
+                _ => pyramid(&input, q, &eye).expect("pyramid"),
+            };
+            std::hint::black_box(img);
+            wall.push(t.elapsed().as_secs_f64() * 1e3);
+            cpu.push(cpu_ms() - c);
+        }
+        let median = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        println!(
+            "{method} {w}x{h} {} deg at {} D: median of {frames}: {:.1} ms wall, {:.1} ms CPU (all threads)",
+            eye.fov_horizontal_deg,
+            q.0,
+            median(&mut wall),
+            median(&mut cpu)
+        );
+    }
+}
+
+/// The process's CPU time so far (user and system, all threads), ms: what a frame cost on a
+/// machine shared with other work, where its wall time depends on that work.
+fn cpu_ms() -> f64 {
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: getrusage writes the struct it is given.
+    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+    let t = |v: libc::timeval| v.tv_sec as f64 * 1e3 + v.tv_usec as f64 * 1e-3;
+    t(u.ru_utime) + t(u.ru_stime)
+}
