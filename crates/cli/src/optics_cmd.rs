@@ -10,7 +10,7 @@ use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use dioptra_core::distortion::{DistortionSection, EyepieceModel};
+use dioptra_core::distortion::EyepieceModel;
 use dioptra_core::{Diopters, OpticsMap, Plane, RgbImage, Side};
 use dioptra_render::warp::{warp_cpu, WarpDraw, WarpMesh, DEFAULT_STEP_PX};
 use dioptra_rig::config::RigConfig;
@@ -43,9 +43,12 @@ pub struct Args {
     /// `[optics.left.distortion]` as in a rig config. See docs/optics-image.md.
     #[arg(long)]
     distortion: Option<PathBuf>,
-    /// Draw the pre-warped grid for the eyepiece into this PNG (the panel's size, sRGB): white
-    /// lines every --grid-step-px of the ideal image and a cross at the optical centre.
-    #[arg(long, requires = "distortion")]
+    /// Draw the pre-warped grid for the eyepiece into this PNG (the panel's size): white
+    /// lines every --grid-step-px of the ideal image and a cross at the optical centre. The
+    /// eyepiece from --distortion FILE, or from --config's `[optics.distortion]` (or
+    /// `[optics.<eye>.distortion]`, `distortion_file`) with the panel the config's display
+    /// (one eye's image) and its code values encoded for the eye's `display.transfer`.
+    #[arg(long)]
     distortion_grid: Option<PathBuf>,
     /// Read points on stdin, two numbers a line, and print where the model takes them, per
     /// channel (red, green, blue: six numbers a line, `nan` where there is none): `project`
@@ -88,7 +91,7 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(path) = &args.distortion {
         let model = load_distortion(path, args.eye)?;
         if let Some(out) = &args.distortion_grid {
-            return draw_grid(&args, &model, out);
+            return draw_grid(&args, &model, out, None);
         }
         if let Some(mode) = &args.points {
             return map_points(&args, &model, mode);
@@ -101,6 +104,12 @@ pub fn run(args: Args) -> Result<()> {
         .with_context(|| format!("in the rig config {}", config.display()))?;
     for note in cfg.notices() {
         eprintln!("note: {note}");
+    }
+    if let Some(out) = &args.distortion_grid {
+        return grid_from_config(&args, &cfg, config, out);
+    }
+    if args.points.is_some() {
+        bail!("--points needs --distortion FILE");
     }
     let map = cfg.optics_map(args.eye)?;
     let range = map.range();
@@ -200,47 +209,70 @@ fn focus_span(map: &OpticsMap) -> (f32, f32) {
 fn load_distortion(path: &Path, eye: Option<Side>) -> Result<EyepieceModel> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read --distortion {}", path.display()))?;
-    let table: toml::Table =
-        toml::from_str(&text).with_context(|| format!("{} is not TOML", path.display()))?;
-    let optics = table.get("optics").and_then(|v| v.as_table());
-    let per_eye = eye.and_then(|side| {
-        optics
-            .and_then(|o| o.get(side.as_str()))
-            .and_then(|e| e.as_table())
-            .and_then(|e| e.get("distortion"))
-            .map(|d| (d, format!("optics.{}.distortion", side.as_str())))
-    });
-    let (value, section) = match per_eye {
-        Some(found) => found,
-        None => match optics.and_then(|o| o.get("distortion")) {
-            Some(d) => (d, "optics.distortion".to_string()),
-            None if optics.is_some() => bail!(
-                "{}: an [optics] table without [optics.distortion]",
-                path.display()
-            ),
-            None => (
-                &toml::Value::Table(table.clone()),
-                "optics.distortion".to_string(),
-            ),
-        },
-    };
-    let section_keys: DistortionSection =
-        serde_path_to_error::deserialize(value.clone()).map_err(|e| {
-            let at = e.path().to_string();
-            anyhow::anyhow!(
-                "{}: {section}{}: {}",
-                path.display(),
-                if at == "." {
-                    String::new()
-                } else {
-                    format!(".{at}")
-                },
-                e.inner()
-            )
-        })?;
+    let name = path.display().to_string();
+    let (section_keys, section) =
+        dioptra_rig::optics::config::parse_distortion_file(&name, &text, eye)
+            .map_err(anyhow::Error::msg)?;
     section_keys
         .model(&section)
         .with_context(|| format!("in {}", path.display()))
+}
+
+/// `--config X --distortion-grid OUT.png`: the eye's eyepiece as the daemon reads it, on its
+/// panel (one eye's image, `display.width` x `height`), encoded for its panel.
+fn grid_from_config(args: &Args, cfg: &RigConfig, path: &Path, out: &Path) -> Result<()> {
+    if cfg.display.stereo() && args.eye.is_none() {
+        bail!(
+            "{}: display.layout = \"{}\" has an image per eye: give --eye left or --eye right",
+            path.display(),
+            cfg.display.layout.as_str()
+        );
+    }
+    let eye = if cfg.display.stereo() { args.eye } else { None };
+    let images = cfg.eye_images()?;
+    let image = images
+        .iter()
+        .find(|i| i.eye == eye)
+        .context("no image for that eye on this display layout")?;
+    let Some(eyepiece) = &image.eyepiece else {
+        bail!(
+            "{}: no eyepiece distortion for {} ([optics.distortion], \
+             [optics.<eye>.distortion] or distortion_file; see docs/optics-image.md)",
+            path.display(),
+            eye.map_or("the one image".to_string(), |e| format!(
+                "the {} eye",
+                e.as_str()
+            ))
+        );
+    };
+    let panel = [cfg.display.width as usize, cfg.display.height as usize];
+    let args = Args {
+        panel: Some(args.panel.unwrap_or(panel)),
+        source: args.source,
+        ..args.clone_for_grid()
+    };
+    println!("eyepiece: {}", eyepiece.from);
+    draw_grid(&args, &eyepiece.model, out, Some(&image.transfer))
+}
+
+impl Args {
+    /// The grid's settings (the rest left empty).
+    fn clone_for_grid(&self) -> Args {
+        Args {
+            config: None,
+            eye: self.eye,
+            focus: None,
+            command: None,
+            json: false,
+            distortion: None,
+            distortion_grid: self.distortion_grid.clone(),
+            points: None,
+            panel: self.panel,
+            source: self.source,
+            grid_step_px: self.grid_step_px,
+            mesh_step_px: self.mesh_step_px,
+        }
+    }
 }
 
 fn panel_of(args: &Args) -> Result<[usize; 2]> {
@@ -266,7 +298,14 @@ fn grid_image(size: [usize; 2], centre: [f64; 2], step: f64) -> RgbImage {
     RgbImage::from_planes(p.clone(), p.clone(), p).expect("size")
 }
 
-fn draw_grid(args: &Args, model: &EyepieceModel, out: &Path) -> Result<()> {
+/// Draws the grid; with `transfer` its code values are encoded for that panel (written as
+/// they are), otherwise sRGB.
+fn draw_grid(
+    args: &Args,
+    model: &EyepieceModel,
+    out: &Path,
+    transfer: Option<&dioptra_core::transfer::Transfer>,
+) -> Result<()> {
     let panel = panel_of(args)?;
     let source = args.source.unwrap_or(panel);
     if args.grid_step_px < 4 {
@@ -283,8 +322,22 @@ fn draw_grid(args: &Args, model: &EyepieceModel, out: &Path) -> Result<()> {
         (model.render.cy + 0.5) * sy - 0.5,
     ];
     let ideal = grid_image(source, centre, args.grid_step_px as f64 * sx);
-    let warped = warp_cpu(&ideal, &mesh, &WarpDraw::default())?;
-    dioptra_render::io::write_color(out, &warped)?;
+    let lut = transfer.map(dioptra_render::transfer::EncodeLut::new);
+    let warped = warp_cpu(
+        &ideal,
+        &mesh,
+        &WarpDraw {
+            scale: 1.0,
+            encode: lut.as_ref(),
+        },
+    )?;
+    match &lut {
+        Some(lut) => {
+            dioptra_render::io::write_code_values(out, &warped)?;
+            println!("encoded for the panel: {}", lut.describe());
+        }
+        None => dioptra_render::io::write_color(out, &warped)?,
+    }
     println!(
         "wrote {} ({}x{} panel, grid every {} px of the ideal image)",
         out.display(),

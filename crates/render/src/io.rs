@@ -542,6 +542,27 @@ pub fn write_color(path: &Path, img: &RgbImage) -> Result<(), RenderError> {
     }
 }
 
+/// Writes an image of code values (0 to 1, as the panel is driven: already encoded through
+/// its transfer function) as an 8-bit PNG, each value rounded to the nearest code.
+pub fn write_code_values(path: &Path, img: &RgbImage) -> Result<(), RenderError> {
+    if format_of(path)? != ImageFormat::Png {
+        return Err(path_err(path, "code values are written as PNG only"));
+    }
+    let bytes: Vec<u8> = img
+        .to_interleaved()
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
+    write_png(
+        path,
+        img.width(),
+        img.height(),
+        &bytes,
+        png::ColorType::Rgb,
+        png::BitDepth::Eight,
+    )
+}
+
 /// Writes depth as distance: `.png` 16-bit millimetres (clamped to 65.535 m), `.exr`/`.pfm`
 /// float metres (0 D is written as infinity).
 pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {

@@ -40,7 +40,7 @@ pub use crate::display::config::{
 };
 pub use crate::lsl::config::LslConfig;
 pub use crate::mode::{methods, Method, Mode, RENDERED};
-pub use crate::optics::config::{Eye, EyeOptics, Layout, Optics, Range, Tables};
+pub use crate::optics::config::{Eye, EyeOptics, Eyepiece, Layout, Optics, Range, Tables};
 pub use crate::recording::config::Recording;
 pub use crate::render::config::{Render, RenderBackend};
 pub use error::ConfigError;
@@ -82,6 +82,24 @@ pub struct RigConfig {
     /// config gives it), so a run and its recording use the tables as they were at start.
     #[serde(skip)]
     pub calibration_tables: std::collections::BTreeMap<PathBuf, String>,
+}
+
+/// How one eye's image goes to its panel: the magnification compensation, the eyepiece's
+/// pre-warp and the panel's transfer function ([`RigConfig::eye_images`]).
+#[derive(Debug, Clone)]
+pub struct EyeImage {
+    /// The eye (`None`: the one image of layout `one`).
+    pub eye: Option<Side>,
+    /// The lens in front of it (the scheduler's lens index).
+    pub lens: usize,
+    /// With the magnification compensated: the lens power whose magnification the image
+    /// keeps ([`OpticsMap::magnification_reference`]); `None`: not compensated.
+    pub reference: Option<dioptra_core::Diopters>,
+    /// The eyepiece's distortion, pre-warped; `None`: drawn 1:1.
+    pub eyepiece: Option<Eyepiece>,
+    pub transfer: dioptra_core::transfer::Transfer,
+    /// The key it was given under.
+    pub transfer_key: &'static str,
 }
 
 /// The example rig of simulated devices (`crates/cli/examples/rig-sim.toml`), which the demo,
@@ -192,20 +210,38 @@ impl RigConfig {
         Ok(cfg)
     }
 
-    /// Reads every calibration table the optics settings name and does not hold yet.
+    /// Reads every file the config's optics and display settings name (calibration tables,
+    /// distortion files, transfer tables) and does not hold yet.
     fn read_calibration_tables(&mut self) -> Result<(), ConfigError> {
         let mut read = Vec::new();
+        let mut files: Vec<(String, &PathBuf, &str)> = Vec::new();
         for (section, file) in self.optics.calibration_files() {
-            let Some(file) = file else { continue };
+            if let Some(file) = file {
+                files.push((format!("{section}.calibration"), file, "calibration table"));
+            }
+        }
+        for (section, file) in self.optics.distortion_files() {
+            if let Some(file) = file {
+                files.push((
+                    format!("{section}.distortion_file"),
+                    file,
+                    "distortion file",
+                ));
+            }
+        }
+        for (key, file) in self.display.transfer_files() {
+            files.push((format!("{key}.table"), file, "transfer table"));
+        }
+        for (key, file, what) in files {
             if self.calibration_tables.contains_key(file) {
                 continue;
             }
             let path = self.config_path(file);
             let text = std::fs::read_to_string(&path).map_err(|e| {
                 invalid(
-                    &format!("{section}.calibration"),
+                    &key,
                     format!(
-                        "cannot read the calibration table {} ({}): {e}",
+                        "cannot read the {what} {} ({}): {e}",
                         path.display(),
                         if file.is_relative() {
                             "relative paths are read from the config file's folder"
@@ -295,6 +331,21 @@ impl RigConfig {
     pub fn notices(&self) -> Vec<String> {
         let mut out = self.optics.notices();
         out.extend(self.devices.notices());
+        let changes = self.eye_images().is_ok_and(|images| {
+            images.iter().any(|i| {
+                i.reference.is_some()
+                    || i.eyepiece.is_some()
+                    || i.transfer != dioptra_core::transfer::Transfer::Srgb
+            })
+        });
+        if changes && self.display.kind == SinkKind::Window {
+            out.push(
+                "the window does not yet apply the magnification compensation, the eyepiece \
+                 pre-warp or display.transfer (the headless sink does): it shows each image \
+                 1:1 in sRGB; see docs/optics-image.md"
+                    .to_string(),
+            );
+        }
         out
     }
 
@@ -310,6 +361,7 @@ impl RigConfig {
         self.eye.check()?;
         self.display.check()?;
         self.check_optics_per_lens()?;
+        self.check_eye_images()?;
         self.display.check_marker_and_panel()?;
         if self.devices.photodiode.is_some() && self.display.marker_patch.is_none() {
             return Err(invalid(
@@ -318,6 +370,80 @@ impl RigConfig {
             ));
         }
         self.api.check()
+    }
+
+    /// The eyes the display shows an image for: the one image (`None`), or the left's and
+    /// the right's.
+    pub fn image_eyes(&self) -> Vec<Option<Side>> {
+        if self.display.stereo() {
+            Side::BOTH.into_iter().map(Some).collect()
+        } else {
+            vec![None]
+        }
+    }
+
+    /// The lens in front of an eye's image: the one lens, or that eye's.
+    pub fn lens_of_image(&self, side: Option<Side>) -> usize {
+        match (&self.devices.lens, side) {
+            (Lenses::PerEye { .. }, Some(Side::Right)) => 1,
+            _ => 0,
+        }
+    }
+
+    /// How each eye's image goes to its panel ([`EyeImage`]), in [`RigConfig::image_eyes`]'
+    /// order. Errors name the key.
+    pub fn eye_images(&self) -> Result<Vec<EyeImage>, ConfigError> {
+        let per_eye = matches!(self.devices.lens, Lenses::PerEye { .. });
+        self.image_eyes()
+            .into_iter()
+            .map(|eye| {
+                let map = self.optics_map(if per_eye { eye } else { None })?;
+                let compensate = self.optics.compensates(eye, &map)?;
+                let eyepiece = self.optics.eyepiece(eye, self.tables())?;
+                let (transfer, transfer_key) = self.display.transfer_of(
+                    eye.filter(|_| self.display.layout == DisplayLayout::TwoOutputs),
+                    self.tables(),
+                )?;
+                Ok(EyeImage {
+                    eye,
+                    lens: self.lens_of_image(eye),
+                    reference: if compensate {
+                        map.magnification_reference()
+                    } else {
+                        None
+                    },
+                    eyepiece,
+                    transfer,
+                    transfer_key,
+                })
+            })
+            .collect()
+    }
+
+    /// Each eye's image settings can be used: the eyepiece's optical centre is on the panel
+    /// (an eye's image is `display.width` x `height`).
+    fn check_eye_images(&self) -> Result<(), ConfigError> {
+        let (w, h) = (
+            f64::from(self.display.width),
+            f64::from(self.display.height),
+        );
+        for image in self.eye_images()? {
+            if let Some(e) = &image.eyepiece {
+                let r = &e.model.render;
+                if !((-0.5..w - 0.5).contains(&r.cx) && (-0.5..h - 0.5).contains(&r.cy)) {
+                    return Err(invalid(
+                        &format!("{}.cx", e.from),
+                        format!(
+                            "the optical centre ({}, {}) is off the eye's {}x{} image \
+                             (display.width x display.height): the model's pixels are the \
+                             panel's, centre at (width - 1) / 2 for a centred eyepiece",
+                            r.cx, r.cy, self.display.width, self.display.height
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// `[optics]`' eye sections fit the lenses of `[devices.lens]`, and each lens's optics map

@@ -22,11 +22,13 @@ pub mod blit;
 pub mod config;
 pub mod frame;
 pub mod marker;
+pub mod panel_image;
 pub mod placement;
 pub mod status;
 
 pub use frame::{Frame, MarkerDraw};
 pub use marker::{Marker, MarkerControl};
+pub use panel_image::PanelImage;
 pub use status::DisplayHandle;
 
 use placement::{PlaceError, PlacementConfig, Placer};
@@ -46,6 +48,9 @@ pub enum DisplayError {
     },
     #[error("the display window: {0}")]
     Window(String),
+    /// An eye's way to its panel (the pre-warp mesh, the rig config's image settings).
+    #[error("the eyes' images on their panels: {0}")]
+    Panel(String),
     /// The frame is not shown: an image does not fit its place (or is missing). The sink
     /// has counted it in its status and logged the reason (once per reason).
     #[error("frame not shown: {0}")]
@@ -60,6 +65,8 @@ pub struct Shown {
     pub shown_ns: u64,
     /// The marker patch's colour in that present (true: white).
     pub marker_white: Option<bool>,
+    /// Each eye's magnification compensation in that present ([`Frame::size_compensation`]).
+    pub size_compensation: [Option<f32>; 2],
 }
 
 /// Where frames go.
@@ -106,6 +113,11 @@ pub struct HeadlessSink {
     placer: Placer,
     /// The panel (for `two-outputs`: each output); `None`: each image's own size.
     surface: Option<(u32, u32)>,
+    /// Each eye's way to its panel (compensation, pre-warp, transfer); empty: each image
+    /// written as it is, sRGB.
+    panels: Vec<PanelImage>,
+    /// The newest present's compensation per eye, for `/status`.
+    last_compensation: [Option<f32>; 2],
 }
 
 /// How many frame timings a headless sink keeps.
@@ -153,7 +165,18 @@ impl HeadlessSink {
             pngs: 0,
             placer: Placer::new(placement),
             surface,
+            panels: Vec::new(),
+            last_compensation: [None; 2],
         })
+    }
+
+    /// The sink a rig config asks for ([`HeadlessSink::for_display`]), each eye's image
+    /// scaled, pre-warped and encoded for its panel as `[optics]` and `display.transfer` say
+    /// (the CPU twins of the window's GPU passes) when its PNGs are written.
+    pub fn for_rig(cfg: &crate::config::RigConfig) -> Result<Self, DisplayError> {
+        let mut sink = HeadlessSink::for_display(&cfg.display)?;
+        sink.panels = panel_images(cfg)?;
+        Ok(sink)
     }
     pub fn recent(&self) -> impl Iterator<Item = &Shown> {
         self.recent.iter()
@@ -213,6 +236,26 @@ impl HeadlessSink {
                     detail: e.to_string(),
                 };
                 let whole = placement::Rect::new(0, 0, surface.0, surface.1);
+                if !self.panels.is_empty() {
+                    // Each image as its panel is driven: code values, written as they are.
+                    let mut panel = RgbImage::new(surface.0 as usize, surface.1 as usize, [0.0; 3]);
+                    for p in on_panel {
+                        let image = p.image.to_host().map_err(failed)?;
+                        let image = match self.panels.iter().find(|e| e.eye == p.eye) {
+                            Some(e) => e
+                                .to_panel(&image, frame.compensation_of(p.eye))
+                                .map_err(failed)?,
+                            None => image.into_owned(),
+                        };
+                        placement::draw_into(&mut panel, &image, p.rect);
+                    }
+                    if let Some(m) = &frame.marker {
+                        m.paint(&mut panel);
+                    }
+                    dioptra_render::io::write_code_values(&path, &panel).map_err(failed)?;
+                    self.pngs += 1;
+                    continue;
+                }
                 let mut pixels = match on_panel {
                     // The image is the panel: written as it is.
                     [p] if p.rect == whole
@@ -260,7 +303,9 @@ impl DisplaySink for HeadlessSink {
             focus_d: frame.focus.0,
             shown_ns: now.0,
             marker_white: frame.marker.map(|m| m.white),
+            size_compensation: frame.size_compensation,
         });
+        self.last_compensation = frame.size_compensation;
         // By frame number, not by presentation: a frame shown again (a deadline miss) does not
         // shift the frames written. A frame number the scheduler skipped (its slot not
         // rendered) gives way to the next one shown.
@@ -310,6 +355,9 @@ impl DisplaySink for HeadlessSink {
         {
             o.extend(p);
         }
+        if !self.panels.is_empty() {
+            v["eyes_to_panel"] = eyes_status(&self.panels, self.last_compensation);
+        }
         v
     }
     fn describe(&self) -> String {
@@ -321,6 +369,39 @@ impl DisplaySink for HeadlessSink {
             _ => "headless".into(),
         }
     }
+}
+
+/// Each eye's [`PanelImage`] for a rig config; none when no eye's image changes on its way
+/// to the panel (no compensation, no distortion, sRGB panels): images are written as they are.
+pub fn panel_images(cfg: &crate::config::RigConfig) -> Result<Vec<PanelImage>, DisplayError> {
+    let size = [cfg.display.width as usize, cfg.display.height as usize];
+    let eyes = cfg
+        .eye_images()
+        .map_err(|e| DisplayError::Panel(e.to_string()))?;
+    let panels = eyes
+        .iter()
+        .map(|e| PanelImage::new(e, size))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| DisplayError::Panel(format!("the pre-warp: {e}")))?;
+    Ok(if panels.iter().any(PanelImage::changes_image) {
+        panels
+    } else {
+        Vec::new()
+    })
+}
+
+/// `/status`'s `display.eyes_to_panel`: each eye's compensation (the newest factor),
+/// distortion and transfer, under `one`, or `left` and `right`.
+pub fn eyes_status(panels: &[PanelImage], compensation: [Option<f32>; 2]) -> serde_json::Value {
+    let mut v = serde_json::Map::new();
+    for p in panels {
+        let i = usize::from(p.eye == Some(dioptra_core::Side::Right));
+        v.insert(
+            p.eye.map_or("one", |e| e.as_str()).into(),
+            p.status(compensation[i]),
+        );
+    }
+    serde_json::Value::Object(v)
 }
 
 /// `n` as an English ordinal: 2nd, 3rd, 11th, 21st, 30th.
@@ -411,6 +492,7 @@ mod tests {
                 layers: vec![dioptra_core::RgbImage::new(8, 8, [0.5, 0.25, 0.0]).into()].into(),
                 right: None,
                 marker: None,
+                size_compensation: [None; 2],
             };
             let t = s.present(&f, Timestamp(n * 1000)).unwrap();
             assert_eq!(t, Timestamp(n * 1000));
@@ -515,6 +597,7 @@ mod tests {
                 size: 4,
                 white: true,
             }),
+            size_compensation: [None; 2],
         };
         s.present(&f, Timestamp(5)).unwrap();
         assert_eq!(s.recent().last().unwrap().marker_white, Some(true));
@@ -598,6 +681,7 @@ mod tests {
             layers: left.into_iter().map(Into::into).collect::<Vec<_>>().into(),
             right: right.map(|r| r.into_iter().map(Into::into).collect::<Vec<_>>().into()),
             marker: None,
+            size_compensation: [None; 2],
         }
     }
 

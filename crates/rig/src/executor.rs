@@ -106,6 +106,8 @@ pub struct Presented {
     pub repeat: bool,
     /// The marker patch's colour in this present (true: white), if the rig draws one.
     pub marker_white: Option<bool>,
+    /// Each eye's magnification compensation in this present ([`Frame::size_compensation`]).
+    pub size_compensation: [Option<f32>; 2],
 }
 
 /// A finished render.
@@ -220,6 +222,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         hooks,
         on_show: None,
         marker: state.cfg.display.marker_patch.as_ref().map(Marker::new),
+        compensate: compensation_plan(&state.cfg),
     };
     for h in &mut ex.hooks {
         h.started(now, &engine, ex.sink.as_ref());
@@ -314,7 +317,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                 }
             }
         };
-        ex.execute(now, cmds, cause).await;
+        ex.execute(&engine, now, cmds, cause).await;
         for h in &mut ex.hooks {
             h.stepped(now, &engine);
         }
@@ -326,7 +329,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         h.shutdown(now);
     }
     let cmds = engine.step(now, Input::Shutdown).unwrap_or_default();
-    ex.execute(now, cmds, None).await;
+    ex.execute(&engine, now, cmds, None).await;
     devices_stop.cancel();
     // What the devices report while they stop (the park on the wire, the lens's last
     // read-backs) is still recorded and given to the scheduler, until every device task has
@@ -371,6 +374,26 @@ struct Executor<'a> {
     marker: Option<Marker>,
     /// A stereo layout: each eye's view of the content ([`crate::content::stereo`]).
     eye_views: Option<Arc<EyeViews>>,
+    /// Each eye's image (the one image's or the left's, then the right's) with the
+    /// magnification compensated: its lens and the reference power.
+    compensate: [Option<(usize, Diopters)>; 2],
+}
+
+/// Which eyes' images have their magnification compensated (`optics.compensate_magnification`),
+/// with their lens and reference power.
+fn compensation_plan(cfg: &crate::config::RigConfig) -> [Option<(usize, Diopters)>; 2] {
+    let mut plan = [None; 2];
+    match cfg.eye_images() {
+        Ok(images) => {
+            for image in images {
+                let slot = usize::from(image.eye == Some(Side::Right));
+                plan[slot] = image.reference.map(|r| (image.lens, r));
+            }
+        }
+        // Never: the config was validated with the same call.
+        Err(e) => tracing::error!(error = %e, "the eyes' image settings"),
+    }
+    plan
 }
 
 impl Executor<'_> {
@@ -425,10 +448,16 @@ impl Executor<'_> {
             h.content(now, &frame);
         }
         self.on_show = Some(frame);
-        self.execute(now, cmds, None).await;
+        self.execute(engine, now, cmds, None).await;
     }
 
-    async fn execute(&mut self, now: Timestamp, cmds: Vec<Command>, cause: Option<Instant>) {
+    async fn execute(
+        &mut self,
+        engine: &Engine,
+        now: Timestamp,
+        cmds: Vec<Command>,
+        cause: Option<Instant>,
+    ) {
         // Lens commands first, each lens's back to back: nothing else the loop does waits in
         // front of them.
         let mut lens_sent = false;
@@ -502,16 +531,22 @@ impl Executor<'_> {
                 Command::Present {
                     frame,
                     vsync,
+                    display_time,
                     repeat,
-                    ..
-                } => self.present(now, frame.0, None, vsync, repeat),
+                } => {
+                    let c = self.compensation_at(engine, display_time);
+                    self.present(now, frame.0, None, vsync, repeat, c)
+                }
                 Command::PresentLayer {
                     frame,
                     layer,
                     start,
                     repeat,
                     ..
-                } => self.present(now, frame.0, Some(layer), start, repeat),
+                } => {
+                    let c = self.compensation_at(engine, start);
+                    self.present(now, frame.0, Some(layer), start, repeat, c)
+                }
                 Command::StopSequencer => {
                     let _ = self.links.multifocal.send(false);
                 }
@@ -596,6 +631,24 @@ impl Executor<'_> {
         });
     }
 
+    /// Each eye's magnification compensation for a frame on screen at `at`: at the power its
+    /// lens's model predicts then (while the lens moves), else the newest power commanded.
+    fn compensation_at(&self, engine: &Engine, at: Timestamp) -> [Option<f32>; 2] {
+        self.compensate.map(|plan| {
+            let (lens, reference) = plan?;
+            let id = crate::devices::input::LensId(lens as u8);
+            let power = engine.scheduler().predicted_power_of(id, at).or_else(|| {
+                self.state.optics.focus().commanded_by_lens[lens.min(1)].map(Diopters)
+            })?;
+            let c = self
+                .state
+                .optics
+                .of(id)
+                .size_compensation(power, reference)?;
+            Some(c as f32)
+        })
+    }
+
     fn present(
         &mut self,
         now: Timestamp,
@@ -603,12 +656,14 @@ impl Executor<'_> {
         layer: Option<u8>,
         at: Timestamp,
         repeat: bool,
+        size_compensation: [Option<f32>; 2],
     ) {
         let Some(f) = self.frames.iter().find(|f| f.number == frame) else {
             tracing::warn!(frame, "asked to present a frame that is not rendered");
             return;
         };
         let mut f = f.clone();
+        f.size_compensation = size_compensation;
         f.marker = self
             .marker
             .as_mut()
@@ -628,6 +683,7 @@ impl Executor<'_> {
                     shown: t,
                     repeat,
                     marker_white: f.marker.map(|m| m.white),
+                    size_compensation,
                 };
                 for h in &mut self.hooks {
                     h.presented(now, &p, self.sink.as_ref());
@@ -658,6 +714,7 @@ impl Executor<'_> {
             focus: job.focus,
             right: right.map(Arc::new),
             marker: None,
+            size_compensation: [None; 2],
         });
     }
 

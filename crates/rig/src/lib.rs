@@ -343,7 +343,7 @@ impl Rig {
         let sink: Box<dyn DisplaySink> = match (sink, cfg.display.kind) {
             (Some(s), _) => s,
             (None, config::SinkKind::Headless) => {
-                Box::new(HeadlessSink::for_display(&cfg.display).map_err(RigError::Display)?)
+                Box::new(HeadlessSink::for_rig(&cfg).map_err(RigError::Display)?)
             }
             (None, config::SinkKind::Window) => return Err(RigError::WindowSinkNeeded),
         };

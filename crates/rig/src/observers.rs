@@ -240,6 +240,19 @@ impl LoopHook for Recording {
     fn tick(&mut self, now: Timestamp) {
         self.0.record(now, Rec::Tick(Marker {}));
     }
+    fn presented(&mut self, now: Timestamp, p: &Presented, _sink: &dyn DisplaySink) {
+        if p.size_compensation.iter().any(Option::is_some) {
+            self.0.record(
+                now,
+                Rec::Image(crate::recording::ImageRec {
+                    frame: p.frame,
+                    layer: p.layer,
+                    shown_ns: p.shown.0,
+                    size_compensation: p.size_compensation,
+                }),
+            );
+        }
+    }
     fn command(&mut self, now: Timestamp, cmd: &Command) {
         let rec = match *cmd {
             Command::SetLensPower {

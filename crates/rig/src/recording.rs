@@ -421,6 +421,19 @@ pub struct PresentRec {
     pub repeat: bool,
 }
 
+/// An eye's image as presented (recorded when the rig compensates the magnification): each
+/// eye's compensation, the one image's or the left's then the right's (the image drawn this
+/// many times its size about the optical axis). Not an input of the scheduler: replay passes
+/// it over.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ImageRec {
+    pub frame: u64,
+    pub layer: Option<u8>,
+    /// When it is on screen.
+    pub shown_ns: u64,
+    pub size_compensation: [Option<f32>; 2],
+}
+
 /// A marker: nothing but the time it happened.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Marker {}
@@ -498,6 +511,8 @@ pub enum Rec {
     StopSequencer(Marker),
     /// Not an input of the scheduler: replay passes it over.
     Marker(MarkerRec),
+    /// Not an input of the scheduler: replay passes it over.
+    Image(ImageRec),
 }
 
 /// Declares, for each variant, its topic, schema name and JSON Schema properties.
@@ -567,6 +582,8 @@ topics! {
     StopSequencer => "/sync/stop", "dioptra.StopSequencer", "";
     Marker => "/marker", "dioptra.Marker",
         r#""marker":{"type":["string","object"]}"#;
+    Image => "/display/image", "dioptra.ImagePresented",
+        format!(r#""frame":{N},"layer":{ON},"shown_ns":{N},"size_compensation":{{"type":"array","items":{ON}}}"#);
 }
 
 /// The lens topics of each eye, on a rig with a lens per eye: `(kind topic, left, right)`.

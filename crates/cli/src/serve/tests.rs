@@ -1891,6 +1891,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
                 layers: Arc::new(images),
                 right: None,
                 marker: None,
+                size_compensation: [None; 2],
             };
             use dioptra_rig::display::DisplaySink as _;
             sink.present(&frame, dioptra_core::Timestamp::ZERO).unwrap();

@@ -999,3 +999,150 @@ fn a_serial_number_is_taken_for_a_real_port_and_refused_for_sim() {
         assert!(e.to_string().contains(words), "{e}");
     }
 }
+
+/// The simulated HMD example (`crates/cli/examples/rig-sim-hmd.toml`).
+const HMD_RIG: &str = include_str!("../../../cli/examples/rig-sim-hmd.toml");
+
+#[test]
+fn the_hmd_example_gives_each_eye_its_compensation_eyepiece_and_transfer() {
+    let c = RigConfig::parse(HMD_RIG).unwrap();
+    let images = c.eye_images().unwrap();
+    assert_eq!(images.len(), 2);
+    for (image, side) in images.iter().zip(Side::BOTH) {
+        assert_eq!(image.eye, Some(side));
+        assert_eq!(image.lens, usize::from(side == Side::Right));
+        // The reference is the power of least magnification: the range's lower end.
+        assert_eq!(image.reference, Some(Diopters(-1.0)));
+        let e = image.eyepiece.as_ref().unwrap();
+        assert_eq!(e.from, "optics.distortion");
+        assert_eq!(e.model.channels[0].camera.fx, 227.25);
+        assert_eq!(e.model.channels[1].coefficients.k1, -0.18);
+        assert_eq!(
+            image.transfer,
+            dioptra_core::transfer::Transfer::gamma(2.4, 0.0).unwrap()
+        );
+    }
+    // Without the key the compensation is on where a layout gives the magnification.
+    let default = HMD_RIG.replace("compensate_magnification = true\n", "");
+    assert_ne!(default, HMD_RIG);
+    let c = RigConfig::parse(&default).unwrap();
+    assert!(c
+        .eye_images()
+        .unwrap()
+        .iter()
+        .all(|i| i.reference.is_some()));
+    // And off without one.
+    let c = RigConfig::parse(SIM_RIG).unwrap();
+    let images = c.eye_images().unwrap();
+    assert_eq!(images.len(), 1);
+    assert!(images[0].reference.is_none() && images[0].eyepiece.is_none());
+    assert_eq!(images[0].transfer, dioptra_core::transfer::Transfer::Srgb);
+}
+
+#[test]
+fn image_settings_are_checked_naming_the_key() {
+    let no_layout = with_optics(SIM_RIG, "compensate_magnification = true");
+    assert_ne!(no_layout, SIM_RIG);
+    for (text, key, says) in [
+        (
+            no_layout,
+            "optics.compensate_magnification",
+            "not known without a thin-lens layout",
+        ),
+        (
+            HMD_RIG.replace("k2 = 0.03", "k2 = \"x\""),
+            "optics.distortion.k2",
+            "",
+        ),
+        (
+            HMD_RIG.replace("fx = 227.25", "fx = -1.0"),
+            "optics.distortion.red.fx",
+            "focal length above 0",
+        ),
+        (
+            HMD_RIG.replace("cx = 239.5", "cx = 900.0"),
+            "optics.distortion.cx",
+            "off the eye's 480x270 image",
+        ),
+        (
+            HMD_RIG.replace("transfer = { gamma = 2.4 }", "transfer = { gamma = 9.0 }"),
+            "display.transfer.gamma",
+            "0.2 to 5",
+        ),
+        (
+            HMD_RIG.replace(
+                "transfer = { gamma = 2.4 }",
+                "transfer = { table = \"no-such-panel.csv\" }",
+            ),
+            "display.transfer.table",
+            "cannot read the transfer table",
+        ),
+        (
+            HMD_RIG.replace(
+                "transfer = { gamma = 2.4 }",
+                "transfer_left = { gamma = 2.2 }",
+            ),
+            "display.transfer_left",
+            "two-outputs",
+        ),
+        (
+            HMD_RIG.replace(
+                "compensate_magnification = true\n",
+                "compensate_magnification = true\ndistortion_file = \"eyepiece.toml\"\n",
+            ),
+            "optics.distortion_file",
+            "cannot read the distortion file",
+        ),
+    ] {
+        let e = err(&text);
+        assert_eq!(e.key(), key, "{e}");
+        assert!(e.to_string().contains(says), "{e}");
+    }
+}
+
+#[test]
+fn distortion_files_and_transfer_tables_are_read_from_the_config_files_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("eyepiece.toml"),
+        "[optics.distortion]\nfx = 225.0\nfy = 225.0\ncx = 239.5\ncy = 134.5\nk1 = -0.1\n",
+    )
+    .unwrap();
+    let table: String = std::iter::once("level,luminance_cd_m2\n".to_string())
+        .chain((0..=10).map(|i| {
+            let c = f64::from(i) / 10.0;
+            format!("{c},{}\n", 0.2 + 100.0 * c.powf(2.2))
+        }))
+        .collect();
+    std::fs::write(dir.path().join("panel.csv"), table).unwrap();
+    let text = HMD_RIG
+        .replace(
+            "compensate_magnification = true\n",
+            "compensate_magnification = true\ndistortion_file = \"eyepiece.toml\"\n",
+        )
+        .replace("[optics.distortion]\n", "[unused]\n")
+        .replace(
+            "transfer = { gamma = 2.4 }",
+            "transfer = { table = \"panel.csv\" }",
+        );
+    // The inline section is gone (its keys went under [unused], which is refused): keep only
+    // the file.
+    let text: String = {
+        let start = text.find("[unused]").unwrap();
+        let end = text.find("[eye]").unwrap();
+        format!("{}{}", &text[..start], &text[end..])
+    };
+    let path = dir.path().join("rig.toml");
+    std::fs::write(&path, text).unwrap();
+    let c = RigConfig::load(&path).unwrap();
+    let images = c.eye_images().unwrap();
+    let e = images[1].eyepiece.as_ref().unwrap();
+    assert_eq!(e.model.channels[2].coefficients.k1, -0.1);
+    assert!(e.from.ends_with("eyepiece.toml"), "{}", e.from);
+    assert!(matches!(
+        images[0].transfer,
+        dioptra_core::transfer::Transfer::Table(_)
+    ));
+    // Both kept with the config (a recording holds them).
+    assert_eq!(c.calibration_tables.len(), 2);
+}

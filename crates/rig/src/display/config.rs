@@ -4,10 +4,12 @@
 
 use std::path::PathBuf;
 
+use dioptra_core::transfer::{Transfer, TransferName, TransferSetting, TransferTable};
 use dioptra_core::Side;
 use serde::{Deserialize, Serialize};
 
 use crate::config::error::{invalid, ConfigError};
+use crate::optics::config::Tables;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
@@ -146,6 +148,14 @@ pub struct Display {
     /// `{ left = [x, y], right = [x, y] }`.
     #[serde(default)]
     pub eye_offset_px: EyeOffsets,
+    /// The panel's transfer function, which the renderer's linear light is encoded through:
+    /// `"srgb"` (default), `"linear"`, `{ gamma = G, black = B }` (BT.1886) or
+    /// `{ table = "FILE" }` (`dioptra display calibrate` writes it; relative to the config
+    /// file). Every panel's (each projector's in multifocal), unless `transfer_left` /
+    /// `transfer_right` give an output's own (`layout = "two-outputs"`).
+    pub transfer: Option<TransferSetting>,
+    pub transfer_left: Option<TransferSetting>,
+    pub transfer_right: Option<TransferSetting>,
     /// Frame rate the renderer runs at, Hz.
     #[serde(default = "default_frame_hz")]
     pub frame_hz: f64,
@@ -238,6 +248,9 @@ impl Default for Display {
             layout: DisplayLayout::One,
             scale: Scale::Exact,
             eye_offset_px: EyeOffsets::default(),
+            transfer: None,
+            transfer_left: None,
+            transfer_right: None,
             frame_hz: default_frame_hz(),
             png_every: 0,
             png_dir: None,
@@ -269,9 +282,89 @@ impl Display {
         self.layout.stereo()
     }
 
+    /// The transfer tables the settings name, each with its key.
+    pub fn transfer_files(&self) -> Vec<(&'static str, &PathBuf)> {
+        [
+            ("display.transfer", &self.transfer),
+            ("display.transfer_left", &self.transfer_left),
+            ("display.transfer_right", &self.transfer_right),
+        ]
+        .into_iter()
+        .filter_map(|(key, t)| match t {
+            Some(TransferSetting::Table { table }) => Some((key, table)),
+            _ => None,
+        })
+        .collect()
+    }
+
+    /// The transfer function of an eye's panel (`None`: the one panel), with its key
+    /// (`display.transfer`, or the output's own); sRGB when none is given.
+    pub fn transfer_of(
+        &self,
+        side: Option<Side>,
+        tables: Tables,
+    ) -> Result<(Transfer, &'static str), ConfigError> {
+        let own = match side {
+            Some(Side::Left) => self
+                .transfer_left
+                .as_ref()
+                .map(|t| (t, "display.transfer_left")),
+            Some(Side::Right) => self
+                .transfer_right
+                .as_ref()
+                .map(|t| (t, "display.transfer_right")),
+            None => None,
+        };
+        let Some((setting, key)) = own.or(self.transfer.as_ref().map(|t| (t, "display.transfer")))
+        else {
+            return Ok((Transfer::Srgb, "display.transfer"));
+        };
+        let transfer = match setting {
+            TransferSetting::Named(TransferName::Srgb) => Transfer::Srgb,
+            TransferSetting::Named(TransferName::Linear) => Transfer::linear(),
+            TransferSetting::Gamma { gamma, black } => {
+                Transfer::gamma(*gamma, *black).map_err(|e| match e {
+                    dioptra_core::transfer::TransferError::Invalid { key: k, message } => {
+                        let leaf = k.rsplit('.').next().unwrap_or(k);
+                        invalid(&format!("{key}.{leaf}"), message)
+                    }
+                    e => invalid(key, e.to_string()),
+                })?
+            }
+            TransferSetting::Table { table } => {
+                let text = tables.text.get(table).ok_or_else(|| {
+                    invalid(
+                        key,
+                        format!("{} was not read with the config", table.display()),
+                    )
+                })?;
+                let name = tables.path(table).display().to_string();
+                Transfer::Table(
+                    TransferTable::parse_csv(&name, text)
+                        .map_err(|e| invalid(key, e.to_string()))?,
+                )
+            }
+        };
+        Ok((transfer, key))
+    }
+
     /// The display's size and rate, its monitors and layout, its PNGs.
     pub fn check(&self) -> Result<(), ConfigError> {
         let d = self;
+        if d.layout != DisplayLayout::TwoOutputs {
+            for (key, t) in [
+                ("display.transfer_left", &d.transfer_left),
+                ("display.transfer_right", &d.transfer_right),
+            ] {
+                if t.is_some() {
+                    return Err(invalid(
+                        key,
+                        "an output's own transfer function is for layout = \"two-outputs\"; \
+                         one panel's is display.transfer",
+                    ));
+                }
+            }
+        }
         if !(8..=4096).contains(&d.width) || !(8..=4096).contains(&d.height) {
             return Err(invalid(
                 "display",

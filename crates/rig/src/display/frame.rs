@@ -20,6 +20,18 @@ pub struct Frame {
     pub right: Option<std::sync::Arc<Vec<FrameImage>>>,
     /// The marker patch to draw over it in this present, if the rig has one.
     pub marker: Option<MarkerDraw>,
+    /// Each eye's magnification compensation in this present (the one image's or the left
+    /// eye's, then the right eye's): the image is drawn this many times its size about the
+    /// optical axis (`OpticsMap::size_compensation` at the power the lens model predicts at
+    /// the presentation). `None`: not compensated.
+    pub size_compensation: [Option<f32>; 2],
+}
+
+impl Frame {
+    /// The compensation of `eye`'s image (`None`: layout `one`'s image).
+    pub fn compensation_of(&self, eye: Option<dioptra_core::Side>) -> Option<f32> {
+        self.size_compensation[usize::from(eye == Some(dioptra_core::Side::Right))]
+    }
 }
 
 /// The marker patch as a sink draws it in one present.

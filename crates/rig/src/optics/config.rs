@@ -5,6 +5,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use dioptra_core::distortion::{DistortionSection, EyepieceModel};
 use dioptra_core::optics_map::{
     CalibrationTable, OpticsError, OpticsMap, Prescription, ThinLensLayout,
 };
@@ -50,6 +51,16 @@ pub struct Optics {
     pub prescription_cylinder_d: Option<f64>,
     /// The vertex distance the prescription was written for, mm (default 12).
     pub prescription_vertex_mm: Option<f64>,
+    /// Scale each eye's image by the inverse of its optics' magnification at the lens's power
+    /// (as the lens model predicts it at the frame's presentation), so a stimulus subtends
+    /// the same angle at every focus. Default: on where a layout gives the magnification.
+    pub compensate_magnification: Option<bool>,
+    /// Both eyes' eyepiece distortion (OpenCV's model per colour channel; see
+    /// docs/optics-image.md), unless an eye's section has its own.
+    pub distortion: Option<DistortionSection>,
+    /// Both eyes' eyepiece distortion read from a file holding the section (its keys at the
+    /// top level or under `[optics.distortion]`), relative to the config file.
+    pub distortion_file: Option<PathBuf>,
     /// The left eye's own settings, each overriding the shared one.
     pub left: Option<EyeOptics>,
     pub right: Option<EyeOptics>,
@@ -83,6 +94,9 @@ pub struct EyeOptics {
     pub prescription_cylinder_d: Option<f64>,
     /// The vertex distance this eye's prescription was written for, mm.
     pub prescription_vertex_mm: Option<f64>,
+    pub compensate_magnification: Option<bool>,
+    pub distortion: Option<DistortionSection>,
+    pub distortion_file: Option<PathBuf>,
 }
 
 /// One eye's optics settings with where each came from (`optics` or `optics.left`...).
@@ -103,6 +117,9 @@ impl Optics {
             prescription_sphere_d: self.prescription_sphere_d,
             prescription_cylinder_d: self.prescription_cylinder_d,
             prescription_vertex_mm: self.prescription_vertex_mm,
+            compensate_magnification: self.compensate_magnification,
+            distortion: self.distortion.clone(),
+            distortion_file: self.distortion_file.clone(),
         }
     }
 
@@ -235,7 +252,7 @@ pub struct Tables<'a> {
 
 impl Tables<'_> {
     /// A path given in the config, as it is read: relative ones from the config's folder.
-    fn path(&self, p: &Path) -> PathBuf {
+    pub fn path(&self, p: &Path) -> PathBuf {
         match self.dir {
             Some(dir) if p.is_relative() => dir.join(p),
             _ => p.to_path_buf(),
@@ -426,5 +443,159 @@ fn optics_error(e: OpticsError, section: &str) -> ConfigError {
         } => invalid(section, message),
         OpticsError::Invalid { key, message } => invalid(&format!("{section}.{key}"), message),
         e @ OpticsError::Table { .. } => invalid(section, e.to_string()),
+    }
+}
+
+/// An eye's eyepiece distortion as the config gives it: the model, and where it was read
+/// (`optics.distortion`, `optics.left.distortion_file = "eyepiece.toml"`) for `/status` and
+/// messages.
+#[derive(Debug, Clone)]
+pub struct Eyepiece {
+    pub model: EyepieceModel,
+    pub from: String,
+}
+
+/// The distortion section in a distortion file's text: `[optics.<eye>.distortion]`,
+/// `[optics.distortion]`, or the section's keys at the top level, in that order (the file
+/// `dioptra optics --distortion` reads). Returns the section and its key for messages.
+pub fn parse_distortion_file(
+    name: &str,
+    text: &str,
+    eye: Option<Side>,
+) -> Result<(DistortionSection, String), String> {
+    let table: toml::Table =
+        toml::from_str(text).map_err(|e| format!("{name} is not TOML: {}", e.message()))?;
+    let optics = table.get("optics").and_then(|v| v.as_table());
+    let per_eye = eye.and_then(|side| {
+        optics
+            .and_then(|o| o.get(side.as_str()))
+            .and_then(|e| e.as_table())
+            .and_then(|e| e.get("distortion"))
+            .map(|d| (d.clone(), format!("optics.{}.distortion", side.as_str())))
+    });
+    let (value, section) = match per_eye {
+        Some(found) => found,
+        None => match optics.and_then(|o| o.get("distortion")) {
+            Some(d) => (d.clone(), "optics.distortion".to_string()),
+            None if optics.is_some() => {
+                return Err(format!(
+                    "{name}: an [optics] table without [optics.distortion]"
+                ))
+            }
+            None => (
+                toml::Value::Table(table.clone()),
+                "optics.distortion".to_string(),
+            ),
+        },
+    };
+    let keys: DistortionSection = serde_path_to_error::deserialize(value).map_err(|e| {
+        let at = e.path().to_string();
+        format!(
+            "{name}: {section}{}: {}",
+            if at == "." {
+                String::new()
+            } else {
+                format!(".{at}")
+            },
+            e.inner()
+        )
+    })?;
+    Ok((keys, section))
+}
+
+impl Optics {
+    /// The distortion files the settings name, each with its section.
+    pub fn distortion_files(&self) -> [(&'static str, Option<&PathBuf>); 3] {
+        [
+            ("optics", self.distortion_file.as_ref()),
+            (
+                "optics.left",
+                self.left.as_ref().and_then(|e| e.distortion_file.as_ref()),
+            ),
+            (
+                "optics.right",
+                self.right.as_ref().and_then(|e| e.distortion_file.as_ref()),
+            ),
+        ]
+    }
+
+    /// The section an eye's settings come from (`None`: the rig's one image, which takes the
+    /// one per-eye section of a monocular bench as [`Optics::map`] does).
+    fn eye_settings(&self, side: Option<Side>) -> Option<(&EyeOptics, &'static str)> {
+        let side = side.or_else(|| self.one_lens_eye())?;
+        let key = match side {
+            Side::Left => "optics.left",
+            Side::Right => "optics.right",
+        };
+        self.eye(side).map(|e| (e, key))
+    }
+
+    /// The eyepiece of an eye (`None` side: the rig's one image): the eye's own `distortion`
+    /// or `distortion_file`, else `[optics]`'s; `Ok(None)`: no distortion is given. Errors
+    /// name the key (and the file).
+    pub fn eyepiece(
+        &self,
+        side: Option<Side>,
+        tables: Tables,
+    ) -> Result<Option<Eyepiece>, ConfigError> {
+        let shared = self.shared();
+        let eye = self.eye_settings(side);
+        let mut sections: Vec<(&EyeOptics, &'static str)> = eye.into_iter().collect();
+        sections.push((&shared, "optics"));
+        for (s, key) in sections {
+            if s.distortion.is_some() && s.distortion_file.is_some() {
+                return Err(invalid(
+                    &format!("{key}.distortion_file"),
+                    format!(
+                        "both [{key}.distortion] and {key}.distortion_file are given: keep one"
+                    ),
+                ));
+            }
+            let side_of_file = side.or_else(|| self.one_lens_eye());
+            let (section, at, from) = match (&s.distortion, &s.distortion_file) {
+                (Some(d), _) => {
+                    let at = format!("{key}.distortion");
+                    (d.clone(), at.clone(), at)
+                }
+                (None, Some(file)) => {
+                    let file_key = format!("{key}.distortion_file");
+                    let text = tables.text.get(file).ok_or_else(|| {
+                        invalid(
+                            &file_key,
+                            format!("{} was not read with the config", file.display()),
+                        )
+                    })?;
+                    let name = tables.path(file).display().to_string();
+                    let (section, in_file) = parse_distortion_file(&name, text, side_of_file)
+                        .map_err(|m| invalid(&file_key, m))?;
+                    (section, format!("{name}: {in_file}"), name)
+                }
+                (None, None) => continue,
+            };
+            let model = section.model(&at).map_err(|e| invalid(&e.key, e.message))?;
+            return Ok(Some(Eyepiece { model, from }));
+        }
+        Ok(None)
+    }
+
+    /// Whether an eye's image is scaled for the magnification of `map` (its optics map):
+    /// `compensate_magnification` (the eye's, else `[optics]`'s), by default whether the map
+    /// gives the magnification (a layout). On without a layout is refused, naming the key.
+    pub fn compensates(&self, side: Option<Side>, map: &OpticsMap) -> Result<bool, ConfigError> {
+        let setting = self
+            .eye_settings(side)
+            .and_then(|(e, key)| e.compensate_magnification.map(|v| (v, key)))
+            .or(self.compensate_magnification.map(|v| (v, "optics")));
+        let known = map.magnification_reference().is_some();
+        match setting {
+            Some((true, key)) if !known => Err(invalid(
+                &format!("{key}.compensate_magnification"),
+                "the magnification is not known without a thin-lens layout ([optics.layout]: \
+                 display_distance_m, eye_relief_m, fixed_power_d): add one, or set this to \
+                 false",
+            )),
+            Some((on, _)) => Ok(on),
+            None => Ok(known),
+        }
     }
 }
