@@ -549,7 +549,8 @@ async fn the_procedural_scene_moves_with_rig_time() {
         t.replace("dir = \"recordings\"", &format!("dir = {d:?}"))
             .replace("start = false", "start = true")
     });
-    let renderer = FixedCost(RgbdRenderer::new(&cfg).unwrap());
+    let renderer =
+        FixedCost(RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap());
     let r = SimRun::new(cfg, Duration::from_secs(1))
         .unwrap()
         .run(None, Arc::new(renderer), None)

@@ -17,10 +17,10 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+use crate::common;
 use anyhow::{bail, Context, Result};
 use dioptra_core::transfer::{TransferFit, TransferFitLimits, MIN_LEVELS};
 use dioptra_sim::eye_camera::{PanelResponse, Photometer};
-use crate::common;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

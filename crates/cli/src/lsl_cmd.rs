@@ -24,7 +24,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let cfg = RigConfig::load(&args.config)
         .with_context(|| format!("rig config {}", args.config.display()))?;
-    let specs = stream_specs(&cfg);
+    let specs = stream_specs(&cfg.lsl, &cfg.devices);
     if args.json {
         let v = serde_json::json!({
             "enabled": cfg.lsl.enabled,

@@ -45,7 +45,7 @@ pub enum Cmd {
         /// With a lens per eye, the eye's lens.
         #[serde(
             skip_serializing_if = "Option::is_none",
-            serialize_with = "dioptra_rig::config::side_serde::serialize"
+            serialize_with = "dioptra_rig::recording::side_serde::serialize"
         )]
         eye: Option<Side>,
     },
@@ -345,7 +345,8 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
         ContentSource::Scene => Some(
             AnimatedScene::start(
                 cfg.display.scene_seed,
-                scene::camera(&cfg).context("the recorded rig's eye and display")?,
+                scene::camera(&cfg.eye, &cfg.display)
+                    .context("the recorded rig's eye and display")?,
                 cfg.content.animate.unwrap_or(true),
                 Pacing::Simulated,
             )
@@ -360,11 +361,17 @@ pub fn replay(rec: &Recorded) -> Result<ReplayReport> {
             let frame = s.frame_at(*t0).map_or_else(|| s.current().0, |(f, _)| f);
             Arc::new(frame.depth.clone())
         }
-        None => dioptra_rig::content::open(&cfg, Pacing::Simulated)
-            .context("cannot open the recorded rig's content")?
-            .poll(*t0)
-            .context("the recorded rig's content has no frame")?
-            .depth(),
+        None => dioptra_rig::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            Pacing::Simulated,
+        )
+        .context("cannot open the recorded rig's content")?
+        .poll(*t0)
+        .context("the recorded rig's content has no frame")?
+        .depth(),
     };
     let depth_at = |scene_ns: Option<u64>| -> Result<Arc<DepthMap>> {
         let Some(t) = scene_ns else {

@@ -39,10 +39,17 @@ fn stereo(c: &mut Criterion) {
     g.sample_size(10).measurement_time(Duration::from_secs(4));
     for size in [256usize, 512] {
         let cfg = config(size);
-        let content = dioptra_rig::content::open(&cfg, Pacing::Simulated).unwrap();
+        let content = dioptra_rig::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            Pacing::Simulated,
+        )
+        .unwrap();
         let scene_frame = content.poll(Timestamp::ZERO).unwrap();
         let mono = ContentFrame::new(0, scene_frame.rgbd.clone());
-        let views = EyeViews::new(&cfg).unwrap();
+        let views = EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         // The rig's scene frames bring their eyes' views (cast on its worker, as here).
         let scene_only = ContentFrame {
             eyes: None,
@@ -57,7 +64,7 @@ fn stereo(c: &mut Criterion) {
             |b| b.iter(|| views.of(&fresh(&mono)).unwrap()),
         );
         let ([left, _], _) = views.of(&scene_frame).unwrap();
-        let renderer = RgbdRenderer::new(&cfg).unwrap();
+        let renderer = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
         for (mode, method) in [
             (Mode::Varifocal, RenderMethod::Gather),
             (Mode::Multifocal, RenderMethod::Linear),
@@ -88,7 +95,7 @@ fn stereo(c: &mut Criterion) {
         // Light-field content (`content.views = 3`): the panel from a 3 x 3 grid of the
         // scene's pinhole views over the panel's 4 mm, against the one RGB-D above.
         let scene = scene_frame.scene.clone().unwrap();
-        let cam = dioptra_rig::content::scene::camera(&cfg).unwrap();
+        let cam = dioptra_rig::content::scene::camera(&cfg.eye, &cfg.display).unwrap();
         let grid: std::sync::Arc<[ContentView]> =
             dioptra_sim::scene::light_field_positions(3, 0.004)
                 .unwrap()

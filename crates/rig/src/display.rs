@@ -1,7 +1,6 @@
 //! Display output behind [`DisplaySink`]. [`HeadlessSink`] records each frame's timing (and
-//! writes every Nth frame as PNG) for tests and CI; the rig's fullscreen window
-//! ([`super::window::WindowSink`]: winit with a wgpu surface, vsync, on a chosen monitor)
-//! implements the same trait. Both place each eye's image on the surface with
+//! writes every Nth frame as PNG) for tests and CI; the binary's fullscreen window (winit
+//! with a wgpu surface, vsync, on a chosen monitor) implements the same trait. Both place each eye's image on the surface with
 //! [`placement`] (`display.layout`, `display.scale`, `display.eye_offset_px`).
 //!
 //! The marker patch (`display.marker_patch`): a square in one corner that both sinks draw
@@ -14,15 +13,18 @@ use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
-use dioptra_core::{Diopters, RgbImage, Timestamp};
+use dioptra_core::{RgbImage, Timestamp};
 use serde::Serialize;
 use thiserror::Error;
 
-use crate::config::{Corner, DisplayLayout, MarkerEvent, MarkerPatch};
-use crate::render::FrameImage;
+use config::{DisplayLayout, MarkerEvent, MarkerPatch};
 
 pub mod blit;
+pub mod config;
+pub mod frame;
 pub mod placement;
+
+pub use frame::{Frame, MarkerDraw};
 
 use placement::{PlaceError, PlacementConfig, Placer};
 
@@ -45,63 +47,6 @@ pub enum DisplayError {
     /// has counted it in its status and logged the reason (once per reason).
     #[error("frame not shown: {0}")]
     NotShown(PlaceError),
-}
-
-/// A rendered frame: one image (varifocal, light field) or one per focal plane (multifocal).
-#[derive(Debug, Clone)]
-pub struct Frame {
-    pub number: u64,
-    /// The focus it was rendered for.
-    pub focus: Diopters,
-    /// Shared, so a sink can hand the frame to another thread without copying the images.
-    /// On a stereo layout (`display.layout`): the left eye's.
-    pub layers: std::sync::Arc<Vec<FrameImage>>,
-    /// On a stereo layout: the right eye's images, as many as `layers`.
-    pub right: Option<std::sync::Arc<Vec<FrameImage>>>,
-    /// The marker patch to draw over it in this present, if the rig has one.
-    pub marker: Option<MarkerDraw>,
-}
-
-/// The marker patch as a sink draws it in one present.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub struct MarkerDraw {
-    pub corner: Corner,
-    /// Side, pixels.
-    pub size: u32,
-    pub white: bool,
-}
-
-impl MarkerDraw {
-    /// The patch in a `width` x `height` image (rows from the top): x, y, width, height,
-    /// clipped to the image.
-    pub fn rect(&self, width: u32, height: u32) -> [u32; 4] {
-        let (w, h) = (self.size.min(width), self.size.min(height));
-        let x = match self.corner {
-            Corner::TopLeft | Corner::BottomLeft => 0,
-            Corner::TopRight | Corner::BottomRight => width - w,
-        };
-        let y = match self.corner {
-            Corner::TopLeft | Corner::TopRight => 0,
-            Corner::BottomLeft | Corner::BottomRight => height - h,
-        };
-        [x, y, w, h]
-    }
-
-    /// Paints the patch into `image` (linear light: white 1, black 0).
-    pub fn paint(&self, image: &mut RgbImage) {
-        let (width, height) = (image.width(), image.height());
-        let [x0, y0, w, h] = self.rect(
-            u32::try_from(width).unwrap_or(u32::MAX),
-            u32::try_from(height).unwrap_or(u32::MAX),
-        );
-        let v = if self.white { 1.0 } else { 0.0 };
-        for plane in &mut image.channels {
-            for y in y0 as usize..(y0 + h) as usize {
-                let row = y * width;
-                plane.data_mut()[row + x0 as usize..row + (x0 + w) as usize].fill(v);
-            }
-        }
-    }
 }
 
 /// The patch's colour, present by present: the loop's own state.
@@ -239,7 +184,7 @@ impl HeadlessSink {
 
     /// The sink `display` asks for: its layout, scale and offsets on a panel of its size
     /// (`side-by-side`: 2 x `width` wide; `two-outputs`: an output `width` x `height` per eye).
-    pub fn for_display(d: &crate::config::Display) -> Result<Self, DisplayError> {
+    pub fn for_display(d: &config::Display) -> Result<Self, DisplayError> {
         let surface = match d.layout {
             DisplayLayout::SideBySide => (d.width.saturating_mul(2), d.height),
             DisplayLayout::One | DisplayLayout::TwoOutputs => (d.width, d.height),
@@ -437,6 +382,8 @@ impl DisplaySink for HeadlessSink {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use config::Corner;
+    use dioptra_core::Diopters;
 
     #[test]
     fn headless_writes_every_nth_frame_and_keeps_timings() {
@@ -611,15 +558,15 @@ mod tests {
 
     fn display(
         layout: DisplayLayout,
-        scale: crate::config::Scale,
+        scale: config::Scale,
         dir: &std::path::Path,
-    ) -> crate::config::Display {
-        crate::config::Display {
+    ) -> config::Display {
+        config::Display {
             width: 10,
             height: 8,
             layout,
             scale,
-            eye_offset_px: crate::config::EyeOffsets {
+            eye_offset_px: config::EyeOffsets {
                 left: [1, 0],
                 right: [-1, 1],
             },
@@ -641,7 +588,7 @@ mod tests {
 
     #[test]
     fn side_by_side_writes_the_panel_with_each_eye_at_its_place() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,
@@ -692,7 +639,7 @@ mod tests {
 
     #[test]
     fn two_outputs_write_an_image_per_eye() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::TwoOutputs,
@@ -739,7 +686,7 @@ mod tests {
 
     #[test]
     fn layout_one_writes_the_image_byte_for_byte_as_before() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let (old, new) = (dir.path().join("old"), dir.path().join("new"));
         let mut d = display(DisplayLayout::One, Scale::Exact, &new);
@@ -777,7 +724,7 @@ mod tests {
 
     #[test]
     fn a_misfit_is_not_shown_and_is_counted_with_its_reason() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,
@@ -820,7 +767,7 @@ mod tests {
 
     #[test]
     fn one_view_on_a_stereo_layout_goes_to_both_eyes_and_is_counted() {
-        use crate::config::Scale;
+        use config::Scale;
         let dir = tempfile::tempdir().unwrap();
         let mut s = HeadlessSink::for_display(&display(
             DisplayLayout::SideBySide,

@@ -16,9 +16,34 @@ use serde_json::json;
 
 pub use dioptra_sched::Command;
 
-use crate::config::{Lenses, Method, Mode, RigConfig};
-use crate::devices::DeviceInput;
-use crate::Control;
+use crate::config::RigConfig;
+use crate::content::frame::Arrival;
+use crate::devices::config::{LensDevice, Lenses};
+use crate::devices::input::DeviceInput;
+use crate::mode::{Method, Mode};
+use crate::recording::ControlRec;
+
+/// A command for the loop (from the API, or a script of the simulated rig).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Control {
+    Mode(Mode),
+    Method(Method),
+    ManualFocus(Option<f32>),
+}
+
+impl Control {
+    pub(crate) fn rec(&self) -> ControlRec {
+        match self {
+            Control::Mode(m) => ControlRec::Mode {
+                mode: m.as_str().into(),
+            },
+            Control::Method(m) => ControlRec::Method {
+                method: m.as_str().into(),
+            },
+            Control::ManualFocus(d) => ControlRec::ManualFocus { diopters: *d },
+        }
+    }
+}
 
 /// What the daemon gives the scheduler.
 #[derive(Debug, Clone, PartialEq)]
@@ -28,7 +53,7 @@ pub enum Input {
     /// The depth map of the content being shown (diopters), read at the gaze point.
     Depth(Arc<DepthMap>),
     /// The content frame of the latest depth arrived and was ready then.
-    Content(crate::content::Arrival),
+    Content(Arrival),
     RenderFinished {
         frame: u64,
         method: Method,
@@ -72,7 +97,7 @@ pub fn sched_config(cfg: &RigConfig) -> Result<SchedulerConfig, String> {
     let r = cfg.optics.lens_range;
     s.lens_range = PowerRange::new(Diopters(r.min), Diopters(r.max))
         .ok_or("optics.lens_range: min must be below max")?;
-    let dynamics = |l: &crate::config::LensDevice| LensDynamics {
+    let dynamics = |l: &LensDevice| LensDynamics {
         settle_time: Duration::from_secs_f64(l.model_settle_ms() / 1000.0),
         ..LensDynamics::default()
     };

@@ -1,5 +1,5 @@
-//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages
-//! and the Lab Streaming Layer outlets, each a [`LoopHook`] the loop calls as it goes. The
+//! What watches the loop: the recording, the status `/status` shows, the WebSocket's messages,
+//! the Lab Streaming Layer outlets and a simulated panel's marker patch, each a [`LoopHook`] the loop calls as it goes. The
 //! loop itself ([`crate::executor`]) only steps the scheduler and carries out its commands.
 
 use std::collections::HashMap;
@@ -9,18 +9,18 @@ use std::time::Duration;
 use dioptra_core::{lock, Timestamp};
 use serde_json::json;
 
-use crate::config::{Method, Mode};
 use crate::content::ContentFrame;
 use crate::devices::DeviceInput;
 use crate::devices::LensId;
 use crate::display::DisplaySink;
-use crate::engine::{self, Command, Engine};
+use crate::engine::{self, Command, Control, Engine};
 use crate::executor::{LoopHook, Presented, RenderReport};
+use crate::mode::{Method, Mode};
 use crate::recording::{
     ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensStateRec, LensWireRec, Marker,
     PresentRec, Rec, RenderRec,
 };
-use crate::{Control, RigState};
+use crate::state::{lens_settled, RenderErrorNote, RigState, SUBFRAME_TOLERANCE_D};
 use dioptra_core::Side;
 
 /// The observers every rig has, in the order the loop calls them.
@@ -174,7 +174,7 @@ impl LoopHook for Recording {
 /// A kind of render error (method and kind) is logged at most once per this long.
 const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
 
-/// Keeps [`crate::LoopStatus`] (what `/status` shows of the loop) and logs failed renders.
+/// Keeps [`crate::state::LoopStatus`] (what `/status` shows of the loop) and logs failed renders.
 struct Status {
     state: Arc<RigState>,
     /// Per (method, error kind): when it was last logged, and how many since.
@@ -255,7 +255,7 @@ impl LoopHook for Status {
             DeviceInput::Gaze(..) => st.gaze_samples += 1,
             DeviceInput::LensState(lens, s) => {
                 let target = lens_target(engine, *lens);
-                let settled = crate::lens_settled(
+                let settled = lens_settled(
                     s,
                     target.map(|d| d.0),
                     engine.scheduler().config().settled_tolerance_d,
@@ -280,7 +280,7 @@ impl LoopHook for Status {
                         let plane = sh.cfg.optics.planes.get(usize::from(*plane_index));
                         if let (Some(p), Some(l)) = (plane, lens_power) {
                             st.subframes_measured += 1;
-                            if (l.0 - p).abs() > crate::SUBFRAME_TOLERANCE_D {
+                            if (l.0 - p).abs() > SUBFRAME_TOLERANCE_D {
                                 st.subframes_off_target += 1;
                             }
                         }
@@ -332,7 +332,7 @@ impl LoopHook for Status {
                     *st.render_errors_by_method
                         .entry(method.clone())
                         .or_default() += 1;
-                    st.last_render_error = Some(crate::RenderErrorNote {
+                    st.last_render_error = Some(RenderErrorNote {
                         frame: r.job.frame,
                         method,
                         kind: f.kind,
@@ -439,7 +439,7 @@ impl LoopHook for WebSocket {
                         "focus_d": optics.focus_of(s.power).0,
                         "target_d": target.map(|d| d.0),
                         "target_focus_d": target.map(|d| optics.focus_of(d).0),
-                        "settled": crate::lens_settled(s, target.map(|d| d.0), tolerance),
+                        "settled": lens_settled(s, target.map(|d| d.0), tolerance),
                         "current_ma": s.current_ma,
                         "temperature_c": s.temperature_c,
                     });
@@ -601,6 +601,18 @@ impl LoopHook for Lsl {
                     "repeat": p.repeat,
                 }),
             );
+        }
+    }
+}
+
+/// Shows each presented frame's marker patch on the simulated panel, so that a simulated
+/// photodiode sees what the display draws (whichever sink draws it).
+pub struct PanelFeed(pub dioptra_sim::panel::SharedPanel);
+
+impl LoopHook for PanelFeed {
+    fn presented(&mut self, _now: Timestamp, shown: &Presented, _sink: &dyn DisplaySink) {
+        if let Some(white) = shown.marker_white {
+            self.0.lock().present(shown.shown, shown.frame, white);
         }
     }
 }

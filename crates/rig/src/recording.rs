@@ -32,6 +32,27 @@ use dioptra_core::Side;
 use thiserror::Error;
 use tokio::sync::mpsc;
 
+pub mod config;
+
+/// An eye (`left`/`right`) in serialized records: core's [`Side`], which has no serde.
+pub mod side_serde {
+    use dioptra_core::Side;
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(side: &Option<Side>, s: S) -> Result<S::Ok, S::Error> {
+        side.map(Side::as_str).serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Side>, D::Error> {
+        match Option::<String>::deserialize(d)? {
+            None => Ok(None),
+            Some(s) => Side::parse(&s).map(Some).ok_or_else(|| {
+                serde::de::Error::custom(format!("{s:?}: expected \"left\" or \"right\""))
+            }),
+        }
+    }
+}
+
 #[derive(Debug, Error)]
 pub enum RecordingError {
     #[error("cannot create the recording {path}: {source}; check that recording.dir exists and is writable")]
@@ -117,11 +138,7 @@ pub struct LensStateRec {
     pub host_ns: u64,
     /// With a lens per eye, the eye whose lens it is (its topics are `/lens/left/...` and
     /// `/lens/right/...`); absent for a rig's one lens.
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -352,11 +369,7 @@ pub struct LensWireRec {
     pub requested_d: f32,
     pub wire_ns: u64,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -365,11 +378,7 @@ pub struct LensWireRec {
 pub struct LensLinkRec {
     pub up: bool,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -384,11 +393,7 @@ pub struct LensCommandRec {
     #[serde(default)]
     pub focus_d: Option<f32>,
     /// With a lens per eye, the eye (see [`LensStateRec::eye`]).
-    #[serde(
-        default,
-        skip_serializing_if = "Option::is_none",
-        with = "crate::config::side_serde"
-    )]
+    #[serde(default, skip_serializing_if = "Option::is_none", with = "side_serde")]
     pub eye: Option<Side>,
 }
 
@@ -434,7 +439,7 @@ pub struct StartRec {
     pub manual_focus_d: Option<f32>,
     /// Whether the recording began with the daemon (a replay then starts from the same state).
     pub from_start: bool,
-    /// The device tasks' settings ([`crate::devices::DeviceSettings`]); absent in older
+    /// The device tasks' settings (`devices::DeviceSettings`); absent in older
     /// recordings.
     #[serde(default)]
     pub device_tasks: serde_json::Value,

@@ -17,13 +17,15 @@ use dioptra_sched::processing::EyePhase;
 use dioptra_sched::{Command, CommandId, FocusReason, FrameRequest, LinkStatus, SchedulerConfig};
 use dioptra_sim::gaze::generator::TruthSample;
 
-use crate::config::{Mode, Port, RigConfig};
+use crate::config::{ConfigError, RigConfig};
 use crate::content::{Content, ContentFrame};
+use crate::devices::config::{GazeDriver, Port};
 use crate::devices::simulators::{SimDevices, SimSpec};
 use crate::devices::{DeviceInput, LensId};
 use crate::display::DisplaySink;
 use crate::engine::{sched_config, Engine};
 use crate::executor::LoopHook;
+use crate::mode::Mode;
 use crate::render::{RenderJob, RenderOutput, Renderer};
 use crate::{Control, Rig, RigError, RigSetup, RigState, ShutdownReport};
 
@@ -84,7 +86,7 @@ impl SimRun {
             ]);
         for (key, port) in ports {
             if let Some(p) = port.filter(|p| **p != Port::Sim) {
-                return Err(RigError::Config(crate::config::ConfigError::Invalid {
+                return Err(RigError::Config(ConfigError::Invalid {
                     key: key.into(),
                     message: format!(
                         "{p}: a simulated run needs every device simulated (port = \"sim\")"
@@ -92,16 +94,16 @@ impl SimRun {
                 }));
             }
         }
-        if d.gaze.driver == crate::config::GazeDriver::Pupil {
+        if d.gaze.driver == GazeDriver::Pupil {
             // Its simulator is reached over real sockets, which a paused clock would outrun.
-            return Err(RigError::Config(crate::config::ConfigError::Invalid {
+            return Err(RigError::Config(ConfigError::Invalid {
                 key: "devices.gaze.driver".into(),
                 message: "pupil: the simulated Pupil Capture runs on real loopback sockets and real time; a simulated-time run needs dioptra-tracker or hid (run the pupil rig with `dioptra serve`)".into(),
             }));
         }
-        let mut spec = SimSpec::from_config(&cfg)?;
-        spec.record_gaze_truth = true;
         let sched = sched_config(&cfg).map_err(RigError::Scheduler)?;
+        let mut spec = SimSpec::from_config(&cfg, sched.display.latency)?;
+        spec.record_gaze_truth = true;
         Ok(SimRun {
             cfg,
             spec,

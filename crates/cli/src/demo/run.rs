@@ -86,7 +86,15 @@ pub(super) fn run_demo(args: Args) -> Result<()> {
     sim.spec.gaze_scene = frames.gaze_scene();
     // The rig's renderer, as `dioptra serve` makes it from the same config, watched.
     let renderer = std::sync::Arc::new(Observed::new(
-        std::sync::Arc::new(RgbdRenderer::new(&sim.cfg).context("the demo's renderer")?),
+        std::sync::Arc::new(
+            RgbdRenderer::new(
+                &sim.cfg.render,
+                &sim.cfg.eye,
+                &sim.cfg.display,
+                &sim.cfg.optics,
+            )
+            .context("the demo's renderer")?,
+        ),
         frames.keep_after(),
         frames.planes().to_vec(),
     ));

@@ -68,10 +68,12 @@ fn serve_blocking(
         if let Some(w) = window {
             // The renderer first: the window draws with its GPU device when it has one.
             let c = setup.cfg.clone();
-            let renderer = tokio::task::spawn_blocking(move || RgbdRenderer::new(&c))
-                .await
-                .context("the renderer's start failed")?
-                .context("cannot start the renderer")?;
+            let renderer = tokio::task::spawn_blocking(move || {
+                RgbdRenderer::new(&c.render, &c.eye, &c.display, &c.optics)
+            })
+            .await
+            .context("the renderer's start failed")?
+            .context("cannot start the renderer")?;
             let placement =
                 dioptra_rig::display::placement::PlacementConfig::from_display(&setup.cfg.display);
             let sink = window::WindowSink::new(w, renderer.gpu_context(), placement)
@@ -180,8 +182,8 @@ impl Daemon {
 
     /// Starts the rig of `setup` and the API; the API is listening when this returns.
     pub async fn start(setup: RigSetup) -> Result<Daemon> {
-        let listen = setup.cfg.listen()?;
-        let token = setup.cfg.api_token()?;
+        let listen = setup.cfg.api.listen()?;
+        let token = setup.cfg.api.bearer_token()?;
         let rig = Rig::start(setup).await?;
         let shared = rig.state().clone();
         // A required device (every real port, unless the config says otherwise) must be

@@ -21,8 +21,14 @@ use super::{api, Daemon, Listening};
 
 /// The first frame of `cfg`'s content (the procedural scene of the example rig).
 fn scene_frame(cfg: &RigConfig) -> dioptra_rig::content::ContentFrame {
-    let content =
-        dioptra_rig::content::open(cfg, dioptra_rig::content::scene::Pacing::RealTime).unwrap();
+    let content = dioptra_rig::content::open(
+        &cfg.content,
+        &cfg.display,
+        &cfg.eye,
+        &cfg.api,
+        dioptra_rig::content::scene::Pacing::RealTime,
+    )
+    .unwrap();
     content.poll(dioptra_core::Timestamp::ZERO).unwrap()
 }
 
@@ -1388,7 +1394,13 @@ fn the_network_renders_what_the_net_computes() {
     let weights = dir.path().join("weights");
     random_weights(&weights);
     let cfg = network_config(dir.path(), &weights);
-    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &cfg.render,
+        &cfg.eye,
+        &cfg.display,
+        &cfg.optics,
+    )
+    .unwrap();
     let frame = scene_frame(&cfg);
     assert!(r.network_missing().is_empty());
     let c1 = dioptra_net::load_net(Some(&weights.join("c1.safetensors")), "c1").unwrap();
@@ -1450,7 +1462,13 @@ fn c4_weights_for_other_planes_are_refused_for_multifocal_only() {
     random_weights(&weights);
     let mut cfg = network_config(dir.path(), &weights);
     cfg.optics.planes = vec![0.5, 1.5];
-    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &cfg.render,
+        &cfg.eye,
+        &cfg.display,
+        &cfg.optics,
+    )
+    .unwrap();
     let missing = r.network_missing();
     // C4 and C4R, both made for other planes.
     assert_eq!(missing.len(), 2, "{missing:?}");
@@ -1481,7 +1499,13 @@ fn refine_renders_what_the_refinement_nets_compute() {
     let mut cfg = network_config(dir.path(), &weights);
     cfg.method = dioptra_rig::config::Method(dioptra_sched::RenderMethod::Refine);
     cfg.render.backend = dioptra_rig::config::RenderBackend::Cpu;
-    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let r = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &cfg.render,
+        &cfg.eye,
+        &cfg.display,
+        &cfg.optics,
+    )
+    .unwrap();
     let frame = scene_frame(&cfg);
     assert!(r.network_missing().is_empty());
     let eye = dioptra_core::EyeModel {
@@ -1671,7 +1695,13 @@ impl dioptra_rig::render::Renderer for FailingBelow1D {
 async fn a_failing_render_shows_the_unblurred_frame_and_says_why() {
     let dir = tempfile::tempdir().unwrap();
     let cfg = sim_config(dir.path(), false);
-    let scene = dioptra_rig::render::rgbd::RgbdRenderer::new(&cfg).unwrap();
+    let scene = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &cfg.render,
+        &cfg.eye,
+        &cfg.display,
+        &cfg.optics,
+    )
+    .unwrap();
     let mut setup = dioptra_rig::RigSetup::new(cfg);
     setup.renderer = Some(std::sync::Arc::new(FailingBelow1D(
         scene,
@@ -1788,8 +1818,20 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
     cpu_cfg.render.weights = None;
     let mut gpu_cfg = cpu_cfg.clone();
     gpu_cfg.render.backend = dioptra_rig::config::RenderBackend::Gpu;
-    let cpu = dioptra_rig::render::rgbd::RgbdRenderer::new(&cpu_cfg).unwrap();
-    let gpu = dioptra_rig::render::rgbd::RgbdRenderer::new(&gpu_cfg).unwrap();
+    let cpu = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &cpu_cfg.render,
+        &cpu_cfg.eye,
+        &cpu_cfg.display,
+        &cpu_cfg.optics,
+    )
+    .unwrap();
+    let gpu = dioptra_rig::render::rgbd::RgbdRenderer::new(
+        &gpu_cfg.render,
+        &gpu_cfg.eye,
+        &gpu_cfg.display,
+        &gpu_cfg.optics,
+    )
+    .unwrap();
     let frame = scene_frame(&cpu_cfg);
     let status = gpu.backend_status();
     assert_eq!(status["backend"], json!("gpu"), "{status}");

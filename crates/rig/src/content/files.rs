@@ -29,8 +29,10 @@ use dioptra_core::{lock, Rgbd, Side, Timestamp};
 use dioptra_render::io::{read_color, read_depth, DepthUnits};
 use serde::Serialize;
 
-use super::{Arrival, Content, ContentError, ContentFrame, ContentView};
-use crate::config::{ContentConfig, RigConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
+use super::config::{ContentConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
+use super::frame::{Arrival, ContentFrame, ContentView};
+use super::source::{Content, ContentError};
+use crate::display::config::Display;
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
@@ -394,9 +396,8 @@ impl std::fmt::Debug for FileFrames {
 }
 
 impl FileFrames {
-    /// Opens the sequence of `cfg.content` and decodes its first frame.
-    pub fn open(cfg: &RigConfig) -> Result<FileFrames, ContentError> {
-        let c: &ContentConfig = &cfg.content;
+    /// Opens the sequence of `[content]` and decodes its first frame at the display's size.
+    pub fn open(c: &ContentConfig, display: &Display) -> Result<FileFrames, ContentError> {
         let (Some(color), Some(depth)) = (&c.color, &c.depth) else {
             return Err(ContentError::Config(
                 "source = \"files\" needs content.color and content.depth".into(),
@@ -409,7 +410,7 @@ impl FileFrames {
             .transpose()
             .map_err(|e| ContentError::Config(format!("content.depth_units: {e}")))?;
         let first = c.first.unwrap_or(0);
-        let stereo = cfg.stereo();
+        let stereo = display.stereo();
         // Config validation refuses %e on a mono layout; checked again for a config built by
         // hand.
         let eyes = color.contains(EYE_MARK);
@@ -425,7 +426,7 @@ impl FileFrames {
             c.view_span_mm.unwrap_or(DEFAULT_VIEW_SPAN_MM),
         )?;
         let pairs = Arc::new(sequence(color, depth, first, &layout)?);
-        let size = (cfg.display.width as usize, cfg.display.height as usize);
+        let size = (display.width as usize, display.height as usize);
         let first_frame = decode_views(&pairs[0], units, size, stereo)?;
         let shared = Arc::new(Shared {
             state: Mutex::new(Worker {
@@ -632,6 +633,7 @@ fn decode_ahead(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::RigConfig;
     use dioptra_core::{DepthMap, Plane, RgbImage};
     use dioptra_render::io::{write_color, write_depth};
     use std::time::Duration;
@@ -639,6 +641,11 @@ mod tests {
     fn frame(v: f32, w: usize, h: usize) -> (RgbImage, DepthMap) {
         let depth = DepthMap::from_diopters(Plane::new(w, h, 1.0 + v)).unwrap();
         (RgbImage::new(w, h, [v, 0.5, 0.25]), depth)
+    }
+
+    /// The file frames of `cfg`'s `[content]` at its display's size.
+    fn open_cfg(cfg: &RigConfig) -> Result<FileFrames, ContentError> {
+        FileFrames::open(&cfg.content, &cfg.display)
     }
 
     fn config(dir: &Path, color: &str, depth: &str, extra: &str) -> RigConfig {
@@ -681,7 +688,7 @@ mod tests {
             "d_%03d.exr",
             "fps = 10\nloop = true",
         );
-        let f = FileFrames::open(&cfg).unwrap();
+        let f = FileFrames::open(&cfg.content, &cfg.display).unwrap();
         assert_eq!(f.status().frames_in_sequence, 3);
         let ms = |m: u64| Timestamp(m * 1_000_000);
         let (first, changed) = f.frame_at(ms(0));
@@ -710,7 +717,7 @@ mod tests {
         write_sequence(dir.path(), 3);
         std::fs::write(dir.path().join("c_001.exr"), b"not an exr").unwrap();
         let cfg = config(dir.path(), "c_%03d.exr", "d_%03d.exr", "fps = 10");
-        let f = FileFrames::open(&cfg).unwrap();
+        let f = FileFrames::open(&cfg.content, &cfg.display).unwrap();
         f.frame_at(Timestamp(0));
         cached(&f, 3);
         let (fr, changed) = f.frame_at(Timestamp(150_000_000));
@@ -736,19 +743,19 @@ mod tests {
     fn bad_content_stops_the_start_naming_the_file() {
         let dir = tempfile::tempdir().unwrap();
         write_sequence(dir.path(), 1);
-        let e = FileFrames::open(&config(dir.path(), "x_%03d.exr", "d_%03d.exr", ""))
+        let e = open_cfg(&config(dir.path(), "x_%03d.exr", "d_%03d.exr", ""))
             .unwrap_err()
             .to_string();
         assert!(e.contains("x_000.exr") && e.contains("not found"), "{e}");
         std::fs::write(dir.path().join("bad.png"), b"\x89PNG garbage").unwrap();
-        let e = FileFrames::open(&config(dir.path(), "bad.png", "d_000.exr", ""))
+        let e = open_cfg(&config(dir.path(), "bad.png", "d_000.exr", ""))
             .unwrap_err()
             .to_string();
         assert!(e.contains("bad.png"), "{e}");
         let (c, d) = frame(0.3, 64, 48);
         write_color(&dir.path().join("small.exr"), &c).unwrap();
         write_depth(&dir.path().join("small_d.exr"), &d).unwrap();
-        let e = FileFrames::open(&config(dir.path(), "small.exr", "small_d.exr", ""))
+        let e = open_cfg(&config(dir.path(), "small.exr", "small_d.exr", ""))
             .unwrap_err()
             .to_string();
         assert!(e.contains("64 x 48") && e.contains("display.width"), "{e}");
@@ -757,12 +764,12 @@ mod tests {
             assert!(e.starts_with(&format!("{key}: ")), "{e}");
             assert_eq!(e.matches(file).count(), 1, "{e}");
         };
-        let e = FileFrames::open(&config(dir.path(), "nope.png", "d_000.exr", ""))
+        let e = open_cfg(&config(dir.path(), "nope.png", "d_000.exr", ""))
             .unwrap_err()
             .to_string();
         once(&e, "content.color", "nope.png");
         assert!(e.contains("not found"), "{e}");
-        let e = FileFrames::open(&config(dir.path(), "c_000.exr", "small_d.exr", ""))
+        let e = open_cfg(&config(dir.path(), "c_000.exr", "small_d.exr", ""))
             .unwrap_err()
             .to_string();
         once(&e, "content.depth", "small_d.exr");
@@ -770,7 +777,7 @@ mod tests {
         // An 8-bit PNG depth: the fix in the config's words.
         let eight = RgbImage::new(96, 96, [0.5, 0.5, 0.5]);
         write_color(&dir.path().join("depth8.png"), &eight).unwrap();
-        let e = FileFrames::open(&config(dir.path(), "c_000.exr", "depth8.png", ""))
+        let e = open_cfg(&config(dir.path(), "c_000.exr", "depth8.png", ""))
             .unwrap_err()
             .to_string();
         once(&e, "content.depth", "depth8.png");
@@ -819,8 +826,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         write_eyes(dir.path(), 3);
         let cfg = stereo_config(dir.path(), "%e/c_%03d.exr", "%e/d_%03d.exr");
-        assert!(cfg.stereo());
-        let f = FileFrames::open(&cfg).unwrap();
+        assert!(cfg.display.stereo());
+        let f = FileFrames::open(&cfg.content, &cfg.display).unwrap();
         let st = f.status();
         assert!(st.stereo && st.frames_in_sequence == 3, "{st:?}");
         let ms = |m: u64| Timestamp(m * 1_000_000);
@@ -857,8 +864,7 @@ mod tests {
     fn a_missing_or_misfit_eye_file_is_refused_naming_it() {
         let dir = tempfile::tempdir().unwrap();
         write_eyes(dir.path(), 3);
-        let open =
-            || FileFrames::open(&stereo_config(dir.path(), "%e/c_%03d.exr", "%e/d_%03d.exr"));
+        let open = || open_cfg(&stereo_config(dir.path(), "%e/c_%03d.exr", "%e/d_%03d.exr"));
         let right = |name: &str| dir.path().join("right").join(name);
         std::fs::rename(right("c_002.exr"), dir.path().join("aside.exr")).unwrap();
         let e = open().unwrap_err();
@@ -898,11 +904,13 @@ mod tests {
         let mut mono = config(dir.path(), "c.exr", "d.exr", "");
         mono.content.color = Some(dir.path().join("%e/c_%03d.exr").display().to_string());
         mono.content.depth = Some(dir.path().join("%e/d_%03d.exr").display().to_string());
-        let e = FileFrames::open(&mono).unwrap_err().to_string();
+        let e = FileFrames::open(&mono.content, &mono.display)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("content.color") && e.contains("%e"), "{e}");
         // No %e on a stereo rig: one view.
         let one = stereo_config(dir.path(), "left/c_%03d.exr", "left/d_%03d.exr");
-        let f = FileFrames::open(&one).unwrap();
+        let f = FileFrames::open(&one.content, &one.display).unwrap();
         let fr = f.poll(Timestamp(0)).unwrap();
         assert!(fr.eyes.is_none() && !f.status().stereo);
     }
@@ -937,7 +945,7 @@ mod tests {
         write_grid(dir.path(), None, 0.0, 3, 2);
         let extra = "views = 3\nview_span_mm = 6\nfps = 10";
         let cfg = config(dir.path(), "c_%03d_%v.exr", "d_%03d_%v.exr", extra);
-        let f = FileFrames::open(&cfg).unwrap();
+        let f = FileFrames::open(&cfg.content, &cfg.display).unwrap();
         let st = f.status();
         assert_eq!((st.views, st.frames_in_sequence), (Some(3), 2), "{st:?}");
         let ms = |m: u64| Timestamp(m * 1_000_000);
@@ -973,7 +981,7 @@ mod tests {
         );
         drop(f);
         std::fs::remove_file(dir.path().join("c_001_02_01.exr")).unwrap();
-        let e = FileFrames::open(&cfg).unwrap_err();
+        let e = FileFrames::open(&cfg.content, &cfg.display).unwrap_err();
         assert!(
             matches!(&e, ContentError::File { key: "content.color", path, .. }
                 if path.ends_with("c_001_02_01.exr")),
@@ -997,7 +1005,7 @@ mod tests {
             dir.path().join("%e/c_%03d_%v.exr").display().to_string(),
             dir.path().join("%e/d_%03d_%v.exr").display().to_string()
         );
-        let f = FileFrames::open(&RigConfig::parse(&text).unwrap()).unwrap();
+        let f = open_cfg(&RigConfig::parse(&text).unwrap()).unwrap();
         let frame = f.poll(Timestamp(0)).unwrap();
         let views = frame.views.clone().unwrap();
         assert_eq!(views.len(), 8);

@@ -4,6 +4,10 @@
 //! layout to clients (`GET /frame/ring`) from [`SLOT_FIELDS`]; `ring-golden.json` holds bytes
 //! that this module's tests and the Python client's tests both check.
 
+use std::fs::OpenOptions;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
 use dioptra_core::Side;
 
 /// The ring file's first 8 bytes.
@@ -144,9 +148,9 @@ impl RingHeader {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SlotHeader {
     pub seq: u64,
-    /// [`crate::content::stream::ColorFormat`] as a number (1 rgb8, 2 rgba8, 3 rgbf32).
+    /// [`crate::content::stream::decode::ColorFormat`] as a number (1 rgb8, 2 rgba8, 3 rgbf32).
     pub color_format: u32,
-    /// [`crate::content::stream::DepthKind`] as a number.
+    /// [`crate::content::stream::decode::DepthKind`] as a number.
     pub depth_kind: u32,
     /// A depth buffer's planes, metres (NaN when the depth is not a buffer).
     pub near: f32,
@@ -211,10 +215,79 @@ pub fn layout_json(fields: &[Field]) -> serde_json::Value {
         .into()
 }
 
+/// The shared-memory ring: the file and its mapping.
+pub(super) struct Ring {
+    pub(super) path: PathBuf,
+    map: memmap2::MmapRaw,
+    pub(super) slot_bytes: usize,
+}
+
+impl Ring {
+    pub(super) fn create(path: &Path, header: RingHeader) -> std::io::Result<Ring> {
+        use std::os::unix::fs::OpenOptionsExt;
+        let slot_bytes = header.slot_bytes as usize;
+        if let Ok(meta) = std::fs::symlink_metadata(path) {
+            if !meta.file_type().is_file() {
+                return Err(std::io::Error::other(format!(
+                    "{} exists and is not a regular file; choose another content.ring",
+                    path.display()
+                )));
+            }
+            // A ring an earlier daemon left.
+            std::fs::remove_file(path)?;
+        }
+        let mut f = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .custom_flags(libc_o_nofollow())
+            .open(path)?;
+        f.write_all(&header.encode())?;
+        f.set_len((RING_HEADER + RING_SLOTS * slot_bytes) as u64)?;
+        let map = memmap2::MmapOptions::new().map_raw(&f)?;
+        Ok(Ring {
+            path: path.to_path_buf(),
+            map,
+            slot_bytes,
+        })
+    }
+
+    /// Copies `len` bytes at `offset`. The application may write the file at any time, so it
+    /// is read through the raw pointer, never as a Rust reference.
+    pub(super) fn read(&self, offset: usize, len: usize) -> Vec<u8> {
+        let mut out = vec![0u8; len];
+        debug_assert!(offset + len <= self.map.len());
+        // SAFETY: offset + len is inside the mapping (checked by the callers against
+        // slot_bytes); the bytes are copied, not referenced.
+        unsafe {
+            std::ptr::copy_nonoverlapping(self.map.as_ptr().add(offset), out.as_mut_ptr(), len);
+        }
+        out
+    }
+
+    pub(super) fn seq(&self, slot: usize) -> u64 {
+        let b = self.read(RING_HEADER + slot * self.slot_bytes, 8);
+        std::sync::atomic::fence(std::sync::atomic::Ordering::Acquire);
+        u64::from_le_bytes(b.try_into().unwrap_or([0; 8]))
+    }
+}
+
+impl Drop for Ring {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+fn libc_o_nofollow() -> i32 {
+    // O_NOFOLLOW on Linux (x86-64, aarch64): do not open through a planted symlink.
+    0o400000
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::content::stream::{ColorFormat, DepthKind};
+    use crate::content::stream::decode::{ColorFormat, DepthKind};
 
     const GOLDEN: &str = include_str!("../../ring-golden.json");
 

@@ -19,8 +19,10 @@ use dioptra_sim::scene::animation::Animation;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use serde::Serialize;
 
-use super::{Arrival, Content, ContentFrame};
-use crate::config::RigConfig;
+use super::frame::{Arrival, ContentFrame};
+use super::source::Content;
+use crate::display::config::Display;
+use crate::optics::config::Eye;
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -115,12 +117,14 @@ struct Polled {
     at: Option<Timestamp>,
 }
 
-/// The camera the rig's scene is seen through: the eye model of `cfg` over the display's
-/// pixels.
-pub fn camera(cfg: &RigConfig) -> Result<Camera, RenderError> {
-    let d = &cfg.display;
-    let eye = cfg.eye_model().validated()?;
-    Ok(Camera::new(eye, d.width as usize, d.height as usize))
+/// The camera the rig's scene is seen through: `eye` over the display's pixels.
+pub fn camera(eye: &Eye, display: &Display) -> Result<Camera, RenderError> {
+    let model = eye.model(display.width).validated()?;
+    Ok(Camera::new(
+        model,
+        display.width as usize,
+        display.height as usize,
+    ))
 }
 
 impl std::fmt::Debug for AnimatedScene {
@@ -174,7 +178,7 @@ fn render(
 
 /// The left and the right eye's views of `scene`, the eyes `2 x half_ipd_m` apart with
 /// parallel axes, cast side by side: the animated scene's on its worker, and
-/// [`super::stereo::EyeViews`]'s for a frame that brings its scene without them.
+/// `stereo::EyeViews`'s for a frame that brings its scene without them.
 pub fn cast_eyes(
     scene: &Scene,
     cam: &Camera,

@@ -12,7 +12,16 @@ use dioptra_core::{
     PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
 };
 
-use super::open::Link;
+use dioptra_transport::{AnyByteLink, AnyHidLink};
+
+/// What a driver connects over: a real device's link or a simulator's (the simulators' links
+/// become one in `open`).
+pub enum Link {
+    Byte(AnyByteLink),
+    Hid(AnyHidLink),
+    /// The address of a network service.
+    Net(String),
+}
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
 

@@ -9,10 +9,10 @@ use dioptra_core::{DeviceError, GazeSource, Photodiode};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
-use super::{
-    connect_retrying, Backoff, BoxGaze, BoxPhotodiode, DeviceHandle, DeviceInput, DeviceSettings,
-    LinkHealth, Verdict,
-};
+use super::boxed::{BoxGaze, BoxPhotodiode};
+use super::input::DeviceInput;
+use super::link::{connect_retrying, Backoff, DeviceSettings, LinkHealth, Verdict};
+use super::registry::DeviceHandle;
 
 /// A device whose every reading is an input to the loop.
 pub(crate) trait Forwarded: Send {

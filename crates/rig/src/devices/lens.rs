@@ -9,10 +9,9 @@ use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-use super::{
-    connect_retrying, Backoff, DeviceHandle, DeviceInput, DeviceSettings, LensId, LensOrder,
-    LinkHealth, Verdict,
-};
+use super::input::{DeviceInput, LensId, LensOrder};
+use super::link::{connect_retrying, Backoff, DeviceSettings, LinkHealth, Verdict};
+use super::registry::DeviceHandle;
 
 /// How the lens was left at shutdown.
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -30,10 +30,11 @@ use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
 use dioptra_transport::discovery::{Interface, KnownDevice};
 use dioptra_transport::{AnyByteLink, AnyHidLink};
 
+pub use super::boxed::Link;
 use super::boxed::{
     About, BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer, Facts, Resume,
 };
-use super::DeviceInput;
+use super::input::DeviceInput;
 use crate::config::{GazeDriver, LensDriver, PhotodiodeDriver, Port, RigConfig, SyncDriver};
 use crate::devices::simulators::{
     byte_endpoint, Cut, GazeTruth, RecordedGaze, SimEndpoint, SimLens, SimLink, SimPlug,
@@ -49,14 +50,6 @@ pub enum Transport {
     Hid,
     /// A network service at "host:port" (the driver opens its own sockets).
     Net,
-}
-
-/// What a driver connects over: a real device's link or a simulator's.
-pub enum Link {
-    Byte(AnyByteLink),
-    Hid(AnyHidLink),
-    /// The address of a network service.
-    Net(String),
 }
 
 impl From<SimLink> for Link {

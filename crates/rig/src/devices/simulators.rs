@@ -18,7 +18,9 @@ use dioptra_sim::photodiode::SerialPhotodiodeSimConfig;
 use dioptra_sim::serve::ByteDevice;
 use dioptra_transport::{memory, AnyByteLink, AnyHidLink};
 
-use crate::config::{ConfigError, Lenses, RigConfig, SyncDevice};
+use super::config::{Lenses, SyncDevice};
+use crate::config::{ConfigError, RigConfig};
+use crate::display::config::Display;
 
 /// How the simulated devices of a rig are set up. [`SimSpec::from_config`] is what `dioptra
 /// serve` runs; the simulated-rig builder starts from the same and may change it (a scripted
@@ -103,8 +105,10 @@ impl SimSpec {
         }
     }
 
-    /// The simulators a rig config describes (its `sim_*` keys).
-    pub fn from_config(cfg: &RigConfig) -> Result<SimSpec, ConfigError> {
+    /// The simulators a rig config describes (its `sim_*` keys); a simulated panel's light
+    /// comes `display_latency` after its vsync unless `display.sim_photon_latency_ms` says
+    /// otherwise (the scheduler's assumed display latency).
+    pub fn from_config(cfg: &RigConfig, display_latency: Duration) -> Result<SimSpec, ConfigError> {
         let l = cfg.devices.lens.first();
         let g = &cfg.devices.gaze;
         let ms = |v: f64| Duration::from_secs_f64(v / 1000.0);
@@ -162,38 +166,20 @@ impl SimSpec {
             gaze_latency_us: (1500, 500),
             hid_tracker: HidTrackerSetup::default(),
             record_gaze_truth: false,
-            panel: cfg.photodiode_simulated().then(|| sim_panel(cfg)),
+            panel: cfg
+                .devices
+                .photodiode_simulated()
+                .then(|| sim_panel(&cfg.display, display_latency)),
             serial_photodiode: SerialPhotodiodeSimConfig::default(),
             gaze_trace: None,
         })
     }
 }
 
-/// Shows each presented frame's marker patch on the simulated panel, so that a simulated
-/// photodiode sees what the display draws (whichever sink draws it).
-pub struct PanelFeed(pub SharedPanel);
-
-impl crate::executor::LoopHook for PanelFeed {
-    fn presented(
-        &mut self,
-        _now: Timestamp,
-        shown: &crate::executor::Presented,
-        _sink: &dyn crate::display::DisplaySink,
-    ) {
-        if let Some(white) = shown.marker_white {
-            self.0.lock().present(shown.shown, shown.frame, white);
-        }
-    }
-}
-
 /// The simulated panel of `display`'s `sim_*` keys: its light `sim_photon_latency_ms` after
-/// each vsync (default: the display latency the scheduler assumes), held or pulsed
+/// each vsync (default: `assumed`, the display latency the scheduler assumes), held or pulsed
 /// (`sim_persistence_ms`), with `sim_dropped_refreshes` dropped.
-pub fn sim_panel(cfg: &RigConfig) -> SharedPanel {
-    let d = &cfg.display;
-    let assumed = crate::engine::sched_config(cfg)
-        .map(|s| s.display.latency)
-        .unwrap_or_else(|_| dioptra_sched::DisplayTiming::default().latency);
+pub fn sim_panel(d: &Display, assumed: Duration) -> SharedPanel {
     let ms = |v: f64| Duration::from_secs_f64(v / 1000.0);
     let panel = SharedPanel::new(PanelConfig {
         persistence: d.sim_persistence_ms.map(ms),

@@ -8,9 +8,9 @@ use dioptra_core::{DeviceError, PlaneSchedule, PlaneSequencer};
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 
-use super::{
-    connect_retrying, Backoff, DeviceHandle, DeviceInput, DeviceSettings, LinkHealth, Verdict,
-};
+use super::input::DeviceInput;
+use super::link::{connect_retrying, Backoff, DeviceSettings, LinkHealth, Verdict};
+use super::registry::DeviceHandle;
 
 /// What the sync task runs: the schedule while `multifocal` says so, and whether the rig's
 /// photodiode is on the board (then the board is read in every mode).

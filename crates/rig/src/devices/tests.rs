@@ -1,6 +1,9 @@
 use super::*;
 use crate::config::tests::SIM_RIG;
-use dioptra_core::{PowerRange, SequencerEvent};
+use config::Port;
+use std::sync::Mutex;
+
+use dioptra_core::{LinkError, PowerRange, SequencerEvent};
 use dioptra_lens::{LensLimits, Optotune, OptotuneConfig};
 
 #[test]
@@ -68,12 +71,13 @@ fn start(edit: impl Fn(&str) -> String) -> Started {
     let text = edit(SIM_RIG);
     assert_ne!(text, SIM_RIG, "the edit changed nothing");
     let cfg = Arc::new(RigConfig::parse(&text).unwrap());
-    let spec = SimSpec::from_config(&cfg).unwrap();
+    let latency = crate::engine::sched_config(&cfg).unwrap().display.latency;
+    let spec = SimSpec::from_config(&cfg, latency).unwrap();
     let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
     let registry = Arc::new(Registry::default());
     let (out, inputs) = mpsc::channel(4096);
     let stop = CancellationToken::new();
-    let settings = DeviceSettings::from_config(&cfg);
+    let settings = DeviceSettings::from_config(&cfg.devices);
     let (sims, links, tasks) =
         spawn_devices(&cfg, &spec, settings, &registry, clock, out, &stop).unwrap();
     Started {

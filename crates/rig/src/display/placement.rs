@@ -12,8 +12,8 @@
 use dioptra_core::{RgbImage, Side};
 use serde::Serialize;
 
-use crate::config::{Display, DisplayLayout, EyeOffsets, Scale};
-use crate::display::Frame;
+use super::config::{Display, DisplayLayout, EyeOffsets, Scale};
+use super::frame::Frame;
 use crate::render::FrameImage;
 
 /// A rectangle of surface pixels: `x`, `y` of its top-left corner (rows from the top).

@@ -33,9 +33,12 @@ use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
-use crate::config::{Method, Mode, RenderBackend, RigConfig};
-use crate::content::{ContentFrame, ContentView};
-use crate::render::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+use super::config::{Render, RenderBackend};
+use super::job::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+use crate::content::frame::{ContentFrame, ContentView};
+use crate::display::config::Display;
+use crate::mode::{Method, Mode};
+use crate::optics::config::{Eye, Optics};
 use dioptra_sched::RenderMethod;
 
 /// Renders frames of RGB-D content (the procedural scene, a lab's files, a stream) by the
@@ -87,25 +90,33 @@ impl std::fmt::Debug for RgbdRenderer {
 }
 
 impl RgbdRenderer {
-    /// The renderer of `cfg`'s display, eye and method settings: its backend opened and its
-    /// nets loaded (the configured mode's must load: [`crate::Rig::start`] checks).
-    pub fn new(cfg: &RigConfig) -> Result<RgbdRenderer, RenderError> {
-        let d = &cfg.display;
-        let eye = cfg.eye_model().validated()?;
+    /// The renderer of `[render]` for `[eye]` over the display's pixels, making
+    /// `optics.planes`' layers: its backend opened and its nets loaded (the rig checks that
+    /// the configured mode's loaded).
+    pub fn new(
+        render: &Render,
+        eye: &Eye,
+        display: &Display,
+        optics: &Optics,
+    ) -> Result<RgbdRenderer, RenderError> {
+        let d = display;
+        let model = eye.model(d.width).validated()?;
         let nets = NET_CONFIGS
             .iter()
-            .map(|&(mode, method, config)| ((mode, method), load_net(cfg, config)))
+            .map(|&(mode, method, config)| {
+                ((mode, method), load_net(render, &optics.planes, config))
+            })
             .collect();
-        let compute = Compute::open(cfg, &nets)?;
+        let compute = Compute::open(render, &nets)?;
         Ok(RgbdRenderer {
             compute: Mutex::new(compute),
-            eye,
-            planes: cfg.optics.planes.iter().copied().map(Diopters).collect(),
+            eye: model,
+            planes: optics.planes.iter().copied().map(Diopters).collect(),
             size: (d.width as usize, d.height as usize),
             newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
             panel: Mutex::new(Vec::new()),
-            half_ipd_m: cfg.eye.ipd_mm * 0.5e-3,
+            half_ipd_m: eye.ipd_mm * 0.5e-3,
             nets,
         })
     }
@@ -700,9 +711,13 @@ const NET_CONFIGS: [(Mode, RenderMethod, &str); 5] = [
 type NetKey = (Mode, RenderMethod);
 
 /// Loads the net of `config` (`c1`, `c4`, `c1r`, `c4r`, `c5r`) from `render.weights`, checking that
-/// a multifocal net's planes are the rig's `optics.planes`.
-fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, String> {
-    let path = cfg.render.weights_file(config);
+/// a multifocal net's planes are the rig's `optics.planes` (`rig_planes`).
+fn load_net(
+    render: &Render,
+    rig_planes: &[f32],
+    config: &str,
+) -> Result<Arc<dioptra_net::CpuNet>, String> {
+    let path = render.weights_file(config);
     let what = match config {
         "c1" => "varifocal mode's network (C1)",
         "c4" => "multifocal mode's network (C4)",
@@ -721,16 +736,16 @@ fn load_net(cfg: &RigConfig, config: &str) -> Result<Arc<dioptra_net::CpuNet>, S
     let net = dioptra_net::load_net(Some(&path), config)
         .map_err(|e| format!("render.weights: {}: {e}", path.display()))?;
     if let Some(planes) = net.arch().task.planes() {
-        let same = planes.len() == cfg.optics.planes.len()
+        let same = planes.len() == rig_planes.len()
             && planes
                 .iter()
-                .zip(&cfg.optics.planes)
+                .zip(rig_planes)
                 .all(|(a, b)| (a - b).abs() < 1e-4);
         if !same {
             return Err(format!(
                 "render.weights: {} makes layers for planes {planes:?} D, and optics.planes is {:?} D",
                 path.display(),
-                cfg.optics.planes
+                rig_planes
             ));
         }
     }
@@ -801,9 +816,9 @@ impl Compute {
 
     /// `[render] backend`: `gpu` must open (or the rig does not start); `auto` takes a
     /// hardware adapter when there is one and the CPU otherwise.
-    fn open(cfg: &RigConfig, nets: &CpuNets) -> Result<Compute, RenderError> {
-        let adapter = cfg.render.adapter.as_deref();
-        match cfg.render.backend {
+    fn open(render: &Render, nets: &CpuNets) -> Result<Compute, RenderError> {
+        let adapter = render.adapter.as_deref();
+        match render.backend {
             RenderBackend::Cpu => Ok(Compute::cpu(None)),
             RenderBackend::Gpu => Ok(Compute::gpu(adapter, nets)?),
             RenderBackend::Auto => {
@@ -901,7 +916,7 @@ impl Compute {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::EXAMPLE_SIM_RIG;
+    use crate::config::{RigConfig, EXAMPLE_SIM_RIG};
     use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
     use dioptra_core::Timestamp;
 
@@ -913,10 +928,17 @@ mod tests {
         let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG.to_string()
             + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        let r = RgbdRenderer::new(&cfg).unwrap();
-        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
         let frame = content.poll(Timestamp::ZERO).unwrap();
-        let views = crate::content::stereo::EyeViews::new(&cfg).unwrap();
+        let views = crate::content::stereo::EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         let ([left, right], _) = views.of(&frame).unwrap();
         let eyes = [
             frame.for_eye(Side::Left, left),
@@ -959,8 +981,15 @@ mod tests {
         let text = EXAMPLE_SIM_RIG.to_string()
             + "\n[content]\nsource = \"stream\"\nring = \"none\"\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        let r = RgbdRenderer::new(&cfg).unwrap();
-        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
         let (w, h) = (96, 96);
         // At optical infinity every view is the frame itself: the panel is the lenslet
         // resampling of 25 copies of it.
@@ -1010,8 +1039,15 @@ mod tests {
         let text = EXAMPLE_SIM_RIG.to_string()
             + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        let r = RgbdRenderer::new(&cfg).unwrap();
-        let content = crate::content::open(&cfg, crate::content::scene::Pacing::Simulated).unwrap();
+        let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
         let scene = content.poll(Timestamp::ZERO).unwrap().scene.unwrap();
         let (w, h) = r.size;
         let cam = Camera::new(r.eye, w, h);
@@ -1058,7 +1094,7 @@ mod tests {
         let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG.to_string()
             + "\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
-        let r = RgbdRenderer::new(&cfg).unwrap();
+        let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
         let rgbd = Arc::new(
             Rgbd::new(
                 RgbImage::new(4, 4, [0.5; 3]),
@@ -1100,7 +1136,8 @@ mod tests {
                 "{EXAMPLE_SIM_RIG}\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\nweights = {:?}\n",
                 weights.display().to_string()
             );
-            RgbdRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap()
+            let cfg = RigConfig::parse(&text).unwrap();
+            RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap()
         };
         let r = rig(dir.path());
         let content = ContentFrame::new(1, Arc::new(scene_rgbd(&r)));
@@ -1129,7 +1166,8 @@ mod tests {
         let text = format!(
             "{EXAMPLE_SIM_RIG}\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n"
         );
-        let shipped = RgbdRenderer::new(&RigConfig::parse(&text).unwrap()).unwrap();
+        let cfg = RigConfig::parse(&text).unwrap();
+        let shipped = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
         assert_ne!(panel(&shipped, RenderMethod::Refine).unwrap(), classical);
     }
 

@@ -1,0 +1,4 @@
+//! The rig's optics: `[optics]` and `[eye]` ([`config`]), from which each lens's optics map
+//! (focus <-> lens command) is made.
+
+pub mod config;
