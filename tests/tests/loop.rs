@@ -377,7 +377,7 @@ async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
     assert_eq!(r.lens_opened, 2);
     let (lost_at, back_at) = (r.log.link_events[1].0, r.log.link_events[2].0);
     // Found lost at the first exchange after the pull: a command or the next read-back.
-    let poll = r.state.settings.lens_poll;
+    let poll = r.state.devices().settings().lens_poll;
     assert!(
         us(lost_at) >= 1_300_000 && lost_at.saturating_since(Timestamp(1_300_000_000)) <= poll,
         "{lost_at}"
@@ -387,7 +387,8 @@ async fn unplugging_the_lens_mid_run_is_survived_and_recovered() {
     let replug = Timestamp(1_900_000_000);
     let attempt = r
         .state
-        .settings
+        .devices()
+        .settings()
         .link
         .attempts_after_loss(16)
         .into_iter()
@@ -485,7 +486,7 @@ async fn serve_and_the_simulated_rig_build_the_same_rig_from_one_config() {
         .await
         .unwrap();
     tokio::time::sleep(Duration::from_millis(500)).await;
-    served.state().cancel.cancel();
+    served.state().cancel().cancel();
     let served = served.wait().await;
     let simulated = SimRun::new(recording_to("sim"), Duration::from_millis(500))
         .unwrap()
@@ -648,7 +649,13 @@ async fn through_the_optics_the_eye_sees_what_it_looks_at_and_a_wrong_calibratio
     let render = Duration::from_millis(4);
     // The layout as the rig's map: the lens goes where the formula says.
     let r = go(through_optics(None), render).await;
-    assert_eq!(r.state.optics.source_name(), "layout");
+    assert_eq!(
+        r.state
+            .optics()
+            .of(dioptra_rig::devices::LensId::FIRST)
+            .source_name(),
+        "layout"
+    );
     // Near (2 D) by hand: X = 2 / (1 - 0.03) = 2.061856, command 4 - X = 1.938144 D.
     assert!(
         r.log
@@ -662,7 +669,13 @@ async fn through_the_optics_the_eye_sees_what_it_looks_at_and_a_wrong_calibratio
     assert!(layout < 0.02, "{layout} D through the layout");
     // A table measured on the same optics: the same.
     let r = go(through_optics(Some(layout_table(0.0))), render).await;
-    assert_eq!(r.state.optics.source_name(), "calibration");
+    assert_eq!(
+        r.state
+            .optics()
+            .of(dioptra_rig::devices::LensId::FIRST)
+            .source_name(),
+        "calibration"
+    );
     let calibrated = median_focus_error(&r);
     assert!(calibrated < 0.02, "{calibrated} D with a good table");
     // A table 0.5 D off (measured with the display moved): the eye is 0.5 D out of focus.
@@ -750,7 +763,7 @@ async fn the_panels_photon_latency_is_recovered_within_0_2_ms() {
 async fn a_dropped_frame_in_the_simulated_display_is_reported_as_one() {
     let cfg = photodiode_rig(SERIAL_LINE, "sim_dropped_refreshes = [100]");
     let (run, r) = photons(cfg, 3.0).await;
-    let panel = run.state.sims.get().unwrap().panel.clone().unwrap();
+    let panel = run.state.devices().sims().unwrap().panel.clone().unwrap();
     let dropped: Vec<(Timestamp, u64)> = panel
         .lock()
         .refreshes()
@@ -774,7 +787,7 @@ async fn gaze_to_photons_is_the_host_path_plus_render_plus_the_display_latency()
     // A fixation change every 400 ms after the hold: most of them drive the lens.
     assert!(g.len() >= 5, "{} samples", g.len());
     let period = Duration::from_secs_f64(1.0 / 60.0);
-    let panel = run.state.sims.get().unwrap().panel.clone().unwrap();
+    let panel = run.state.devices().sims().unwrap().panel.clone().unwrap();
     let panel = panel.lock();
     for s in g {
         // The parts: the loop's own path (no wait in simulated time), then the next frame
@@ -899,7 +912,7 @@ async fn each_lens_follows_its_own_eyes_optics_map() {
     opts.spec.gaze_scene = near_far(400);
     opts.spec.gaze.blink_rate_hz = 0.0;
     let r = go(opts, Duration::from_millis(4)).await;
-    assert_eq!(r.state.optics_of(LensId(1)).source_name(), "identity");
+    assert_eq!(r.state.optics().of(LensId(1)).source_name(), "identity");
     let cmds = &r.log.lens_commands;
     let left: Vec<_> = cmds.iter().filter(|c| c.lens.0 == 0).collect();
     let right: Vec<_> = cmds.iter().filter(|c| c.lens.0 == 1).collect();

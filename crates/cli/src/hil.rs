@@ -274,7 +274,7 @@ async fn push_stream_frames(
     hz: f64,
 ) -> usize {
     use dioptra_rig::content::stream::{ColorFormat, DepthKind, FrameDesc};
-    let d = &state.cfg.display;
+    let d = &state.cfg().display;
     let (w, h) = (d.width as usize, d.height as usize);
     let desc = FrameDesc {
         width: w,
@@ -306,9 +306,10 @@ async fn push_stream_frames(
             }
         }
         let st = state.clone();
-        let now = state.clock.now();
+        let now = state.clock().now();
         let ok = tokio::task::spawn_blocking(move || {
-            st.content
+            st.content()
+                .source()
                 .frame_ingest()
                 .is_some_and(|s| s.submit(&desc, &color, &depth, now).is_ok())
         })
@@ -351,7 +352,7 @@ async fn measure(
         .await
         .map_err(|e| anyhow::anyhow!("cannot start the rig: {e}"))?;
     let state = rig.state().clone();
-    let registry = state.registry.clone();
+    let registry = state.devices().registry().clone();
 
     // Every device must connect.
     let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(args.connect_timeout_s);
@@ -361,7 +362,7 @@ async fn measure(
             break;
         }
         if tokio::time::Instant::now() >= deadline {
-            state.cancel.cancel();
+            state.cancel().cancel();
             let _ = rig.wait().await;
             let missing: Vec<String> = devices
                 .iter()
@@ -413,10 +414,10 @@ async fn measure(
     // The photodiode watches phase 1: the patch held black first, so that its first edge
     // anchors the match.
     if photodiode {
-        state.marker.hold_black(true);
+        state.display().marker().hold_black(true);
         tokio::time::sleep(photon_hold(cfg.display.frame_hz)).await;
         dioptra_core::lock(&photon_log).recording = true;
-        state.marker.hold_black(false);
+        state.display().marker().hold_black(false);
     }
     // 1. Gaze to lens command written: the rig follows gaze as `dioptra serve` does.
     let phase_limit = Duration::from_secs(30.max(args.trials as u64 / 4).min(300));
@@ -491,7 +492,7 @@ async fn measure(
     );
     println!("gaze to lens command: {gaze_commands} samples ({gaze_samples} gaze samples)");
     let optical = if photodiode {
-        let until = state.clock.now();
+        let until = state.clock().now();
         let log = std::mem::take(&mut *dioptra_core::lock(&photon_log));
         match dioptra_rig::photons::analyse(&log, until, MAX_PHOTON_LATENCY) {
             Ok(r) => {
@@ -527,7 +528,11 @@ async fn measure(
     for i in 0..args.trials {
         // The lens power to reach, asked for as the focus it gives through the optics map.
         let p = if i % 2 == 0 { hi } else { lo };
-        let focus = state.optics.focus_of(dioptra_core::Diopters(p)).0;
+        let focus = state
+            .optics()
+            .of(dioptra_rig::devices::LensId::FIRST)
+            .focus_of(dioptra_core::Diopters(p))
+            .0;
         while rx.try_recv().is_ok() {}
         state
             .control(Control::ManualFocus(Some(focus)))
@@ -598,8 +603,8 @@ async fn measure(
     settled.note = format!(
         "{} steps between lens powers {lo:.2} and {hi:.2} D (manual focus through the rig's loop and its optics map: {}); settled = first readback within {SETTLE_TOLERANCE_D} D not reporting moving; readbacks every {} ms (devices.lens.poll_ms), so figures are quantised to it; {unsettled} steps not settled within {} ms. A photodiode watches the display, not the lens: settling is the lens's own readback",
         args.trials,
-        state.optics.describe(),
-        state.settings.lens_poll.as_millis(),
+        state.optics().of(dioptra_rig::devices::LensId::FIRST).describe(),
+        state.devices().settings().lens_poll.as_millis(),
         STEP_TIMEOUT.as_millis()
     );
     println!(
@@ -629,7 +634,7 @@ async fn measure(
     } else if sync_driver.is_some() {
         let period_us = 1e6 / cfg.optics.subframe_hz;
         let planes = cfg.optics.planes.len();
-        let before = dioptra_core::lock(&state.status).mode.unwrap_or(cfg.mode);
+        let before = state.loop_status().mode.unwrap_or(cfg.mode);
         state
             .control(Control::Mode(Mode::Multifocal))
             .await
@@ -694,7 +699,7 @@ async fn measure(
     } else {
         None
     };
-    state.cancel.cancel();
+    state.cancel().cancel();
     let report = rig.wait().await;
     if !report.ok() {
         println!(

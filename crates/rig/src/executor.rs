@@ -201,12 +201,12 @@ pub(crate) async fn run_loop(parts: LoopParts) {
         devices_stop,
     } = parts;
     let cancel = state.cancel.clone();
-    let clock = state.clock.clone();
+    let clock = state.clock.clock.clone();
     let arrivals = content.arrivals();
     let (done_tx, mut done_rx) = mpsc::channel::<Rendered>(4);
     let now = clock.now();
     // A stereo layout renders each eye from its own view of the content.
-    let eye_views = state.eye_views.clone();
+    let eye_views = state.content.eye_views().cloned();
     let mut ex = Executor {
         eye_views,
         state: &state,
@@ -483,7 +483,7 @@ impl Executor<'_> {
                             .unwrap_or(Diopters(sh.cfg.devices.lens.first().park_power)),
                         focus_right: req.focus_right,
                         gaze,
-                        auto: sh.auto_method.load(std::sync::atomic::Ordering::Relaxed),
+                        auto: sh.render.auto(),
                         display_time: req.display_time,
                     };
                     if self.rendering {
@@ -536,7 +536,7 @@ impl Executor<'_> {
         let (renderer, tx, clock) = (
             self.renderer.clone(),
             self.done_tx.clone(),
-            self.state.clock.clone(),
+            self.state.clock.clock.clone(),
         );
         let planes = self.state.cfg.optics.planes.len();
         let eye_views = self.eye_views.clone();
@@ -612,7 +612,7 @@ impl Executor<'_> {
         f.marker = self
             .marker
             .as_mut()
-            .map(|m| m.on_present(&self.state.marker));
+            .map(|m| m.on_present(self.state.display.marker()));
         let shown = match layer {
             None => self.sink.present(&f, at),
             Some(l) => self.sink.present_layer(&f, usize::from(l), at),

@@ -11,7 +11,12 @@
 //! - [`executor`]: the loop that steps the scheduler ([`engine`]) and carries out its commands;
 //!   [`executor::LoopHook`]s see what it does: the recording, `/status`, the WebSocket and LSL
 //!   among them ([`observers`]).
-//! - [`state`]: what the loop, the API and the device tasks share ([`RigState`]).
+//! - [`state`]: what the loop, the API and the device tasks share ([`RigState`]): the config
+//!   and each part's handle ([`devices::DevicesHandle`], [`content::ContentHandle`],
+//!   [`render::RenderHandle`], [`display::DisplayHandle`], [`optics::OpticsHandle`],
+//!   [`recording::RecordingHandle`], [`lsl::LslOutlets`]), through which the part publishes
+//!   its status; `/status` composes them, with `problems`: what is wrong now, each entry
+//!   naming its part and the config key to look at ([`problem::Problem`]).
 //! - [`content`]: what the rig shows ([`content::Content`]: the procedural scene, a lab's
 //!   files, a stream), apart from how it is rendered; the loop hears of each frame when it
 //!   arrives.
@@ -53,15 +58,16 @@ pub mod mode;
 pub mod observers;
 pub mod optics;
 pub mod photons;
+pub mod problem;
 pub mod recording;
 pub mod render;
 #[cfg(feature = "simulated")]
 pub mod simulated_rig;
 pub mod state;
 
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex};
 
-use dioptra_core::{lock, Clock, Timestamp};
+use dioptra_core::{Clock, Timestamp};
 use dioptra_sched::SchedulerConfig;
 use serde::Serialize;
 use thiserror::Error;
@@ -70,12 +76,18 @@ use tokio_util::sync::CancellationToken;
 
 use config::{ConfigError, RigConfig};
 use content::Content;
+use content::ContentHandle;
 use devices::simulators::SimSpec;
+use devices::DevicesHandle;
 use devices::{DeviceInput, DeviceSettings, ParkReport, Registry};
+use display::DisplayHandle;
 use display::{DisplaySink, HeadlessSink};
 use engine::Engine;
 use executor::LoopHook;
+use optics::OpticsHandle;
+use recording::RecordingHandle;
 use recording::RecordingStats;
+use render::RenderHandle;
 use render::Renderer;
 use state::wall_ns;
 
@@ -111,9 +123,10 @@ pub enum RigError {
 }
 
 pub use engine::Control;
+pub use problem::Problem;
+pub use render::RenderErrorNote;
 pub use state::{
-    lens_settled, ControlError, LoopStatus, RecordingMeta, RenderErrorNote, RigState,
-    SUBFRAME_TOLERANCE_D,
+    lens_settled, ControlError, LoopStatus, RecordingMeta, RigClock, RigState, SUBFRAME_TOLERANCE_D,
 };
 
 /// What a rig is made of. [`RigSetup::new`] is a rig as its config describes it (what `dioptra
@@ -338,46 +351,39 @@ impl Rig {
         let (controls_tx, controls_rx) = mpsc::channel(64);
         let (websocket, _) = broadcast::channel(1024);
         let registry = Arc::new(Registry::default());
+        let sched = engine.scheduler().config();
+        let maps = std::iter::once(sched.optics.clone())
+            .chain(sched.right_lens.as_ref().map(|r| r.optics.clone()))
+            .collect();
+        let eye_views = match cfg.display.stereo() {
+            true => Some(Arc::new(
+                content::stereo::EyeViews::new(&cfg.eye, &cfg.display)
+                    .map_err(RigError::Renderer)?,
+            )),
+            false => None,
+        };
         let state = Arc::new(RigState {
-            optics: engine.scheduler().config().optics.clone(),
-            optics_right: engine
-                .scheduler()
-                .config()
-                .right_lens
-                .as_ref()
-                .map(|r| r.optics.clone()),
-            registry: registry.clone(),
-            settings,
-            status: Mutex::new(LoopStatus {
-                display: sink.status(),
-                ..Default::default()
-            }),
-            sims: OnceLock::new(),
+            devices: DevicesHandle::new(cfg.devices.clone(), registry.clone(), settings),
+            content: ContentHandle::new(content.clone(), eye_views),
+            render: RenderHandle::new(renderer.clone(), cfg.auto_method),
+            display: DisplayHandle::new(sink.status()),
+            optics: OpticsHandle::new(maps, cfg.optics.lens_range, cfg.devices.lens.clone()),
+            recording: RecordingHandle::default(),
             lsl,
+            loop_status: Mutex::new(LoopStatus::default()),
+            clock: RigClock {
+                wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
+                source: if simulated_time {
+                    "simulated time (tokio's paused clock), from the run's start"
+                } else {
+                    "the host's monotonic clock (CLOCK_MONOTONIC, through tokio), from daemon start"
+                },
+                clock: clock.clone(),
+                started: clock.now(),
+            },
             websocket,
-            recording: Mutex::new(None),
             cancel: CancellationToken::new(),
-            lens_parked: CancellationToken::new(),
-            auto_method: std::sync::atomic::AtomicBool::new(cfg.auto_method),
-            content: content.clone(),
-            renderer: renderer.clone(),
-            eye_views: match cfg.display.stereo() {
-                true => Some(Arc::new(
-                    content::stereo::EyeViews::new(&cfg.eye, &cfg.display)
-                        .map_err(RigError::Renderer)?,
-                )),
-                false => None,
-            },
-            wall_zero_ns: (!simulated_time).then(|| wall_ns().saturating_sub(clock.now().0)),
-            clock_source: if simulated_time {
-                "simulated time (tokio's paused clock), from the run's start"
-            } else {
-                "the host's monotonic clock (CLOCK_MONOTONIC, through tokio), from daemon start"
-            },
-            clock: clock.clone(),
-            marker: display::MarkerControl::default(),
             controls: controls_tx,
-            started: clock.now(),
             cfg: cfg.clone(),
         });
         if cfg.recording.as_ref().is_some_and(|r| r.start) {
@@ -395,7 +401,7 @@ impl Rig {
             &devices_stop,
         )
         .map_err(RigError::Devices)?;
-        let _ = state.sims.set(sims);
+        state.devices.set_sims(sims);
         let panel_feed = spec
             .panel
             .clone()
@@ -416,7 +422,7 @@ impl Rig {
                 .collect(),
             devices_stop: devices_stop.clone(),
         }));
-        let (lens_tasks, parked) = (dtasks.lenses, state.lens_parked.clone());
+        let (lens_tasks, parked) = (dtasks.lenses, state.devices.lens_parked().clone());
         let lens = tokio::spawn(async move {
             let mut reports = Vec::new();
             for t in lens_tasks {
@@ -477,7 +483,7 @@ impl Rig {
                 task_errors.push(format!("a device task failed: {e}"));
             }
         }
-        let rec = lock(&state.recording).take();
+        let rec = state.recording.current().take();
         let recording = match rec {
             Some(r) => Some(r.finish().await.map_err(|e| e.to_string())),
             None => None,

@@ -21,6 +21,7 @@ use serde_json::{json, Value};
 
 use crate::devices::config::{Devices, Port};
 use crate::devices::LensId;
+use crate::problem::Problem;
 
 pub mod config;
 pub use config::LslConfig;
@@ -213,6 +214,9 @@ pub struct PushStatus {
     /// Outlets with at least one consumer, the last time it looked.
     pub with_consumers: Vec<String>,
     pub last_error: Option<String>,
+    /// The newest look at the pushes found an error (the next without one clears it).
+    #[serde(skip)]
+    pub failing: bool,
 }
 
 /// The loop's end of the outlets.
@@ -347,6 +351,19 @@ impl LslOutlets {
             "with_consumers": p.with_consumers,
             "last_error": p.last_error,
         })
+    }
+
+    /// Pushing to liblsl fails now.
+    pub fn problems(&self) -> Vec<Problem> {
+        let p = lock(&self.pushed);
+        match (p.failing, &p.last_error) {
+            (true, Some(e)) => vec![Problem::new(
+                "lsl",
+                "lsl.enabled",
+                format!("pushing samples to the LSL outlets fails: {e}"),
+            )],
+            _ => Vec::new(),
+        }
     }
 }
 
@@ -547,6 +564,7 @@ mod liblsl {
                 last_look = std::time::Instant::now();
                 let mut p = lock(pushed);
                 p.pushed = n;
+                p.failing = error.is_some();
                 if error.is_some() {
                     p.last_error = error;
                 }

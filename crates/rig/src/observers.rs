@@ -20,7 +20,8 @@ use crate::recording::{
     ContentRec, DepthRec, FrameRec, LensCommandRec, LensLinkRec, LensStateRec, LensWireRec, Marker,
     PresentRec, Rec, RenderRec,
 };
-use crate::state::{lens_settled, RenderErrorNote, RigState, SUBFRAME_TOLERANCE_D};
+use crate::render::RenderErrorNote;
+use crate::state::{lens_settled, RigState, SUBFRAME_TOLERANCE_D};
 use dioptra_core::Side;
 
 /// The observers every rig has, in the order the loop calls them.
@@ -116,7 +117,7 @@ impl LoopHook for Recording {
                 power_d: power.0,
                 apply_at_ns: apply_at.0,
                 reason: engine::reason_name(reason),
-                focus_d: Some(self.0.optics_of(lens).focus_of(power).0),
+                focus_d: Some(self.0.optics.of(lens).focus_of(power).0),
                 eye: self.eye(lens),
             }),
             Command::RenderFrame(req) => Rec::Render(RenderRec {
@@ -174,7 +175,9 @@ impl LoopHook for Recording {
 /// A kind of render error (method and kind) is logged at most once per this long.
 const RENDER_ERROR_LOG_EVERY: Duration = Duration::from_secs(10);
 
-/// Keeps [`crate::state::LoopStatus`] (what `/status` shows of the loop) and logs failed renders.
+/// Keeps what `/status` shows of the loop ([`crate::state::LoopStatus`]) and what the loop
+/// hands the parts to publish (the lenses' focus, the renders, the display), and logs failed
+/// renders.
 struct Status {
     state: Arc<RigState>,
     /// Per (method, error kind): when it was last logged, and how many since.
@@ -191,13 +194,13 @@ const SCHEDULER_STATUS_EVERY: std::time::Duration = std::time::Duration::from_mi
 
 impl Status {
     fn refresh_scheduler(&mut self, now: Timestamp, engine: &Engine) {
-        lock(&self.state.status).scheduler = engine.status();
+        lock(&self.state.loop_status).scheduler = engine.status();
         self.scheduler_at = Some(now);
         self.scheduler_due = false;
     }
 
     fn modes(&self, engine: &Engine) {
-        let mut st = lock(&self.state.status);
+        let mut st = lock(&self.state.loop_status);
         st.mode = Some(engine.mode());
         st.method = Some(engine.method());
         st.manual_focus_d = engine.scheduler().status().manual_focus.map(|d| d.0);
@@ -246,11 +249,11 @@ impl Status {
 impl LoopHook for Status {
     fn started(&mut self, _now: Timestamp, engine: &Engine, sink: &dyn DisplaySink) {
         self.modes(engine);
-        lock(&self.state.status).display = sink.status();
+        self.state.display.sink_status(sink.status());
     }
     fn input(&mut self, _now: Timestamp, input: &DeviceInput, engine: &Engine) {
         let sh = &self.state;
-        let mut st = lock(&sh.status);
+        let mut st = lock(&sh.loop_status);
         match input {
             DeviceInput::Gaze(..) => st.gaze_samples += 1,
             DeviceInput::LensState(lens, s) => {
@@ -260,13 +263,7 @@ impl LoopHook for Status {
                     target.map(|d| d.0),
                     engine.scheduler().config().settled_tolerance_d,
                 );
-                if *lens == LensId::FIRST {
-                    st.lens_power_d = Some(s.power.0);
-                    st.lens_settled = settled;
-                }
-                if let Some(p) = st.reported_by_lens.get_mut(lens.index()) {
-                    *p = Some(s.power.0);
-                }
+                sh.optics.reported(*lens, s.power, settled);
             }
             DeviceInput::Sync(e) => {
                 st.sync_events += 1;
@@ -301,15 +298,10 @@ impl LoopHook for Status {
         self.scheduler_at = None;
     }
     fn command(&mut self, _now: Timestamp, cmd: &Command) {
-        let mut st = lock(&self.state.status);
+        let mut st = lock(&self.state.loop_status);
         match cmd {
             Command::SetLensPower { lens, power, .. } => {
-                if *lens == LensId::FIRST {
-                    st.commanded_power_d = Some(power.0);
-                }
-                if let Some(p) = st.commanded_by_lens.get_mut(lens.index()) {
-                    *p = Some(power.0);
-                }
+                self.state.optics.commanded(*lens, *power);
                 st.lens_commands += 1;
             }
             Command::RenderFrame(_) => st.frames_requested += 1,
@@ -317,46 +309,30 @@ impl LoopHook for Status {
         }
     }
     fn rendered(&mut self, now: Timestamp, r: &RenderReport<'_>) {
-        {
-            let mut st = lock(&self.state.status);
-            st.last_render_ms = Some(r.took.as_secs_f64() * 1e3);
-            match &r.outcome {
-                Ok(planned) => {
-                    if let Some(p) = planned {
-                        st.planned = Some((*p).clone());
-                    }
-                }
-                Err(f) => {
-                    let method = r.job.method.as_str().to_string();
-                    st.render_errors += 1;
-                    *st.render_errors_by_method
-                        .entry(method.clone())
-                        .or_default() += 1;
-                    st.last_render_error = Some(RenderErrorNote {
-                        frame: r.job.frame,
-                        method,
-                        kind: f.kind,
-                        error: f.message.clone(),
-                        focus_d: r.job.focus.0,
-                    });
-                    if f.fallback {
-                        st.fallback_frames += 1;
-                    }
-                }
-            }
+        match &r.outcome {
+            Ok(planned) => self.state.render.made(r.took, *planned),
+            Err(f) => self.state.render.failed(
+                r.took,
+                RenderErrorNote {
+                    frame: r.job.frame,
+                    method: r.job.method.as_str().to_string(),
+                    kind: f.kind,
+                    error: f.message.clone(),
+                    focus_d: r.job.focus.0,
+                },
+                f.fallback,
+            ),
         }
         if let Err(f) = &r.outcome {
             self.log_failure(now, r, f.kind, &f.message);
         }
     }
     fn presented(&mut self, _now: Timestamp, _p: &Presented, sink: &dyn DisplaySink) {
-        let mut st = lock(&self.state.status);
-        st.frames_shown = sink.shown();
-        st.display = sink.status();
+        self.state.display.presented(sink.status(), sink.shown());
     }
     fn not_shown(&mut self, _now: Timestamp, _frame: u64, sink: &dyn DisplaySink) {
         // The misfit count and reason reach /status though nothing is shown.
-        lock(&self.state.status).display = sink.status();
+        self.state.display.not_shown(sink.status());
     }
     fn stepped(&mut self, now: Timestamp, engine: &Engine) {
         let fresh = self
@@ -379,7 +355,7 @@ impl LoopHook for Status {
         }
     }
     fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
-        lock(&self.state.status).scheduler = engine.status();
+        lock(&self.state.loop_status).scheduler = engine.status();
     }
 }
 
@@ -431,7 +407,7 @@ impl LoopHook for WebSocket {
                 self.0.publish(|| {
                     let target = lens_target(engine, *lens);
                     let tolerance = engine.scheduler().config().settled_tolerance_d;
-                    let optics = self.0.optics_of(*lens);
+                    let optics = self.0.optics.of(*lens);
                     let mut m = json!({
                         "type": "lens",
                         "host_ns": s.host_time.0,
@@ -493,7 +469,7 @@ impl LoopHook for WebSocket {
                     "type": "focus",
                     "host_ns": now.0,
                     "commanded_d": power.0,
-                    "focus_d": self.0.optics_of(lens).focus_of(power).0,
+                    "focus_d": self.0.optics.of(lens).focus_of(power).0,
                     "reason": engine::reason_name(reason),
                 });
                 if let Some(e) = eye {
@@ -543,14 +519,14 @@ impl LoopHook for Lsl {
             }
             DeviceInput::LensState(lens, s) => {
                 let commanded = self.commanded.get(lens.index()).copied().flatten();
-                l.lens_state(*lens, s, commanded, self.state.optics_of(*lens))
+                l.lens_state(*lens, s, commanded, self.state.optics.of(*lens))
             }
             DeviceInput::LensWire {
                 lens,
                 requested,
                 wire_time,
                 ..
-            } => l.lens_wire(*lens, *wire_time, *requested, self.state.optics_of(*lens)),
+            } => l.lens_wire(*lens, *wire_time, *requested, self.state.optics.of(*lens)),
             DeviceInput::Sync(dioptra_core::SequencerEvent::SubframeStart {
                 frame,
                 plane_index,

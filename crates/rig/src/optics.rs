@@ -2,3 +2,6 @@
 //! (focus <-> lens command) is made.
 
 pub mod config;
+pub mod status;
+
+pub use status::{FocusStatus, OpticsHandle};

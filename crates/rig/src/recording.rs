@@ -20,7 +20,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use dioptra_core::{
     Diopters, EyeRay, GazeSample, LensState, LightEdge, LightEvent, SequencerEvent, SequencerFault,
@@ -28,9 +28,11 @@ use dioptra_core::{
 };
 use serde::{Deserialize, Serialize};
 
-use dioptra_core::Side;
+use dioptra_core::{lock, Side};
 use thiserror::Error;
 use tokio::sync::mpsc;
+
+use crate::problem::Problem;
 
 pub mod config;
 
@@ -750,6 +752,11 @@ impl Recorder {
         &self.path
     }
 
+    /// Messages dropped so far (the channel to the writer was full).
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
     /// Queues one message; never waits.
     pub fn record(&self, t: Timestamp, rec: Rec) {
         if self.tx.try_send((t.0, rec)).is_err() {
@@ -774,6 +781,55 @@ impl Recorder {
             messages,
             dropped: dropped.load(Ordering::Relaxed),
         })
+    }
+}
+
+/// What the recording part publishes: the recording in progress, if any; `/status`'s
+/// `recording` (its path), and messages it dropped.
+#[derive(Default)]
+pub struct RecordingHandle(Mutex<Option<Recorder>>);
+
+impl RecordingHandle {
+    /// The recording in progress (`None`: not recording), locked.
+    pub fn current(&self) -> std::sync::MutexGuard<'_, Option<Recorder>> {
+        lock(&self.0)
+    }
+
+    /// Where the recording in progress goes.
+    pub fn path(&self) -> Option<PathBuf> {
+        self.current().as_ref().map(|r| r.path().to_path_buf())
+    }
+
+    /// Queues `rec` at `t` in the recording in progress (none: nothing).
+    pub fn record(&self, t: Timestamp, rec: Rec) {
+        if let Some(r) = self.current().as_ref() {
+            r.record(t, rec);
+        }
+    }
+
+    /// `/status`'s `recording`: the path of the recording in progress.
+    pub fn status(&self, out: &mut serde_json::Map<String, serde_json::Value>) {
+        out.insert(
+            "recording".into(),
+            serde_json::json!(self.path().map(|p| p.display().to_string())),
+        );
+    }
+
+    /// The recording in progress dropped messages: the disk did not keep up.
+    pub fn problems(&self) -> Vec<Problem> {
+        let current = self.current();
+        let Some(r) = current.as_ref().filter(|r| r.dropped() > 0) else {
+            return Vec::new();
+        };
+        vec![Problem::new(
+            "recording",
+            "recording.dir",
+            format!(
+                "the recording {} dropped {} messages: the disk does not keep up with the rig",
+                r.path().display(),
+                r.dropped()
+            ),
+        )]
     }
 }
 

@@ -171,7 +171,7 @@ impl SimRun {
         setup.hooks.extend(self.hooks);
         let rig = Rig::start(setup).await?;
         let state = rig.state().clone();
-        if let Some(s) = state.sims.get() {
+        if let Some(s) = state.devices.sims() {
             let _ = sims.set(s.clone());
         }
         let mut actions = self.actions;
@@ -198,9 +198,9 @@ impl SimRun {
             .ok_or_else(|| RigError::Task("the rig's loop stopped without its shutdown".into()))?;
         // The last probe: where the lens came to rest after parking.
         if self.probe.is_some() {
-            let (lens_power, lens_target) = lens_truth(state.sims.get(), 0, now).unzip();
+            let (lens_power, lens_target) = lens_truth(state.devices.sims(), 0, now).unzip();
             let (lens_power_right, lens_target_right) =
-                lens_truth(state.sims.get(), 1, now).unzip();
+                lens_truth(state.devices.sims(), 1, now).unzip();
             log.probes.push(Probe {
                 t: now,
                 lens_power,
@@ -210,16 +210,19 @@ impl SimRun {
                 lens_target_right,
                 predicted: None,
                 commanded: end.status.commanded_power,
-                commanded_focus: end.status.commanded_power.map(|c| state.optics.focus_of(c)),
+                commanded_focus: end
+                    .status
+                    .commanded_power
+                    .map(|c| state.optics.of(LensId::FIRST).focus_of(c)),
                 gaze_target_d: None,
                 vergence_d: None,
                 phase: end.status.phase,
             });
         }
-        if let Some(t) = state.sims.get().and_then(|s| s.gaze_truth.as_ref()) {
+        if let Some(t) = state.devices.sims().and_then(|s| s.gaze_truth.as_ref()) {
             log.truth = std::mem::take(&mut *lock(t));
         }
-        if let Some(g) = state.registry.snapshot().get("gaze") {
+        if let Some(g) = state.devices.registry().snapshot().get("gaze") {
             if g.failures > 0 {
                 log.gaze_errors.extend(g.last_error.clone());
             }
@@ -229,11 +232,11 @@ impl SimRun {
             status: end.status,
             latency: end.latency,
             lens_opened: state
-                .sims
-                .get()
+                .devices
+                .sims()
                 .and_then(|s| s.lenses.first()?.as_ref())
                 .map_or(0, |l| l.plug.opened()),
-            lenses_opened: state.sims.get().map_or_else(Vec::new, |s| {
+            lenses_opened: state.devices.sims().map_or_else(Vec::new, |s| {
                 s.lenses
                     .iter()
                     .map(|l| l.as_ref().map_or(0, |l| l.plug.opened()))
@@ -250,8 +253,8 @@ impl SimRun {
 async fn act(state: &RigState, action: Action) {
     let lens_plug = |lens: LensId| {
         state
-            .sims
-            .get()
+            .devices
+            .sims()
             .and_then(|s| s.lenses.get(lens.index())?.as_ref())
             .map(|l| l.plug.clone())
     };
@@ -279,7 +282,7 @@ async fn act(state: &RigState, action: Action) {
                 tracing::warn!(error = %e, "scripted manual focus refused");
             }
         }
-        Action::HoldMarker(hold) => state.marker.hold_black(hold),
+        Action::HoldMarker(hold) => state.display.marker().hold_black(hold),
     }
 }
 

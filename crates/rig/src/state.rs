@@ -3,7 +3,7 @@
 //! asks of the loop and why it may refuse ([`ControlError`]).
 
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex};
 
 use dioptra_core::{lock, Clock, Timestamp};
 use serde::Serialize;
@@ -13,19 +13,16 @@ use tokio::sync::{broadcast, mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 
 use crate::config::RigConfig;
-use crate::content::source::Content;
-use crate::content::stereo::EyeViews;
-use crate::devices::config::SyncDriver;
-use crate::devices::input::LensId;
-use crate::devices::link::DeviceSettings;
-use crate::devices::registry::Registry;
-use crate::devices::simulators::{SimDevices, SimSlot};
-use crate::display::MarkerControl;
+use crate::content::status::ContentHandle;
+use crate::devices::status::DevicesHandle;
+use crate::display::status::DisplayHandle;
 use crate::engine::Control;
 use crate::lsl::LslOutlets;
 use crate::mode::{Method, Mode};
-use crate::recording::{self, Rec, Recorder, RecordingStats, StartRec};
-use crate::render::job::{Planned, Renderer};
+use crate::optics::status::OpticsHandle;
+use crate::problem::Problem;
+use crate::recording::{self, Rec, Recorder, RecordingHandle, RecordingStats, StartRec};
+use crate::render::status::RenderHandle;
 
 /// Why an API command was not carried out.
 #[derive(Debug, Error)]
@@ -65,22 +62,14 @@ pub(crate) struct PendingRecording {
     pub meta: RecordingMeta,
 }
 
-/// What the loop publishes for `GET /status`.
+/// The loop's own status: the mode and method it runs, the manual focus, what it handled, the
+/// multifocal sub-frames and the scheduler's figures. (Each part publishes the rest through
+/// its handle.)
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct LoopStatus {
     pub mode: Option<Mode>,
     pub method: Option<Method>,
     pub manual_focus_d: Option<f32>,
-    /// The newest lens power the scheduler commanded (the one lens, or the left eye's).
-    pub commanded_power_d: Option<f32>,
-    /// The newest lens power the lens reported (the one lens, or the left eye's).
-    pub lens_power_d: Option<f32>,
-    /// Each lens's newest commanded and reported power, by lens id (a lens per eye: left,
-    /// right).
-    pub commanded_by_lens: [Option<f32>; 2],
-    pub reported_by_lens: [Option<f32>; 2],
-    /// Whether that read-back had the lens settled at the power commanded.
-    pub lens_settled: Option<bool>,
     pub gaze_samples: u64,
     pub lens_commands: u64,
     pub sync_events: u64,
@@ -94,18 +83,6 @@ pub struct LoopStatus {
     pub subframes_off_target: u64,
     pub subframe_faults: u64,
     pub frames_requested: u64,
-    pub frames_shown: u64,
-    pub render_errors: u64,
-    /// Render errors per method (`gather`, `network`, ...).
-    pub render_errors_by_method: std::collections::BTreeMap<String, u64>,
-    /// The newest render error.
-    pub last_render_error: Option<RenderErrorNote>,
-    /// Frames shown unblurred because their render failed.
-    pub fallback_frames: u64,
-    pub last_render_ms: Option<f64>,
-    /// `method = "auto"`: the planner's choice for the newest frame.
-    pub planned: Option<Planned>,
-    pub display: serde_json::Value,
     pub scheduler: serde_json::Value,
 }
 
@@ -212,264 +189,189 @@ pub fn lens_settled(
 /// board's own settle tolerance).
 pub const SUBFRAME_TOLERANCE_D: f32 = 0.02;
 
-/// The newest render error, as `/status` shows it.
-#[derive(Debug, Clone, Serialize)]
-pub struct RenderErrorNote {
-    pub frame: u64,
-    pub method: String,
-    pub kind: &'static str,
-    pub error: String,
-    pub focus_d: f32,
-}
-
-/// State shared by the loop, the API and the device tasks.
-pub struct RigState {
-    pub cfg: Arc<RigConfig>,
-    pub registry: Arc<Registry>,
-    pub settings: DeviceSettings,
-    pub status: Mutex<LoopStatus>,
-    /// JSON text messages for the API's WebSocket (`GET /stream`).
-    pub websocket: broadcast::Sender<Arc<str>>,
-    pub recording: Mutex<Option<Recorder>>,
-    pub cancel: CancellationToken,
+/// The rig's clock: what the host timeline counts, and its anchor to the wall clock.
+pub struct RigClock {
+    pub(crate) clock: Arc<dyn Clock>,
+    /// What the host timeline counts.
+    pub(crate) source: &'static str,
     /// The wall-clock time (UTC, ns since the Unix epoch) of the host timeline's zero, read
     /// at start; `None` on a simulated clock. Host time `t` happened at `wall_zero_ns + t`.
-    pub wall_zero_ns: Option<u64>,
-    /// What the host timeline counts.
-    pub clock_source: &'static str,
-    /// What the rig shows (`/status`'s `content`; the API's frame endpoints).
-    pub content: Arc<dyn Content>,
-    /// What renders the frames (`/status`'s `render`).
-    pub renderer: Arc<dyn Renderer>,
-    /// A stereo layout: each eye's view of the content (`/status`'s `eye_views`).
-    pub eye_views: Option<Arc<EyeViews>>,
-    /// `method = "auto"` (config or API): the planner chooses each varifocal frame's method.
-    pub auto_method: std::sync::atomic::AtomicBool,
-    /// Fires when every lens task has parked its lens (or given up) and ended: after this,
-    /// exiting the process leaves the lenses safe.
-    pub lens_parked: CancellationToken,
-    pub clock: Arc<dyn Clock>,
-    /// The simulated devices (none on a hardware rig); set once the devices start.
-    pub sims: OnceLock<SimDevices>,
-    /// Lab Streaming Layer outlets (`[lsl] enabled = true`).
-    pub lsl: Option<LslOutlets>,
-    /// Focus <-> lens command for the rig's lens (the one lens, or the left eye's): the
-    /// scheduler's map (`/status`, recordings, the WebSocket and LSL say what focus a lens
-    /// power gives through it). See [`RigState::optics_of`].
-    pub optics: dioptra_core::OpticsMap,
-    /// The marker patch's requests from outside the loop (an API marker; `dioptra hil`'s hold).
-    pub marker: MarkerControl,
-    /// The right eye's lens's map, on a rig with a lens per eye.
-    pub optics_right: Option<dioptra_core::OpticsMap>,
-    pub(crate) controls: mpsc::Sender<ControlMsg>,
+    pub(crate) wall_zero_ns: Option<u64>,
+    /// When the rig started, on the host timeline.
     pub(crate) started: Timestamp,
 }
 
+impl RigClock {
+    /// Host time now.
+    pub fn now(&self) -> Timestamp {
+        self.clock.now()
+    }
+    pub fn clock(&self) -> &Arc<dyn Clock> {
+        &self.clock
+    }
+    /// What the host timeline counts.
+    pub fn source(&self) -> &'static str {
+        self.source
+    }
+    /// The wall-clock time (UTC, ns since the Unix epoch) of the host timeline's zero;
+    /// `None` on a simulated clock.
+    pub fn wall_zero_ns(&self) -> Option<u64> {
+        self.wall_zero_ns
+    }
+    /// `/status`'s `clock`.
+    fn status(&self) -> serde_json::Value {
+        json!({
+            "source": self.source,
+            "wall_zero_ns": self.wall_zero_ns,
+        })
+    }
+}
+
+/// State shared by the loop, the API and the device tasks: the rig's config and each part's
+/// handle, through which the part publishes its status (`/status` composes them).
+pub struct RigState {
+    pub(crate) cfg: Arc<RigConfig>,
+    pub(crate) devices: DevicesHandle,
+    pub(crate) content: ContentHandle,
+    pub(crate) render: RenderHandle,
+    pub(crate) display: DisplayHandle,
+    pub(crate) optics: OpticsHandle,
+    pub(crate) recording: RecordingHandle,
+    /// Lab Streaming Layer outlets (`[lsl] enabled = true`).
+    pub(crate) lsl: Option<LslOutlets>,
+    pub(crate) loop_status: Mutex<LoopStatus>,
+    pub(crate) clock: RigClock,
+    /// JSON text messages for the API's WebSocket (`GET /stream`).
+    pub(crate) websocket: broadcast::Sender<Arc<str>>,
+    pub(crate) cancel: CancellationToken,
+    pub(crate) controls: mpsc::Sender<ControlMsg>,
+}
+
 impl RigState {
-    /// The focus range each lens's range gives its eye through its optics map, nearest last:
-    /// the one lens's, or the left's then the right's.
-    pub fn focus_ranges_d(&self) -> Vec<[f32; 2]> {
-        std::iter::once(&self.optics)
-            .chain(self.optics_right.as_ref())
-            .map(|o| {
-                let r = o.range();
-                let (a, b) = (o.focus_of(r.min).0, o.focus_of(r.max).0);
-                [a.min(b), a.max(b)]
-            })
-            .collect()
+    /// The rig config it runs.
+    pub fn cfg(&self) -> &Arc<RigConfig> {
+        &self.cfg
+    }
+    /// The devices: their links, the device tasks' settings, the simulated devices.
+    pub fn devices(&self) -> &DevicesHandle {
+        &self.devices
+    }
+    /// What the rig shows: the content source, each eye's view.
+    pub fn content(&self) -> &ContentHandle {
+        &self.content
+    }
+    /// What renders the frames, and how the renders went.
+    pub fn render(&self) -> &RenderHandle {
+        &self.render
+    }
+    /// The display: its sink's status, the marker patch's requests.
+    pub fn display(&self) -> &DisplayHandle {
+        &self.display
+    }
+    /// Each lens's optics map, and the focus the lenses were commanded and reported.
+    pub fn optics(&self) -> &OpticsHandle {
+        &self.optics
+    }
+    /// The recording in progress.
+    pub fn recording(&self) -> &RecordingHandle {
+        &self.recording
+    }
+    /// The Lab Streaming Layer outlets (`[lsl] enabled = true`).
+    pub fn lsl(&self) -> Option<&LslOutlets> {
+        self.lsl.as_ref()
+    }
+    /// The loop's own status now.
+    pub fn loop_status(&self) -> LoopStatus {
+        lock(&self.loop_status).clone()
+    }
+    /// The rig's clock.
+    pub fn clock(&self) -> &RigClock {
+        &self.clock
+    }
+    /// The API's WebSocket messages (`GET /stream`): subscribe to hear them.
+    pub fn websocket(&self) -> &broadcast::Sender<Arc<str>> {
+        &self.websocket
+    }
+    /// Stops the rig: the loop carries out the scheduler's shutdown, the device tasks stop.
+    pub fn cancel(&self) -> &CancellationToken {
+        &self.cancel
     }
 
-    /// The focus range the lens range gives through the optics map, nearest last; with a lens
-    /// per eye, the range both eyes' lenses reach (`None`: they reach no focus in common, as
-    /// with prescriptions further apart than the lens range).
-    pub fn focus_range_d(&self) -> Option<[f32; 2]> {
-        let r = self
-            .focus_ranges_d()
-            .into_iter()
-            .fold([f32::MIN, f32::MAX], |acc, r| {
-                [acc[0].max(r[0]), acc[1].min(r[1])]
-            });
-        (r[0] <= r[1]).then_some(r)
-    }
-
+    /// `GET /status`: each part's status, and `problems`, what is wrong now.
     pub fn status_json(&self) -> serde_json::Value {
         let now = self.clock.now();
-        let status = lock(&self.status).clone();
-        let recording = lock(&self.recording)
-            .as_ref()
-            .map(|r| r.path().display().to_string());
-        json!({
-            "uptime_s": now.saturating_since(self.started).as_secs_f64(),
-            "host_ns": now.0,
-            "mode": status.mode,
-            "method": if self.auto_method.load(std::sync::atomic::Ordering::Relaxed) {
+        let st = self.loop_status();
+        let render = self.render.status_now();
+        let mut out = serde_json::Map::new();
+        out.insert(
+            "uptime_s".into(),
+            json!(now.saturating_since(self.clock.started).as_secs_f64()),
+        );
+        out.insert("host_ns".into(), json!(now.0));
+        out.insert("mode".into(), json!(st.mode));
+        out.insert(
+            "method".into(),
+            if self.render.auto() {
                 json!("auto")
             } else {
-                json!(status.method)
+                json!(st.method)
             },
-            "planned": status.planned.as_ref().map(|p| json!({
-                "method": p.choice,
-                "predicted_fovea_psnr_db": p.predicted_psnr_db,
-                "why": p.why,
-            })),
-            "focus": self.focus_json(&status),
-            "optics": self.optics_json(&status),
-            "content": self.content.status(),
-            "render": self.renderer.backend_status(),
-            "eye_views": self.eye_views.as_ref().map(|v| v.status()),
-            "clock": {
-                "source": self.clock_source,
-                "wall_zero_ns": self.wall_zero_ns,
-            },
-            "devices": self.registry.snapshot(),
-            "device_tasks": self.settings,
-            "counts": {
-                "gaze_samples": status.gaze_samples,
-                "lens_commands": status.lens_commands,
-                "sync_events": status.sync_events,
-                "frames_requested": status.frames_requested,
-                "frames_shown": status.frames_shown,
-                "render_errors": status.render_errors,
-                "fallback_frames": status.fallback_frames,
-            },
-            "subframes": {
-                "started": status.subframes,
-                "measured": status.subframes_measured,
-                "off_target": status.subframes_off_target,
-                "off_target_rate": (status.subframes_measured > 0)
-                    .then(|| status.subframes_off_target as f64 / status.subframes_measured as f64),
+        );
+        out.insert("clock".into(), self.clock.status());
+        self.optics
+            .status(&mut out, st.manual_focus_d, |i| self.devices.lens_link(i));
+        self.content.status(&mut out);
+        self.render.status(&mut out);
+        self.devices.status(&mut out);
+        self.display.status(&mut out);
+        self.recording.status(&mut out);
+        out.insert(
+            "lsl".into(),
+            json!(self.lsl.as_ref().map(|l| l.status_json())),
+        );
+        out.insert(
+            "counts".into(),
+            json!({
+                "gaze_samples": st.gaze_samples,
+                "lens_commands": st.lens_commands,
+                "sync_events": st.sync_events,
+                "frames_requested": st.frames_requested,
+                "frames_shown": self.display.shown(),
+                "render_errors": render.render_errors,
+                "fallback_frames": render.fallback_frames,
+            }),
+        );
+        out.insert(
+            "subframes".into(),
+            json!({
+                "started": st.subframes,
+                "measured": st.subframes_measured,
+                "off_target": st.subframes_off_target,
+                "off_target_rate": (st.subframes_measured > 0)
+                    .then(|| st.subframes_off_target as f64 / st.subframes_measured as f64),
                 "tolerance_d": SUBFRAME_TOLERANCE_D,
-                "faults": status.subframe_faults,
-                "lens_measured_by": self.subframe_measurement(),
-            },
-            "render_errors": {
-                "by_method": status.render_errors_by_method,
-                "last": status.last_render_error,
-            },
-            "last_render_ms": status.last_render_ms,
-            "display": status.display,
-            "scheduler": status.scheduler,
-            "recording": recording,
-            "lsl": self.lsl.as_ref().map(|l| l.status_json()),
-            "sim_lens": self.sim_lens_json(),
-        })
+                "faults": st.subframe_faults,
+                "lens_measured_by": self.devices.subframe_measurement(),
+            }),
+        );
+        out.insert("scheduler".into(), st.scheduler);
+        out.insert("problems".into(), json!(self.problems()));
+        serde_json::Value::Object(out)
     }
 
-    /// `/status`'s `focus`: the one lens's, or the left eye's; with a lens per eye, each
-    /// eye's under `left` and `right` (commanded and reported power, the focus each gives
-    /// through that eye's optics map, and the lens's link).
-    fn focus_json(&self, status: &LoopStatus) -> serde_json::Value {
-        let focus_of = |lens: LensId, p: Option<f32>| {
-            p.map(|p| self.optics_of(lens).focus_of(dioptra_core::Diopters(p)).0)
-        };
-        let mut focus = json!({
-            "manual_d": status.manual_focus_d,
-            "commanded_d": status.commanded_power_d,
-            "commanded_focus_d": focus_of(LensId::FIRST, status.commanded_power_d),
-            "lens_d": status.lens_power_d,
-            "lens_focus_d": focus_of(LensId::FIRST, status.lens_power_d),
-            "lens_settled": status.lens_settled,
-            "lens_range_d": [self.cfg.optics.lens_range.min, self.cfg.optics.lens_range.max],
-            "focus_range_d": self.focus_range_d(),
-        });
-        let lenses = &self.cfg.devices.lens;
-        if lenses.count() > 1 {
-            let devices = self.registry.snapshot();
-            for i in 0..lenses.count() {
-                let Some(side) = lenses.side(i) else { continue };
-                let lens = LensId(i as u8);
-                let link = devices.get(&lenses.name(i)).map(|d| d.state);
-                focus[side.as_str()] = json!({
-                    "commanded_d": status.commanded_by_lens[i],
-                    "commanded_focus_d": focus_of(lens, status.commanded_by_lens[i]),
-                    "lens_d": status.reported_by_lens[i],
-                    "lens_focus_d": focus_of(lens, status.reported_by_lens[i]),
-                    "link": link,
-                });
-            }
+    /// What is wrong now, each part's in turn, each naming its part and the config key to
+    /// look at (the details stay in the part's own status).
+    pub fn problems(&self) -> Vec<Problem> {
+        let mut p = self.devices.problems();
+        p.extend(self.content.problems());
+        p.extend(self.render.problems());
+        p.extend(self.display.problems());
+        p.extend(self.optics.problems());
+        p.extend(self.recording.problems());
+        if let Some(l) = &self.lsl {
+            p.extend(l.problems());
         }
-        focus
-    }
-
-    /// `/status`'s `optics`: the map of the one lens, or each eye's.
-    fn optics_json(&self, status: &LoopStatus) -> serde_json::Value {
-        let one = |lens: LensId, power: Option<f32>| {
-            let o = self.optics_of(lens);
-            json!({
-                "source": o.source_name(),
-                "map": o.describe(),
-                "magnification": power.and_then(|p| o.magnification(dioptra_core::Diopters(p))),
-            })
-        };
-        let lenses = &self.cfg.devices.lens;
-        if lenses.count() == 1 {
-            let mut v = one(LensId::FIRST, status.lens_power_d);
-            v["eyes"] = json!("one map: this rig has one lens ([devices.lens])");
-            return v;
-        }
-        let mut v = json!({ "eyes": "a map per eye: this rig has a lens per eye" });
-        for i in 0..lenses.count() {
-            if let Some(side) = lenses.side(i) {
-                v[side.as_str()] = one(LensId(i as u8), status.reported_by_lens[i]);
-            }
-        }
-        v
-    }
-
-    /// The optics map of `lens` (the one lens, or an eye's).
-    pub fn optics_of(&self, lens: LensId) -> &dioptra_core::OpticsMap {
-        match (lens.0, &self.optics_right) {
-            (1, Some(o)) => o,
-            _ => &self.optics,
-        }
-    }
-
-    /// `/status`'s `sim_lens`: where each simulated lens really is.
-    fn sim_lens_json(&self) -> serde_json::Value {
-        let Some(sims) = self.sims.get() else {
-            return serde_json::Value::Null;
-        };
-        let one = |slot: Option<&SimSlot>| -> serde_json::Value {
-            let Some(slot) = slot else {
-                return serde_json::Value::Null;
-            };
-            let Some(lens) = slot.lens.as_ref() else {
-                return serde_json::Value::Null;
-            };
-            let m = lens.model();
-            json!({
-                "power_d": m.power().0,
-                "target_d": m.target_power().0,
-                "settled": m.settled(),
-                "plugged": slot.plug.is_plugged(),
-            })
-        };
-        let lenses = &self.cfg.devices.lens;
-        if lenses.count() == 1 {
-            return one(sims.lenses.first().and_then(Option::as_ref));
-        }
-        let mut out = json!({});
-        for i in 0..lenses.count() {
-            if let Some(side) = lenses.side(i) {
-                out[side.as_str()] = one(sims.lenses.get(i).and_then(Option::as_ref));
-            }
-        }
-        out
-    }
-
-    /// What measures the multifocal lens at each sub-frame (`/status` `subframes`): the
-    /// dioptra sync board reads it back; a DLPC350 only sequences, so nothing confirms the
-    /// planes were reached and `measured` stays 0.
-    fn subframe_measurement(&self) -> Option<&'static str> {
-        let sync = self.cfg.devices.sync.as_ref()?;
-        Some(match sync.driver {
-            SyncDriver::Sync => "the sync board's lens read-back at each sub-frame",
-            SyncDriver::Dlpc350 => {
-                "nothing: the DLPC350 sequences the planes but reports no lens power, so \
-                 measured stays 0; a photodiode or the lens's own read-back is needed to \
-                 confirm the planes were reached"
-            }
-        })
+        p
     }
 
     /// Hands a command to the loop and waits for its answer.
@@ -488,9 +390,7 @@ impl RigState {
     }
 
     pub(crate) fn record(&self, t: Timestamp, rec: Rec) {
-        if let Some(r) = lock(&self.recording).as_ref() {
-            r.record(t, rec);
-        }
+        self.recording.record(t, rec);
     }
 
     /// Sends a `/stream` message, made only when someone listens. Its `host_ns` is when the
@@ -503,7 +403,7 @@ impl RigState {
                 o.entry("host_ns").or_insert(json!(self.clock.now().0));
                 o.insert(
                     "wall_ns".into(),
-                    json!(self.wall_zero_ns.is_some().then(wall_ns)),
+                    json!(self.clock.wall_zero_ns.is_some().then(wall_ns)),
                 );
             }
             let _ = self.websocket.send(Arc::from(m.to_string()));
@@ -591,7 +491,7 @@ impl RigState {
                 "the rig config has no [recording] section with a dir; add one to record".into(),
             ));
         };
-        if let Some(r) = lock(&self.recording).as_ref() {
+        if let Some(r) = self.recording.current().as_ref() {
             return Err(ControlError::Conflict(format!(
                 "already recording to {}",
                 r.path().display()
@@ -622,16 +522,16 @@ impl RigState {
 
     /// The `/start` message: the rig config and what the rig is doing.
     fn start_rec(&self, from_start: bool, meta: &RecordingMeta) -> StartRec {
-        let st = lock(&self.status).clone();
+        let st = self.loop_status();
         StartRec {
             config: toml::to_string(self.cfg.as_ref()).unwrap_or_default(),
             mode: st.mode.unwrap_or(self.cfg.mode).as_str().into(),
             method: st.method.unwrap_or(self.cfg.method).as_str().into(),
             manual_focus_d: st.manual_focus_d,
             from_start,
-            device_tasks: serde_json::to_value(self.settings).unwrap_or_default(),
-            wall_zero_ns: self.wall_zero_ns,
-            clock: self.clock_source.into(),
+            device_tasks: serde_json::to_value(self.devices.settings()).unwrap_or_default(),
+            wall_zero_ns: self.clock.wall_zero_ns,
+            clock: self.clock.source.into(),
             calibration_tables: self
                 .cfg
                 .calibration_tables
@@ -656,7 +556,7 @@ impl RigState {
         t: Timestamp,
     ) -> Result<(), ControlError> {
         {
-            let mut slot = lock(&self.recording);
+            let mut slot = self.recording.current();
             if let Some(other) = slot.as_ref() {
                 let why = format!("already recording to {}", other.path().display());
                 drop(r);
@@ -693,7 +593,9 @@ impl RigState {
 
     /// Finishes the recording in progress.
     pub async fn stop_recording(&self) -> Result<RecordingStats, ControlError> {
-        let r = lock(&self.recording)
+        let r = self
+            .recording
+            .current()
             .take()
             .ok_or_else(|| ControlError::Conflict("not recording".into()))?;
         let path = r.path().display().to_string();
@@ -715,3 +617,6 @@ pub(crate) fn wall_ns() -> u64 {
         .map(|d| u64::try_from(d.as_nanos()).unwrap_or(u64::MAX))
         .unwrap_or(0)
 }
+
+#[cfg(test)]
+mod tests;

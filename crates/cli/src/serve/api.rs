@@ -130,7 +130,7 @@ async fn set_mode(
         )
         .at("mode")
     })?;
-    if mode == Mode::Multifocal && s.cfg.devices.sync.is_none() {
+    if mode == Mode::Multifocal && s.cfg().devices.sync.is_none() {
         return Err(ApiError::new(
             StatusCode::CONFLICT,
             "multifocal mode needs a sync board, and the rig config has no [devices.sync]",
@@ -142,7 +142,7 @@ async fn set_mode(
         set_auto(&s, false);
     }
     // The method the new mode renders with (its default when the old one does not fit).
-    let method = dioptra_core::lock(&s.status).method.map(|m| m.as_str());
+    let method = s.loop_status().method.map(|m| m.as_str());
     Ok(Json(json!({ "mode": mode.as_str(), "method": method })))
 }
 
@@ -151,7 +151,7 @@ async fn set_method(
     b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     let m: MethodBody = body(&b)?;
-    let mode = dioptra_core::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let mode = s.loop_status().mode.unwrap_or(s.cfg().mode);
     let auto = m.method == "auto";
     let method = if auto {
         if mode != Mode::Varifocal {
@@ -191,11 +191,7 @@ async fn set_method(
 
 /// Turns the planner on or off; off, its last choice no longer describes the frames.
 fn set_auto(s: &Shared, auto: bool) {
-    s.auto_method
-        .store(auto, std::sync::atomic::Ordering::Relaxed);
-    if !auto {
-        dioptra_core::lock(&s.status).planned = None;
-    }
+    s.render().set_auto(auto);
 }
 
 async fn set_focus(
@@ -215,10 +211,11 @@ async fn set_focus(
         lens_must_be_up(&s)?;
     }
     // The focus the lens range reaches through the optics map (the identity: the range).
-    let d = match (diopters, s.focus_range_d()) {
+    let d = match (diopters, s.optics().focus_range_d()) {
         (None, _) => None,
         (Some(_), None) => {
             let ranges: Vec<String> = s
+                .optics()
                 .focus_ranges_d()
                 .iter()
                 .zip(["left", "right"])
@@ -241,21 +238,21 @@ async fn set_focus(
             Some(d as f32)
         }
         (Some(d), Some([lo, hi])) => {
-            let r = s.cfg.optics.lens_range;
+            let r = s.cfg().optics.lens_range;
             return Err(ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
                 format!(
                     "focus {d} D is outside what the lens reaches, {lo}..{hi} D (optics.lens_range {}..{} D through the optics map: {})",
                     r.min,
                     r.max,
-                    s.optics.describe()
+                    s.optics().of(dioptra_rig::devices::LensId::FIRST).describe()
                 ),
             )
             .at("diopters"));
         }
     };
     s.control(Control::ManualFocus(d)).await?;
-    let mode = dioptra_core::lock(&s.status).mode.unwrap_or(s.cfg.mode);
+    let mode = s.loop_status().mode.unwrap_or(s.cfg().mode);
     let effect = match (d, mode) {
         (None, _) => "focus follows gaze again",
         (Some(_), Mode::Multifocal) => {
@@ -270,8 +267,8 @@ async fn set_focus(
 /// 503 while a required lens (`devices.lens.required`, true for a real port; each eye's with
 /// a lens per eye) is not connected: a focus would be held, not shown, until it is back.
 fn lens_must_be_up(s: &Shared) -> Result<(), ApiError> {
-    let snap = s.registry.snapshot();
-    let down = s.cfg.devices.list().into_iter().find_map(|d| {
+    let snap = s.devices().registry().snapshot();
+    let down = s.cfg().devices.list().into_iter().find_map(|d| {
         let st = snap.get(&d.name)?;
         (d.name.starts_with("lens") && d.required && st.state != dioptra_rig::devices::State::Ok)
             .then(|| (d, st.clone()))
@@ -306,7 +303,7 @@ async fn marker(
     b: Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
     use dioptra_rig::config::MarkerEvent;
-    let patch = s.cfg.display.marker_patch.as_ref();
+    let patch = s.cfg().display.marker_patch.as_ref();
     let toggles = patch.is_some_and(|p| p.toggle_on.contains(&MarkerEvent::ApiMarker));
     if b.iter().all(u8::is_ascii_whitespace) {
         if patch.is_none() {
@@ -321,7 +318,7 @@ async fn marker(
                 "display.marker_patch.toggle_on does not name \"api-marker\", so an API marker would not show: add it there",
             ));
         }
-        let n = s.marker.api_marker();
+        let n = s.display().marker().api_marker();
         return Ok(Json(json!({ "markers": n })));
     }
     let m: MarkerBody = body(&b)?;
@@ -341,7 +338,7 @@ async fn marker(
         .at("marker"));
     }
     let t = s.lab_marker(m.marker);
-    let n = toggles.then(|| s.marker.api_marker());
+    let n = toggles.then(|| s.display().marker().api_marker());
     Ok(Json(json!({ "host_ns": t.0, "markers": n })))
 }
 
@@ -376,8 +373,8 @@ async fn sim_plug(
     State(s): State<Arc<Shared>>,
     Path((device, action)): Path<(String, String)>,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let sims = s.sims.get();
-    let lenses = &s.cfg.devices.lens;
+    let sims = s.devices().sims();
+    let lenses = &s.cfg().devices.lens;
     let plug = sims.and_then(|sims| match device.as_str() {
         "gaze" => sims.gaze.as_ref(),
         "sync" => sims.sync.as_ref(),
@@ -413,7 +410,7 @@ async fn sim_plug(
 
 async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json::Value>) {
     tracing::info!("shutdown requested through the API");
-    s.cancel.cancel();
+    s.cancel().cancel();
     (
         StatusCode::ACCEPTED,
         Json(json!({ "status": "stopping: parking the lens and finishing files" })),
@@ -421,8 +418,8 @@ async fn shutdown(State(s): State<Arc<Shared>>) -> (StatusCode, Json<serde_json:
 }
 
 async fn websocket(State(s): State<Arc<Shared>>, ws: WebSocketUpgrade) -> Response {
-    let rx = s.websocket.subscribe();
-    let cancel = s.cancel.clone();
+    let rx = s.websocket().subscribe();
+    let cancel = s.cancel().clone();
     ws.on_upgrade(move |socket| forward(socket, rx, cancel))
 }
 

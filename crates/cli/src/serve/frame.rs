@@ -64,7 +64,11 @@ fn not_streaming() -> ApiError {
 }
 
 pub async fn ring(State(s): State<Arc<RigState>>) -> Result<Json<serde_json::Value>, ApiError> {
-    let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
+    let stream = s
+        .content()
+        .source()
+        .frame_ingest()
+        .ok_or_else(not_streaming)?;
     Ok(Json(stream.ring_json()))
 }
 
@@ -79,14 +83,22 @@ pub async fn from_slot(
     State(s): State<Arc<RigState>>,
     b: axum::body::Bytes,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let stream = s.content.frame_ingest().ok_or_else(not_streaming)?;
+    let stream = s
+        .content()
+        .source()
+        .frame_ingest()
+        .ok_or_else(not_streaming)?;
     let f: SlotBody = super::error::body(&b).inspect_err(|e| {
         stream.refuse(FrameError::Request(e.message().to_string()));
     })?;
-    let now = s.clock.now();
+    let now = s.clock().now();
     // Copying and converting a frame is CPU work: off the runtime's threads.
     let r = tokio::task::spawn_blocking(move || {
-        let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
+        let stream = s
+            .content()
+            .source()
+            .frame_ingest()
+            .ok_or(FrameError::NotStreaming)?;
         stream.submit_slot(f.slot, f.seq, now)
     })
     .await
@@ -123,7 +135,7 @@ pub async fn put(
     headers: HeaderMap,
     body: Body,
 ) -> Result<Json<serde_json::Value>, ApiError> {
-    let Some(stream) = s.content.frame_ingest() else {
+    let Some(stream) = s.content().source().frame_ingest() else {
         return Err(not_streaming());
     };
     // Refusals before the frame is read are counted as the stream counts its own.
@@ -131,9 +143,13 @@ pub async fn put(
         Ok(r) => r,
         Err(e) => return Err(refused(stream.refuse(e))),
     };
-    let now = s.clock.now();
+    let now = s.clock().now();
     let r = tokio::task::spawn_blocking(move || {
-        let stream = s.content.frame_ingest().ok_or(FrameError::NotStreaming)?;
+        let stream = s
+            .content()
+            .source()
+            .frame_ingest()
+            .ok_or(FrameError::NotStreaming)?;
         // A color_bytes beyond the body leaves the depth file empty: refused as such.
         let split = color_len.min(body.len());
         stream.submit_part(&desc, eye, view, &body[..split], &body[split..], now)

@@ -142,7 +142,7 @@ impl Signals {
 /// second one during the shutdown exits as soon as the lens is parked, without waiting for
 /// the rest (the recording keeps what its closed chunks hold).
 async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: CancellationToken) {
-    let cancel = shared.cancel.clone();
+    let cancel = shared.cancel().clone();
     tokio::select! {
         name = signals.next() => {
             eprintln!("dioptra serve: stopping ({name}): parking the lens, finishing files; a second signal exits once the lens is parked");
@@ -153,8 +153,8 @@ async fn on_signals(mut signals: Signals, shared: Arc<RigState>, window_closed: 
     cancel.cancel();
     let name = signals.next().await;
     eprintln!("dioptra serve: {name} during shutdown: exiting once the lens is parked");
-    let limit = shared.settings.park_timeout + Duration::from_secs(1);
-    let parked = tokio::time::timeout(limit, shared.lens_parked.cancelled())
+    let limit = shared.devices().settings().park_timeout + Duration::from_secs(1);
+    let parked = tokio::time::timeout(limit, shared.devices().lens_parked().cancelled())
         .await
         .is_ok();
     if parked {
@@ -188,16 +188,17 @@ impl Daemon {
         let shared = rig.state().clone();
         // A required device (every real port, unless the config says otherwise) must be
         // there before the daemon takes commands.
-        let devices = shared.cfg.devices.list();
-        let timeout = shared.settings.link.connect_timeout;
+        let devices = shared.cfg().devices.list();
+        let timeout = shared.devices().settings().link.connect_timeout;
         if let Err(why) =
-            dioptra_rig::devices::wait_for_required(&shared.registry, &devices, timeout).await
+            dioptra_rig::devices::wait_for_required(shared.devices().registry(), &devices, timeout)
+                .await
         {
-            shared.cancel.cancel();
+            shared.cancel().cancel();
             let _ = rig.wait().await;
             anyhow::bail!("{why}");
         }
-        let c = shared.cancel.clone();
+        let c = shared.cancel().clone();
         let bound = match listen {
             Listen::Tcp(addr) => tokio::net::TcpListener::bind(addr)
                 .await
@@ -213,7 +214,7 @@ impl Daemon {
             Ok(b) => b,
             Err(e) => {
                 // The rig is running: stop it (and park the lens) before saying why.
-                shared.cancel.cancel();
+                shared.cancel().cancel();
                 let _ = rig.wait().await;
                 return Err(e);
             }
@@ -242,7 +243,7 @@ impl Daemon {
     }
     #[cfg(test)]
     pub fn cancel_token(&self) -> CancellationToken {
-        self.rig.state().cancel.clone()
+        self.rig.state().cancel().clone()
     }
 
     /// Waits until the daemon is told to stop, then stops the rig (the lens parked, the

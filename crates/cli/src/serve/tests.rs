@@ -345,7 +345,7 @@ async fn serve_answers_the_api_on_a_real_socket_and_stops_through_it() {
     let dir = tempfile::tempdir().unwrap();
     let (d, addr) = start_tcp(sim_config(dir.path(), false)).await;
     assert!(addr.ip().is_loopback() && addr.port() != 0);
-    let lens_sim = d.shared().sims.get().unwrap().lenses[0]
+    let lens_sim = d.shared().devices().sims().unwrap().lenses[0]
         .clone()
         .unwrap()
         .lens
@@ -699,7 +699,7 @@ async fn shutdown_parks_the_lens_and_finishes_the_recording() {
     let d = Daemon::start_config(sim_config(dir.path(), true))
         .await
         .unwrap();
-    let lens_sim = d.shared().sims.get().unwrap().lenses[0]
+    let lens_sim = d.shared().devices().sims().unwrap().lenses[0]
         .clone()
         .unwrap()
         .lens
@@ -761,7 +761,7 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
         .await
         .unwrap();
     let sh = d.shared().clone();
-    let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
+    let state = |dev: &str| sh.devices().registry().snapshot().get(dev).map(|s| s.state);
     eventually("the lens to connect", || {
         (state("lens") == Some(State::Ok)).then_some(())
     })
@@ -773,7 +773,7 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
         (state("lens") == Some(State::Lost)).then_some(())
     })
     .await;
-    let lost = sh.registry.snapshot()["lens"].clone();
+    let lost = sh.devices().registry().snapshot()["lens"].clone();
     assert!(lost.last_error.is_some(), "{lost:?}");
     // Gaze keeps flowing while the lens is gone.
     let gaze_then = sh.status_json()["counts"]["gaze_samples"].as_u64().unwrap();
@@ -783,7 +783,7 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
     .await;
     // It keeps failing (with backoff) while unplugged ...
     eventually("a retry", || {
-        (sh.registry.snapshot()["lens"].failures > lost.failures).then_some(())
+        (sh.devices().registry().snapshot()["lens"].failures > lost.failures).then_some(())
     })
     .await;
     assert_eq!(state("lens"), Some(State::Lost));
@@ -803,7 +803,7 @@ async fn a_lost_lens_is_retried_while_the_rest_runs_and_comes_back() {
         (state("lens") == Some(State::Ok)).then_some(())
     })
     .await;
-    assert_eq!(sh.registry.snapshot()["lens"].connects, 2);
+    assert_eq!(sh.devices().registry().snapshot()["lens"].connects, 2);
     d.cancel_token().cancel();
     let report = d.wait().await;
     assert!(report.ok(), "{report:?}");
@@ -821,7 +821,7 @@ async fn a_binocular_rig_shows_each_eye_and_which_lens_is_lost() {
         .await
         .unwrap();
     let sh = d.shared().clone();
-    let state = |dev: &str| sh.registry.snapshot().get(dev).map(|s| s.state);
+    let state = |dev: &str| sh.devices().registry().snapshot().get(dev).map(|s| s.state);
     eventually("both lenses to connect and be commanded", || {
         let v = sh.status_json();
         let ok = state("lens_left") == Some(State::Ok)
@@ -931,7 +931,7 @@ async fn manual_focus_on_eyes_with_no_common_focus_is_refused_saying_why() {
         .await
         .unwrap();
     let sh = d.shared().clone();
-    assert_eq!(sh.focus_range_d(), None);
+    assert_eq!(sh.optics().focus_range_d(), None);
     assert_eq!(sh.status_json()["focus"]["focus_range_d"], json!(null));
     let app = api::router(sh.clone());
     let (s, v) = call(&app, "POST", "/focus", r#"{"diopters": 1.0}"#).await;
@@ -958,7 +958,7 @@ async fn a_device_missing_at_start_is_shown_and_retried_while_the_rest_runs() {
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let lens = eventually("a failed lens connect", || {
-        let s = sh.registry.snapshot()["lens"].clone();
+        let s = sh.devices().registry().snapshot()["lens"].clone();
         (s.failures >= 2).then_some(s)
     })
     .await;
@@ -1227,7 +1227,7 @@ async fn switching_to_multifocal_runs_the_sync_board_and_shows_layers() {
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
     eventually("the sync board to connect", || {
-        (sh.registry.snapshot()["sync"].state == State::Ok).then_some(())
+        (sh.devices().registry().snapshot()["sync"].state == State::Ok).then_some(())
     })
     .await;
     // Varifocal: the board is connected but not sequencing.
@@ -2287,7 +2287,7 @@ async fn an_api_marker_toggles_the_patch_once() {
     cfg.validate().unwrap();
     let d = Daemon::start_config(cfg).await.unwrap();
     let app = api::router(d.shared().clone());
-    let panel = d.shared().sims.get().unwrap().panel.clone().unwrap();
+    let panel = d.shared().devices().sims().unwrap().panel.clone().unwrap();
     let whites = |p: &dioptra_sim::panel::SharedPanel| -> Vec<bool> {
         p.lock().refreshes().map(|r| r.white).collect()
     };
@@ -2400,7 +2400,13 @@ async fn while_a_required_lens_is_down_focus_answers_503() {
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
-    let state = || sh.registry.snapshot().get("lens").map(|s| s.state);
+    let state = || {
+        sh.devices()
+            .registry()
+            .snapshot()
+            .get("lens")
+            .map(|s| s.state)
+    };
     // A required device is up before the daemon takes commands.
     assert_eq!(state(), Some(State::Ok));
     let (s, v) = call(&app, "POST", "/focus", "{\"diopters\": 1.0}").await;
@@ -2508,7 +2514,7 @@ async fn a_marker_is_recorded_and_streamed_with_its_host_time() {
     let (s, v) = call(&app, "POST", "/recording/start", "{\"trial\": 1}").await;
     assert_eq!(s, StatusCode::OK, "{v}");
     let path = v["recording"].as_str().unwrap().to_string();
-    let mut rx = sh.websocket.subscribe();
+    let mut rx = sh.websocket().subscribe();
     let (s, v) = call(&app, "POST", "/marker", "{\"marker\": \"stimulus_on\"}").await;
     assert_eq!(s, StatusCode::OK, "{v}");
     let t1 = v["host_ns"].as_u64().unwrap();
@@ -2557,7 +2563,7 @@ async fn the_stream_has_full_gaze_and_lens_targets_and_settling() {
         .unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
-    let mut rx = sh.websocket.subscribe();
+    let mut rx = sh.websocket().subscribe();
     let g = next_of(&mut rx, "gaze").await;
     for eye in ["left", "right"] {
         assert_eq!(g[eye]["direction"].as_array().map(Vec::len), Some(3), "{g}");
@@ -2596,7 +2602,7 @@ async fn multifocal_mode_says_what_it_shows_and_lets_the_rig_out() {
     let d = Daemon::start_config(cfg).await.unwrap();
     let sh = d.shared().clone();
     let app = api::router(sh.clone());
-    let mut rx = sh.websocket.subscribe();
+    let mut rx = sh.websocket().subscribe();
     let mut layers = std::collections::BTreeSet::new();
     while layers.len() < planes.len() {
         let f = next_of(&mut rx, "frame").await;

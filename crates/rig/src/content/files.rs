@@ -33,6 +33,7 @@ use super::config::{ContentConfig, DEFAULT_VIEW_SPAN_MM, EYE_MARK, VIEW_MARK};
 use super::frame::{Arrival, ContentFrame, ContentView};
 use super::source::{Content, ContentError};
 use crate::display::config::Display;
+use crate::problem::Problem;
 
 /// Frames decoded ahead of the one on show.
 const AHEAD: usize = 4;
@@ -64,6 +65,9 @@ pub struct ContentStatus {
     pub last_error: Option<String>,
     /// Host time (ns) the frame on show became current.
     pub since_ns: u64,
+    /// The newest frame due was skipped (the next one decoded clears it).
+    #[serde(skip)]
+    pub failing: bool,
 }
 
 /// A pattern's file of number `i` (`None`: the pattern is one file, not a sequence).
@@ -513,6 +517,7 @@ impl FileFrames {
             Some(Ok(frame)) => {
                 st.index = k;
                 st.since_ns = now.0;
+                st.failing = false;
                 // Its due time: where the sequence's clock put it (late if decoding lagged).
                 let shown = if self.looped { count } else { k };
                 *lock(&self.arrival) = Some(Arrival {
@@ -528,6 +533,7 @@ impl FileFrames {
                     st.skipped += 1;
                     st.last_error = Some(e);
                     st.index = k;
+                    st.failing = true;
                 }
                 show.1 = k;
                 (show.2.clone(), false)
@@ -578,6 +584,17 @@ impl Content for FileFrames {
     }
     fn status(&self) -> serde_json::Value {
         serde_json::to_value(FileFrames::status(self)).unwrap_or_default()
+    }
+    fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.status);
+        match (st.failing, &st.last_error) {
+            (true, Some(e)) => vec![Problem::new(
+                "content",
+                "content.color",
+                format!("the newest frame due was skipped (the one before stays): {e}"),
+            )],
+            _ => Vec::new(),
+        }
     }
 }
 
@@ -737,6 +754,30 @@ mod tests {
         let (fr, changed) = f.frame_at(Timestamp(250_000_000));
         assert!(changed && (fr.color.channels[0].data()[0] - 0.2).abs() < 1e-6);
         assert!(!f.frame_at(Timestamp(900_000_000)).1);
+    }
+
+    /// A frame skipped is one of `/status`'s `problems` (the content part, `content.color`)
+    /// while it is the newest due, and leaves the list when the next good frame is shown.
+    #[test]
+    fn a_skipped_frame_is_a_problem_until_the_next_good_one() {
+        let dir = tempfile::tempdir().unwrap();
+        write_sequence(dir.path(), 3);
+        std::fs::write(dir.path().join("c_001.exr"), b"not an exr").unwrap();
+        let cfg = config(dir.path(), "c_%03d.exr", "d_%03d.exr", "fps = 10");
+        let f = FileFrames::open(&cfg.content, &cfg.display).unwrap();
+        f.frame_at(Timestamp(0));
+        cached(&f, 3);
+        assert_eq!(Content::problems(&f), Vec::new());
+        f.frame_at(Timestamp(150_000_000));
+        let p = Content::problems(&f);
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert_eq!((p[0].part, p[0].key.as_str()), ("content", "content.color"));
+        assert!(p[0].problem.contains("c_001.exr"), "{}", p[0].problem);
+        let (_, changed) = f.frame_at(Timestamp(250_000_000));
+        assert!(changed);
+        assert_eq!(Content::problems(&f), Vec::new());
+        // The details stay in the source's own status.
+        assert!(f.status().last_error.is_some());
     }
 
     #[test]

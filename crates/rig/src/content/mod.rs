@@ -11,7 +11,8 @@
 //! - [`Still`]: one fixed frame (loop tests);
 //! - [`stereo`]: each eye's view on a stereo layout (the content's own two, the scene ray
 //!   cast per eye, or synthesised from one RGB-D);
-//! - [`config`]: `[content]`; [`open`] makes the source it describes.
+//! - [`config`]: `[content]`; [`open`] makes the source it describes; [`status`]: what the
+//!   part publishes.
 
 pub mod config;
 pub mod files;
@@ -19,6 +20,7 @@ pub mod frame;
 pub mod ring;
 pub mod scene;
 pub mod source;
+pub mod status;
 pub mod stereo;
 pub mod stream;
 
@@ -26,6 +28,7 @@ use std::sync::Arc;
 
 pub use frame::{Arrival, ContentFrame, ContentView};
 pub use source::{Content, ContentError, Still};
+pub use status::ContentHandle;
 
 use crate::api::Api;
 use crate::display::config::Display;

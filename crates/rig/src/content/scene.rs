@@ -23,6 +23,7 @@ use super::frame::{Arrival, ContentFrame};
 use super::source::Content;
 use crate::display::config::Display;
 use crate::optics::config::Eye;
+use crate::problem::Problem;
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -63,6 +64,9 @@ pub struct SceneStatus {
     pub since_ns: u64,
     /// How long the frame on show has been on show, ms (at the time of asking).
     pub newest_age_ms: Option<f64>,
+    /// The newest frame failed to render (the next one rendered clears it).
+    #[serde(skip)]
+    pub failing: bool,
 }
 
 struct Shared {
@@ -385,6 +389,7 @@ impl AnimatedScene {
                 on.since = Instant::now();
                 on.status.shown += 1;
                 on.status.since_ns = now.0;
+                on.status.failing = false;
                 Some((
                     frame,
                     Arrival {
@@ -399,6 +404,7 @@ impl AnimatedScene {
                 }
                 on.status.failed += 1;
                 on.status.last_error = Some(e);
+                on.status.failing = true;
                 None
             }
         }
@@ -464,6 +470,17 @@ impl Content for AnimatedScene {
     }
     fn status(&self) -> serde_json::Value {
         serde_json::to_value(AnimatedScene::status(self)).unwrap_or_default()
+    }
+    fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.on_show).status.clone();
+        match (st.failing, st.last_error) {
+            (true, Some(e)) => vec![Problem::new(
+                "content",
+                "content.source",
+                format!("the procedural scene's newest frame did not render (the one before stays): {e}"),
+            )],
+            _ => Vec::new(),
+        }
     }
 }
 

@@ -8,6 +8,7 @@ use dioptra_core::{DepthMap, RgbImage, Rgbd, Timestamp};
 
 use super::frame::ContentFrame;
 use super::stream::ingest::StreamFrames;
+use crate::problem::Problem;
 
 /// A content source. Shared by the loop (which polls it), the API (status, frame ingest) and
 /// the source's own worker threads, so it takes `&self`.
@@ -28,6 +29,11 @@ pub trait Content: Send + Sync + 'static {
     /// What `/status` shows under `content`: the source and its counters.
     fn status(&self) -> serde_json::Value {
         serde_json::Value::Null
+    }
+    /// What is wrong with the source now (its newest frame failed), under the key to look at;
+    /// the details stay in its status's `last_error`.
+    fn problems(&self) -> Vec<Problem> {
+        Vec::new()
     }
     /// `source = "stream"`: where the API hands an application's frames.
     fn frame_ingest(&self) -> Option<&StreamFrames> {

@@ -20,6 +20,7 @@ use dioptra_sim::scene::Camera;
 use super::frame::ContentFrame;
 use crate::display::config::Display;
 use crate::optics::config::Eye;
+use crate::problem::Problem;
 
 /// Where each eye's view comes from, for the `/status` and the log.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -58,6 +59,9 @@ pub struct EyeViewsStatus {
     pub last_ms: Option<f64>,
     /// Half the interpupillary distance, mm: each eye's distance from the cyclopean eye.
     pub half_ipd_mm: f32,
+    /// The newest frame's views failed (the next ones made clear it).
+    #[serde(skip)]
+    pub failing: bool,
 }
 
 impl std::fmt::Debug for EyeViews {
@@ -87,6 +91,19 @@ impl EyeViews {
         serde_json::to_value(&*lock(&self.status)).unwrap_or_default()
     }
 
+    /// The newest frame's views failed: each eye is not shown its own view.
+    pub fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.status);
+        match (st.failing, &st.last_error) {
+            (true, Some(e)) => vec![Problem::new(
+                "content",
+                "display.layout",
+                format!("the eyes' views of the newest frame were not made: {e}"),
+            )],
+            _ => Vec::new(),
+        }
+    }
+
     /// An eye's position, metres from the cyclopean eye (+x right).
     pub fn position(&self, side: Side) -> [f32; 2] {
         match side {
@@ -110,11 +127,13 @@ impl EyeViews {
             Ok((_, source)) => {
                 st.made += 1;
                 st.source = Some(*source);
+                st.failing = false;
                 st.last_ms = Some(started.elapsed().as_secs_f64() * 1e3);
             }
             Err(e) => {
                 st.failed += 1;
                 st.last_error = Some(e.to_string());
+                st.failing = true;
             }
         }
         made

@@ -49,6 +49,7 @@ use dioptra_core::{lock, Timestamp};
 use super::frame::{Arrival, ContentFrame};
 pub use super::ring::{RING_HEADER, RING_MAGIC, RING_SLOTS, RING_VERSION, SLOT_HEADER};
 use super::source::Content;
+use crate::problem::Problem;
 use assembly::Pending;
 pub use assembly::MAX_WAITING;
 pub use decode::{decode_frame, ColorFormat, DepthKind, FrameDesc, FrameError};
@@ -96,6 +97,17 @@ impl Content for StreamFrames {
     }
     fn status(&self) -> serde_json::Value {
         serde_json::to_value(StreamFrames::status(self)).unwrap_or_default()
+    }
+    fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.status);
+        match (st.refusing, &st.last_error) {
+            (Some(key), Some(e)) => vec![Problem::new(
+                "content",
+                key,
+                format!("the newest frame streamed in was refused (the one before stays): {e}"),
+            )],
+            _ => Vec::new(),
+        }
     }
     fn frame_ingest(&self) -> Option<&StreamFrames> {
         Some(self)

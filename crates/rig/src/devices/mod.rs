@@ -18,6 +18,7 @@ pub mod link;
 pub mod open;
 pub mod registry;
 pub mod simulators;
+pub mod status;
 mod sync;
 
 use std::sync::Arc;
@@ -32,6 +33,7 @@ pub use input::{DeviceInput, LensId, LensOrder};
 pub use lens::ParkReport;
 pub use link::{Backoff, DeviceSettings, LinkHealth, LinkPolicy, Verdict};
 pub use registry::{wait_for_required, DeviceHandle, DeviceStatus, Registry, State};
+pub use status::DevicesHandle;
 
 use crate::config::RigConfig;
 use simulators::{SimDevices, SimSpec};

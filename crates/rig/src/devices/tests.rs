@@ -380,8 +380,8 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
     let mut powers: Vec<f32> = Vec::new();
     let r = tokio::time::timeout(Duration::from_secs(90), async {
         loop {
-            let s = dioptra_core::lock(&state.status).clone();
-            if let Some(p) = s.commanded_power_d {
+            let s = state.loop_status();
+            if let Some(p) = state.optics().focus().commanded_power_d {
                 if powers.last() != Some(&p) {
                     powers.push(p);
                 }
@@ -402,7 +402,10 @@ async fn the_rig_focuses_where_pupil_gaze_looks() {
         )
     });
     assert!(status.lens_commands >= 2, "{status:?}");
-    assert_eq!(state.registry.snapshot()["gaze"].driver, "pupil");
+    assert_eq!(
+        state.devices().registry().snapshot()["gaze"].driver,
+        "pupil"
+    );
     state.cancel.cancel();
     let report = rig.wait().await;
     assert!(report.ok(), "{:?}", report.problems());

@@ -298,6 +298,17 @@ pub enum FrameError {
 }
 
 impl FrameError {
+    /// The config key a refusal is about: the display's size, its layout (eyes), the view
+    /// grid, or (the frame's own fault) the content source.
+    pub fn config_key(&self) -> &'static str {
+        match self {
+            FrameError::WrongSize { .. } | FrameError::WrongEyeSize { .. } => "display.width",
+            FrameError::Eye(_) => "display.layout",
+            FrameError::View(_) | FrameError::StaleView { .. } => "content.views",
+            _ => "content.source",
+        }
+    }
+
     /// A short name for counting refusals.
     pub fn kind(&self) -> &'static str {
         match self {

@@ -22,6 +22,7 @@ use crate::content::ring::{
 fn count_refusal(st: &mut StreamStatus, e: FrameError) -> FrameError {
     *st.refused.entry(e.kind()).or_default() += 1;
     st.last_error = Some(e.to_string());
+    st.refusing = Some(e.config_key());
     e
 }
 
@@ -62,6 +63,10 @@ pub struct StreamStatus {
     pub views: Option<usize>,
     #[serde(skip)]
     newest_at: Option<std::time::Instant>,
+    /// The newest frame was refused, and the config key its reason is about (the next frame
+    /// accepted clears it).
+    #[serde(skip)]
+    pub refusing: Option<&'static str>,
 }
 
 /// The stream source: the newest accepted frame, waiting for the display.
@@ -73,7 +78,7 @@ pub struct StreamFrames {
     grid: Option<(usize, Vec<[f32; 2]>)>,
     pub(super) ring: Option<Ring>,
     pending: Mutex<Option<Pending>>,
-    status: Mutex<StreamStatus>,
+    pub(super) status: Mutex<StreamStatus>,
     /// Locked only while `status` is.
     pairing: Mutex<Pairing>,
     /// Memory of frames done with, for the next ones.
@@ -526,6 +531,7 @@ impl StreamFrames {
             return Err(count_refusal(&mut st, e));
         }
         st.newest_seq = Some(st.newest_seq.map_or(seq, |n| n.max(seq)));
+        st.refusing = None;
         st.newest_received_ns = Some(now.0);
         st.newest_at = Some(std::time::Instant::now());
         st.newest_app_time_ns = app_time_ns;

@@ -1,0 +1,97 @@
+//! What the display part publishes ([`DisplayHandle`]): the sink's status as of the newest
+//! present, the frames shown, a frame the sink refused, and the marker patch's requests from
+//! outside the loop; `/status`'s `display`.
+
+use std::sync::Mutex;
+
+use dioptra_core::lock;
+use serde_json::{Map, Value};
+
+use super::marker::MarkerControl;
+use crate::problem::Problem;
+
+/// The display part's handle.
+#[derive(Default)]
+pub struct DisplayHandle {
+    marker: MarkerControl,
+    status: Mutex<DisplayStatus>,
+}
+
+#[derive(Default)]
+struct DisplayStatus {
+    /// The sink's own status (`DisplaySink::status`) as of the newest present.
+    sink: Value,
+    /// Frames the sink has shown.
+    shown: u64,
+    /// The newest frame was not shown, and why (the sink's newest misfit).
+    not_shown: Option<String>,
+}
+
+impl DisplayHandle {
+    /// `sink`: the sink's status before its first present.
+    pub fn new(sink: Value) -> Self {
+        DisplayHandle {
+            marker: MarkerControl::default(),
+            status: Mutex::new(DisplayStatus {
+                sink,
+                ..DisplayStatus::default()
+            }),
+        }
+    }
+
+    /// The marker patch's requests from outside the loop (an API marker; `dioptra hil`'s
+    /// hold).
+    pub fn marker(&self) -> &MarkerControl {
+        &self.marker
+    }
+
+    /// Frames the sink has shown.
+    pub fn shown(&self) -> u64 {
+        lock(&self.status).shown
+    }
+
+    /// The sink's status now, as the loop starts.
+    pub(crate) fn sink_status(&self, sink: Value) {
+        lock(&self.status).sink = sink;
+    }
+
+    /// A frame was shown.
+    pub(crate) fn presented(&self, sink: Value, shown: u64) {
+        let mut st = lock(&self.status);
+        st.sink = sink;
+        st.shown = shown;
+        st.not_shown = None;
+    }
+
+    /// The sink refused a frame (it does not fit its place): its status says why.
+    pub(crate) fn not_shown(&self, sink: Value) {
+        let mut st = lock(&self.status);
+        st.not_shown = Some(
+            sink["misfit"]["newest"]
+                .as_str()
+                .unwrap_or("it does not fit its place")
+                .to_string(),
+        );
+        st.sink = sink;
+    }
+
+    /// `/status`'s `display`.
+    pub fn status(&self, out: &mut Map<String, Value>) {
+        out.insert("display".into(), lock(&self.status).sink.clone());
+    }
+
+    /// The newest frame was not shown.
+    pub fn problems(&self) -> Vec<Problem> {
+        let st = lock(&self.status);
+        st.not_shown
+            .iter()
+            .map(|why| {
+                Problem::new(
+                    "display",
+                    "display.scale",
+                    format!("the newest frame is not shown: {why}"),
+                )
+            })
+            .collect()
+    }
+}
