@@ -125,7 +125,7 @@ impl InputArgs {
 /// Defocus method options.
 #[derive(Args, Debug, Clone)]
 pub struct MethodArgs {
-    /// gather (single-image CoC blur), lightfield (Yu et al. 2010), network (DeepFocus C1) or
+    /// gather (single-image CoC blur), pyramid (gather's sums, large blurs spread at the resolution they leave: bounded cost), lightfield (Yu et al. 2010), network (DeepFocus C1) or
     /// refine (C1R: the classical render its weights name, corrected by a small net on the
     /// tiles near depth discontinuities).
     #[arg(long, default_value = "lightfield")]

@@ -3,15 +3,27 @@
 //! a focal stack (the spectral decomposition's targets) can name it.
 
 use crate::error::{invalid, RenderError};
+use crate::foveated::Foveation;
 use crate::gather::gather;
 use crate::lightfield::{LightFieldParams, LightFieldPrep};
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use std::str::FromStr;
 
+/// Settings of the pyramid method.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PyramidParams {
+    /// Render at full resolution only around this gaze, coarser outside as acuity falls
+    /// ([`crate::foveated`]); `None`: every pixel at full resolution.
+    pub foveation: Option<Foveation>,
+}
+
 /// A defocus method for RGB-D input.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DefocusMethod {
     Gather,
+    /// Gather's sums with every blur of 6 px or more spread at the resolution it leaves:
+    /// bounded work per pixel (see [`crate::pyramid`]); foveated around a gaze when asked.
+    Pyramid(PyramidParams),
     LightField(LightFieldParams),
 }
 
@@ -20,9 +32,10 @@ impl FromStr for DefocusMethod {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "gather" => Ok(DefocusMethod::Gather),
+            "pyramid" => Ok(DefocusMethod::Pyramid(PyramidParams::default())),
             "lightfield" => Ok(DefocusMethod::LightField(LightFieldParams::default())),
             _ => Err(invalid(format!(
-                "unknown defocus method {s:?}: expected gather or lightfield"
+                "unknown defocus method {s:?}: expected gather, pyramid or lightfield"
             ))),
         }
     }
@@ -43,6 +56,15 @@ pub fn defocus(
         DefocusMethod::Gather => {
             for &q in foci {
                 out.push(gather(input, q, eye)?);
+                progress(out.len());
+            }
+        }
+        DefocusMethod::Pyramid(p) => {
+            for &q in foci {
+                out.push(match p.foveation {
+                    None => crate::pyramid::pyramid(input, q, eye)?,
+                    Some(f) => crate::foveated::foveated(input, q, eye, &f)?.image,
+                });
                 progress(out.len());
             }
         }

@@ -9,13 +9,13 @@
 //! checks both in CI; `LAYERS` is this list). Lowest first:
 //!
 //! 1. [`error`] (the GPU's errors too, so that everything below the backends can return them);
-//! 2. `alloc`, `common`, `fft2`, [`io`], [`planner`]: support with no optics method in it;
-//!    [`transfer`]: the panel's transfer function as a table (its CPU pass);
+//! 2. `alloc`, `common`, `fft2`, [`io`]: support with no optics method in it; [`transfer`]: the
+//!    panel's transfer function as a table (its CPU pass);
 //! 3. [`kernel`]: blur kernels and convolution;
-//! 4. [`gather`], [`lightfield`], [`metrics`]: methods on one image; [`warp`]: the eyepiece
-//!    pre-warp's mesh and its CPU twin;
-//! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`]: methods
-//!    built on those;
+//! 4. [`gather`], [`lightfield`], [`metrics`], [`pyramid`]: methods on one image; [`warp`]: the
+//!    eyepiece pre-warp's mesh and its CPU twin;
+//! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`],
+//!    [`foveated`]: methods built on those; [`planner`], which predicts them;
 //! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
 //! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
 //! 8. [`cpu`] and [`gpu`]: the two backends; `transfer::gpu` and `warp::gpu`: those two
@@ -32,6 +32,7 @@ pub mod error;
 pub mod factory;
 mod fft2;
 pub mod foveate;
+pub mod foveated;
 pub mod gather;
 pub mod gpu;
 pub mod io;
@@ -40,6 +41,7 @@ pub mod lightfield;
 pub mod metrics;
 pub mod multifocal;
 pub mod planner;
+pub mod pyramid;
 pub mod retina;
 pub mod spectral;
 pub mod transfer;

@@ -14,6 +14,11 @@
 //! method, a conservative fovea PSNR against the frame's blur figure, and a cost model in
 //! milliseconds. The planner is pure and deterministic; it does no I/O.
 
+use crate::defocus::{DefocusMethod, PyramidParams};
+use crate::error::{invalid, RenderError};
+use crate::foveated::{Foveation as Layered, FoveationPlan};
+use crate::lightfield::LightFieldParams;
+use crate::pyramid::EXACT_RADIUS;
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use std::fmt;
 
@@ -221,6 +226,95 @@ impl FrameStats {
     fn megapixels(&self) -> f64 {
         (self.width * self.height) as f64 / 1e6
     }
+
+    /// A frame the planner has not seen: `width` x `height` seen by `eye`, its depths spread
+    /// evenly over `depths` (nearest, farthest), the gaze at the centre, the viewer focused at
+    /// `focus`, the texture at the calibration's reference. For predictions before content
+    /// arrives ([`predict_frame_cost`]).
+    pub fn typical(
+        width: usize,
+        height: usize,
+        eye: &EyeModel,
+        depths: (Diopters, Diopters),
+        focus: Diopters,
+    ) -> FrameStats {
+        let eye = eye.with_width(width.min(u32::MAX as usize) as u32);
+        let (near, far) = (depths.0 .0.max(depths.1 .0), depths.0 .0.min(depths.1 .0));
+        let (near, far) = (near.max(0.0), far.max(0.0));
+        let mut hist = DepthHistogram::new(near);
+        let (lo, hi) = (
+            ((far / hist.bin_width) as usize).min(hist.counts.len() - 1),
+            ((near / hist.bin_width) as usize).min(hist.counts.len() - 1),
+        );
+        let per_bin = ((width * height) / (hi - lo + 1)).clamp(1, u32::MAX as usize) as u32;
+        for c in &mut hist.counts[lo..=hi] {
+            *c = per_bin;
+        }
+        let coc = eye
+            .coc_px(Diopters(near), focus)
+            .max(eye.coc_px(Diopters(far), focus));
+        FrameStats {
+            width,
+            height,
+            gaze: [0.5 * width as f32, 0.5 * height as f32],
+            focus,
+            eye,
+            frame_histogram: hist.clone(),
+            region_histogram: hist,
+            region_range: (Diopters(near), Diopters(far)),
+            region_coc_px: coc,
+            region_disparity_px: eye.coc_px(Diopters(near), Diopters(far)),
+            frame_coc_px: coc,
+            region_gradient: calibration::GRADIENT_REFERENCE,
+        }
+    }
+
+    /// The same frame `2^level` times coarser (a foveated layer): its size and eye scaled,
+    /// its depths, gaze and focus kept.
+    pub fn scaled(&self, level: usize) -> FrameStats {
+        let s = 1usize << level.min(16);
+        let width = self.width.div_ceil(s);
+        FrameStats {
+            width,
+            height: self.height.div_ceil(s),
+            gaze: self.gaze.map(|g| g / s as f32),
+            eye: self.eye.with_width(width.min(u32::MAX as usize) as u32),
+            frame_coc_px: self.frame_coc_px / s as f32,
+            region_coc_px: self.region_coc_px / s as f32,
+            region_disparity_px: self.region_disparity_px / s as f32,
+            ..self.clone()
+        }
+    }
+}
+
+/// What the pyramid method's cost depends on, from a frame's depth histogram: the exact pass's
+/// mean taps per pixel (`pi (r + 0.5)^2` for a blur radius `r` from half a pixel to
+/// [`EXACT_RADIUS`], none below, none above where only edges need it) and the fraction of
+/// pixels spread on the pyramid's levels (radius [`EXACT_RADIUS`] or more).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PyramidFeatures {
+    pub taps: f64,
+    pub spread: f64,
+}
+
+/// [`PyramidFeatures`] of `stats`'s whole frame at its focus.
+pub fn pyramid_features(stats: &FrameStats) -> PyramidFeatures {
+    let per_d = 0.5 * stats.eye.coc_px(Diopters(1.0), Diopters(0.0));
+    let h = &stats.frame_histogram;
+    let total = h.total().max(1) as f64;
+    let (mut taps, mut spread) = (0.0f64, 0.0f64);
+    for (d, n) in h.mass() {
+        let r = per_d * (d - stats.focus.0).abs();
+        if r >= EXACT_RADIUS {
+            spread += f64::from(n);
+        } else if r >= 0.5 {
+            taps += f64::from(n) * std::f64::consts::PI * f64::from(r + 0.5).powi(2);
+        }
+    }
+    PyramidFeatures {
+        taps: taps / total,
+        spread: spread / total,
+    }
 }
 
 /// What the plan must achieve.
@@ -412,6 +506,24 @@ pub mod calibration {
     pub const NONE_MS_PER_MP: f64 = 1.27;
     /// Linear blending, per plane.
     pub const LINEAR_MS_PER_MP_PER_PLANE: f64 = 6.89;
+
+    /// The pyramid method's CPU time per megapixel, `a + b taps + c spread`
+    /// ([`super::PyramidFeatures`]), CPU milliseconds (all threads' time together, so a
+    /// frame's wall time is this over the cores). Least-squares fit over 48 frames (3 sim test
+    /// scenes x 4 foci at 480 x 540 and 960 x 1080 over 20 and 60 degrees; predicted over
+    /// measured 0.79 to 1.55) by `cargo run --release -p dioptra-render --example
+    /// pyramid_cost` on the 2-core development host at load average 9 to 11: the process's
+    /// user time, which other work inflates less than wall time, but still some.
+    pub const PYRAMID_CPU_MS_PER_MP: (f64, f64, f64) = (56.39, 1.3795, 142.13);
+    /// The foveated variant's downsampling, per-layer setup and blend, CPU ms per megapixel
+    /// of the image (the same run's median over the same frames; range 51 to 127).
+    pub const FOVEATED_BLEND_CPU_MS_PER_MP: f64 = 65.36;
+    /// The pyramid method's largest loss against gather on one frame of the test scenes at a
+    /// panel's pixel density (0.27 dB, tests/accuracy.rs): taken off gather's prediction.
+    pub const PYRAMID_MARGIN_DB: f64 = 0.3;
+    /// The development host the classical methods' costs were measured on had 2 cores: their
+    /// wall times are CPU time spread over that many.
+    pub const CALIBRATION_CORES: f64 = 2.0;
 }
 
 /// Light-field view counts considered.
@@ -724,4 +836,382 @@ fn nearest(centres: &[f32], d: f32) -> usize {
         }
     }
     best
+}
+
+/// A setting the deadline-aware planner ([`Planner::plan_within`]) chooses among: the
+/// classical choices, and the pyramid method at full resolution or foveated.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Setting {
+    Classic(Choice),
+    Pyramid,
+    Foveated(Layered),
+}
+
+impl Setting {
+    /// The defocus method to run; `None`: pass the pinhole image through.
+    pub fn method(&self) -> Option<DefocusMethod> {
+        match *self {
+            Setting::Classic(Choice::None) => None,
+            Setting::Classic(Choice::Gather) => Some(DefocusMethod::Gather),
+            Setting::Classic(Choice::LightField { views }) => {
+                Some(DefocusMethod::LightField(LightFieldParams {
+                    views,
+                    mip: true,
+                }))
+            }
+            Setting::Pyramid => Some(DefocusMethod::Pyramid(PyramidParams::default())),
+            Setting::Foveated(f) => {
+                Some(DefocusMethod::Pyramid(PyramidParams { foveation: Some(f) }))
+            }
+        }
+    }
+}
+
+impl fmt::Display for Setting {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Setting::Classic(c) => write!(f, "{c}"),
+            Setting::Pyramid => write!(f, "pyramid"),
+            Setting::Foveated(v) => write!(
+                f,
+                "pyramid-foveated ({:.1} deg, slope {:.4})",
+                v.radius_deg, v.mar_slope
+            ),
+        }
+    }
+}
+
+/// The time a frame may take: the display period (or the content period in multifocal mode)
+/// less a margin, and the cores the render runs on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Deadline {
+    pub budget_ms: f64,
+    pub cores: usize,
+}
+
+impl Deadline {
+    /// A frame every `period_ms` (the display's refresh period in varifocal mode, the content
+    /// frame period in multifocal mode), less `margin_ms` for the rest of the frame's work
+    /// (compose, present), rendered on `cores` cores.
+    pub fn from_period(period_ms: f64, margin_ms: f64, cores: usize) -> Deadline {
+        Deadline {
+            budget_ms: (period_ms - margin_ms).max(0.0),
+            cores: cores.max(1),
+        }
+    }
+}
+
+/// How much coarser than the rig's the planner may make the periphery under a short budget:
+/// multiples of the rig's acuity slope (the fovea's full-resolution radius is kept).
+pub const COARSER_PERIPHERY: [f32; 2] = [2.0, 4.0];
+/// The largest acuity slope a foveation takes ([`crate::foveated`] checks it).
+const MAX_MAR_SLOPE: f32 = 10.0;
+
+/// The rig's foveation settings: full resolution within `radius_deg` of the gaze, acuity
+/// falling by `mar_slope` degrees per degree beyond ([`crate::foveated`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FoveationSettings {
+    pub radius_deg: f32,
+    pub mar_slope: f32,
+}
+
+/// The deadline-aware planner's answer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimedPlan {
+    pub setting: Setting,
+    /// Predicted PSNR in the fovea, dB.
+    pub predicted_psnr: f64,
+    /// Predicted wall time of the render on the deadline's cores, ms.
+    pub predicted_ms: f64,
+    pub meets_target: bool,
+    pub meets_deadline: bool,
+    pub why: String,
+}
+
+impl Planner {
+    /// Predicted fovea PSNR of `setting`; `None` where the setting cannot promise the fovea
+    /// (a foveation whose full-resolution radius is smaller than the fovea the target is for).
+    pub fn predict_setting_psnr(&self, stats: &FrameStats, setting: &Setting) -> Option<f64> {
+        use calibration::PYRAMID_MARGIN_DB;
+        let pyramid = self.predict_psnr(stats, Choice::Gather) - PYRAMID_MARGIN_DB;
+        match setting {
+            Setting::Classic(c) => Some(self.predict_psnr(stats, *c)),
+            Setting::Pyramid => Some(pyramid),
+            Setting::Foveated(f) => {
+                let diag =
+                    ((stats.width * stats.width + stats.height * stats.height) as f32).sqrt();
+                let fovea_px = FOVEA_RADIUS * diag;
+                let px_per_deg = 1.0 / stats.eye.pixel_angle_rad().to_degrees();
+                (f.radius_deg * px_per_deg >= fovea_px).then_some(pyramid)
+            }
+        }
+    }
+
+    /// Predicted wall time of `setting` on `cores` cores, ms.
+    pub fn predict_setting_ms(&self, stats: &FrameStats, setting: &Setting, cores: usize) -> f64 {
+        use calibration::*;
+        let cores = cores.max(1) as f64;
+        let pyramid_cpu = |s: &FrameStats, pixels: f64| {
+            let f = pyramid_features(s);
+            let (a, b, c) = PYRAMID_CPU_MS_PER_MP;
+            pixels / 1e6 * (a + b * f.taps + c * f.spread)
+        };
+        match setting {
+            Setting::Classic(c) => self.predict_cost_ms(stats, *c) * CALIBRATION_CORES / cores,
+            Setting::Pyramid => pyramid_cpu(stats, (stats.width * stats.height) as f64) / cores,
+            Setting::Foveated(f) => {
+                let Ok(plan) = FoveationPlan::new(stats.width, stats.height, &stats.eye, f) else {
+                    return f64::INFINITY;
+                };
+                let layers: f64 = plan
+                    .layers
+                    .iter()
+                    .map(|l| pyramid_cpu(&stats.scaled(l.level), l.pixels as f64))
+                    .sum();
+                (layers + FOVEATED_BLEND_CPU_MS_PER_MP * stats.megapixels()) / cores
+            }
+        }
+    }
+
+    /// The cheapest setting predicted to meet `target` within `deadline`; if none does, the
+    /// most accurate one that fits the deadline; if none fits, the cheapest (and says so).
+    /// `foveation`: the rig's foveation settings, offered around the frame's gaze.
+    pub fn plan_within(
+        &self,
+        stats: &FrameStats,
+        target: &Target,
+        deadline: &Deadline,
+        foveation: Option<FoveationSettings>,
+    ) -> TimedPlan {
+        let mut settings: Vec<Setting> = Choice::all().into_iter().map(Setting::Classic).collect();
+        settings.push(Setting::Pyramid);
+        let at_gaze = |f: FoveationSettings, coarser: f32| {
+            Setting::Foveated(Layered {
+                gaze: stats.gaze,
+                radius_deg: f.radius_deg,
+                mar_slope: (f.mar_slope * coarser).min(MAX_MAR_SLOPE),
+            })
+        };
+        if let Some(f) = foveation {
+            settings.push(at_gaze(f, 1.0));
+        }
+        let score = |settings: &[Setting]| {
+            let mut scored: Vec<(Setting, f64, f64)> = settings
+                .iter()
+                .filter_map(|s| {
+                    let psnr = self.predict_setting_psnr(stats, s)?;
+                    Some((*s, psnr, self.predict_setting_ms(stats, s, deadline.cores)))
+                })
+                .collect();
+            scored.sort_by(|a, b| a.2.total_cmp(&b.2));
+            scored
+        };
+        let fits = |s: &&(Setting, f64, f64)| s.2 <= deadline.budget_ms;
+        let meets = |s: &&(Setting, f64, f64)| s.1 >= target.fovea_psnr_db;
+        let mut scored = score(&settings);
+        // The rig's own settings first; a periphery coarser than the rig's only when none of
+        // them meets the target in time and the target leaves the periphery free.
+        let mut coarsened = false;
+        if !scored.iter().filter(fits).any(|s| meets(&s)) && target.periphery_psnr_db.is_none() {
+            if let Some(f) = foveation {
+                settings.extend(COARSER_PERIPHERY.iter().map(|&m| at_gaze(f, m)));
+                scored = score(&settings);
+                coarsened = true;
+            }
+        }
+        let (pick, reason) = if let Some(s) = scored.iter().filter(fits).find(meets) {
+            (
+                *s,
+                if coarsened {
+                    "the cheapest predicted to meet the target in time, the periphery coarser than the rig's"
+                } else {
+                    "the cheapest predicted to meet the target in time"
+                },
+            )
+        } else if let Some(s) = scored
+            .iter()
+            .filter(fits)
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+        {
+            (
+                *s,
+                "none meets the target in time: the most accurate that fits",
+            )
+        } else {
+            (scored[0], "none fits the deadline: the cheapest")
+        };
+        let (setting, psnr, ms) = pick;
+        let meets_target = psnr >= target.fovea_psnr_db;
+        let meets_deadline = ms <= deadline.budget_ms;
+        TimedPlan {
+            setting,
+            predicted_psnr: psnr,
+            predicted_ms: ms,
+            meets_target,
+            meets_deadline,
+            why: format!(
+                "{setting}: {reason} (predicted {psnr:.1} dB against {:.1}, {ms:.1} ms against a budget of {:.1} ms on {} cores)",
+                target.fovea_psnr_db, deadline.budget_ms, deadline.cores
+            ),
+        }
+    }
+}
+
+/// What [`predict_frame_cost`] is asked about: one frame of the rig's render.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameSpec {
+    /// Each eye's image, pixels.
+    pub width: usize,
+    pub height: usize,
+    /// Eyes rendered per frame (2 on a binocular rig).
+    pub eyes: usize,
+    /// The eye model (its field of view sets the blur in pixels; its width is taken from
+    /// `width`).
+    pub eye: EyeModel,
+    pub method: DefocusMethod,
+    /// The rig's foveation, applied to the pyramid method around the image's centre (where
+    /// the method has none of its own); `None`: every pixel at full resolution.
+    pub foveation: Option<FoveationSettings>,
+    /// `cpu`, or `gpu` (alias `wgpu`), as [`crate::backend`] names them.
+    pub backend: String,
+    /// Cores the CPU backend renders on.
+    pub cores: usize,
+    /// The depths the content is assumed to spread over (nearest, farthest): the prediction is
+    /// the worst over foci across that range.
+    pub depths: (Diopters, Diopters),
+}
+
+impl FrameSpec {
+    /// One eye, `width` x `height`, the pyramid method on the CPU's cores (as many as the
+    /// machine has), content from 4 D to 0 D.
+    pub fn new(width: usize, height: usize, eye: EyeModel) -> FrameSpec {
+        FrameSpec {
+            width,
+            height,
+            eyes: 1,
+            eye,
+            method: DefocusMethod::Pyramid(PyramidParams::default()),
+            foveation: None,
+            backend: "cpu".into(),
+            cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
+            depths: (Diopters(4.0), Diopters(0.0)),
+        }
+    }
+}
+
+/// A frame's predicted render cost ([`predict_frame_cost`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameCost {
+    /// The render's wall time on the spec's cores, all eyes, ms.
+    pub wall_ms: f64,
+    /// Its CPU time, all threads and eyes, ms.
+    pub cpu_ms: f64,
+    /// The focus the prediction is for (the costliest across the content's depths).
+    pub worst_focus: Diopters,
+    /// The setting predicted.
+    pub setting: Setting,
+    /// One line for a log: what was predicted and on what assumptions.
+    pub summary: String,
+}
+
+impl FrameCost {
+    /// Whether the predicted wall time fits `deadline`'s budget.
+    pub fn fits(&self, deadline: &Deadline) -> bool {
+        self.wall_ms <= deadline.budget_ms
+    }
+}
+
+/// The predicted cost of rendering one frame as `spec` describes, before any content has
+/// arrived: for a daemon to print at start against its display period (or content period in
+/// multifocal mode) and to warn when it does not fit, e.g.
+///
+/// ```
+/// use dioptra_core::EyeModel;
+/// use dioptra_render::planner::{predict_frame_cost, Deadline, FrameSpec};
+/// let mut spec = FrameSpec::new(960, 1080, EyeModel::default());
+/// spec.eyes = 2;
+/// let cost = predict_frame_cost(&spec).unwrap();
+/// let deadline = Deadline::from_period(1000.0 / 60.0, 2.0, spec.cores);
+/// println!("{} (budget {:.1} ms: {})", cost.summary, deadline.budget_ms,
+///     if cost.fits(&deadline) { "fits" } else { "late" });
+/// ```
+///
+/// The model ([`calibration`]) was measured on the CPU backend; the GPU backend has none yet
+/// and is an error, as are a foveation asked of a method other than the pyramid, an unknown
+/// backend and an empty size.
+pub fn predict_frame_cost(spec: &FrameSpec) -> Result<FrameCost, RenderError> {
+    match spec.backend.as_str() {
+        "cpu" => {}
+        "gpu" | "wgpu" => {
+            return Err(invalid(
+                "no cost model for the gpu backend yet (the planner's calibration is the CPU backend's); measure it with `cargo bench -p dioptra-render --bench gpu`",
+            ))
+        }
+        other => {
+            return Err(invalid(format!(
+                "unknown backend {other:?}: expected cpu or gpu"
+            )))
+        }
+    }
+    if spec.width == 0 || spec.height == 0 || spec.eyes == 0 {
+        return Err(invalid(format!(
+            "a frame of {} x {} px x {} eyes has nothing to render",
+            spec.width, spec.height, spec.eyes
+        )));
+    }
+    let centre = [0.5 * spec.width as f32, 0.5 * spec.height as f32];
+    let setting = match (spec.method, spec.foveation) {
+        (DefocusMethod::Pyramid(PyramidParams { foveation: Some(f) }), _) => Setting::Foveated(f),
+        (DefocusMethod::Pyramid(_), Some(f)) => Setting::Foveated(Layered {
+            gaze: centre,
+            radius_deg: f.radius_deg,
+            mar_slope: f.mar_slope,
+        }),
+        (DefocusMethod::Pyramid(_), None) => Setting::Pyramid,
+        (m, Some(_)) => {
+            return Err(invalid(format!(
+                "foveation needs the pyramid method, not {m:?}"
+            )))
+        }
+        (DefocusMethod::Gather, None) => Setting::Classic(Choice::Gather),
+        (DefocusMethod::LightField(p), None) => {
+            Setting::Classic(Choice::LightField { views: p.views })
+        }
+    };
+    if let Setting::Foveated(f) = setting {
+        FoveationPlan::new(spec.width, spec.height, &spec.eye, &f)?;
+    }
+    let (near, far) = spec.depths;
+    if !(near.0.is_finite() && far.0.is_finite()) {
+        return Err(invalid(format!(
+            "content depths {near:?} to {far:?} are not finite"
+        )));
+    }
+    let cores = spec.cores.max(1);
+    // The costliest focus over the content's range (its ends, its middle and between).
+    let (worst_focus, per_eye) = (0..=4)
+        .map(|i| {
+            let q = Diopters(far.0 + (near.0 - far.0) * i as f32 / 4.0);
+            let stats = FrameStats::typical(spec.width, spec.height, &spec.eye, spec.depths, q);
+            (q, Planner.predict_setting_ms(&stats, &setting, cores))
+        })
+        .fold((far, 0.0f64), |a, b| if b.1 > a.1 { b } else { a });
+    let wall_ms = per_eye * spec.eyes as f64;
+    let cpu_ms = wall_ms * cores as f64;
+    Ok(FrameCost {
+        wall_ms,
+        cpu_ms,
+        worst_focus,
+        setting,
+        summary: format!(
+            "predicted render: {setting}, {} eye(s) of {} x {} px over {} deg on {cores} CPU core(s): {wall_ms:.1} ms a frame (content {:.1} to {:.1} D, focus {:.1} D)",
+            spec.eyes,
+            spec.width,
+            spec.height,
+            spec.eye.fov_horizontal_deg,
+            near.0,
+            far.0,
+            worst_focus.0
+        ),
+    })
 }

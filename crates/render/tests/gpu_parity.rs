@@ -5,7 +5,9 @@
 
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use dioptra_render::composite::{composite_stack, step_reach};
+use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveate::{log_polar_mask, LogPolar};
+use dioptra_render::foveated::{Foveation, FoveationPlan};
 use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
 use dioptra_render::retina::LfView;
@@ -794,4 +796,61 @@ fn spectral_bad_input_is_an_error() {
     };
     assert!(g.spectral_blend(&input, &planes, &eye, bad).is_err());
     assert!(g.spectral_blend(&input, &[], &eye, params).is_err());
+}
+
+/// The cases of [`cases`] and a 1 degree field (blur to ~40 px: four pyramid levels).
+fn pyramid_cases() -> Vec<(&'static str, Rgbd, EyeModel)> {
+    let mut v = cases();
+    let one = EyeModel {
+        fov_horizontal_deg: 1.0,
+        ..EyeModel::default()
+    };
+    v.push(("random 80x64, 1 degree field", random_rgbd(80, 64, 11), one));
+    v
+}
+
+#[test]
+fn pyramid_defocus_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    let foci = [Diopters(-0.8), Diopters(0.3), Diopters(1.7)];
+    let m = DefocusMethod::Pyramid(PyramidParams::default());
+    for (name, input, eye) in pyramid_cases() {
+        let c = Cpu.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+        let q = g.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+        for (k, (a, b)) in c.iter().zip(&q).enumerate() {
+            let (max, _) = diff(a, b, 1e-3);
+            eprintln!("pyramid {name} at {}: max |gpu - cpu| = {max:e}", foci[k]);
+            assert!(max < 1e-3, "pyramid {name} at {}: {max}", foci[k]);
+        }
+    }
+}
+
+#[test]
+fn foveated_pyramid_matches_cpu() {
+    let Some(g) = gpu() else { return };
+    // 96 px over a 4 degree field (24 px/deg): a 1 degree fovea off centre, acuity falling
+    // fast enough for four layers.
+    let eye = EyeModel {
+        fov_horizontal_deg: 4.0,
+        ..EyeModel::default()
+    };
+    let input = scene_rgbd(96);
+    let fov = Foveation {
+        gaze: [30.0, 58.0],
+        radius_deg: 1.0,
+        mar_slope: 0.3,
+    };
+    let plan = FoveationPlan::new(96, 96, &eye, &fov).unwrap();
+    assert!(plan.layers.len() >= 3, "{:?}", plan.layers);
+    let m = DefocusMethod::Pyramid(PyramidParams {
+        foveation: Some(fov),
+    });
+    let foci = [Diopters(0.3), Diopters(2.0)];
+    let c = Cpu.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+    let q = g.defocus(&input, &foci, &eye, m, &|_| {}).unwrap();
+    for (k, (a, b)) in c.iter().zip(&q).enumerate() {
+        let (max, _) = diff(a, b, 1e-3);
+        eprintln!("foveated pyramid at {}: max |gpu - cpu| = {max:e}", foci[k]);
+        assert!(max < 1e-3, "foveated at {}: {max}", foci[k]);
+    }
 }

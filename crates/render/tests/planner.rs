@@ -7,11 +7,17 @@
 mod fovea_truth;
 
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_render::defocus::PyramidParams;
+use dioptra_render::foveated::{Foveation, DEFAULT_MAR_SLOPE};
 use dioptra_render::gather::gather;
 use dioptra_render::lightfield::lightfield;
 use dioptra_render::multifocal::linear_blend;
-use dioptra_render::planner::{place_planes, Choice, FrameStats, Planner, Target};
+use dioptra_render::planner::{
+    place_planes, predict_frame_cost, Choice, Deadline, FoveationSettings, FrameSpec, FrameStats,
+    Planner, Setting, Target,
+};
 use dioptra_render::retina::retina_multifocal;
+use dioptra_render::DefocusMethod;
 use dioptra_render::LightFieldParams;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
 use fovea_truth::{fovea_psnr, truth_crop};
@@ -274,4 +280,317 @@ fn plans_meet_their_target_on_held_out_scenes() {
         "the plan met the target on {met} frames, always lightfield-48 on {best_met}"
     );
     assert!(saved > 0.0, "no cost saved: {cost_plan} vs {cost_max} ms");
+}
+
+/// A 960 x 1080 textured frame (a panel's eye at 20 degrees) with an occlusion edge through
+/// its centre: near half at `near` D, far half at 0.5 D.
+fn panel_frame(near: f32) -> Rgbd {
+    let (w, h) = (960usize, 1080usize);
+    let tex: Vec<f32> = (0..w * h * 3)
+        .map(|i| ((((i / 3) % w) / 4 + ((i / 3) / w) / 4) % 2) as f32 * 0.1 + 0.45)
+        .collect();
+    let d: Vec<f32> = (0..w * h)
+        .map(|i| if i % w < w / 2 { near } else { 0.5 })
+        .collect();
+    Rgbd::new(
+        RgbImage::from_interleaved(w, h, &tex).unwrap(),
+        DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap(),
+    )
+    .unwrap()
+}
+
+/// Issue 54: under a frame period too short for the most accurate settings, the planner picks
+/// a cheaper one whose predicted time fits; with no budget to speak of it picks the cheapest
+/// and says it will be late.
+#[test]
+fn under_a_short_budget_the_planner_picks_a_cheaper_setting_that_fits() {
+    let input = panel_frame(2.5);
+    let stats = FrameStats::from_rgbd(&input, [480.0, 540.0], Diopters(0.5), &EyeModel::default());
+    let target = Target::default();
+    let fov = Some(FoveationSettings {
+        radius_deg: 5.0,
+        mar_slope: DEFAULT_MAR_SLOPE,
+    });
+    let generous = Deadline {
+        budget_ms: 1e9,
+        cores: 2,
+    };
+    let free = Planner.plan_within(&stats, &target, &generous, fov);
+    assert!(free.meets_deadline, "{}", free.why);
+    // Every setting's prediction: the pyramid, full and foveated, is far cheaper than gather
+    // at this blur (a 13 px radius) and panel size.
+    let ms = |s: Setting| Planner.predict_setting_ms(&stats, &s, 2);
+    let foveated = Setting::Foveated(Foveation {
+        gaze: stats.gaze,
+        radius_deg: 5.0,
+        mar_slope: DEFAULT_MAR_SLOPE,
+    });
+    let (gather, pyramid, fov_ms) = (
+        ms(Setting::Classic(Choice::Gather)),
+        ms(Setting::Pyramid),
+        ms(foveated),
+    );
+    eprintln!(
+        "960 x 1080: gather {gather:.0} ms, pyramid {pyramid:.1} ms, foveated {fov_ms:.1} ms; unconstrained: {}",
+        free.why
+    );
+    assert!(
+        pyramid < 0.2 * gather,
+        "pyramid {pyramid} ms, gather {gather} ms"
+    );
+    // A budget under the unconstrained choice's time but over the pyramid's.
+    let short = Deadline {
+        budget_ms: 0.5 * (free.predicted_ms + pyramid.min(fov_ms)),
+        cores: 2,
+    };
+    assert!(short.budget_ms < free.predicted_ms, "{}", free.why);
+    let p = Planner.plan_within(&stats, &target, &short, fov);
+    eprintln!("budget {:.1} ms: {}", short.budget_ms, p.why);
+    assert!(p.meets_deadline, "{}", p.why);
+    assert!(p.predicted_ms <= short.budget_ms, "{}", p.why);
+    assert!(p.predicted_ms < free.predicted_ms, "{}", p.why);
+    assert!(p.setting.method().is_some(), "{}", p.why);
+    // A long budget keeps the rig's own settings and the most accuracy on offer (this
+    // texture is beyond every method's 35 dB).
+    assert!(
+        free.predicted_psnr >= p.predicted_psnr,
+        "{} / {}",
+        free.why,
+        p.why
+    );
+    assert!(!free.why.contains("coarser"), "{}", free.why);
+    // No budget at all: the cheapest, late.
+    let none = Deadline {
+        budget_ms: 1e-6,
+        cores: 2,
+    };
+    let p = Planner.plan_within(&stats, &target, &none, fov);
+    assert!(!p.meets_deadline, "{}", p.why);
+    assert_eq!(p.setting, Setting::Classic(Choice::None), "{}", p.why);
+    assert!(p.why.contains("none fits the deadline"), "{}", p.why);
+}
+
+#[test]
+fn foveation_is_offered_only_where_its_full_resolution_covers_the_fovea() {
+    let input = panel_frame(2.5);
+    let stats = FrameStats::from_rgbd(&input, [480.0, 540.0], Diopters(0.5), &EyeModel::default());
+    // The planner's fovea: 0.05 of the 1445 px diagonal, 72 px, 1.5 degrees at 48 px/deg.
+    let at = |radius_deg| {
+        Setting::Foveated(Foveation {
+            gaze: stats.gaze,
+            radius_deg,
+            mar_slope: DEFAULT_MAR_SLOPE,
+        })
+    };
+    assert!(Planner.predict_setting_psnr(&stats, &at(5.0)).is_some());
+    assert!(Planner.predict_setting_psnr(&stats, &at(1.0)).is_none());
+    assert_eq!(
+        Planner.predict_setting_psnr(&stats, &at(5.0)),
+        Planner.predict_setting_psnr(&stats, &Setting::Pyramid)
+    );
+    assert!(matches!(
+        at(5.0).method(),
+        Some(DefocusMethod::Pyramid(PyramidParams { foveation: Some(_) }))
+    ));
+    assert_eq!(Setting::Classic(Choice::None).method(), None);
+}
+
+/// Under a budget that the rig's own foveation misses, the planner coarsens the periphery
+/// (keeping the fovea's full-resolution radius) rather than dropping the blur.
+#[test]
+fn a_budget_between_the_rigs_foveation_and_a_coarser_one_coarsens_the_periphery() {
+    // 90 degrees over 2160 px, focused far with content to 4 D: the periphery is most of the
+    // image and much of it blurred by 6 px or more.
+    let eye = EyeModel {
+        fov_horizontal_deg: 90.0,
+        ..EyeModel::default()
+    };
+    let stats = FrameStats::typical(
+        2160,
+        2160,
+        &eye,
+        (Diopters(4.0), Diopters(0.0)),
+        Diopters(0.0),
+    );
+    // The planner's fovea is a tenth of the diagonal across (153 px, 8.1 degrees in radius at
+    // the centre's 18.8 px/deg): a full-resolution radius of 10 degrees covers it.
+    let rig = FoveationSettings {
+        radius_deg: 10.0,
+        mar_slope: DEFAULT_MAR_SLOPE,
+    };
+    let at = |slope| {
+        Setting::Foveated(Foveation {
+            gaze: stats.gaze,
+            radius_deg: 10.0,
+            mar_slope: slope,
+        })
+    };
+    let ms = |s: Setting| Planner.predict_setting_ms(&stats, &s, 2);
+    let (own, coarse) = (ms(at(DEFAULT_MAR_SLOPE)), ms(at(4.0 * DEFAULT_MAR_SLOPE)));
+    eprintln!(
+        "2160 x 2160 over 90 deg: pyramid {:.1} ms, foveated {own:.1} ms, 4x coarser periphery {coarse:.1} ms",
+        ms(Setting::Pyramid)
+    );
+    assert!(
+        coarse < own && own < ms(Setting::Pyramid),
+        "{coarse} vs {own}"
+    );
+    // A target only the pyramid family meets (no pass-through): 1 dB under its prediction.
+    let target = Target {
+        fovea_psnr_db: Planner
+            .predict_setting_psnr(&stats, &Setting::Pyramid)
+            .unwrap()
+            - 1.0,
+        periphery_psnr_db: None,
+    };
+    assert!(
+        Planner
+            .predict_setting_psnr(&stats, &Setting::Classic(Choice::None))
+            .unwrap()
+            < target.fovea_psnr_db
+    );
+    let deadline = Deadline::from_period(0.5 * (own + coarse) + 1.0, 1.0, 2);
+    let p = Planner.plan_within(&stats, &target, &deadline, Some(rig));
+    eprintln!("{}", p.why);
+    assert!(p.meets_deadline && p.meets_target, "{}", p.why);
+    let Setting::Foveated(f) = p.setting else {
+        panic!("{}", p.why)
+    };
+    assert!(f.mar_slope > DEFAULT_MAR_SLOPE, "{}", p.why);
+    assert_eq!(f.radius_deg, 10.0);
+    assert!(p.why.contains("coarser"), "{}", p.why);
+    // A target on the periphery forbids it: the rig's slope or nothing foveated.
+    let strict = Target {
+        periphery_psnr_db: Some(30.0),
+        ..target
+    };
+    let p = Planner.plan_within(&stats, &strict, &deadline, Some(rig));
+    if let Setting::Foveated(f) = p.setting {
+        assert_eq!(f.mar_slope, DEFAULT_MAR_SLOPE, "{}", p.why);
+    }
+    assert!(!p.meets_deadline || !p.meets_target, "{}", p.why);
+}
+
+/// The daemon's start-up figure: the predicted cost of a frame at the rig's size, method,
+/// backend and foveation.
+#[test]
+fn predict_frame_cost_scales_with_eyes_and_size_and_refuses_what_it_cannot_model() {
+    let eye = EyeModel::default();
+    let mono = FrameSpec {
+        cores: 2,
+        ..FrameSpec::new(960, 1080, eye)
+    };
+    let one = predict_frame_cost(&mono).unwrap();
+    let two = predict_frame_cost(&FrameSpec {
+        eyes: 2,
+        ..mono.clone()
+    })
+    .unwrap();
+    eprintln!("{}\n{}", one.summary, two.summary);
+    assert!((two.wall_ms - 2.0 * one.wall_ms).abs() < 1e-9);
+    assert!((one.cpu_ms - 2.0 * one.wall_ms).abs() < 1e-9);
+    assert!(one.wall_ms > 0.0 && one.summary.contains("960 x 1080"));
+    let big = predict_frame_cost(&FrameSpec {
+        width: 1440,
+        height: 1600,
+        ..mono.clone()
+    })
+    .unwrap();
+    assert!(big.wall_ms > one.wall_ms);
+    // Four cores halve the wall time of the same CPU time.
+    let four = predict_frame_cost(&FrameSpec {
+        cores: 4,
+        ..mono.clone()
+    })
+    .unwrap();
+    assert!((four.wall_ms - 0.5 * one.wall_ms).abs() < 1e-9);
+    // Gather costs more than the pyramid at a panel's blur; foveation over a wide field less.
+    let gather = predict_frame_cost(&FrameSpec {
+        method: DefocusMethod::Gather,
+        ..mono.clone()
+    })
+    .unwrap();
+    assert!(
+        gather.wall_ms > 3.0 * one.wall_ms,
+        "{} / {}",
+        gather.summary,
+        one.summary
+    );
+    let wide = EyeModel {
+        fov_horizontal_deg: 90.0,
+        ..eye
+    };
+    let fov = Some(FoveationSettings {
+        radius_deg: 5.0,
+        mar_slope: DEFAULT_MAR_SLOPE,
+    });
+    let full = predict_frame_cost(&FrameSpec {
+        eye: wide,
+        ..mono.clone()
+    })
+    .unwrap();
+    let foveated = predict_frame_cost(&FrameSpec {
+        eye: wide,
+        foveation: fov,
+        ..mono.clone()
+    })
+    .unwrap();
+    eprintln!("{}\n{}", full.summary, foveated.summary);
+    assert!(foveated.wall_ms < full.wall_ms);
+    assert!(matches!(foveated.setting, Setting::Foveated(_)));
+    // The budget check.
+    assert!(one.fits(&Deadline::from_period(one.wall_ms + 2.0, 1.0, 2)));
+    assert!(!one.fits(&Deadline::from_period(one.wall_ms, 1.0, 2)));
+    // What it cannot model is an error that says so.
+    for (spec, want) in [
+        (
+            FrameSpec {
+                backend: "gpu".into(),
+                ..mono.clone()
+            },
+            "gpu",
+        ),
+        (
+            FrameSpec {
+                backend: "tpu".into(),
+                ..mono.clone()
+            },
+            "unknown backend",
+        ),
+        (
+            FrameSpec {
+                method: DefocusMethod::Gather,
+                foveation: fov,
+                ..mono.clone()
+            },
+            "pyramid",
+        ),
+        (
+            FrameSpec {
+                width: 0,
+                ..mono.clone()
+            },
+            "nothing to render",
+        ),
+        (
+            FrameSpec {
+                depths: (Diopters(f32::NAN), Diopters(0.0)),
+                ..mono.clone()
+            },
+            "not finite",
+        ),
+        (
+            FrameSpec {
+                foveation: Some(FoveationSettings {
+                    radius_deg: 5.0,
+                    mar_slope: -1.0,
+                }),
+                ..mono.clone()
+            },
+            "foveation",
+        ),
+    ] {
+        let e = predict_frame_cost(&spec).unwrap_err().to_string();
+        assert!(e.contains(want), "{e}");
+    }
 }

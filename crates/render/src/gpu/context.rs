@@ -53,6 +53,11 @@ pub(crate) enum Kernel {
     SpRowsToReal,
     SpApply,
     SpGradStep,
+    PyAggregate,
+    PySpread,
+    PyCompose,
+    FvDownsample,
+    FvBlend,
 }
 
 const GATHER_WGSL: &str = include_str!("../../shaders/gather.wgsl");
@@ -65,9 +70,11 @@ const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
 const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
+const PYRAMID_WGSL: &str = include_str!("../../shaders/pyramid.wgsl");
+const FOVEATED_WGSL: &str = include_str!("../../shaders/foveated.wgsl");
 
 impl Kernel {
-    pub(crate) const ALL: [Kernel; 35] = [
+    pub(crate) const ALL: [Kernel; 40] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -103,6 +110,11 @@ impl Kernel {
         Kernel::SpRowsToReal,
         Kernel::SpApply,
         Kernel::SpGradStep,
+        Kernel::PyAggregate,
+        Kernel::PySpread,
+        Kernel::PyCompose,
+        Kernel::FvDownsample,
+        Kernel::FvBlend,
     ];
 
     /// (shader source, entry point, read-only buffers, read-write buffers)
@@ -144,6 +156,11 @@ impl Kernel {
             SpRowsToReal => (SPECTRAL_WGSL, "rows_to_real", 1, 2),
             SpApply => (SPECTRAL_WGSL, "apply", 2, 1),
             SpGradStep => (SPECTRAL_WGSL, "grad_step", 2, 2),
+            PyAggregate => (PYRAMID_WGSL, "aggregate", 2, 1),
+            PySpread => (PYRAMID_WGSL, "spread", 1, 1),
+            PyCompose => (PYRAMID_WGSL, "compose", 4, 1),
+            FvDownsample => (FOVEATED_WGSL, "downsample", 2, 2),
+            FvBlend => (FOVEATED_WGSL, "blend", 2, 1),
         }
     }
 }
@@ -569,9 +586,10 @@ pub(crate) fn shared_wgsl() -> String {
     use crate::multifocal::MAX_PLANES;
     let sigma: Vec<String> = LEVEL_SIGMA.iter().map(|s| format!("{s:?}")).collect();
     format!(
-        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n",
+        "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n{}",
         LEVEL_SIGMA.len(),
-        sigma.join(", ")
+        sigma.join(", "),
+        crate::pyramid::shared_wgsl() + &crate::foveated::shared_wgsl()
     )
 }
 
@@ -1018,7 +1036,18 @@ mod tests {
         assert!(prelude.contains("const MAX_PLANES: u32 = 16u;"));
         for k in Kernel::ALL {
             let (src, entry, _, _) = k.spec();
-            for name in ["PREFILTER", "LEVEL_SIGMA", "FOV_CELL", "WG1", "MAX_PLANES"] {
+            for name in [
+                "PREFILTER",
+                "LEVEL_SIGMA",
+                "FOV_CELL",
+                "WG1",
+                "MAX_PLANES",
+                "EXACT_RADIUS",
+                "BANDS_PER_OCTAVE",
+                "SPREAD_REACH",
+                "GRID",
+                "BLEND",
+            ] {
                 assert!(
                     !src.contains(&format!("const {name}")),
                     "{entry}'s shader defines {name} itself"

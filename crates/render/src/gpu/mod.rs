@@ -5,6 +5,7 @@
 mod context;
 mod image;
 mod kernels;
+mod pyramid;
 mod spectral;
 #[cfg(test)]
 pub(crate) mod uniforms;
@@ -80,6 +81,13 @@ impl Gpu {
     ) -> Result<Vec<kernels::Output>, RenderError> {
         let (out, s) = match method {
             DefocusMethod::Gather => kernels::gather(&self.ctx, input, foci, eye, progress, keep)?,
+            DefocusMethod::Pyramid(p) => match p.foveation {
+                None => {
+                    let all = crate::pyramid::Region::full(input.width(), input.height());
+                    pyramid::pyramid(&self.ctx, input, foci, eye, &all, progress, keep)?
+                }
+                Some(f) => pyramid::foveated(&self.ctx, input, foci, eye, &f, progress, keep)?,
+            },
             DefocusMethod::LightField(p) => {
                 kernels::lightfield(&self.ctx, input, foci, eye, p, progress, keep)?
             }

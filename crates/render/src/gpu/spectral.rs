@@ -401,6 +401,18 @@ pub(super) fn spectral_blend(
             DefocusMethod::Gather => {
                 kernels::gather(ctx, input, &params.foci(), eye, &|_| {}, Keep::Gpu)?
             }
+            DefocusMethod::Pyramid(p) => {
+                let foci = params.foci();
+                match p.foveation {
+                    None => {
+                        let all = crate::pyramid::Region::full(input.width(), input.height());
+                        super::pyramid::pyramid(ctx, input, &foci, eye, &all, &|_| {}, Keep::Gpu)?
+                    }
+                    Some(f) => {
+                        super::pyramid::foveated(ctx, input, &foci, eye, &f, &|_| {}, Keep::Gpu)?
+                    }
+                }
+            }
             DefocusMethod::LightField(lp) => {
                 kernels::lightfield(ctx, input, &params.foci(), eye, lp, &|_| {}, Keep::Gpu)?
             }

@@ -3,6 +3,7 @@
 
 use super::context::{with_shared, Kernel};
 use super::kernels::{FovP, GatherP, LfP, OptP, SizeP};
+use super::pyramid::{FoveatedP, PyramidP};
 use super::spectral::SpecP;
 
 /// The uniform `Params` of a shader file of this crate, as naga lays it out: (member, offset,
@@ -73,6 +74,15 @@ fn uniform_layouts_match_the_shaders() {
         (
             Kernel::FovMask,
             rust_uniform!(FovP; w, h, rings, angles, cx, cy, gw, gh),
+        ),
+        (
+            Kernel::PyCompose,
+            rust_uniform!(PyramidP; w, h, top, level, k, q, kind, n_off, region, annulus, rec,
+                out, edges, levels),
+        ),
+        (
+            Kernel::FvBlend,
+            rust_uniform!(FoveatedP; w, h, a, b, top, present, _pad0, _pad1, offsets),
         ),
         (
             Kernel::SpFftPass,

@@ -131,6 +131,7 @@ impl RgbdRenderer {
     ) -> Result<FrameImage, RenderError> {
         let label = match method {
             DefocusMethod::Gather => "gather".to_string(),
+            DefocusMethod::Pyramid(_) => "pyramid".to_string(),
             DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
         };
         self.on_backend(&label, |gpu| match gpu {
