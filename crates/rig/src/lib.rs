@@ -23,7 +23,7 @@
 //! - [`render`]: the render worker's [`render::Renderer`], which renders a job from a content
 //!   frame ([`render::rgbd::RgbdRenderer`], the rig's own).
 //! - [`display`]: where frames go ([`display::DisplaySink`]; headless here, the window in the
-//!   binary), and the marker patch a photodiode watches.
+//!   binary, which draws with [`display::blit`]), and the marker patch a photodiode watches.
 //! - [`photons`]: latency measured in photons (`dioptra hil`): a photodiode's edges matched to
 //!   the presents that toggled the marker patch.
 //! - [`recording`]: MCAP recordings.
@@ -32,11 +32,14 @@
 //!   recording ground truth.
 //!
 //! No module imports one above it. The layers, lowest first (`crates/rig/LAYERS`, checked by
-//! `scripts/check_layers.py` in CI): the config's vocabulary (its error, [`mode`]); each
-//! part's config section; [`config`], which composes them; what the parts hand each other
-//! (device inputs, content frames, render jobs, display frames, recordings); the parts at work
-//! ([`devices`], [`content`], [`render`], [`display`], [`lsl`], [`engine`]); [`state`]; the
-//! loop ([`executor`]); what watches it ([`observers`], [`photons`]); this crate root, which
+//! `scripts/check_layers.py` in CI): the vocabulary (the config's error, [`problem`],
+//! [`mode`]); each part's config section; [`config`], which composes them; what the parts hand
+//! each other (device inputs, content frames, render jobs, display frames, recordings); the
+//! parts at work, each with the handle through which it publishes its status (its `status`
+//! module: [`devices`], [`content`], [`render`], [`display`], [`optics`], [`lsl`]), and the
+//! scheduler's adapter ([`engine`]); [`state`], which holds the handles and composes `/status`
+//! and its `problems`; the loop ([`executor`]); what watches it ([`observers`], [`photons`],
+//! which hand each part what the loop saw); this crate root, which
 //! starts and stops a rig ([`Rig`]); and above it the simulated rig and the tests that start a
 //! whole rig. A part's `mod.rs` (or parent file) sits on top of its own children: it declares,
 //! re-exports and builds on them, and they never import it.

@@ -11,16 +11,55 @@ use dioptra_core::{
     DeviceError, Diopters, GazeSample, GazeSource, LensState, LightEvent, Photodiode,
     PlaneSchedule, PlaneSequencer, PowerRange, SequencerEvent, Timestamp, VarifocalLens,
 };
-
 use dioptra_transport::{AnyByteLink, AnyHidLink};
 
-/// What a driver connects over: a real device's link or a simulator's (the simulators' links
-/// become one in `open`).
+/// What a driver connects over: a real device's link or a simulator's (the drivers' table in
+/// `open.rs` makes it).
 pub enum Link {
     Byte(AnyByteLink),
     Hid(AnyHidLink),
     /// The address of a network service.
     Net(String),
+}
+
+impl Link {
+    fn kind(&self) -> &'static str {
+        match self {
+            Link::Byte(_) => "a byte link",
+            Link::Hid(_) => "a HID link",
+            Link::Net(_) => "a network address",
+        }
+    }
+    /// The byte link, or an error naming `what` (the driver) and the link it was given.
+    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
+        match self {
+            Link::Byte(l) => Ok(l),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over a byte link, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+    /// The HID link, or an error naming `what` and the link it was given.
+    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
+        match self {
+            Link::Hid(l) => Ok(l),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over HID, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
+    /// The network address, or an error naming `what` and the link it was given.
+    pub fn net(self, what: &str) -> Result<String, DeviceError> {
+        match self {
+            Link::Net(a) => Ok(a),
+            other => Err(DeviceError::Invalid(format!(
+                "the {what} driver talks over the network, and was given {}",
+                other.kind()
+            ))),
+        }
+    }
 }
 
 pub(crate) type BoxFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;

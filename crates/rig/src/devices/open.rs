@@ -28,9 +28,8 @@ use dioptra_sim::serve::ByteDevice;
 use dioptra_sync::board::{BoardEvent, PhotodiodeBand, SyncBoard};
 use dioptra_sync::dlpc350::{Dlpc350, Dlpc350Config};
 use dioptra_transport::discovery::{Interface, KnownDevice};
-use dioptra_transport::{AnyByteLink, AnyHidLink};
+use dioptra_transport::AnyByteLink;
 
-pub use super::boxed::Link;
 use super::boxed::{
     About, BoxFuture, BoxGaze, BoxLens, BoxPhotodiode, BoxSequencer, Facts, Resume,
 };
@@ -52,52 +51,14 @@ pub enum Transport {
     Net,
 }
 
+pub use super::boxed::Link;
+
 impl From<SimLink> for Link {
     fn from(l: SimLink) -> Link {
         match l {
             SimLink::Byte(l) => Link::Byte(l),
             SimLink::Hid(l) => Link::Hid(l),
             SimLink::Net(a) => Link::Net(a),
-        }
-    }
-}
-
-impl Link {
-    fn kind(&self) -> &'static str {
-        match self {
-            Link::Byte(_) => "a byte link",
-            Link::Hid(_) => "a HID link",
-            Link::Net(_) => "a network address",
-        }
-    }
-    /// The byte link, or an error naming `what` (the driver) and the link it was given.
-    pub fn byte(self, what: &str) -> Result<AnyByteLink, DeviceError> {
-        match self {
-            Link::Byte(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over a byte link, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The HID link, or an error naming `what` and the link it was given.
-    pub fn hid(self, what: &str) -> Result<AnyHidLink, DeviceError> {
-        match self {
-            Link::Hid(l) => Ok(l),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over HID, and was given {}",
-                other.kind()
-            ))),
-        }
-    }
-    /// The network address, or an error naming `what` and the link it was given.
-    pub fn net(self, what: &str) -> Result<String, DeviceError> {
-        match self {
-            Link::Net(a) => Ok(a),
-            other => Err(DeviceError::Invalid(format!(
-                "the {what} driver talks over the network, and was given {}",
-                other.kind()
-            ))),
         }
     }
 }
