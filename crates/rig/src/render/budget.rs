@@ -86,7 +86,7 @@ impl Prediction {
             "fits".to_string()
         } else {
             format!(
-                "does NOT fit: expect about {:.0} distinct frames/s, each shown {:.1} times",
+                "does NOT fit: expect about {:.1} distinct frames/s, each shown {:.0} times",
                 1e3 / self.frame_ms.max(b.period_ms),
                 (self.frame_ms / b.period_ms).ceil().max(1.0)
             )
@@ -192,7 +192,7 @@ pub fn predict(cfg: &RigConfig, backend: &str) -> Result<Prediction, String> {
         }
         let hz_fits = 1e3 / (p.frame_ms + margin_ms(p.frame_ms));
         p.to_fit
-            .push(format!("{} = {hz_fits:.0} or less", budget.period_key));
+            .push(format!("{} = {hz_fits:.1} or less", budget.period_key));
     }
     Ok(p)
 }
