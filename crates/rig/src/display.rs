@@ -22,6 +22,7 @@ pub mod blit;
 pub mod config;
 pub mod frame;
 pub mod marker;
+pub mod pacing;
 pub mod panel_image;
 pub mod placement;
 pub mod status;

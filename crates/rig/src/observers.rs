@@ -12,6 +12,7 @@ use serde_json::json;
 use crate::content::ContentFrame;
 use crate::devices::DeviceInput;
 use crate::devices::LensId;
+use crate::display::pacing::{Notice, Pacing};
 use crate::display::DisplaySink;
 use crate::engine::{self, Command, Control, Engine};
 use crate::executor::{LoopHook, Presented, RenderReport};
@@ -35,6 +36,7 @@ pub(crate) fn standard(state: &Arc<RigState>) -> Vec<Box<dyn LoopHook>> {
             scheduler_due: false,
         }),
         Box::new(WebSocket(state.clone())),
+        Box::new(Lateness::new(state.clone())),
     ];
     hooks.push(Box::new(DebugLog {
         state: state.clone(),
@@ -508,6 +510,77 @@ impl LoopHook for Status {
     }
     fn stopped(&mut self, _now: Timestamp, engine: &Engine) {
         lock(&self.state.loop_status).scheduler = engine.status();
+    }
+}
+
+/// Watches the display's pacing ([`Pacing`]): logs a rig that misses its deadlines (the
+/// first miss, then a summary at most every few seconds) and publishes the distinct frames
+/// per second to `/status.display`.
+struct Lateness {
+    state: Arc<RigState>,
+    pacing: Option<Pacing>,
+    advice: String,
+}
+
+impl Lateness {
+    fn new(state: Arc<RigState>) -> Lateness {
+        Lateness {
+            state,
+            pacing: None,
+            advice: String::new(),
+        }
+    }
+
+    fn log(&self, notice: Option<Notice>) {
+        let Some(n) = notice else { return };
+        match n {
+            Notice::OnTime(s) => tracing::info!("{s}"),
+            Notice::FirstMiss(s) | Notice::Summary(s) | Notice::NoFrame(s) => {
+                tracing::warn!("{s}")
+            }
+        }
+    }
+
+    fn publish(&self) {
+        if let Some(p) = &self.pacing {
+            self.state.display.pacing(p.status(), &self.advice);
+        }
+    }
+}
+
+impl LoopHook for Lateness {
+    fn started(&mut self, now: Timestamp, engine: &Engine, _sink: &dyn DisplaySink) {
+        let cfg = &self.state.cfg;
+        let budget = crate::render::budget::FrameBudget::of(cfg, engine.mode());
+        self.advice = crate::render::budget::generic_advice(budget.period_key);
+        let period = Duration::from_secs_f64(budget.period_ms / 1e3);
+        self.pacing = Some(Pacing::new(now, period, self.advice.clone()));
+        self.publish();
+    }
+    fn rendered(&mut self, _now: Timestamp, r: &RenderReport<'_>) {
+        if let Some(p) = &mut self.pacing {
+            p.rendered(r.took);
+        }
+    }
+    fn presented(&mut self, now: Timestamp, shown: &Presented, _sink: &dyn DisplaySink) {
+        // A multifocal frame counts once per plane cycle (its first layer).
+        if shown.layer.is_some_and(|l| l > 0) {
+            return;
+        }
+        let notice = self
+            .pacing
+            .as_mut()
+            .and_then(|p| p.presented(now, shown.frame, shown.repeat));
+        self.log(notice);
+        self.publish();
+    }
+    fn next_wakeup(&self) -> Option<Timestamp> {
+        self.pacing.as_ref()?.next_check()
+    }
+    fn wake(&mut self, now: Timestamp, _engine: &Engine) {
+        let notice = self.pacing.as_mut().and_then(|p| p.check(now));
+        self.log(notice);
+        self.publish();
     }
 }
 

@@ -91,18 +91,13 @@ fn serve_blocking(
         service.ready(daemon.listening(), daemon.shared().cancel().clone());
         let status = daemon.shared().status_json();
         eprintln!("dioptra serve: display {}", status["display"]["sink"]);
+        tokio::spawn(frame_budget(daemon.shared().clone()));
         let signals = Signals::new().context("cannot listen for SIGTERM, SIGINT and SIGHUP")?;
         tokio::spawn(on_signals(signals, daemon.shared().clone(), stop));
         let shared = daemon.shared().clone();
         let report = daemon.wait().await;
         let v = shared.status_json();
-        eprintln!(
-            "dioptra serve: {} gaze samples, {} lens commands, {} frames shown in {:.1} s",
-            v["counts"]["gaze_samples"],
-            v["counts"]["lens_commands"],
-            v["counts"]["frames_shown"],
-            v["uptime_s"].as_f64().unwrap_or(0.0)
-        );
+        eprintln!("dioptra serve: {}", shutdown_counts(&v));
         eprintln!("{}", report.summary());
         if report.ok() {
             Ok(())
@@ -113,6 +108,72 @@ fn serve_blocking(
             )
         }
     })
+}
+
+/// The shutdown's one line of counts: distinct frames apart from the refreshes that repeated
+/// one (a late frame).
+fn shutdown_counts(v: &serde_json::Value) -> String {
+    let up = v["uptime_s"].as_f64().unwrap_or(0.0);
+    let d = &v["display"];
+    let distinct = d["distinct_frames"].as_u64().unwrap_or(0);
+    format!(
+        "{} gaze samples, {} lens commands, {} distinct frames shown ({:.1}/s) and {} refreshes that repeated a frame, in {:.1} s",
+        v["counts"]["gaze_samples"],
+        v["counts"]["lens_commands"],
+        distinct,
+        if up > 0.0 { distinct as f64 / up } else { 0.0 },
+        d["repeated_refreshes"].as_u64().unwrap_or(0),
+        up
+    )
+}
+
+/// Says at start whether a frame fits its period: the cost model's prediction at the rig's
+/// size, method and backend, or, where it has none, the first render measured. A frame that
+/// does not fit is a warning naming the keys that would make it fit.
+async fn frame_budget(shared: Arc<RigState>) {
+    use dioptra_rig::render::budget::{predict, Prediction};
+    let cfg = shared.cfg().clone();
+    let backend = shared.render().renderer().backend_status()["backend"]
+        .as_str()
+        .unwrap_or("cpu")
+        .to_string();
+    let p = match predict(&cfg, &backend) {
+        Ok(p) => p,
+        Err(why) => {
+            // Measured instead: the first render the rig makes.
+            let cancel = shared.cancel().clone();
+            let first = async {
+                loop {
+                    if let Some(ms) = shared.render().status_now().last_render_ms {
+                        return ms;
+                    }
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            };
+            let ms = tokio::select! {
+                _ = cancel.cancelled() => return,
+                ms = first => ms,
+            };
+            Prediction::measured(
+                &cfg,
+                ms,
+                &format!(
+                    "{why}, so the first frame was timed: {} in {} mode, {} eye(s) of {} x {} px on the {backend}",
+                    cfg.method.as_str(),
+                    cfg.mode.as_str(),
+                    dioptra_rig::render::budget::eyes(&cfg),
+                    cfg.display.width,
+                    cfg.display.height
+                ),
+            )
+        }
+    };
+    let line = p.line();
+    if p.fits() {
+        eprintln!("dioptra serve: {line}");
+    } else {
+        tracing::warn!("{line}");
+    }
 }
 
 /// SIGTERM (systemd, `kill`), SIGINT (Ctrl-C) and SIGHUP (the terminal closed).

@@ -8,6 +8,7 @@ use dioptra_core::lock;
 use serde_json::{Map, Value};
 
 use super::marker::MarkerControl;
+use super::pacing::PacingStatus;
 use crate::problem::Problem;
 
 /// The display part's handle.
@@ -25,6 +26,10 @@ struct DisplayStatus {
     shown: u64,
     /// The newest frame was not shown, and why (the sink's newest misfit).
     not_shown: Option<String>,
+    /// Distinct frames against refreshes ([`super::pacing`]).
+    pacing: PacingStatus,
+    /// What would make frames fit (config keys), for the problem a late rig shows.
+    advice: String,
 }
 
 impl DisplayHandle {
@@ -63,6 +68,21 @@ impl DisplayHandle {
         st.not_shown = None;
     }
 
+    /// Distinct frames against refreshes, as of the newest present; `advice`: what would
+    /// make frames fit.
+    pub(crate) fn pacing(&self, pacing: &PacingStatus, advice: &str) {
+        let mut st = lock(&self.status);
+        st.pacing = pacing.clone();
+        if st.advice != advice {
+            st.advice = advice.to_string();
+        }
+    }
+
+    /// Distinct frames against refreshes.
+    pub fn pacing_now(&self) -> PacingStatus {
+        lock(&self.status).pacing.clone()
+    }
+
     /// The sink refused a frame (it does not fit its place): its status says why.
     pub(crate) fn not_shown(&self, sink: Value) {
         let mut st = lock(&self.status);
@@ -75,15 +95,24 @@ impl DisplayHandle {
         st.sink = sink;
     }
 
-    /// `/status`'s `display`.
+    /// `/status`'s `display`: the sink's status, and the distinct frames against the
+    /// refreshes.
     pub fn status(&self, out: &mut Map<String, Value>) {
-        out.insert("display".into(), lock(&self.status).sink.clone());
+        let st = lock(&self.status);
+        let mut display = st.sink.clone();
+        if let (Some(d), Ok(Value::Object(p))) =
+            (display.as_object_mut(), serde_json::to_value(&st.pacing))
+        {
+            d.extend(p);
+        }
+        out.insert("display".into(), display);
     }
 
-    /// The newest frame was not shown.
+    /// The newest frame was not shown; frames are late.
     pub fn problems(&self) -> Vec<Problem> {
         let st = lock(&self.status);
-        st.not_shown
+        let mut out: Vec<Problem> = st
+            .not_shown
             .iter()
             .map(|why| {
                 Problem::new(
@@ -92,6 +121,20 @@ impl DisplayHandle {
                     format!("the newest frame is not shown: {why}"),
                 )
             })
-            .collect()
+            .collect();
+        let p = &st.pacing;
+        if p.late {
+            out.push(Problem::new(
+                "display",
+                "method",
+                format!(
+                    "frames are late: {:.1} distinct frames/s against {:.1} refreshes/s; to fit: {}",
+                    p.distinct_fps.unwrap_or(0.0),
+                    p.refresh_hz.unwrap_or(0.0),
+                    st.advice
+                ),
+            ));
+        }
+        out
     }
 }

@@ -3,6 +3,7 @@
 //! between the loop and the worker thread ([`job`]); `[render]` in [`config`]; what it
 //! publishes in [`status`].
 
+pub mod budget;
 pub mod config;
 pub mod job;
 pub mod rgbd;
