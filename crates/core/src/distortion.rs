@@ -297,6 +297,7 @@ impl EyepieceModel {
 /// render intrinsics and the coefficients shared by every channel (0 when absent), each
 /// channel's table overriding any of them.
 #[cfg(feature = "serde")]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DistortionSection {
@@ -322,6 +323,7 @@ pub struct DistortionSection {
 
 /// The models `[optics.distortion] model` names.
 #[cfg(feature = "serde")]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DistortionKind {
@@ -331,6 +333,7 @@ pub enum DistortionKind {
 
 /// `[optics.distortion.red|green|blue]`: any intrinsic or coefficient of that channel.
 #[cfg(feature = "serde")]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ChannelKeys {

@@ -580,6 +580,7 @@ impl TransferFit {
 /// `display.transfer` as rig.toml spells it: `"srgb"`, `"linear"`, `{ gamma = G, black = B }`
 /// or `{ table = "FILE" }` (relative to the config file).
 #[cfg(feature = "serde")]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(untagged)]
 pub enum TransferSetting {
@@ -595,6 +596,7 @@ pub enum TransferSetting {
 }
 
 #[cfg(feature = "serde")]
+#[cfg_attr(feature = "schemars", derive(schemars::JsonSchema))]
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum TransferName {

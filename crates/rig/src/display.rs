@@ -434,6 +434,7 @@ mod tests {
             layers: vec![dioptra_core::RgbImage::new(4, 4, [0.5; 3]).into()].into(),
             right: None,
             marker: None,
+            size_compensation: [None; 2],
         };
         let mut t = 0;
         for n in 0..=100u64 {

@@ -223,6 +223,10 @@ pub(crate) mod capture {
             .with_writer(lines.clone())
             .without_time()
             .finish();
-        (lines, tracing::subscriber::set_default(subscriber))
+        let guard = tracing::subscriber::set_default(subscriber);
+        // A callsite first hit on another test's thread, with no subscriber there, can keep
+        // an interest of "never"; recompute every callsite's with this one in place.
+        tracing::callsite::rebuild_interest_cache();
+        (lines, guard)
     }
 }

@@ -115,10 +115,11 @@ impl Prediction {
     }
 }
 
-/// The keys that change a frame's cost, for messages when nothing better is known.
+/// The keys that change a frame's cost, for messages when nothing better is known (only keys
+/// rig.toml has: the pyramid method and `render.foveation` are not in the daemon yet).
 pub fn generic_advice(period_key: &str) -> String {
     format!(
-        "a cheaper method (method = \"pyramid\" or \"gather\"), render.foveation, a smaller \
+        "a cheaper method (method = \"gather\"), a smaller \
          panel (display.width, display.height), render.backend = \"gpu\", or a longer period \
          ({period_key})"
     )

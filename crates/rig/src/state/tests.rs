@@ -110,6 +110,8 @@ const ONE_LENS: &[&str] = &[
     "devices.sync.port",
     "devices.sync.state",
     "display",
+    "display.distinct_fps",
+    "display.distinct_frames",
     "display.eye_offset_px",
     "display.eye_offset_px.left",
     "display.eye_offset_px.right",
@@ -119,6 +121,7 @@ const ONE_LENS: &[&str] = &[
     "display.last.marker_white",
     "display.last.shown_ns",
     "display.last.size_compensation",
+    "display.late",
     "display.layout",
     "display.mean_interval_ms",
     "display.misfit",
@@ -128,6 +131,9 @@ const ONE_LENS: &[&str] = &[
     "display.places",
     "display.places.one",
     "display.pngs_written",
+    "display.refresh_hz",
+    "display.refreshes",
+    "display.repeated_refreshes",
     "display.scale",
     "display.shown",
     "display.sink",
@@ -269,6 +275,8 @@ const LENS_PER_EYE: &[&str] = &[
     "devices.lens_right.port",
     "devices.lens_right.state",
     "display",
+    "display.distinct_fps",
+    "display.distinct_frames",
     "display.eye_offset_px",
     "display.eye_offset_px.left",
     "display.eye_offset_px.right",
@@ -278,6 +286,7 @@ const LENS_PER_EYE: &[&str] = &[
     "display.last.marker_white",
     "display.last.shown_ns",
     "display.last.size_compensation",
+    "display.late",
     "display.layout",
     "display.mean_interval_ms",
     "display.misfit",
@@ -288,6 +297,9 @@ const LENS_PER_EYE: &[&str] = &[
     "display.places.left",
     "display.places.right",
     "display.pngs_written",
+    "display.refresh_hz",
+    "display.refreshes",
+    "display.repeated_refreshes",
     "display.scale",
     "display.shown",
     "display.sink",
@@ -410,10 +422,21 @@ async fn status_keeps_its_keys_and_lists_its_problems() {
         (EXAMPLE_SIM_RIG, ONE_LENS),
         (EXAMPLE_SIM_BINOCULAR_RIG, LENS_PER_EYE),
     ] {
-        let v = status_of(text).await;
+        let mut v = status_of(text).await;
+        // Renders take real time on the paused clock, so on a loaded machine the display can
+        // run late and say so (`display` / `method`); nothing else may be wrong.
+        let problems = v["problems"].as_array_mut().unwrap();
+        problems.retain(|p| !(p["part"] == "display" && p["key"] == "method"));
         assert_eq!(paths(&v), want, "{v:#}");
         assert_eq!(v["problems"], serde_json::json!([]), "{v:#}");
     }
+}
+
+/// Renders take real time on the paused clock, so on a loaded machine (tests in parallel) the
+/// display can run late and say so (`display` / `method`): the problems but that one.
+fn not_lateness(mut problems: Vec<crate::problem::Problem>) -> Vec<crate::problem::Problem> {
+    problems.retain(|p| !(p.part == "display" && p.key == "method"));
+    problems
 }
 
 /// A device that goes down is listed under `problems` with its port's key, and leaves the
@@ -425,7 +448,7 @@ async fn a_lens_unplugged_is_a_problem_until_it_is_back() {
     let rig = Rig::start(setup).await.unwrap();
     let state = rig.state().clone();
     tokio::time::sleep(std::time::Duration::from_secs(1)).await;
-    assert_eq!(state.status_json()["problems"], serde_json::json!([]));
+    assert_eq!(not_lateness(state.problems()), Vec::new());
     let plug = || {
         &state.devices().sims().unwrap().lenses[0]
             .as_ref()
@@ -435,7 +458,7 @@ async fn a_lens_unplugged_is_a_problem_until_it_is_back() {
     plug().unplug();
     let mut problems = Vec::new();
     for _ in 0..100 {
-        problems = state.problems();
+        problems = not_lateness(state.problems());
         if !problems.is_empty() {
             break;
         }
@@ -446,16 +469,23 @@ async fn a_lens_unplugged_is_a_problem_until_it_is_back() {
     assert_eq!((p.part, p.key.as_str()), ("devices", "devices.lens.port"));
     assert!(p.problem.contains("the lens device"), "{}", p.problem);
     let v = state.status_json();
-    assert_eq!(v["problems"][0]["key"], "devices.lens.port", "{v:#}");
+    assert!(
+        v["problems"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|p| p["key"] == "devices.lens.port"),
+        "{v:#}"
+    );
     assert!(v["devices"]["lens"]["last_error"].is_string(), "{v:#}");
     plug().replug();
     for _ in 0..200 {
-        if state.problems().is_empty() {
+        if not_lateness(state.problems()).is_empty() {
             break;
         }
         tokio::time::sleep(std::time::Duration::from_millis(50)).await;
     }
-    assert_eq!(state.problems(), Vec::new());
+    assert_eq!(not_lateness(state.problems()), Vec::new());
     state.cancel().cancel();
     rig.wait().await;
 }
