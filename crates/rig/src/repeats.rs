@@ -215,18 +215,34 @@ pub(crate) mod capture {
         }
     }
 
+    /// Held while a test catches logs: tests that install and drop subscribers at the same
+    /// time can leave a callsite's cached interest without the newest one (an event lost),
+    /// so they take turns.
+    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+    /// What keeps a capture going: the subscriber, then the turn.
+    pub(crate) struct Capture {
+        _default: tracing::subscriber::DefaultGuard,
+        _turn: std::sync::MutexGuard<'static, ()>,
+    }
+
     /// Catches this thread's events from `level` up until the guard is dropped.
-    pub(crate) fn logs(level: tracing::Level) -> (Lines, tracing::subscriber::DefaultGuard) {
+    pub(crate) fn logs(level: tracing::Level) -> (Lines, Capture) {
+        let turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
         let lines = Lines::default();
         let subscriber = tracing_subscriber::fmt()
             .with_max_level(level)
             .with_writer(lines.clone())
             .without_time()
             .finish();
-        let guard = tracing::subscriber::set_default(subscriber);
-        // A callsite first hit on another test's thread, with no subscriber there, can keep
-        // an interest of "never"; recompute every callsite's with this one in place.
+        let default = tracing::subscriber::set_default(subscriber);
         tracing::callsite::rebuild_interest_cache();
-        (lines, guard)
+        (
+            lines,
+            Capture {
+                _default: default,
+                _turn: turn,
+            },
+        )
     }
 }
