@@ -455,6 +455,7 @@ pub fn hybrid_blend(
 mod tests {
     use super::*;
     use crate::multifocal::{MultifocalRetina, DEFAULT_PLANES};
+    use crate::spectral::tests::rgbd;
     use crate::spectral::{spectral_blend, SpectralTargets};
     use crate::DefocusMethod;
 
@@ -468,28 +469,6 @@ mod tests {
             fov_horizontal_deg: 3.0,
             ..EyeModel::default()
         }
-    }
-
-    fn texture(w: usize, h: usize, k: usize) -> Plane {
-        Plane::from_vec(
-            w,
-            h,
-            (0..w * h)
-                .map(|i| 0.2 + 0.6 * ((i * k) % 13) as f32 / 13.0)
-                .collect(),
-        )
-        .unwrap()
-    }
-
-    fn rgbd(w: usize, h: usize, depth: impl Fn(usize, usize) -> f32) -> Rgbd {
-        let c = RgbImage::from_planes(texture(w, h, 7919), texture(w, h, 31), texture(w, h, 5))
-            .unwrap();
-        let d: Vec<f32> = (0..w * h).map(|i| depth(i % w, i / w)).collect();
-        Rgbd::new(
-            c,
-            DepthMap::from_diopters(Plane::from_vec(w, h, d).unwrap()).unwrap(),
-        )
-        .unwrap()
     }
 
     /// Gather targets keep these tests quick; the window logic is the same for any.

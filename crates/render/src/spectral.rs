@@ -1143,7 +1143,7 @@ pub fn spectral_blend(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::multifocal::{MultifocalRetina, DEFAULT_PLANES};
     use dioptra_core::DepthMap;
@@ -1160,7 +1160,8 @@ mod tests {
         }
     }
 
-    fn texture(w: usize, h: usize, k: usize) -> Plane {
+    /// A textured plane: every pixel differs from its neighbours (also the hybrid's tests').
+    pub(crate) fn texture(w: usize, h: usize, k: usize) -> Plane {
         Plane::from_vec(
             w,
             h,
@@ -1171,7 +1172,8 @@ mod tests {
         .unwrap()
     }
 
-    fn rgbd(w: usize, h: usize, depth: impl Fn(usize, usize) -> f32) -> Rgbd {
+    /// A textured RGB-D of `depth(x, y)` diopters (also the hybrid's tests').
+    pub(crate) fn rgbd(w: usize, h: usize, depth: impl Fn(usize, usize) -> f32) -> Rgbd {
         let c = RgbImage::from_planes(texture(w, h, 7919), texture(w, h, 31), texture(w, h, 5))
             .unwrap();
         let d: Vec<f32> = (0..w * h).map(|i| depth(i % w, i / w)).collect();
