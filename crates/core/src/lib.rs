@@ -10,6 +10,7 @@ pub mod optics;
 pub mod optics_map;
 pub mod sampling;
 pub mod sync;
+mod table_csv;
 pub mod time;
 pub mod transfer;
 pub mod units;

@@ -18,6 +18,15 @@
 //!   calibrate` writes), read through a monotone cubic.
 
 use crate::optics_map::{least_squares, pchip_slopes, poly};
+use crate::table_csv::TableColumns;
+
+/// A table file's columns.
+const COLUMNS: TableColumns = TableColumns {
+    names: ["level", "luminance_cd_m2"],
+    row: "level",
+    meaning: "level (the code value, 0 to 1) and luminance_cd_m2",
+    number: "a number",
+};
 
 /// A transfer function or table the rig cannot use, naming the key or the file.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -211,43 +220,11 @@ impl TransferTable {
 
     /// Parses a table's CSV text; `name` (the file) is for messages.
     pub fn parse_csv(name: &str, text: &str) -> Result<Self, TransferError> {
-        let err = |message: String| TransferError::Table {
+        let rows = COLUMNS.read(text).map_err(|message| TransferError::Table {
             file: name.to_string(),
             message,
-        };
-        let mut rows = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| (i + 1, l.trim()))
-            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-        let Some((_, header)) = rows.next() else {
-            return Err(err(
-                "no header line: expected columns level,luminance_cd_m2 (then one row per level)"
-                    .into(),
-            ));
-        };
-        let names: Vec<&str> = header.split(',').map(str::trim).collect();
-        let column = |want: &str| {
-            names.iter().position(|n| *n == want).ok_or_else(|| {
-                err(format!(
-                    "no {want} column in the header {header:?}: expected level (the code value, \
-                     0 to 1) and luminance_cd_m2"
-                ))
-            })
-        };
-        let (li, yi) = (column("level")?, column("luminance_cd_m2")?);
-        let mut points = Vec::new();
-        for (line, row) in rows {
-            let cells: Vec<&str> = row.split(',').map(str::trim).collect();
-            let num = |i: usize, what: &str| -> Result<f64, TransferError> {
-                let cell = cells.get(i).copied().unwrap_or("");
-                cell.parse::<f64>()
-                    .ok()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| err(format!("line {line}: {what} {cell:?} is not a number")))
-            };
-            points.push((num(li, "level")?, num(yi, "luminance_cd_m2")?));
-        }
+        })?;
+        let points: Vec<(f64, f64)> = rows.iter().map(|(_, [l, y])| (*l, *y)).collect();
         Self::new(name, &points)
     }
 
@@ -259,27 +236,12 @@ impl TransferTable {
         extra_names: &[&str],
         extra: &[Vec<String>],
     ) -> String {
-        let mut out = String::new();
-        for c in comments {
-            for l in c.lines() {
-                out += &format!("# {l}\n");
-            }
-        }
-        out += "level,luminance_cd_m2";
-        for n in extra_names {
-            out += &format!(",{n}");
-        }
-        out.push('\n');
-        for (k, (l, y)) in self.levels.iter().zip(&self.luminance).enumerate() {
-            out += &format!("{l:.6},{y:.6}");
-            if let Some(row) = extra.get(k) {
-                for v in row {
-                    out += &format!(",{v}");
-                }
-            }
-            out.push('\n');
-        }
-        out
+        let points = self
+            .levels
+            .iter()
+            .zip(&self.luminance)
+            .map(|(l, y)| format!("{l:.6},{y:.6}"));
+        COLUMNS.write(comments, points, extra_names, extra)
     }
 
     pub fn name(&self) -> &str {

@@ -9,6 +9,16 @@
 //! read; any others (readback, temperature, the raw measurement) are kept for people.
 
 use super::OpticsError;
+use crate::table_csv::TableColumns;
+
+/// The file's columns.
+const COLUMNS: TableColumns = TableColumns {
+    names: ["command_d", "demand_d"],
+    row: "point",
+    meaning: "command_d and demand_d (the lens command and the accommodation demand measured \
+              at the eye, diopters)",
+    number: "a number of diopters",
+};
 
 /// Fewest points a table may have.
 pub const MIN_POINTS: usize = 4;
@@ -125,49 +135,12 @@ impl CalibrationTable {
 
     /// Parses the CSV text of a table (see the module's notes); `name` is the file, for messages.
     pub fn parse_csv(name: &str, text: &str) -> Result<Self, OpticsError> {
-        let err = |message: String| OpticsError::Table {
+        let rows = COLUMNS.read(text).map_err(|message| OpticsError::Table {
             file: name.to_string(),
             message,
-        };
-        let mut rows = text
-            .lines()
-            .enumerate()
-            .map(|(i, l)| (i + 1, l.trim()))
-            .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-        let Some((_, header)) = rows.next() else {
-            return Err(err(
-                "no header line: expected columns command_d,demand_d (then one row per point)"
-                    .into(),
-            ));
-        };
-        let names: Vec<&str> = header.split(',').map(str::trim).collect();
-        let column = |want: &str| {
-            names.iter().position(|n| *n == want).ok_or_else(|| {
-                err(format!(
-                    "no {want} column in the header {header:?}: expected command_d and demand_d \
-                     (the lens command and the accommodation demand measured at the eye, diopters)"
-                ))
-            })
-        };
-        let (ci, ai) = (column("command_d")?, column("demand_d")?);
-        let mut points = Vec::new();
-        let mut lines = Vec::new();
-        for (line, row) in rows {
-            let cells: Vec<&str> = row.split(',').map(str::trim).collect();
-            let num = |i: usize, what: &str| -> Result<f64, OpticsError> {
-                let cell = cells.get(i).copied().unwrap_or("");
-                cell.parse::<f64>()
-                    .ok()
-                    .filter(|v| v.is_finite())
-                    .ok_or_else(|| {
-                        err(format!(
-                            "line {line}: {what} {cell:?} is not a number of diopters"
-                        ))
-                    })
-            };
-            points.push((num(ci, "command_d")?, num(ai, "demand_d")?));
-            lines.push(line);
-        }
+        })?;
+        let points: Vec<(f64, f64)> = rows.iter().map(|(_, [c, a])| (*c, *a)).collect();
+        let lines: Vec<usize> = rows.iter().map(|(line, _)| *line).collect();
         Self::with_lines(name, &points, &lines)
     }
 
@@ -179,27 +152,8 @@ impl CalibrationTable {
         extra_names: &[&str],
         extra: &[Vec<String>],
     ) -> String {
-        let mut out = String::new();
-        for c in comments {
-            for l in c.lines() {
-                out += &format!("# {l}\n");
-            }
-        }
-        out += "command_d,demand_d";
-        for n in extra_names {
-            out += &format!(",{n}");
-        }
-        out.push('\n');
-        for (k, (c, a)) in self.points().enumerate() {
-            out += &format!("{c:.4},{a:.4}");
-            if let Some(row) = extra.get(k) {
-                for v in row {
-                    out += &format!(",{v}");
-                }
-            }
-            out.push('\n');
-        }
-        out
+        let points = self.points().map(|(c, a)| format!("{c:.4},{a:.4}"));
+        COLUMNS.write(comments, points, extra_names, extra)
     }
 
     /// The file (or other name) the table came from.
