@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use crate::common;
+use crate::common::measure::run_measure_cmd;
 use anyhow::{bail, Context, Result};
 use dioptra_core::transfer::{TransferFit, TransferFitLimits, MIN_LEVELS};
 use dioptra_sim::eye_camera::{PanelResponse, Photometer};
@@ -232,15 +233,24 @@ async fn measure_levels(
         let mut readings = Vec::with_capacity(args.readings);
         for r in 0..args.readings {
             let env = [
-                ("DIOPTRA_DISPLAY_LEVEL", format!("{level:.6}")),
-                ("DIOPTRA_DISPLAY_CODE", code.to_string()),
-                ("DIOPTRA_DISPLAY_BITS", args.bits.to_string()),
-                ("DIOPTRA_DISPLAY_STEP", (k + 1).to_string()),
-                ("DIOPTRA_DISPLAY_READING", (r + 1).to_string()),
-                ("DIOPTRA_DISPLAY_FRAME", shown.display().to_string()),
+                ("DIOPTRA_DISPLAY_LEVEL", Some(format!("{level:.6}"))),
+                ("DIOPTRA_DISPLAY_CODE", Some(code.to_string())),
+                ("DIOPTRA_DISPLAY_BITS", Some(args.bits.to_string())),
+                ("DIOPTRA_DISPLAY_STEP", Some((k + 1).to_string())),
+                ("DIOPTRA_DISPLAY_READING", Some((r + 1).to_string())),
+                ("DIOPTRA_DISPLAY_FRAME", Some(shown.display().to_string())),
             ];
             let at = format!("at level {level:.4} (code {code})");
-            readings.push(run_measure_cmd(&args.measure_cmd, &env, timeout, &at).await?);
+            readings.push(
+                run_measure_cmd(
+                    &args.measure_cmd,
+                    &env,
+                    timeout,
+                    &at,
+                    "the luminance in cd/m²",
+                )
+                .await?,
+            );
         }
         let l = Level {
             level,
@@ -282,54 +292,6 @@ fn show_headless(path: &Path, frame: [usize; 2], code: u64, bits: u32) -> Result
         .with_context(|| format!("cannot write the frame {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
     Ok(())
-}
-
-/// Runs the measure command; its last non-empty line of stdout is the luminance.
-async fn run_measure_cmd(
-    cmd: &str,
-    env: &[(&str, String)],
-    timeout: Duration,
-    at: &str,
-) -> Result<f64> {
-    let mut c = tokio::process::Command::new("sh");
-    c.arg("-c")
-        .arg(cmd)
-        .stdin(std::process::Stdio::null())
-        .kill_on_drop(true);
-    for (k, v) in env {
-        c.env(k, v);
-    }
-    let out = tokio::time::timeout(timeout, c.output())
-        .await
-        .map_err(|_| {
-            anyhow::anyhow!(
-                "the measure command `{cmd}` took longer than {} s {at} (--measure-timeout-s); nothing written",
-                timeout.as_secs()
-            )
-        })?
-        .with_context(|| format!("cannot run the measure command `{cmd}` {at}"))?;
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    if !out.status.success() {
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        let tail: Vec<&str> = stderr.trim().lines().collect();
-        bail!(
-            "the measure command `{cmd}` failed {at} ({}){}; calibration stopped, nothing written",
-            out.status,
-            match tail.len() {
-                0 => String::new(),
-                n => format!(": {}", tail[n.saturating_sub(5)..].join(" | ")),
-            }
-        );
-    }
-    let last = stdout.lines().map(str::trim).rfind(|l| !l.is_empty());
-    last.and_then(|l| l.parse::<f64>().ok())
-        .filter(|v| v.is_finite())
-        .with_context(|| {
-            format!(
-                "the measure command `{cmd}` printed {:?} {at}: its last line must be the luminance in cd/m²; nothing written",
-                last.unwrap_or("")
-            )
-        })
 }
 
 /// Writes the fitted table (every 8-bit code's level) with the provenance and the readings

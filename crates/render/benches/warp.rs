@@ -4,48 +4,17 @@
 //! readback). Without a GPU adapter the GPU rows are skipped, said on stderr.
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use dioptra_core::distortion::{ChannelModel, Coefficients, EyepieceModel, Intrinsics};
 use dioptra_core::transfer::Transfer;
 use dioptra_core::RgbImage;
 use dioptra_render::transfer::gpu::{encode_on_gpu, upload_image, GpuEncodeLut};
 use dioptra_render::transfer::EncodeLut;
 use dioptra_render::warp::gpu::{warp_to_image, GpuWarpMesh, WarpPipeline};
-use dioptra_render::warp::{warp_cpu, WarpDraw, WarpMesh, DEFAULT_STEP_PX};
+use dioptra_render::warp::{example_eyepiece, warp_cpu, WarpDraw, WarpMesh, DEFAULT_STEP_PX};
 use dioptra_render::Gpu;
 use std::hint::black_box;
 use std::time::Duration;
 
 const PANEL: [usize; 2] = [1920, 1080];
-
-fn eyepiece() -> EyepieceModel {
-    let cam = Intrinsics {
-        fx: 900.0,
-        fy: 900.0,
-        cx: 959.5,
-        cy: 539.5,
-    };
-    let k = Coefficients {
-        k1: -0.18,
-        k2: 0.03,
-        p1: 0.0005,
-        p2: -0.0004,
-        ..Default::default()
-    };
-    let ch = |s: f64| ChannelModel {
-        camera: Intrinsics {
-            fx: cam.fx * s,
-            fy: cam.fy * s,
-            ..cam
-        },
-        coefficients: k,
-    };
-    EyepieceModel {
-        render: cam,
-        channels: [ch(1.01), ch(1.0), ch(0.99)],
-    }
-    .checked("optics.distortion")
-    .expect("a valid model")
-}
 
 fn frame() -> RgbImage {
     let [w, h] = PANEL;
@@ -56,7 +25,7 @@ fn frame() -> RgbImage {
 }
 
 fn benches(c: &mut Criterion) {
-    let model = eyepiece();
+    let model = example_eyepiece();
     let source = frame();
     let lut = EncodeLut::new(&Transfer::gamma(2.4, 0.001).expect("valid"));
     let mut g = c.benchmark_group("warp_1080p");

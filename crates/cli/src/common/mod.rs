@@ -5,6 +5,7 @@
 
 pub mod charts;
 pub mod device_spec;
+pub mod measure;
 pub mod progress;
 
 use dioptra_core::Diopters;

@@ -14,6 +14,8 @@ use anyhow::{bail, Context, Result};
 use dioptra_core::optics_map::{CalibrationFit, FitLimits, MAX_GAP_D, MIN_FIT_POINTS};
 use dioptra_core::{Diopters, VarifocalLens};
 
+use crate::common::measure::run_measure_cmd;
+
 #[derive(clap::Args, Debug)]
 #[command(group(clap::ArgGroup::new("measure").required(true).args(["measure_cmd", "prompt", "from_csv"])))]
 pub struct CalibrateArgs {
@@ -89,7 +91,7 @@ impl Source {
     /// The measured demand at a step; `None`: skipped (prompt only).
     async fn measure(&self, step: &Step, k: usize, n: usize) -> Result<Option<f64>> {
         match self {
-            Source::Command(cmd, timeout) => run_measure_cmd(cmd, step, *timeout).await.map(Some),
+            Source::Command(cmd, timeout) => measure_step(cmd, step, *timeout).await.map(Some),
             Source::Prompt => prompt(step, k, n),
             Source::Table(rows, path) => rows
                 .iter()
@@ -252,54 +254,21 @@ fn parse_powers(s: &str) -> Result<Vec<f64>> {
 }
 
 /// Runs the measure command for one step; its last non-empty line of stdout is the demand.
-async fn run_measure_cmd(cmd: &str, step: &Step, timeout: Duration) -> Result<f64> {
-    let mut c = tokio::process::Command::new("sh");
-    c.arg("-c")
-        .arg(cmd)
-        .env("DIOPTRA_LENS_POWER_D", format!("{}", step.command))
-        .env("DIOPTRA_LENS_READBACK_D", format!("{:.4}", step.readback))
-        .stdin(std::process::Stdio::null())
-        .kill_on_drop(true);
-    match step.temperature {
-        Some(t) => c.env("DIOPTRA_LENS_TEMPERATURE_C", format!("{t:.2}")),
-        None => c.env_remove("DIOPTRA_LENS_TEMPERATURE_C"),
-    };
+async fn measure_step(cmd: &str, step: &Step, timeout: Duration) -> Result<f64> {
+    let env = [
+        ("DIOPTRA_LENS_POWER_D", Some(format!("{}", step.command))),
+        (
+            "DIOPTRA_LENS_READBACK_D",
+            Some(format!("{:.4}", step.readback)),
+        ),
+        (
+            "DIOPTRA_LENS_TEMPERATURE_C",
+            step.temperature.map(|t| format!("{t:.2}")),
+        ),
+    ];
     let at = format!("at command {} D", step.command);
-    let out = tokio::time::timeout(timeout, c.output())
-        .await
-        .map_err(|_| {
-            anyhow::anyhow!(
-                "the measure command `{cmd}` took longer than {} s {at} (--measure-timeout-s); nothing written",
-                timeout.as_secs()
-            )
-        })?
-        .with_context(|| format!("cannot run the measure command `{cmd}` {at}"))?;
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    if !out.status.success() {
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        bail!(
-            "the measure command `{cmd}` failed {at} ({}){}; calibration stopped, nothing written",
-            out.status,
-            match stderr.trim() {
-                "" => String::new(),
-                e => format!(": {}", last_lines(e, 5)),
-            }
-        );
-    }
-    let last = stdout.lines().map(str::trim).rfind(|l| !l.is_empty());
-    last.and_then(|l| l.parse::<f64>().ok())
-        .filter(|v| v.is_finite())
-        .with_context(|| {
-            format!(
-                "the measure command `{cmd}` printed {:?} {at}: its last line must be the measured demand in diopters; nothing written",
-                last.unwrap_or("")
-            )
-        })
-}
-
-fn last_lines(s: &str, n: usize) -> String {
-    let lines: Vec<&str> = s.lines().collect();
-    lines[lines.len().saturating_sub(n)..].join(" | ")
+    let measured = "the measured demand in diopters";
+    run_measure_cmd(cmd, &env, timeout, &at, measured).await
 }
 
 /// Asks the operator; `None` for `skip`.

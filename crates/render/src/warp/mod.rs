@@ -21,7 +21,7 @@ pub mod gpu;
 
 use crate::error::{invalid, RenderError};
 use crate::transfer::EncodeLut;
-use dioptra_core::distortion::EyepieceModel;
+use dioptra_core::distortion::{ChannelModel, Coefficients, EyepieceModel, Intrinsics};
 use dioptra_core::{Plane, RgbImage};
 use rayon::prelude::*;
 
@@ -444,47 +444,46 @@ pub fn warp_cpu(
     Ok(RgbImage::from_planes(plane(r), plane(g), plane(b))?)
 }
 
+/// A strong eyepiece on a 1920 x 1080 panel, 93 degrees across, for tests, benches and
+/// examples: a magnifier's pincushion (eye direction to panel pixel: k1 < 0, so the pre-warp
+/// is barrel), the red channel 1 % larger and blue 1 % smaller (lateral colour).
+pub fn example_eyepiece() -> EyepieceModel {
+    let cam = Intrinsics {
+        fx: 900.0,
+        fy: 900.0,
+        cx: 959.5,
+        cy: 539.5,
+    };
+    let k = Coefficients {
+        k1: -0.18,
+        k2: 0.03,
+        p1: 0.0005,
+        p2: -0.0004,
+        ..Default::default()
+    };
+    let ch = |s: f64| ChannelModel {
+        camera: Intrinsics {
+            fx: cam.fx * s,
+            fy: cam.fy * s,
+            ..cam
+        },
+        coefficients: k,
+    };
+    EyepieceModel {
+        render: cam,
+        channels: [ch(1.01), ch(1.0), ch(0.99)],
+    }
+    .checked("optics.distortion")
+    .expect("the example eyepiece is valid")
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dioptra_core::distortion::{ChannelModel, Coefficients, Intrinsics};
-
-    /// A strong eyepiece on a 1080p panel, 93 degrees across: a magnifier's pincushion (eye
-    /// direction to panel pixel: k1 < 0, so the pre-warp is barrel), the red channel 1 %
-    /// larger and blue 1 % smaller (lateral colour).
-    pub(crate) fn hmd_eyepiece() -> EyepieceModel {
-        let cam = Intrinsics {
-            fx: 900.0,
-            fy: 900.0,
-            cx: 959.5,
-            cy: 539.5,
-        };
-        let k = Coefficients {
-            k1: -0.18,
-            k2: 0.03,
-            p1: 0.0005,
-            p2: -0.0004,
-            ..Default::default()
-        };
-        let ch = |s: f64| ChannelModel {
-            camera: Intrinsics {
-                fx: cam.fx * s,
-                fy: cam.fy * s,
-                ..cam
-            },
-            coefficients: k,
-        };
-        EyepieceModel {
-            render: cam,
-            channels: [ch(1.01), ch(1.0), ch(0.99)],
-        }
-        .checked("optics.distortion")
-        .unwrap()
-    }
 
     #[test]
     fn the_default_step_follows_the_model_within_a_fiftieth_of_a_pixel_at_1080p() {
-        let m = hmd_eyepiece();
+        let m = example_eyepiece();
         let mesh = WarpMesh::new(&m, [1920, 1080], [1920, 1080], DEFAULT_STEP_PX).unwrap();
         assert_eq!(mesh.unreachable(), 0);
         let e = mesh.interpolation_error(&m);
@@ -496,7 +495,7 @@ mod tests {
 
     #[test]
     fn a_vertex_lands_where_the_model_says() {
-        let m = hmd_eyepiece();
+        let m = example_eyepiece();
         // A source rendered at half the panel's size.
         let mesh = WarpMesh::new(&m, [1920, 1080], [960, 540], 16).unwrap();
         let v = mesh.vertices()[3 * 121 + 5];
@@ -560,7 +559,7 @@ mod tests {
 
     #[test]
     fn bad_sizes_and_scales_are_refused() {
-        let m = hmd_eyepiece();
+        let m = example_eyepiece();
         assert!(WarpMesh::new(&m, [0, 10], [10, 10], 8).is_err());
         assert!(WarpMesh::new(&m, [10, 10], [10, 10], 0).is_err());
         let e = WarpMesh::new(&m, [16384, 16384], [10, 10], 1).unwrap_err();
