@@ -172,6 +172,60 @@ impl Region {
         d2 >= self.inner * self.inner.abs() && d2 < self.outer * self.outer
     }
 
+    /// The pixels of row `y` that [`Region::contains`]: at most two runs of columns
+    /// `[a, b)` (the annulus's hole splits the row), either possibly empty. The same test
+    /// decides each run's ends, so the runs hold exactly the pixels it accepts.
+    pub fn row_runs(&self, y: usize) -> [(usize, usize); 2] {
+        const NONE: [(usize, usize); 2] = [(0, 0), (0, 0)];
+        if y < self.y0 || y >= self.y1 || self.x0 >= self.x1 {
+            return NONE;
+        }
+        let dy = y as f32 + 0.5 - self.centre[1];
+        let d2 = |x: usize| {
+            let dx = x as f32 + 0.5 - self.centre[0];
+            dx * dx + dy * dy
+        };
+        let (outer2, inner2) = (self.outer * self.outer, self.inner * self.inner.abs());
+        // The columns within [x0, x1) where `d2 < bound` (an interval: d2 falls, then rises).
+        let below = |bound: f32| -> (usize, usize) {
+            if bound == f32::INFINITY {
+                return (self.x0, self.x1);
+            }
+            let half = (bound - dy * dy).max(0.0).sqrt();
+            let at = |v: f32| (v.max(self.x0 as f32).min(self.x1 as f32)) as usize;
+            let (mut a, mut b) = (
+                at((self.centre[0] - half - 0.5).ceil()),
+                at((self.centre[0] + half - 0.5).floor() + 1.0),
+            );
+            // The estimate is off by rounding at most: settle each end on the test itself.
+            while a > self.x0 && d2(a - 1) < bound {
+                a -= 1;
+            }
+            while a < b && d2(a) >= bound {
+                a += 1;
+            }
+            while b < self.x1 && d2(b) < bound {
+                b += 1;
+            }
+            while b > a && d2(b - 1) >= bound {
+                b -= 1;
+            }
+            (a, b)
+        };
+        let (a, b) = below(outer2);
+        if a >= b {
+            return NONE;
+        }
+        if inner2 <= 0.0 {
+            return [(a, b), (b, b)];
+        }
+        let (ha, hb) = below(inner2);
+        if ha >= hb {
+            return [(a, b), (b, b)];
+        }
+        [(a, ha.clamp(a, b)), (hb.clamp(a, b), b)]
+    }
+
     /// The rectangle clipped to a `w` x `h` image; `None` when empty.
     fn clipped(&self, w: usize, h: usize) -> Option<Region> {
         let r = Region {
@@ -512,16 +566,14 @@ fn receiver_blocks(px: &Pixels, w: usize, h: usize, region: &Region) -> (Vec<u32
     let mut blocks = vec![0u32; bw * bh];
     blocks.par_chunks_mut(bw).enumerate().for_each(|(by, row)| {
         for y in by * TILE..((by + 1) * TILE).min(h) {
-            for x in region.x0..region.x1 {
-                if !region.contains(x, y) {
-                    continue;
+            for (a, b) in region.row_runs(y) {
+                for (x, &c) in (a..b).zip(&px.class[y * w + a..y * w + b]) {
+                    row[x / TILE] |= if c == SMALL {
+                        SMALL_BIT
+                    } else {
+                        1 << (c & !BACK)
+                    };
                 }
-                let c = px.class[y * w + x];
-                row[x / TILE] |= if c == SMALL {
-                    SMALL_BIT
-                } else {
-                    1 << (c & !BACK)
-                };
             }
         }
     });
@@ -846,10 +898,12 @@ fn compose(
         .skip(region.y0)
         .take(region.y1 - region.y0)
         .for_each_init(FlatDisks::default, |disks, (y, row)| {
+            let runs = region.row_runs(y);
+            let inside = |x: usize| runs.iter().any(|&(a, b)| a <= x && x < b);
             let mut x0 = region.x0;
             while x0 < region.x1 {
                 let x1 = (x0 + GROUP).min(region.x1);
-                if !(x0..x1).any(|x| region.contains(x, y)) {
+                if !runs.iter().any(|&(a, b)| a < b && a < x1 && x0 < b) {
                     // A group in the annulus's hole or the rectangle's corners.
                     x0 = x1;
                     continue;
@@ -925,7 +979,7 @@ fn compose(
                     }
                 }
                 for (i, x) in (x0..x1).enumerate() {
-                    if !region.contains(x, y) {
+                    if !inside(x) {
                         continue;
                     }
                     let j = y * w + x;
@@ -1532,6 +1586,41 @@ mod tests {
             }
         }
     }
+    /// A row's runs hold exactly the pixels `contains` accepts, for annuli, disks, rectangles
+    /// and centres on pixel edges.
+    #[test]
+    fn row_runs_are_the_contained_pixels() {
+        let rects = [(0, 0, 64, 48), (5, 3, 40, 30), (20, 20, 21, 21)];
+        let annuli = [
+            ([30.0f32, 22.0f32], 6.0f32, 18.0f32),
+            ([30.5, 22.5], -1.0, f32::INFINITY),
+            ([0.0, 0.0], 10.0, 10.5),
+            ([64.0, 48.0], 0.0, 30.0),
+            ([17.0, 9.0], 3.0, 4.0),
+            ([-20.0, 60.0], 5.0, 1e9),
+        ];
+        for (x0, y0, x1, y1) in rects {
+            for (centre, inner, outer) in annuli {
+                let r = Region {
+                    x0,
+                    y0,
+                    x1,
+                    y1,
+                    centre,
+                    inner,
+                    outer,
+                };
+                for y in 0..50 {
+                    let runs = r.row_runs(y);
+                    for x in 0..66 {
+                        let inside = runs.iter().any(|&(a, b)| (a..b).contains(&x));
+                        assert_eq!(inside, r.contains(x, y), "{r:?} ({x},{y}) {runs:?}");
+                    }
+                }
+            }
+        }
+    }
+
     /// The run-length flatness test equals the brute-force one: every depth within the window
     /// (clipped to the image) equal to the pixel's.
     #[test]
