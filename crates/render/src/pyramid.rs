@@ -49,7 +49,7 @@
 
 use crate::common::{check_focus, check_rgbd, eye_for};
 use crate::error::{invalid, RenderError};
-use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
 /// Radius (px) below which sources are gathered exactly at full resolution. Level `m` takes
@@ -803,9 +803,21 @@ pub(crate) fn render_with(
     region: &Region,
 ) -> Result<RgbImage, RenderError> {
     let (w, h) = (setup.w, setup.h);
-    let mut out = vec![[0.0f32; 3]; w * h];
+    // Planar, as the image is kept: no interleaved copy to convert.
+    let mut out = [
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+    ];
+    let planar = |[r, g, b]: [Vec<f32>; 3]| -> Result<RgbImage, RenderError> {
+        Ok(RgbImage::from_planes(
+            Plane::from_vec(w, h, r)?,
+            Plane::from_vec(w, h, g)?,
+            Plane::from_vec(w, h, b)?,
+        )?)
+    };
     let Some(region) = region.clipped(w, h) else {
-        return Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?);
+        return planar(out);
     };
     let px = Pixels::new(setup, input);
     let (blocks, bw) = receiver_blocks(&px, w, h, &region);
@@ -850,7 +862,7 @@ pub(crate) fn render_with(
         levels.push(imgs);
     }
     compose(setup, input, &px, &region, &levels, &mut out);
-    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
+    planar(out)
 }
 
 /// Receivers processed together by the exact pass (one row, consecutive pixels).
@@ -863,7 +875,7 @@ fn compose(
     px: &Pixels,
     region: &Region,
     levels: &[[Option<LevelImage>; KINDS]],
-    out: &mut [[f32; 3]],
+    out: &mut [Vec<f32>; 3],
 ) {
     let (w, h) = (setup.w, setup.h);
     let depth = input.depth.data();
@@ -893,11 +905,16 @@ fn compose(
     };
     // The exact pass's taps as index offsets (interior groups).
     let taps = ExactTaps::new(&offsets, w);
-    out.par_chunks_mut(w)
+    let [r_out, g_out, b_out] = out;
+    r_out
+        .par_chunks_mut(w)
+        .zip(g_out.par_chunks_mut(w))
+        .zip(b_out.par_chunks_mut(w))
+        .map(|((r, g), b)| [r, g, b])
         .enumerate()
         .skip(region.y0)
         .take(region.y1 - region.y0)
-        .for_each_init(FlatDisks::default, |disks, (y, row)| {
+        .for_each_init(FlatDisks::default, |disks, (y, mut row)| {
             let runs = region.row_runs(y);
             let inside = |x: usize| runs.iter().any(|&(a, b)| a <= x && x < b);
             let mut x0 = region.x0;
@@ -985,7 +1002,7 @@ fn compose(
                     let j = y * w + x;
                     let own = [ch[0][j], ch[1][j], ch[2][j]];
                     let l = lacc[i];
-                    row[x] = if l[3] <= 0.0 && !reached[i] {
+                    let v = if l[3] <= 0.0 && !reached[i] {
                         // Only the pixel itself reached it: unchanged, as gather leaves it.
                         own
                     } else {
@@ -996,6 +1013,9 @@ fn compose(
                             own
                         }
                     };
+                    for (o, v) in row.iter_mut().zip(v) {
+                        o[x] = v;
+                    }
                 }
                 x0 = x1;
             }
