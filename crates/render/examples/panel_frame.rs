@@ -3,15 +3,23 @@
 //! bench (`benches/panel.rs`).
 //!
 //!   cargo run --release -p dioptra-render --example panel_frame -- \
-//!       [pyramid|foveated|gather[,...]] [width] [height] [fov_deg] [focus_D] [frames]
+//!       [pyramid|foveated|gather|hybrid[,...]] [width] [height] [fov_deg] [focus_D] [frames]
 //!
-//! Prints per method the median wall time and the median CPU time (all threads) per frame.
+//! Prints per method the median wall time and the median CPU time (all threads) per frame;
+//! `hybrid` is the gaze-contingent multifocal decomposition onto the default planes (its
+//! defaults, gaze at the centre), with its stages' wall times from the last frame. With
+//! `PANEL_TRUTH_SPP=N` the thin-lens truth is ray traced at N samples per pixel and each
+//! defocus method's PSNR against it is printed in the fovea (a disk of 5 degrees radius
+//! around the gaze, as `foveated`'s default full-resolution radius) and over the whole image.
 
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use dioptra_render::foveated::{foveated, Foveation};
 use dioptra_render::gather::gather;
+use dioptra_render::hybrid::{hybrid_blend, HybridParams};
+use dioptra_render::metrics::{disk_mask, psnr};
+use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::pyramid::pyramid;
-use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
+use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
 use std::time::Instant;
 
 fn main() {
@@ -31,11 +39,27 @@ fn main() {
     let (c, d) = render_pinhole(&scene, &cam, [0.0, 0.0], 1).expect("scene");
     let input = Rgbd::new(c, d).expect("rgbd");
     let gaze = [0.5 * w as f32, 0.5 * h as f32];
+    let planes: Vec<Diopters> = DEFAULT_PLANES.iter().map(|&p| Diopters(p)).collect();
+    let truth = std::env::var("PANEL_TRUTH_SPP").ok().map(|spp| {
+        let spp = spp.parse().expect("PANEL_TRUTH_SPP: a number");
+        render_thin_lens(&scene, &cam, q, spp).expect("truth")
+    });
+    let px_per_deg = 1.0f32.to_radians().tan() / eye.with_width(w as u32).pixel_pitch_tan();
+    let fovea = disk_mask(w, h, gaze, 5.0 * px_per_deg);
     for method in method.split(',') {
         let (mut wall, mut cpu) = (Vec::new(), Vec::new());
+        let mut stages = None;
+        let mut last = None;
         for _ in 0..frames {
             let (t, c) = (Instant::now(), cpu_ms());
             let img = match method {
+                "hybrid" => {
+                    let (layers, report) =
+                        hybrid_blend(&input, &planes, &eye, Some(gaze), &HybridParams::default())
+                            .expect("hybrid");
+                    stages = Some(report.stages_ms);
+                    layers.images.into_iter().next().expect("a layer")
+                }
                 "gather" => gather(&input, q, &eye).expect("gather"),
                 "foveated" => {
                     foveated(&input, q, &eye, &Foveation::at(gaze))
@@ -44,6 +68,12 @@ fn main() {
                 }
                 _ => pyramid(&input, q, &eye).expect("pyramid"),
             };
+            if let (Some(t), true) = (&truth, method != "hybrid") {
+                last = Some((
+                    psnr(&img, t, Some(&fovea)).expect("psnr"),
+                    psnr(&img, t, None).expect("psnr"),
+                ));
+            }
             std::hint::black_box(img);
             wall.push(t.elapsed().as_secs_f64() * 1e3);
             cpu.push(cpu_ms() - c);
@@ -59,6 +89,12 @@ fn main() {
             median(&mut wall),
             median(&mut cpu)
         );
+        if let Some((fov, all)) = last {
+            println!("  against the thin-lens truth: fovea {fov:.2} dB, whole image {all:.2} dB");
+        }
+        if let Some(s) = stages {
+            println!("  hybrid stages (last frame, wall ms): {s:?}");
+        }
     }
 }
 

@@ -223,12 +223,10 @@ impl FoveationPlan {
                     outer / s + margin
                 },
             };
-            let mut pixels = 0;
-            for y in region.y0..region.y1 {
-                for x in region.x0..region.x1 {
-                    pixels += region.contains(x, y) as usize;
-                }
-            }
+            let pixels = (region.y0..region.y1)
+                .flat_map(|y| region.row_runs(y))
+                .map(|(a, b)| b - a)
+                .sum();
             layers.push(Layer {
                 level: k,
                 width: lw,
@@ -306,33 +304,39 @@ pub(crate) fn layer_weight(l: f32, k: usize, top: usize) -> f32 {
 pub fn downsample(input: &Rgbd) -> Result<Rgbd, RenderError> {
     let (w, h) = (input.width(), input.height());
     let (lw, lh) = (w.div_ceil(2), h.div_ceil(2));
-    let planes: Vec<&[f32]> = input
-        .color
-        .channels
-        .iter()
-        .map(|p| p.data())
-        .chain(std::iter::once(input.depth.data()))
-        .collect();
-    let mut out = vec![[0.0f32; 4]; lw * lh];
-    out.par_chunks_mut(lw).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let mut acc = [0.0f32; 4];
-            let mut n = 0.0f32;
-            for sy in 2 * y..(2 * y + 2).min(h) {
-                for sx in 2 * x..(2 * x + 2).min(w) {
-                    for (a, p) in acc.iter_mut().zip(&planes) {
-                        *a += p[sy * w + sx];
-                    }
-                    n += 1.0;
+    let half = |p: &[f32]| -> Result<Plane, RenderError> {
+        let mut out = vec![0.0f32; lw * lh];
+        out.par_chunks_mut(lw).enumerate().for_each(|(y, row)| {
+            let top = &p[2 * y * w..(2 * y + 1) * w];
+            if 2 * y + 1 < h {
+                let bot = &p[(2 * y + 1) * w..(2 * y + 2) * w];
+                // Whole blocks, summed in the order (top left, top right, bottom left, bottom
+                // right) as the odd edge's are.
+                for ((o, t), b) in row
+                    .iter_mut()
+                    .zip(top.chunks_exact(2))
+                    .zip(bot.chunks_exact(2))
+                {
+                    *o = (t[0] + t[1] + b[0] + b[1]) / 4.0;
+                }
+                if w % 2 == 1 {
+                    row[lw - 1] = (top[w - 1] + bot[w - 1]) / 2.0;
+                }
+            } else {
+                for (o, t) in row.iter_mut().zip(top.chunks_exact(2)) {
+                    *o = (t[0] + t[1]) / 2.0;
+                }
+                if w % 2 == 1 {
+                    row[lw - 1] = top[w - 1];
                 }
             }
-            *o = acc.map(|v| v / n);
-        }
-    });
-    let plane = |c: usize| Plane::from_vec(lw, lh, out.iter().map(|v| v[c]).collect());
+        });
+        Ok(Plane::from_vec(lw, lh, out)?)
+    };
+    let [r, g, b] = input.color.channels.each_ref().map(|c| half(c.data()));
     Ok(Rgbd::new(
-        RgbImage::from_planes(plane(0)?, plane(1)?, plane(2)?)?,
-        DepthMap::from_diopters(plane(3)?)?,
+        RgbImage::from_planes(r?, g?, b?)?,
+        DepthMap::from_diopters(half(input.depth.data())?)?,
     )?)
 }
 
@@ -357,6 +361,7 @@ pub fn foveated(
     // Each layer's input (downsampled from the one before) and its render.
     let mut inputs: Vec<Rgbd> = Vec::with_capacity(plan.top);
     let mut renders: Vec<Option<RgbImage>> = vec![None; plan.top + 1];
+    let range = input.depth.range();
     for layer in &plan.layers {
         while inputs.len() < layer.level {
             let next = downsample(inputs.last().unwrap_or(input))?;
@@ -368,7 +373,7 @@ pub fn foveated(
             &inputs[layer.level - 1]
         };
         // Every layer's levels from the full image's depth range, as the GPU twin has them.
-        let setup = Setup::with_range(src, input.depth.range(), focus, eye)?;
+        let setup = Setup::with_range(src, range, focus, eye)?;
         renders[layer.level] = Some(render_with(&setup, src, &layer.region)?);
     }
     let image = blend(&plan, &renders)?;
@@ -376,8 +381,9 @@ pub fn foveated(
 }
 
 /// Every pixel: the layers with weight there, each read bilinearly, summed. Row by row: the
-/// acuity levels first, then each layer with weight somewhere on the row, its two texel rows
-/// interpolated once and read at each pixel through a per-column table.
+/// acuity levels first (the grid's bilinear interpolation through per-column and per-row
+/// tables), then each layer over the columns where it has weight, its two texel rows
+/// interpolated once there and read at each pixel through a per-column table.
 fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage, RenderError> {
     let (w, h) = (plan.width, plan.height);
     let top = plan.top;
@@ -393,49 +399,83 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
             (0..w).map(|x| axis(x, s, lw)).collect()
         })
         .collect();
-    let mut out = vec![[0.0f32; 3]; w * h];
-    out.par_chunks_mut(w).enumerate().for_each_init(
-        || (Vec::new(), Vec::new()),
-        |(lev, texels): &mut (Vec<f32>, Vec<[f32; 3]>), (y, row)| {
-            lev.clear();
-            lev.extend((0..w).map(|x| plan.level_at(x, y)));
-            let (lo, hi) = lev
-                .iter()
-                .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &l| {
-                    (a.min(l), b.max(l))
-                });
-            for (k, p) in planes.iter().enumerate() {
-                let Some(p) = p else { continue };
-                // Layer k has weight where k < l < k + 1 + BLEND (open at the ends).
-                let kf = k as f32;
-                if (k > 0 && hi <= kf) || (k < top && lo >= kf + 1.0 + BLEND) {
-                    continue;
-                }
-                let s = 1usize << k;
-                let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
-                // The layer's row at this pixel row, interpolated between its two texel rows.
-                let (y0, y1, fy) = axis(y, s, lh);
-                texels.clear();
-                texels.extend((0..lw).map(|i| {
-                    std::array::from_fn(|c| {
-                        let (a, b) = (p[c][y0 * lw + i], p[c][y1 * lw + i]);
-                        a + fy * (b - a)
-                    })
+    // The acuity grid's nodes and weight per column and per row, as `level_at` takes them.
+    let (gw, gh) = (plan.gw, plan.gh);
+    let node_axis = |x: usize, n: usize| {
+        let u = ((x as f32 + 0.5) * (1.0 / GRID as f32)).min((n - 1) as f32);
+        let i = u as usize;
+        (i, (i + 1).min(n - 1), u - i as f32)
+    };
+    let node_cols: Vec<(usize, usize, f32)> = (0..w).map(|x| node_axis(x, gw)).collect();
+    let mut out = [
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+    ];
+    let [r_out, g_out, b_out] = &mut out;
+    r_out
+        .par_chunks_mut(w)
+        .zip(g_out.par_chunks_mut(w))
+        .zip(b_out.par_chunks_mut(w))
+        .enumerate()
+        .for_each_init(
+            || (Vec::new(), Vec::new()),
+            |(lev, texels): &mut (Vec<f32>, Vec<[f32; 3]>), (y, ((ro, go), bo))| {
+                let (y0, y1, fy) = node_axis(y, gh);
+                let (top_row, bot_row) = (&plan.levels[y0 * gw..], &plan.levels[y1 * gw..]);
+                lev.clear();
+                lev.extend(node_cols.iter().map(|&(x0, x1, fx)| {
+                    let (a, b) = (top_row[x0], top_row[x1]);
+                    let (c, d) = (bot_row[x0], bot_row[x1]);
+                    let t = a + fx * (b - a);
+                    let u = c + fx * (d - c);
+                    t + fy * (u - t)
                 }));
-                for ((o, &l), &(x0, x1, fx)) in row.iter_mut().zip(lev.iter()).zip(&columns[k]) {
-                    let wt = layer_weight(l, k, top);
-                    if wt <= 0.0 {
+                let row = [ro, go, bo];
+                for (k, p) in planes.iter().enumerate() {
+                    let Some(p) = p else { continue };
+                    // Layer k has weight where k < l < k + 1 + BLEND (open at the ends).
+                    let kf = k as f32;
+                    let has = |l: f32| (k == 0 || l > kf) && (k == top || l < kf + 1.0 + BLEND);
+                    let Some(xa) = lev.iter().position(|&l| has(l)) else {
                         continue;
-                    }
-                    let (a, b) = (texels[x0], texels[x1]);
-                    for c in 0..3 {
-                        o[c] += wt * (a[c] + fx * (b[c] - a[c]));
+                    };
+                    let xb = w - lev.iter().rev().position(|&l| has(l)).unwrap_or(0);
+                    let s = 1usize << k;
+                    let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
+                    // The layer's row at this pixel row, interpolated between its two texel
+                    // rows, over the texels columns xa..xb read.
+                    let (ty0, ty1, fy) = axis(y, s, lh);
+                    let (ta, tb) = (columns[k][xa].0, columns[k][xb - 1].1 + 1);
+                    texels.clear();
+                    texels.extend((ta..tb).map(|i| {
+                        std::array::from_fn(|c| {
+                            let (a, b) = (p[c][ty0 * lw + i], p[c][ty1 * lw + i]);
+                            a + fy * (b - a)
+                        })
+                    }));
+                    for (x, (&l, &(x0, x1, fx))) in
+                        lev[xa..xb].iter().zip(&columns[k][xa..xb]).enumerate()
+                    {
+                        // Weight 1 where neither fade applies (most pixels), else the fades.
+                        let wt = if (k == 0 || l >= kf + BLEND) && (k == top || l <= kf + 1.0) {
+                            1.0
+                        } else {
+                            layer_weight(l, k, top)
+                        };
+                        if wt <= 0.0 {
+                            continue;
+                        }
+                        let (a, b) = (texels[x0 - ta], texels[x1 - ta]);
+                        for c in 0..3 {
+                            row[c][xa + x] += wt * (a[c] + fx * (b[c] - a[c]));
+                        }
                     }
                 }
-            }
-        },
-    );
-    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
+            },
+        );
+    let [r, g, b] = out.map(|v| Plane::from_vec(w, h, v));
+    Ok(RgbImage::from_planes(r?, g?, b?)?)
 }
 
 /// The two texels of a layer of scale `s` (`n` texels along the axis) that full-resolution

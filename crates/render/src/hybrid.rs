@@ -221,9 +221,8 @@ fn box_down(p: &Plane, s: usize) -> Result<Plane, RenderError> {
         .enumerate()
         .for_each(|(y, row)| {
             for sy in y * s..(y + 1) * s {
-                let src = p.row(sy);
-                for (x, o) in row.iter_mut().enumerate() {
-                    *o += src[x * s..(x + 1) * s].iter().sum::<f32>();
+                for (o, block) in row.iter_mut().zip(p.row(sy).chunks_exact(s)) {
+                    *o += block.iter().sum::<f32>();
                 }
             }
             row.iter_mut().for_each(|v| *v *= inv);
@@ -231,33 +230,16 @@ fn box_down(p: &Plane, s: usize) -> Result<Plane, RenderError> {
     Ok(Plane::from_vec(w, h, out)?)
 }
 
-/// Bilinear upsampling by s (pixel centres aligned: coarse pixel i covers fine pixels
-/// [i s, (i + 1) s)), edges clamped.
-fn up_bilinear(p: &Plane, s: usize) -> Result<Plane, RenderError> {
-    let (cw, ch) = (p.width(), p.height());
-    let (w, h) = (cw * s, ch * s);
-    // Per fine coordinate: the two coarse indices and the weight of the second.
-    let taps = |n: usize, cn: usize| -> Vec<(usize, usize, f32)> {
-        (0..n)
-            .map(|x| {
-                let u = ((x as f32 + 0.5) / s as f32 - 0.5).max(0.0);
-                let i = (u.floor() as usize).min(cn - 1);
-                (i, (i + 1).min(cn - 1), u - i as f32)
-            })
-            .collect()
-    };
-    let (tx, ty) = (taps(w, cw), taps(h, ch));
-    let mut out = vec![0.0f32; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let (i0, i1, t) = ty[y];
-        let (r0, r1) = (p.row(i0), p.row(i1));
-        for (o, &(a, b, u)) in row.iter_mut().zip(&tx) {
-            let top = r0[a] + (r0[b] - r0[a]) * u;
-            let bot = r1[a] + (r1[b] - r1[a]) * u;
-            *o = top + (bot - top) * t;
-        }
-    });
-    Ok(Plane::from_vec(w, h, out)?)
+/// Per fine coordinate of `n` upsampled by `s` from `cn` coarse ones: the two coarse indices
+/// and the weight of the second (pixel centres aligned, edges clamped).
+fn up_taps(n: usize, cn: usize, s: usize) -> Vec<(usize, usize, f32)> {
+    (0..n)
+        .map(|x| {
+            let u = ((x as f32 + 0.5) / s as f32 - 0.5).max(0.0);
+            let i = (u.floor() as usize).min(cn.max(1) - 1);
+            (i, (i + 1).min(cn.max(1) - 1), u - i as f32)
+        })
+        .collect()
 }
 
 /// The window of `input`, at 1/s resolution.
@@ -394,6 +376,24 @@ pub fn hybrid_blend_with(
         let t = ((outer - r) / (outer - inner)).clamp(0.0, 1.0);
         t * t * (3.0 - 2.0 * t)
     };
+    // The fade once for every plane and channel, with each row's columns of non-zero weight.
+    let fade: Vec<f32> = (0..win.width * win.height)
+        .into_par_iter()
+        .map(|i| weight(win.x0 + i % win.width, win.y0 + i / win.width))
+        .collect();
+    let spans: Vec<(usize, usize)> = fade
+        .chunks(win.width)
+        .map(|row| {
+            let a = row.iter().position(|&k| k > 0.0).unwrap_or(0);
+            let b = row.len() - row.iter().rev().position(|&k| k > 0.0).unwrap_or(row.len());
+            (a, b.max(a))
+        })
+        .collect();
+    // Bilinear upsampling's taps per window column and row.
+    let (tx, ty) = (
+        up_taps(win.width, win.width / s, s),
+        up_taps(win.height, win.height / s, s),
+    );
     let jobs: Vec<(&mut Plane, &Plane)> = layers
         .images
         .iter_mut()
@@ -402,31 +402,47 @@ pub fn hybrid_blend_with(
         .collect();
     jobs.into_par_iter()
         .try_for_each(|(lin, sol)| -> Result<(), RenderError> {
-            let crop = crop_plane(lin, win.x0, win.y0, win.width, win.height)?;
-            let win_layer = if s == 1 {
-                sol.clone()
+            // With s > 1: up(sol) + (lin - up(down(lin))) as one upsampling (bilinear is
+            // linear): the solve's change to the coarse linear layer, upsampled, added to the
+            // fine one.
+            let change = if s == 1 {
+                None
             } else {
-                // up(sol) + (crop - up(down(crop))) as one upsampling (bilinear is linear):
-                // the solve's change to the coarse linear layer, upsampled, added to the fine.
-                let mut change = box_down(&crop, s)?;
+                let mut change =
+                    box_down(&crop_plane(lin, win.x0, win.y0, win.width, win.height)?, s)?;
                 for (c, &y) in change.data_mut().iter_mut().zip(sol.data()) {
                     *c = y - *c;
                 }
-                let mut v = up_bilinear(&change, s)?.into_vec();
-                for (v, &l) in v.iter_mut().zip(crop.data()) {
-                    *v = (*v + l).clamp(0.0, 1.0);
-                }
-                Plane::from_vec(win.width, win.height, v)?
+                Some(change)
             };
             let lw = lin.width();
             let data = lin.data_mut();
-            for y in 0..win.height {
+            for (y, &(xa, xb)) in spans.iter().enumerate() {
                 let row = &mut data[(win.y0 + y) * lw + win.x0..][..win.width];
-                let src = win_layer.row(y);
-                for (x, (o, &v)) in row.iter_mut().zip(src).enumerate() {
-                    let k = weight(win.x0 + x, win.y0 + y);
-                    if k > 0.0 {
-                        *o += k * (v - *o);
+                let k_row = &fade[y * win.width..(y + 1) * win.width];
+                match &change {
+                    None => {
+                        let src = sol.row(y);
+                        for x in xa..xb {
+                            let k = k_row[x];
+                            if k > 0.0 {
+                                row[x] += k * (src[x] - row[x]);
+                            }
+                        }
+                    }
+                    Some(change) => {
+                        let (i0, i1, t) = ty[y];
+                        let (r0, r1) = (change.row(i0), change.row(i1));
+                        for x in xa..xb {
+                            let k = k_row[x];
+                            if k > 0.0 {
+                                let (a, b, u) = tx[x];
+                                let top = r0[a] + (r0[b] - r0[a]) * u;
+                                let bot = r1[a] + (r1[b] - r1[a]) * u;
+                                let v = (top + (bot - top) * t + row[x]).clamp(0.0, 1.0);
+                                row[x] += k * (v - row[x]);
+                            }
+                        }
                     }
                 }
             }

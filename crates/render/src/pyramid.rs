@@ -49,7 +49,7 @@
 
 use crate::common::{check_focus, check_rgbd, eye_for};
 use crate::error::{invalid, RenderError};
-use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
 /// Radius (px) below which sources are gathered exactly at full resolution. Level `m` takes
@@ -170,6 +170,60 @@ impl Region {
         let dy = y as f32 + 0.5 - self.centre[1];
         let d2 = dx * dx + dy * dy;
         d2 >= self.inner * self.inner.abs() && d2 < self.outer * self.outer
+    }
+
+    /// The pixels of row `y` that [`Region::contains`]: at most two runs of columns
+    /// `[a, b)` (the annulus's hole splits the row), either possibly empty. The same test
+    /// decides each run's ends, so the runs hold exactly the pixels it accepts.
+    pub fn row_runs(&self, y: usize) -> [(usize, usize); 2] {
+        const NONE: [(usize, usize); 2] = [(0, 0), (0, 0)];
+        if y < self.y0 || y >= self.y1 || self.x0 >= self.x1 {
+            return NONE;
+        }
+        let dy = y as f32 + 0.5 - self.centre[1];
+        let d2 = |x: usize| {
+            let dx = x as f32 + 0.5 - self.centre[0];
+            dx * dx + dy * dy
+        };
+        let (outer2, inner2) = (self.outer * self.outer, self.inner * self.inner.abs());
+        // The columns within [x0, x1) where `d2 < bound` (an interval: d2 falls, then rises).
+        let below = |bound: f32| -> (usize, usize) {
+            if bound == f32::INFINITY {
+                return (self.x0, self.x1);
+            }
+            let half = (bound - dy * dy).max(0.0).sqrt();
+            let at = |v: f32| (v.max(self.x0 as f32).min(self.x1 as f32)) as usize;
+            let (mut a, mut b) = (
+                at((self.centre[0] - half - 0.5).ceil()),
+                at((self.centre[0] + half - 0.5).floor() + 1.0),
+            );
+            // The estimate is off by rounding at most: settle each end on the test itself.
+            while a > self.x0 && d2(a - 1) < bound {
+                a -= 1;
+            }
+            while a < b && d2(a) >= bound {
+                a += 1;
+            }
+            while b < self.x1 && d2(b) < bound {
+                b += 1;
+            }
+            while b > a && d2(b - 1) >= bound {
+                b -= 1;
+            }
+            (a, b)
+        };
+        let (a, b) = below(outer2);
+        if a >= b {
+            return NONE;
+        }
+        if inner2 <= 0.0 {
+            return [(a, b), (b, b)];
+        }
+        let (ha, hb) = below(inner2);
+        if ha >= hb {
+            return [(a, b), (b, b)];
+        }
+        [(a, ha.clamp(a, b)), (hb.clamp(a, b), b)]
     }
 
     /// The rectangle clipped to a `w` x `h` image; `None` when empty.
@@ -330,36 +384,57 @@ pub(crate) struct Pixels {
     /// Gather's weight per unit of cover, `1 / max(radius, 0.5)^2`.
     pub inv_area: Vec<f32>,
     pub class: Vec<u8>,
+    /// The signed radius (positive nearer than the focus). Gather's clamp (a source behind the
+    /// receiver and wider than it) holds exactly when the source's is below minus the
+    /// receiver's radius: the signed radius grows with the depth in diopters, so it is
+    /// negative and below the receiver's for such a source, and for no other.
+    pub signed: Vec<f32>,
+    /// The radius where it is below `EXACT_RADIUS`, else [`NOT_EXACT`]: the exact pass's
+    /// sources, whose cover is then 0 without a test.
+    pub exact: Vec<f32>,
 }
+
+/// A radius that gives no cover at any distance (the exact pass's stand-in for "not mine").
+const NOT_EXACT: f32 = -1e30;
 
 impl Pixels {
     pub fn new(setup: &Setup, input: &Rgbd) -> Pixels {
         let depth = input.depth.data();
-        let (radius, class): (Vec<f32>, Vec<u8>) = depth
-            .par_iter()
-            .map(|&d| {
-                let sr = setup.signed(d);
-                let r = sr.abs();
-                let c = if r < EXACT_RADIUS {
-                    SMALL
-                } else {
-                    band_of(r, &setup.edges) as u8 | if sr < 0.0 { BACK } else { 0 }
-                };
-                (r, c)
-            })
-            .unzip();
-        let inv_area = radius
-            .par_iter()
-            .map(|&r| {
-                let rr = r.max(0.5);
-                1.0 / (rr * rr)
-            })
-            .collect();
-        Pixels {
-            radius,
-            inv_area,
-            class,
-        }
+        let n = depth.len();
+        let mut px = Pixels {
+            radius: vec![0.0; n],
+            inv_area: vec![0.0; n],
+            class: vec![0; n],
+            signed: vec![0.0; n],
+            exact: vec![0.0; n],
+        };
+        let chunk = setup.w.max(1) * 16;
+        px.radius
+            .par_chunks_mut(chunk)
+            .zip(px.inv_area.par_chunks_mut(chunk))
+            .zip(px.class.par_chunks_mut(chunk))
+            .zip(px.signed.par_chunks_mut(chunk))
+            .zip(px.exact.par_chunks_mut(chunk))
+            .zip(depth.par_chunks(chunk))
+            .for_each(|(((((radius, inv_area), class), signed), exact), depth)| {
+                for (i, &d) in depth.iter().enumerate() {
+                    let sr = setup.signed(d);
+                    let r = sr.abs();
+                    let rr = r.max(0.5);
+                    radius[i] = r;
+                    signed[i] = sr;
+                    inv_area[i] = 1.0 / (rr * rr);
+                    (class[i], exact[i]) = if r < EXACT_RADIUS {
+                        (SMALL, r)
+                    } else {
+                        (
+                            band_of(r, &setup.edges) as u8 | if sr < 0.0 { BACK } else { 0 },
+                            NOT_EXACT,
+                        )
+                    };
+                }
+            });
+        px
     }
 }
 
@@ -491,16 +566,14 @@ fn receiver_blocks(px: &Pixels, w: usize, h: usize, region: &Region) -> (Vec<u32
     let mut blocks = vec![0u32; bw * bh];
     blocks.par_chunks_mut(bw).enumerate().for_each(|(by, row)| {
         for y in by * TILE..((by + 1) * TILE).min(h) {
-            for x in region.x0..region.x1 {
-                if !region.contains(x, y) {
-                    continue;
+            for (a, b) in region.row_runs(y) {
+                for (x, &c) in (a..b).zip(&px.class[y * w + a..y * w + b]) {
+                    row[x / TILE] |= if c == SMALL {
+                        SMALL_BIT
+                    } else {
+                        1 << (c & !BACK)
+                    };
                 }
-                let c = px.class[y * w + x];
-                row[x / TILE] |= if c == SMALL {
-                    SMALL_BIT
-                } else {
-                    1 << (c & !BACK)
-                };
             }
         }
     });
@@ -730,9 +803,21 @@ pub(crate) fn render_with(
     region: &Region,
 ) -> Result<RgbImage, RenderError> {
     let (w, h) = (setup.w, setup.h);
-    let mut out = vec![[0.0f32; 3]; w * h];
+    // Planar, as the image is kept: no interleaved copy to convert.
+    let mut out = [
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+    ];
+    let planar = |[r, g, b]: [Vec<f32>; 3]| -> Result<RgbImage, RenderError> {
+        Ok(RgbImage::from_planes(
+            Plane::from_vec(w, h, r)?,
+            Plane::from_vec(w, h, g)?,
+            Plane::from_vec(w, h, b)?,
+        )?)
+    };
     let Some(region) = region.clipped(w, h) else {
-        return Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?);
+        return planar(out);
     };
     let px = Pixels::new(setup, input);
     let (blocks, bw) = receiver_blocks(&px, w, h, &region);
@@ -777,7 +862,7 @@ pub(crate) fn render_with(
         levels.push(imgs);
     }
     compose(setup, input, &px, &region, &levels, &mut out);
-    Ok(RgbImage::from_interleaved(w, h, out.as_flattened())?)
+    planar(out)
 }
 
 /// Receivers processed together by the exact pass (one row, consecutive pixels).
@@ -790,7 +875,7 @@ fn compose(
     px: &Pixels,
     region: &Region,
     levels: &[[Option<LevelImage>; KINDS]],
-    out: &mut [[f32; 3]],
+    out: &mut [Vec<f32>; 3],
 ) {
     let (w, h) = (setup.w, setup.h);
     let depth = input.depth.data();
@@ -818,22 +903,28 @@ fn compose(
         let rc = radius[y * w + x];
         local_max[(y - my0) * mw + (x - mx0)].max(if rc < EXACT_RADIUS { rc } else { 0.0 }) + 0.5
     };
-    out.par_chunks_mut(w)
+    // The exact pass's taps as index offsets (interior groups).
+    let taps = ExactTaps::new(&offsets, w);
+    let [r_out, g_out, b_out] = out;
+    r_out
+        .par_chunks_mut(w)
+        .zip(g_out.par_chunks_mut(w))
+        .zip(b_out.par_chunks_mut(w))
+        .map(|((r, g), b)| [r, g, b])
         .enumerate()
         .skip(region.y0)
         .take(region.y1 - region.y0)
-        .for_each(|(y, row)| {
+        .for_each_init(FlatDisks::default, |disks, (y, mut row)| {
+            let runs = region.row_runs(y);
+            let inside = |x: usize| runs.iter().any(|&(a, b)| a <= x && x < b);
             let mut x0 = region.x0;
             while x0 < region.x1 {
                 let x1 = (x0 + GROUP).min(region.x1);
-                if !(x0..x1).any(|x| region.contains(x, y)) {
+                if !runs.iter().any(|&(a, b)| a < b && a < x1 && x0 < b) {
                     // A group in the annulus's hole or the rectangle's corners.
                     x0 = x1;
                     continue;
                 }
-                let mut acc = [[0.0f32; 3]; GROUP];
-                let mut wsum = [0.0f32; GROUP];
-                let mut reached = [false; GROUP];
                 let limit = (x0..x1).map(|x| bound(x, y)).fold(0.0f32, f32::max);
                 let interior = x1 - x0 == GROUP
                     && x0 >= reach
@@ -841,42 +932,21 @@ fn compose(
                     && y >= reach
                     && y + reach < h;
                 let flat_group = interior && (x0..x1).all(|x| flat[(y - my0) * mw + (x - mx0)]);
-                if flat_group {
+                let Exact { acc, wsum, reached } = if flat_group {
                     // One depth over the group and its reach: one radius.
                     let r = radius[y * w + x0];
                     if r < EXACT_RADIUS {
-                        let disk = FlatDisk::new(r);
                         let inv = px.inv_area[y * w + x0];
-                        for (i, x) in (x0..x1).enumerate() {
-                            disk.sum(
-                                &prefix,
-                                prefix_y0,
-                                ch,
-                                w,
-                                x,
-                                y,
-                                inv,
-                                &mut acc[i],
-                                &mut wsum[i],
-                            );
-                            reached[i] = r > 0.5;
-                        }
+                        disks
+                            .get(r)
+                            .sum_group(&prefix, prefix_y0, ch, w, x0, y, inv)
+                    } else {
+                        Exact::default()
                     }
                 } else if interior {
-                    exact_group(
-                        &offsets,
-                        limit,
-                        x0,
-                        y,
-                        w,
-                        px,
-                        depth,
-                        ch,
-                        &mut acc,
-                        &mut wsum,
-                        &mut reached,
-                    );
+                    exact_group(&taps, limit, y * w + x0, px, ch)
                 } else {
+                    let mut e = Exact::default();
                     for (i, x) in (x0..x1).enumerate() {
                         exact_pixel(
                             &offsets,
@@ -888,12 +958,13 @@ fn compose(
                             px,
                             depth,
                             ch,
-                            &mut acc[i],
-                            &mut wsum[i],
-                            &mut reached[i],
+                            &mut e.acc[i],
+                            &mut e.wsum[i],
+                            &mut e.reached[i],
                         );
                     }
-                }
+                    e
+                };
                 // The levels' reads: a kind is read where its tiles have weight.
                 let mut lacc = [[0.0f32; 4]; GROUP];
                 let bands: [Option<(usize, f32)>; GROUP] = std::array::from_fn(|i| {
@@ -925,13 +996,13 @@ fn compose(
                     }
                 }
                 for (i, x) in (x0..x1).enumerate() {
-                    if !region.contains(x, y) {
+                    if !inside(x) {
                         continue;
                     }
                     let j = y * w + x;
                     let own = [ch[0][j], ch[1][j], ch[2][j]];
                     let l = lacc[i];
-                    row[x] = if l[3] <= 0.0 && !reached[i] {
+                    let v = if l[3] <= 0.0 && !reached[i] {
                         // Only the pixel itself reached it: unchanged, as gather leaves it.
                         own
                     } else {
@@ -942,6 +1013,9 @@ fn compose(
                             own
                         }
                     };
+                    for (o, v) in row.iter_mut().zip(v) {
+                        o[x] = v;
+                    }
                 }
                 x0 = x1;
             }
@@ -978,116 +1052,168 @@ fn read_factor(kind: usize, li: usize, own: Option<(usize, f32)>) -> f32 {
     }
 }
 
-/// The exact pass for the `GROUP` pixels from `(x0, y)`, all sources inside the image: the
-/// same sums as [`exact_pixel`], lane by lane, branch-free so that it vectorises (8 lanes at
-/// once where the CPU has AVX; the arithmetic, without fused multiply-adds, is the same).
-#[allow(clippy::too_many_arguments)]
-fn exact_group(
-    offsets: &[(isize, isize, f32)],
-    limit: f32,
-    x0: usize,
-    y: usize,
-    w: usize,
-    px: &Pixels,
-    depth: &[f32],
-    ch: [&[f32]; 3],
-    acc: &mut [[f32; 3]; GROUP],
-    wsum: &mut [f32; GROUP],
-    reached: &mut [bool; GROUP],
-) {
+/// The exact pass for the `GROUP` pixels from image index `at` (one row), all sources inside
+/// the image: the same sums as [`exact_pixel`], lane by lane, branch-free so that it
+/// vectorises (8 lanes at once where the CPU has AVX). `taps` are [`exact_offsets`] as index
+/// offsets, nearest first; those beyond `limit` are not read.
+fn exact_group(taps: &ExactTaps, limit: f32, at: usize, px: &Pixels, ch: [&[f32]; 3]) -> Exact {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx") {
             // SAFETY: the CPU has AVX (checked just above).
-            unsafe {
-                return exact_group_avx(
-                    offsets, limit, x0, y, w, px, depth, ch, acc, wsum, reached,
-                );
-            }
+            return unsafe { exact_group_avx(taps, limit, at, px, ch) };
         }
     }
-    exact_group_lanes(offsets, limit, x0, y, w, px, depth, ch, acc, wsum, reached)
+    exact_group_lanes(&taps.taps, limit, at, px, ch)
 }
 
+/// [`exact_group_lanes`] in AVX intrinsics (LLVM turns the lanes' selects into branches).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-#[allow(clippy::too_many_arguments)]
 unsafe fn exact_group_avx(
-    offsets: &[(isize, isize, f32)],
+    ExactTaps { taps, span }: &ExactTaps,
     limit: f32,
-    x0: usize,
-    y: usize,
-    w: usize,
+    at: usize,
     px: &Pixels,
-    depth: &[f32],
     ch: [&[f32]; 3],
-    acc: &mut [[f32; 3]; GROUP],
-    wsum: &mut [f32; GROUP],
-    reached: &mut [bool; GROUP],
-) {
-    exact_group_lanes(offsets, limit, x0, y, w, px, depth, ch, acc, wsum, reached)
-}
-
-#[inline(always)]
-#[allow(clippy::too_many_arguments)]
-fn exact_group_lanes(
-    offsets: &[(isize, isize, f32)],
-    limit: f32,
-    x0: usize,
-    y: usize,
-    w: usize,
-    px: &Pixels,
-    depth: &[f32],
-    ch: [&[f32]; 3],
-    acc: &mut [[f32; 3]; GROUP],
-    wsum: &mut [f32; GROUP],
-    reached: &mut [bool; GROUP],
-) {
-    let at = y * w + x0;
-    let dc: [f32; GROUP] = std::array::from_fn(|i| depth[at + i]);
-    let rc: [f32; GROUP] = std::array::from_fn(|i| px.radius[at + i]);
-    let ic: [f32; GROUP] = std::array::from_fn(|i| px.inv_area[at + i]);
-    let (mut a0, mut a1, mut a2) = ([0.0f32; GROUP], [0.0f32; GROUP], [0.0f32; GROUP]);
-    let mut ws = [0.0f32; GROUP];
-    let mut hit = [0.0f32; GROUP];
-    for &(dx, dy, dist) in offsets {
+) -> Exact {
+    use std::arch::x86_64::*;
+    const _: () = assert!(GROUP == 8);
+    // Every tap's eight lanes lie inside every plane: checked once here, not per load.
+    let n = px.radius.len();
+    let inside = [&px.signed, &px.exact, &px.inv_area]
+        .iter()
+        .all(|v| v.len() == n)
+        && ch.iter().all(|v| v.len() == n)
+        && at >= *span
+        && at + span + GROUP <= n;
+    if !inside {
+        return exact_group_lanes(taps, limit, at, px, ch);
+    }
+    // Eight lanes from `v[j..]`.
+    macro_rules! lanes {
+        ($v:expr, $j:expr) => {
+            // SAFETY: `$j` is `at` or `at` plus a tap's offset, and `inside` holds.
+            _mm256_loadu_ps($v.as_ptr().add($j))
+        };
+    }
+    let zero = _mm256_setzero_ps();
+    let (half, one) = (_mm256_set1_ps(0.5), _mm256_set1_ps(1.0));
+    let neg_rc = _mm256_sub_ps(zero, lanes!(px.radius, at));
+    let rc = lanes!(px.exact, at);
+    let ic = lanes!(px.inv_area, at);
+    let (mut a0, mut a1, mut a2, mut ws, mut far) = (zero, zero, zero, zero, zero);
+    for (t, &(off, dist)) in taps.iter().enumerate() {
         if dist > limit {
             break;
         }
-        let j = ((y as isize + dy) as usize) * w + (x0 as isize + dx) as usize;
-        let rs: &[f32; GROUP] = px.radius[j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
-        let is: &[f32; GROUP] = px.inv_area[j..j + GROUP]
-            .try_into()
-            .unwrap_or(&[0.0; GROUP]);
-        let ds: &[f32; GROUP] = depth[j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
-        let c0: &[f32; GROUP] = ch[0][j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
-        let c1: &[f32; GROUP] = ch[1][j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
-        let c2: &[f32; GROUP] = ch[2][j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
-        let far = if dist > 0.0 { 1.0 } else { 0.0 };
+        let j = at.wrapping_add_signed(off);
+        let clamp = _mm256_cmp_ps::<_CMP_LT_OQ>(lanes!(px.signed, j), neg_rc);
+        let r = _mm256_blendv_ps(lanes!(px.exact, j), rc, clamp);
+        let inv = _mm256_blendv_ps(lanes!(px.inv_area, j), ic, clamp);
+        let c = _mm256_sub_ps(_mm256_add_ps(r, half), _mm256_set1_ps(dist));
+        let cover = _mm256_max_ps(_mm256_min_ps(c, one), zero);
+        let wgt = _mm256_mul_ps(cover, inv);
+        a0 = _mm256_add_ps(a0, _mm256_mul_ps(wgt, lanes!(ch[0], j)));
+        a1 = _mm256_add_ps(a1, _mm256_mul_ps(wgt, lanes!(ch[1], j)));
+        a2 = _mm256_add_ps(a2, _mm256_mul_ps(wgt, lanes!(ch[2], j)));
+        ws = _mm256_add_ps(ws, wgt);
+        if t > 0 {
+            far = _mm256_max_ps(far, wgt);
+        }
+    }
+    let store = |v: __m256| -> [f32; GROUP] {
+        let mut o = [0.0f32; GROUP];
+        // SAFETY: `o` holds GROUP = 8 floats; the store is unaligned.
+        unsafe { _mm256_storeu_ps(o.as_mut_ptr(), v) };
+        o
+    };
+    let (a0, a1, a2, far) = (store(a0), store(a1), store(a2), store(far));
+    Exact {
+        acc: std::array::from_fn(|i| [a0[i], a1[i], a2[i]]),
+        wsum: store(ws),
+        reached: far.map(|f| f > 0.0),
+    }
+}
+
+/// [`exact_offsets`] as index offsets into a `w`-wide image, and the largest of them.
+struct ExactTaps {
+    taps: Vec<(isize, f32)>,
+    span: usize,
+}
+
+impl ExactTaps {
+    fn new(offsets: &[(isize, isize, f32)], w: usize) -> ExactTaps {
+        let taps: Vec<(isize, f32)> = offsets
+            .iter()
+            .map(|&(dx, dy, d)| (dy * w as isize + dx, d))
+            .collect();
+        let span = taps.iter().map(|t| t.0.unsigned_abs()).max().unwrap_or(0);
+        ExactTaps { taps, span }
+    }
+}
+
+/// The exact pass's sums for a group of pixels: colour x weight, weight, and whether a source
+/// other than the pixel itself reached it.
+#[derive(Default)]
+struct Exact {
+    acc: [[f32; 3]; GROUP],
+    wsum: [f32; GROUP],
+    reached: [bool; GROUP],
+}
+
+#[inline(always)]
+fn exact_group_lanes(
+    taps: &[(isize, f32)],
+    limit: f32,
+    at: usize,
+    px: &Pixels,
+    ch: [&[f32]; 3],
+) -> Exact {
+    let lanes = |v: &[f32], j: usize| -> [f32; GROUP] {
+        v[j..j + GROUP].try_into().unwrap_or([0.0; GROUP])
+    };
+    // The receivers: minus their radius (the clamp's test), the radius a clamped source takes
+    // (none at or above EXACT_RADIUS) and its weight.
+    let neg_rc = lanes(&px.radius, at).map(|r| -r);
+    let rc = lanes(&px.exact, at);
+    let ic = lanes(&px.inv_area, at);
+    let (mut a0, mut a1, mut a2) = ([0.0f32; GROUP], [0.0f32; GROUP], [0.0f32; GROUP]);
+    let mut ws = [0.0f32; GROUP];
+    // The largest weight from a source other than the pixel (the first tap, at distance 0).
+    let mut far = [0.0f32; GROUP];
+    for (t, &(off, dist)) in taps.iter().enumerate() {
+        if dist > limit {
+            break;
+        }
+        let j = at.wrapping_add_signed(off);
+        let (ss, rs, is) = (
+            lanes(&px.signed, j),
+            lanes(&px.exact, j),
+            lanes(&px.inv_area, j),
+        );
+        let (c0, c1, c2) = (lanes(ch[0], j), lanes(ch[1], j), lanes(ch[2], j));
         for i in 0..GROUP {
-            // Behind the pixel and wider than it: clamped to the pixel's radius.
-            let clamp = ds[i] < dc[i] && rs[i] > rc[i];
+            let clamp = ss[i] < neg_rc[i];
             let r = if clamp { rc[i] } else { rs[i] };
             let inv = if clamp { ic[i] } else { is[i] };
             let c = r + 0.5 - dist;
             let c = if c > 1.0 { 1.0 } else { c };
-            let cover = if c > 0.0 && r < EXACT_RADIUS { c } else { 0.0 };
+            let cover = if c > 0.0 { c } else { 0.0 };
             let wgt = cover * inv;
             a0[i] += wgt * c0[i];
             a1[i] += wgt * c1[i];
             a2[i] += wgt * c2[i];
             ws[i] += wgt;
-            hit[i] = if wgt > 0.0 && far > hit[i] {
-                far
-            } else {
-                hit[i]
-            };
+            if t > 0 && wgt > far[i] {
+                far[i] = wgt;
+            }
         }
     }
-    for i in 0..GROUP {
-        acc[i] = [a0[i], a1[i], a2[i]];
-        wsum[i] = ws[i];
-        reached[i] = hit[i] > 0.0;
+    Exact {
+        acc: std::array::from_fn(|i| [a0[i], a1[i], a2[i]]),
+        wsum: ws,
+        reached: far.map(|f| f > 0.0),
     }
 }
 
@@ -1148,17 +1274,15 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
     let (ty0, ty1) = (y0.saturating_sub(r), (y1 + r).min(h));
     // Rows: the pixel's depth holds over [x - r, x + r] (clipped to the image).
     let mut rows = vec![false; rw * (ty1 - ty0)];
-    rows.par_chunks_mut(rw.max(1))
-        .enumerate()
-        .for_each(|(i, o)| {
+    rows.par_chunks_mut(rw.max(1)).enumerate().for_each_init(
+        || (vec![0usize; w], vec![0usize; w]),
+        |(left, rights), (i, o)| {
             let d = &depth[(ty0 + i) * w..(ty0 + i + 1) * w];
             // left[x]: pixels before x (up to r) equal to d[x]; likewise right.
-            let mut left = vec![0usize; w];
             for x in 1..w {
                 left[x] = if d[x - 1] == d[x] { left[x - 1] + 1 } else { 0 };
             }
             let mut right = 0usize;
-            let mut rights = vec![0usize; w];
             for x in (0..w).rev() {
                 right = if x + 1 < w && d[x + 1] == d[x] {
                     right + 1
@@ -1171,19 +1295,59 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
                 let x = x0 + k;
                 *o = left[x] >= r.min(x) && rights[x] >= r.min(w - 1 - x);
             }
-        });
-    // Columns: flat rows over [y - r, y + r] with the same depth.
+        },
+    );
+    // Columns: flat rows over [y - r, y + r] (clipped to the image) with the same depth. Per
+    // row of `rows`, how many rows above (`up`) and below (`down`) are flat with the same
+    // depth in an unbroken run, capped at r; in strips of columns, row after row.
+    const STRIP: usize = 64;
+    let th = ty1 - ty0;
     let mut out = vec![false; rw * (y1 - y0)];
-    out.par_chunks_mut(rw.max(1))
-        .enumerate()
-        .for_each(|(i, o)| {
-            let y = y0 + i;
-            let (a, b) = (y.saturating_sub(r).max(ty0), (y + r + 1).min(ty1));
-            for (k, o) in o.iter_mut().enumerate() {
-                let d = depth[y * w + x0 + k];
-                *o = (a..b).all(|yy| rows[(yy - ty0) * rw + k] && depth[yy * w + x0 + k] == d);
+    let strips: Vec<(usize, Vec<bool>)> = (0..rw.div_ceil(STRIP))
+        .into_par_iter()
+        .map(|sx| {
+            let (c0, c1) = (sx * STRIP, ((sx + 1) * STRIP).min(rw));
+            let sw = c1 - c0;
+            let run = |t: usize, k: usize, prev: usize, count: u16| -> u16 {
+                let same = rows[prev * rw + c0 + k]
+                    && depth[(ty0 + prev) * w + x0 + c0 + k] == depth[(ty0 + t) * w + x0 + c0 + k];
+                if same {
+                    (count + 1).min(r as u16)
+                } else {
+                    0
+                }
+            };
+            let mut up = vec![0u16; sw * th];
+            for t in 1..th {
+                for k in 0..sw {
+                    up[t * sw + k] = run(t, k, t - 1, up[(t - 1) * sw + k]);
+                }
             }
-        });
+            let mut down = vec![0u16; sw * th];
+            for t in (0..th.saturating_sub(1)).rev() {
+                for k in 0..sw {
+                    down[t * sw + k] = run(t, k, t + 1, down[(t + 1) * sw + k]);
+                }
+            }
+            let mut o = vec![false; sw * (y1 - y0)];
+            for y in y0..y1 {
+                let t = y - ty0;
+                let (need_up, need_down) = ((y - ty0).min(r), (ty1 - 1 - y).min(r));
+                for k in 0..sw {
+                    o[(y - y0) * sw + k] = rows[t * rw + c0 + k]
+                        && up[t * sw + k] as usize >= need_up
+                        && down[t * sw + k] as usize >= need_down;
+                }
+            }
+            (c0, o)
+        })
+        .collect();
+    for (c0, o) in strips {
+        let sw = o.len() / (y1 - y0).max(1);
+        for y in 0..y1 - y0 {
+            out[y * rw + c0..y * rw + c0 + sw].copy_from_slice(&o[y * sw..(y + 1) * sw]);
+        }
+    }
     out
 }
 
@@ -1206,6 +1370,7 @@ fn row_prefix(ch: [&[f32]; 3], w: usize, y0: usize, y1: usize) -> [Vec<f32>; 3] 
 /// taps `(dx, dy, weight)`, with its total weight: the exact pass where every source within
 /// reach shares the pixel's depth (as [`crate::gather::gather_smooth`] sums it).
 struct FlatDisk {
+    radius: f32,
     spans: Vec<(isize, usize)>,
     ramps: Vec<(isize, isize, f32)>,
     total: f32,
@@ -1244,134 +1409,167 @@ impl FlatDisk {
             }
         }
         FlatDisk {
+            radius: r,
             spans,
             ramps,
             total,
         }
     }
 
-    /// The exact pass's sums at pixel `(x, y)` (the disk inside the image), gather's weight
-    /// `1 / max(r, 0.5)^2` per unit of cover.
+    /// The exact pass's sums for the `GROUP` pixels from `(x0, y)` (the disk inside the image),
+    /// gather's weight `1 / max(r, 0.5)^2` per unit of cover: the group's lanes side by side.
     #[allow(clippy::too_many_arguments)]
-    fn sum(
+    fn sum_group(
         &self,
         prefix: &[Vec<f32>; 3],
         prefix_y0: usize,
         ch: [&[f32]; 3],
         w: usize,
-        x: usize,
+        x0: usize,
         y: usize,
         inv: f32,
-        acc: &mut [f32; 3],
-        wsum: &mut f32,
-    ) {
-        let mut a = [0.0f32; 3];
+    ) -> Exact {
+        let mut a = [[0.0f32; GROUP]; 3];
         for &(dy, f) in &self.spans {
-            let base = ((y as isize + dy) as usize - prefix_y0) * (w + 1);
+            let base = ((y as isize + dy) as usize - prefix_y0) * (w + 1) + x0;
             for c in 0..3 {
-                a[c] += prefix[c][base + x + f + 1] - prefix[c][base + x - f];
+                let hi: &[f32; GROUP] = prefix[c][base + f + 1..base + f + 1 + GROUP]
+                    .try_into()
+                    .unwrap_or(&[0.0; GROUP]);
+                let lo: &[f32; GROUP] = prefix[c][base - f..base - f + GROUP]
+                    .try_into()
+                    .unwrap_or(&[0.0; GROUP]);
+                for i in 0..GROUP {
+                    a[c][i] += hi[i] - lo[i];
+                }
             }
         }
         for &(dx, dy, wt) in &self.ramps {
-            let j = (y as isize + dy) as usize * w + (x as isize + dx) as usize;
+            let j = ((y as isize + dy) as usize * w + x0).wrapping_add_signed(dx);
             for c in 0..3 {
-                a[c] += wt * ch[c][j];
+                let v: &[f32; GROUP] = ch[c][j..j + GROUP].try_into().unwrap_or(&[0.0; GROUP]);
+                for i in 0..GROUP {
+                    a[c][i] += wt * v[i];
+                }
             }
         }
-        for c in 0..3 {
-            acc[c] += a[c] * inv;
+        Exact {
+            acc: std::array::from_fn(|i| [0, 1, 2].map(|c| a[c][i] * inv)),
+            wsum: [self.total * inv; GROUP],
+            reached: [self.radius > 0.5; GROUP],
         }
-        *wsum += self.total * inv;
+    }
+}
+
+/// The disks of the flat groups met so far, by radius (a frame has few distinct ones).
+#[derive(Default)]
+struct FlatDisks(Vec<(f32, FlatDisk)>);
+
+impl FlatDisks {
+    fn get(&mut self, r: f32) -> &FlatDisk {
+        let i = match self.0.iter().position(|d| d.0 == r) {
+            Some(i) => i,
+            None => {
+                if self.0.len() >= 64 {
+                    self.0.clear();
+                }
+                self.0.push((r, FlatDisk::new(r)));
+                self.0.len() - 1
+            }
+        };
+        &self.0[i].1
     }
 }
 
 /// Maximum of `v` (a `w`-wide image, values >= 0) over the `(2r+1)^2` window around each pixel
-/// of `rect` (`[x0, y0, x1, y1)`), rows then columns, each in O(1) per pixel (van Herk /
-/// Gil-Werman: block prefix and suffix maxima); the result is `rect`-sized.
+/// of `rect` (`[x0, y0, x1, y1)`), rows then columns; the result is `rect`-sized. Each pass
+/// takes the maximum of windows doubling in length (1, 2, 4 ... the largest power of two
+/// `p <= 2r + 1`), and a window of `2r + 1` is then the maximum of two of length `p`: a few
+/// element-wise maxima per pixel, which vectorise.
 fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
     let [x0, y0, x1, y1] = rect;
     let h = v.len() / w.max(1);
-    let rw = x1 - x0;
-    let (ty0, ty1) = (y0.saturating_sub(r), (y1 + r).min(h));
-    // Rows of the rectangle widened by r, max over x.
-    let mut tmp = vec![0.0f32; rw * (ty1 - ty0)];
+    let (rw, rh) = (x1 - x0, y1 - y0);
+    let len = 2 * r + 1;
+    // Rows y0 - r .. y1 + r (zero outside the image), each the maximum over its row's window.
+    let mut tmp = vec![0.0f32; rw * (rh + 2 * r)];
     tmp.par_chunks_mut(rw.max(1)).enumerate().for_each_init(
-        || (Vec::new(), Vec::new()),
-        |(pre, suf), (row, o)| {
-            let src = &v[(ty0 + row) * w..(ty0 + row + 1) * w];
-            sliding_max(src, r, pre, suf);
+        Vec::new,
+        |buf: &mut Vec<f32>, (t, o)| {
+            let Some(y) = (y0 + t).checked_sub(r).filter(|&y| y < h) else {
+                return;
+            };
+            // Source columns x0 - r .. x1 + r, zero outside the image.
+            buf.clear();
+            buf.extend((0..rw + 2 * r).map(|i| {
+                (x0 + i)
+                    .checked_sub(r)
+                    .filter(|&x| x < w)
+                    .map_or(0.0, |x| v[y * w + x])
+            }));
+            let p = doubling_max(buf, len, |m, step| {
+                for i in 0..m.len() - step {
+                    m[i] = if m[i + step] > m[i] {
+                        m[i + step]
+                    } else {
+                        m[i]
+                    };
+                }
+            });
             for (i, o) in o.iter_mut().enumerate() {
-                let x = x0 + i;
-                *o = window_at(pre, suf, x, r);
+                let (a, b) = (buf[i], buf[i + len - p]);
+                *o = if a > b { a } else { b };
             }
         },
     );
-    // Columns: the same along each column of `tmp`, as rows of a transposed copy.
-    let th = ty1 - ty0;
-    let mut cols = vec![0.0f32; rw * th];
-    for (y, row) in tmp.chunks(rw.max(1)).enumerate() {
-        for (x, &t) in row.iter().enumerate() {
-            cols[x * th + y] = t;
-        }
-    }
-    let mut outt = vec![0.0f32; rw * (y1 - y0)];
-    outt.par_chunks_mut((y1 - y0).max(1))
-        .enumerate()
-        .for_each_init(
-            || (Vec::new(), Vec::new()),
-            |(pre, suf), (x, o)| {
-                let src = &cols[x * th..(x + 1) * th];
-                sliding_max(src, r, pre, suf);
-                for (i, o) in o.iter_mut().enumerate() {
-                    *o = window_at(pre, suf, y0 + i - ty0, r);
+    // Columns: the same over whole rows of `tmp`, in strips of columns.
+    const STRIP: usize = 64;
+    let mut out = vec![0.0f32; rw * rh];
+    let strips: Vec<(usize, Vec<f32>)> = (0..rw.div_ceil(STRIP))
+        .into_par_iter()
+        .map(|sx| {
+            let (c0, c1) = (sx * STRIP, ((sx + 1) * STRIP).min(rw));
+            let sw = c1 - c0;
+            let mut m: Vec<f32> = tmp
+                .chunks(rw.max(1))
+                .flat_map(|row| row[c0..c1].iter().copied())
+                .collect();
+            let p = doubling_max(&mut m, len, |m, step| {
+                let n = m.len() - step * sw;
+                for i in 0..n {
+                    let b = m[i + step * sw];
+                    m[i] = if b > m[i] { b } else { m[i] };
                 }
-            },
-        );
-    let mut out = vec![0.0f32; rw * (y1 - y0)];
-    let oh = y1 - y0;
-    for (x, col) in outt.chunks(oh.max(1)).enumerate() {
-        for (y, &t) in col.iter().enumerate() {
-            out[y * rw + x] = t;
+            });
+            let mut o = vec![0.0f32; sw * rh];
+            for y in 0..rh {
+                let (a, b) = (&m[y * sw..(y + 1) * sw], &m[(y + len - p) * sw..][..sw]);
+                for ((o, &a), &b) in o[y * sw..(y + 1) * sw].iter_mut().zip(a).zip(b) {
+                    *o = if a > b { a } else { b };
+                }
+            }
+            (c0, o)
+        })
+        .collect();
+    for (c0, o) in strips {
+        let sw = o.len() / rh.max(1);
+        for y in 0..rh {
+            out[y * rw + c0..y * rw + c0 + sw].copy_from_slice(&o[y * sw..(y + 1) * sw]);
         }
     }
     out
 }
 
-/// Prefix and suffix maxima of `src` padded with `r` zeros on each side (its values are not
-/// negative, so the padding never wins), within blocks of `2r + 1` (van Herk / Gil-Werman):
-/// every window, clipped at the edges or not, is then one block long in the padded array.
-fn sliding_max(src: &[f32], r: usize, pre: &mut Vec<f32>, suf: &mut Vec<f32>) {
-    let k = 2 * r + 1;
-    pre.clear();
-    pre.resize(r, 0.0);
-    pre.extend_from_slice(src);
-    pre.resize(src.len() + 2 * r, 0.0);
-    suf.clear();
-    suf.extend_from_slice(pre);
-    let n = pre.len();
-    for i in 1..n {
-        if i % k != 0 && pre[i - 1] > pre[i] {
-            pre[i] = pre[i - 1];
-        }
+/// Runs `pass(m, step)` (which sets element `i` to the maximum of `i` and `i + step`, in
+/// `m`'s own units) for steps 1, 2, 4 ... while the window stays within `len`; returns the
+/// window length reached, the largest power of two at most `len`.
+fn doubling_max(m: &mut [f32], len: usize, pass: impl Fn(&mut [f32], usize)) -> usize {
+    let mut p = 1;
+    while 2 * p <= len {
+        pass(m, p);
+        p *= 2;
     }
-    for i in (0..n.saturating_sub(1)).rev() {
-        if (i + 1) % k != 0 && suf[i + 1] > suf[i] {
-            suf[i] = suf[i + 1];
-        }
-    }
-}
-
-/// The maximum over `[x - r, x + r]` of the source (clipped to it) from [`sliding_max`]'s
-/// arrays: the padded window `[x, x + 2r]` spans at most two blocks, the suffix of the first's
-/// and the prefix of the second's.
-#[inline]
-fn window_at(pre: &[f32], suf: &[f32], x: usize, r: usize) -> f32 {
-    let (a, b) = (suf[x], pre[x + 2 * r]);
-    if a > b {
-        a
-    } else {
-        b
-    }
+    p
 }
 
 #[cfg(test)]
@@ -1408,6 +1606,79 @@ mod tests {
             }
         }
     }
+    /// A row's runs hold exactly the pixels `contains` accepts, for annuli, disks, rectangles
+    /// and centres on pixel edges.
+    #[test]
+    fn row_runs_are_the_contained_pixels() {
+        let rects = [(0, 0, 64, 48), (5, 3, 40, 30), (20, 20, 21, 21)];
+        let annuli = [
+            ([30.0f32, 22.0f32], 6.0f32, 18.0f32),
+            ([30.5, 22.5], -1.0, f32::INFINITY),
+            ([0.0, 0.0], 10.0, 10.5),
+            ([64.0, 48.0], 0.0, 30.0),
+            ([17.0, 9.0], 3.0, 4.0),
+            ([-20.0, 60.0], 5.0, 1e9),
+        ];
+        for (x0, y0, x1, y1) in rects {
+            for (centre, inner, outer) in annuli {
+                let r = Region {
+                    x0,
+                    y0,
+                    x1,
+                    y1,
+                    centre,
+                    inner,
+                    outer,
+                };
+                for y in 0..50 {
+                    let runs = r.row_runs(y);
+                    for x in 0..66 {
+                        let inside = runs.iter().any(|&(a, b)| (a..b).contains(&x));
+                        assert_eq!(inside, r.contains(x, y), "{r:?} ({x},{y}) {runs:?}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// The run-length flatness test equals the brute-force one: every depth within the window
+    /// (clipped to the image) equal to the pixel's.
+    #[test]
+    fn flat_depth_is_the_brute_force_test() {
+        let (w, h) = (70usize, 41usize);
+        // Patches of equal depth of several sizes, and a ramp.
+        let depth: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                if x > 50 {
+                    0.01 * (x + y) as f32
+                } else {
+                    ((x / 9 + 3 * (y / 6)) % 4) as f32
+                }
+            })
+            .collect();
+        for r in [0usize, 1, 3, 7] {
+            for rect in [[0, 0, w, h], [5, 3, 66, 40], [64, 0, 70, 2], [0, 39, 3, 41]] {
+                let got = flat_depth(&depth, w, h, rect, r);
+                let [x0, y0, x1, y1] = rect;
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        let d = depth[y * w + x];
+                        let want = (y.saturating_sub(r)..(y + r + 1).min(h)).all(|yy| {
+                            (x.saturating_sub(r)..(x + r + 1).min(w))
+                                .all(|xx| depth[yy * w + xx] == d)
+                        });
+                        assert_eq!(
+                            got[(y - y0) * (x1 - x0) + x - x0],
+                            want,
+                            "r {r} {rect:?} ({x},{y})"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     use crate::gather::gather;
     use crate::metrics::psnr;
     use dioptra_core::{DepthMap, Plane};
