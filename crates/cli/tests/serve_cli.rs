@@ -228,13 +228,23 @@ fn the_network_method_without_weights_names_the_missing_file() {
 /// Starts `dioptra serve` on `config`: the daemon, its stderr after the API line, and the
 /// API's address from that line.
 fn start(config: &Path) -> (Daemon, BufReader<std::process::ChildStderr>, SocketAddr) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_dioptra"))
-        .args(["serve", "--config"])
+    start_with_env(config, &[])
+}
+
+/// [`start`] with `env` set for the daemon.
+fn start_with_env(
+    config: &Path,
+    env: &[(&str, &str)],
+) -> (Daemon, BufReader<std::process::ChildStderr>, SocketAddr) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_dioptra"));
+    cmd.args(["serve", "--config"])
         .arg(config)
         .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
+        .stderr(Stdio::piped());
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let mut child = cmd.spawn().unwrap();
     let mut stderr = BufReader::new(child.stderr.take().unwrap());
     // The GPU probe (render.backend = "auto") may print the Vulkan loader's own lines first.
     let mut seen = String::new();
@@ -566,4 +576,267 @@ fn an_invalid_rust_log_is_reported_as_an_error() {
         err.starts_with("error: RUST_LOG=\"dioptra_rig=verbose\": "),
         "{err}"
     );
+}
+
+/// A virtual X server (Xvfb, from Debian's `xvfb`, which `.ci/run` installs) with a screen of
+/// each size in `screens`, its framebuffers written as XWD files into its own directory.
+struct Xvfb {
+    child: Child,
+    display: String,
+    fbdir: tempfile::TempDir,
+}
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Xvfb {
+    /// Started on a free display number; `None` (the test skips, saying why) only where Xvfb
+    /// is not installed.
+    fn start(screens: &[(u32, u32)]) -> Option<Xvfb> {
+        if Command::new("Xvfb").arg("-help").output().is_err() {
+            eprintln!("skipped: Xvfb is not installed (Debian's xvfb; .ci/run installs it)");
+            return None;
+        }
+        let fbdir = tempfile::tempdir().unwrap();
+        // A display number no other server holds (its lock file), from one per process.
+        let mut n = 200 + std::process::id() % 500;
+        while Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+            n += 1;
+        }
+        let mut cmd = Command::new("Xvfb");
+        cmd.arg(format!(":{n}"));
+        for (i, (w, h)) in screens.iter().enumerate() {
+            cmd.args(["-screen", &i.to_string(), &format!("{w}x{h}x24")]);
+        }
+        let child = cmd
+            .arg("-fbdir")
+            .arg(fbdir.path())
+            .arg("-nolisten")
+            .arg("tcp")
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("Xvfb is installed but does not start");
+        let mut x = Xvfb {
+            child,
+            display: format!(":{n}"),
+            fbdir,
+        };
+        // Up when its socket is there (a wait for the server, bounded only so that a broken
+        // one fails the test).
+        let socket = format!("/tmp/.X11-unix/X{n}");
+        let until = std::time::Instant::now() + Duration::from_secs(30);
+        while !Path::new(&socket).exists() {
+            if let Ok(Some(s)) = x.child.try_wait() {
+                panic!("Xvfb {} exited: {s}", x.display);
+            }
+            assert!(std::time::Instant::now() < until, "Xvfb did not start");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        Some(x)
+    }
+
+    /// Screen `i`'s framebuffer as (width, height, RGB bytes), read from its XWD file.
+    fn screen(&self, i: usize) -> (u32, u32, Vec<u8>) {
+        let bytes = std::fs::read(self.fbdir.path().join(format!("Xvfb_screen{i}"))).unwrap();
+        parse_xwd(&bytes)
+    }
+}
+
+/// An XWD file (X Window Dump: a header of 25 big-endian 32-bit fields, the window's name,
+/// the colour map of `ncolors` 12-byte entries, then `height` rows of `bytes_per_line`) of a
+/// 24- or 32-bit TrueColor image, as (width, height, RGB bytes).
+fn parse_xwd(b: &[u8]) -> (u32, u32, Vec<u8>) {
+    let field = |i: usize| u32::from_be_bytes(b[4 * i..4 * i + 4].try_into().unwrap());
+    let (header_size, version) = (field(0) as usize, field(1));
+    assert_eq!(version, 7, "XWD version");
+    let (width, height) = (field(4), field(5));
+    let byte_order = field(7); // 0: least significant byte first
+    let bits_per_pixel = field(11);
+    let bytes_per_line = field(12) as usize;
+    let masks = [field(14), field(15), field(16)];
+    let ncolors = field(19) as usize;
+    assert_eq!(
+        bits_per_pixel, 32,
+        "a 24-bit screen is stored 32 bits a pixel"
+    );
+    let data = &b[header_size + 12 * ncolors..];
+    let mut rgb = Vec::with_capacity((3 * width * height) as usize);
+    for y in 0..height as usize {
+        for x in 0..width as usize {
+            let p: [u8; 4] = data[y * bytes_per_line + 4 * x..][..4].try_into().unwrap();
+            let v = if byte_order == 0 {
+                u32::from_le_bytes(p)
+            } else {
+                u32::from_be_bytes(p)
+            };
+            for m in masks {
+                rgb.push(((v & m) >> m.trailing_zeros()) as u8);
+            }
+        }
+    }
+    (width, height, rgb)
+}
+
+/// The simulated HMD example at 96 x 96 per eye (its eyepiece scaled to it), showing a
+/// procedural scene's files at a manual focus: `kind` headless (with its PNGs in `frames`) or
+/// a window (`extra` display keys).
+fn hmd_rig(dir: &Path, kind: &str, extra: &str) -> std::path::PathBuf {
+    let scene = dir.join("scene");
+    if !scene.join("color.exr").exists() {
+        let (ok, _, err) = dioptra(&[
+            "sim".as_ref(),
+            "scene".as_ref(),
+            "--seed".as_ref(),
+            "1000000".as_ref(),
+            "--size".as_ref(),
+            "96".as_ref(),
+            "--out".as_ref(),
+            scene.as_os_str(),
+        ]);
+        assert!(ok, "{err}");
+    }
+    // The eyepiece at a fifth of the example's 480 pixels: focal lengths and centre scaled.
+    let text = include_str!("../examples/rig-sim-hmd.toml")
+        .replace("127.0.0.1:7420", "127.0.0.1:0")
+        .replace("dir = \"recordings\"", &format!("dir = {:?}", dir.join("rec")))
+        .replace("fx = 225.0\nfy = 225.0\ncx = 239.5\ncy = 134.5", "fx = 45.0\nfy = 45.0\ncx = 47.5\ncy = 47.5")
+        .replace("fx = 227.25\nfy = 227.25", "fx = 45.45\nfy = 45.45")
+        .replace("fx = 222.75\nfy = 222.75", "fx = 44.55\nfy = 44.55")
+        .replace("width = 480\nheight = 270", "width = 96\nheight = 96")
+        .replace("kind = \"headless\"", &format!("kind = {kind:?}\n{extra}"))
+        + &format!(
+            "\n[content]\nsource = \"files\"\ncolor = {:?}\ndepth = {:?}\n\n[render]\nbackend = \"cpu\"\n",
+            scene.join("color.exr"),
+            scene.join("depth.exr"),
+        );
+    assert!(text.contains("fx = 45.45") && text.contains("width = 96"));
+    let path = dir.join(format!("hmd-{kind}.toml"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// Runs the daemon on `config` (with `env`; a lens per eye) to a manual focus of 0.5 D and 10
+/// frames after its command, calls `look` while it still shows them, then stops it.
+fn at_settled_focus(config: &Path, env: &[(&str, &str)], look: impl FnOnce(&serde_json::Value)) {
+    let (mut daemon, mut stderr, addr) = start_with_env(config, env);
+    // A lens per eye: `lens_left` and `lens_right`.
+    wait_for(addr, "both lenses to come up", |v| {
+        ["lens_left", "lens_right"]
+            .iter()
+            .all(|l| v["devices"][l]["state"] == "ok")
+    });
+    let (code, body) = http(addr, "POST", "/focus", "{\"diopters\": 0.5}");
+    assert_eq!(code, 200, "{body}");
+    // The lens power the optics map gives for 0.5 D, commanded.
+    let at = wait_for(addr, "the lens command for 0.5 D", |v| {
+        v["focus"]["commanded_focus_d"]
+            .as_f64()
+            .is_some_and(|d| (d - 0.5).abs() < 1e-3)
+    });
+    let shown = at["counts"]["frames_shown"].as_u64().unwrap();
+    let v = wait_for(addr, "10 more frames", |v| {
+        v["counts"]["frames_shown"].as_u64() > Some(shown + 10)
+            && v["display"]["presented"].as_u64() != Some(0)
+    });
+    look(&v);
+    let (code, _) = http(addr, "POST", "/shutdown", "");
+    assert_eq!(code, 202);
+    let mut rest = String::new();
+    stderr.read_to_string(&mut rest).unwrap();
+    assert!(daemon.0.wait().unwrap().success(), "{rest}");
+}
+
+/// Under a virtual X server: a window per eye where winit sees a monitor per eye, and the
+/// image corrections drawn in the window as the headless sink writes them.
+///
+/// Xvfb gives each X screen one RandR CRTC, and winit 0.30 lists the CRTCs of the display's
+/// default screen only (not RandR 1.5's `--setmonitor` monitors, and Xinerama hides RandR):
+/// under Xvfb winit sees one monitor, whatever the screens. So here the two-output window is
+/// checked for what that gives (stopped at start naming `display.monitor_right` and listing
+/// the one monitor), and the drawing it shares with the one window (the same presenter, a
+/// window's eye placed and corrected on its own surface) is checked on screen 0 against the
+/// headless sink's PNG for the same frame.
+#[test]
+fn under_xvfb_the_window_shows_each_eye_as_the_headless_sink_writes_it() {
+    let Some(x) = Xvfb::start(&[(192, 96), (96, 96)]) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let env = [("DISPLAY", x.display.as_str())];
+
+    // Two outputs: winit sees screen 0's one monitor, so the right eye's is missing.
+    let two = hmd_rig(dir.path(), "window", "monitor_left = 0\nmonitor_right = 1");
+    let text = std::fs::read_to_string(&two)
+        .unwrap()
+        .replace("layout = \"side-by-side\"", "layout = \"two-outputs\"");
+    std::fs::write(&two, text).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
+        .args(["serve", "--config"])
+        .arg(&two)
+        .env("DISPLAY", &x.display)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(
+        err.contains("display.monitor_right: there is no monitor 1; available: 0: \"screen\" 192x96 at (0, 0)"),
+        "{err}"
+    );
+
+    // The headless sink's panel at the settled focus.
+    let frames = dir.path().join("frames");
+    let headless = hmd_rig(
+        dir.path(),
+        "headless",
+        &format!("png_every = 1\npng_dir = {:?}", frames),
+    );
+    at_settled_focus(&headless, &[], |_| {});
+    let mut pngs: Vec<_> = std::fs::read_dir(&frames)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .collect();
+    pngs.sort();
+    let (pw, ph, want) =
+        dioptra_render::io::read_code_values(pngs.last().expect("no frames written")).unwrap();
+    assert_eq!((pw, ph), (192, 96));
+
+    // The window on screen 0 (192 x 96: the side-by-side panel, drawn 1:1).
+    let window = hmd_rig(dir.path(), "window", "");
+    at_settled_focus(&window, &env, |v| {
+        let d = &v["display"];
+        assert_eq!(d["surface_is_monitor_size"], true, "{d}");
+        assert!(
+            d["sink"]
+                .as_str()
+                .unwrap()
+                .contains("pre-warped and encoded"),
+            "{d}"
+        );
+        let (w, h, got) = x.screen(0);
+        assert_eq!((w, h), (192, 96));
+        let mut worst = (0u8, 0usize);
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            if a.abs_diff(*b) > worst.0 {
+                worst = (a.abs_diff(*b), i / 3);
+            }
+        }
+        let lit = got.chunks(3).filter(|p| p.iter().any(|&c| c > 16)).count();
+        eprintln!(
+            "window against headless: worst {} step(s) at pixel ({}, {}); {lit} lit pixels",
+            worst.0,
+            worst.1 % 192,
+            worst.1 / 192
+        );
+        assert!(
+            lit > 192 * 96 / 2,
+            "{lit} lit pixels: the eyes are not drawn"
+        );
+        assert!(worst.0 <= 1, "pixel {} differs by {}", worst.1, worst.0);
+    });
 }

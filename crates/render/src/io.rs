@@ -563,6 +563,30 @@ pub fn write_code_values(path: &Path, img: &RgbImage) -> Result<(), RenderError>
     )
 }
 
+/// The code values of an 8-bit RGB PNG as written by [`write_code_values`]: (width, height,
+/// RGB bytes, rows from the top). Another kind of PNG is refused.
+pub fn read_code_values(path: &Path) -> Result<(usize, usize, Vec<u8>), RenderError> {
+    let file = std::fs::File::open(path).map_err(|e| io_err(path, e))?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .map_err(|e| path_err(path, format!("PNG decode failed: {e}")))?;
+    let mut buf = vec![0; reader.output_buffer_size().unwrap_or(0)];
+    let info = reader
+        .next_frame(&mut buf)
+        .map_err(|e| path_err(path, format!("PNG decode failed: {e}")))?;
+    if (info.color_type, info.bit_depth) != (png::ColorType::Rgb, png::BitDepth::Eight) {
+        return Err(path_err(
+            path,
+            format!(
+                "a {:?} {:?}-bit PNG: code values are 8-bit RGB",
+                info.color_type, info.bit_depth
+            ),
+        ));
+    }
+    buf.truncate(info.buffer_size());
+    Ok((info.width as usize, info.height as usize, buf))
+}
+
 /// Writes depth as distance: `.png` 16-bit millimetres (clamped to 65.535 m), `.exr`/`.pfm`
 /// float metres (0 D is written as infinity).
 pub fn write_depth(path: &Path, depth: &DepthMap) -> Result<(), RenderError> {

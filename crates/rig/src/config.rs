@@ -331,21 +331,6 @@ impl RigConfig {
     pub fn notices(&self) -> Vec<String> {
         let mut out = self.optics.notices();
         out.extend(self.devices.notices());
-        let changes = self.eye_images().is_ok_and(|images| {
-            images.iter().any(|i| {
-                i.reference.is_some()
-                    || i.eyepiece.is_some()
-                    || i.transfer != dioptra_core::transfer::Transfer::Srgb
-            })
-        });
-        if changes && self.display.kind == SinkKind::Window {
-            out.push(
-                "the window does not yet apply the magnification compensation, the eyepiece \
-                 pre-warp or display.transfer (the headless sink does): it shows each image \
-                 1:1 in sRGB; see docs/optics-image.md"
-                    .to_string(),
-            );
-        }
         out
     }
 

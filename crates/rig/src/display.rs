@@ -23,6 +23,7 @@ pub mod config;
 pub mod frame;
 pub mod marker;
 pub mod pacing;
+pub mod panel_draw;
 pub mod panel_image;
 pub mod placement;
 pub mod status;

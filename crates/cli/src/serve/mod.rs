@@ -49,9 +49,8 @@ pub fn run(args: Args) -> Result<()> {
         SinkKind::Headless => serve_blocking(cfg, None, stop),
         // The window's event loop takes this (the main) thread; the daemon runs on another.
         SinkKind::Window => {
-            window::window_layout_supported(cfg.display.layout)?;
-            let choice = cfg.display.monitor.clone();
-            window::run_on_main_thread(choice, stop.clone(), move |ready| {
+            let outputs = window::Outputs::of(&cfg.display);
+            window::run_on_main_thread(outputs, stop.clone(), move |ready| {
                 serve_blocking(cfg, Some(ready), stop)
             })
         }
@@ -77,7 +76,9 @@ fn serve_blocking(
             .context("cannot start the renderer")?;
             let placement =
                 dioptra_rig::display::placement::PlacementConfig::from_display(&setup.cfg.display);
-            let sink = window::WindowSink::new(w, renderer.gpu_context(), placement)
+            let panels = dioptra_rig::display::panel_images(&setup.cfg)
+                .context("the eyes' images on their panels")?;
+            let sink = window::WindowSink::new(w, renderer.gpu_context(), placement, panels)
                 .context("cannot draw to the display window")?;
             setup.sink = Some(Box::new(sink));
             setup.renderer = Some(Arc::new(renderer));

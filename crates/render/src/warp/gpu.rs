@@ -36,11 +36,14 @@ struct WarpParams {
     _pad: u32,
 }
 
-/// A [`WarpMesh`] in GPU memory (vertex and index buffers), uploaded once.
+/// A [`WarpMesh`] in GPU memory (vertex and index buffers, and the uniform its draws read),
+/// uploaded once. Its parameters are written when a draw is recorded, so a mesh is drawn at
+/// most once per submission (one eye's mesh, once per frame).
 pub struct GpuWarpMesh {
     ctx: Arc<GpuContext>,
     vertices: wgpu::Buffer,
     indices: wgpu::Buffer,
+    params: wgpu::Buffer,
     count: u32,
     panel: [usize; 2],
     source: [usize; 2],
@@ -62,6 +65,12 @@ impl GpuWarpMesh {
                 contents: bytemuck::cast_slice(mesh.indices()),
                 usage: wgpu::BufferUsages::INDEX,
             }),
+            params: device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("warp params"),
+                size: std::mem::size_of::<WarpParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }),
             count: mesh.indices().len() as u32,
             panel: mesh.panel(),
             source: mesh.source(),
@@ -70,6 +79,10 @@ impl GpuWarpMesh {
     }
     pub fn panel(&self) -> [usize; 2] {
         self.panel
+    }
+    /// The source image's size it reads (width, height).
+    pub fn source(&self) -> [usize; 2] {
+        self.source
     }
 }
 
@@ -207,7 +220,9 @@ impl WarpPipeline {
 
     /// Records the warp of `source` through `mesh` into the render pass `pass` (whose target
     /// has this pipeline's format; its viewport says where the panel is on it). `scale` and
-    /// `lut` as [`super::WarpDraw`]'s.
+    /// `lut` as [`super::WarpDraw`]'s. The parameters go in the mesh's uniform (written on the
+    /// queue, before the submission that holds `pass` runs); the bind group is made here, as
+    /// the source's buffer changes from frame to frame.
     pub fn draw_in_pass(
         &self,
         pass: &mut wgpu::RenderPass<'_>,
@@ -249,18 +264,16 @@ impl WarpPipeline {
             _pad: 0,
         };
         let device = self.ctx.device();
-        let uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("warp params"),
-            contents: bytemuck::bytes_of(&params),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
+        self.ctx
+            .queue()
+            .write_buffer(&mesh.params, 0, bytemuck::bytes_of(&params));
         let bind = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("warp"),
             layout: &self.layout,
             entries: &[
                 wgpu::BindGroupEntry {
                     binding: 0,
-                    resource: uniform.as_entire_binding(),
+                    resource: mesh.params.as_entire_binding(),
                 },
                 wgpu::BindGroupEntry {
                     binding: 1,

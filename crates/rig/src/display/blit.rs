@@ -301,6 +301,22 @@ impl Blit {
         target_size: (u32, u32),
         draws: &[(usize, Rect)],
     ) {
+        let drawn: Result<(), std::convert::Infallible> =
+            self.encode_with(enc, target, target_size, draws, |_| Ok(()));
+        let Ok(()) = drawn;
+    }
+
+    /// [`Blit::encode`], with `more` recorded in the same render pass after the slots' images
+    /// and before the marker patch (the panel passes' warped images,
+    /// [`super::panel_draw`]). `more`'s error is returned after the pass is closed.
+    pub fn encode_with<E>(
+        &self,
+        enc: &mut wgpu::CommandEncoder,
+        target: &wgpu::TextureView,
+        target_size: (u32, u32),
+        draws: &[(usize, Rect)],
+        more: impl FnOnce(&mut wgpu::RenderPass<'_>) -> Result<(), E>,
+    ) -> Result<(), E> {
         let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("blit"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -322,27 +338,14 @@ impl Blit {
                 Some(Source::Buffer(bg)) => (&self.buffer_pipeline, bg),
                 None => continue,
             };
-            let inside = r.width > 0
-                && r.height > 0
-                && u64::from(r.x) + u64::from(r.width) <= u64::from(tw)
-                && u64::from(r.y) + u64::from(r.height) <= u64::from(th);
-            if !inside {
+            if !set_rect(&mut pass, r, target_size) {
                 continue;
             }
-            // Integer viewport: pixel centres land on texel centres, 1:1 at the image's size.
-            pass.set_viewport(
-                r.x as f32,
-                r.y as f32,
-                r.width as f32,
-                r.height as f32,
-                0.0,
-                1.0,
-            );
-            pass.set_scissor_rect(r.x, r.y, r.width, r.height);
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, bind_group, &[]);
             pass.draw(0..3, 0..1);
         }
+        let more = more(&mut pass);
         // The patch goes in the panel's corner, where the photodiode is, wherever the images are.
         if let Some(m) = self.marker {
             let [px, py, pw, ph] = m.rect(tw, th);
@@ -353,6 +356,7 @@ impl Blit {
                 pass.draw(0..3, 0..1);
             }
         }
+        more
     }
 
     fn frame_texture(&self, device: &wgpu::Device, size: (u32, u32)) -> wgpu::Texture {
@@ -373,8 +377,31 @@ impl Blit {
     }
 }
 
+/// Sets `pass`'s viewport and scissor to `r` (integer, so pixel centres land on texel
+/// centres: 1:1 at the image's size); false, and nothing set, when `r` is empty or not inside
+/// a target of `target_size`.
+pub(crate) fn set_rect(pass: &mut wgpu::RenderPass<'_>, r: Rect, target_size: (u32, u32)) -> bool {
+    let (tw, th) = target_size;
+    let inside = r.width > 0
+        && r.height > 0
+        && u64::from(r.x) + u64::from(r.width) <= u64::from(tw)
+        && u64::from(r.y) + u64::from(r.height) <= u64::from(th);
+    if inside {
+        pass.set_viewport(
+            r.x as f32,
+            r.y as f32,
+            r.width as f32,
+            r.height as f32,
+            0.0,
+            1.0,
+        );
+        pass.set_scissor_rect(r.x, r.y, r.width, r.height);
+    }
+    inside
+}
+
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::config::Scale;
 
@@ -469,22 +496,28 @@ mod tests {
         .unwrap()
     }
 
-    /// A headless device (lavapipe here), or `None` (test skipped) when there is no adapter
-    /// and DIOPTRA_REQUIRE_GPU is not 1, as in dioptra-render's GPU tests.
+    /// `Some` of a GPU object, or `None` (test skipped, said on stderr) when there is no
+    /// adapter and DIOPTRA_REQUIRE_GPU is not 1, as in dioptra-render's GPU tests; with it 1,
+    /// a missing adapter fails the test.
+    pub(crate) fn gpu_or_skip<T, E: std::fmt::Display>(made: Result<T, E>) -> Option<T> {
+        match made {
+            Ok(t) => Some(t),
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                None
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        }
+    }
+
+    /// A headless device (lavapipe here), or `None` (test skipped, [`gpu_or_skip`]).
     fn headless_device() -> Option<(wgpu::Device, wgpu::Queue)> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
         let instance = wgpu::Instance::new(desc);
-        let adapter = match pollster::block_on(
+        let adapter = gpu_or_skip(pollster::block_on(
             instance.request_adapter(&wgpu::RequestAdapterOptions::default()),
-        ) {
-            Ok(a) => a,
-            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
-                eprintln!("skipped: no GPU adapter ({e})");
-                return None;
-            }
-            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
-        };
+        ))?;
         Some(pollster::block_on(adapter.request_device(&Default::default())).unwrap())
     }
 
@@ -495,6 +528,24 @@ mod tests {
         blit: &Blit,
         size: (u32, u32),
         draws: &[(usize, Rect)],
+    ) -> Vec<u8> {
+        read_target(
+            device,
+            queue,
+            wgpu::TextureFormat::Rgba8UnormSrgb,
+            size,
+            |enc, view| blit.encode(enc, view, size, draws),
+        )
+    }
+
+    /// What `encode` draws into a new texture of `format` (4 bytes a pixel) and `size`, read
+    /// back: rows of RGBA bytes.
+    pub(crate) fn read_target(
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        format: wgpu::TextureFormat,
+        size: (u32, u32),
+        encode: impl FnOnce(&mut wgpu::CommandEncoder, &wgpu::TextureView),
     ) -> Vec<u8> {
         let (tw, th) = size;
         let extent = wgpu::Extent3d {
@@ -508,30 +559,28 @@ mod tests {
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            format,
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             view_formats: &[],
         });
+        // Rows padded to the copy alignment, dropped again below.
+        let row = (tw * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let readback = device.create_buffer(&wgpu::BufferDescriptor {
             label: None,
-            size: u64::from(tw * th * 4),
+            size: u64::from(row * th),
             usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
             mapped_at_creation: false,
         });
         let mut enc = device.create_command_encoder(&Default::default());
-        blit.encode(
-            &mut enc,
-            &target.create_view(&Default::default()),
-            size,
-            draws,
-        );
+        encode(&mut enc, &target.create_view(&Default::default()));
         enc.copy_texture_to_buffer(
             target.as_image_copy(),
             wgpu::TexelCopyBufferInfo {
                 buffer: &readback,
                 layout: wgpu::TexelCopyBufferLayout {
                     offset: 0,
-                    bytes_per_row: Some(tw * 4),
+                    bytes_per_row: Some(row),
                     rows_per_image: Some(th),
                 },
             },
@@ -542,8 +591,12 @@ mod tests {
             .slice(..)
             .map_async(wgpu::MapMode::Read, |r| r.unwrap());
         device.poll(wgpu::PollType::wait_indefinitely()).unwrap();
-        let got = readback.slice(..).get_mapped_range().unwrap().to_vec();
-        got
+        let mapped = readback.slice(..).get_mapped_range().unwrap();
+        mapped
+            .chunks(row as usize)
+            .flat_map(|r| &r[..(tw * 4) as usize])
+            .copied()
+            .collect()
     }
 
     /// The blit (shader, texture packing, sRGB target) without a window: a frame drawn into an
@@ -660,13 +713,8 @@ mod tests {
     /// reads nothing back.
     #[test]
     fn a_frame_in_gpu_memory_is_drawn_as_its_readback_is() {
-        let gpu = match dioptra_render::Gpu::new(None) {
-            Ok(g) => g,
-            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
-                eprintln!("skipped: no GPU adapter ({e})");
-                return;
-            }
-            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        let Some(gpu) = gpu_or_skip(dioptra_render::Gpu::new(None)) else {
+            return;
         };
         // One plane at the depth of every pixel: linear blending gives the colour itself,
         // out-of-range values included (clamped by both paths).

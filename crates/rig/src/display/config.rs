@@ -125,9 +125,15 @@ pub struct Display {
     pub kind: SinkKind,
     /// The window's monitor: a name such as "HDMI-1" or an index; default the primary.
     pub monitor: Option<MonitorChoice>,
-    /// `layout = "two-outputs"`: the left and the right eye's monitors.
+    /// `layout = "two-outputs"` with the window: the left eye's monitor, a name such as
+    /// "DP-1" or an index (as `display.monitor`). Each eye gets a borderless fullscreen window
+    /// on its monitor, drawn 1:1 as the one window is; a monitor not there stops the start
+    /// with the list of monitors.
     pub monitor_left: Option<MonitorChoice>,
-    /// `layout = "two-outputs"`: the right eye's monitor.
+    /// `layout = "two-outputs"` with the window: the right eye's monitor (not the left's).
+    /// Both windows are drawn and presented in the same pass, each at its own monitor's
+    /// vsync (not locked together: up to one refresh apart); monitors at different rates go
+    /// at the slower one's, with a warning at start.
     pub monitor_right: Option<MonitorChoice>,
     /// One eye's image (per eye on a stereo layout), pixels.
     #[serde(default = "default_size")]

@@ -3,7 +3,7 @@
 //! through the panel's transfer function ([`PanelImage`], built once per eye from
 //! [`crate::config::EyeImage`]). The headless sink runs the CPU twins here
 //! (`dioptra_render::warp::warp_cpu` with the encoding inside it); the window draws the same
-//! mesh and table on the GPU (`warp::gpu::WarpPipeline`).
+//! mesh and table on the GPU (`warp::gpu::WarpPipeline`, in [`super::panel_draw`]).
 
 use dioptra_core::transfer::Transfer;
 use dioptra_core::{RgbImage, Side};
@@ -28,6 +28,8 @@ pub struct PanelImage {
     transfer: Transfer,
     transfer_key: &'static str,
     lut: EncodeLut,
+    /// The eye's image (width, height): the display's.
+    size: [usize; 2],
 }
 
 impl PanelImage {
@@ -52,6 +54,7 @@ impl PanelImage {
             lut: EncodeLut::new(&image.transfer),
             transfer: image.transfer.clone(),
             transfer_key: image.transfer_key,
+            size,
         })
     }
 
@@ -64,6 +67,23 @@ impl PanelImage {
     /// The mesh the window's GPU pass draws (`None`: 1:1).
     pub fn mesh(&self) -> Option<&WarpMesh> {
         self.mesh.as_ref()
+    }
+
+    /// The mesh a GPU pass draws: [`PanelImage::mesh`], or where the image is only encoded,
+    /// one that copies it (the window draws every eye's image through the warp pipeline).
+    pub fn mesh_to_draw(&self) -> Result<std::borrow::Cow<'_, WarpMesh>, RenderError> {
+        match &self.mesh {
+            Some(m) => Ok(std::borrow::Cow::Borrowed(m)),
+            None => {
+                let centre = self.size.map(|n| (n as f64 - 1.0) / 2.0);
+                WarpMesh::identity(self.size, self.size, centre).map(std::borrow::Cow::Owned)
+            }
+        }
+    }
+
+    /// The eye's image size (width, height) this path is made for.
+    pub fn size(&self) -> [usize; 2] {
+        self.size
     }
 
     /// The panel's transfer table (both twins read it).

@@ -367,6 +367,18 @@ impl Placer {
         layer: usize,
         surface: (u32, u32),
     ) -> Result<Vec<Placed<'a>>, PlaceError> {
+        self.place_eyes(frame, layer, surface, self.config.eyes())
+    }
+
+    /// [`Placer::place`] for `eyes` only (of [`PlacementConfig::eyes`]): a window per eye
+    /// places its eye's image on its own surface.
+    pub fn place_eyes<'a>(
+        &self,
+        frame: &'a Frame,
+        layer: usize,
+        surface: (u32, u32),
+        eyes: &[Option<Side>],
+    ) -> Result<Vec<Placed<'a>>, PlaceError> {
         let left = frame.layers.get(layer).ok_or_else(|| {
             PlaceError::NoImage(format!(
                 "frame {} has no image {layer} (it has {})",
@@ -386,7 +398,7 @@ impl Placer {
             _ => None,
         };
         let mut placed = Vec::with_capacity(2);
-        for &eye in self.config.eyes() {
+        for &eye in eyes {
             let image = match eye {
                 Some(Side::Right) => right.unwrap_or(left),
                 _ => left,

@@ -1,21 +1,30 @@
-//! The winit side: the main thread opens the display and a borderless fullscreen window on the
-//! chosen monitor, hands it to the daemon's thread and handles window events until the daemon
-//! returns.
+//! The winit side: the main thread opens the display and a borderless fullscreen window on
+//! each chosen monitor (one, or one per eye), hands them to the daemon's thread and handles
+//! window events until the daemon returns.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use dioptra_rig::config::MonitorChoice;
+use dioptra_core::Side;
 
 use super::error::WindowError;
-use super::monitor::{choose_monitor, env_display_check, MonitorInfo};
+use super::monitor::{choose_outputs, env_display_check, refresh_mismatch, MonitorInfo, Outputs};
 
-/// What the main thread hands the daemon's thread: the window, its monitor's name and size.
-pub struct WindowReady {
+/// A window on its monitor.
+pub struct OutputWindow {
     pub window: Arc<winit::window::Window>,
+    /// The monitor, for people (`monitor 1: "DP-2" 1920x1080 at (1920, 0)`).
     pub monitor: String,
     /// The monitor's size, physical pixels: what the surface should be.
     pub monitor_size: (u32, u32),
+    /// The eye it shows (`layout = "two-outputs"`); `None`: the one window.
+    pub eye: Option<Side>,
+}
+
+/// What the main thread hands the daemon's thread: the windows (one, or the left and the
+/// right eye's).
+pub struct WindowReady {
+    pub outputs: Vec<OutputWindow>,
 }
 
 /// A message to the main thread's event loop.
@@ -30,7 +39,7 @@ enum UserEvent {
 /// events here until it returns. Closing the window (or Escape in it) triggers `stop`, which
 /// the daemon treats like Ctrl-C. Returns the daemon's result.
 pub fn run_on_main_thread<F>(
-    choice: Option<MonitorChoice>,
+    outputs: Outputs,
     stop: tokio_util::sync::CancellationToken,
     daemon: F,
 ) -> anyhow::Result<()>
@@ -44,12 +53,12 @@ where
             detail: e.to_string(),
         })?;
     let mut app = App {
-        choice,
+        outputs,
         stop,
         daemon: Some(Box::new(daemon)),
         proxy: event_loop.create_proxy(),
         thread: None,
-        window: None,
+        windows: Vec::new(),
         error: None,
         daemon_done: Arc::new(AtomicBool::new(false)),
     };
@@ -72,12 +81,13 @@ where
 type DaemonFn = Box<dyn FnOnce(WindowReady) -> anyhow::Result<()> + Send>;
 
 struct App {
-    choice: Option<MonitorChoice>,
+    outputs: Outputs,
     stop: tokio_util::sync::CancellationToken,
     daemon: Option<DaemonFn>,
     proxy: winit::event_loop::EventLoopProxy<UserEvent>,
     thread: Option<std::thread::JoinHandle<anyhow::Result<()>>>,
-    window: Option<Arc<winit::window::Window>>,
+    /// Held while the daemon runs, so the windows live as long as the event loop.
+    windows: Vec<Arc<winit::window::Window>>,
     error: Option<WindowError>,
     daemon_done: Arc<AtomicBool>,
 }
@@ -100,28 +110,41 @@ impl App {
         let primary = event_loop
             .primary_monitor()
             .and_then(|p| monitors.iter().position(|m| *m == p));
-        let i =
-            choose_monitor(&infos, self.choice.as_ref(), primary).map_err(WindowError::Monitor)?;
-        // The monitor's size and position as well as fullscreen: without a window manager
-        // (which is what makes a window fullscreen on X11) the window still covers it.
-        let (size, position) = (infos[i].size, infos[i].position);
-        let attrs = winit::window::Window::default_attributes()
-            .with_title("dioptra")
-            .with_decorations(false)
-            .with_inner_size(winit::dpi::PhysicalSize::new(size.0, size.1))
-            .with_position(winit::dpi::PhysicalPosition::new(position.0, position.1))
-            .with_fullscreen(Some(winit::window::Fullscreen::Borderless(Some(
-                monitors[i].clone(),
-            ))));
-        let window = event_loop
-            .create_window(attrs)
-            .map_err(|e| WindowError::Create(e.to_string()))?;
-        window.set_cursor_visible(false);
-        Ok(WindowReady {
-            window: Arc::new(window),
-            monitor: format!("monitor {i}: {}", infos[i]),
-            monitor_size: size,
-        })
+        let chosen = choose_outputs(&infos, &self.outputs, primary)?;
+        if let [(l, _), (r, _)] = chosen[..] {
+            let rate = |i: usize| monitors[i].refresh_rate_millihertz();
+            if let Some(warning) = refresh_mismatch(rate(l), rate(r)) {
+                eprintln!("dioptra serve: warning: {warning}");
+            }
+        }
+        let mut outputs = Vec::with_capacity(chosen.len());
+        for (i, eye) in chosen {
+            // The monitor's size and position as well as fullscreen: without a window manager
+            // (which is what makes a window fullscreen on X11) the window still covers it.
+            let (size, position) = (infos[i].size, infos[i].position);
+            let attrs = winit::window::Window::default_attributes()
+                .with_title(match eye {
+                    Some(side) => format!("dioptra ({} eye)", side.as_str()),
+                    None => "dioptra".into(),
+                })
+                .with_decorations(false)
+                .with_inner_size(winit::dpi::PhysicalSize::new(size.0, size.1))
+                .with_position(winit::dpi::PhysicalPosition::new(position.0, position.1))
+                .with_fullscreen(Some(winit::window::Fullscreen::Borderless(Some(
+                    monitors[i].clone(),
+                ))));
+            let window = event_loop
+                .create_window(attrs)
+                .map_err(|e| WindowError::Create(e.to_string()))?;
+            window.set_cursor_visible(false);
+            outputs.push(OutputWindow {
+                window: Arc::new(window),
+                monitor: format!("monitor {i}: {}", infos[i]),
+                monitor_size: size,
+                eye,
+            });
+        }
+        Ok(WindowReady { outputs })
     }
 }
 
@@ -132,7 +155,7 @@ impl winit::application::ApplicationHandler<UserEvent> for App {
         };
         match self.open(event_loop) {
             Ok(ready) => {
-                self.window = Some(ready.window.clone());
+                self.windows = ready.outputs.iter().map(|o| o.window.clone()).collect();
                 let (proxy, done) = (self.proxy.clone(), self.daemon_done.clone());
                 let spawned = std::thread::Builder::new()
                     .name("dioptra-daemon".into())

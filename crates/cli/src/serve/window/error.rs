@@ -10,8 +10,9 @@ pub enum WindowError {
     NoDisplay,
     #[error("cannot open the display ({detail}); check DISPLAY/WAYLAND_DISPLAY or use [display] kind = \"headless\"")]
     Open { detail: String },
-    #[error("display.monitor: {0}")]
-    Monitor(String),
+    /// A monitor key (`display.monitor`, `monitor_left`, `monitor_right`) names no monitor.
+    #[error("{key}: {detail}")]
+    Monitor { key: &'static str, detail: String },
     #[error("cannot create the window: {0}")]
     Create(String),
     #[error("the window's GPU surface: {0}")]

@@ -27,18 +27,29 @@
 //! Placement. Each eye's image is drawn at the rectangle
 //! [`dioptra_rig::display::placement`] gives for the surface the system made (the viewport
 //! set to it): 1:1 onto surface pixels with `display.scale = "exact"`, centred in its place
-//! (the whole surface for layout `one`, its half of a side-by-side panel) and moved by
-//! `display.eye_offset_px`; scaled to fit with `"fit"` (the letterbox). A frame that does not
-//! fit, or (exact) a surface that is not its monitor's size, is not shown: counted in
-//! `/status` (`misfit`), logged once per reason; the screen goes black rather than showing a
-//! stimulus at the wrong size or place. The window asks for its monitor's size and position
-//! as well as fullscreen, so that without a window manager it still covers the monitor; the
-//! surface size obtained is logged and in `/status`. Layout `two-outputs` (a window per
-//! monitor) is not supported by the window yet: `dioptra serve` refuses it naming
-//! `display.layout`.
+//! (the whole surface for layout `one`, its half of a side-by-side panel, its own window for
+//! `two-outputs`) and moved by `display.eye_offset_px`; scaled to fit with `"fit"` (the
+//! letterbox). A frame that does not fit, or (exact) a surface that is not its monitor's size,
+//! is not shown: counted in `/status` (`misfit`), logged once per reason; the screen goes
+//! black rather than showing a stimulus at the wrong size or place. The window asks for its
+//! monitor's size and position as well as fullscreen, so that without a window manager it
+//! still covers the monitor; the surface size obtained is logged and in `/status`.
+//!
+//! Image corrections. Where the rig compensates magnification, pre-warps for an eyepiece or
+//! drives a panel that is not sRGB, each eye's image is drawn through the GPU twin of the
+//! headless sink's CPU path ([`dioptra_rig::display::panel_draw`]): the warp mesh per colour
+//! channel, scaled for the frame's compensation, and the panel's transfer table, into a
+//! non-sRGB view of the surface. Where the rig renders on the CPU these run on the process's
+//! GPU context, the frames uploaded.
+//!
+//! Two outputs. `layout = "two-outputs"` opens a borderless fullscreen window on each of
+//! `display.monitor_left` and `display.monitor_right` (name or index, as `display.monitor`),
+//! each pixel-exact as the one window is, drawn on one device and presented together
+//! ([`presenter`]'s doc says how, and the limits). A monitor that is not there stops
+//! `dioptra serve` at start with the key and the list of monitors.
 //!
 //! Parts: [`app`] (the winit event loop on the main thread), [`monitor`] (display and monitor
-//! choice), [`presenter`] (the sink, its thread and the window's GPU surface).
+//! choice), [`presenter`] (the sink, its thread and the windows' GPU surfaces).
 
 mod app;
 mod error;
@@ -46,5 +57,5 @@ mod monitor;
 mod presenter;
 
 pub use app::{run_on_main_thread, WindowReady};
-pub use monitor::window_layout_supported;
+pub use monitor::Outputs;
 pub use presenter::WindowSink;

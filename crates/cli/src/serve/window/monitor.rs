@@ -1,21 +1,96 @@
-//! Where the window goes: whether there is a display, which monitor (`display.monitor`),
-//! which layouts a window can show, and whether the surface the system gave is the monitor's
-//! size where `display.scale = "exact"` needs it.
+//! Where the windows go: whether there is a display, which monitor (`display.monitor`; with
+//! `layout = "two-outputs"`, `display.monitor_left` and `display.monitor_right`), and whether
+//! the surface the system gave is the monitor's size where `display.scale = "exact"` needs it.
 
-use dioptra_rig::config::{MonitorChoice, Scale};
+use dioptra_core::Side;
+use dioptra_rig::config::{Display, DisplayLayout, MonitorChoice, Scale};
 
 use super::error::WindowError;
 
-/// The window draws layouts `one` and `side-by-side`; a window per monitor is not built yet.
-pub fn window_layout_supported(layout: dioptra_rig::config::DisplayLayout) -> anyhow::Result<()> {
-    if layout == dioptra_rig::config::DisplayLayout::TwoOutputs {
-        anyhow::bail!(
-            "display.layout = \"two-outputs\" with display.kind = \"window\" is not supported \
-             yet (the window draws one monitor): use layout = \"side-by-side\" on one panel \
-             spanning both eyes, or kind = \"headless\" (an image per eye)"
-        );
+/// Which monitors the windows go on: one window (`display.monitor`, default the primary), or
+/// a window per eye (`layout = "two-outputs"`: `display.monitor_left`, `monitor_right`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Outputs {
+    One(Option<MonitorChoice>),
+    PerEye {
+        left: Option<MonitorChoice>,
+        right: Option<MonitorChoice>,
+    },
+}
+
+impl Outputs {
+    pub fn of(d: &Display) -> Outputs {
+        match d.layout {
+            DisplayLayout::TwoOutputs => Outputs::PerEye {
+                left: d.monitor_left.clone(),
+                right: d.monitor_right.clone(),
+            },
+            DisplayLayout::One | DisplayLayout::SideBySide => Outputs::One(d.monitor.clone()),
+        }
     }
-    Ok(())
+}
+
+/// The monitor (index in `monitors`) of each window, with its eye (`None`: the one window).
+/// A window per eye needs each eye's monitor named, and two different ones; the errors name
+/// the key and list what is there.
+pub fn choose_outputs(
+    monitors: &[MonitorInfo],
+    outputs: &Outputs,
+    primary: Option<usize>,
+) -> Result<Vec<(usize, Option<Side>)>, WindowError> {
+    let chosen = |key: &'static str, choice: Option<&MonitorChoice>| {
+        choose_monitor(monitors, choice, primary)
+            .map_err(|detail| WindowError::Monitor { key, detail })
+    };
+    match outputs {
+        Outputs::One(choice) => Ok(vec![(chosen("display.monitor", choice.as_ref())?, None)]),
+        Outputs::PerEye { left, right } => {
+            let mut out = Vec::with_capacity(2);
+            for (key, choice, side) in [
+                ("display.monitor_left", left, Side::Left),
+                ("display.monitor_right", right, Side::Right),
+            ] {
+                let Some(choice) = choice else {
+                    return Err(WindowError::Monitor {
+                        key,
+                        detail: "layout = \"two-outputs\" needs each eye's monitor".into(),
+                    });
+                };
+                out.push((chosen(key, Some(choice))?, Some(side)));
+            }
+            if out[0].0 == out[1].0 {
+                return Err(WindowError::Monitor {
+                    key: "display.monitor_right",
+                    detail: format!(
+                        "{} is monitor {}, the one display.monitor_left ({}) is: two outputs \
+                         need two monitors",
+                        right.as_ref().map_or(String::new(), |c| c.to_string()),
+                        out[1].0,
+                        left.as_ref().map_or(String::new(), |c| c.to_string()),
+                    ),
+                });
+            }
+            Ok(out)
+        }
+    }
+}
+
+/// What is said at start when the two windows' monitors refresh at different rates
+/// (millihertz, as the system reports them; `None`: not reported, nothing said).
+pub fn refresh_mismatch(left: Option<u32>, right: Option<u32>) -> Option<String> {
+    let (l, r) = (left?, right?);
+    if l == r {
+        return None;
+    }
+    Some(format!(
+        "display.monitor_left refreshes at {:.3} Hz and display.monitor_right at {:.3} Hz: \
+         both windows are presented in the same pass of the presenter, each at its own \
+         monitor's vsync, so the pair is paced by the slower monitor ({:.3} Hz) and the faster \
+         one shows some frames twice; use two monitors at one rate",
+        f64::from(l) / 1000.0,
+        f64::from(r) / 1000.0,
+        f64::from(l.min(r)) / 1000.0
+    ))
 }
 
 /// Whether a display server is named in the environment. winit would say the same in its own
@@ -208,14 +283,73 @@ mod tests {
     }
 
     #[test]
-    fn two_outputs_in_a_window_is_refused_naming_the_key() {
-        use dioptra_rig::config::DisplayLayout;
-        let e = super::window_layout_supported(DisplayLayout::TwoOutputs).unwrap_err();
+    fn two_outputs_take_each_eyes_monitor_and_name_the_key_when_one_is_missing() {
+        let ms = [mon("HDMI-1", 0), mon("DP-2", 1920)];
+        let name = |n: &str| Some(MonitorChoice::Name(n.into()));
+        let per_eye = |l, r| Outputs::PerEye { left: l, right: r };
+        assert_eq!(
+            choose_outputs(
+                &ms,
+                &per_eye(name("DP-2"), Some(MonitorChoice::Index(0))),
+                None
+            )
+            .unwrap(),
+            [(1, Some(Side::Left)), (0, Some(Side::Right))]
+        );
+        assert_eq!(
+            choose_outputs(&ms, &Outputs::One(None), Some(1)).unwrap(),
+            [(1, None)]
+        );
+        let e = choose_outputs(&ms, &per_eye(name("HDMI-1"), name("DP-9")), None)
+            .unwrap_err()
+            .to_string();
         assert!(
-            e.to_string().contains("display.layout = \"two-outputs\""),
+            e.starts_with("display.monitor_right: no monitor named \"DP-9\"")
+                && e.contains("1: \"DP-2\""),
             "{e}"
         );
-        assert!(super::window_layout_supported(DisplayLayout::SideBySide).is_ok());
-        assert!(super::window_layout_supported(DisplayLayout::One).is_ok());
+        let e = choose_outputs(
+            &ms,
+            &per_eye(Some(MonitorChoice::Index(2)), name("DP-2")),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.starts_with("display.monitor_left: there is no monitor 2"),
+            "{e}"
+        );
+        // One monitor named twice (by name and by index) is refused.
+        let e = choose_outputs(
+            &ms,
+            &per_eye(name("dp-2"), Some(MonitorChoice::Index(1))),
+            None,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            e.starts_with("display.monitor_right: 1 is monitor 1")
+                && e.contains("two outputs need two monitors"),
+            "{e}"
+        );
+        let e = choose_outputs(&ms, &per_eye(name("HDMI-1"), None), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("display.monitor_right: "), "{e}");
+        let e = choose_outputs(&ms, &Outputs::One(name("VGA-1")), None)
+            .unwrap_err()
+            .to_string();
+        assert!(e.starts_with("display.monitor: no monitor named"), "{e}");
+    }
+
+    #[test]
+    fn monitors_at_different_rates_are_said_once_with_the_pace() {
+        assert_eq!(refresh_mismatch(Some(60_000), Some(60_000)), None);
+        assert_eq!(refresh_mismatch(None, Some(60_000)), None);
+        let s = refresh_mismatch(Some(60_000), Some(59_940)).unwrap();
+        assert!(
+            s.contains("60.000 Hz") && s.contains("paced by the slower monitor (59.940 Hz)"),
+            "{s}"
+        );
     }
 }
