@@ -1073,7 +1073,7 @@ impl Planner {
             meets_target,
             meets_deadline,
             why: format!(
-                "{setting}: {reason} (predicted {psnr:.1} dB against {:.1}, {ms:.1} ms against a budget of {:.1} ms on {} cores)",
+                "{setting}: {reason} (predicted {psnr:.1} dB in the fovea against {:.1}, {ms:.1} ms against a budget of {:.1} ms on {} cores)",
                 target.fovea_psnr_db, deadline.budget_ms, deadline.cores
             ),
         }
