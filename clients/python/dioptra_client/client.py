@@ -64,7 +64,7 @@ class Dioptra:
         return self._http.request("POST", "/mode", {"mode": mode})["mode"]
 
     def set_method(self, method: str) -> str:
-        """A render method that fits the mode (``gather``, ``lightfield-defocus``,
+        """A render method that fits the mode (``gather``, ``pyramid``, ``lightfield-defocus``,
         ``linear``, ``optimized``, ``views``, ``network``, ``refine``) or ``auto``."""
         return self._http.request("POST", "/method", {"method": method})["method"]
 

@@ -264,7 +264,36 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         assert!(fovea(&pair[1]) > fovea(&pair[0]), "{pair:?}");
     }
 
+    // Panel sizes: every stage timed at the quick sizes on the CPU, each render method among
+    // them; the rig run with each method at each size, its rates and latency measured.
+    let stages = read_csv(&out.join("panel_stages.csv"));
+    for method in ["gather", "pyramid", "pyramid-foveated", "lightfield-16"] {
+        let rows: Vec<_> = stages
+            .iter()
+            .filter(|r| r["backend"] == "cpu" && r["method"] == method)
+            .collect();
+        assert_eq!(rows.len(), 4, "{method}: 2 sizes x 2 fields: {rows:?}");
+        for r in rows {
+            finite_in(&r["time_ms"], 0.0, 1e6, &format!("panel {method} time_ms"));
+        }
+    }
+    let rig = read_csv(&out.join("panel_rig.csv"));
+    assert_eq!(rig.len(), 8, "2 sizes x 4 methods: {rig:?}");
+    for r in &rig {
+        finite_in(&r["distinct_fps"], 0.0, 61.0, "panel rig distinct_fps");
+        finite_in(&r["refresh_hz"], 0.0, 61.0, "panel rig refresh_hz");
+        // Empty only where no frame was shown in the run (a loaded machine).
+        if !r["gaze_to_display_p99_ms"].is_empty() {
+            finite_in(
+                &r["gaze_to_display_p99_ms"],
+                0.0,
+                1e5,
+                "gaze to display p99",
+            );
+        }
+    }
     let report = std::fs::read_to_string(out.join("report.md")).expect("report");
+    assert!(report.contains("## Panel sizes"));
     assert!(report.contains("## Speed against accuracy"));
     assert!(report.contains("## Where methods fail"));
     assert!(report.contains("## Light fields from sparse views"));
@@ -274,6 +303,7 @@ fn quick_eval_writes_every_method_and_the_failure_report() {
         "failure_region_psnr",
         "failure_temporal",
         "loop_focus_error",
+        "panel_fps",
     ] {
         for ext in ["png", "svg"] {
             let p = out.join(format!("{chart}.{ext}"));
@@ -291,6 +321,7 @@ fn bad_flags_are_named() {
         ("--backend", "tpu"),
         ("--suite", "fast"),
         ("--runs", "0"),
+        ("--panel-seconds", "0"),
     ] {
         let (ok, text) = dioptra(&["eval", flag, value, "--out", "/nonexistent/never"]);
         assert!(!ok, "{flag} {value} was accepted");

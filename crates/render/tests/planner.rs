@@ -374,7 +374,8 @@ fn under_a_short_budget_the_planner_picks_a_cheaper_setting_that_fits() {
 fn foveation_is_offered_only_where_its_full_resolution_covers_the_fovea() {
     let input = panel_frame(2.5);
     let stats = FrameStats::from_rgbd(&input, [480.0, 540.0], Diopters(0.5), &EyeModel::default());
-    // The planner's fovea: 0.05 of the 1445 px diagonal, 72 px, 1.5 degrees at 48 px/deg.
+    // The planner's fovea: 5 degrees around the gaze (`planner::FOVEA_RADIUS_DEG`, the
+    // foveated render's default radius), in degrees of the eye's field at any size.
     let at = |radius_deg| {
         Setting::Foveated(Foveation {
             gaze: stats.gaze,
@@ -412,8 +413,8 @@ fn a_budget_between_the_rigs_foveation_and_a_coarser_one_coarsens_the_periphery(
         (Diopters(4.0), Diopters(0.0)),
         Diopters(0.0),
     );
-    // The planner's fovea is a tenth of the diagonal across (153 px, 8.1 degrees in radius at
-    // the centre's 18.8 px/deg): a full-resolution radius of 10 degrees covers it.
+    // The planner's fovea is 5 degrees around the gaze: a full-resolution radius of 10
+    // degrees covers it.
     let rig = FoveationSettings {
         radius_deg: 10.0,
         mar_slope: DEFAULT_MAR_SLOPE,
@@ -592,5 +593,35 @@ fn predict_frame_cost_scales_with_eyes_and_size_and_refuses_what_it_cannot_model
     ] {
         let e = predict_frame_cost(&spec).unwrap_err().to_string();
         assert!(e.contains(want), "{e}");
+    }
+}
+
+/// The planner's fovea is degrees of the eye's field, the same at every panel size: a depth
+/// step 4 degrees from the gaze is inside a 5-degree fovea and outside a 2-degree one.
+#[test]
+fn the_fovea_is_degrees_of_the_eyes_field() {
+    let eye = EyeModel::default();
+    for size in [160usize, 480] {
+        let step = size / 2 + (4.0 * size as f32 / eye.fov_horizontal_deg) as usize;
+        let tex = vec![0.5f32; size * size * 3];
+        let d: Vec<f32> = (0..size * size)
+            .map(|i| if i % size >= step { 3.0 } else { 1.0 })
+            .collect();
+        let input = Rgbd::new(
+            RgbImage::from_interleaved(size, size, &tex).unwrap(),
+            DepthMap::from_diopters(Plane::from_vec(size, size, d).unwrap()).unwrap(),
+        )
+        .unwrap();
+        let gaze = [0.5 * size as f32, 0.5 * size as f32];
+        let region =
+            |deg| FrameStats::from_rgbd_around(&input, gaze, deg, Diopters(1.0), &eye).region_range;
+        assert_eq!(region(2.0), (Diopters(1.0), Diopters(1.0)), "{size} px");
+        assert_eq!(region(5.0), (Diopters(3.0), Diopters(1.0)), "{size} px");
+        let st = FrameStats::from_rgbd(&input, gaze, Diopters(1.0), &eye);
+        assert_eq!(
+            st.fovea_radius_deg,
+            dioptra_render::planner::FOVEA_RADIUS_DEG
+        );
+        assert_eq!(st.region_range, region(5.0));
     }
 }

@@ -344,6 +344,7 @@ impl RigConfig {
         self.devices.check(&self.optics, self.mode)?;
         crate::mode::check(self.mode, self.method, self.auto_method)?;
         self.eye.check()?;
+        self.check_foveation()?;
         self.display.check()?;
         self.check_optics_per_lens()?;
         self.check_eye_images()?;
@@ -403,6 +404,27 @@ impl RigConfig {
                 })
             })
             .collect()
+    }
+
+    /// `render.foveation` fits the eye's field and applies to what the rig renders: the
+    /// varifocal pyramid method, fixed or chosen by `auto`.
+    fn check_foveation(&self) -> Result<(), ConfigError> {
+        self.render.foveation.check(self.eye.fov_deg)?;
+        if self.render.foveation.settings().is_none() {
+            return Ok(());
+        }
+        let renders_pyramid = self.auto_method || self.method.0 == RenderMethod::Pyramid;
+        if self.mode != Mode::Varifocal || !renders_pyramid {
+            return Err(invalid(
+                "render.foveation",
+                format!(
+                    "foveation applies to the varifocal render's pyramid method (method = \"pyramid\" or \"auto\"), not {} in {} mode: set one of those or foveation = \"off\"",
+                    self.method.as_str(),
+                    self.mode.as_str()
+                ),
+            ));
+        }
+        Ok(())
     }
 
     /// Each eye's image settings can be used: the eyepiece's optical centre is on the panel

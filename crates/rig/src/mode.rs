@@ -52,8 +52,9 @@ impl Mode {
     }
 }
 
-/// The render method, by the scheduler's names: gather, lightfield-defocus (varifocal);
-/// linear, optimized (multifocal); views (light field); network (any).
+/// The render method, by the scheduler's names: gather, pyramid (bounded cost per pixel,
+/// foveated by `render.foveation`), lightfield-defocus (varifocal); linear, optimized,
+/// spectral (multifocal); views (light field); network, refine (any).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "String", into = "String")]
 pub struct Method(pub RenderMethod);
@@ -75,7 +76,8 @@ impl From<Method> for String {
 }
 
 /// The methods the daemon renders.
-pub const RENDERED: &str = "gather, lightfield-defocus, network or refine (varifocal), linear, \
+pub const RENDERED: &str =
+    "gather, pyramid, lightfield-defocus, network or refine (varifocal), linear, \
      optimized, spectral, network or refine (multifocal), views or refine (light field)";
 
 /// Every method's name, for messages.

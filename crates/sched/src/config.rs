@@ -53,6 +53,9 @@ impl FromStr for Mode {
 pub enum RenderMethod {
     /// Defocus by gathering (varifocal).
     Gather,
+    /// Gather's sums with large blurs spread at the resolution they leave: work per pixel
+    /// bounded whatever the blur (varifocal); foveated around the gaze where the rig says.
+    Pyramid,
     /// Defocus through a dynamic light field, Yu et al. 2010 (varifocal).
     LightFieldDefocus,
     /// The DeepFocus-family network (any mode it was trained for).
@@ -72,8 +75,9 @@ pub enum RenderMethod {
 }
 
 impl RenderMethod {
-    pub const ALL: [RenderMethod; 8] = [
+    pub const ALL: [RenderMethod; 9] = [
         RenderMethod::Gather,
+        RenderMethod::Pyramid,
         RenderMethod::LightFieldDefocus,
         RenderMethod::Network,
         RenderMethod::Linear,
@@ -86,6 +90,7 @@ impl RenderMethod {
     pub fn as_str(self) -> &'static str {
         match self {
             RenderMethod::Gather => "gather",
+            RenderMethod::Pyramid => "pyramid",
             RenderMethod::LightFieldDefocus => "lightfield-defocus",
             RenderMethod::Network => "network",
             RenderMethod::Linear => "linear",
@@ -100,7 +105,12 @@ impl RenderMethod {
     pub fn suits(self, mode: Mode) -> bool {
         use RenderMethod::*;
         match mode {
-            Mode::Varifocal => matches!(self, Gather | LightFieldDefocus | Network | Refine),
+            Mode::Varifocal => {
+                matches!(
+                    self,
+                    Gather | Pyramid | LightFieldDefocus | Network | Refine
+                )
+            }
             Mode::Multifocal => matches!(self, Linear | Optimized | Spectral | Network | Refine),
             Mode::LightField => matches!(self, Views | Network | Refine),
         }

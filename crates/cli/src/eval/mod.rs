@@ -2,9 +2,11 @@
 //! failure-case suite (scenes built to break methods; faults in the control loop). Writes
 //! CSV tables, charts (PNG and SVG) and a Markdown report to `--out`.
 //!
-//! `--suite speed|failure|loop|lightfield|all` (default all) picks the parts (failure includes
-//! the control-loop faults; loop is those alone; lightfield: light fields from sparse views); `--quick` is the one-minute version CI runs (one
-//! 128 px scene, fewer settings and runs, every method still present).
+//! `--suite speed|failure|loop|lightfield|panel|all` (default all) picks the parts (failure
+//! includes the control-loop faults; loop is those alone; lightfield: light fields from sparse
+//! views; panel: a prototype's panel sizes, each stage timed and the rig run at each); `--quick`
+//! is the one-minute version CI runs (one 128 px scene, fewer settings and runs, small panels,
+//! every method still present).
 
 mod charts;
 mod failure;
@@ -12,6 +14,7 @@ mod lightfield;
 #[cfg(feature = "simulated")]
 mod loop_faults;
 mod methods;
+mod panel;
 mod report;
 mod speed;
 
@@ -60,7 +63,9 @@ pub struct Args {
     #[arg(long)]
     scenes: Option<usize>,
     /// speed, failure (with the control-loop faults), loop (the control-loop faults only),
-    /// lightfield (light fields from sparse views, foveated too) or all.
+    /// lightfield (light fields from sparse views, foveated too), panel (panels of 960 x 1080,
+    /// 1440 x 1600 and 2160 x 2160 per eye at 20 and 90 degrees: each stage timed, and the rig
+    /// run at each size; --quick: 96 x 108 and 144 x 160) or all.
     #[arg(long, default_value = "all")]
     suite: String,
     /// Thin-lens rays per pixel of the ground truth (default 64; --quick 16).
@@ -72,6 +77,9 @@ pub struct Args {
     /// Simulated seconds per control-loop fault run (default 4; --quick 2.5).
     #[arg(long)]
     loop_seconds: Option<f64>,
+    /// Seconds each panel rig run is measured for, on the system clock (default 10; --quick 1).
+    #[arg(long)]
+    panel_seconds: Option<f64>,
 }
 
 fn parse_sizes(s: &str) -> Result<Vec<usize>> {
@@ -94,19 +102,21 @@ struct Settings {
     speed: Option<speed::SpeedPlan>,
     failure: Option<failure::FailurePlan>,
     lightfield: Option<lightfield::LightFieldPlan>,
+    panel: Option<panel::PanelPlan>,
     /// The control-loop faults, for this many simulated seconds each.
     loop_seconds: Option<f64>,
     backends: Vec<String>,
 }
 
 fn settings(a: &Args) -> Result<Settings> {
-    let (run_speed, run_failure, run_loop, run_lf) = match a.suite.as_str() {
-        "speed" => (true, false, false, false),
-        "failure" => (false, true, true, false),
-        "loop" => (false, false, true, false),
-        "lightfield" => (false, false, false, true),
-        "all" => (true, true, true, true),
-        s => bail!("--suite {s:?}: expected speed, failure, loop, lightfield or all"),
+    let (run_speed, run_failure, run_loop, run_lf, run_panel) = match a.suite.as_str() {
+        "speed" => (true, false, false, false, false),
+        "failure" => (false, true, true, false, false),
+        "loop" => (false, false, true, false, false),
+        "lightfield" => (false, false, false, true, false),
+        "panel" => (false, false, false, false, true),
+        "all" => (true, true, true, true, true),
+        s => bail!("--suite {s:?}: expected speed, failure, loop, lightfield, panel or all"),
     };
     let backends: Vec<String> = match a.backend.as_str() {
         "cpu" => vec!["cpu".into()],
@@ -211,10 +221,27 @@ fn settings(a: &Args) -> Result<Settings> {
         // About 8, 2.4 and 1.4 % of the rays at 256 px.
         foveate: vec![2.5, 5.0, 7.0],
     });
+    let panel_seconds = a.panel_seconds.unwrap_or(if a.quick { 1.0 } else { 10.0 });
+    if !(0.5..=600.0).contains(&panel_seconds) {
+        bail!("--panel-seconds {panel_seconds}: expected 0.5 to 600");
+    }
+    let panel = run_panel.then(|| panel::PanelPlan {
+        sizes: if a.quick {
+            vec![[96, 108], [144, 160]]
+        } else {
+            vec![[960, 1080], [1440, 1600], [2160, 2160]]
+        },
+        fields_deg: vec![20.0, 90.0],
+        budget_ms: budget_s * 1e3,
+        // The rig at 20 degrees only: 48 to 108 px per degree, the blur a lab's panel has.
+        rig_fields_deg: vec![20.0],
+        rig_seconds: panel_seconds,
+    });
     Ok(Settings {
         speed,
         failure,
         lightfield,
+        panel,
         loop_seconds: run_loop.then_some(loop_seconds),
         backends,
     })
@@ -320,6 +347,34 @@ pub fn run(a: Args) -> Result<()> {
         lightfield::foveated_table(&foveated).write(&a.out.join("lightfield_foveated.csv"))?;
         lightfield_report(&mut md, plan, &rows, &foveated, c5r.err());
     }
+    if let Some(plan) = &s.panel {
+        // Its own GPU, as the light fields' (the speed part's opens only when that part runs).
+        let panel_gpu = if s.backends.iter().any(|b| b == "gpu") && gpu.is_none() {
+            Gpu::new(None).ok()
+        } else {
+            None
+        };
+        let mut panel_backends = backends.clone();
+        if let Some(g) = &panel_gpu {
+            panel_backends.push(g);
+        }
+        let pb = bar(plan.units(panel_backends.len()))?;
+        let tick = |what: &str| {
+            pb.set_message(format!("panel: {what}"));
+            pb.inc(1);
+        };
+        let stage_rows = panel::stages(plan, &panel_backends, &tick)?;
+        let rig_rows = panel::rigs(plan, &tick)?;
+        pb.finish_with_message("panel sizes done");
+        let note = match &panel_gpu {
+            Some(g) => format!("GPU adapter: {}.", g.context().adapter().name),
+            None if gpu.is_none() && s.backends.iter().any(|b| b == "gpu") => {
+                "GPU backend not run: no adapter opened.".to_string()
+            }
+            None => gpu_note.clone(),
+        };
+        panel::write(&a.out, &mut md, plan, &stage_rows, &rig_rows, &note)?;
+    }
     let _ = writeln!(
         md,
         "\nWall time of this run: {:.0} s.",
@@ -328,7 +383,7 @@ pub fn run(a: Args) -> Result<()> {
     let report = a.out.join("report.md");
     std::fs::write(&report, md).with_context(|| format!("cannot write {}", report.display()))?;
     println!(
-        "wrote {} (eval.csv, failure.csv, loop.csv, charts, report.md) in {:.0} s",
+        "wrote {} (eval.csv, failure.csv, loop.csv, panel_*.csv, charts, report.md) in {:.0} s",
         a.out.display(),
         started.elapsed().as_secs_f64()
     );

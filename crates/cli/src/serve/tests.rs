@@ -1324,7 +1324,10 @@ async fn method_auto_renders_the_planners_choice_and_shows_it() {
     assert_eq!(planned["method"], "auto", "{planned}");
     let choice = planned["planned"]["method"].as_str().unwrap().to_string();
     assert!(
-        choice == "none" || choice == "gather" || choice.starts_with("lightfield-"),
+        choice == "none"
+            || choice == "gather"
+            || choice.starts_with("lightfield-")
+            || choice.starts_with("pyramid"),
         "{planned}"
     );
     assert!(
@@ -1853,6 +1856,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         (Mode::Varifocal, "gather", 0.4),
         (Mode::Varifocal, "gather", -0.5),
         (Mode::Varifocal, "lightfield-defocus", 1.7),
+        (Mode::Varifocal, "pyramid", 0.4),
         (Mode::Multifocal, "linear", 1.0),
         (Mode::Varifocal, "network", 1.2),
         (Mode::Multifocal, "network", 1.0),

@@ -1146,3 +1146,90 @@ fn distortion_files_and_transfer_tables_are_read_from_the_config_files_folder() 
     // Both kept with the config (a recording holds them).
     assert_eq!(c.calibration_tables.len(), 2);
 }
+
+/// `render.foveation`: off by default, a radius and a fall-off, errors naming the key.
+#[test]
+fn foveation_is_off_or_a_radius_and_a_falloff_for_the_pyramid() {
+    let with = |method: &str, fov: &str| {
+        SIM_RIG.replace("method = \"gather\"", &format!("method = \"{method}\""))
+            + &format!("\n[render]\nfoveation = {fov}\n")
+    };
+    assert_eq!(
+        RigConfig::parse(SIM_RIG)
+            .unwrap()
+            .render
+            .foveation
+            .settings(),
+        None
+    );
+    let off = RigConfig::parse(&with("gather", "\"off\"")).unwrap();
+    assert_eq!(off.render.foveation.settings(), None);
+    let on = RigConfig::parse(&with(
+        "pyramid",
+        "{ radius_deg = 4.0, falloff_arcmin_per_deg = 3.0 }",
+    ))
+    .unwrap();
+    let f = on.render.foveation.settings().unwrap();
+    assert_eq!(f.radius_deg, 4.0);
+    assert!((f.mar_slope - 0.05).abs() < 1e-6, "{f:?}");
+    // The defaults: 5 degrees, Guenter et al.'s 1.32 arcmin per degree.
+    let d = RigConfig::parse(&with("auto", "{}")).unwrap();
+    let f = d.render.foveation.settings().unwrap();
+    assert_eq!(f.radius_deg, 5.0);
+    assert!((f.mar_slope * 60.0 - 1.32).abs() < 1e-5, "{f:?}");
+    for (method, fov, key, says) in [
+        (
+            "pyramid",
+            "{ radius_deg = -1.0 }",
+            "render.foveation.radius_deg",
+            "eye.fov_deg",
+        ),
+        (
+            "pyramid",
+            "{ radius_deg = 30.0 }",
+            "render.foveation.radius_deg",
+            "eye.fov_deg = 20",
+        ),
+        (
+            "pyramid",
+            "{ falloff_arcmin_per_deg = 0.0 }",
+            "render.foveation.falloff_arcmin_per_deg",
+            "1.32",
+        ),
+        (
+            "gather",
+            "{ radius_deg = 5.0 }",
+            "render.foveation",
+            "method = \"pyramid\"",
+        ),
+        ("pyramid", "\"on\"", "render.foveation", "radius_deg"),
+        (
+            "pyramid",
+            "{ radius = 5.0 }",
+            "render.foveation",
+            "radius_deg",
+        ),
+    ] {
+        let e = err(&with(method, fov));
+        assert_eq!(e.key(), key, "{fov}: {e}");
+        assert!(e.to_string().contains(says), "{fov}: {e}");
+    }
+    // Multifocal mode has no varifocal render to foveate.
+    let e = err(&(SIM_RIG
+        .replace("mode = \"varifocal\"", "mode = \"multifocal\"")
+        .replace("method = \"gather\"", "method = \"linear\"")
+        + "\n[render]\nfoveation = { radius_deg = 5.0 }\n"));
+    assert_eq!(e.key(), "render.foveation", "{e}");
+}
+
+#[test]
+fn pyramid_is_a_varifocal_method() {
+    let c =
+        RigConfig::parse(&SIM_RIG.replace("method = \"gather\"", "method = \"pyramid\"")).unwrap();
+    assert_eq!(c.method, Method(RenderMethod::Pyramid));
+    let e = err(&SIM_RIG
+        .replace("method = \"gather\"", "method = \"pyramid\"")
+        .replace("mode = \"varifocal\"", "mode = \"multifocal\""));
+    assert_eq!(e.key(), "method", "{e}");
+    assert!(e.to_string().contains("linear"), "{e}");
+}

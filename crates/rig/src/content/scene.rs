@@ -9,6 +9,13 @@
 //! due is counted late and the one before stays (or the newest ready one is shown). On a
 //! simulated clock the loop waits for the frame that is due (simulated time stands still
 //! meanwhile), so a run shows the same frames whatever the machine's load.
+//!
+//! At a panel's size the ray cast can take longer than [`SCENE_UPDATE`]. On the system clock
+//! the worker then casts at the size it can ([`smaller_cast`]: each side divided by up to
+//! [`MAX_CAST_DIVISOR`], the field kept) and scales the frame up to the display's size
+//! (nearest pixel, so no depth is mixed), logs it once per change, and `/status` → `content`
+//! shows `cast_size` and why (`cast_reduced`). On a simulated clock it always casts at full
+//! size (what a run shows does not depend on the machine).
 
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -33,6 +40,9 @@ const MOVERS: usize = 4;
 
 /// Rays per pixel of the scene's pinhole render (anti-aliased edges).
 const SAMPLES: usize = 2;
+
+/// The most each side of the cast is divided by when the scene cannot keep up.
+pub const MAX_CAST_DIVISOR: usize = 8;
 
 /// Whether the loop waits for the frame that is due.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -64,6 +74,10 @@ pub struct SceneStatus {
     pub since_ns: u64,
     /// How long the frame on show has been on show, ms (at the time of asking).
     pub newest_age_ms: Option<f64>,
+    /// The size the scene is ray cast at, pixels (the display's unless it cannot keep up).
+    pub cast_size: [usize; 2],
+    /// Why `cast_size` is smaller than the display's; `None`: it is not.
+    pub cast_reduced: Option<String>,
     /// The newest frame failed to render (the next one rendered clears it).
     #[serde(skip)]
     pub failing: bool,
@@ -86,6 +100,9 @@ struct Worker {
     /// The newest render: its scene time and frame (or why it failed).
     ready: Option<(Timestamp, Result<SceneViews, String>)>,
     rendered: u64,
+    /// The cast's size and why it is smaller than the camera's ([`smaller_cast`]).
+    cast_size: [usize; 2],
+    cast_reduced: Option<String>,
     stop: bool,
     /// The worker thread has ended (stopped, or its render panicked).
     ended: bool,
@@ -171,13 +188,68 @@ fn render(
     t: Timestamp,
     half_ipd_m: Option<f32>,
 ) -> Result<SceneViews, RenderError> {
+    render_cast(base, a, cam, cam, t, half_ipd_m)
+}
+
+/// [`render`], cast through `cast_cam` (`cam` or a smaller one over the same field) and
+/// scaled up to `cam`'s size.
+fn render_cast(
+    base: &Scene,
+    a: &Animation,
+    cam: &Camera,
+    cast_cam: &Camera,
+    t: Timestamp,
+    half_ipd_m: Option<f32>,
+) -> Result<SceneViews, RenderError> {
     let scene = a.at(base, t.as_secs_f64());
-    let centre = Arc::new(cast(&scene, cam, 0.0)?);
+    let to_size = |v: Arc<Rgbd>| -> Result<Arc<Rgbd>, RenderError> {
+        if v.width() == cam.width && v.height() == cam.height {
+            return Ok(v);
+        }
+        Ok(Arc::new(nearest_upscale(&v, cam.width, cam.height)?))
+    };
+    let centre = to_size(Arc::new(cast(&scene, cast_cam, 0.0)?))?;
     let eyes = match half_ipd_m {
         None => None,
-        Some(h) => Some(cast_eyes(&scene, cam, h)?),
+        Some(h) => {
+            let [l, r] = cast_eyes(&scene, cast_cam, h)?;
+            Some([to_size(l)?, to_size(r)?])
+        }
     };
     Ok(SceneViews { centre, eyes })
+}
+
+/// `v` at `width` x `height`, each pixel the nearest of `v`'s (colour and depth alike, so no
+/// depth is mixed across an edge).
+fn nearest_upscale(v: &Rgbd, width: usize, height: usize) -> Result<Rgbd, RenderError> {
+    use dioptra_core::{DepthMap, Plane, RgbImage};
+    let (w, h) = (v.width(), v.height());
+    let xs: Vec<usize> = (0..width).map(|x| (x * w / width).min(w - 1)).collect();
+    let scale = |p: &Plane| -> Result<Plane, RenderError> {
+        let mut out = Vec::with_capacity(width * height);
+        for y in 0..height {
+            let row = p.row((y * h / height).min(h - 1));
+            out.extend(xs.iter().map(|&x| row[x]));
+        }
+        Ok(Plane::from_vec(width, height, out)?)
+    };
+    let [r, g, b] = &v.color.channels;
+    let color = RgbImage::from_planes(scale(r)?, scale(g)?, scale(b)?)?;
+    let depth = DepthMap::from_diopters(scale(v.depth.plane())?)?;
+    Ok(Rgbd::new(color, depth)?)
+}
+
+/// The divisor of each side after a cast at `divisor` took `took`: the smallest that
+/// predicts (cost in proportion to pixels) a cast within 80 % of [`SCENE_UPDATE`], never
+/// smaller than `divisor` (a scene that once fell behind is not enlarged again, so its frames
+/// do not flip between sizes), at most [`MAX_CAST_DIVISOR`].
+pub fn smaller_cast(divisor: usize, took: Duration) -> usize {
+    let target = 0.8 * SCENE_UPDATE.as_secs_f64();
+    let ratio = took.as_secs_f64() / target;
+    if ratio <= 1.0 {
+        return divisor;
+    }
+    ((divisor as f64 * ratio.sqrt()).ceil() as usize).clamp(divisor, MAX_CAST_DIVISOR)
 }
 
 /// The left and the right eye's views of `scene`, the eyes `2 x half_ipd_m` apart with
@@ -246,6 +318,7 @@ impl AnimatedScene {
         let shared = Arc::new(Shared {
             state: Mutex::new(Worker {
                 rendered: 1,
+                cast_size: [cam.width, cam.height],
                 ended: animation.is_empty(),
                 ..Worker::default()
             }),
@@ -256,7 +329,7 @@ impl AnimatedScene {
             let (b, a, s) = (base.clone(), animation.clone(), shared.clone());
             std::thread::Builder::new()
                 .name("dioptra-scene".into())
-                .spawn(move || render_ahead(&b, &a, &cam, half_ipd_m, s))
+                .spawn(move || render_ahead(&b, &a, &cam, half_ipd_m, pacing, s))
                 .map_err(|e| {
                     RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
                         "cannot start the scene's render thread: {e}"
@@ -413,7 +486,11 @@ impl AnimatedScene {
     pub fn status(&self) -> SceneStatus {
         let on = lock(&self.on_show);
         let mut st = on.status.clone();
-        st.rendered = lock(&self.shared.state).rendered;
+        let w = lock(&self.shared.state);
+        st.rendered = w.rendered;
+        st.cast_size = w.cast_size;
+        st.cast_reduced = w.cast_reduced.clone();
+        drop(w);
         st.scene_time_ms = on.time.0 as f64 / 1e6;
         st.newest_age_ms = Some(on.since.elapsed().as_secs_f64() * 1e3);
         st
@@ -503,9 +580,12 @@ fn render_ahead(
     a: &Animation,
     cam: &Camera,
     half_ipd_m: Option<f32>,
+    pacing: Pacing,
     shared: Arc<Shared>,
 ) {
     let _end = EndGuard(shared.clone());
+    let mut divisor = 1;
+    let mut cast_cam = *cam;
     loop {
         let t = {
             let mut w = lock(&shared.state);
@@ -523,8 +603,33 @@ fn render_ahead(
                     .unwrap_or_else(std::sync::PoisonError::into_inner);
             }
         };
-        let r = render(base, a, cam, t, half_ipd_m).map_err(|e| e.to_string());
+        let started = Instant::now();
+        let r = render_cast(base, a, cam, &cast_cam, t, half_ipd_m).map_err(|e| e.to_string());
+        let took = started.elapsed();
         let mut w = lock(&shared.state);
+        if pacing == Pacing::RealTime && r.is_ok() {
+            let next = smaller_cast(divisor, took);
+            if next != divisor {
+                divisor = next;
+                cast_cam = Camera::new(
+                    cam.eye,
+                    (cam.width / divisor).max(1),
+                    (cam.height / divisor).max(1),
+                );
+                let why = format!(
+                    "the procedural scene cannot keep up at the display's {} x {} (a frame took {:.0} ms against {:.0} ms): it is ray cast at {} x {} and scaled up; a smaller panel (display.width, display.height) or content from files or a stream keeps full size",
+                    cam.width,
+                    cam.height,
+                    took.as_secs_f64() * 1e3,
+                    SCENE_UPDATE.as_secs_f64() * 1e3,
+                    cast_cam.width,
+                    cast_cam.height
+                );
+                tracing::warn!("{why}");
+                w.cast_size = [cast_cam.width, cast_cam.height];
+                w.cast_reduced = Some(why);
+            }
+        }
         w.busy = None;
         w.rendered += 1;
         w.ready = Some((t, r));

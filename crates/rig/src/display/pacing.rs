@@ -35,6 +35,10 @@ pub struct PacingStatus {
     pub refresh_hz: Option<f64>,
     /// Misses in the newest [`RATE_WINDOW`]: the rig is not keeping up now.
     pub late: bool,
+    /// No frame shown [`FIRST_FRAME_WAIT`] or more after the start: what the log said (for
+    /// `/status.problems`; the log has it, `/status.display` its counts).
+    #[serde(skip)]
+    pub no_frame: Option<String>,
 }
 
 /// A line for the log.
@@ -142,6 +146,7 @@ impl Pacing {
         }
         self.rates(now);
         self.no_frame_at = None;
+        self.status.no_frame = None;
         if repeat && self.late_since.is_none() {
             self.late_since = Some(now);
             self.since = (0, 0);
@@ -198,13 +203,15 @@ impl Pacing {
         }
         if self.status.refreshes == 0 {
             self.no_frame_at = Some(now);
-            return Some(Notice::NoFrame(format!(
+            let line = format!(
                 "no frame shown {:.1} s after start: the first render has not finished ({}). \
                  To fit: {}",
                 now.saturating_since(self.start).as_secs_f64(),
                 self.render_note(),
                 self.advice
-            )));
+            );
+            self.status.no_frame = Some(line.clone());
+            return Some(Notice::NoFrame(line));
         }
         let since = self.late_since?;
         let span = now.saturating_since(since).as_secs_f64();
@@ -312,8 +319,10 @@ mod tests {
         let mut p = Pacing::new(at(0), Duration::from_micros(16_667), "display.width".into());
         assert_eq!(p.next_check(), Some(at(2000)));
         assert_eq!(p.check(at(1999)), None);
+        assert_eq!(p.status().no_frame, None, "within the grace period");
         let n = p.check(at(2000)).unwrap();
         assert!(matches!(n, Notice::NoFrame(_)));
+        assert_eq!(p.status().no_frame.as_deref(), Some(n.text()));
         assert!(
             n.text().contains("no frame shown 2.0 s after start"),
             "{}",
@@ -325,5 +334,6 @@ mod tests {
         // The first frame: nothing to say (it is new).
         assert_eq!(p.presented(at(7500), 0, false), None);
         assert_eq!(p.next_check(), None);
+        assert_eq!(p.status().no_frame, None);
     }
 }

@@ -123,6 +123,9 @@ impl DisplayHandle {
             })
             .collect();
         let p = &st.pacing;
+        if let Some(line) = &p.no_frame {
+            out.push(Problem::new("display", "method", line.clone()));
+        }
         if p.late {
             out.push(Problem::new(
                 "display",
@@ -136,5 +139,40 @@ impl DisplayHandle {
             ));
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::display::pacing::Pacing;
+    use dioptra_core::Timestamp;
+    use std::time::Duration;
+
+    #[test]
+    fn no_frame_after_the_grace_period_is_a_problem_naming_what_to_change() {
+        let h = DisplayHandle::new(Value::Null);
+        let advice = "a smaller panel (display.width, display.height)";
+        let mut p = Pacing::new(Timestamp(0), Duration::from_micros(16_667), advice.into());
+        let second = |s: u64| Timestamp(s * 1_000_000_000);
+        assert_eq!(p.check(second(1)), None);
+        h.pacing(p.status(), advice);
+        assert!(h.problems().is_empty(), "{:?}", h.problems());
+        assert!(p.check(second(3)).is_some());
+        h.pacing(p.status(), advice);
+        let problems = h.problems();
+        assert_eq!(problems.len(), 1, "{problems:?}");
+        let json = serde_json::to_value(&problems[0]).unwrap();
+        assert_eq!(json["part"], "display");
+        assert_eq!(json["key"], "method");
+        let text = json["problem"].as_str().unwrap();
+        assert!(
+            text.contains("no frame shown") && text.contains("display.width"),
+            "{text}"
+        );
+        // The first frame clears it.
+        p.presented(second(4), 0, false);
+        h.pacing(p.status(), advice);
+        assert!(h.problems().is_empty());
     }
 }

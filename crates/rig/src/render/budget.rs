@@ -5,7 +5,7 @@
 //! is measured instead (the caller times a render and hands it to [`Prediction::measured`]).
 
 use dioptra_render::defocus::DefocusMethod;
-use dioptra_render::planner::{predict_frame_cost, FrameSpec};
+use dioptra_render::planner::{predict_frame_cost, FoveationSettings, FrameSpec};
 use dioptra_sched::RenderMethod;
 
 use crate::config::RigConfig;
@@ -115,13 +115,13 @@ impl Prediction {
     }
 }
 
-/// The keys that change a frame's cost, for messages when nothing better is known (only keys
-/// rig.toml has: the pyramid method and `render.foveation` are not in the daemon yet).
+/// The keys that change a frame's cost, for messages when nothing better is known.
 pub fn generic_advice(period_key: &str) -> String {
     format!(
-        "a cheaper method (method = \"gather\"), a smaller \
-         panel (display.width, display.height), render.backend = \"gpu\", or a longer period \
-         ({period_key})"
+        "a method of bounded cost per pixel (method = \"pyramid\", or \"auto\" to let the \
+         planner choose per frame), gaze-contingent resolution (render.foveation = \
+         {{ radius_deg = 5.0 }}), a smaller panel (display.width, display.height), \
+         render.backend = \"gpu\", or a longer period ({period_key})"
     )
 }
 
@@ -129,6 +129,7 @@ pub fn generic_advice(period_key: &str) -> String {
 fn modelled(method: RenderMethod) -> Option<DefocusMethod> {
     match method {
         RenderMethod::Gather => Some(DefocusMethod::Gather),
+        RenderMethod::Pyramid => Some(DefocusMethod::Pyramid(Default::default())),
         RenderMethod::LightFieldDefocus => Some(DefocusMethod::LightField(Default::default())),
         _ => None,
     }
@@ -139,22 +140,32 @@ fn modelled(method: RenderMethod) -> Option<DefocusMethod> {
 pub fn predict(cfg: &RigConfig, backend: &str) -> Result<Prediction, String> {
     let mode = cfg.mode;
     let budget = FrameBudget::of(cfg, mode);
-    let method = modelled(cfg.method.0).ok_or_else(|| {
+    // `auto` is predicted as the planner's bounded-cost setting (what it falls to under a
+    // short budget).
+    let configured = if cfg.auto_method {
+        RenderMethod::Pyramid
+    } else {
+        cfg.method.0
+    };
+    let method = modelled(configured).ok_or_else(|| {
         format!(
             "no cost model for method {} in {} mode",
             cfg.method.as_str(),
             mode.as_str()
         )
     })?;
-    let spec = |width: u32, height: u32, method: DefocusMethod| {
+    let foveation = cfg.render.foveation.settings();
+    let spec = |width: u32, height: u32, method: DefocusMethod, foveation| {
         let mut s = FrameSpec::new(width as usize, height as usize, cfg.eye_model());
         s.eyes = eyes(cfg);
         s.method = method;
+        s.foveation = foveation;
         s.backend = backend.to_string();
         s
     };
     let d = &cfg.display;
-    let cost = predict_frame_cost(&spec(d.width, d.height, method)).map_err(|e| e.to_string())?;
+    let cost = predict_frame_cost(&spec(d.width, d.height, method, foveation))
+        .map_err(|e| e.to_string())?;
     let mut p = Prediction {
         frame_ms: cost.wall_ms,
         budget,
@@ -163,13 +174,29 @@ pub fn predict(cfg: &RigConfig, backend: &str) -> Result<Prediction, String> {
     };
     if !p.fits() {
         // What the model says of the cheaper settings: each alone, then a smaller panel.
-        let mut tries: Vec<(String, u32, u32, DefocusMethod)> = Vec::new();
-        if !matches!(method, DefocusMethod::Gather) {
+        let pyramid = DefocusMethod::Pyramid(Default::default());
+        let fovea = FoveationSettings {
+            radius_deg: dioptra_render::foveated::DEFAULT_RADIUS_DEG,
+            mar_slope: dioptra_render::foveated::DEFAULT_MAR_SLOPE,
+        };
+        let mut tries: Vec<(String, u32, u32, DefocusMethod, Option<FoveationSettings>)> =
+            Vec::new();
+        if !matches!(method, DefocusMethod::Pyramid(_)) {
             tries.push((
-                "method = \"gather\"".into(),
+                "method = \"pyramid\"".into(),
                 d.width,
                 d.height,
-                DefocusMethod::Gather,
+                pyramid,
+                None,
+            ));
+        }
+        if foveation.is_none() {
+            tries.push((
+                "method = \"pyramid\" with render.foveation = { radius_deg = 5.0 }".into(),
+                d.width,
+                d.height,
+                pyramid,
+                Some(fovea),
             ));
         }
         for div in [2u32, 3, 4] {
@@ -180,11 +207,12 @@ pub fn predict(cfg: &RigConfig, backend: &str) -> Result<Prediction, String> {
                     w,
                     h,
                     method,
+                    foveation,
                 ));
             }
         }
-        for (what, w, h, m) in tries {
-            if let Ok(c) = predict_frame_cost(&spec(w, h, m)) {
+        for (what, w, h, m, f) in tries {
+            if let Ok(c) = predict_frame_cost(&spec(w, h, m, f)) {
                 if c.wall_ms <= budget.budget_ms {
                     p.to_fit
                         .push(format!("{what}: predicted {:.1} ms", c.wall_ms));

@@ -83,9 +83,14 @@ pub struct RenderOutput {
 /// The planner's choice for one frame.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Planned {
-    /// `none`, `gather` or `lightfield-N`.
+    /// `none`, `gather`, `lightfield-N`, `pyramid` or `pyramid-foveated (...)`.
     pub choice: String,
     pub predicted_psnr_db: f64,
+    /// The render's predicted time, one eye, ms.
+    pub predicted_ms: f64,
+    /// The time one eye's render may take (the display period less a margin, shared by the
+    /// eyes), ms.
+    pub budget_ms: f64,
     pub why: String,
 }
 

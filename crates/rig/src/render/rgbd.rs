@@ -26,9 +26,13 @@ use std::sync::{Arc, Mutex};
 
 use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
+use dioptra_render::defocus::PyramidParams;
+use dioptra_render::foveated::Foveation;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
-use dioptra_render::planner::{Choice, FrameStats, Planner, Target};
+use dioptra_render::planner::{
+    self, Deadline, FoveationSettings, FrameStats, Planner, Target, TimedPlan,
+};
 use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
@@ -57,6 +61,12 @@ pub struct RgbdRenderer {
     panel: Mutex<Vec<CachedPanel>>,
     /// Half the interpupillary distance, metres: where each eye's light field is centred.
     half_ipd_m: f32,
+    /// `render.foveation`: the pyramid method's (fixed or the planner's) around each eye's
+    /// gaze; `None`: off.
+    foveation: Option<FoveationSettings>,
+    /// The time one eye's varifocal render may take, for the planner (`method = "auto"`): the
+    /// display period less a margin, shared by the eyes.
+    deadline: Deadline,
     /// Where gather, light-field defocus and linear blending run ([`RenderBackend`]).
     compute: Mutex<Compute>,
     /// The net of each mode and method (`network`: C1, C4; `refine`: C1R, C4R), or why it
@@ -117,6 +127,8 @@ impl RgbdRenderer {
             layers: Mutex::new(Vec::new()),
             panel: Mutex::new(Vec::new()),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
+            foveation: render.foveation.settings(),
+            deadline: eye_deadline(display),
             nets,
         })
     }
@@ -347,6 +359,41 @@ impl RgbdRenderer {
         }
     }
 
+    /// The planner's setting for a varifocal frame: the cheapest predicted to meet the
+    /// accuracy target in the fovea (the rig's foveation radius, else the planner's) within
+    /// the frame's time budget, the rig's foveation offered around `gaze`.
+    fn plan(&self, input: &Rgbd, gaze: [f32; 2], focus: Diopters) -> TimedPlan {
+        let fovea_deg = self
+            .foveation
+            .map_or(planner::FOVEA_RADIUS_DEG, |f| f.radius_deg);
+        let stats = FrameStats::from_rgbd_around(input, gaze, fovea_deg, focus, &self.eye);
+        Planner.plan_within(&stats, &Target::default(), &self.deadline, self.foveation)
+    }
+
+    /// Where `eye`'s gaze falls on its image (pixels), from the gaze on the one image (the
+    /// cyclopean eye's; the image's centre when unknown): the fixation point, at the focus's
+    /// distance along that ray, seen from the eye's own position (half the interpupillary
+    /// distance to its side; the eyes' cameras are parallel). Clamped to the image.
+    fn eye_gaze(
+        &self,
+        input: &Rgbd,
+        gaze: Option<[f32; 2]>,
+        eye: Option<Side>,
+        focus: Diopters,
+    ) -> [f32; 2] {
+        let (w, h) = (input.width() as f32, input.height() as f32);
+        let [x, y] = gaze.unwrap_or([0.5 * w, 0.5 * h]);
+        // The image may be smaller than the display (content at a reduced size).
+        let pitch_tan = self.eye.with_width(input.width() as u32).pixel_pitch_tan();
+        let shift_px = self.half_ipd_m * focus.0.max(0.0) / pitch_tan;
+        let x = match eye {
+            Some(Side::Left) => x + shift_px,
+            Some(Side::Right) => x - shift_px,
+            None => x,
+        };
+        [x.clamp(0.0, w), y.clamp(0.0, h)]
+    }
+
     /// Notes `content` as the newest frame rendered: what was made from older frames is
     /// dropped.
     fn take_up(&self, content: &ContentFrame) {
@@ -377,32 +424,27 @@ impl RgbdRenderer {
     ) -> Result<RenderOutput, RenderError> {
         self.take_up(content);
         let input = content.rgbd.as_ref();
+        let gaze = self.eye_gaze(input, gaze, content.eye, focus);
         if auto && mode == Mode::Varifocal {
-            let (w, h) = (input.width() as f32, input.height() as f32);
-            let gaze = gaze.unwrap_or([0.5 * w, 0.5 * h]);
-            let stats = FrameStats::from_rgbd(input, gaze, focus, &self.eye);
-            let plan = Planner.plan(&stats, &Target::default());
-            let image = match plan.choice {
-                Choice::None => FrameImage::Host(input.color.clone()),
-                Choice::Gather => self.defocus(input, focus, DefocusMethod::Gather)?,
-                Choice::LightField { views } => self.defocus(
-                    input,
-                    focus,
-                    DefocusMethod::LightField(LightFieldParams { views, mip: true }),
-                )?,
+            let plan = self.plan(input, gaze, focus);
+            let image = match plan.setting.method() {
+                None => FrameImage::Host(input.color.clone()),
+                Some(m) => self.defocus(input, focus, m)?,
             };
             return Ok(RenderOutput {
                 images: vec![image],
                 planned: Some(Planned {
-                    choice: plan.choice.to_string(),
+                    choice: plan.setting.to_string(),
                     predicted_psnr_db: plan.predicted_psnr,
+                    predicted_ms: plan.predicted_ms,
+                    budget_ms: self.deadline.budget_ms,
                     why: plan.why,
                 }),
                 cost: None,
             });
         }
         Ok(RenderOutput {
-            images: self.render_fixed(content, mode, method, focus)?,
+            images: self.render_fixed(content, mode, method, focus, gaze)?,
             planned: None,
             cost: None,
         })
@@ -414,6 +456,7 @@ impl RgbdRenderer {
         mode: Mode,
         method: Method,
         focus: Diopters,
+        gaze: [f32; 2],
     ) -> Result<Vec<FrameImage>, RenderError> {
         let input = content.rgbd.as_ref();
         match (mode, method.0) {
@@ -431,6 +474,18 @@ impl RgbdRenderer {
                     mip: true,
                 }),
             )?]),
+            (_, RenderMethod::Pyramid) => {
+                let foveation = self.foveation.map(|f| Foveation {
+                    gaze,
+                    radius_deg: f.radius_deg,
+                    mar_slope: f.mar_slope,
+                });
+                Ok(vec![self.defocus(
+                    input,
+                    focus,
+                    DefocusMethod::Pyramid(PyramidParams { foveation }),
+                )?])
+            }
             _ => Ok(vec![self.defocus(input, focus, DefocusMethod::Gather)?]),
         }
     }
@@ -652,6 +707,19 @@ impl Renderer for RgbdRenderer {
             .iter()
             .filter_map(|((m, r), n)| n.as_ref().err().map(|e| (*m, *r, e.clone())))
             .collect()
+    }
+}
+
+/// The time one eye's varifocal frame may take: the display period less the margin for the
+/// rest of the frame ([`super::budget::margin_ms`]), split between the eyes rendered one after
+/// the other, on the cores rayon renders on.
+fn eye_deadline(display: &Display) -> Deadline {
+    let period_ms = 1e3 / display.frame_hz.max(1e-3);
+    let eyes = if display.stereo() { 2.0 } else { 1.0 };
+    let frame = Deadline::from_period(period_ms, super::budget::margin_ms(period_ms), 1);
+    Deadline {
+        budget_ms: frame.budget_ms / eyes,
+        cores: rayon::current_num_threads(),
     }
 }
 
@@ -920,6 +988,155 @@ mod tests {
     use crate::config::{RigConfig, EXAMPLE_SIM_RIG};
     use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
     use dioptra_core::Timestamp;
+
+    /// A textured frame of `size` px: the left half at 3 D, the right at 0.25 D (a depth step
+    /// through the middle, where the gaze is).
+    fn step_frame(size: usize) -> ContentFrame {
+        use dioptra_core::{DepthMap, Plane};
+        let n = size * size;
+        let tex: Vec<f32> = (0..n * 3)
+            .map(|i| (((i / 3) % size / 3 + (i / 3) / size / 3) % 2) as f32 * 0.3 + 0.35)
+            .collect();
+        let depth: Vec<f32> = (0..n)
+            .map(|i| if i % size < size / 2 { 3.0 } else { 0.25 })
+            .collect();
+        let rgbd = Rgbd::new(
+            RgbImage::from_interleaved(size, size, &tex).unwrap(),
+            DepthMap::from_diopters(Plane::from_vec(size, size, depth).unwrap()).unwrap(),
+        )
+        .unwrap();
+        ContentFrame::new(1, Arc::new(rgbd))
+    }
+
+    /// The one-lens example rig at `size` px refreshing at `hz`, foveated as `foveation`
+    /// says, rendering on the CPU.
+    fn renderer(size: usize, hz: f64, foveation: &str) -> RgbdRenderer {
+        let text = EXAMPLE_SIM_RIG
+            .replace("width = 96", &format!("width = {size}"))
+            .replace("height = 96", &format!("height = {size}"))
+            .replace("frame_hz = 60.0", &format!("frame_hz = {hz}"))
+            .replace("method = \"gather\"", "method = \"auto\"")
+            + &format!("\n[render]\nbackend = \"cpu\"\nfoveation = {foveation}\n");
+        let cfg = RigConfig::parse(&text).unwrap();
+        RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap()
+    }
+
+    /// With `method = "auto"` the planner works within the frame's time budget (the display
+    /// period less a margin): a long period leaves it the setting its accuracy target asks, a
+    /// short one a cheaper setting predicted to fit. Costs are the planner's predictions (the
+    /// rig's clock plays no part), so the test does not depend on this machine's speed.
+    #[test]
+    fn under_a_short_budget_the_planner_picks_a_cheaper_setting_that_fits() {
+        let size = 192;
+        let frame = step_frame(size);
+        let gaze = Some([0.5 * size as f32, 0.5 * size as f32]);
+        let plan = |hz: f64| {
+            let r = renderer(size, hz, "{ radius_deg = 5.0 }");
+            let out = r
+                .render_frame(
+                    &frame,
+                    Mode::Varifocal,
+                    Method(RenderMethod::Gather),
+                    Diopters(0.25),
+                    gaze,
+                    true,
+                )
+                .unwrap();
+            // The chosen setting was rendered: one image of the frame's size.
+            assert_eq!(out.images.len(), 1);
+            assert_eq!(
+                (out.images[0].width(), out.images[0].height()),
+                (size, size)
+            );
+            out.planned.unwrap()
+        };
+        let long = plan(1.0);
+        // 1 Hz: 900 ms.
+        assert!((long.budget_ms - 900.0).abs() < 1e-6, "{long:?}");
+        // A period whose budget (less its tenth) is half the unconstrained choice's time.
+        let short = plan(1e3 / (long.predicted_ms / 0.9 * 0.5).max(1.2));
+        eprintln!("long: {long:?}\nshort: {short:?}");
+        assert!(short.budget_ms < long.predicted_ms, "{short:?}");
+        assert!(long.predicted_ms <= long.budget_ms, "{long:?}");
+        assert!(
+            short.predicted_ms <= short.budget_ms,
+            "the short budget's choice must be predicted to fit: {short:?}"
+        );
+        assert!(
+            short.predicted_ms < long.predicted_ms && short.choice != long.choice,
+            "a cheaper setting under the short budget: {short:?} against {long:?}"
+        );
+        assert!(short.why.contains("budget"), "{short:?}");
+    }
+
+    /// Each eye's gaze is where the fixation point (the cyclopean gaze at the focus's
+    /// distance) falls on that eye's image: nearer focus, further apart; at 0 D both at the
+    /// cyclopean gaze.
+    #[test]
+    fn each_eye_sees_the_fixation_point_from_its_own_position() {
+        let r = renderer(192, 60.0, "\"off\"");
+        let input = step_frame(192);
+        let g = Some([96.0, 96.0]);
+        let at = |eye, d: f32| r.eye_gaze(&input.rgbd, g, eye, Diopters(d));
+        assert_eq!(at(None, 2.0), [96.0, 96.0]);
+        assert_eq!(at(Some(Side::Left), 0.0), [96.0, 96.0]);
+        let (l, rt) = (at(Some(Side::Left), 1.0), at(Some(Side::Right), 1.0));
+        // 31.5 mm at 1 m is 1.8 degrees; over 20 degrees of 192 px, about 17 px.
+        let px = 0.0315 / r.eye.with_width(192).pixel_pitch_tan();
+        assert!(
+            (l[0] - 96.0 - px).abs() < 1e-3 && (96.0 - rt[0] - px).abs() < 1e-3,
+            "{l:?} {rt:?}"
+        );
+        assert!((16.0..18.0).contains(&px), "{px}");
+        assert!(at(Some(Side::Left), 2.0)[0] > l[0]);
+        // Never off the image.
+        assert_eq!(at(Some(Side::Left), 100.0)[0], 192.0);
+    }
+
+    /// `method = "pyramid"` with `render.foveation` renders the foveated pyramid around the
+    /// gaze: the same as full resolution at the gaze, coarser (different) far from it.
+    #[test]
+    fn foveation_renders_full_resolution_around_the_gaze_only() {
+        let size = 192;
+        let frame = step_frame(size);
+        let full = renderer(size, 60.0, "\"off\"");
+        let fov = renderer(
+            size,
+            60.0,
+            "{ radius_deg = 2.0, falloff_arcmin_per_deg = 60.0 }",
+        );
+        let gaze = Some([40.0, 96.0]);
+        let image = |r: &RgbdRenderer| {
+            r.render_frame(
+                &frame,
+                Mode::Varifocal,
+                Method(RenderMethod::Pyramid),
+                Diopters(3.0),
+                gaze,
+                false,
+            )
+            .unwrap()
+            .images[0]
+                .to_host()
+                .unwrap()
+                .into_owned()
+        };
+        let (a, b) = (image(&full), image(&fov));
+        let diff = |x0: usize, x1: usize| {
+            let mut d = 0.0f32;
+            for c in 0..3 {
+                for y in 80..112 {
+                    for x in x0..x1 {
+                        d = d.max((a.channels[c].row(y)[x] - b.channels[c].row(y)[x]).abs());
+                    }
+                }
+            }
+            d
+        };
+        // 2 degrees over 20 of 192 px: about 19 px around x = 40.
+        assert!(diff(32, 48) < 1e-3, "fovea {}", diff(32, 48));
+        assert!(diff(150, 190) > 1e-3, "periphery {}", diff(150, 190));
+    }
 
     /// On a stereo layout each eye of one content frame gets its own layers and its own panel:
     /// the caches hold them per eye (the right eye is never shown the left's), and the light

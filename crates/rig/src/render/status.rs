@@ -123,6 +123,8 @@ impl RenderHandle {
             json!(st.planned.as_ref().map(|p| json!({
                 "method": p.choice,
                 "predicted_fovea_psnr_db": p.predicted_psnr_db,
+                "predicted_ms": p.predicted_ms,
+                "budget_ms": p.budget_ms,
                 "why": p.why,
             }))),
         );
