@@ -602,11 +602,7 @@ impl Xvfb {
             return None;
         }
         let fbdir = tempfile::tempdir().unwrap();
-        // A display number no other server holds (its lock file), from one per process.
-        let mut n = 200 + std::process::id() % 500;
-        while Path::new(&format!("/tmp/.X{n}-lock")).exists() {
-            n += 1;
-        }
+        let n = free_display();
         let mut cmd = Command::new("Xvfb");
         cmd.arg(format!(":{n}"));
         for (i, (w, h)) in screens.iter().enumerate() {
@@ -626,17 +622,7 @@ impl Xvfb {
             display: format!(":{n}"),
             fbdir,
         };
-        // Up when its socket is there (a wait for the server, bounded only so that a broken
-        // one fails the test).
-        let socket = format!("/tmp/.X11-unix/X{n}");
-        let until = std::time::Instant::now() + Duration::from_secs(30);
-        while !Path::new(&socket).exists() {
-            if let Ok(Some(s)) = x.child.try_wait() {
-                panic!("Xvfb {} exited: {s}", x.display);
-            }
-            assert!(std::time::Instant::now() < until, "Xvfb did not start");
-            std::thread::sleep(Duration::from_millis(20));
-        }
+        wait_for_x(&mut x.child, n, "Xvfb");
         Some(x)
     }
 
@@ -680,6 +666,227 @@ fn parse_xwd(b: &[u8]) -> (u32, u32, Vec<u8>) {
         }
     }
     (width, height, rgb)
+}
+
+/// A free X display number (no server holds its lock file), from one per process.
+fn free_display() -> u32 {
+    let mut n = 200 + std::process::id() % 500;
+    while Path::new(&format!("/tmp/.X{n}-lock")).exists() {
+        n += 1;
+    }
+    n
+}
+
+/// Waits until the X server `child` listens on display `n` (bounded only so that a broken
+/// server fails the test).
+fn wait_for_x(child: &mut Child, n: u32, what: &str) {
+    let socket = format!("/tmp/.X11-unix/X{n}");
+    let until = std::time::Instant::now() + Duration::from_secs(30);
+    while !Path::new(&socket).exists() {
+        if let Ok(Some(s)) = child.try_wait() {
+            panic!("{what} :{n} exited: {s}");
+        }
+        assert!(std::time::Instant::now() < until, "{what} did not start");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// An X server whose one screen has two RandR outputs side by side, as a rig's two monitors:
+/// Xorg with Debian's dummy video driver (`xserver-xorg-video-dummy`, which `.ci/run`
+/// installs with `xserver-xorg-core`, `x11-xserver-utils` for xrandr and `x11-apps` for
+/// xwd), its outputs DUMMY0 and DUMMY1 given a mode each with xrandr. This is what Xvfb
+/// cannot give winit (see below).
+struct XorgDummy {
+    child: Child,
+    display: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for XorgDummy {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl XorgDummy {
+    const DRIVER: &'static str = "/usr/lib/xorg/modules/drivers/dummy_drv.so";
+
+    /// Two outputs of `size` each, DUMMY0 left of DUMMY1; `None` (the test skips, saying
+    /// why) only where Xorg's dummy driver, xrandr or xwd is not installed.
+    fn start(size: (u32, u32)) -> Option<XorgDummy> {
+        let have = |tool: &str| Command::new(tool).arg("-version").output().is_ok();
+        if !Path::new(Self::DRIVER).exists() || !have("xrandr") || !have("xwd") {
+            eprintln!(
+                "skipped: Xorg's dummy driver, xrandr or xwd is not installed (Debian's \
+                 xserver-xorg-video-dummy, x11-xserver-utils, x11-apps; .ci/run installs them)"
+            );
+            return None;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = size;
+        let conf = dir.path().join("xorg.conf");
+        std::fs::write(
+            &conf,
+            format!(
+                "Section \"Device\"\n Identifier \"dummy\"\n Driver \"dummy\"\n VideoRam 64000\nEndSection\n\
+                 Section \"Monitor\"\n Identifier \"monitor\"\n HorizSync 1.0-1000.0\n VertRefresh 5.0-200.0\nEndSection\n\
+                 Section \"Screen\"\n Identifier \"screen\"\n Device \"dummy\"\n Monitor \"monitor\"\n DefaultDepth 24\n\
+                 SubSection \"Display\"\n  Depth 24\n  Virtual {} {}\n EndSubSection\nEndSection\n",
+                (2 * w).max(640),
+                h.max(480)
+            ),
+        )
+        .unwrap();
+        let n = free_display();
+        let mut child = Command::new("Xorg")
+            .arg(format!(":{n}"))
+            .arg("-config")
+            .arg(&conf)
+            .arg("-logfile")
+            .arg(dir.path().join("Xorg.log"))
+            .args(["-noreset", "-nolisten", "tcp"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("Xorg's dummy driver is installed but Xorg is not");
+        wait_for_x(&mut child, n, "Xorg");
+        let display = format!(":{n}");
+        // A 60 Hz mode of `size` (blanking of a quarter line and 8 lines) on each output.
+        let (ht, vt) = (w + w / 4 + 8, h + 8);
+        let clock_mhz = f64::from(ht * vt) * 60.0 / 1e6;
+        let xrandr = |args: &[String]| {
+            let out = Command::new("xrandr")
+                .arg("-display")
+                .arg(&display)
+                .args(args)
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "xrandr {args:?}: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        };
+        let mode = format!("dioptra{w}x{h}");
+        let timing = [w, w + 2, w + 4, ht, h, h + 1, h + 2, vt].map(|v| v.to_string());
+        let mut newmode = vec![
+            "--newmode".to_string(),
+            mode.clone(),
+            format!("{clock_mhz:.4}"),
+        ];
+        newmode.extend(timing);
+        xrandr(&newmode);
+        let mut place = Vec::new();
+        for (i, x) in [(0, 0), (1, w)] {
+            xrandr(&["--addmode".into(), format!("DUMMY{i}"), mode.clone()]);
+            place.extend([
+                "--output".to_string(),
+                format!("DUMMY{i}"),
+                "--mode".into(),
+                mode.clone(),
+                "--pos".into(),
+                format!("{x}x0"),
+            ]);
+        }
+        xrandr(&place);
+        Some(XorgDummy {
+            child,
+            display,
+            _dir: dir,
+        })
+    }
+
+    /// The screen's root window (both outputs) as (width, height, RGB bytes), by xwd.
+    fn screen(&self) -> (u32, u32, Vec<u8>) {
+        let out = Command::new("xwd")
+            .args(["-root", "-silent", "-display", &self.display])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "xwd: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        parse_xwd(&out.stdout)
+    }
+}
+
+/// The worst difference (steps of 255) between `got`'s pixels from column `x0` of a `gw` wide
+/// image and `want` (`ww` wide, all its rows), and how many of those pixels are lit.
+fn worst_step(got: &[u8], gw: usize, x0: usize, want: &[u8], ww: usize) -> (u8, usize) {
+    let mut worst = 0u8;
+    let mut lit = 0;
+    for (y, row) in want.chunks(3 * ww).enumerate() {
+        let from = 3 * (y * gw + x0);
+        let seen = &got[from..from + 3 * ww];
+        worst = seen
+            .iter()
+            .zip(row)
+            .map(|(a, b)| a.abs_diff(*b))
+            .fold(worst, u8::max);
+        lit += seen.chunks(3).filter(|p| p.iter().any(|&c| c > 16)).count();
+    }
+    (worst, lit)
+}
+
+/// Two monitors (Xorg's dummy driver: two RandR outputs, which winit lists as two monitors):
+/// `layout = "two-outputs"` puts a window on each, and each monitor's pixels, read back from
+/// the X server, are its eye's image as the headless sink writes that eye's output.
+#[test]
+fn on_two_monitors_each_window_shows_its_eye_as_the_headless_sink_writes_it() {
+    let Some(x) = XorgDummy::start((96, 96)) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let two_outputs = |path: std::path::PathBuf| {
+        let text = std::fs::read_to_string(&path)
+            .unwrap()
+            .replace("layout = \"side-by-side\"", "layout = \"two-outputs\"");
+        std::fs::write(&path, text).unwrap();
+        path
+    };
+    let frames = dir.path().join("frames");
+    let headless = two_outputs(hmd_rig(
+        dir.path(),
+        "headless",
+        &format!("png_every = 1\npng_dir = {:?}", frames),
+    ));
+    at_settled_focus(&headless, &[], |_| {});
+    let newest = |eye: &str| {
+        let mut pngs: Vec<_> = std::fs::read_dir(&frames)
+            .unwrap()
+            .flatten()
+            .map(|e| e.path())
+            .filter(|p| p.to_string_lossy().ends_with(&format!("_{eye}.png")))
+            .collect();
+        pngs.sort();
+        let (w, h, values) =
+            dioptra_render::io::read_code_values(pngs.last().expect("no frames written")).unwrap();
+        assert_eq!((w, h), (96, 96));
+        values
+    };
+    let want = [newest("left"), newest("right")];
+
+    let window = two_outputs(hmd_rig(
+        dir.path(),
+        "window",
+        "monitor_left = \"DUMMY0\"\nmonitor_right = \"DUMMY1\"",
+    ));
+    at_settled_focus(&window, &[("DISPLAY", x.display.as_str())], |v| {
+        eprintln!("display: {}", v["display"]);
+        let (w, h, got) = x.screen();
+        assert_eq!((w, h), (192, 96), "the two outputs side by side");
+        for (eye, (want, x0)) in ["left", "right"].iter().zip(want.iter().zip([0, 96])) {
+            let (worst, lit) = worst_step(&got, 192, x0, want, 96);
+            eprintln!("{eye} monitor against the headless {eye} output: worst {worst} step(s), {lit} lit pixels");
+            assert!(
+                lit > 96 * 96 / 2,
+                "{eye}: {lit} lit pixels: the eye is not drawn"
+            );
+            assert!(worst <= 1, "{eye}: a pixel differs by {worst} steps");
+        }
+    });
 }
 
 /// The simulated HMD example at 96 x 96 per eye (its eyepiece scaled to it), showing a
@@ -758,9 +965,9 @@ fn at_settled_focus(config: &Path, env: &[(&str, &str)], look: impl FnOnce(&serd
 /// default screen only (not RandR 1.5's `--setmonitor` monitors, and Xinerama hides RandR):
 /// under Xvfb winit sees one monitor, whatever the screens. So here the two-output window is
 /// checked for what that gives (stopped at start naming `display.monitor_right` and listing
-/// the one monitor), and the drawing it shares with the one window (the same presenter, a
-/// window's eye placed and corrected on its own surface) is checked on screen 0 against the
-/// headless sink's PNG for the same frame.
+/// the one monitor), and the one window's corrected image on screen 0 against the headless
+/// sink's PNG for the same frame; two monitors' pixels are checked under Xorg's dummy driver
+/// (`on_two_monitors_each_window_shows_its_eye_as_the_headless_sink_writes_it`).
 #[test]
 fn under_xvfb_the_window_shows_each_eye_as_the_headless_sink_writes_it() {
     let Some(x) = Xvfb::start(&[(192, 96), (96, 96)]) else {

@@ -627,6 +627,10 @@ impl Presenter {
     ) -> Result<bool, WindowError> {
         let mut targets = Vec::with_capacity(self.outputs.len());
         let mut encoders = Vec::with_capacity(self.outputs.len());
+        // Each window's prepared images live until the submission: an uploaded image goes
+        // back to its pool when dropped, and the next window's upload would take the same
+        // buffer and overwrite it before either is drawn (both windows showing one eye).
+        let mut drawn: Vec<Vec<Prepared>> = Vec::with_capacity(self.outputs.len());
         for (i, o) in self.outputs.iter_mut().enumerate() {
             let win = o.window.inner_size();
             if (win.width, win.height) != (o.config.width, o.config.height)
@@ -700,6 +704,7 @@ impl Presenter {
                 .encode(&mut enc, &view, surface, &prepared)
                 .map_err(|e| WindowError::Gpu(e.to_string()))?;
             encoders.push(enc.finish());
+            drawn.push(prepared);
             targets.push((i, target));
         }
         if targets.is_empty() {
@@ -708,6 +713,7 @@ impl Presenter {
         // Every window's image in one submission, then every window presented: the eyes'
         // images of one frame go out together.
         self.queue.submit(encoders);
+        drop(drawn);
         for (i, target) in targets {
             self.outputs[i].window.pre_present_notify();
             self.queue.present(target);
