@@ -668,9 +668,13 @@ fn parse_xwd(b: &[u8]) -> (u32, u32, Vec<u8>) {
     (width, height, rgb)
 }
 
-/// A free X display number (no server holds its lock file), from one per process.
+/// A free X display number (no server holds its lock file), from one per process; each call
+/// starts past the numbers earlier calls gave, so that two tests starting servers at once do
+/// not pick the same one before either server holds it.
 fn free_display() -> u32 {
-    let mut n = 200 + std::process::id() % 500;
+    static GIVEN: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let call = GIVEN.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let mut n = 200 + std::process::id() % 500 + 1000 * (call % 8);
     while Path::new(&format!("/tmp/.X{n}-lock")).exists() {
         n += 1;
     }
