@@ -412,22 +412,31 @@ fn on_the_gpu_the_daemon_shows_a_labs_files_as_dioptra_render_renders_them() {
     }
 }
 
+/// A procedural test scene's files (96 x 96, `color.exr` and `depth.exr`) in `dir`/scene,
+/// made by `dioptra sim scene` unless they are there already.
+fn sim_scene(dir: &Path) -> std::path::PathBuf {
+    let scene = dir.join("scene");
+    if !scene.join("color.exr").exists() {
+        let (ok, _, err) = dioptra(&[
+            "sim".as_ref(),
+            "scene".as_ref(),
+            "--seed".as_ref(),
+            "1000000".as_ref(),
+            "--size".as_ref(),
+            "96".as_ref(),
+            "--out".as_ref(),
+            scene.as_os_str(),
+        ]);
+        assert!(ok, "{err}");
+    }
+    scene
+}
+
 /// The daemon on `backend` shows a files source at a manual focus as `dioptra render
 /// --backend <backend>` renders the same files at that focus.
 fn daemon_shows_files_as_dioptra_render(backend: &str) {
     let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene");
-    let (ok, _, err) = dioptra(&[
-        "sim".as_ref(),
-        "scene".as_ref(),
-        "--seed".as_ref(),
-        "1000000".as_ref(),
-        "--size".as_ref(),
-        "96".as_ref(),
-        "--out".as_ref(),
-        scene.as_os_str(),
-    ]);
-    assert!(ok, "{err}");
+    let scene = sim_scene(dir.path());
     let (color, depth) = (scene.join("color.exr"), scene.join("depth.exr"));
     let frames = dir.path().join("frames");
     let text = std::fs::read_to_string(write_config(dir.path(), false))
@@ -581,12 +590,17 @@ fn an_invalid_rust_log_is_reported_as_an_error() {
 /// A virtual X server (Xvfb, from Debian's `xvfb`, which `.ci/run` installs) with a screen of
 /// each size in `screens`, its framebuffers written as XWD files into its own directory.
 struct Xvfb {
-    child: Child,
-    display: String,
+    server: XServer,
     fbdir: tempfile::TempDir,
 }
 
-impl Drop for Xvfb {
+/// A running X server on `display`, stopped when dropped.
+struct XServer {
+    child: Child,
+    display: String,
+}
+
+impl Drop for XServer {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
@@ -617,13 +631,12 @@ impl Xvfb {
             .stderr(Stdio::null())
             .spawn()
             .expect("Xvfb is installed but does not start");
-        let mut x = Xvfb {
+        let mut server = XServer {
             child,
             display: format!(":{n}"),
-            fbdir,
         };
-        wait_for_x(&mut x.child, n, "Xvfb");
-        Some(x)
+        wait_for_x(&mut server.child, n, "Xvfb");
+        Some(Xvfb { server, fbdir })
     }
 
     /// Screen `i`'s framebuffer as (width, height, RGB bytes), read from its XWD file.
@@ -701,16 +714,8 @@ fn wait_for_x(child: &mut Child, n: u32, what: &str) {
 /// xwd), its outputs DUMMY0 and DUMMY1 given a mode each with xrandr. This is what Xvfb
 /// cannot give winit (see below).
 struct XorgDummy {
-    child: Child,
-    display: String,
+    server: XServer,
     _dir: tempfile::TempDir,
-}
-
-impl Drop for XorgDummy {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl XorgDummy {
@@ -743,7 +748,7 @@ impl XorgDummy {
         )
         .unwrap();
         let n = free_display();
-        let mut child = Command::new("Xorg")
+        let child = Command::new("Xorg")
             .arg(format!(":{n}"))
             .arg("-config")
             .arg(&conf)
@@ -754,8 +759,13 @@ impl XorgDummy {
             .stderr(Stdio::null())
             .spawn()
             .expect("Xorg's dummy driver is installed but Xorg is not");
-        wait_for_x(&mut child, n, "Xorg");
-        let display = format!(":{n}");
+        // Held from here, so that a failing step below stops the server.
+        let mut server = XServer {
+            child,
+            display: format!(":{n}"),
+        };
+        wait_for_x(&mut server.child, n, "Xorg");
+        let display = server.display.clone();
         // A 60 Hz mode of `size` (blanking of a quarter line and 8 lines) on each output.
         let (ht, vt) = (w + w / 4 + 8, h + 8);
         let clock_mhz = f64::from(ht * vt) * 60.0 / 1e6;
@@ -794,17 +804,13 @@ impl XorgDummy {
             ]);
         }
         xrandr(&place);
-        Some(XorgDummy {
-            child,
-            display,
-            _dir: dir,
-        })
+        Some(XorgDummy { server, _dir: dir })
     }
 
     /// The screen's root window (both outputs) as (width, height, RGB bytes), by xwd.
     fn screen(&self) -> (u32, u32, Vec<u8>) {
         let out = Command::new("xwd")
-            .args(["-root", "-silent", "-display", &self.display])
+            .args(["-root", "-silent", "-display", &self.server.display])
             .output()
             .unwrap();
         assert!(
@@ -877,7 +883,7 @@ fn on_two_monitors_each_window_shows_its_eye_as_the_headless_sink_writes_it() {
         "window",
         "monitor_left = \"DUMMY0\"\nmonitor_right = \"DUMMY1\"",
     ));
-    at_settled_focus(&window, &[("DISPLAY", x.display.as_str())], |v| {
+    at_settled_focus(&window, &[("DISPLAY", x.server.display.as_str())], |v| {
         eprintln!("display: {}", v["display"]);
         let (w, h, got) = x.screen();
         assert_eq!((w, h), (192, 96), "the two outputs side by side");
@@ -897,20 +903,7 @@ fn on_two_monitors_each_window_shows_its_eye_as_the_headless_sink_writes_it() {
 /// procedural scene's files at a manual focus: `kind` headless (with its PNGs in `frames`) or
 /// a window (`extra` display keys).
 fn hmd_rig(dir: &Path, kind: &str, extra: &str) -> std::path::PathBuf {
-    let scene = dir.join("scene");
-    if !scene.join("color.exr").exists() {
-        let (ok, _, err) = dioptra(&[
-            "sim".as_ref(),
-            "scene".as_ref(),
-            "--seed".as_ref(),
-            "1000000".as_ref(),
-            "--size".as_ref(),
-            "96".as_ref(),
-            "--out".as_ref(),
-            scene.as_os_str(),
-        ]);
-        assert!(ok, "{err}");
-    }
+    let scene = sim_scene(dir);
     // The eyepiece at a fifth of the example's 480 pixels: focal lengths and centre scaled.
     let text = include_str!("../examples/rig-sim-hmd.toml")
         .replace("127.0.0.1:7420", "127.0.0.1:0")
@@ -978,7 +971,7 @@ fn under_xvfb_the_window_shows_each_eye_as_the_headless_sink_writes_it() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let env = [("DISPLAY", x.display.as_str())];
+    let env = [("DISPLAY", x.server.display.as_str())];
 
     // Two outputs: winit sees screen 0's one monitor, so the right eye's is missing.
     let two = hmd_rig(dir.path(), "window", "monitor_left = 0\nmonitor_right = 1");
@@ -989,7 +982,7 @@ fn under_xvfb_the_window_shows_each_eye_as_the_headless_sink_writes_it() {
     let out = Command::new(env!("CARGO_BIN_EXE_dioptra"))
         .args(["serve", "--config"])
         .arg(&two)
-        .env("DISPLAY", &x.display)
+        .env("DISPLAY", &x.server.display)
         .output()
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
