@@ -600,6 +600,29 @@ struct XServer {
     display: String,
 }
 
+impl XServer {
+    /// `program` (an X server) on a free display with the arguments `configure` adds, once it
+    /// listens.
+    fn start(program: &str, configure: impl FnOnce(&mut Command)) -> XServer {
+        let n = free_display();
+        let mut cmd = Command::new(program);
+        cmd.arg(format!(":{n}"));
+        configure(&mut cmd);
+        let child = cmd
+            .args(["-nolisten", "tcp"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap_or_else(|e| panic!("{program} is installed but does not start: {e}"));
+        let mut server = XServer {
+            child,
+            display: format!(":{n}"),
+        };
+        wait_for_x(&mut server.child, n, program);
+        server
+    }
+}
+
 impl Drop for XServer {
     fn drop(&mut self) {
         let _ = self.child.kill();
@@ -616,26 +639,12 @@ impl Xvfb {
             return None;
         }
         let fbdir = tempfile::tempdir().unwrap();
-        let n = free_display();
-        let mut cmd = Command::new("Xvfb");
-        cmd.arg(format!(":{n}"));
-        for (i, (w, h)) in screens.iter().enumerate() {
-            cmd.args(["-screen", &i.to_string(), &format!("{w}x{h}x24")]);
-        }
-        let child = cmd
-            .arg("-fbdir")
-            .arg(fbdir.path())
-            .arg("-nolisten")
-            .arg("tcp")
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("Xvfb is installed but does not start");
-        let mut server = XServer {
-            child,
-            display: format!(":{n}"),
-        };
-        wait_for_x(&mut server.child, n, "Xvfb");
+        let server = XServer::start("Xvfb", |cmd| {
+            for (i, (w, h)) in screens.iter().enumerate() {
+                cmd.args(["-screen", &i.to_string(), &format!("{w}x{h}x24")]);
+            }
+            cmd.arg("-fbdir").arg(fbdir.path());
+        });
         Some(Xvfb { server, fbdir })
     }
 
@@ -747,24 +756,14 @@ impl XorgDummy {
             ),
         )
         .unwrap();
-        let n = free_display();
-        let child = Command::new("Xorg")
-            .arg(format!(":{n}"))
-            .arg("-config")
-            .arg(&conf)
-            .arg("-logfile")
-            .arg(dir.path().join("Xorg.log"))
-            .args(["-noreset", "-nolisten", "tcp"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("Xorg's dummy driver is installed but Xorg is not");
         // Held from here, so that a failing step below stops the server.
-        let mut server = XServer {
-            child,
-            display: format!(":{n}"),
-        };
-        wait_for_x(&mut server.child, n, "Xorg");
+        let server = XServer::start("Xorg", |cmd| {
+            cmd.arg("-config")
+                .arg(&conf)
+                .arg("-logfile")
+                .arg(dir.path().join("Xorg.log"))
+                .arg("-noreset");
+        });
         let display = server.display.clone();
         // A 60 Hz mode of `size` (blanking of a quarter line and 8 lines) on each output.
         let (ht, vt) = (w + w / 4 + 8, h + 8);
