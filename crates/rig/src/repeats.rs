@@ -116,6 +116,27 @@ mod tests {
         Timestamp(s * 1_000_000_000)
     }
 
+    /// A line logged where nothing listens.
+    fn a_line_two_threads_log() {
+        tracing::info!("the line two threads log");
+    }
+
+    /// The lost-lens test's flake, made certain: with one capture alive, tracing asked only the
+    /// registering thread's subscriber for a callsite's interest, so a callsite first reached on
+    /// a thread without one was cached "never" and the capture missed it.
+    #[test]
+    fn a_capture_sees_a_callsite_another_thread_reached_first() {
+        let (logs, _capture) = capture::logs(tracing::Level::INFO);
+        std::thread::spawn(a_line_two_threads_log).join().unwrap();
+        a_line_two_threads_log();
+        assert_eq!(
+            logs.with("the line two threads log").len(),
+            1,
+            "{:?}",
+            logs.lines()
+        );
+    }
+
     #[test]
     fn the_first_of_each_kind_is_logged_then_one_summary_a_minute() {
         let mut r = Repeats::new("frames skipped");
@@ -215,20 +236,47 @@ pub(crate) mod capture {
         }
     }
 
-    /// Held while a test catches logs: tests that install and drop subscribers at the same
-    /// time can leave a callsite's cached interest without the newest one (an event lost),
-    /// so they take turns.
-    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+    /// The process's global subscriber in tests: it takes no event, but it keeps every
+    /// callsite's cached interest at "sometimes". Without it a callsite first reached on a
+    /// thread with no subscriber, while a capture starts on another, could cache "never" and
+    /// the capture lose its event; with it each event asks the thread's own subscriber.
+    struct KeepsInterest;
 
-    /// What keeps a capture going: the subscriber, then the turn.
+    impl tracing::Subscriber for KeepsInterest {
+        fn register_callsite(
+            &self,
+            _: &'static tracing::Metadata<'static>,
+        ) -> tracing::subscriber::Interest {
+            tracing::subscriber::Interest::sometimes()
+        }
+        fn max_level_hint(&self) -> Option<tracing::level_filters::LevelFilter> {
+            Some(tracing::level_filters::LevelFilter::TRACE)
+        }
+        fn enabled(&self, _: &tracing::Metadata<'_>) -> bool {
+            false
+        }
+        fn new_span(&self, _: &tracing::span::Attributes<'_>) -> tracing::span::Id {
+            tracing::span::Id::from_u64(1)
+        }
+        fn record(&self, _: &tracing::span::Id, _: &tracing::span::Record<'_>) {}
+        fn record_follows_from(&self, _: &tracing::span::Id, _: &tracing::span::Id) {}
+        fn event(&self, _: &tracing::Event<'_>) {}
+        fn enter(&self, _: &tracing::span::Id) {}
+        fn exit(&self, _: &tracing::span::Id) {}
+    }
+
+    /// What keeps a capture going: the thread's subscriber.
     pub(crate) struct Capture {
         _default: tracing::subscriber::DefaultGuard,
-        _turn: std::sync::MutexGuard<'static, ()>,
     }
 
     /// Catches this thread's events from `level` up until the guard is dropped.
     pub(crate) fn logs(level: tracing::Level) -> (Lines, Capture) {
-        let turn = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+        static GLOBAL: std::sync::Once = std::sync::Once::new();
+        GLOBAL.call_once(|| {
+            // Fails only if a global subscriber is set already; then that one decides.
+            let _ = tracing::subscriber::set_global_default(KeepsInterest);
+        });
         let lines = Lines::default();
         let subscriber = tracing_subscriber::fmt()
             .with_max_level(level)
@@ -237,12 +285,6 @@ pub(crate) mod capture {
             .finish();
         let default = tracing::subscriber::set_default(subscriber);
         tracing::callsite::rebuild_interest_cache();
-        (
-            lines,
-            Capture {
-                _default: default,
-                _turn: turn,
-            },
-        )
+        (lines, Capture { _default: default })
     }
 }

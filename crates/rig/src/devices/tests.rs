@@ -442,11 +442,7 @@ async fn a_lens_status_warning_names_the_lens_once_per_connect() {
 /// The lab's log: a lost lens printed a WARN on every retry (23 in 50 s, then one every 5 s
 /// for ever). Now: the loss once, a summary at most once a minute while it stays lost, its
 /// return; every line names the lens.
-// Alone: beside the crate's other tests, tracing can drop one of its captured lines (a
-// callsite's cached interest races with subscribers coming and going), so `.ci/run` runs it
-// by itself (`cargo test -p dioptra-rig --lib -- --ignored`).
 #[tokio::test(start_paused = true)]
-#[ignore = "run alone: cargo test -p dioptra-rig --lib -- --ignored (.ci/run does)"]
 async fn a_lost_lens_is_logged_once_then_summarised_each_minute_naming_it() {
     let (logs, _guard) = crate::repeats::capture::logs(tracing::Level::INFO);
     let clock: Arc<dyn Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
