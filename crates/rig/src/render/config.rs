@@ -48,7 +48,8 @@ pub struct HybridSetting {
     #[serde(default = "default_hybrid_fovea_deg")]
     pub fovea_deg: f32,
     /// Width of the cross-fade from spectral to linear layers beyond the fovea, degrees
-    /// (default 0.5).
+    /// (default 0.5). A gaze that moves less than this within one content frame keeps the
+    /// frame's layers; further, they are made again around it.
     #[serde(default = "default_hybrid_blend_deg")]
     pub blend_deg: f32,
     /// The spectral solve's grid in the window: 1 full resolution, s > 1 a 1/s grid plus
