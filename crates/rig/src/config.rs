@@ -345,6 +345,7 @@ impl RigConfig {
         crate::mode::check(self.mode, self.method, self.auto_method)?;
         self.eye.check()?;
         self.check_foveation()?;
+        self.render.hybrid.check(self.eye.fov_deg)?;
         self.display.check()?;
         self.check_optics_per_lens()?;
         self.check_eye_images()?;

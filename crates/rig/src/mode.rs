@@ -54,7 +54,8 @@ impl Mode {
 
 /// The render method, by the scheduler's names: gather, pyramid (bounded cost per pixel,
 /// foveated by `render.foveation`), lightfield-defocus (varifocal); linear, optimized,
-/// spectral (multifocal); views (light field); network, refine (any).
+/// spectral, hybrid (spectral around each eye's gaze, `render.hybrid`) (multifocal); views
+/// (light field); network, refine (any).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(try_from = "String", into = "String")]
 pub struct Method(pub RenderMethod);
@@ -78,7 +79,7 @@ impl From<Method> for String {
 /// The methods the daemon renders.
 pub const RENDERED: &str =
     "gather, pyramid, lightfield-defocus, network or refine (varifocal), linear, \
-     optimized, spectral, network or refine (multifocal), views or refine (light field)";
+     optimized, spectral, hybrid, network or refine (multifocal), views or refine (light field)";
 
 /// Every method's name, for messages.
 pub fn methods() -> String {

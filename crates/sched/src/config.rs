@@ -67,6 +67,9 @@ pub enum RenderMethod {
     /// The spectral decomposition into layers: the least squares solved per spatial frequency
     /// (multifocal).
     Spectral,
+    /// The gaze-contingent hybrid (after Yu et al. 2019): spectral layers around the gaze where
+    /// a blurred depth step reaches it, linear blending elsewhere (multifocal).
+    Hybrid,
     /// Light-field views resampled into elemental images (light field).
     Views,
     /// A classical result corrected by a refinement net (varifocal: C1R on its classical
@@ -75,7 +78,7 @@ pub enum RenderMethod {
 }
 
 impl RenderMethod {
-    pub const ALL: [RenderMethod; 9] = [
+    pub const ALL: [RenderMethod; 10] = [
         RenderMethod::Gather,
         RenderMethod::Pyramid,
         RenderMethod::LightFieldDefocus,
@@ -83,6 +86,7 @@ impl RenderMethod {
         RenderMethod::Linear,
         RenderMethod::Optimized,
         RenderMethod::Spectral,
+        RenderMethod::Hybrid,
         RenderMethod::Views,
         RenderMethod::Refine,
     ];
@@ -96,6 +100,7 @@ impl RenderMethod {
             RenderMethod::Linear => "linear",
             RenderMethod::Optimized => "optimized",
             RenderMethod::Spectral => "spectral",
+            RenderMethod::Hybrid => "hybrid",
             RenderMethod::Views => "views",
             RenderMethod::Refine => "refine",
         }
@@ -111,7 +116,10 @@ impl RenderMethod {
                     Gather | Pyramid | LightFieldDefocus | Network | Refine
                 )
             }
-            Mode::Multifocal => matches!(self, Linear | Optimized | Spectral | Network | Refine),
+            Mode::Multifocal => matches!(
+                self,
+                Linear | Optimized | Spectral | Hybrid | Network | Refine
+            ),
             Mode::LightField => matches!(self, Views | Network | Refine),
         }
     }

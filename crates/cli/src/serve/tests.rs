@@ -1862,6 +1862,7 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
         (Mode::Multifocal, "network", 1.0),
         (Mode::Multifocal, "optimized", 1.0),
         (Mode::Multifocal, "spectral", 1.0),
+        (Mode::Multifocal, "hybrid", 1.0),
         // 2.2 D: no depth step blurs past the error map's threshold, so C1R runs on no tile;
         // 0.2 D, last, runs it on some (checked in /status below).
         (Mode::Varifocal, "refine", 2.2),
@@ -1880,11 +1881,16 @@ fn the_gpu_backend_renders_what_the_cpu_renders() {
             .images;
         assert_eq!(a.len(), b.len());
         // The GPU's own methods leave their images on the GPU (the nets' come back through
-        // dioptra-net); the headless sink reads them back for its PNGs only.
+        // dioptra-net, the hybrid's composed on the host); the headless sink reads them back
+        // for its PNGs only.
         let kept = b
             .iter()
             .all(|i| matches!(i, dioptra_rig::render::FrameImage::Gpu(_)));
-        assert_eq!(kept, !matches!(method, "network" | "refine"), "{method}");
+        assert_eq!(
+            kept,
+            !matches!(method, "network" | "refine" | "hybrid"),
+            "{method}"
+        );
         let png = |images: Vec<dioptra_rig::render::FrameImage>, to: &str| {
             let out = dir.path().join(format!("{method}-{focus}-{to}"));
             let mut sink = dioptra_rig::display::HeadlessSink::new(1, Some(out.clone())).unwrap();

@@ -1222,6 +1222,68 @@ fn foveation_is_off_or_a_radius_and_a_falloff_for_the_pyramid() {
     assert_eq!(e.key(), "render.foveation", "{e}");
 }
 
+/// `method = "hybrid"` (multifocal) with `[render.hybrid]`: defaults, settings, and errors
+/// naming the key.
+#[test]
+fn hybrid_is_a_multifocal_method_with_its_settings_under_render_hybrid() {
+    let multifocal = |hybrid: &str| {
+        SIM_RIG
+            .replace("mode = \"varifocal\"", "mode = \"multifocal\"")
+            .replace("method = \"gather\"", "method = \"hybrid\"")
+            + &format!("\n[render]\nhybrid = {hybrid}\n")
+    };
+    let d = RigConfig::parse(&multifocal("{}")).unwrap();
+    assert_eq!(d.method, Method(RenderMethod::Hybrid));
+    let p = d.render.hybrid.params();
+    let want = dioptra_render::hybrid::HybridParams::default();
+    assert_eq!((p.fovea_deg, p.blend_deg, p.scale), (2.5, 0.5, 0));
+    assert_eq!(p.spectral, want.spectral);
+    assert!(p.edges_only);
+    let set = RigConfig::parse(&multifocal(
+        "{ fovea_deg = 4.0, blend_deg = 1.0, scale = 2 }",
+    ))
+    .unwrap();
+    let p = set.render.hybrid.params();
+    assert_eq!((p.fovea_deg, p.blend_deg, p.scale), (4.0, 1.0, 2));
+    for (hybrid, key, says) in [
+        (
+            "{ fovea_deg = 0.0 }",
+            "render.hybrid.fovea_deg",
+            "eye.fov_deg",
+        ),
+        (
+            "{ fovea_deg = 11.0 }",
+            "render.hybrid.fovea_deg",
+            "eye.fov_deg = 20",
+        ),
+        (
+            "{ fovea_deg = nan }",
+            "render.hybrid.fovea_deg",
+            "more than 0",
+        ),
+        (
+            "{ blend_deg = -0.5 }",
+            "render.hybrid.blend_deg",
+            "0 or more",
+        ),
+        ("{ scale = 17 }", "render.hybrid.scale", "up to 16"),
+        ("{ scale = -1 }", "render.hybrid.scale", "expected u32"),
+        (
+            "{ radius_deg = 2.0 }",
+            "render.hybrid.radius_deg",
+            "fovea_deg",
+        ),
+    ] {
+        let e = err(&multifocal(hybrid));
+        assert_eq!(e.key(), key, "{hybrid}: {e}");
+        assert!(e.to_string().contains(says), "{hybrid}: {e}");
+    }
+    // Not a varifocal method.
+    let e = err(&SIM_RIG.replace("method = \"gather\"", "method = \"hybrid\""));
+    assert_eq!(e.key(), "method", "{e}");
+    assert!(e.to_string().contains("varifocal"), "{e}");
+}
+
 #[test]
 fn pyramid_is_a_varifocal_method() {
     let c =

@@ -1,8 +1,10 @@
-//! `[render]`: where frames are rendered (CPU or GPU, which adapter), the network's weights
-//! and the foveation of the varifocal render; its defaults and checks.
+//! `[render]`: where frames are rendered (CPU or GPU, which adapter), the network's weights,
+//! the foveation of the varifocal render and the multifocal hybrid's settings; its defaults
+//! and checks.
 
 use std::path::PathBuf;
 
+use dioptra_render::hybrid::HybridParams;
 use dioptra_render::planner::FoveationSettings;
 use serde::{Deserialize, Serialize};
 
@@ -28,6 +30,100 @@ pub struct Render {
     /// With `auto` the planner's fovea (the region its accuracy target is for) is this radius.
     #[serde(default)]
     pub foveation: FoveationSetting,
+    /// The multifocal hybrid decomposition's settings (`method = "hybrid"`): spectral layers
+    /// within `fovea_deg` of each eye's gaze when a blurred depth step reaches it, linear
+    /// blending elsewhere, e.g. `{ fovea_deg = 2.5, blend_deg = 0.5, scale = 0 }`.
+    #[serde(default)]
+    pub hybrid: HybridSetting,
+}
+
+/// `[render.hybrid]`: the gaze-contingent hybrid multifocal decomposition (after Yu et al.
+/// 2019): the spectral decomposition in a window around each eye's gaze, run only when a
+/// blurred depth step reaches the fovea, linear blending everywhere else.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct HybridSetting {
+    /// Radius around each eye's gaze where the layers are the spectral solution's, degrees of
+    /// the eye's field (default 2.5: a 5 degree fovea).
+    #[serde(default = "default_hybrid_fovea_deg")]
+    pub fovea_deg: f32,
+    /// Width of the cross-fade from spectral to linear layers beyond the fovea, degrees
+    /// (default 0.5). A gaze that moves less than this within one content frame keeps the
+    /// frame's layers; further, they are made again around it.
+    #[serde(default = "default_hybrid_blend_deg")]
+    pub blend_deg: f32,
+    /// The spectral solve's grid in the window: 1 full resolution, s > 1 a 1/s grid plus
+    /// linear blending's detail above it (faster, less exact), 0 automatic (coarsened while
+    /// the widest blur stays 8 of its pixels or more). Default 0; at most 16.
+    #[serde(default)]
+    pub scale: u32,
+}
+
+impl Default for HybridSetting {
+    fn default() -> Self {
+        HybridSetting {
+            fovea_deg: default_hybrid_fovea_deg(),
+            blend_deg: default_hybrid_blend_deg(),
+            scale: 0,
+        }
+    }
+}
+
+fn default_hybrid_fovea_deg() -> f32 {
+    HybridParams::default().fovea_deg
+}
+
+fn default_hybrid_blend_deg() -> f32 {
+    HybridParams::default().blend_deg
+}
+
+/// The largest `render.hybrid.scale`: the hybrid's own bound.
+const MAX_HYBRID_SCALE: u32 = 16;
+
+impl HybridSetting {
+    /// The decomposition's settings (its spectral solve the rig's spectral method's).
+    pub fn params(&self) -> HybridParams {
+        HybridParams {
+            fovea_deg: self.fovea_deg,
+            blend_deg: self.blend_deg,
+            scale: self.scale as usize,
+            ..HybridParams::default()
+        }
+    }
+
+    /// The fovea and the fade fit in the eye's field (`fov_deg` across) and the scale is one
+    /// the hybrid takes.
+    pub fn check(&self, fov_deg: f32) -> Result<(), ConfigError> {
+        let half = 0.5 * fov_deg;
+        if !(self.fovea_deg.is_finite() && self.fovea_deg > 0.0 && self.fovea_deg <= half) {
+            return Err(invalid(
+                "render.hybrid.fovea_deg",
+                format!(
+                    "{}: expected more than 0 and at most half the eye's field (eye.fov_deg = {fov_deg})",
+                    self.fovea_deg
+                ),
+            ));
+        }
+        if !(self.blend_deg.is_finite() && self.blend_deg >= 0.0 && self.blend_deg <= half) {
+            return Err(invalid(
+                "render.hybrid.blend_deg",
+                format!(
+                    "{}: expected 0 or more and at most half the eye's field (eye.fov_deg = {fov_deg})",
+                    self.blend_deg
+                ),
+            ));
+        }
+        if self.scale > MAX_HYBRID_SCALE {
+            return Err(invalid(
+                "render.hybrid.scale",
+                format!(
+                    "{}: expected 0 (automatic), 1 (full resolution) or a divisor up to {MAX_HYBRID_SCALE}",
+                    self.scale
+                ),
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// `[render] foveation`: `"off"`, or a foveal radius and an acuity fall-off.

@@ -28,6 +28,7 @@ use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
 use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveated::Foveation;
+use dioptra_render::hybrid::{HybridParams, HybridReport};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{
@@ -56,6 +57,8 @@ pub struct RgbdRenderer {
     newest: AtomicU64,
     /// Multifocal layers per method, content frame and eye.
     layers: Mutex<Vec<CachedLayers>>,
+    /// `render.hybrid`: the hybrid decomposition's settings (`method = "hybrid"`).
+    hybrid: HybridParams,
     /// The light-field panels, each made from the content frame numbered with it, for the eye
     /// with it (`None`: the one view of a mono layout).
     panel: Mutex<Vec<CachedPanel>>,
@@ -83,6 +86,8 @@ struct CachedLayers {
     frame: u64,
     eye: Option<Side>,
     method: Method,
+    /// The eye's gaze (pixels) they were made around: the hybrid's depend on it.
+    gaze: [f32; 2],
     images: Arc<Vec<FrameImage>>,
 }
 
@@ -125,6 +130,7 @@ impl RgbdRenderer {
             size: (d.width as usize, d.height as usize),
             newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
+            hybrid: render.hybrid.params(),
             panel: Mutex::new(Vec::new()),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
             foveation: render.foveation.settings(),
@@ -463,7 +469,7 @@ impl RgbdRenderer {
             (_, RenderMethod::Views) | (Mode::Lightfield, RenderMethod::Refine) => {
                 Ok(vec![self.panel(content, method.0)?.as_ref().clone().into()])
             }
-            (Mode::Multifocal, _) => Ok(self.layers(content, method)?.as_ref().clone()),
+            (Mode::Multifocal, _) => Ok(self.layers(content, method, gaze)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
             (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
@@ -605,19 +611,44 @@ impl RgbdRenderer {
         })
     }
 
+    /// The layers of `content` for its eye by `method`, made once per content frame (the
+    /// hybrid's again when the eye's `gaze` moved further than its cross-fade's width).
     fn layers(
         &self,
         content: &ContentFrame,
         method: Method,
+        gaze: [f32; 2],
     ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
-        if let Some(l) = lock(&self.layers)
-            .iter()
-            .find(|l| l.frame == content.number && l.eye == content.eye && l.method == method)
-        {
+        let input = content.rgbd.as_ref();
+        let gaze_moved = |at: [f32; 2]| -> bool {
+            if method.0 != RenderMethod::Hybrid {
+                return false;
+            }
+            let px = self.hybrid.blend_deg * self.px_per_deg(input.width());
+            (at[0] - gaze[0]).hypot(at[1] - gaze[1]) > px
+        };
+        if let Some(l) = lock(&self.layers).iter().find(|l| {
+            l.frame == content.number
+                && l.eye == content.eye
+                && l.method == method
+                && !gaze_moved(l.gaze)
+        }) {
             return Ok(l.images.clone());
         }
-        let input = content.rgbd.as_ref();
-        let images = if method.0 == RenderMethod::Network {
+        let mut note = serde_json::json!({ "method": method.as_str() });
+        let images = if method.0 == RenderMethod::Hybrid {
+            let (layers, report) = self.on_backend("hybrid", |gpu| {
+                backend_of(gpu).hybrid_blend(
+                    input,
+                    &self.planes,
+                    &self.eye,
+                    Some(gaze),
+                    &self.hybrid,
+                )
+            })?;
+            note = hybrid_note(&report);
+            on_host(layers.images)
+        } else if method.0 == RenderMethod::Network {
             on_host(self.net_decompose(input)?)
         } else if method.0 == RenderMethod::Refine {
             on_host(self.refine_decompose(input)?)
@@ -683,15 +714,26 @@ impl RgbdRenderer {
             self.linear(input)?
         };
         let images = Arc::new(images);
+        lock(&self.compute).decomposed(content.eye, note);
         if self.keeps(content) {
-            lock(&self.layers).push(CachedLayers {
+            let mut cache = lock(&self.layers);
+            cache.retain(|l| {
+                !(l.frame == content.number && l.eye == content.eye && l.method == method)
+            });
+            cache.push(CachedLayers {
                 frame: content.number,
                 eye: content.eye,
                 method,
+                gaze,
                 images: images.clone(),
             });
         }
         Ok(images)
+    }
+
+    /// Pixels per degree at the centre of an image `width` pixels across the eye's field.
+    fn px_per_deg(&self, width: usize) -> f32 {
+        1.0f32.to_radians().tan() / self.eye.with_width(width as u32).pixel_pitch_tan()
     }
 }
 
@@ -708,6 +750,35 @@ impl Renderer for RgbdRenderer {
             .filter_map(|((m, r), n)| n.as_ref().err().map(|e| (*m, *r, e.clone())))
             .collect()
     }
+}
+
+/// What `/status` says of a hybrid decomposition: whether the fovea was optimised (a blurred
+/// depth step reached it: spectral layers in a window around the gaze) or left to linear
+/// blending, where, and how long its stages took.
+fn hybrid_note(report: &HybridReport) -> serde_json::Value {
+    let window = report.window.map(|w| {
+        serde_json::json!({
+            "x0": w.x0, "y0": w.y0, "width": w.width, "height": w.height,
+            "scale": w.scale,
+        })
+    });
+    serde_json::json!({
+        "method": "hybrid",
+        "fovea": if report.window.is_some() { "spectral" } else { "linear" },
+        "why": if report.window.is_some() {
+            "a blurred depth step reaches the fovea"
+        } else {
+            "no blurred depth step reaches the fovea"
+        },
+        "gaze_px": report.gaze,
+        "window": window,
+        "stages_ms": {
+            "linear": report.stages_ms.linear,
+            "scan": report.stages_ms.scan,
+            "solve": report.stages_ms.solve,
+            "compose": report.stages_ms.compose,
+        },
+    })
 }
 
 /// The time one eye's varifocal frame may take: the display period less the margin for the
@@ -837,6 +908,9 @@ struct Compute {
     timestamps: bool,
     /// GPU time per method, µs, from timestamp queries.
     gpu_time: std::collections::BTreeMap<String, hdrhistogram::Histogram<u64>>,
+    /// The newest multifocal decomposition per eye (`mono` for one image): its method, and
+    /// the hybrid's fovea ([`hybrid_note`]).
+    decompositions: std::collections::BTreeMap<&'static str, serde_json::Value>,
     /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
     cpu_because: Option<String>,
 }
@@ -850,6 +924,7 @@ impl Compute {
             adapter: None,
             timestamps: false,
             gpu_time: Default::default(),
+            decompositions: Default::default(),
             cpu_because: because,
         }
     }
@@ -879,6 +954,7 @@ impl Compute {
             refine_tiles: None,
             adapter: Some(name),
             gpu_time: Default::default(),
+            decompositions: Default::default(),
             cpu_because: None,
         })
     }
@@ -929,8 +1005,17 @@ impl Compute {
     fn fall_back(&mut self, e: &dioptra_render::GpuError) {
         if self.cpu_because.is_none() {
             tracing::error!(error = %e, "the GPU failed; rendering on the CPU from now on");
+            let decompositions = std::mem::take(&mut self.decompositions);
             *self = Compute::cpu(Some(format!("the GPU failed: {e}")));
+            self.decompositions = decompositions;
         }
+    }
+
+    /// Notes the newest multifocal decomposition made for `eye`, with the backend it ran on.
+    fn decomposed(&mut self, eye: Option<Side>, mut note: serde_json::Value) {
+        note["backend"] = serde_json::json!(if self.gpu.is_some() { "gpu" } else { "cpu" });
+        self.decompositions
+            .insert(eye.map_or("mono", Side::as_str), note);
     }
 
     fn status(&self) -> serde_json::Value {
@@ -978,6 +1063,9 @@ impl Compute {
             // Where the spectral decomposition runs: the rig's backend.
             "spectral_on": if self.gpu.is_some() { "gpu" } else { "cpu" },
             "refine_tiles_run": self.refine_tiles,
+            // The newest multifocal decomposition per eye: which ran, and the hybrid's fovea
+            // (optimised at a depth step, or linear).
+            "decomposition": self.decompositions,
         })
     }
 }
@@ -1136,6 +1224,95 @@ mod tests {
         // 2 degrees over 20 of 192 px: about 19 px around x = 40.
         assert!(diff(32, 48) < 1e-3, "fovea {}", diff(32, 48));
         assert!(diff(150, 190) > 1e-3, "periphery {}", diff(150, 190));
+    }
+
+    /// `method = "hybrid"` on `backend` (the one-lens example rig at `size` px): its layers for
+    /// `frame` around `gaze`, with what `/status` says of the decomposition.
+    fn hybrid_layers(
+        r: &RgbdRenderer,
+        frame: &ContentFrame,
+        gaze: [f32; 2],
+    ) -> (Vec<RgbImage>, serde_json::Value) {
+        let out = r
+            .render_frame(
+                frame,
+                Mode::Multifocal,
+                Method(RenderMethod::Hybrid),
+                Diopters(1.0),
+                Some(gaze),
+                false,
+            )
+            .unwrap();
+        let layers = out
+            .images
+            .iter()
+            .map(|i| i.to_host().unwrap().into_owned())
+            .collect();
+        (layers, r.backend_status()["decomposition"]["mono"].clone())
+    }
+
+    /// The multifocal hybrid optimises the fovea where a blurred depth step reaches it (the
+    /// step under the gaze: the layers there are not linear blending's, far from the gaze
+    /// they are) and is linear blending where none does (the gaze on flat depth); `/status`
+    /// says which. The layers follow the gaze within one content frame. On the CPU, and on
+    /// the GPU where an adapter exists.
+    #[test]
+    fn the_hybrid_optimises_the_fovea_at_a_depth_step_near_the_gaze_only() {
+        let size = 128;
+        let frame = step_frame(size);
+        let max_diff = |a: &[RgbImage], b: &[RgbImage], x: usize, y: usize| -> f32 {
+            let mut d = 0.0f32;
+            for (p, q) in a.iter().zip(b) {
+                for c in 0..3 {
+                    d = d.max((p.channels[c].row(y)[x] - q.channels[c].row(y)[x]).abs());
+                }
+            }
+            d
+        };
+        let mut backends = vec!["cpu"];
+        if dioptra_render::Gpu::new(None).is_ok() {
+            backends.push("gpu");
+        } else {
+            eprintln!("gpu: skipped, no GPU adapter");
+        }
+        for backend in backends {
+            let text = EXAMPLE_SIM_RIG
+                .replace("width = 96", &format!("width = {size}"))
+                .replace("height = 96", &format!("height = {size}"))
+                + &format!(
+                    "\n[render]\nbackend = \"{backend}\"\nhybrid = {{ fovea_deg = 1.0, blend_deg = 0.2, scale = 1 }}\n"
+                );
+            let cfg = RigConfig::parse(&text).unwrap();
+            let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
+            let lin = Cpu.linear_blend(&frame.rgbd, &r.planes).unwrap().images;
+            // The gaze on the step (x = 64): the fovea optimised, linear blending far away.
+            let (at_step, note) = hybrid_layers(&r, &frame, [64.0, 64.0]);
+            assert_eq!(at_step.len(), lin.len());
+            assert_eq!(note["method"], "hybrid", "{backend}: {note}");
+            assert_eq!(note["fovea"], "spectral", "{backend}: {note}");
+            assert_eq!(note["backend"], backend, "{note}");
+            assert!(
+                note["window"]["width"].as_u64().unwrap() < size as u64,
+                "{note}"
+            );
+            assert!(
+                max_diff(&at_step, &lin, 64, 64) > 1e-3,
+                "{backend}: the fovea at the step is linear blending's"
+            );
+            for (x, y) in [(0, 0), (127, 127), (0, 127)] {
+                assert_eq!(max_diff(&at_step, &lin, x, y), 0.0, "{backend}: ({x}, {y})");
+            }
+            // The gaze on the near half's flat depth, no step within reach of the fovea (1
+            // degree, 6 px here): linear blending everywhere, made again for the new gaze.
+            let (flat, note) = hybrid_layers(&r, &frame, [16.0, 64.0]);
+            assert_eq!(note["fovea"], "linear", "{backend}: {note}");
+            assert!(note["window"].is_null(), "{note}");
+            assert_eq!(flat, lin, "{backend}");
+            // Back at the step: optimised again.
+            let (again, note) = hybrid_layers(&r, &frame, [64.0, 64.0]);
+            assert_eq!(note["fovea"], "spectral", "{backend}: {note}");
+            assert!(max_diff(&again, &lin, 64, 64) > 1e-3, "{backend}");
+        }
     }
 
     /// On a stereo layout each eye of one content frame gets its own layers and its own panel:
