@@ -424,7 +424,7 @@ fn fill_row(mut row: [&mut [f32]; 4], hole: &[bool]) -> bool {
             // Nothing valid on the row.
             (None, None) => return false,
         };
-        let from = beyond(&row[3], hole, k, step);
+        let from = beyond(row[3], hole, k, step);
         for p in row.iter_mut() {
             let v = p[from];
             p[x..end].fill(v);
