@@ -128,39 +128,10 @@ pub(crate) fn wide_key(exact: &[u64], w: usize, h: usize, x: usize, y: usize) ->
     }
 }
 
-/// [`splat_exact`], with the widened fill of every empty pixel stored in `wide` (for callers
-/// that look pixels up more than once).
-pub(crate) fn splat(
-    depth: &[f32],
-    w: usize,
-    h: usize,
-    shift: [f32; 2],
-    q: f32,
-    exact: &mut [u64],
-    wide: &mut [u64],
-) {
-    splat_exact(depth, w, h, shift, q, exact);
-    for y in 0..h {
-        for x in 0..w {
-            let j = y * w + x;
-            wide[j] = if exact[j] != 0 {
-                0
-            } else {
-                wide_key(exact, w, h, x, y)
-            };
-        }
-    }
-}
-
 /// The source pixel a splat key names, if any.
 #[inline]
-fn key_source(key: u64) -> Option<usize> {
+pub(crate) fn key_source(key: u64) -> Option<usize> {
     (key != 0).then(|| (key & 0xffff_ffff) as usize - 1)
-}
-
-/// The source pixel seen at target `j` after [`splat`], if any.
-pub(crate) fn resolve(exact: &[u64], wide: &[u64], j: usize) -> Option<usize> {
-    key_source(if exact[j] != 0 { exact[j] } else { wide[j] })
 }
 
 /// Checks the light-field method's inputs (both backends).

@@ -124,16 +124,44 @@ pub struct LfView {
 
 /// Bilinear sample with edge clamping at pixel position (x, y) (centres at +0.5).
 pub(crate) fn bilinear(p: &Plane, x: f32, y: f32) -> f32 {
-    let (w, h) = (p.width() as isize, p.height() as isize);
-    let (fx, fy) = (x - 0.5, y - 0.5);
-    let (x0, y0) = (fx.floor(), fy.floor());
-    let (tx, ty) = (fx - x0, fy - y0);
-    let at =
-        |xi: isize, yi: isize| p.data()[(yi.clamp(0, h - 1) * w + xi.clamp(0, w - 1)) as usize];
-    let (xi, yi) = (x0 as isize, y0 as isize);
-    let a = at(xi, yi) * (1.0 - tx) + at(xi + 1, yi) * tx;
-    let b = at(xi, yi + 1) * (1.0 - tx) + at(xi + 1, yi + 1) * tx;
-    a * (1.0 - ty) + b * ty
+    Taps::new(p.width(), p.height(), x, y).read(p.data())
+}
+
+/// A bilinear read's four taps at pixel position (x, y) (centres at +0.5) of a `w` x `h`
+/// image, clamped to its edges: their indices (the top-left tap, its right, below, below
+/// right) and the weights along x and y, shared by every plane read there.
+pub(crate) struct Taps {
+    pub(crate) at: [usize; 4],
+    pub(crate) tx: f32,
+    pub(crate) ty: f32,
+}
+
+impl Taps {
+    #[inline]
+    pub(crate) fn new(w: usize, h: usize, x: f32, y: f32) -> Taps {
+        let (w, h) = (w as isize, h as isize);
+        let (fx, fy) = (x - 0.5, y - 0.5);
+        let (x0, y0) = (fx.floor(), fy.floor());
+        let (xi, yi) = (x0 as isize, y0 as isize);
+        let at = |dx: isize, dy: isize| {
+            (yi.saturating_add(dy).clamp(0, h - 1) * w + xi.saturating_add(dx).clamp(0, w - 1))
+                as usize
+        };
+        Taps {
+            at: [at(0, 0), at(1, 0), at(0, 1), at(1, 1)],
+            tx: fx - x0,
+            ty: fy - y0,
+        }
+    }
+
+    /// The read of plane `p` (row-major, the taps' size).
+    #[inline]
+    pub(crate) fn read(&self, p: &[f32]) -> f32 {
+        let (tx, ty) = (self.tx, self.ty);
+        let a = p[self.at[0]] * (1.0 - tx) + p[self.at[1]] * tx;
+        let b = p[self.at[2]] * (1.0 - tx) + p[self.at[3]] * tx;
+        a * (1.0 - ty) + b * ty
+    }
 }
 
 /// Pupil weight of each view: the area of its cell (the square of side `spacing` around it)

@@ -98,6 +98,19 @@ impl Shape {
         }
     }
 
+    /// The corners of a box holding the shape (its own, or a sphere's axis-aligned one).
+    pub fn corners(&self) -> [V3; 8] {
+        let (center, half, rot) = match *self {
+            Shape::Box { center, half, rot } => (center, half, rot),
+            Shape::Sphere { center, radius } => (center, [radius; 3], Rot::IDENTITY),
+        };
+        std::array::from_fn(|i| {
+            let local =
+                Vec3::from([0, 1, 2].map(|k| if i >> k & 1 == 0 { -half[k] } else { half[k] }));
+            (Vec3::from(center) + rot.apply_transpose(local)).to_array()
+        })
+    }
+
     /// False when the ray `o + t d` certainly meets the shape nowhere in `t_min < t < t_max`:
     /// it misses a sphere around it (a box's, a little larger than its corners), or meets
     /// that sphere only outside the interval. A few multiplies instead of a box's rotation

@@ -516,21 +516,8 @@ impl Scene {
         let mut t_min = 1e-4f32;
         // A few layers of transparency are enough; the loop always ends at the wall.
         for _ in 0..6 {
-            let mut best: Option<(geom::Hit, &Object)> = None;
             let wall_t = self.wall_depth - o[2];
-            for obj in objects.clone() {
-                // Only a hit nearer than the best so far and the wall can change the result.
-                let t_max = best.as_ref().map_or(wall_t, |(b, _)| b.t.min(wall_t));
-                if !obj.shape.may_hit(o, d, t_min, t_max) {
-                    continue;
-                }
-                if let Some(h) = obj.shape.intersect(o, d, t_min) {
-                    if best.as_ref().is_none_or(|(b, _)| h.t < b.t) {
-                        best = Some((h, obj));
-                    }
-                }
-            }
-            match best {
+            match nearest_hit(o, d, t_min, wall_t, objects.clone()) {
                 Some((h, obj)) if h.t < wall_t => {
                     let ndl = glam::Vec3::from(h.normal)
                         .dot(glam::Vec3::new(-0.36, -0.6, -0.72))
@@ -561,6 +548,47 @@ impl Scene {
         }
         (colour, first_z.unwrap_or(self.wall_depth))
     }
+
+    /// The z-depth (metres) [`Scene::trace_among`] gives the ray, without its colour: the
+    /// first surface's, opaque or not, else the wall's.
+    pub fn depth_among<'a>(
+        &'a self,
+        o: [f32; 3],
+        d: [f32; 3],
+        objects: impl Iterator<Item = &'a Object>,
+    ) -> f32 {
+        let wall_t = self.wall_depth - o[2];
+        match nearest_hit(o, d, 1e-4, wall_t, objects) {
+            Some((h, _)) if h.t < wall_t => o[2] + h.t,
+            _ => self.wall_depth,
+        }
+    }
+}
+
+/// The nearest hit beyond `t_min` of the ray `o + t d` among `objects` (the first in their
+/// order of equally near ones); those beyond `wall_t` and the best so far are culled
+/// ([`Shape::may_hit`]), so a hit at or beyond `wall_t` may or may not be found.
+fn nearest_hit<'a>(
+    o: [f32; 3],
+    d: [f32; 3],
+    t_min: f32,
+    wall_t: f32,
+    objects: impl Iterator<Item = &'a Object>,
+) -> Option<(geom::Hit, &'a Object)> {
+    let mut best: Option<(geom::Hit, &Object)> = None;
+    for obj in objects {
+        // Only a hit nearer than the best so far and the wall can change the result.
+        let t_max = best.as_ref().map_or(wall_t, |(b, _)| b.t.min(wall_t));
+        if !obj.shape.may_hit(o, d, t_min, t_max) {
+            continue;
+        }
+        if let Some(h) = obj.shape.intersect(o, d, t_min) {
+            if best.as_ref().is_none_or(|(b, _)| h.t < b.t) {
+                best = Some((h, obj));
+            }
+        }
+    }
+    best
 }
 
 #[cfg(test)]

@@ -123,40 +123,59 @@ pub fn render_pinhole(
     }
     let o = [position[0], position[1], 0.0];
     let n = (supersample * supersample) as u32;
-    let px: Vec<([f32; 3], f32)> = (0..cam.height)
-        .into_par_iter()
-        .flat_map_iter(|y| {
-            (0..cam.width).map(move |x| {
-                let objects = pixel_objects(scene, cam, pitch, x, y, position, 0.0, 0.0);
-                let trace =
-                    |t: [f32; 2]| scene.trace_among(o, [t[0], t[1], 1.0], objects.iter().copied());
-                let mut acc = [0.0f32; 3];
-                if n == 1 {
-                    let t = cam.tangent(pitch, x as f32 + 0.5, y as f32 + 0.5);
-                    acc = trace(t).0;
-                } else {
-                    // Own scramble keys: independent of the thin-lens reference's samples.
-                    let off = [pixel_hash(x, y, 1_000_001), pixel_hash(x, y, 1_000_002)];
-                    for i in 0..n {
-                        let jx = (radical_inverse(i + 1, 5) + off[0]).fract();
-                        let jy = (radical_inverse(i + 1, 7) + off[1]).fract();
-                        let t = cam.tangent(pitch, x as f32 + jx, y as f32 + jy);
-                        let (c, _) = trace(t);
-                        for k in 0..3 {
-                            acc[k] += c[k];
+    let w = cam.width;
+    let cull = Cull::new(scene, cam, pitch, position, 0.0, 0.0);
+    // Red, green, blue and depth (diopters), a row per task.
+    let mut planes: [Vec<f32>; 4] = std::array::from_fn(|_| vec![0.0f32; w * cam.height]);
+    {
+        let [r, g, b, z] = &mut planes;
+        r.par_chunks_mut(w)
+            .zip(g.par_chunks_mut(w))
+            .zip(b.par_chunks_mut(w))
+            .zip(z.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(y, (((r, g), b), z))| {
+                let mut cull = RowCull::new(&cull, y);
+                for x in 0..w {
+                    let objects = cull.at(x);
+                    let trace = |t: [f32; 2]| {
+                        scene.trace_among(o, [t[0], t[1], 1.0], objects.iter().copied())
+                    };
+                    let centre = cam.tangent(pitch, x as f32 + 0.5, y as f32 + 0.5);
+                    let (acc, depth) = if n == 1 {
+                        trace(centre)
+                    } else {
+                        let mut acc = [0.0f32; 3];
+                        // Own scramble keys: independent of the thin-lens reference's samples.
+                        let off = [pixel_hash(x, y, 1_000_001), pixel_hash(x, y, 1_000_002)];
+                        for i in 0..n {
+                            let jx = (radical_inverse(i + 1, 5) + off[0]).fract();
+                            let jy = (radical_inverse(i + 1, 7) + off[1]).fract();
+                            let t = cam.tangent(pitch, x as f32 + jx, y as f32 + jy);
+                            let (c, _) = trace(t);
+                            for k in 0..3 {
+                                acc[k] += c[k];
+                            }
                         }
-                    }
-                    acc = acc.map(|v| v / n as f32);
+                        let depth = scene.depth_among(
+                            o,
+                            [centre[0], centre[1], 1.0],
+                            objects.iter().copied(),
+                        );
+                        (acc.map(|v| v / n as f32), depth)
+                    };
+                    (r[x], g[x], b[x], z[x]) = (acc[0], acc[1], acc[2], 1.0 / depth);
                 }
-                let t = cam.tangent(pitch, x as f32 + 0.5, y as f32 + 0.5);
-                let (_, z) = trace(t);
-                (acc, 1.0 / z)
-            })
-        })
-        .collect();
-    let depth: Vec<f32> = px.iter().map(|p| p.1).collect();
-    let color = to_planes(cam.width, cam.height, px.into_iter().map(|p| p.0).collect())?;
-    let depth = DepthMap::from_diopters(Plane::from_vec(cam.width, cam.height, depth)?)?;
+            });
+    }
+    let (w, h) = (cam.width, cam.height);
+    let [r, g, b, z] = planes;
+    let color = RgbImage::from_planes(
+        Plane::from_vec(w, h, r)?,
+        Plane::from_vec(w, h, g)?,
+        Plane::from_vec(w, h, b)?,
+    )?;
+    let depth = DepthMap::from_diopters(Plane::from_vec(w, h, z)?)?;
     Ok((color, depth))
 }
 
@@ -193,12 +212,14 @@ pub fn render_thin_lens_scrambled(
         .map(|i| [2, 3, 5, 7].map(|base| radical_inverse(i, base)))
         .collect();
     let halton = &halton;
+    let cull = Cull::new(scene, cam, pitch, [0.0; 2], radius, q);
     let px: Vec<[f32; 3]> = (0..cam.height)
         .into_par_iter()
         .flat_map_iter(|y| {
+            let mut cull = RowCull::new(&cull, y);
             (0..cam.width).map(move |x| {
                 let off = [0, 1, 2, 3].map(|k| pixel_hash(x, y, k + 4 * scramble));
-                let objects = pixel_objects(scene, cam, pitch, x, y, [0.0; 2], radius, q);
+                let objects = cull.at(x);
                 let mut acc = [0.0f32; 3];
                 for h in halton {
                     let r = |k: usize| (h[k] + off[k]).fract();
@@ -223,32 +244,150 @@ pub fn render_thin_lens_scrambled(
     to_planes(cam.width, cam.height, px)
 }
 
-/// The objects that some ray of pixel (x, y) can meet, in the scene's order: the pixel's
-/// rays leave a disk of `lens_radius` around `origin` and meet on the focal plane at
-/// `focus_d` (a pinhole: radius 0, any focus).
-#[allow(clippy::too_many_arguments)]
-fn pixel_objects<'a>(
+/// What a render culls its pixels' objects by: the rays of a pixel leave a disk of
+/// `lens_radius` around `origin` and meet on the focal plane at `focus_d` (a pinhole: radius
+/// 0, any focus); for a pinhole, each object's tangent bounds too.
+struct Cull<'a> {
     scene: &'a Scene,
-    cam: &Camera,
+    cam: &'a Camera,
     pitch: f32,
-    x: usize,
-    y: usize,
     origin: [f32; 2],
     lens_radius: f32,
     focus_d: f32,
-) -> Vec<&'a super::Object> {
-    let bundle = super::RayBundle {
-        origin,
-        lens_radius,
-        focus_d,
-        t_lo: cam.tangent(pitch, x as f32, y as f32),
-        t_hi: cam.tangent(pitch, x as f32 + 1.0, y as f32 + 1.0),
-    };
-    scene
-        .objects
-        .iter()
-        .filter(|o| bundle.may_meet(&o.shape))
-        .collect()
+    /// Per object, with a pinhole, the tangents (x and y lows, then highs) of every ray from
+    /// it that can meet the object ([`tangent_bounds`]); `None`: not bounded.
+    bounds: Vec<Option<[f32; 4]>>,
+}
+
+impl<'a> Cull<'a> {
+    fn new(
+        scene: &'a Scene,
+        cam: &'a Camera,
+        pitch: f32,
+        origin: [f32; 2],
+        lens_radius: f32,
+        focus_d: f32,
+    ) -> Cull<'a> {
+        let bounds = scene
+            .objects
+            .iter()
+            .map(|o| (lens_radius == 0.0).then(|| tangent_bounds(&o.shape, origin))?)
+            .collect();
+        Cull {
+            scene,
+            cam,
+            pitch,
+            origin,
+            lens_radius,
+            focus_d,
+            bounds,
+        }
+    }
+
+    /// The bundle of the rays through the pixels `x0..x1` x `y0..y1`.
+    fn bundle(&self, [x0, x1]: [usize; 2], [y0, y1]: [usize; 2]) -> super::RayBundle {
+        super::RayBundle {
+            origin: self.origin,
+            lens_radius: self.lens_radius,
+            focus_d: self.focus_d,
+            t_lo: self.cam.tangent(self.pitch, x0 as f32, y0 as f32),
+            t_hi: self.cam.tangent(self.pitch, x1 as f32, y1 as f32),
+        }
+    }
+
+    /// Whether some ray of bundle `b` may meet object `i`.
+    fn may_meet(&self, i: usize, b: &super::RayBundle) -> bool {
+        b.may_meet(&self.scene.objects[i].shape)
+            && self.bounds[i].is_none_or(|r| {
+                b.t_hi[0] >= r[0] && b.t_lo[0] <= r[2] && b.t_hi[1] >= r[1] && b.t_lo[1] <= r[3]
+            })
+    }
+
+    /// The objects that some ray of pixel (x, y) can meet, in the scene's order.
+    #[cfg(test)]
+    fn pixel_objects(&self, x: usize, y: usize) -> Vec<&'a super::Object> {
+        let b = self.bundle([x, x + 1], [y, y + 1]);
+        (0..self.scene.objects.len())
+            .filter(|&i| self.may_meet(i, &b))
+            .map(|i| &self.scene.objects[i])
+            .collect()
+    }
+}
+
+/// The tangents (x and y lows, then highs) of every ray from a pinhole at `origin` (in the
+/// z = 0 plane) that can meet `shape`: those of the corners of a box around it (the map from
+/// a point to its tangents is linear-fractional, so it takes the convex box into the hull of
+/// its corners' images), widened for rounding; `None` where a corner is not in front.
+fn tangent_bounds(shape: &super::Shape, origin: [f32; 2]) -> Option<[f32; 4]> {
+    let mut r = [
+        f32::INFINITY,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::NEG_INFINITY,
+    ];
+    for c in shape.corners() {
+        if c[2].is_nan() || c[2] <= 1e-3 {
+            return None;
+        }
+        for k in 0..2 {
+            let t = (c[k] - origin[k]) / c[2];
+            r[k] = r[k].min(t);
+            r[k + 2] = r[k + 2].max(t);
+        }
+    }
+    // A relative margin for rounding: culling a little less never changes an image.
+    let m = [0, 1].map(|k| 1e-4 * (r[k].abs() + r[k + 2].abs()) + 1e-5);
+    Some([r[0] - m[0], r[1] - m[1], r[2] + m[0], r[3] + m[1]])
+}
+
+/// Pixels of a row whose objects [`RowCull`] culls together first.
+const CULL_SPAN: usize = 16;
+
+/// Per pixel of one row, the objects some ray of the pixel can meet, in the scene's order
+/// ([`Cull::pixel_objects`]): culled from those of the pixel's span of [`CULL_SPAN`] pixels,
+/// which hold them (a wider bundle's tests pass whatever a narrower one's do), so a pixel
+/// tests a few objects instead of all and nothing is allocated per pixel.
+struct RowCull<'a, 'c> {
+    cull: &'c Cull<'a>,
+    y: usize,
+    /// The span `span`'s objects (indices), and the last pixel's.
+    span: usize,
+    span_objects: Vec<usize>,
+    objects: Vec<&'a super::Object>,
+}
+
+impl<'a, 'c> RowCull<'a, 'c> {
+    fn new(cull: &'c Cull<'a>, y: usize) -> RowCull<'a, 'c> {
+        RowCull {
+            cull,
+            y,
+            span: usize::MAX,
+            span_objects: Vec::new(),
+            objects: Vec::new(),
+        }
+    }
+
+    /// Pixel `x`'s objects.
+    fn at(&mut self, x: usize) -> &[&'a super::Object] {
+        let (cull, y) = (self.cull, self.y);
+        if x / CULL_SPAN != self.span {
+            self.span = x / CULL_SPAN;
+            let x0 = self.span * CULL_SPAN;
+            let b = cull.bundle([x0, (x0 + CULL_SPAN).min(cull.cam.width)], [y, y + 1]);
+            self.span_objects.clear();
+            self.span_objects
+                .extend((0..cull.scene.objects.len()).filter(|&i| cull.may_meet(i, &b)));
+        }
+        let b = cull.bundle([x, x + 1], [y, y + 1]);
+        self.objects.clear();
+        self.objects.extend(
+            self.span_objects
+                .iter()
+                .filter(|&&i| cull.may_meet(i, &b))
+                .map(|&i| &cull.scene.objects[i]),
+        );
+        &self.objects
+    }
 }
 
 /// Thin-lens ground truth at each focus in `foci`; `progress` is called after each slice.
@@ -367,17 +506,19 @@ mod tests {
         let mut culled = 0usize;
         for seed in [1_000_000u64, 1_000_001, 42] {
             let scene = Scene::generate_with(seed, &opts);
-            for (pupil_mm, q) in [(4.0f32, 0.1f32), (8.0, 2.5), (4.0, 6.0)] {
+            // A pupil of 0: a pinhole, culled by its tangent bounds too.
+            for (pupil_mm, q) in [(0.0, 0.0), (4.0f32, 0.1f32), (8.0, 2.5), (4.0, 6.0)] {
                 let eye = EyeModel {
-                    pupil_diameter: dioptra_core::Millimeters(pupil_mm),
+                    pupil_diameter: dioptra_core::Millimeters(pupil_mm.max(1.0)),
                     ..EyeModel::default()
                 };
                 let cam = Camera::square(eye, 64);
                 let pitch = cam.check().unwrap();
-                let radius = 0.5 * eye.pupil_diameter.to_meters().0;
+                let radius = 0.5 * dioptra_core::Millimeters(pupil_mm).to_meters().0;
+                let cull = Cull::new(&scene, &cam, pitch, [0.0; 2], radius, q);
                 for p in 0..400u32 {
                     let (x, y) = ((p * 37 % 64) as usize, (p * 11 % 64) as usize);
-                    let objects = pixel_objects(&scene, &cam, pitch, x, y, [0.0; 2], radius, q);
+                    let objects = cull.pixel_objects(x, y);
                     culled += scene.objects.len() - objects.len();
                     for i in 0..8u32 {
                         let u = |k: u32| pixel_hash(x, y, 100 + 8 * i + k);
@@ -398,6 +539,79 @@ mod tests {
         }
         // Culling happened (most objects are far from most pixels).
         assert!(culled > checked, "{culled} culled over {checked} rays");
+    }
+
+    /// FNV-1a over images' bits.
+    fn checksum<'a>(planes: impl IntoIterator<Item = &'a Plane>) -> u64 {
+        planes
+            .into_iter()
+            .flat_map(|p| p.data().iter())
+            .flat_map(|v| v.to_bits().to_le_bytes())
+            .fold(0xcbf2_9ce4_8422_2325, |h, b| {
+                (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
+            })
+    }
+
+    /// Pins the renders bit for bit: pinhole views (1 and 2 x 2 rays per pixel, off-centre,
+    /// a width that ends a culling span early) and a thin-lens view of a semi-transparent
+    /// scene. The values are the renders' before their culling by row spans (cpu54).
+    #[test]
+    fn the_renders_are_pinned() {
+        let opts = crate::scene::SceneOptions {
+            semi_transparent: true,
+            ..Default::default()
+        };
+        let scene = Scene::generate_with(1_000_000, &opts);
+        let cam = Camera::new(EyeModel::default(), 75, 44);
+        let mut sums = Vec::new();
+        for (position, ss) in [([0.0, 0.0], 1), ([0.0315, -0.002], 2)] {
+            let (c, d) = render_pinhole(&scene, &cam, position, ss).unwrap();
+            sums.push(checksum(c.channels.iter().chain([d.plane()])));
+        }
+        let t = render_thin_lens(&scene, &cam, Diopters(1.5), 16).unwrap();
+        sums.push(checksum(&t.channels));
+        assert_eq!(
+            sums,
+            [
+                0xb31c_2cd1_075f_15e7,
+                0x7bff_a8ad_9877_1f0b,
+                0x22a7_ad67_ad64_e56f
+            ],
+            "the renders changed"
+        );
+    }
+
+    /// A row's culling gives each pixel the objects its own bundle may meet, in the scene's
+    /// order ([`Cull::pixel_objects`]): whole rows (a partial span at their end) of pinhole and
+    /// thin-lens bundles, off-centre.
+    #[test]
+    fn culling_by_row_spans_gives_each_pixel_its_objects() {
+        let scene = Scene::generate(1_000_000);
+        let cam = Camera::new(EyeModel::default(), 100, 40);
+        let pitch = cam.check().unwrap();
+        let origin = [0.003, -0.001];
+        for (radius, q) in [(0.0, 0.0), (0.002, 0.5), (0.004, 3.0)] {
+            let mut total = 0;
+            for y in [0, 7, 20, 39] {
+                let cull = Cull::new(&scene, &cam, pitch, origin, radius, q);
+                let mut row = RowCull::new(&cull, y);
+                for x in 0..100 {
+                    let want = cull.pixel_objects(x, y);
+                    let got = row.at(x);
+                    assert!(
+                        got.len() == want.len()
+                            && got.iter().zip(&want).all(|(a, b)| std::ptr::eq(*a, *b)),
+                        "pixel ({x}, {y}), lens {radius} m at {q} D"
+                    );
+                    total += got.len();
+                }
+            }
+            // Some objects, not all, per pixel.
+            assert!(
+                total > 0 && total < 400 * scene.objects.len(),
+                "{total} objects over 400 pixels"
+            );
+        }
     }
 
     #[test]
