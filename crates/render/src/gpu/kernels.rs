@@ -4,11 +4,12 @@
 use std::sync::Arc;
 
 use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, Readbacks, WG, WG1};
-use super::image::{GpuImage, ImageLayout};
+pub(super) use super::image::planar;
+use super::image::{GpuImage, GpuRgbd, ImageLayout, RgbdInput};
 use super::GpuError;
 use crate::backend::Foveated;
 use crate::backend::Progress;
-use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
+use crate::common::{check_focus, coc_over, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::foveate::{log_polar_tables, LogPolar, FOV_CELL};
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
@@ -20,7 +21,7 @@ use crate::multifocal::{
 use crate::retina::LfView;
 use crate::views::{check_inputs, light_field_positions, RgbdView};
 use bytemuck::{Pod, Zeroable};
-use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
 
 type Out<T> = Result<(T, FrameStats), RenderError>;
 
@@ -30,15 +31,6 @@ pub(super) fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
 
 fn groups2(w: u32, h: u32, z: u32) -> [u32; 3] {
     [w.div_ceil(WG), h.div_ceil(WG), z]
-}
-
-/// Planar colour: R plane, then G, then B.
-pub(super) fn planar(img: &RgbImage) -> Vec<f32> {
-    let mut v = Vec::with_capacity(3 * img.width() * img.height());
-    for c in &img.channels {
-        v.extend_from_slice(c.data());
-    }
-    v
 }
 
 fn image(data: &[f32], w: usize, h: usize) -> Result<RgbImage, RenderError> {
@@ -160,15 +152,16 @@ pub(super) struct SizeP {
 }
 
 /// Gather blur, one frame per focus; colour and depth are uploaded once.
-pub(super) fn gather(
+pub(super) fn gather<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     progress: Progress,
     keep: Keep,
 ) -> Out<Vec<Output>> {
-    check_rgbd(input)?;
+    let input: RgbdInput = input.into();
+    input.check()?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
     let (w, h) = (input.width(), input.height());
@@ -178,7 +171,9 @@ pub(super) fn gather(
     let mut out = Vec::with_capacity(foci.len());
     let mut inputs: Option<(BufRef, BufRef)> = None;
     for &q in foci {
-        let reach = (0.5 * max_coc(input, &eye, q) + 0.5).ceil().min(256.0) as isize;
+        let reach = (0.5 * coc_over(input.depth_range(), &eye, q) + 0.5)
+            .ceil()
+            .min(256.0) as isize;
         // The CPU's tap order exactly: distance, ties in generation order (stable sort).
         let mut offsets: Vec<[f32; 4]> = (-reach..=reach)
             .flat_map(|dy| {
@@ -198,10 +193,7 @@ pub(super) fn gather(
         let (color, depth) = match &inputs {
             Some(b) => b.clone(),
             None => {
-                let b = (
-                    f.upload("colour image", &planar(&input.color))?,
-                    f.upload("depth map", input.depth.data())?,
-                );
+                let b = input.buffers(ctx, &mut f)?;
                 inputs = Some(b.clone());
                 b
             }
@@ -237,19 +229,19 @@ pub(super) fn gather(
 }
 
 /// Linear blending in one dispatch: one output image per plane.
-pub(super) fn linear_blend(
+pub(super) fn linear_blend<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     planes: &[Diopters],
     keep: Keep,
 ) -> Out<Vec<Output>> {
+    let input: RgbdInput = input.into();
     check_planes(planes)?;
-    check_rgbd(input)?;
+    input.check()?;
     let (w, h) = (input.width(), input.height());
     let (n, np) = ((w * h) as u64, planes.len());
     let mut f = Frame::new(ctx)?;
-    let color = f.upload("colour image", &planar(&input.color))?;
-    let depth = f.upload("depth map", input.depth.data())?;
+    let (color, depth) = input.buffers(ctx, &mut f)?;
     let pl: Vec<f32> = planes.iter().map(|p| p.0).collect();
     let pbuf = f.upload("planes", &pl)?;
     let bytes = 12 * n * np as u64;
@@ -540,16 +532,18 @@ pub(super) struct LfP {
 }
 
 /// Light-field depth of field: the pyramid once per call, then one frame per focus.
-pub(super) fn lightfield(
+pub(super) fn lightfield<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     params: LightFieldParams,
     progress: Progress,
     keep: Keep,
 ) -> Out<Vec<Output>> {
-    crate::lightfield::check_lightfield_inputs(input, &params)?;
+    let input: RgbdInput = input.into();
+    input.check()?;
+    crate::lightfield::check_lightfield_params(&params)?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
     let (w, h) = (input.width(), input.height());
@@ -576,7 +570,10 @@ pub(super) fn lightfield(
     // The levels the sharpest-to-blurriest focus of this call reads, built once.
     let nlev = foci
         .iter()
-        .map(|&q| (level_below(PREFILTER * max_coc(input, &eye, q) * spacing) + 1).min(top) + 1)
+        .map(|&q| {
+            let coc = coc_over(input.depth_range(), &eye, q);
+            (level_below(PREFILTER * coc * spacing) + 1).min(top) + 1
+        })
         .max()
         .unwrap_or(1);
     let max = ctx.max_binding();
@@ -589,8 +586,7 @@ pub(super) fn lightfield(
         let (color, depth, levels, vbuf) = match &shared {
             Some(s) => s.clone(),
             None => {
-                let color = f.upload("colour image", &planar(&input.color))?;
-                let depth = f.upload("depth map", input.depth.data())?;
+                let (color, depth) = input.buffers(ctx, &mut f)?;
                 let vbuf = f.upload("lens samples", &views)?;
                 let levels = f.scratch("Gaussian pyramid", 12 * n * nlev as u64)?;
                 f.copy(&color, 0, &levels, 0, 12 * n);
@@ -863,33 +859,53 @@ pub(super) fn optimized_blend(
     Ok(((o.take(ctx, &res)?, report), total))
 }
 
-/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
-/// then one frame per view (splat, resolve, hole filling by rows then columns).
-pub(super) fn synthesize_light_field(
-    ctx: &GpuContext,
-    inputs: &[RgbdView],
-    grid: usize,
-    span: f32,
-    eye: &EyeModel,
-    progress: Progress,
-) -> Out<Vec<LfView>> {
-    let positions = light_field_positions(grid, span)?;
-    let (w, h) = check_inputs(inputs)?;
-    let pitch = eye_for(eye, w)?.pixel_pitch_tan();
-    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
-    let n = (w * h) as u64;
-    let ni = inputs.len();
-    let mut depths = Vec::with_capacity(ni * w * h);
-    let mut colors = Vec::with_capacity(3 * ni * w * h);
-    for v in inputs {
-        depths.extend_from_slice(v.rgbd.depth.data());
-        colors.extend_from_slice(&planar(&v.rgbd.color));
+/// Sparse RGB-D inputs in GPU memory, for synthesising views from them ([`SynthInputs::view`]).
+struct SynthInputs<'a> {
+    inputs: &'a [RgbdView],
+    w: usize,
+    h: usize,
+    pitch: f32,
+    depths: BufRef,
+    colors: BufRef,
+}
+
+impl<'a> SynthInputs<'a> {
+    /// `inputs` checked and uploaded by `f`.
+    fn upload(
+        f: &mut Frame,
+        inputs: &'a [RgbdView],
+        eye: &EyeModel,
+    ) -> Result<SynthInputs<'a>, RenderError> {
+        let (w, h) = check_inputs(inputs)?;
+        let pitch = eye_for(eye, w)?.pixel_pitch_tan();
+        let mut depths = Vec::with_capacity(inputs.len() * w * h);
+        let mut colors = Vec::with_capacity(3 * inputs.len() * w * h);
+        for v in inputs {
+            depths.extend_from_slice(v.rgbd.depth.data());
+            colors.extend_from_slice(&planar(&v.rgbd.color));
+        }
+        Ok(SynthInputs {
+            inputs,
+            w,
+            h,
+            pitch,
+            depths: f.upload("input depth maps", &depths)?,
+            colors: f.upload("input colour images", &colors)?,
+        })
     }
-    let mut total = FrameStats::default();
-    let mut out = Vec::with_capacity(grid * grid);
-    let mut shared: Option<(BufRef, BufRef)> = None;
-    for (k, target) in positions.into_iter().enumerate() {
-        let shifts: Vec<[f32; 4]> = inputs
+
+    /// Records the view from `target` (splat, resolve, hole filling by rows then columns):
+    /// a buffer of four planes, red, green, blue and depth (diopters).
+    fn view(&self, f: &mut Frame, target: [f32; 2]) -> Result<BufRef, RenderError> {
+        if !target.iter().all(|p| p.is_finite()) {
+            return Err(invalid("view positions must be finite"));
+        }
+        let (w, h, ni) = (self.w, self.h, self.inputs.len());
+        let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+        let n = (w * h) as u64;
+        let pitch = self.pitch;
+        let shifts: Vec<[f32; 4]> = self
+            .inputs
             .iter()
             .map(|v| {
                 [
@@ -900,18 +916,6 @@ pub(super) fn synthesize_light_field(
                 ]
             })
             .collect();
-        let mut f = Frame::new(ctx)?;
-        let (db, cb) = match &shared {
-            Some(s) => s.clone(),
-            None => {
-                let s = (
-                    f.upload("input depth maps", &depths)?,
-                    f.upload("input colour images", &colors)?,
-                );
-                shared = Some(s.clone());
-                s
-            }
-        };
         let sb = f.upload("view shifts", &shifts)?;
         let dkey = f.zeroed("depth keys", 4 * n * ni as u64)?;
         let ikey = f.zeroed("index keys", 4 * n * ni as u64)?;
@@ -931,8 +935,9 @@ pub(super) fn synthesize_light_field(
         };
         let gz = groups2(wu, hu, ni as u32);
         let g = groups2(wu, hu, 1);
-        f.dispatch(Kernel::LfSplatDepth, &p, &[&db, &sb, &dkey], gz)?;
-        f.dispatch(Kernel::LfSplatIndex, &p, &[&db, &sb, &dkey, &ikey], gz)?;
+        let db = &self.depths;
+        f.dispatch(Kernel::LfSplatDepth, &p, &[db, &sb, &dkey], gz)?;
+        f.dispatch(Kernel::LfSplatIndex, &p, &[db, &sb, &dkey, &ikey], gz)?;
         let sp = SizeP {
             w: wu,
             h: hu,
@@ -943,23 +948,84 @@ pub(super) fn synthesize_light_field(
         f.dispatch(
             Kernel::ViewResolve,
             &sp,
-            &[&dkey, &ikey, &db, &cb, &sb, &px],
+            &[&dkey, &ikey, db, &self.colors, &sb, &px],
             g,
         )?;
         let rows = f.scratch("row-filled pixels", 16 * n)?;
         f.dispatch(Kernel::FillRows, &sp, &[&px, &rows], g)?;
-        let dst = f.scratch("output image", 12 * n)?;
+        let dst = f.scratch("synthesised RGB-D", 16 * n)?;
         f.dispatch(Kernel::FillCols, &sp, &[&rows, &dst], g)?;
-        let r = f.read(&dst, 12 * n);
+        Ok(dst)
+    }
+}
+
+/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
+/// then one frame per view (splat, resolve, hole filling by rows then columns).
+pub(super) fn synthesize_light_field(
+    ctx: &GpuContext,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<LfView>> {
+    let positions = light_field_positions(grid, span)?;
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(grid * grid);
+    let mut uploaded: Option<SynthInputs> = None;
+    for (k, target) in positions.into_iter().enumerate() {
+        let mut f = Frame::new(ctx)?;
+        let synth = match uploaded.take() {
+            Some(s) => s,
+            None => SynthInputs::upload(&mut f, inputs, eye)?,
+        };
+        let (w, h) = (synth.w, synth.h);
+        let dst = synth.view(&mut f, target)?;
+        let r = f.read(&dst, 12 * (w * h) as u64);
         let (rb, s) = f.finish()?;
         total.add(&s);
         out.push(LfView {
             position: target,
             image: image(&rb.f32s(r), w, h)?,
         });
+        uploaded = Some(synth);
         progress(k + 1);
     }
     Ok((out, total))
+}
+
+/// The RGB-D view from each of `targets` synthesised from `inputs` (the GPU twin of
+/// [`crate::views::synthesize_rgbd_view`]): the inputs uploaded once, every view made in one
+/// submission and left in GPU memory.
+pub(super) fn synthesize_rgbd_views(
+    ctx: &Arc<GpuContext>,
+    inputs: &[RgbdView],
+    targets: &[[f32; 2]],
+    eye: &EyeModel,
+) -> Out<Vec<GpuRgbd>> {
+    let mut f = Frame::new(ctx)?;
+    let synth = SynthInputs::upload(&mut f, inputs, eye)?;
+    // Every synthesised depth is one of an input's, or 0 D where nothing was seen on the
+    // pixel's row or column.
+    let bound = inputs
+        .iter()
+        .filter_map(|v| v.rgbd.depth.range())
+        .fold((Diopters(0.0), Diopters(0.0)), |(lo, hi), (l, h)| {
+            (Diopters(lo.0.min(l.0)), Diopters(hi.0.max(h.0)))
+        });
+    let views = targets
+        .iter()
+        .map(|&t| synth.view(&mut f, t))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (_, s) = f.finish()?;
+    let size = (synth.w, synth.h);
+    Ok((
+        views
+            .into_iter()
+            .map(|b| GpuRgbd::new(ctx, b, size, bound))
+            .collect(),
+        s,
+    ))
 }
 
 #[repr(C)]
