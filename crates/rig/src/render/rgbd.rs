@@ -28,6 +28,7 @@ use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
 use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveated::Foveation;
+use dioptra_render::gpu::GpuRgbd;
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{
@@ -38,7 +39,7 @@ use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
 
 use super::config::{Render, RenderBackend};
-use super::job::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+use super::job::{EyesOnDevice, FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use crate::content::frame::{ContentFrame, ContentView};
 use crate::display::config::Display;
 use crate::mode::{Method, Mode};
@@ -59,6 +60,9 @@ pub struct RgbdRenderer {
     /// The light-field panels, each made from the content frame numbered with it, for the eye
     /// with it (`None`: the one view of a mono layout).
     panel: Mutex<Vec<CachedPanel>>,
+    /// Each eye's view of the content frame numbered with them, synthesised on the GPU and
+    /// kept there (left, right): a stereo layout's eyes from one RGB-D.
+    eye_views: Mutex<Option<(u64, Arc<[GpuRgbd; 2]>)>>,
     /// Half the interpupillary distance, metres: where each eye's light field is centred.
     half_ipd_m: f32,
     /// `render.foveation`: the pyramid method's (fixed or the planner's) around each eye's
@@ -126,6 +130,7 @@ impl RgbdRenderer {
             newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
             panel: Mutex::new(Vec::new()),
+            eye_views: Mutex::new(None),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
             foveation: render.foveation.settings(),
             deadline: eye_deadline(display),
@@ -141,12 +146,7 @@ impl RgbdRenderer {
         focus: Diopters,
         method: DefocusMethod,
     ) -> Result<FrameImage, RenderError> {
-        let label = match method {
-            DefocusMethod::Gather => "gather".to_string(),
-            DefocusMethod::Pyramid(_) => "pyramid".to_string(),
-            DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
-        };
-        self.on_backend(&label, |gpu| match gpu {
+        self.on_backend(&defocus_label(method), |gpu| match gpu {
             Some(g) => Ok(FrameImage::Gpu(
                 g.defocus_on_gpu(input, focus, &self.eye, method)?,
             )),
@@ -182,13 +182,132 @@ impl RgbdRenderer {
                 work(None)
             }
             Ok(v) => {
-                if let Some(g) = gpu {
-                    lock(&self.compute).timed(label, g.last_stats().gpu_ns);
+                let mut c = lock(&self.compute);
+                match gpu {
+                    Some(g) => {
+                        c.timed(label, g.last_stats().gpu_ns);
+                        c.ran(label, "gpu");
+                    }
+                    None => c.ran(label, "cpu"),
                 }
                 Ok(v)
             }
             Err(e) => Err(e),
         }
+    }
+
+    /// `job` for both eyes from views synthesised from `content`'s one RGB-D on `gpu` (the
+    /// eyes at `positions`), every stage in GPU memory: the views made once per content frame,
+    /// each eye rendered from its own.
+    fn eyes_from_gpu(
+        &self,
+        gpu: &Gpu,
+        job: &RenderJob,
+        content: &ContentFrame,
+        positions: [[f32; 2]; 2],
+    ) -> Result<EyesOnDevice, RenderError> {
+        self.take_up(content);
+        let kept = lock(&self.eye_views)
+            .as_ref()
+            .filter(|(n, _)| *n == content.number)
+            .map(|(_, v)| v.clone());
+        let made = kept.is_none();
+        let views = match kept {
+            Some(v) => v,
+            None => {
+                let input = [RgbdView {
+                    position: [0.0, 0.0],
+                    rgbd: content.rgbd.as_ref().clone(),
+                }];
+                let made = gpu.synthesize_rgbd_views_on_gpu(&input, &positions, &self.eye)?;
+                self.ran_on_gpu(gpu, "eye views");
+                let [l, r]: [GpuRgbd; 2] = made.try_into().map_err(|_| {
+                    dioptra_render::GpuError::Validation("not one view per eye".into())
+                })?;
+                let v = Arc::new([l, r]);
+                let mut kept = lock(&self.eye_views);
+                if kept.as_ref().is_none_or(|(n, _)| *n <= content.number) {
+                    *kept = Some((content.number, v.clone()));
+                }
+                v
+            }
+        };
+        let [left_view, right_view] = views.as_ref();
+        let left = self.eye_from_gpu(gpu, job, content, Side::Left, left_view, job.focus)?;
+        let focus_right = job.focus_right.unwrap_or(job.focus);
+        let right = self.eye_from_gpu(gpu, job, content, Side::Right, right_view, focus_right)?;
+        Ok(EyesOnDevice {
+            outputs: [left, right],
+            made,
+        })
+    }
+
+    /// `side`'s frame of `job` at `focus`, rendered on `gpu` from its `view` there. With
+    /// `auto`, the planner judges the fixated region on the RGB-D the view was synthesised
+    /// from (on the host, at the cyclopean gaze: the eye's view is it shifted by the
+    /// disparity); a foveated render is centred on the eye's own gaze.
+    fn eye_from_gpu(
+        &self,
+        gpu: &Gpu,
+        job: &RenderJob,
+        content: &ContentFrame,
+        side: Side,
+        view: &GpuRgbd,
+        focus: Diopters,
+    ) -> Result<RenderOutput, RenderError> {
+        let frame = content.for_eye(side, content.rgbd.clone());
+        let input = content.rgbd.as_ref();
+        let gaze = self.eye_gaze(input, job.gaze, Some(side), focus);
+        if job.auto && job.mode == Mode::Varifocal {
+            let plan = self.plan(input, self.eye_gaze(input, job.gaze, None, focus), focus);
+            let image = match plan.setting.method() {
+                None => FrameImage::Gpu(view.color()),
+                Some(m) => self.defocus_from_gpu(gpu, view, focus, foveated_at(m, gaze))?,
+            };
+            return Ok(RenderOutput {
+                images: vec![image],
+                planned: Some(self.planned(&plan)),
+                cost: None,
+            });
+        }
+        let images = match (job.mode, job.method.0) {
+            (Mode::Multifocal, _) => self
+                .cached_layers(&frame, job.method, || {
+                    let layers = gpu.linear_blend_on_gpu(view, &self.planes)?;
+                    self.ran_on_gpu(gpu, "linear");
+                    Ok(on_gpu(layers))
+                })?
+                .as_ref()
+                .clone(),
+            (_, method) => {
+                let m = self.fixed_defocus(method, gaze);
+                vec![self.defocus_from_gpu(gpu, view, focus, m)?]
+            }
+        };
+        Ok(RenderOutput {
+            images,
+            planned: None,
+            cost: None,
+        })
+    }
+
+    fn defocus_from_gpu(
+        &self,
+        gpu: &Gpu,
+        view: &GpuRgbd,
+        focus: Diopters,
+        method: DefocusMethod,
+    ) -> Result<FrameImage, RenderError> {
+        let image = gpu.defocus_on_gpu(view, focus, &self.eye, method)?;
+        self.ran_on_gpu(gpu, &defocus_label(method));
+        Ok(FrameImage::Gpu(image))
+    }
+
+    /// `label` ran on `gpu`: its GPU time and its backend noted for `/status`.
+    fn ran_on_gpu(&self, gpu: &Gpu, label: &str) {
+        let mut c = lock(&self.compute);
+        c.timed(label, gpu.last_stats().gpu_ns);
+        c.ran(label, "gpu");
     }
 
     /// The GPU context frames are rendered on and left in, while the rig renders on the GPU
@@ -433,13 +552,7 @@ impl RgbdRenderer {
             };
             return Ok(RenderOutput {
                 images: vec![image],
-                planned: Some(Planned {
-                    choice: plan.setting.to_string(),
-                    predicted_psnr_db: plan.predicted_psnr,
-                    predicted_ms: plan.predicted_ms,
-                    budget_ms: self.deadline.budget_ms,
-                    why: plan.why,
-                }),
+                planned: Some(self.planned(&plan)),
                 cost: None,
             });
         }
@@ -448,6 +561,36 @@ impl RgbdRenderer {
             planned: None,
             cost: None,
         })
+    }
+
+    /// What `/status` says of the planner's `plan`.
+    fn planned(&self, plan: &TimedPlan) -> Planned {
+        Planned {
+            choice: plan.setting.to_string(),
+            predicted_psnr_db: plan.predicted_psnr,
+            predicted_ms: plan.predicted_ms,
+            budget_ms: self.deadline.budget_ms,
+            why: plan.why.clone(),
+        }
+    }
+
+    /// The defocus of a varifocal frame with the fixed `method` (gather for any other than
+    /// the pyramid and the light field's), a foveated pyramid around `gaze`.
+    fn fixed_defocus(&self, method: RenderMethod, gaze: [f32; 2]) -> DefocusMethod {
+        match method {
+            RenderMethod::LightFieldDefocus => DefocusMethod::LightField(LightFieldParams {
+                views: 16,
+                mip: true,
+            }),
+            RenderMethod::Pyramid => DefocusMethod::Pyramid(PyramidParams {
+                foveation: self.foveation.map(|f| Foveation {
+                    gaze,
+                    radius_deg: f.radius_deg,
+                    mar_slope: f.mar_slope,
+                }),
+            }),
+            _ => DefocusMethod::Gather,
+        }
     }
 
     fn render_fixed(
@@ -466,27 +609,11 @@ impl RgbdRenderer {
             (Mode::Multifocal, _) => Ok(self.layers(content, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
-            (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
+            (_, m) => Ok(vec![self.defocus(
                 input,
                 focus,
-                DefocusMethod::LightField(LightFieldParams {
-                    views: 16,
-                    mip: true,
-                }),
+                self.fixed_defocus(m, gaze),
             )?]),
-            (_, RenderMethod::Pyramid) => {
-                let foveation = self.foveation.map(|f| Foveation {
-                    gaze,
-                    radius_deg: f.radius_deg,
-                    mar_slope: f.mar_slope,
-                });
-                Ok(vec![self.defocus(
-                    input,
-                    focus,
-                    DefocusMethod::Pyramid(PyramidParams { foveation }),
-                )?])
-            }
-            _ => Ok(vec![self.defocus(input, focus, DefocusMethod::Gather)?]),
         }
     }
 
@@ -527,6 +654,8 @@ impl RgbdRenderer {
         let (views, pixel_pitch_tan) = self.views(content, method)?;
         let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
         let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, self.size)?);
+        // Resampled on the host (the views read back where the GPU made them).
+        lock(&self.compute).ran("lenslet panel", "cpu");
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
             lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
@@ -575,6 +704,7 @@ impl RgbdRenderer {
                         )
                     })
                     .collect::<Result<Vec<_>, _>>()?;
+                lock(&self.compute).ran("views (scene ray cast)", "cpu");
                 (views, vcam.eye.pixel_pitch_tan())
             }
             None => {
@@ -605,10 +735,12 @@ impl RgbdRenderer {
         })
     }
 
-    fn layers(
+    /// The layers `method` made of `content` (its eye's), kept or made by `make`.
+    fn cached_layers(
         &self,
         content: &ContentFrame,
         method: Method,
+        make: impl FnOnce() -> Result<Vec<FrameImage>, RenderError>,
     ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
         if let Some(l) = lock(&self.layers)
             .iter()
@@ -616,6 +748,31 @@ impl RgbdRenderer {
         {
             return Ok(l.images.clone());
         }
+        let images = Arc::new(make()?);
+        if self.keeps(content) {
+            lock(&self.layers).push(CachedLayers {
+                frame: content.number,
+                eye: content.eye,
+                method,
+                images: images.clone(),
+            });
+        }
+        Ok(images)
+    }
+
+    fn layers(
+        &self,
+        content: &ContentFrame,
+        method: Method,
+    ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
+        self.cached_layers(content, method, || self.make_layers(content, method))
+    }
+
+    fn make_layers(
+        &self,
+        content: &ContentFrame,
+        method: Method,
+    ) -> Result<Vec<FrameImage>, RenderError> {
         let input = content.rgbd.as_ref();
         let images = if method.0 == RenderMethod::Network {
             on_host(self.net_decompose(input)?)
@@ -682,15 +839,6 @@ impl RgbdRenderer {
         } else {
             self.linear(input)?
         };
-        let images = Arc::new(images);
-        if self.keeps(content) {
-            lock(&self.layers).push(CachedLayers {
-                frame: content.number,
-                eye: content.eye,
-                method,
-                images: images.clone(),
-            });
-        }
         Ok(images)
     }
 }
@@ -701,6 +849,36 @@ impl Renderer for RgbdRenderer {
     }
     fn backend_status(&self) -> serde_json::Value {
         RgbdRenderer::backend_status(self)
+    }
+    /// On the GPU, for the methods that render from an RGB-D in GPU memory (the varifocal
+    /// defocus methods, chosen or `auto`, and multifocal linear blending): a GPU failure moves
+    /// the rig to the CPU, where the caller makes the views.
+    fn render_eyes_on_device(
+        &self,
+        job: &RenderJob,
+        content: &ContentFrame,
+        positions: [[f32; 2]; 2],
+    ) -> Option<Result<EyesOnDevice, RenderError>> {
+        let from_device = match (job.mode, job.method.0) {
+            (Mode::Varifocal, _) if job.auto => true,
+            (Mode::Varifocal, m) => matches!(
+                m,
+                RenderMethod::Gather | RenderMethod::Pyramid | RenderMethod::LightFieldDefocus
+            ),
+            (Mode::Multifocal, m) => m == RenderMethod::Linear,
+            _ => false,
+        };
+        if !from_device {
+            return None;
+        }
+        let gpu = lock(&self.compute).gpu.clone()?;
+        match self.eyes_from_gpu(&gpu, job, content, positions) {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                None
+            }
+            made => Some(made),
+        }
     }
     fn network_missing(&self) -> Vec<(Mode, RenderMethod, String)> {
         self.nets
@@ -745,6 +923,27 @@ fn lenslet_panel(
         eye_relief_m: 0.015,
     };
     Ok(elemental_images(&grid, &display)?)
+}
+
+/// A defocus method's name in `/status`.
+fn defocus_label(method: DefocusMethod) -> String {
+    match method {
+        DefocusMethod::Gather => "gather".to_string(),
+        DefocusMethod::Pyramid(_) => "pyramid".to_string(),
+        DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
+    }
+}
+
+/// `method` with its foveation (if any) centred on `gaze`.
+fn foveated_at(method: DefocusMethod, gaze: [f32; 2]) -> DefocusMethod {
+    match method {
+        DefocusMethod::Pyramid(PyramidParams { foveation: Some(f) }) => {
+            DefocusMethod::Pyramid(PyramidParams {
+                foveation: Some(Foveation { gaze, ..f }),
+            })
+        }
+        m => m,
+    }
 }
 
 /// The backend of `on_backend`'s choice: the rig's GPU, or the CPU.
@@ -839,6 +1038,10 @@ struct Compute {
     gpu_time: std::collections::BTreeMap<String, hdrhistogram::Histogram<u64>>,
     /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
     cpu_because: Option<String>,
+    /// Per stage of a frame (each eye's view, each method, the light-field panel), where it
+    /// ran (`gpu` or `cpu`) and how many times: `/status`'s `render.stages`, one
+    /// `{"stage", "on", "count"}` each.
+    stages: std::collections::BTreeMap<String, std::collections::BTreeMap<&'static str, u64>>,
 }
 
 impl Compute {
@@ -851,6 +1054,7 @@ impl Compute {
             timestamps: false,
             gpu_time: Default::default(),
             cpu_because: because,
+            stages: Default::default(),
         }
     }
 
@@ -880,6 +1084,7 @@ impl Compute {
             adapter: Some(name),
             gpu_time: Default::default(),
             cpu_because: None,
+            stages: Default::default(),
         })
     }
 
@@ -926,10 +1131,22 @@ impl Compute {
         }
     }
 
+    /// `stage` ran `on` (a backend, or what crossed between them).
+    fn ran(&mut self, stage: &str, on: &'static str) {
+        *self
+            .stages
+            .entry(stage.to_string())
+            .or_default()
+            .entry(on)
+            .or_default() += 1;
+    }
+
     fn fall_back(&mut self, e: &dioptra_render::GpuError) {
         if self.cpu_because.is_none() {
             tracing::error!(error = %e, "the GPU failed; rendering on the CPU from now on");
+            let stages = std::mem::take(&mut self.stages);
             *self = Compute::cpu(Some(format!("the GPU failed: {e}")));
+            self.stages = stages;
         }
     }
 
@@ -978,6 +1195,15 @@ impl Compute {
             // Where the spectral decomposition runs: the rig's backend.
             "spectral_on": if self.gpu.is_some() { "gpu" } else { "cpu" },
             "refine_tiles_run": self.refine_tiles,
+            "stages": self
+                .stages
+                .iter()
+                .flat_map(|(stage, on)| {
+                    on.iter().map(move |(on, count)| {
+                        serde_json::json!({"stage": stage, "on": on, "count": count})
+                    })
+                })
+                .collect::<Vec<_>>(),
         })
     }
 }
@@ -1387,6 +1613,140 @@ mod tests {
         let cfg = RigConfig::parse(&text).unwrap();
         let shipped = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
         assert_ne!(panel(&shipped, RenderMethod::Refine).unwrap(), classical);
+    }
+
+    /// A binocular rig on the GPU backend makes each eye's view of a one-RGB-D frame on the
+    /// device, once per content frame, and renders each eye from there: the images stay in GPU
+    /// memory (nothing read back), `/status` says where each stage ran, and the images are the
+    /// CPU rig's (views synthesised and rendered on the host) within 1e-3.
+    #[test]
+    fn a_gpu_rig_makes_and_renders_each_eyes_view_on_the_device() {
+        let rig = |backend: &str| {
+            let text = format!(
+                "{}\n[content]\nanimate = false\n\n[render]\nbackend = \"{backend}\"\n",
+                crate::config::EXAMPLE_SIM_BINOCULAR_RIG
+            );
+            let cfg = RigConfig::parse(&text).unwrap();
+            (
+                RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics),
+                cfg,
+            )
+        };
+        let (gpu, cfg) = rig("gpu");
+        let gpu = match gpu {
+            Ok(r) => r,
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                return;
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        };
+        let cpu = rig("cpu").0.unwrap();
+        let views = crate::content::stereo::EyeViews::new(&cfg.eye, &cfg.display).unwrap();
+        let positions = [views.position(Side::Left), views.position(Side::Right)];
+        let host = |img: &FrameImage| img.to_host().unwrap().into_owned();
+        for (k, (mode, method, auto)) in [
+            (Mode::Varifocal, RenderMethod::Gather, false),
+            (Mode::Varifocal, RenderMethod::Pyramid, false),
+            (Mode::Multifocal, RenderMethod::Linear, false),
+            (Mode::Varifocal, RenderMethod::Gather, true),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let frame = ContentFrame::new(k as u64 + 1, Arc::new(scene_rgbd(&gpu)));
+            assert!(views.synthesises(&frame));
+            let reads = gpu.backend_status()["images_read_back"].as_u64();
+            let job = RenderJob {
+                frame: 1,
+                mode,
+                method: Method(method),
+                focus: Diopters(1.2),
+                focus_right: Some(Diopters(0.8)),
+                gaze: Some([60.0, 50.0]),
+                auto,
+                display_time: Timestamp::ZERO,
+            };
+            let made = gpu
+                .render_eyes_on_device(&job, &frame, positions)
+                .expect("made on the device")
+                .unwrap();
+            assert!(made.made, "{method:?}: the views made for the frame");
+            let again = gpu
+                .render_eyes_on_device(&job, &frame, positions)
+                .unwrap()
+                .unwrap();
+            assert!(!again.made, "{method:?}: the views kept for the frame");
+            assert_eq!(
+                gpu.backend_status()["images_read_back"].as_u64(),
+                reads,
+                "{method:?}: nothing read back to render both eyes"
+            );
+            let ([left, right], _) = views.of(&frame).unwrap();
+            let eyes = [
+                (frame.for_eye(Side::Left, left), job.clone()),
+                (
+                    frame.for_eye(Side::Right, right),
+                    RenderJob {
+                        focus: Diopters(0.8),
+                        ..job.clone()
+                    },
+                ),
+            ];
+            for (out, (eye_frame, eye_job)) in made.outputs.iter().zip(&eyes) {
+                assert!(
+                    out.images.iter().all(|i| matches!(i, FrameImage::Gpu(_))),
+                    "{method:?}: left in GPU memory"
+                );
+                if auto {
+                    assert!(out.planned.is_some());
+                    continue;
+                }
+                let want = cpu.render(eye_job, eye_frame).unwrap();
+                assert_eq!(out.images.len(), want.images.len());
+                for (a, b) in out.images.iter().zip(&want.images) {
+                    let (a, b) = (host(a), host(b));
+                    let max = (0..3)
+                        .flat_map(|c| {
+                            let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                            a.iter()
+                                .zip(b)
+                                .map(|(x, y)| (x - y).abs())
+                                .collect::<Vec<_>>()
+                        })
+                        .fold(0.0f32, f32::max);
+                    eprintln!("{method:?} {:?}: max |gpu - cpu| = {max:e}", eye_frame.eye);
+                    assert!(max < 1e-3, "{method:?} {:?}: {max}", eye_frame.eye);
+                }
+            }
+        }
+        let st = gpu.backend_status();
+        let ran = |stage: &str, on: &str| {
+            st["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["stage"] == stage && s["on"] == on)
+                .map_or(0, |s| s["count"].as_u64().unwrap())
+        };
+        assert_eq!(ran("eye views", "gpu"), 4, "{st}");
+        for stage in ["eye views", "gather", "pyramid", "linear"] {
+            assert!(ran(stage, "gpu") > 0, "{stage}: {st}");
+            assert_eq!(ran(stage, "cpu"), 0, "{stage}: {st}");
+        }
+        // Methods that cannot render from GPU memory (here the network) are left to the host.
+        let net = RenderJob {
+            frame: 1,
+            mode: Mode::Varifocal,
+            method: Method(RenderMethod::Network),
+            focus: Diopters(1.0),
+            focus_right: None,
+            gaze: None,
+            auto: false,
+            display_time: Timestamp::ZERO,
+        };
+        let frame = ContentFrame::new(9, Arc::new(scene_rgbd(&gpu)));
+        assert!(gpu.render_eyes_on_device(&net, &frame, positions).is_none());
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.
