@@ -1030,6 +1030,120 @@ pub(super) fn synthesize_rgbd_views(
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
+pub(super) struct LensletP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) vw: u32,
+    pub(super) vh: u32,
+    pub(super) grid: u32,
+    pub(super) _pad0: u32,
+    pub(super) _pad1: u32,
+    pub(super) _pad2: u32,
+}
+
+/// Where each column and each row of a lenslet display's panel reads its light field, as
+/// dioptra-sched's `lenslet::sampling` gives it: per column (row) `[first view, its weight,
+/// the next view's weight, position in a view (pixels)]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PanelSampling {
+    pub cols: Vec<[f32; 4]>,
+    pub rows: Vec<[f32; 4]>,
+}
+
+impl PanelSampling {
+    /// Every entry finite, its views on a `grid` x `grid` lattice (the next view only with a
+    /// weight), weights not negative.
+    fn check(&self, grid: usize) -> Result<(), RenderError> {
+        let ok = |e: &[f32; 4]| {
+            e.iter().all(|v| v.is_finite())
+                && e[0] >= 0.0
+                && e[0].fract() == 0.0
+                && e[1] >= 0.0
+                && e[2] >= 0.0
+                && ((e[0] as usize) < grid)
+                && ((e[0] as usize) + 1 < grid || e[2] == 0.0)
+        };
+        if self.cols.is_empty() || self.rows.is_empty() {
+            return Err(invalid("a lenslet panel of no pixels"));
+        }
+        if !self.cols.iter().chain(&self.rows).all(ok) {
+            return Err(invalid(format!(
+                "a lenslet panel's sampling reads outside its {grid}x{grid} views"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A lenslet display's panel, in GPU memory, of the `grid` x `grid` light field over a `span`
+/// metres square synthesised from `inputs`: the views made in GPU memory (one frame each, as
+/// [`synthesize_light_field`]) and resampled there by `sampling` (the GPU twin of
+/// dioptra-sched's `lenslet::elemental_images`).
+pub(super) fn lenslet_panel(
+    ctx: &Arc<GpuContext>,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    sampling: &PanelSampling,
+) -> Out<GpuImage> {
+    let positions = light_field_positions(grid, span)?;
+    sampling.check(grid)?;
+    let mut total = FrameStats::default();
+    let mut uploaded: Option<SynthInputs> = None;
+    let mut stack: Option<BufRef> = None;
+    for (k, target) in positions.iter().enumerate() {
+        let mut f = Frame::new(ctx)?;
+        let synth = match uploaded.take() {
+            Some(s) => s,
+            None => SynthInputs::upload(&mut f, inputs, eye)?,
+        };
+        let bytes = 12 * (synth.w * synth.h) as u64;
+        let views = match stack.take() {
+            Some(b) => b,
+            None => f.scratch("light-field views", bytes * positions.len() as u64)?,
+        };
+        let view = synth.view(&mut f, *target)?;
+        f.copy(&view, 0, &views, bytes * k as u64, bytes);
+        let (_, s) = f.finish()?;
+        total.add(&s);
+        stack = Some(views);
+        uploaded = Some(synth);
+    }
+    let (Some(views), Some(synth)) = (stack, uploaded) else {
+        return Err(invalid("no light-field views"));
+    };
+    let (w, h) = (sampling.cols.len(), sampling.rows.len());
+    let p = LensletP {
+        w: dim(w, "panel width")?,
+        h: dim(h, "panel height")?,
+        vw: dim(synth.w, "view width")?,
+        vh: dim(synth.h, "view height")?,
+        grid: dim(grid, "view grid")?,
+        _pad0: 0,
+        _pad1: 0,
+        _pad2: 0,
+    };
+    let mut f = Frame::new(ctx)?;
+    let cols = f.upload("panel columns' sampling", &sampling.cols)?;
+    let rows = f.upload("panel rows' sampling", &sampling.rows)?;
+    let panel = f.scratch("lenslet panel", 12 * (w * h) as u64)?;
+    f.dispatch(
+        Kernel::Lenslet,
+        &p,
+        &[&views, &cols, &rows, &panel],
+        groups2(p.w, p.h, 1),
+    )?;
+    let (_, s) = f.finish()?;
+    total.add(&s);
+    Ok((
+        GpuImage::new(ctx, panel, ImageLayout::packed(w, h, 0)),
+        total,
+    ))
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
 pub(super) struct FovP {
     pub(super) w: u32,
     pub(super) h: u32,

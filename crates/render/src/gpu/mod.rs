@@ -16,6 +16,7 @@ pub use context::{
 };
 pub use image::{GpuImage, GpuRgbd, ImageLayout, RgbdInput};
 use kernels::Keep;
+pub use kernels::PanelSampling;
 
 use crate::backend::{Backend, Foveated, Progress};
 use crate::defocus::DefocusMethod;
@@ -139,6 +140,23 @@ impl Gpu {
             .into_iter()
             .map(|v| v.counted_by(&self.images_read_back))
             .collect())
+    }
+
+    /// A lenslet display's panel of the `grid` x `grid` light field over `span` metres
+    /// synthesised from `inputs`, left in GPU memory with its views: the GPU twin of
+    /// synthesising the views ([`Backend::synthesize_light_field`]) and resampling them by
+    /// `sampling` (dioptra-sched's `lenslet::elemental_images`).
+    pub fn lenslet_panel_on_gpu(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        sampling: &PanelSampling,
+    ) -> Result<GpuImage, RenderError> {
+        let (out, s) = kernels::lenslet_panel(&self.ctx, inputs, grid, span, eye, sampling)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
     }
 
     fn spectral_to(

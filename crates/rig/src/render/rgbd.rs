@@ -28,7 +28,7 @@ use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
 use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveated::Foveation;
-use dioptra_render::gpu::GpuRgbd;
+use dioptra_render::gpu::{GpuRgbd, PanelSampling};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{
@@ -37,6 +37,7 @@ use dioptra_render::planner::{
 use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
+use dioptra_sched::lenslet::{elemental_images, sampling, GridGeometry, LensletDisplay, ViewGrid};
 
 use super::config::{Render, RenderBackend};
 use super::job::{EyesOnDevice, FrameImage, Planned, RenderJob, RenderOutput, Renderer};
@@ -80,7 +81,7 @@ pub struct RgbdRenderer {
 
 /// A light-field panel: its content frame's number, its eye, the method that made it (views
 /// or refine), the panel.
-type CachedPanel = (u64, Option<Side>, RenderMethod, Arc<RgbImage>);
+type CachedPanel = (u64, Option<Side>, RenderMethod, FrameImage);
 
 /// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
@@ -604,7 +605,7 @@ impl RgbdRenderer {
         let input = content.rgbd.as_ref();
         match (mode, method.0) {
             (_, RenderMethod::Views) | (Mode::Lightfield, RenderMethod::Refine) => {
-                Ok(vec![self.panel(content, method.0)?.as_ref().clone().into()])
+                Ok(vec![self.panel(content, method.0)?])
             }
             (Mode::Multifocal, _) => Ok(self.layers(content, method)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
@@ -639,23 +640,54 @@ impl RgbdRenderer {
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
     /// With `Refine`, file and stream content's views are the classical ones refined by C5R
-    /// (the procedural scene's own views need no synthesis).
+    /// (the procedural scene's own views need no synthesis). Views synthesised by the classical
+    /// method on the GPU are resampled there, the panel left in GPU memory.
     fn panel(
         &self,
         content: &ContentFrame,
         method: RenderMethod,
-    ) -> Result<Arc<RgbImage>, RenderError> {
+    ) -> Result<FrameImage, RenderError> {
         if let Some((_, _, _, p)) = lock(&self.panel)
             .iter()
             .find(|(n, e, m, _)| *n == content.number && *e == content.eye && *m == method)
         {
             return Ok(p.clone());
         }
-        let (views, pixel_pitch_tan) = self.views(content, method)?;
-        let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
-        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, self.size)?);
-        // Resampled on the host (the views read back where the GPU made them).
-        lock(&self.compute).ran("lenslet panel", "cpu");
+        let panel = if method == RenderMethod::Views && content.scene.is_none() {
+            let input = self.light_field_inputs(content);
+            self.on_backend("light-field panel", |gpu| match gpu {
+                Some(g) => {
+                    let geometry = GridGeometry {
+                        grid: LF_GRID,
+                        spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+                        pixel_pitch_tan: self.eye.pixel_pitch_tan(),
+                        view_size: input
+                            .first()
+                            .map_or((0, 0), |v| (v.rgbd.width(), v.rgbd.height())),
+                    };
+                    let s = sampling(&geometry, &lenslet_display(self.size))?;
+                    let sampling = PanelSampling {
+                        cols: s.cols,
+                        rows: s.rows,
+                    };
+                    Ok(FrameImage::Gpu(g.lenslet_panel_on_gpu(
+                        &input, LF_GRID, LF_SPAN_M, &self.eye, &sampling,
+                    )?))
+                }
+                None => {
+                    let views =
+                        Cpu.synthesize_light_field(&input, LF_GRID, LF_SPAN_M, &self.eye, &|_| {})?;
+                    let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
+                    Ok(lenslet_panel(&images, self.eye.pixel_pitch_tan(), self.size)?.into())
+                }
+            })?
+        } else {
+            let (views, pixel_pitch_tan) = self.views(content, method)?;
+            let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
+            let panel = lenslet_panel(&images, pixel_pitch_tan, self.size)?;
+            lock(&self.compute).ran("lenslet panel", "cpu");
+            panel.into()
+        };
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
             lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
@@ -673,6 +705,18 @@ impl RgbdRenderer {
         method: RenderMethod,
     ) -> Result<Vec<LfView>, RenderError> {
         Ok(self.views(content, method)?.0)
+    }
+
+    /// What a file or stream frame's light field is synthesised from: its views (a view
+    /// grid), or the frame as the view from the pupil's centre.
+    fn light_field_inputs(&self, content: &ContentFrame) -> Vec<RgbdView> {
+        match &content.views {
+            Some(views) => self.eye_inputs(views, content.eye),
+            None => vec![RgbdView {
+                position: [0.0, 0.0],
+                rgbd: content.rgbd.as_ref().clone(),
+            }],
+        }
     }
 
     /// The light field's views and their pixel pitch (tangent).
@@ -708,15 +752,7 @@ impl RgbdRenderer {
                 (views, vcam.eye.pixel_pitch_tan())
             }
             None => {
-                // The frame's views (a view grid), or the frame as the view from the pupil's
-                // centre, warped to each lens position.
-                let input = match &content.views {
-                    Some(views) => self.eye_inputs(views, content.eye),
-                    None => vec![RgbdView {
-                        position: [0.0, 0.0],
-                        rgbd: content.rgbd.as_ref().clone(),
-                    }],
-                };
+                let input = self.light_field_inputs(content);
                 let views = if method == RenderMethod::Refine {
                     self.refine_light_field(&input)?
                 } else {
@@ -906,23 +942,26 @@ fn eye_deadline(display: &Display) -> Deadline {
 fn lenslet_panel(
     views: &[RgbImage],
     pixel_pitch_tan: f32,
-    (w, h): (usize, usize),
+    size: (usize, usize),
 ) -> Result<RgbImage, RenderError> {
-    use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
     let grid = ViewGrid {
         grid: LF_GRID,
         spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
         views,
         pixel_pitch_tan,
     };
-    let display = LensletDisplay {
+    Ok(elemental_images(&grid, &lenslet_display(size))?)
+}
+
+/// The lenslet display over a `w` x `h` panel: (w / 5) x (h / 5) lenslets of 5 x 5 pixels.
+fn lenslet_display((w, h): (usize, usize)) -> LensletDisplay {
+    LensletDisplay {
         lenslets: [(w / 5).max(1), (h / 5).max(1)],
         pixels_per_lenslet: 5,
         lenslet_pitch_m: 0.000_25,
         gap_m: 0.000_94,
         eye_relief_m: 0.015,
-    };
-    Ok(elemental_images(&grid, &display)?)
+    }
 }
 
 /// A defocus method's name in `/status`.
@@ -1621,27 +1660,9 @@ mod tests {
     /// CPU rig's (views synthesised and rendered on the host) within 1e-3.
     #[test]
     fn a_gpu_rig_makes_and_renders_each_eyes_view_on_the_device() {
-        let rig = |backend: &str| {
-            let text = format!(
-                "{}\n[content]\nanimate = false\n\n[render]\nbackend = \"{backend}\"\n",
-                crate::config::EXAMPLE_SIM_BINOCULAR_RIG
-            );
-            let cfg = RigConfig::parse(&text).unwrap();
-            (
-                RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics),
-                cfg,
-            )
+        let Some((gpu, cpu, cfg)) = on_gpu_and_cpu(crate::config::EXAMPLE_SIM_BINOCULAR_RIG) else {
+            return;
         };
-        let (gpu, cfg) = rig("gpu");
-        let gpu = match gpu {
-            Ok(r) => r,
-            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
-                eprintln!("skipped: no GPU adapter ({e})");
-                return;
-            }
-            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
-        };
-        let cpu = rig("cpu").0.unwrap();
         let views = crate::content::stereo::EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         let positions = [views.position(Side::Left), views.position(Side::Right)];
         let host = |img: &FrameImage| img.to_host().unwrap().into_owned();
@@ -1747,6 +1768,83 @@ mod tests {
         };
         let frame = ContentFrame::new(9, Arc::new(scene_rgbd(&gpu)));
         assert!(gpu.render_eyes_on_device(&net, &frame, positions).is_none());
+    }
+
+    /// The renderers of `rig` (its content still) on the GPU and on the CPU, and its config;
+    /// `None` (skipped) without a GPU adapter unless DIOPTRA_REQUIRE_GPU is 1.
+    fn on_gpu_and_cpu(rig: &str) -> Option<(RgbdRenderer, RgbdRenderer, RigConfig)> {
+        let on = |backend: &str| {
+            let text =
+                format!("{rig}\n[content]\nanimate = false\n\n[render]\nbackend = \"{backend}\"\n");
+            let cfg = RigConfig::parse(&text).unwrap();
+            (
+                RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics),
+                cfg,
+            )
+        };
+        let (gpu, cfg) = on("gpu");
+        match gpu {
+            Ok(gpu) => Some((gpu, on("cpu").0.unwrap(), cfg)),
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                None
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        }
+    }
+
+    /// On the GPU the light-field panel of a file or stream frame is made there, views and
+    /// lenslet resampling, and left in GPU memory: the CPU rig's panel within 1e-3.
+    #[test]
+    fn a_gpu_rigs_light_field_panel_is_made_and_kept_on_the_device() {
+        let Some((gpu, cpu, _)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
+            return;
+        };
+        let frame = ContentFrame::new(1, Arc::new(scene_rgbd(&gpu)));
+        let reads = gpu.backend_status()["images_read_back"].as_u64();
+        let panel = |r: &RgbdRenderer| {
+            r.render_frame(
+                &frame,
+                Mode::Lightfield,
+                Method(RenderMethod::Views),
+                Diopters(1.0),
+                None,
+                false,
+            )
+            .unwrap()
+            .images
+            .remove(0)
+        };
+        let on_gpu = panel(&gpu);
+        assert!(matches!(on_gpu, FrameImage::Gpu(_)), "left in GPU memory");
+        assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
+        let (a, b) = (
+            on_gpu.to_host().unwrap(),
+            panel(&cpu).to_host().unwrap().into_owned(),
+        );
+        let max = (0..3)
+            .flat_map(|c| {
+                let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                a.iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .collect::<Vec<_>>()
+            })
+            .fold(0.0f32, f32::max);
+        eprintln!("light-field panel: max |gpu - cpu| = {max:e}");
+        assert!(max < 1e-3, "{max}");
+        let st = gpu.backend_status();
+        let stages = st["stages"].as_array().unwrap();
+        assert!(
+            stages
+                .iter()
+                .any(|s| s["stage"] == "light-field panel" && s["on"] == "gpu"),
+            "{st}"
+        );
+        assert!(
+            !stages.iter().any(|s| s["on"] == "cpu"),
+            "nothing of the panel on the host: {st}"
+        );
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.
