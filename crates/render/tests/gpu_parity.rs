@@ -438,6 +438,10 @@ fn rgbd_views_made_in_gpu_memory_match_cpu_and_render_as_their_copies() {
         );
         assert!(max < 1e-3, "{max}");
         assert_eq!(cpu.depth, host.depth, "depth at {t:?}");
+        // Uploaded, it reads back as it was, its depth bound its own range.
+        let uploaded = g.upload_rgbd(&host).unwrap();
+        assert_eq!(uploaded.read().unwrap(), host);
+        assert_eq!(Some(uploaded.depth_bound()), host.depth.range());
         let (lo, hi) = view.depth_bound();
         let (dlo, dhi) = host.depth.range().unwrap();
         assert!(

@@ -211,8 +211,9 @@ impl GpuRgbd {
         &self.ctx
     }
 
-    /// Nearest and farthest depth it may hold (a bound known without reading it back: the
-    /// inputs' range it was synthesised from, and 0 D for a pixel nothing was seen near).
+    /// Nearest and farthest depth it may hold, known without reading it back: an uploaded
+    /// image's own range; a synthesised view's, its inputs' range and 0 D (a pixel nothing was
+    /// seen near).
     pub fn depth_bound(&self) -> (Diopters, Diopters) {
         self.depth_bound
     }

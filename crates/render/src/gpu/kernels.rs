@@ -9,7 +9,7 @@ use super::image::{GpuImage, GpuRgbd, ImageLayout, RgbdInput};
 use super::GpuError;
 use crate::backend::Foveated;
 use crate::backend::Progress;
-use crate::common::{check_focus, coc_over, eye_for};
+use crate::common::{check_focus, check_rgbd, coc_over, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::foveate::{log_polar_tables, LogPolar, FOV_CELL};
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
@@ -21,7 +21,7 @@ use crate::multifocal::{
 use crate::retina::LfView;
 use crate::views::{check_inputs, light_field_positions, RgbdView};
 use bytemuck::{Pod, Zeroable};
-use dioptra_core::{Diopters, EyeModel, Plane, RgbImage};
+use dioptra_core::{Diopters, EyeModel, Plane, RgbImage, Rgbd};
 
 type Out<T> = Result<(T, FrameStats), RenderError>;
 
@@ -992,6 +992,22 @@ pub(super) fn synthesize_light_field(
         progress(k + 1);
     }
     Ok((out, total))
+}
+
+/// `input` in GPU memory: colour planes and depth in one buffer, one submission.
+pub(super) fn upload_rgbd(ctx: &Arc<GpuContext>, input: &Rgbd) -> Out<GpuRgbd> {
+    check_rgbd(input)?;
+    let mut data = planar(&input.color);
+    data.extend_from_slice(input.depth.data());
+    let mut f = Frame::new(ctx)?;
+    let buf = f.upload("RGB-D", &data)?;
+    let (_, s) = f.finish()?;
+    let range = input
+        .depth
+        .range()
+        .unwrap_or((Diopters(0.0), Diopters(0.0)));
+    let size = (input.width(), input.height());
+    Ok((GpuRgbd::new(ctx, buf, size, range), s))
 }
 
 /// The RGB-D view from each of `targets` synthesised from `inputs` (the GPU twin of

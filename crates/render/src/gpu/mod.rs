@@ -125,6 +125,14 @@ impl Gpu {
         kernels::on_gpu(out, &self.images_read_back)
     }
 
+    /// `input` uploaded to GPU memory (one submission), for methods to render from there
+    /// again and again.
+    pub fn upload_rgbd(&self, input: &Rgbd) -> Result<GpuRgbd, RenderError> {
+        let (out, s) = kernels::upload_rgbd(&self.ctx, input)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
+    }
+
     /// The RGB-D view from each of `targets` synthesised from `inputs`, left in GPU memory:
     /// the GPU twin of [`crate::views::synthesize_rgbd_view`] (a stereo rig's eyes from one
     /// RGB-D), the inputs uploaded once and every view made in one submission.

@@ -64,6 +64,9 @@ pub struct RgbdRenderer {
     /// Each eye's view of the content frame numbered with them, synthesised on the GPU and
     /// kept there (left, right): a stereo layout's eyes from one RGB-D.
     eye_views: Mutex<Option<(u64, Arc<[GpuRgbd; 2]>)>>,
+    /// Content frames' RGB-D (per content frame and eye) uploaded to the GPU, while the rig
+    /// renders there: each uploaded once however many frames show it.
+    resident: Mutex<Vec<(FrameKey, GpuRgbd)>>,
     /// Half the interpupillary distance, metres: where each eye's light field is centred.
     half_ipd_m: f32,
     /// `render.foveation`: the pyramid method's (fixed or the planner's) around each eye's
@@ -82,6 +85,9 @@ pub struct RgbdRenderer {
 /// A light-field panel: its content frame's number, its eye, the method that made it (views
 /// or refine), the panel.
 type CachedPanel = (u64, Option<Side>, RenderMethod, FrameImage);
+
+/// A content frame's number and the eye it is rendered for.
+type FrameKey = (u64, Option<Side>);
 
 /// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
@@ -132,6 +138,7 @@ impl RgbdRenderer {
             layers: Mutex::new(Vec::new()),
             panel: Mutex::new(Vec::new()),
             eye_views: Mutex::new(None),
+            resident: Mutex::new(Vec::new()),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
             foveation: render.foveation.settings(),
             deadline: eye_deadline(display),
@@ -234,36 +241,42 @@ impl RgbdRenderer {
             }
         };
         let [left_view, right_view] = views.as_ref();
-        let left = self.eye_from_gpu(gpu, job, content, Side::Left, left_view, job.focus)?;
-        let focus_right = job.focus_right.unwrap_or(job.focus);
-        let right = self.eye_from_gpu(gpu, job, content, Side::Right, right_view, focus_right)?;
+        let mut ask = Ask::of(job);
+        let left_frame = content.for_eye(Side::Left, content.rgbd.clone());
+        let left = self.render_view(gpu, &ask, &left_frame, left_view, true)?;
+        ask.focus = job.focus_right.unwrap_or(job.focus);
+        let right_frame = content.for_eye(Side::Right, content.rgbd.clone());
+        let right = self.render_view(gpu, &ask, &right_frame, right_view, true)?;
         Ok(EyesOnDevice {
             outputs: [left, right],
             made,
         })
     }
 
-    /// `side`'s frame of `job` at `focus`, rendered on `gpu` from its `view` there. With
-    /// `auto`, the planner judges the fixated region on the RGB-D the view was synthesised
-    /// from (on the host, at the cyclopean gaze: the eye's view is it shifted by the
+    /// `ask` of `frame` (its eye's) rendered on `gpu` from its RGB-D `view` there. With
+    /// `auto`, the planner judges the fixated region on the frame's host RGB-D: for a view
+    /// `synthesised` from it, at the cyclopean gaze (the eye's view is it shifted by the
     /// disparity); a foveated render is centred on the eye's own gaze.
-    fn eye_from_gpu(
+    fn render_view(
         &self,
         gpu: &Gpu,
-        job: &RenderJob,
-        content: &ContentFrame,
-        side: Side,
+        ask: &Ask,
+        frame: &ContentFrame,
         view: &GpuRgbd,
-        focus: Diopters,
+        synthesised: bool,
     ) -> Result<RenderOutput, RenderError> {
-        let frame = content.for_eye(side, content.rgbd.clone());
-        let input = content.rgbd.as_ref();
-        let gaze = self.eye_gaze(input, job.gaze, Some(side), focus);
-        if job.auto && job.mode == Mode::Varifocal {
-            let plan = self.plan(input, self.eye_gaze(input, job.gaze, None, focus), focus);
+        let (input, focus) = (frame.rgbd.as_ref(), ask.focus);
+        let gaze = self.eye_gaze(input, ask.gaze, frame.eye, focus);
+        if ask.auto && ask.mode == Mode::Varifocal {
+            let plan_eye = if synthesised { None } else { frame.eye };
+            let plan = self.plan(
+                input,
+                self.eye_gaze(input, ask.gaze, plan_eye, focus),
+                focus,
+            );
             let image = match plan.setting.method() {
                 None => FrameImage::Gpu(view.color()),
-                Some(m) => self.defocus_from_gpu(gpu, view, focus, foveated_at(m, gaze))?,
+                Some(m) => self.defocus_view(gpu, view, focus, foveated_at(m, gaze))?,
             };
             return Ok(RenderOutput {
                 images: vec![image],
@@ -271,9 +284,9 @@ impl RgbdRenderer {
                 cost: None,
             });
         }
-        let images = match (job.mode, job.method.0) {
+        let images = match (ask.mode, ask.method.0) {
             (Mode::Multifocal, _) => self
-                .cached_layers(&frame, job.method, || {
+                .cached_layers(frame, ask.method, || {
                     let layers = gpu.linear_blend_on_gpu(view, &self.planes)?;
                     self.ran_on_gpu(gpu, "linear");
                     Ok(on_gpu(layers))
@@ -282,7 +295,7 @@ impl RgbdRenderer {
                 .clone(),
             (_, method) => {
                 let m = self.fixed_defocus(method, gaze);
-                vec![self.defocus_from_gpu(gpu, view, focus, m)?]
+                vec![self.defocus_view(gpu, view, focus, m)?]
             }
         };
         Ok(RenderOutput {
@@ -292,7 +305,48 @@ impl RgbdRenderer {
         })
     }
 
-    fn defocus_from_gpu(
+    /// `ask` of `content` on the GPU from its RGB-D uploaded there once per content frame and
+    /// eye, where the rig renders there and the method renders from GPU memory
+    /// ([`from_device`]); `None`: render it on the host's copy (a GPU failure moves the rig to
+    /// the CPU).
+    fn frame_on_gpu(
+        &self,
+        ask: &Ask,
+        content: &ContentFrame,
+    ) -> Result<Option<RenderOutput>, RenderError> {
+        if !from_device(ask) {
+            return Ok(None);
+        }
+        let Some(gpu) = lock(&self.compute).gpu.clone() else {
+            return Ok(None);
+        };
+        let rendered = self
+            .resident(&gpu, content)
+            .and_then(|view| self.render_view(&gpu, ask, content, &view, false));
+        match rendered {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                Ok(None)
+            }
+            r => r.map(Some),
+        }
+    }
+
+    /// `content`'s RGB-D in `gpu`'s memory: uploaded once per content frame and eye.
+    fn resident(&self, gpu: &Gpu, content: &ContentFrame) -> Result<GpuRgbd, RenderError> {
+        let key = (content.number, content.eye);
+        if let Some((_, v)) = lock(&self.resident).iter().find(|(k, _)| *k == key) {
+            return Ok(v.clone());
+        }
+        let view = gpu.upload_rgbd(&content.rgbd)?;
+        lock(&self.compute).ran("content upload", "host to gpu");
+        if self.keeps(content) {
+            lock(&self.resident).push((key, view.clone()));
+        }
+        Ok(view)
+    }
+
+    fn defocus_view(
         &self,
         gpu: &Gpu,
         view: &GpuRgbd,
@@ -521,6 +575,7 @@ impl RgbdRenderer {
         if self.newest.fetch_max(n, Ordering::AcqRel) < n {
             lock(&self.layers).retain(|l| l.frame >= n);
             lock(&self.panel).retain(|(k, _, _, _)| *k >= n);
+            lock(&self.resident).retain(|((k, _), _)| *k >= n);
         }
     }
 
@@ -543,6 +598,16 @@ impl RgbdRenderer {
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
         self.take_up(content);
+        let ask = Ask {
+            mode,
+            method,
+            focus,
+            gaze,
+            auto,
+        };
+        if let Some(out) = self.frame_on_gpu(&ask, content)? {
+            return Ok(out);
+        }
         let input = content.rgbd.as_ref();
         let gaze = self.eye_gaze(input, gaze, content.eye, focus);
         if auto && mode == Mode::Varifocal {
@@ -895,16 +960,7 @@ impl Renderer for RgbdRenderer {
         content: &ContentFrame,
         positions: [[f32; 2]; 2],
     ) -> Option<Result<EyesOnDevice, RenderError>> {
-        let from_device = match (job.mode, job.method.0) {
-            (Mode::Varifocal, _) if job.auto => true,
-            (Mode::Varifocal, m) => matches!(
-                m,
-                RenderMethod::Gather | RenderMethod::Pyramid | RenderMethod::LightFieldDefocus
-            ),
-            (Mode::Multifocal, m) => m == RenderMethod::Linear,
-            _ => false,
-        };
-        if !from_device {
+        if !from_device(&Ask::of(job)) {
             return None;
         }
         let gpu = lock(&self.compute).gpu.clone()?;
@@ -961,6 +1017,42 @@ fn lenslet_display((w, h): (usize, usize)) -> LensletDisplay {
         lenslet_pitch_m: 0.000_25,
         gap_m: 0.000_94,
         eye_relief_m: 0.015,
+    }
+}
+
+/// What a frame is asked for: the job's or `render_frame`'s.
+#[derive(Debug, Clone, Copy)]
+struct Ask {
+    mode: Mode,
+    method: Method,
+    focus: Diopters,
+    gaze: Option<[f32; 2]>,
+    auto: bool,
+}
+
+impl Ask {
+    fn of(job: &RenderJob) -> Ask {
+        Ask {
+            mode: job.mode,
+            method: job.method,
+            focus: job.focus,
+            gaze: job.gaze,
+            auto: job.auto,
+        }
+    }
+}
+
+/// Whether `ask` renders from an RGB-D in GPU memory on the GPU: the varifocal defocus
+/// methods (chosen or `auto`) and multifocal linear blending.
+fn from_device(ask: &Ask) -> bool {
+    match (ask.mode, ask.method.0) {
+        (Mode::Varifocal, _) if ask.auto => true,
+        (Mode::Varifocal, m) => matches!(
+            m,
+            RenderMethod::Gather | RenderMethod::Pyramid | RenderMethod::LightFieldDefocus
+        ),
+        (Mode::Multifocal, m) => m == RenderMethod::Linear,
+        _ => false,
     }
 }
 
@@ -1077,9 +1169,9 @@ struct Compute {
     gpu_time: std::collections::BTreeMap<String, hdrhistogram::Histogram<u64>>,
     /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
     cpu_because: Option<String>,
-    /// Per stage of a frame (each eye's view, each method, the light-field panel), where it
-    /// ran (`gpu` or `cpu`) and how many times: `/status`'s `render.stages`, one
-    /// `{"stage", "on", "count"}` each.
+    /// Per stage of a frame (each eye's view, each method, the light-field panel, the content
+    /// upload), where it ran (`gpu`, `cpu`, or `host to gpu` for an upload) and how many times:
+    /// `/status`'s `render.stages`, one `{"stage", "on", "count"}` each.
     stages: std::collections::BTreeMap<String, std::collections::BTreeMap<&'static str, u64>>,
 }
 
@@ -1791,6 +1883,59 @@ mod tests {
             }
             Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
         }
+    }
+
+    /// On the GPU a content frame's RGB-D is uploaded once, however many frames (foci) show
+    /// it, and each is rendered from GPU memory: the CPU rig's images within 1e-3.
+    #[test]
+    fn a_gpu_rig_uploads_a_content_frame_once_and_renders_it_from_there() {
+        let Some((gpu, cpu, _)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
+            return;
+        };
+        let frame = ContentFrame::new(1, Arc::new(scene_rgbd(&gpu)));
+        let reads = gpu.backend_status()["images_read_back"].as_u64();
+        let render = |r: &RgbdRenderer, focus: f32| {
+            r.render_frame(
+                &frame,
+                Mode::Varifocal,
+                Method(RenderMethod::Gather),
+                Diopters(focus),
+                None,
+                false,
+            )
+            .unwrap()
+            .images
+            .remove(0)
+        };
+        let on_gpu = [render(&gpu, 0.5), render(&gpu, 2.5)];
+        assert!(on_gpu.iter().all(|i| matches!(i, FrameImage::Gpu(_))));
+        assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
+        for (image, focus) in on_gpu.iter().zip([0.5, 2.5]) {
+            let (a, b) = (image.to_host().unwrap(), render(&cpu, focus));
+            let b = b.to_host().unwrap();
+            let max = (0..3)
+                .flat_map(|c| {
+                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                    a.iter()
+                        .zip(b)
+                        .map(|(x, y)| (x - y).abs())
+                        .collect::<Vec<_>>()
+                })
+                .fold(0.0f32, f32::max);
+            assert!(max < 1e-3, "{focus} D: {max}");
+        }
+        let st = gpu.backend_status();
+        let count = |stage: &str, on: &str| {
+            st["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["stage"] == stage && s["on"] == on)
+                .map_or(0, |s| s["count"].as_u64().unwrap())
+        };
+        assert_eq!(count("content upload", "host to gpu"), 1, "{st}");
+        assert_eq!(count("gather", "gpu"), 2, "{st}");
+        assert_eq!(count("gather", "cpu"), 0, "{st}");
     }
 
     /// On the GPU the light-field panel of a file or stream frame is made there, views and
