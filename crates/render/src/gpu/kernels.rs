@@ -1129,33 +1129,78 @@ pub(super) fn lenslet_panel(
     let (Some(views), Some(synth)) = (stack, uploaded) else {
         return Err(invalid("no light-field views"));
     };
+    let mut f = Frame::new(ctx)?;
+    let (panel, layout) = record_lenslet(&mut f, &views, (synth.w, synth.h), grid, sampling)?;
+    let (_, s) = f.finish()?;
+    total.add(&s);
+    Ok((GpuImage::new(ctx, panel, layout), total))
+}
+
+/// A lenslet display's panel, in GPU memory, of the `grid` x `grid` light field `views` (on
+/// the host, row-major from the top-left, one size): uploaded once and resampled by
+/// `sampling` in one submission.
+pub(super) fn lenslet_panel_of_views(
+    ctx: &Arc<GpuContext>,
+    views: &[RgbImage],
+    grid: usize,
+    sampling: &PanelSampling,
+) -> Out<GpuImage> {
+    sampling.check(grid)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("no light-field views"))?;
+    let size = (first.width(), first.height());
+    if views.len() != grid * grid
+        || size.0 == 0
+        || size.1 == 0
+        || views.iter().any(|v| (v.width(), v.height()) != size)
+    {
+        return Err(mismatch(format!(
+            "a {grid}x{grid} light field needs {} views of one size, not empty",
+            grid * grid
+        )));
+    }
+    let mut data = Vec::with_capacity(3 * views.len() * size.0 * size.1);
+    for v in views {
+        data.extend_from_slice(&planar(v));
+    }
+    let mut f = Frame::new(ctx)?;
+    let stack = f.upload("light-field views", &data)?;
+    let (panel, layout) = record_lenslet(&mut f, &stack, size, grid, sampling)?;
+    let (_, s) = f.finish()?;
+    Ok((GpuImage::new(ctx, panel, layout), s))
+}
+
+/// Records the lenslet resampling of the `grid` x `grid` views in `views` (each `vw` x `vh`,
+/// planar, one after the other) by `sampling`: the buffer the panel will be in, and where.
+fn record_lenslet(
+    f: &mut Frame,
+    views: &BufRef,
+    (vw, vh): (usize, usize),
+    grid: usize,
+    sampling: &PanelSampling,
+) -> Result<(BufRef, ImageLayout), RenderError> {
     let (w, h) = (sampling.cols.len(), sampling.rows.len());
     let p = LensletP {
         w: dim(w, "panel width")?,
         h: dim(h, "panel height")?,
-        vw: dim(synth.w, "view width")?,
-        vh: dim(synth.h, "view height")?,
+        vw: dim(vw, "view width")?,
+        vh: dim(vh, "view height")?,
         grid: dim(grid, "view grid")?,
         _pad0: 0,
         _pad1: 0,
         _pad2: 0,
     };
-    let mut f = Frame::new(ctx)?;
     let cols = f.upload("panel columns' sampling", &sampling.cols)?;
     let rows = f.upload("panel rows' sampling", &sampling.rows)?;
     let panel = f.scratch("lenslet panel", 12 * (w * h) as u64)?;
     f.dispatch(
         Kernel::Lenslet,
         &p,
-        &[&views, &cols, &rows, &panel],
+        &[views, &cols, &rows, &panel],
         groups2(p.w, p.h, 1),
     )?;
-    let (_, s) = f.finish()?;
-    total.add(&s);
-    Ok((
-        GpuImage::new(ctx, panel, ImageLayout::packed(w, h, 0)),
-        total,
-    ))
+    Ok((panel, ImageLayout::packed(w, h, 0)))
 }
 
 #[repr(C)]

@@ -167,6 +167,20 @@ impl Gpu {
         Ok(out.counted_by(&self.images_read_back))
     }
 
+    /// A lenslet display's panel of the `grid` x `grid` light field `views` (host images, as
+    /// a scene's ray cast or a net's refinement leaves them), left in GPU memory: the views
+    /// uploaded once and resampled there by `sampling`.
+    pub fn lenslet_panel_of_views_on_gpu(
+        &self,
+        views: &[RgbImage],
+        grid: usize,
+        sampling: &PanelSampling,
+    ) -> Result<GpuImage, RenderError> {
+        let (out, s) = kernels::lenslet_panel_of_views(&self.ctx, views, grid, sampling)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
+    }
+
     fn spectral_to(
         &self,
         input: &Rgbd,

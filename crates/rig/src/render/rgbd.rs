@@ -722,19 +722,10 @@ impl RgbdRenderer {
             let input = self.light_field_inputs(content);
             self.on_backend("light-field panel", |gpu| match gpu {
                 Some(g) => {
-                    let geometry = GridGeometry {
-                        grid: LF_GRID,
-                        spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
-                        pixel_pitch_tan: self.eye.pixel_pitch_tan(),
-                        view_size: input
-                            .first()
-                            .map_or((0, 0), |v| (v.rgbd.width(), v.rgbd.height())),
-                    };
-                    let s = sampling(&geometry, &lenslet_display(self.size))?;
-                    let sampling = PanelSampling {
-                        cols: s.cols,
-                        rows: s.rows,
-                    };
+                    let view_size = input
+                        .first()
+                        .map_or((0, 0), |v| (v.rgbd.width(), v.rgbd.height()));
+                    let sampling = self.panel_sampling(view_size, self.eye.pixel_pitch_tan())?;
                     Ok(FrameImage::Gpu(g.lenslet_panel_on_gpu(
                         &input, LF_GRID, LF_SPAN_M, &self.eye, &sampling,
                     )?))
@@ -747,11 +738,20 @@ impl RgbdRenderer {
                 }
             })?
         } else {
+            // Views on the host (the scene's ray cast, or refined by the net): resampled on
+            // the rig's backend.
             let (views, pixel_pitch_tan) = self.views(content, method)?;
             let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
-            let panel = lenslet_panel(&images, pixel_pitch_tan, self.size)?;
-            lock(&self.compute).ran("lenslet panel", "cpu");
-            panel.into()
+            self.on_backend("lenslet panel", |gpu| match gpu {
+                Some(g) => {
+                    let view_size = images.first().map_or((0, 0), |v| (v.width(), v.height()));
+                    let sampling = self.panel_sampling(view_size, pixel_pitch_tan)?;
+                    Ok(FrameImage::Gpu(g.lenslet_panel_of_views_on_gpu(
+                        &images, LF_GRID, &sampling,
+                    )?))
+                }
+                None => Ok(lenslet_panel(&images, pixel_pitch_tan, self.size)?.into()),
+            })?
         };
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
@@ -770,6 +770,26 @@ impl RgbdRenderer {
         method: RenderMethod,
     ) -> Result<Vec<LfView>, RenderError> {
         Ok(self.views(content, method)?.0)
+    }
+
+    /// How the lenslet panel over the display samples a light field of views `view_size`
+    /// pixels of `pixel_pitch_tan` (dioptra-sched's, for the GPU's resampling).
+    fn panel_sampling(
+        &self,
+        view_size: (usize, usize),
+        pixel_pitch_tan: f32,
+    ) -> Result<PanelSampling, RenderError> {
+        let geometry = GridGeometry {
+            grid: LF_GRID,
+            spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+            pixel_pitch_tan,
+            view_size,
+        };
+        let s = sampling(&geometry, &lenslet_display(self.size))?;
+        Ok(PanelSampling {
+            cols: s.cols,
+            rows: s.rows,
+        })
     }
 
     /// What a file or stream frame's light field is synthesised from: its views (a view
@@ -1938,58 +1958,64 @@ mod tests {
         assert_eq!(count("gather", "cpu"), 0, "{st}");
     }
 
-    /// On the GPU the light-field panel of a file or stream frame is made there, views and
-    /// lenslet resampling, and left in GPU memory: the CPU rig's panel within 1e-3.
+    /// On the GPU the light-field panel is made there and left in GPU memory: a file or stream
+    /// frame's views synthesised and resampled there, the procedural scene's ray-cast views
+    /// uploaded and resampled there; the CPU rig's panels within 1e-3.
     #[test]
     fn a_gpu_rigs_light_field_panel_is_made_and_kept_on_the_device() {
-        let Some((gpu, cpu, _)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
+        let Some((gpu, cpu, cfg)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
             return;
         };
-        let frame = ContentFrame::new(1, Arc::new(scene_rgbd(&gpu)));
-        let reads = gpu.backend_status()["images_read_back"].as_u64();
-        let panel = |r: &RgbdRenderer| {
-            r.render_frame(
-                &frame,
-                Mode::Lightfield,
-                Method(RenderMethod::Views),
-                Diopters(1.0),
-                None,
-                false,
-            )
-            .unwrap()
-            .images
-            .remove(0)
-        };
-        let on_gpu = panel(&gpu);
-        assert!(matches!(on_gpu, FrameImage::Gpu(_)), "left in GPU memory");
-        assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
-        let (a, b) = (
-            on_gpu.to_host().unwrap(),
-            panel(&cpu).to_host().unwrap().into_owned(),
-        );
-        let max = (0..3)
-            .flat_map(|c| {
-                let (a, b) = (a.channels[c].data(), b.channels[c].data());
-                a.iter()
-                    .zip(b)
-                    .map(|(x, y)| (x - y).abs())
-                    .collect::<Vec<_>>()
-            })
-            .fold(0.0f32, f32::max);
-        eprintln!("light-field panel: max |gpu - cpu| = {max:e}");
-        assert!(max < 1e-3, "{max}");
-        let st = gpu.backend_status();
-        let stages = st["stages"].as_array().unwrap();
-        assert!(
-            stages
-                .iter()
-                .any(|s| s["stage"] == "light-field panel" && s["on"] == "gpu"),
-            "{st}"
-        );
-        assert!(
-            !stages.iter().any(|s| s["on"] == "cpu"),
-            "nothing of the panel on the host: {st}"
-        );
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
+        let scene = content.poll(Timestamp::ZERO).unwrap();
+        assert!(scene.scene.is_some());
+        let file = ContentFrame::new(scene.number + 1, Arc::new(scene_rgbd(&gpu)));
+        for (frame, stage) in [(&scene, "lenslet panel"), (&file, "light-field panel")] {
+            let reads = gpu.backend_status()["images_read_back"].as_u64();
+            let panel = |r: &RgbdRenderer| {
+                r.render_frame(
+                    frame,
+                    Mode::Lightfield,
+                    Method(RenderMethod::Views),
+                    Diopters(1.0),
+                    None,
+                    false,
+                )
+                .unwrap()
+                .images
+                .remove(0)
+            };
+            let on_gpu = panel(&gpu);
+            assert!(
+                matches!(on_gpu, FrameImage::Gpu(_)),
+                "{stage}: in GPU memory"
+            );
+            assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
+            let (a, b) = (on_gpu.to_host().unwrap(), panel(&cpu));
+            let b = b.to_host().unwrap();
+            let max = (0..3)
+                .flat_map(|c| {
+                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                    a.iter()
+                        .zip(b)
+                        .map(|(x, y)| (x - y).abs())
+                        .collect::<Vec<_>>()
+                })
+                .fold(0.0f32, f32::max);
+            eprintln!("{stage}: max |gpu - cpu| = {max:e}");
+            assert!(max < 1e-3, "{stage}: {max}");
+            let st = gpu.backend_status();
+            let stages = st["stages"].as_array().unwrap();
+            let on = |on: &str| stages.iter().any(|s| s["stage"] == stage && s["on"] == on);
+            assert!(on("gpu") && !on("cpu"), "{stage}: {st}");
+        }
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.
