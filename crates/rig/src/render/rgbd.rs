@@ -187,16 +187,14 @@ impl RgbdRenderer {
         match work(gpu.as_deref()) {
             Err(RenderError::Gpu(e)) => {
                 lock(&self.compute).fall_back(&e);
-                work(None)
+                let v = work(None)?;
+                lock(&self.compute).ran(label, "cpu");
+                Ok(v)
             }
             Ok(v) => {
-                let mut c = lock(&self.compute);
                 match gpu {
-                    Some(g) => {
-                        c.timed(label, g.last_stats().gpu_ns);
-                        c.ran(label, "gpu");
-                    }
-                    None => c.ran(label, "cpu"),
+                    Some(g) => self.ran_on_gpu(&g, label),
+                    None => lock(&self.compute).ran(label, "cpu"),
                 }
                 Ok(v)
             }
