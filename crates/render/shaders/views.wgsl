@@ -4,7 +4,9 @@
 // surface, reading each at its sub-pixel position (a crack fill that lands on no pixel of its
 // surface dropped);
 // fill_rows fills the holes from the farther of the nearest valid pixels along the row (the
-// pixel up to FILL_SKIP beyond it on its surface), fill_cols the rest along the column.
+// pixel up to FILL_SKIP beyond it on its surface), fill_cols the rest along the column and
+// writes the view planar: red, green, blue, then its depth (diopters; 0 where nothing was
+// seen on the pixel's row or column, as views.rs's synthesize_rgbd_view).
 
 struct Params {
     w: u32,
@@ -209,4 +211,5 @@ fn fill_cols(@builtin(global_invocation_id) g: vec3<u32>) {
     fc_out[i] = o.x;
     fc_out[n + i] = o.y;
     fc_out[2u * n + i] = o.z;
+    fc_out[3u * n + i] = o.w;
 }

@@ -43,7 +43,12 @@ pub(crate) fn check_rgbd(input: &Rgbd) -> Result<(), RenderError> {
 
 /// Largest circle-of-confusion diameter (pixels) over the image for focus `q`.
 pub(crate) fn max_coc(input: &Rgbd, eye: &EyeModel, q: Diopters) -> f32 {
-    match input.depth.range() {
+    coc_over(input.depth.range(), eye, q)
+}
+
+/// Largest circle-of-confusion diameter (pixels) for focus `q` over depths in `range`.
+pub(crate) fn coc_over(range: Option<(Diopters, Diopters)>, eye: &EyeModel, q: Diopters) -> f32 {
+    match range {
         Some((lo, hi)) => eye.coc_px(lo, q).max(eye.coc_px(hi, q)),
         None => 0.0,
     }

@@ -140,6 +140,10 @@ pub(crate) fn check_lightfield_inputs(
     params: &LightFieldParams,
 ) -> Result<(), RenderError> {
     check_rgbd(input)?;
+    check_lightfield_params(params)
+}
+
+pub(crate) fn check_lightfield_params(params: &LightFieldParams) -> Result<(), RenderError> {
     if !(1..=1024).contains(&params.views) {
         return Err(invalid(format!(
             "views = {} is invalid: expected 1 to 1024",

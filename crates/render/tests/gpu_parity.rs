@@ -403,6 +403,79 @@ fn view_synthesis_across_wide_disocclusions_matches_cpu() {
     }
 }
 
+/// Each eye's RGB-D of a stereo rig synthesised from one RGB-D on the GPU and left there (the
+/// rig's eye views): colour within 1e-3 of the CPU's `synthesize_rgbd_view`, depth the same,
+/// both eyes from one upload in one submission; each method's render from the view in GPU
+/// memory the same as from its copy on the host.
+#[test]
+fn rgbd_views_made_in_gpu_memory_match_cpu_and_render_as_their_copies() {
+    use dioptra_render::views::synthesize_rgbd_view;
+    let Some(g) = gpu() else { return };
+    let eye = EyeModel::default();
+    let inputs = [RgbdView {
+        position: [0.0, 0.0],
+        rgbd: random_rgbd(96, 64, 11),
+    }];
+    let targets = [[-0.0315, 0.0], [0.0315, 0.0]];
+    let on_gpu = g
+        .synthesize_rgbd_views_on_gpu(&inputs, &targets, &eye)
+        .unwrap();
+    assert_eq!(g.last_stats().submissions, 1, "both eyes in one submission");
+    let input_bytes = (16 * 96 * 64) as u64;
+    let uploaded = g.last_stats().bytes_uploaded;
+    assert!(
+        (input_bytes..2 * input_bytes).contains(&uploaded),
+        "the input uploaded once: {uploaded} bytes"
+    );
+    assert_eq!(g.images_read_back(), 0);
+    for (view, &t) in on_gpu.iter().zip(&targets) {
+        let cpu = synthesize_rgbd_view(&inputs, t, &eye).unwrap();
+        let host = view.read().unwrap();
+        let (max, frac) = diff(&cpu.color, &host.color, 1e-3);
+        eprintln!(
+            "RGB-D view at {t:?}: max |gpu - cpu| = {max:e}, {:.4} % over 1e-3",
+            frac * 100.0
+        );
+        assert!(max < 1e-3, "{max}");
+        assert_eq!(cpu.depth, host.depth, "depth at {t:?}");
+        // Uploaded, it reads back as it was, its depth bound its own range.
+        let uploaded = g.upload_rgbd(&host).unwrap();
+        assert_eq!(uploaded.read().unwrap(), host);
+        assert_eq!(Some(uploaded.depth_bound()), host.depth.range());
+        let (lo, hi) = view.depth_bound();
+        let (dlo, dhi) = host.depth.range().unwrap();
+        assert!(
+            lo.0 <= dlo.0 && dhi.0 <= hi.0,
+            "{lo:?}..{hi:?} holds {dlo:?}..{dhi:?}"
+        );
+        // Every method that takes an input in GPU memory renders it as its host copy.
+        let methods = [
+            DefocusMethod::Gather,
+            DefocusMethod::Pyramid(PyramidParams::default()),
+            DefocusMethod::LightField(LightFieldParams {
+                views: 16,
+                mip: true,
+            }),
+        ];
+        for m in methods {
+            let a = g.defocus_on_gpu(view, Diopters(1.5), &eye, m).unwrap();
+            let b = g.defocus_on_gpu(&host, Diopters(1.5), &eye, m).unwrap();
+            let (max, _) = diff(&a.read().unwrap(), &b.read().unwrap(), 1e-5);
+            assert!(max < 1e-5, "{m:?}: {max}");
+        }
+        let planes = [Diopters(0.2), Diopters(1.4), Diopters(2.6)];
+        let a = g.linear_blend_on_gpu(view, &planes).unwrap();
+        let b = g.linear_blend_on_gpu(&host, &planes).unwrap();
+        for (a, b) in a.iter().zip(&b) {
+            assert_eq!(a.read().unwrap(), b.read().unwrap(), "linear blending");
+        }
+    }
+    assert!(g
+        .synthesize_rgbd_views_on_gpu(&inputs, &[[f32::NAN, 0.0]], &eye)
+        .is_err());
+    assert!(g.synthesize_rgbd_views_on_gpu(&[], &targets, &eye).is_err());
+}
+
 #[test]
 fn bad_input_is_an_error() {
     let Some(g) = gpu() else { return };

@@ -144,13 +144,23 @@ fn failure(
 
 /// Renders each eye of a stereo layout, one after the other on the rig's backend: the left
 /// eye's view at `job.focus`, the right eye's at `job.focus_right` (its own lens's focus;
-/// `focus` where the rig has one lens).
+/// `focus` where the rig has one lens). Views synthesised from one RGB-D are made on the
+/// renderer's device where it can ([`Renderer::render_eyes_on_device`]), else on the host.
 fn render_eyes(
     renderer: &dyn Renderer,
     views: &EyeViews,
     job: &RenderJob,
     content: &ContentFrame,
 ) -> Result<(RenderOutput, Option<RenderOutput>), dioptra_render::RenderError> {
+    if views.synthesises(content) {
+        let started = Instant::now();
+        let positions = [views.position(Side::Left), views.position(Side::Right)];
+        if let Some(made) = renderer.render_eyes_on_device(job, content, positions) {
+            views.note_on_device(made.as_ref().map(|e| e.made), started.elapsed());
+            let [left, right] = made?.outputs;
+            return Ok((left, Some(right)));
+        }
+    }
     let ([left, right], _) = views.of(content)?;
     let left_out = renderer.render(job, &content.for_eye(Side::Left, left))?;
     let right_job = RenderJob {

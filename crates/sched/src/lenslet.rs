@@ -111,25 +111,67 @@ fn view_pair(s: f32, grid: usize, spacing: f32) -> [(usize, f32); 2] {
     [(i0, 1.0 - f), (i0 + 1, f)]
 }
 
-/// The panel image (elemental images side by side) that shows `lf` on `display`.
-pub fn elemental_images(
-    lf: &ViewGrid<'_>,
-    display: &LensletDisplay,
-) -> Result<RgbImage, InputError> {
+/// Where each panel column (or row) reads the light field: the first of the two views around
+/// its pupil position and the weight of each, and its position in a view (pixels, centres at
+/// +0.5): `[first view, its weight, the next view's weight, position]`. Panel pixel (x, y)
+/// is the sum over the column's and the row's view pairs of the product of their weights
+/// times the bilinear sample of view (row view, column view) at (column's, row's position),
+/// pairs of weight 0 skipped: what [`elemental_images`] computes, and a GPU twin with it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sampling {
+    pub cols: Vec<[f32; 4]>,
+    pub rows: Vec<[f32; 4]>,
+}
+
+/// A light field's lattice without its pixels: what [`sampling`] needs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridGeometry {
+    pub grid: usize,
+    pub spacing_m: f32,
+    pub pixel_pitch_tan: f32,
+    /// Each view's width and height, pixels.
+    pub view_size: (usize, usize),
+}
+
+impl ViewGrid<'_> {
+    /// Its lattice, once its views are checked (as many as the grid has, all one size).
+    pub fn geometry(&self) -> Result<GridGeometry, InputError> {
+        if self.grid == 0 || self.views.len() != self.grid.saturating_mul(self.grid) {
+            return Err(InputError::SizeMismatch(format!(
+                "a {g}x{g} view grid needs {} views, got {}",
+                self.grid.saturating_mul(self.grid),
+                self.views.len(),
+                g = self.grid
+            )));
+        }
+        let (vw, vh) = (self.views[0].width(), self.views[0].height());
+        if self
+            .views
+            .iter()
+            .any(|v| (v.width(), v.height()) != (vw, vh))
+        {
+            return Err(InputError::SizeMismatch(
+                "light-field views differ in size".into(),
+            ));
+        }
+        Ok(GridGeometry {
+            grid: self.grid,
+            spacing_m: self.spacing_m,
+            pixel_pitch_tan: self.pixel_pitch_tan,
+            view_size: (vw, vh),
+        })
+    }
+}
+
+/// The [`Sampling`] of `display`'s panel for a light field on `lf`.
+pub fn sampling(lf: &GridGeometry, display: &LensletDisplay) -> Result<Sampling, InputError> {
     display.check()?;
-    if lf.grid == 0 || lf.views.len() != lf.grid.saturating_mul(lf.grid) {
+    let (vw, vh) = lf.view_size;
+    if lf.grid == 0 || vw == 0 || vh == 0 {
         return Err(InputError::SizeMismatch(format!(
-            "a {g}x{g} view grid needs {} views, got {}",
-            lf.grid.saturating_mul(lf.grid),
-            lf.views.len(),
+            "a {g}x{g} grid of {vw}x{vh} views is empty",
             g = lf.grid
         )));
-    }
-    let (vw, vh) = (lf.views[0].width(), lf.views[0].height());
-    if vw == 0 || vh == 0 || lf.views.iter().any(|v| (v.width(), v.height()) != (vw, vh)) {
-        return Err(InputError::SizeMismatch(
-            "light-field views are empty or differ in size".into(),
-        ));
     }
     let usable = |v: f32| v.is_finite() && v >= 0.0;
     if !usable(lf.spacing_m) || !usable(lf.pixel_pitch_tan) || lf.pixel_pitch_tan == 0.0 {
@@ -139,19 +181,39 @@ pub fn elemental_images(
         )));
     }
     let (w, h) = display.panel_size();
-    let cols: Vec<(f32, f32)> = (0..w)
-        .map(|k| display.ray(k, display.lenslets[0]))
-        .collect();
-    let rows: Vec<(f32, f32)> = (0..h)
-        .map(|k| display.ray(k, display.lenslets[1]))
-        .collect();
+    let axis = |len: usize, lenslets: usize, view_len: usize| -> Vec<[f32; 4]> {
+        (0..len)
+            .map(|k| {
+                let (s, t) = display.ray(k, lenslets);
+                let [(i0, w0), (_, w1)] = view_pair(s, lf.grid, lf.spacing_m);
+                [
+                    i0 as f32,
+                    w0,
+                    w1,
+                    t / lf.pixel_pitch_tan + view_len as f32 * 0.5,
+                ]
+            })
+            .collect()
+    };
+    Ok(Sampling {
+        cols: axis(w, display.lenslets[0], vw),
+        rows: axis(h, display.lenslets[1], vh),
+    })
+}
+
+/// The panel image (elemental images side by side) that shows `lf` on `display`.
+pub fn elemental_images(
+    lf: &ViewGrid<'_>,
+    display: &LensletDisplay,
+) -> Result<RgbImage, InputError> {
+    let Sampling { cols, rows } = sampling(&lf.geometry()?, display)?;
+    let (w, h) = (cols.len(), rows.len());
+    let pair = |a: &[f32; 4]| [(a[0] as usize, a[1]), (a[0] as usize + 1, a[2])];
     let mut out = [0, 1, 2].map(|_| vec![0.0f32; w * h]);
-    for (y, &(sy, ty)) in rows.iter().enumerate() {
-        let vy = view_pair(sy, lf.grid, lf.spacing_m);
-        let py = ty / lf.pixel_pitch_tan + vh as f32 * 0.5;
-        for (x, &(sx, tx)) in cols.iter().enumerate() {
-            let vx = view_pair(sx, lf.grid, lf.spacing_m);
-            let px = tx / lf.pixel_pitch_tan + vw as f32 * 0.5;
+    for (y, row) in rows.iter().enumerate() {
+        let (vy, py) = (pair(row), row[3]);
+        for (x, col) in cols.iter().enumerate() {
+            let (vx, px) = (pair(col), col[3]);
             let mut acc = [0.0f32; 3];
             for &(j, wj) in &vy {
                 for &(i, wi) in &vx {

@@ -41,6 +41,7 @@ pub(crate) enum Kernel {
     ViewResolve,
     FillRows,
     FillCols,
+    Lenslet,
     FovMask,
     FovCells,
     FovInterp,
@@ -70,13 +71,14 @@ const METRICS_WGSL: &str = include_str!("../../shaders/metrics.wgsl");
 const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
 const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
+const LENSLET_WGSL: &str = include_str!("../../shaders/lenslet.wgsl");
 const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
 const PYRAMID_WGSL: &str = include_str!("../../shaders/pyramid.wgsl");
 const FOVEATED_WGSL: &str = include_str!("../../shaders/foveated.wgsl");
 
 impl Kernel {
-    pub(crate) const ALL: [Kernel; 42] = [
+    pub(crate) const ALL: [Kernel; 43] = [
         Kernel::GatherPrep,
         Kernel::MaxH,
         Kernel::MaxV,
@@ -100,6 +102,7 @@ impl Kernel {
         Kernel::ViewResolve,
         Kernel::FillRows,
         Kernel::FillCols,
+        Kernel::Lenslet,
         Kernel::FovMask,
         Kernel::FovCells,
         Kernel::FovInterp,
@@ -148,6 +151,7 @@ impl Kernel {
             ViewResolve => (VIEWS_WGSL, "resolve", 5, 1),
             FillRows => (VIEWS_WGSL, "fill_rows", 1, 1),
             FillCols => (VIEWS_WGSL, "fill_cols", 1, 1),
+            Lenslet => (LENSLET_WGSL, "elemental", 3, 1),
             FovMask => (FOVEATE_WGSL, "mask", 2, 1),
             FovCells => (FOVEATE_WGSL, "cells", 1, 2),
             FovInterp => (FOVEATE_WGSL, "interp", 4, 1),

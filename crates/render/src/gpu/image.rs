@@ -8,7 +8,8 @@ use std::sync::Arc;
 
 use super::context::{BufRef, Frame, GpuContext};
 use super::GpuError;
-use dioptra_core::{Plane, RgbImage};
+use crate::error::RenderError;
+use dioptra_core::{DepthMap, Diopters, Plane, RgbImage, Rgbd};
 
 /// Where an image's pixels are in its buffer, counted in f32 values: planar linear RGB (the
 /// red plane, then green, then blue), rows top first.
@@ -141,6 +142,187 @@ impl GpuImage {
             r.fetch_add(1, Ordering::Relaxed);
         }
         l.image(&rb.f32s(r))
+    }
+}
+
+/// Planar colour: R plane, then G, then B.
+pub(crate) fn planar(img: &RgbImage) -> Vec<f32> {
+    let mut v = Vec::with_capacity(3 * img.width() * img.height());
+    for c in &img.channels {
+        v.extend_from_slice(c.data());
+    }
+    v
+}
+
+/// An RGB-D image in a storage buffer of a [`GpuContext`]'s device (a view synthesised
+/// there): four packed planes, red, green, blue (linear) and depth (diopters). Cloning it
+/// shares the buffer.
+#[derive(Clone)]
+pub struct GpuRgbd {
+    ctx: Arc<GpuContext>,
+    buf: BufRef,
+    width: usize,
+    height: usize,
+    depth_bound: (Diopters, Diopters),
+    reads: Option<Arc<AtomicU64>>,
+}
+
+impl std::fmt::Debug for GpuRgbd {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRgbd")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("adapter", &self.ctx.adapter().name)
+            .finish()
+    }
+}
+
+impl GpuRgbd {
+    /// `buf` holds the four planes from its start; every depth in it lies in `depth_bound`.
+    pub(crate) fn new(
+        ctx: &Arc<GpuContext>,
+        buf: BufRef,
+        (width, height): (usize, usize),
+        depth_bound: (Diopters, Diopters),
+    ) -> GpuRgbd {
+        GpuRgbd {
+            ctx: ctx.clone(),
+            buf,
+            width,
+            height,
+            depth_bound,
+            reads: None,
+        }
+    }
+
+    /// Its readbacks counted in `reads`.
+    pub(crate) fn counted_by(mut self, reads: &Arc<AtomicU64>) -> GpuRgbd {
+        self.reads = Some(reads.clone());
+        self
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+    pub fn height(&self) -> usize {
+        self.height
+    }
+    pub fn context(&self) -> &Arc<GpuContext> {
+        &self.ctx
+    }
+
+    /// Nearest and farthest depth it may hold, known without reading it back: an uploaded
+    /// image's own range; a synthesised view's, its inputs' range and 0 D (a pixel nothing was
+    /// seen near).
+    pub fn depth_bound(&self) -> (Diopters, Diopters) {
+        self.depth_bound
+    }
+
+    /// Its colour, in GPU memory (the same buffer).
+    pub fn color(&self) -> GpuImage {
+        GpuImage {
+            ctx: self.ctx.clone(),
+            buf: self.buf.clone(),
+            layout: ImageLayout::packed(self.width, self.height, 0),
+            reads: self.reads.clone(),
+        }
+    }
+
+    /// Copies it to the host (one submission), counted by its maker.
+    pub fn read(&self) -> Result<Rgbd, RenderError> {
+        let n = self.width * self.height;
+        let mut f = Frame::new(&self.ctx)?;
+        let r = f.read(&self.buf, 16 * n as u64);
+        let (rb, _) = f.finish()?;
+        if let Some(r) = &self.reads {
+            r.fetch_add(1, Ordering::Relaxed);
+        }
+        let data = rb.f32s(r);
+        let color = ImageLayout::packed(self.width, self.height, 0).image(&data)?;
+        let depth = data
+            .get(3 * n..4 * n)
+            .ok_or_else(|| GpuError::Validation("short RGB-D readback".into()))?;
+        let depth = Plane::from_vec(self.width, self.height, depth.to_vec())?;
+        Ok(Rgbd::new(color, DepthMap::from_diopters(depth)?)?)
+    }
+}
+
+/// A GPU method's RGB-D input: on the host (uploaded by the frame that first reads it) or
+/// already in GPU memory (a view synthesised there: nothing crosses to the device).
+#[derive(Debug, Clone, Copy)]
+pub enum RgbdInput<'a> {
+    Host(&'a Rgbd),
+    Gpu(&'a GpuRgbd),
+}
+
+impl<'a> From<&'a Rgbd> for RgbdInput<'a> {
+    fn from(r: &'a Rgbd) -> Self {
+        RgbdInput::Host(r)
+    }
+}
+
+impl<'a> From<&'a GpuRgbd> for RgbdInput<'a> {
+    fn from(r: &'a GpuRgbd) -> Self {
+        RgbdInput::Gpu(r)
+    }
+}
+
+impl RgbdInput<'_> {
+    pub fn width(&self) -> usize {
+        match self {
+            RgbdInput::Host(r) => r.width(),
+            RgbdInput::Gpu(g) => g.width,
+        }
+    }
+    pub fn height(&self) -> usize {
+        match self {
+            RgbdInput::Host(r) => r.height(),
+            RgbdInput::Gpu(g) => g.height,
+        }
+    }
+
+    /// Nearest and farthest depth: a host image's own range, a GPU one's bound
+    /// ([`GpuRgbd::depth_bound`]); what a method sizes its blur's reach by.
+    pub fn depth_range(&self) -> Option<(Diopters, Diopters)> {
+        match self {
+            RgbdInput::Host(r) => r.depth.range(),
+            RgbdInput::Gpu(g) => Some(g.depth_bound),
+        }
+    }
+
+    /// Not empty (the CPU's `check_rgbd`).
+    pub(crate) fn check(&self) -> Result<(), RenderError> {
+        if self.width() == 0 || self.height() == 0 {
+            return Err(crate::error::invalid("input image is empty"));
+        }
+        Ok(())
+    }
+
+    /// Its planar colour and its depth map as storage buffers of `f`'s device: a host image
+    /// uploaded, a GPU one's colour bound where it is and its depth copied on the device.
+    pub(crate) fn buffers(
+        &self,
+        ctx: &GpuContext,
+        f: &mut Frame,
+    ) -> Result<(BufRef, BufRef), RenderError> {
+        match self {
+            RgbdInput::Host(r) => Ok((
+                f.upload("colour image", &planar(&r.color))?,
+                f.upload("depth map", r.depth.data())?,
+            )),
+            RgbdInput::Gpu(g) => {
+                if !std::ptr::eq(Arc::as_ptr(&g.ctx), ctx) {
+                    return Err(GpuError::Validation(
+                        "an RGB-D input in another GPU context's memory".into(),
+                    )
+                    .into());
+                }
+                let n = (g.width * g.height) as u64;
+                let depth = f.scratch("depth map", 4 * n)?;
+                f.copy(&g.buf, 12 * n, &depth, 0, 4 * n);
+                Ok((g.buf.clone(), depth))
+            }
+        }
     }
 }
 

@@ -4,11 +4,12 @@
 use std::sync::Arc;
 
 use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, Readback, Readbacks, WG, WG1};
-use super::image::{GpuImage, ImageLayout};
+pub(super) use super::image::planar;
+use super::image::{GpuImage, GpuRgbd, ImageLayout, RgbdInput};
 use super::GpuError;
 use crate::backend::Foveated;
 use crate::backend::Progress;
-use crate::common::{check_focus, check_rgbd, eye_for, max_coc};
+use crate::common::{check_focus, check_rgbd, coc_over, eye_for};
 use crate::error::{invalid, mismatch, RenderError};
 use crate::foveate::{log_polar_tables, LogPolar, FOV_CELL};
 use crate::kernel::{disk_kernel, gaussian_taps, FftConv};
@@ -30,15 +31,6 @@ pub(super) fn dim(v: usize, what: &str) -> Result<u32, RenderError> {
 
 fn groups2(w: u32, h: u32, z: u32) -> [u32; 3] {
     [w.div_ceil(WG), h.div_ceil(WG), z]
-}
-
-/// Planar colour: R plane, then G, then B.
-pub(super) fn planar(img: &RgbImage) -> Vec<f32> {
-    let mut v = Vec::with_capacity(3 * img.width() * img.height());
-    for c in &img.channels {
-        v.extend_from_slice(c.data());
-    }
-    v
 }
 
 fn image(data: &[f32], w: usize, h: usize) -> Result<RgbImage, RenderError> {
@@ -160,15 +152,16 @@ pub(super) struct SizeP {
 }
 
 /// Gather blur, one frame per focus; colour and depth are uploaded once.
-pub(super) fn gather(
+pub(super) fn gather<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     progress: Progress,
     keep: Keep,
 ) -> Out<Vec<Output>> {
-    check_rgbd(input)?;
+    let input: RgbdInput = input.into();
+    input.check()?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
     let (w, h) = (input.width(), input.height());
@@ -178,7 +171,9 @@ pub(super) fn gather(
     let mut out = Vec::with_capacity(foci.len());
     let mut inputs: Option<(BufRef, BufRef)> = None;
     for &q in foci {
-        let reach = (0.5 * max_coc(input, &eye, q) + 0.5).ceil().min(256.0) as isize;
+        let reach = (0.5 * coc_over(input.depth_range(), &eye, q) + 0.5)
+            .ceil()
+            .min(256.0) as isize;
         // The CPU's tap order exactly: distance, ties in generation order (stable sort).
         let mut offsets: Vec<[f32; 4]> = (-reach..=reach)
             .flat_map(|dy| {
@@ -198,10 +193,7 @@ pub(super) fn gather(
         let (color, depth) = match &inputs {
             Some(b) => b.clone(),
             None => {
-                let b = (
-                    f.upload("colour image", &planar(&input.color))?,
-                    f.upload("depth map", input.depth.data())?,
-                );
+                let b = input.buffers(ctx, &mut f)?;
                 inputs = Some(b.clone());
                 b
             }
@@ -237,19 +229,19 @@ pub(super) fn gather(
 }
 
 /// Linear blending in one dispatch: one output image per plane.
-pub(super) fn linear_blend(
+pub(super) fn linear_blend<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     planes: &[Diopters],
     keep: Keep,
 ) -> Out<Vec<Output>> {
+    let input: RgbdInput = input.into();
     check_planes(planes)?;
-    check_rgbd(input)?;
+    input.check()?;
     let (w, h) = (input.width(), input.height());
     let (n, np) = ((w * h) as u64, planes.len());
     let mut f = Frame::new(ctx)?;
-    let color = f.upload("colour image", &planar(&input.color))?;
-    let depth = f.upload("depth map", input.depth.data())?;
+    let (color, depth) = input.buffers(ctx, &mut f)?;
     let pl: Vec<f32> = planes.iter().map(|p| p.0).collect();
     let pbuf = f.upload("planes", &pl)?;
     let bytes = 12 * n * np as u64;
@@ -540,16 +532,18 @@ pub(super) struct LfP {
 }
 
 /// Light-field depth of field: the pyramid once per call, then one frame per focus.
-pub(super) fn lightfield(
+pub(super) fn lightfield<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     params: LightFieldParams,
     progress: Progress,
     keep: Keep,
 ) -> Out<Vec<Output>> {
-    crate::lightfield::check_lightfield_inputs(input, &params)?;
+    let input: RgbdInput = input.into();
+    input.check()?;
+    crate::lightfield::check_lightfield_params(&params)?;
     foci.iter().try_for_each(|&q| check_focus(q))?;
     let eye = eye_for(eye, input.width())?;
     let (w, h) = (input.width(), input.height());
@@ -576,7 +570,10 @@ pub(super) fn lightfield(
     // The levels the sharpest-to-blurriest focus of this call reads, built once.
     let nlev = foci
         .iter()
-        .map(|&q| (level_below(PREFILTER * max_coc(input, &eye, q) * spacing) + 1).min(top) + 1)
+        .map(|&q| {
+            let coc = coc_over(input.depth_range(), &eye, q);
+            (level_below(PREFILTER * coc * spacing) + 1).min(top) + 1
+        })
         .max()
         .unwrap_or(1);
     let max = ctx.max_binding();
@@ -589,8 +586,7 @@ pub(super) fn lightfield(
         let (color, depth, levels, vbuf) = match &shared {
             Some(s) => s.clone(),
             None => {
-                let color = f.upload("colour image", &planar(&input.color))?;
-                let depth = f.upload("depth map", input.depth.data())?;
+                let (color, depth) = input.buffers(ctx, &mut f)?;
                 let vbuf = f.upload("lens samples", &views)?;
                 let levels = f.scratch("Gaussian pyramid", 12 * n * nlev as u64)?;
                 f.copy(&color, 0, &levels, 0, 12 * n);
@@ -863,33 +859,53 @@ pub(super) fn optimized_blend(
     Ok(((o.take(ctx, &res)?, report), total))
 }
 
-/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
-/// then one frame per view (splat, resolve, hole filling by rows then columns).
-pub(super) fn synthesize_light_field(
-    ctx: &GpuContext,
-    inputs: &[RgbdView],
-    grid: usize,
-    span: f32,
-    eye: &EyeModel,
-    progress: Progress,
-) -> Out<Vec<LfView>> {
-    let positions = light_field_positions(grid, span)?;
-    let (w, h) = check_inputs(inputs)?;
-    let pitch = eye_for(eye, w)?.pixel_pitch_tan();
-    let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
-    let n = (w * h) as u64;
-    let ni = inputs.len();
-    let mut depths = Vec::with_capacity(ni * w * h);
-    let mut colors = Vec::with_capacity(3 * ni * w * h);
-    for v in inputs {
-        depths.extend_from_slice(v.rgbd.depth.data());
-        colors.extend_from_slice(&planar(&v.rgbd.color));
+/// Sparse RGB-D inputs in GPU memory, for synthesising views from them ([`SynthInputs::view`]).
+struct SynthInputs<'a> {
+    inputs: &'a [RgbdView],
+    w: usize,
+    h: usize,
+    pitch: f32,
+    depths: BufRef,
+    colors: BufRef,
+}
+
+impl<'a> SynthInputs<'a> {
+    /// `inputs` checked and uploaded by `f`.
+    fn upload(
+        f: &mut Frame,
+        inputs: &'a [RgbdView],
+        eye: &EyeModel,
+    ) -> Result<SynthInputs<'a>, RenderError> {
+        let (w, h) = check_inputs(inputs)?;
+        let pitch = eye_for(eye, w)?.pixel_pitch_tan();
+        let mut depths = Vec::with_capacity(inputs.len() * w * h);
+        let mut colors = Vec::with_capacity(3 * inputs.len() * w * h);
+        for v in inputs {
+            depths.extend_from_slice(v.rgbd.depth.data());
+            colors.extend_from_slice(&planar(&v.rgbd.color));
+        }
+        Ok(SynthInputs {
+            inputs,
+            w,
+            h,
+            pitch,
+            depths: f.upload("input depth maps", &depths)?,
+            colors: f.upload("input colour images", &colors)?,
+        })
     }
-    let mut total = FrameStats::default();
-    let mut out = Vec::with_capacity(grid * grid);
-    let mut shared: Option<(BufRef, BufRef)> = None;
-    for (k, target) in positions.into_iter().enumerate() {
-        let shifts: Vec<[f32; 4]> = inputs
+
+    /// Records the view from `target` (splat, resolve, hole filling by rows then columns):
+    /// a buffer of four planes, red, green, blue and depth (diopters).
+    fn view(&self, f: &mut Frame, target: [f32; 2]) -> Result<BufRef, RenderError> {
+        if !target.iter().all(|p| p.is_finite()) {
+            return Err(invalid("view positions must be finite"));
+        }
+        let (w, h, ni) = (self.w, self.h, self.inputs.len());
+        let (wu, hu) = (dim(w, "width")?, dim(h, "height")?);
+        let n = (w * h) as u64;
+        let pitch = self.pitch;
+        let shifts: Vec<[f32; 4]> = self
+            .inputs
             .iter()
             .map(|v| {
                 [
@@ -900,18 +916,6 @@ pub(super) fn synthesize_light_field(
                 ]
             })
             .collect();
-        let mut f = Frame::new(ctx)?;
-        let (db, cb) = match &shared {
-            Some(s) => s.clone(),
-            None => {
-                let s = (
-                    f.upload("input depth maps", &depths)?,
-                    f.upload("input colour images", &colors)?,
-                );
-                shared = Some(s.clone());
-                s
-            }
-        };
         let sb = f.upload("view shifts", &shifts)?;
         let dkey = f.zeroed("depth keys", 4 * n * ni as u64)?;
         let ikey = f.zeroed("index keys", 4 * n * ni as u64)?;
@@ -931,8 +935,9 @@ pub(super) fn synthesize_light_field(
         };
         let gz = groups2(wu, hu, ni as u32);
         let g = groups2(wu, hu, 1);
-        f.dispatch(Kernel::LfSplatDepth, &p, &[&db, &sb, &dkey], gz)?;
-        f.dispatch(Kernel::LfSplatIndex, &p, &[&db, &sb, &dkey, &ikey], gz)?;
+        let db = &self.depths;
+        f.dispatch(Kernel::LfSplatDepth, &p, &[db, &sb, &dkey], gz)?;
+        f.dispatch(Kernel::LfSplatIndex, &p, &[db, &sb, &dkey, &ikey], gz)?;
         let sp = SizeP {
             w: wu,
             h: hu,
@@ -943,23 +948,259 @@ pub(super) fn synthesize_light_field(
         f.dispatch(
             Kernel::ViewResolve,
             &sp,
-            &[&dkey, &ikey, &db, &cb, &sb, &px],
+            &[&dkey, &ikey, db, &self.colors, &sb, &px],
             g,
         )?;
         let rows = f.scratch("row-filled pixels", 16 * n)?;
         f.dispatch(Kernel::FillRows, &sp, &[&px, &rows], g)?;
-        let dst = f.scratch("output image", 12 * n)?;
+        let dst = f.scratch("synthesised RGB-D", 16 * n)?;
         f.dispatch(Kernel::FillCols, &sp, &[&rows, &dst], g)?;
-        let r = f.read(&dst, 12 * n);
+        Ok(dst)
+    }
+}
+
+/// A `grid` x `grid` light field synthesised from sparse RGB-D `inputs`: inputs uploaded once,
+/// then one frame per view (splat, resolve, hole filling by rows then columns).
+pub(super) fn synthesize_light_field(
+    ctx: &GpuContext,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    progress: Progress,
+) -> Out<Vec<LfView>> {
+    let positions = light_field_positions(grid, span)?;
+    let mut total = FrameStats::default();
+    let mut out = Vec::with_capacity(grid * grid);
+    let mut uploaded: Option<SynthInputs> = None;
+    for (k, target) in positions.into_iter().enumerate() {
+        let mut f = Frame::new(ctx)?;
+        let synth = match uploaded.take() {
+            Some(s) => s,
+            None => SynthInputs::upload(&mut f, inputs, eye)?,
+        };
+        let (w, h) = (synth.w, synth.h);
+        let dst = synth.view(&mut f, target)?;
+        let r = f.read(&dst, 12 * (w * h) as u64);
         let (rb, s) = f.finish()?;
         total.add(&s);
         out.push(LfView {
             position: target,
             image: image(&rb.f32s(r), w, h)?,
         });
+        uploaded = Some(synth);
         progress(k + 1);
     }
     Ok((out, total))
+}
+
+/// `input` in GPU memory: colour planes and depth in one buffer, one submission.
+pub(super) fn upload_rgbd(ctx: &Arc<GpuContext>, input: &Rgbd) -> Out<GpuRgbd> {
+    check_rgbd(input)?;
+    let mut data = planar(&input.color);
+    data.extend_from_slice(input.depth.data());
+    let mut f = Frame::new(ctx)?;
+    let buf = f.upload("RGB-D", &data)?;
+    let (_, s) = f.finish()?;
+    let range = input
+        .depth
+        .range()
+        .unwrap_or((Diopters(0.0), Diopters(0.0)));
+    let size = (input.width(), input.height());
+    Ok((GpuRgbd::new(ctx, buf, size, range), s))
+}
+
+/// The RGB-D view from each of `targets` synthesised from `inputs` (the GPU twin of
+/// [`crate::views::synthesize_rgbd_view`]): the inputs uploaded once, every view made in one
+/// submission and left in GPU memory.
+pub(super) fn synthesize_rgbd_views(
+    ctx: &Arc<GpuContext>,
+    inputs: &[RgbdView],
+    targets: &[[f32; 2]],
+    eye: &EyeModel,
+) -> Out<Vec<GpuRgbd>> {
+    let mut f = Frame::new(ctx)?;
+    let synth = SynthInputs::upload(&mut f, inputs, eye)?;
+    // Every synthesised depth is one of an input's, or 0 D where nothing was seen on the
+    // pixel's row or column.
+    let bound = inputs
+        .iter()
+        .filter_map(|v| v.rgbd.depth.range())
+        .fold((Diopters(0.0), Diopters(0.0)), |(lo, hi), (l, h)| {
+            (Diopters(lo.0.min(l.0)), Diopters(hi.0.max(h.0)))
+        });
+    let views = targets
+        .iter()
+        .map(|&t| synth.view(&mut f, t))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (_, s) = f.finish()?;
+    let size = (synth.w, synth.h);
+    Ok((
+        views
+            .into_iter()
+            .map(|b| GpuRgbd::new(ctx, b, size, bound))
+            .collect(),
+        s,
+    ))
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub(super) struct LensletP {
+    pub(super) w: u32,
+    pub(super) h: u32,
+    pub(super) vw: u32,
+    pub(super) vh: u32,
+    pub(super) grid: u32,
+    pub(super) _pad0: u32,
+    pub(super) _pad1: u32,
+    pub(super) _pad2: u32,
+}
+
+/// Where each column and each row of a lenslet display's panel reads its light field, as
+/// dioptra-sched's `lenslet::sampling` gives it: per column (row) `[first view, its weight,
+/// the next view's weight, position in a view (pixels)]`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PanelSampling {
+    pub cols: Vec<[f32; 4]>,
+    pub rows: Vec<[f32; 4]>,
+}
+
+impl PanelSampling {
+    /// Every entry finite, its views on a `grid` x `grid` lattice (the next view only with a
+    /// weight), weights not negative.
+    fn check(&self, grid: usize) -> Result<(), RenderError> {
+        let ok = |e: &[f32; 4]| {
+            e.iter().all(|v| v.is_finite())
+                && e[0] >= 0.0
+                && e[0].fract() == 0.0
+                && e[1] >= 0.0
+                && e[2] >= 0.0
+                && ((e[0] as usize) < grid)
+                && ((e[0] as usize) + 1 < grid || e[2] == 0.0)
+        };
+        if self.cols.is_empty() || self.rows.is_empty() {
+            return Err(invalid("a lenslet panel of no pixels"));
+        }
+        if !self.cols.iter().chain(&self.rows).all(ok) {
+            return Err(invalid(format!(
+                "a lenslet panel's sampling reads outside its {grid}x{grid} views"
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A lenslet display's panel, in GPU memory, of the `grid` x `grid` light field over a `span`
+/// metres square synthesised from `inputs`: the views made in GPU memory (one frame each, as
+/// [`synthesize_light_field`]) and resampled there by `sampling` (the GPU twin of
+/// dioptra-sched's `lenslet::elemental_images`).
+pub(super) fn lenslet_panel(
+    ctx: &Arc<GpuContext>,
+    inputs: &[RgbdView],
+    grid: usize,
+    span: f32,
+    eye: &EyeModel,
+    sampling: &PanelSampling,
+) -> Out<GpuImage> {
+    let positions = light_field_positions(grid, span)?;
+    sampling.check(grid)?;
+    let mut total = FrameStats::default();
+    let mut uploaded: Option<SynthInputs> = None;
+    let mut stack: Option<BufRef> = None;
+    for (k, target) in positions.iter().enumerate() {
+        let mut f = Frame::new(ctx)?;
+        let synth = match uploaded.take() {
+            Some(s) => s,
+            None => SynthInputs::upload(&mut f, inputs, eye)?,
+        };
+        let bytes = 12 * (synth.w * synth.h) as u64;
+        let views = match stack.take() {
+            Some(b) => b,
+            None => f.scratch("light-field views", bytes * positions.len() as u64)?,
+        };
+        let view = synth.view(&mut f, *target)?;
+        f.copy(&view, 0, &views, bytes * k as u64, bytes);
+        let (_, s) = f.finish()?;
+        total.add(&s);
+        stack = Some(views);
+        uploaded = Some(synth);
+    }
+    let (Some(views), Some(synth)) = (stack, uploaded) else {
+        return Err(invalid("no light-field views"));
+    };
+    let mut f = Frame::new(ctx)?;
+    let (panel, layout) = record_lenslet(&mut f, &views, (synth.w, synth.h), grid, sampling)?;
+    let (_, s) = f.finish()?;
+    total.add(&s);
+    Ok((GpuImage::new(ctx, panel, layout), total))
+}
+
+/// A lenslet display's panel, in GPU memory, of the `grid` x `grid` light field `views` (on
+/// the host, row-major from the top-left, one size): uploaded once and resampled by
+/// `sampling` in one submission.
+pub(super) fn lenslet_panel_of_views(
+    ctx: &Arc<GpuContext>,
+    views: &[RgbImage],
+    grid: usize,
+    sampling: &PanelSampling,
+) -> Out<GpuImage> {
+    sampling.check(grid)?;
+    let first = views
+        .first()
+        .ok_or_else(|| invalid("no light-field views"))?;
+    let size = (first.width(), first.height());
+    if views.len() != grid * grid
+        || size.0 == 0
+        || size.1 == 0
+        || views.iter().any(|v| (v.width(), v.height()) != size)
+    {
+        return Err(mismatch(format!(
+            "a {grid}x{grid} light field needs {} views of one size, not empty",
+            grid * grid
+        )));
+    }
+    let mut data = Vec::with_capacity(3 * views.len() * size.0 * size.1);
+    for v in views {
+        data.extend_from_slice(&planar(v));
+    }
+    let mut f = Frame::new(ctx)?;
+    let stack = f.upload("light-field views", &data)?;
+    let (panel, layout) = record_lenslet(&mut f, &stack, size, grid, sampling)?;
+    let (_, s) = f.finish()?;
+    Ok((GpuImage::new(ctx, panel, layout), s))
+}
+
+/// Records the lenslet resampling of the `grid` x `grid` views in `views` (each `vw` x `vh`,
+/// planar, one after the other) by `sampling`: the buffer the panel will be in, and where.
+fn record_lenslet(
+    f: &mut Frame,
+    views: &BufRef,
+    (vw, vh): (usize, usize),
+    grid: usize,
+    sampling: &PanelSampling,
+) -> Result<(BufRef, ImageLayout), RenderError> {
+    let (w, h) = (sampling.cols.len(), sampling.rows.len());
+    let p = LensletP {
+        w: dim(w, "panel width")?,
+        h: dim(h, "panel height")?,
+        vw: dim(vw, "view width")?,
+        vh: dim(vh, "view height")?,
+        grid: dim(grid, "view grid")?,
+        _pad0: 0,
+        _pad1: 0,
+        _pad2: 0,
+    };
+    let cols = f.upload("panel columns' sampling", &sampling.cols)?;
+    let rows = f.upload("panel rows' sampling", &sampling.rows)?;
+    let panel = f.scratch("lenslet panel", 12 * (w * h) as u64)?;
+    f.dispatch(
+        Kernel::Lenslet,
+        &p,
+        &[views, &cols, &rows, &panel],
+        groups2(p.w, p.h, 1),
+    )?;
+    Ok((panel, ImageLayout::packed(w, h, 0)))
 }
 
 #[repr(C)]

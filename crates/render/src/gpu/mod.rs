@@ -14,8 +14,9 @@ pub use context::{
     hardware_adapter_exists, list_adapters, AdapterSummary, Buf, BufRef, Frame, FrameStats,
     GpuContext, Readback, Readbacks, ShaderKernel,
 };
-pub use image::{GpuImage, ImageLayout};
+pub use image::{GpuImage, GpuRgbd, ImageLayout, RgbdInput};
 use kernels::Keep;
+pub use kernels::PanelSampling;
 
 use crate::backend::{Backend, Foveated, Progress};
 use crate::defocus::DefocusMethod;
@@ -73,7 +74,7 @@ impl Gpu {
 
     fn defocus_to(
         &self,
-        input: &Rgbd,
+        input: RgbdInput,
         foci: &[Diopters],
         eye: &EyeModel,
         method: DefocusMethod,
@@ -97,29 +98,87 @@ impl Gpu {
         Ok(out)
     }
 
-    /// [`Backend::defocus`] at one focus, the image left in GPU memory.
-    pub fn defocus_on_gpu(
+    /// [`Backend::defocus`] at one focus, the image left in GPU memory; `input` on the host
+    /// or already in GPU memory.
+    pub fn defocus_on_gpu<'a>(
         &self,
-        input: &Rgbd,
+        input: impl Into<RgbdInput<'a>>,
         focus: Diopters,
         eye: &EyeModel,
         method: DefocusMethod,
     ) -> Result<GpuImage, RenderError> {
-        let out = self.defocus_to(input, &[focus], eye, method, &|_| {}, Keep::Gpu)?;
+        let out = self.defocus_to(input.into(), &[focus], eye, method, &|_| {}, Keep::Gpu)?;
         kernels::on_gpu(out, &self.images_read_back)?
             .pop()
             .ok_or_else(|| GpuError::Validation("no image rendered".into()).into())
     }
 
-    /// [`Backend::linear_blend`], one image per plane, left in GPU memory.
-    pub fn linear_blend_on_gpu(
+    /// [`Backend::linear_blend`], one image per plane, left in GPU memory; `input` on the
+    /// host or already in GPU memory.
+    pub fn linear_blend_on_gpu<'a>(
         &self,
-        input: &Rgbd,
+        input: impl Into<RgbdInput<'a>>,
         planes: &[Diopters],
     ) -> Result<Vec<GpuImage>, RenderError> {
-        let (out, s) = kernels::linear_blend(&self.ctx, input, planes, Keep::Gpu)?;
+        let (out, s) = kernels::linear_blend(&self.ctx, input.into(), planes, Keep::Gpu)?;
         self.record(s);
         kernels::on_gpu(out, &self.images_read_back)
+    }
+
+    /// `input` uploaded to GPU memory (one submission), for methods to render from there
+    /// again and again.
+    pub fn upload_rgbd(&self, input: &Rgbd) -> Result<GpuRgbd, RenderError> {
+        let (out, s) = kernels::upload_rgbd(&self.ctx, input)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
+    }
+
+    /// The RGB-D view from each of `targets` synthesised from `inputs`, left in GPU memory:
+    /// the GPU twin of [`crate::views::synthesize_rgbd_view`] (a stereo rig's eyes from one
+    /// RGB-D), the inputs uploaded once and every view made in one submission.
+    pub fn synthesize_rgbd_views_on_gpu(
+        &self,
+        inputs: &[RgbdView],
+        targets: &[[f32; 2]],
+        eye: &EyeModel,
+    ) -> Result<Vec<GpuRgbd>, RenderError> {
+        let (out, s) = kernels::synthesize_rgbd_views(&self.ctx, inputs, targets, eye)?;
+        self.record(s);
+        Ok(out
+            .into_iter()
+            .map(|v| v.counted_by(&self.images_read_back))
+            .collect())
+    }
+
+    /// A lenslet display's panel of the `grid` x `grid` light field over `span` metres
+    /// synthesised from `inputs`, left in GPU memory with its views: the GPU twin of
+    /// synthesising the views ([`Backend::synthesize_light_field`]) and resampling them by
+    /// `sampling` (dioptra-sched's `lenslet::elemental_images`).
+    pub fn lenslet_panel_on_gpu(
+        &self,
+        inputs: &[RgbdView],
+        grid: usize,
+        span: f32,
+        eye: &EyeModel,
+        sampling: &PanelSampling,
+    ) -> Result<GpuImage, RenderError> {
+        let (out, s) = kernels::lenslet_panel(&self.ctx, inputs, grid, span, eye, sampling)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
+    }
+
+    /// A lenslet display's panel of the `grid` x `grid` light field `views` (host images, as
+    /// a scene's ray cast or a net's refinement leaves them), left in GPU memory: the views
+    /// uploaded once and resampled there by `sampling`.
+    pub fn lenslet_panel_of_views_on_gpu(
+        &self,
+        views: &[RgbImage],
+        grid: usize,
+        sampling: &PanelSampling,
+    ) -> Result<GpuImage, RenderError> {
+        let (out, s) = kernels::lenslet_panel_of_views(&self.ctx, views, grid, sampling)?;
+        self.record(s);
+        Ok(out.counted_by(&self.images_read_back))
     }
 
     fn spectral_to(
@@ -222,7 +281,7 @@ impl Backend for Gpu {
         method: DefocusMethod,
         progress: Progress,
     ) -> Result<Vec<RgbImage>, RenderError> {
-        kernels::on_host(self.defocus_to(input, foci, eye, method, progress, Keep::Host)?)
+        kernels::on_host(self.defocus_to(input.into(), foci, eye, method, progress, Keep::Host)?)
     }
 
     fn linear_blend(&self, input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {

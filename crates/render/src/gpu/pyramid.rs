@@ -4,14 +4,14 @@
 use std::sync::Arc;
 
 use super::context::{BufRef, Frame, FrameStats, GpuContext, Kernel, WG};
-use super::image::ImageLayout;
-use super::kernels::{dim, planar, Keep, Output, Outputs};
+use super::image::{ImageLayout, RgbdInput};
+use super::kernels::{dim, Keep, Output, Outputs};
 use crate::backend::Progress;
 use crate::error::RenderError;
 use crate::foveated::{Foveation, FoveationPlan};
 use crate::pyramid::{exact_offsets, LevelGrid, Region, Setup, BANDS, KINDS, MAX_LEVELS};
 use bytemuck::{Pod, Zeroable};
-use dioptra_core::{Diopters, EyeModel, Rgbd};
+use dioptra_core::{Diopters, EyeModel};
 
 /// The uniform of shaders/pyramid.wgsl.
 #[repr(C)]
@@ -49,20 +49,22 @@ fn annulus(r: &Region) -> [f32; 4] {
 
 /// Pyramid defocus of `region` (every pixel when it covers the image), one frame per focus;
 /// colour, depth and the exact pass's offsets are uploaded once.
-pub(super) fn pyramid(
+pub(super) fn pyramid<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     region: &Region,
     progress: Progress,
     keep: Keep,
 ) -> Result<(Vec<Output>, FrameStats), RenderError> {
+    let input: RgbdInput = input.into();
+    input.check()?;
     let (w, h) = (input.width(), input.height());
     let n = (w * h) as u64;
     let setups = foci
         .iter()
-        .map(|&q| Setup::new(input, q, eye))
+        .map(|&q| Setup::for_size(w, h, input.depth_range(), q, eye))
         .collect::<Result<Vec<_>, _>>()?;
     let offsets: Vec<[f32; 4]> = exact_offsets()
         .into_iter()
@@ -76,11 +78,8 @@ pub(super) fn pyramid(
         let [color, depth, off] = match &inputs {
             Some(b) => b.clone(),
             None => {
-                let b = [
-                    f.upload("colour image", &planar(&input.color))?,
-                    f.upload("depth map", input.depth.data())?,
-                    f.upload("exact pass offsets", &offsets)?,
-                ];
+                let (color, depth) = input.buffers(ctx, &mut f)?;
+                let b = [color, depth, f.upload("exact pass offsets", &offsets)?];
                 inputs = Some(b.clone());
                 b
             }
@@ -128,20 +127,22 @@ pub(super) struct FoveatedP {
 
 /// Foveated pyramid defocus ([`crate::foveated`]): per focus one frame that halves the input
 /// layer by layer, renders each layer's region, and blends the layers.
-pub(super) fn foveated(
+pub(super) fn foveated<'a>(
     ctx: &Arc<GpuContext>,
-    input: &Rgbd,
+    input: impl Into<RgbdInput<'a>>,
     foci: &[Diopters],
     eye: &EyeModel,
     fov: &Foveation,
     progress: Progress,
     keep: Keep,
 ) -> Result<(Vec<Output>, FrameStats), RenderError> {
+    let input: RgbdInput = input.into();
+    input.check()?;
     let (w, h) = (input.width(), input.height());
     let n = w * h;
     let plan = FoveationPlan::new(w, h, eye, fov)?;
     // Each layer's setup sized by the full image's depth range, as the CPU twin's.
-    let range = input.depth.range();
+    let range = input.depth_range();
     let sizes: Vec<(usize, usize)> = (0..=plan.top)
         .map(|k| (w.div_ceil(1 << k), h.div_ceil(1 << k)))
         .collect();
@@ -165,10 +166,8 @@ pub(super) fn foveated(
         let off = f.upload("exact pass offsets", &offsets)?;
         let grid = f.upload("acuity levels", &plan.levels)?;
         // The layers' inputs: the image, then each halved from the one before.
-        let mut inputs: Vec<[BufRef; 2]> = vec![[
-            f.upload("colour image", &planar(&input.color))?,
-            f.upload("depth map", input.depth.data())?,
-        ]];
+        let (color, depth) = input.buffers(ctx, &mut f)?;
+        let mut inputs: Vec<[BufRef; 2]> = vec![[color, depth]];
         let deepest = plan.layers.last().map_or(0, |l| l.level);
         for k in 1..=deepest {
             let ((sw, sh), (dw, dh)) = (sizes[k - 1], sizes[k]);

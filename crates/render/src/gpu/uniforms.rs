@@ -2,7 +2,7 @@
 //! only): a module of its own above `kernels` and `spectral`, whose structs it reads.
 
 use super::context::{with_shared, Kernel};
-use super::kernels::{FovP, GatherP, LfP, OptP, SizeP};
+use super::kernels::{FovP, GatherP, LensletP, LfP, OptP, SizeP};
 use super::pyramid::{FoveatedP, PyramidP};
 use super::spectral::SpecP;
 
@@ -70,6 +70,10 @@ fn uniform_layouts_match_the_shaders() {
         (
             Kernel::OptStep,
             rust_uniform!(OptP; pw, ph, np, nf, step, mom, len, _pad),
+        ),
+        (
+            Kernel::Lenslet,
+            rust_uniform!(LensletP; w, h, vw, vh, grid, _pad0, _pad1, _pad2),
         ),
         (
             Kernel::FovMask,

@@ -55,8 +55,12 @@ pub struct EyeViewsStatus {
     pub made: u64,
     pub failed: u64,
     pub last_error: Option<String>,
-    /// What making the newest took, ms (wall clock; both eyes).
+    /// What making the newest took, ms (wall clock; both eyes; made on the device: with
+    /// both eyes' renders).
     pub last_ms: Option<f64>,
+    /// Where the newest views were made: `cpu`, or `gpu` (synthesised on the render's device
+    /// and rendered from its memory, never on the host).
+    pub made_on: Option<&'static str>,
     /// Half the interpupillary distance, mm: each eye's distance from the cyclopean eye.
     pub half_ipd_mm: f32,
     /// The newest frame's views failed (the next ones made clear it).
@@ -122,13 +126,41 @@ impl EyeViews {
         }
         let started = std::time::Instant::now();
         let made = self.make(frame);
+        let noted = made.as_ref().map(|(_, source)| *source);
+        self.note(noted, started.elapsed(), "cpu");
+        made
+    }
+
+    /// Whether `frame`'s views are synthesised from its one RGB-D (no views of its own, no
+    /// scene to cast them from).
+    pub fn synthesises(&self, frame: &ContentFrame) -> bool {
+        frame.eyes.is_none() && frame.scene.is_none()
+    }
+
+    /// A frame's eyes were rendered from views on the render's device (`Ok(true)`: views
+    /// synthesised for it; `false`: kept from an earlier render of it), in `took`, or failed.
+    pub fn note_on_device(&self, made: Result<bool, &RenderError>, took: std::time::Duration) {
+        match made {
+            Ok(false) => lock(&self.status).made_on = Some("gpu"),
+            Ok(true) => self.note(Ok(ViewSource::Synthesised), took, "gpu"),
+            Err(e) => self.note(Err(e), took, "gpu"),
+        }
+    }
+
+    fn note(
+        &self,
+        made: Result<ViewSource, &RenderError>,
+        took: std::time::Duration,
+        on: &'static str,
+    ) {
         let mut st = lock(&self.status);
-        match &made {
-            Ok((_, source)) => {
+        match made {
+            Ok(source) => {
                 st.made += 1;
-                st.source = Some(*source);
+                st.source = Some(source);
+                st.made_on = Some(on);
                 st.failing = false;
-                st.last_ms = Some(started.elapsed().as_secs_f64() * 1e3);
+                st.last_ms = Some(took.as_secs_f64() * 1e3);
             }
             Err(e) => {
                 st.failed += 1;
@@ -136,7 +168,6 @@ impl EyeViews {
                 st.failing = true;
             }
         }
-        made
     }
 
     fn make(&self, frame: &ContentFrame) -> Result<([Arc<Rgbd>; 2], ViewSource), RenderError> {

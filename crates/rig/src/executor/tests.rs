@@ -270,3 +270,90 @@ async fn a_pushed_frames_depth_reaches_the_scheduler_before_the_next_render_requ
         "the next frame renders the pushed content: {log:?}"
     );
 }
+
+/// Makes both eyes of a synthesised frame "on its device" when `on_device`, noting the calls;
+/// the host path's renders are noted too.
+struct Device {
+    on_device: bool,
+    device_calls: Mutex<Vec<u64>>,
+    host_renders: Mutex<u64>,
+}
+
+impl Renderer for Device {
+    fn render(
+        &self,
+        _job: &RenderJob,
+        _content: &ContentFrame,
+    ) -> Result<RenderOutput, dioptra_render::RenderError> {
+        *self.host_renders.lock().unwrap() += 1;
+        Ok(RenderOutput {
+            images: vec![dioptra_core::RgbImage::new(2, 2, [0.5; 3]).into()],
+            planned: None,
+            cost: Some(Duration::from_millis(2)),
+        })
+    }
+    fn render_eyes_on_device(
+        &self,
+        _job: &RenderJob,
+        content: &ContentFrame,
+        positions: [[f32; 2]; 2],
+    ) -> Option<Result<crate::render::EyesOnDevice, dioptra_render::RenderError>> {
+        if !self.on_device {
+            return None;
+        }
+        // The eyes IPD / 2 either side of the cyclopean eye.
+        assert!(positions[0][0] < 0.0 && positions[1][0] == -positions[0][0]);
+        let mut calls = self.device_calls.lock().unwrap();
+        let made = !calls.contains(&content.number);
+        calls.push(content.number);
+        let out = || RenderOutput {
+            images: vec![dioptra_core::RgbImage::new(2, 2, [0.5; 3]).into()],
+            planned: None,
+            cost: Some(Duration::from_millis(2)),
+        };
+        Some(Ok(crate::render::EyesOnDevice {
+            outputs: [out(), out()],
+            made,
+        }))
+    }
+}
+
+/// A stereo layout's frame with one RGB-D (a stream's placeholder here) has its eyes' views
+/// made where the renderer can, on its device, and never on the host then; a renderer that
+/// cannot leaves them to the host. `/status` says where.
+#[tokio::test(start_paused = true)]
+async fn a_synthesised_frames_eyes_are_made_on_the_renderers_device_where_it_can() {
+    for on_device in [true, false] {
+        let text = crate::config::EXAMPLE_SIM_BINOCULAR_RIG.to_string()
+            + "\n[content]\nsource = \"stream\"\nring = \"none\"\n";
+        let cfg = RigConfig::parse(&text).unwrap();
+        let renderer = Arc::new(Device {
+            on_device,
+            device_calls: Mutex::default(),
+            host_renders: Mutex::default(),
+        });
+        let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
+        let mut setup = RigSetup::new(cfg);
+        setup.simulated_time = true;
+        setup.clock = Some(clock);
+        setup.renderer = Some(renderer.clone());
+        let rig = Rig::start(setup).await.unwrap();
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        let views = rig.state().status_json()["eye_views"].clone();
+        rig.state().cancel.cancel();
+        assert!(rig.wait().await.ok());
+        let calls = renderer.device_calls.lock().unwrap().clone();
+        let host = *renderer.host_renders.lock().unwrap();
+        assert_eq!(views["source"], "synthesised", "{views}");
+        if on_device {
+            assert!(calls.len() >= 10, "{calls:?}");
+            assert_eq!(host, 0, "no eye rendered on the host path");
+            assert_eq!(views["made_on"], "gpu", "{views}");
+            // The one placeholder frame's views made once, then kept.
+            assert_eq!(views["made"], 1, "{views}");
+        } else {
+            assert!(host >= 20, "{host}");
+            assert_eq!(views["made_on"], "cpu", "{views}");
+        }
+    }
+}

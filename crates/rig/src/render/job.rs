@@ -108,6 +108,29 @@ pub trait Renderer: Send + Sync + 'static {
     fn backend_status(&self) -> serde_json::Value {
         serde_json::Value::Null
     }
+    /// A stereo layout's frame whose eyes' views are synthesised from its one RGB-D: each
+    /// eye's view (the eyes at `positions`, metres, left then right) made on the renderer's
+    /// device and rendered from there, the left eye's at `job.focus` and the right's at
+    /// `job.focus_right` (else `focus`). `None`: this renderer does not (the caller makes the
+    /// views on the host and renders each eye with [`Renderer::render`]).
+    fn render_eyes_on_device(
+        &self,
+        _job: &RenderJob,
+        _content: &ContentFrame,
+        _positions: [[f32; 2]; 2],
+    ) -> Option<Result<EyesOnDevice, RenderError>> {
+        None
+    }
+}
+
+/// Both eyes of a frame rendered from views made on the renderer's device.
+#[derive(Debug)]
+pub struct EyesOnDevice {
+    /// The left eye's render, and the right eye's.
+    pub outputs: [RenderOutput; 2],
+    /// The views were synthesised for this call (not kept from an earlier render of the same
+    /// content frame).
+    pub made: bool,
 }
 
 /// What is shown when a render fails, so the display never freezes: the content without

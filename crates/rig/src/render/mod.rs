@@ -9,5 +9,7 @@ pub mod job;
 pub mod rgbd;
 pub mod status;
 
-pub use job::{error_kind, unblurred, FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+pub use job::{
+    error_kind, unblurred, EyesOnDevice, FrameImage, Planned, RenderJob, RenderOutput, Renderer,
+};
 pub use status::{RenderErrorNote, RenderHandle, RenderStatus};

@@ -28,6 +28,7 @@ use dioptra_core::{lock, Diopters, EyeModel, InputError, RgbImage, Rgbd, Side};
 use dioptra_render::backend::Backend;
 use dioptra_render::defocus::PyramidParams;
 use dioptra_render::foveated::Foveation;
+use dioptra_render::gpu::{GpuRgbd, PanelSampling};
 use dioptra_render::hybrid::{HybridParams, HybridReport};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
@@ -37,9 +38,10 @@ use dioptra_render::planner::{
 use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{Cpu, DefocusMethod, Gpu, OptimizeParams, RenderError, SpectralParams};
+use dioptra_sched::lenslet::{elemental_images, sampling, GridGeometry, LensletDisplay, ViewGrid};
 
 use super::config::{Render, RenderBackend};
-use super::job::{FrameImage, Planned, RenderJob, RenderOutput, Renderer};
+use super::job::{EyesOnDevice, FrameImage, Planned, RenderJob, RenderOutput, Renderer};
 use crate::content::frame::{ContentFrame, ContentView};
 use crate::display::config::Display;
 use crate::mode::{Method, Mode};
@@ -62,6 +64,12 @@ pub struct RgbdRenderer {
     /// The light-field panels, each made from the content frame numbered with it, for the eye
     /// with it (`None`: the one view of a mono layout).
     panel: Mutex<Vec<CachedPanel>>,
+    /// Each eye's view of the content frame numbered with them, synthesised on the GPU and
+    /// kept there (left, right): a stereo layout's eyes from one RGB-D.
+    eye_views: Mutex<Option<(u64, Arc<[GpuRgbd; 2]>)>>,
+    /// Content frames' RGB-D (per content frame and eye) uploaded to the GPU, while the rig
+    /// renders there: each uploaded once however many frames show it.
+    resident: Mutex<Vec<(FrameKey, GpuRgbd)>>,
     /// Half the interpupillary distance, metres: where each eye's light field is centred.
     half_ipd_m: f32,
     /// `render.foveation`: the pyramid method's (fixed or the planner's) around each eye's
@@ -79,7 +87,10 @@ pub struct RgbdRenderer {
 
 /// A light-field panel: its content frame's number, its eye, the method that made it (views
 /// or refine), the panel.
-type CachedPanel = (u64, Option<Side>, RenderMethod, Arc<RgbImage>);
+type CachedPanel = (u64, Option<Side>, RenderMethod, FrameImage);
+
+/// A content frame's number and the eye it is rendered for.
+type FrameKey = (u64, Option<Side>);
 
 /// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
@@ -132,6 +143,8 @@ impl RgbdRenderer {
             layers: Mutex::new(Vec::new()),
             hybrid: render.hybrid.params(),
             panel: Mutex::new(Vec::new()),
+            eye_views: Mutex::new(None),
+            resident: Mutex::new(Vec::new()),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
             foveation: render.foveation.settings(),
             deadline: eye_deadline(display),
@@ -147,12 +160,7 @@ impl RgbdRenderer {
         focus: Diopters,
         method: DefocusMethod,
     ) -> Result<FrameImage, RenderError> {
-        let label = match method {
-            DefocusMethod::Gather => "gather".to_string(),
-            DefocusMethod::Pyramid(_) => "pyramid".to_string(),
-            DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
-        };
-        self.on_backend(&label, |gpu| match gpu {
+        self.on_backend(&defocus_label(method), |gpu| match gpu {
             Some(g) => Ok(FrameImage::Gpu(
                 g.defocus_on_gpu(input, focus, &self.eye, method)?,
             )),
@@ -185,16 +193,180 @@ impl RgbdRenderer {
         match work(gpu.as_deref()) {
             Err(RenderError::Gpu(e)) => {
                 lock(&self.compute).fall_back(&e);
-                work(None)
+                let v = work(None)?;
+                lock(&self.compute).ran(label, "cpu");
+                Ok(v)
             }
             Ok(v) => {
-                if let Some(g) = gpu {
-                    lock(&self.compute).timed(label, g.last_stats().gpu_ns);
+                match gpu {
+                    Some(g) => self.ran_on_gpu(&g, label),
+                    None => lock(&self.compute).ran(label, "cpu"),
                 }
                 Ok(v)
             }
             Err(e) => Err(e),
         }
+    }
+
+    /// `job` for both eyes from views synthesised from `content`'s one RGB-D on `gpu` (the
+    /// eyes at `positions`), every stage in GPU memory: the views made once per content frame,
+    /// each eye rendered from its own.
+    fn eyes_from_gpu(
+        &self,
+        gpu: &Gpu,
+        job: &RenderJob,
+        content: &ContentFrame,
+        positions: [[f32; 2]; 2],
+    ) -> Result<EyesOnDevice, RenderError> {
+        self.take_up(content);
+        let kept = lock(&self.eye_views)
+            .as_ref()
+            .filter(|(n, _)| *n == content.number)
+            .map(|(_, v)| v.clone());
+        let made = kept.is_none();
+        let views = match kept {
+            Some(v) => v,
+            None => {
+                let input = [RgbdView {
+                    position: [0.0, 0.0],
+                    rgbd: content.rgbd.as_ref().clone(),
+                }];
+                let made = gpu.synthesize_rgbd_views_on_gpu(&input, &positions, &self.eye)?;
+                self.ran_on_gpu(gpu, "eye views");
+                let [l, r]: [GpuRgbd; 2] = made.try_into().map_err(|_| {
+                    dioptra_render::GpuError::Validation("not one view per eye".into())
+                })?;
+                let v = Arc::new([l, r]);
+                let mut kept = lock(&self.eye_views);
+                if kept.as_ref().is_none_or(|(n, _)| *n <= content.number) {
+                    *kept = Some((content.number, v.clone()));
+                }
+                v
+            }
+        };
+        let [left_view, right_view] = views.as_ref();
+        let mut ask = Ask::of(job);
+        let left_frame = content.for_eye(Side::Left, content.rgbd.clone());
+        let left = self.render_view(gpu, &ask, &left_frame, left_view, true)?;
+        ask.focus = job.focus_right.unwrap_or(job.focus);
+        let right_frame = content.for_eye(Side::Right, content.rgbd.clone());
+        let right = self.render_view(gpu, &ask, &right_frame, right_view, true)?;
+        Ok(EyesOnDevice {
+            outputs: [left, right],
+            made,
+        })
+    }
+
+    /// `ask` of `frame` (its eye's) rendered on `gpu` from its RGB-D `view` there. With
+    /// `auto`, the planner judges the fixated region on the frame's host RGB-D: for a view
+    /// `synthesised` from it, at the cyclopean gaze (the eye's view is it shifted by the
+    /// disparity); a foveated render is centred on the eye's own gaze.
+    fn render_view(
+        &self,
+        gpu: &Gpu,
+        ask: &Ask,
+        frame: &ContentFrame,
+        view: &GpuRgbd,
+        synthesised: bool,
+    ) -> Result<RenderOutput, RenderError> {
+        let (input, focus) = (frame.rgbd.as_ref(), ask.focus);
+        let gaze = self.eye_gaze(input, ask.gaze, frame.eye, focus);
+        if ask.auto && ask.mode == Mode::Varifocal {
+            let plan_eye = if synthesised { None } else { frame.eye };
+            let plan = self.plan(
+                input,
+                self.eye_gaze(input, ask.gaze, plan_eye, focus),
+                focus,
+            );
+            let image = match plan.setting.method() {
+                None => FrameImage::Gpu(view.color()),
+                Some(m) => self.defocus_view(gpu, view, focus, foveated_at(m, gaze))?,
+            };
+            return Ok(RenderOutput {
+                images: vec![image],
+                planned: Some(self.planned(&plan)),
+                cost: None,
+            });
+        }
+        let images = match (ask.mode, ask.method.0) {
+            (Mode::Multifocal, _) => self
+                .cached_layers(frame, ask.method, gaze, || {
+                    let layers = gpu.linear_blend_on_gpu(view, &self.planes)?;
+                    self.ran_on_gpu(gpu, "linear");
+                    Ok((on_gpu(layers), method_note(ask.method)))
+                })?
+                .as_ref()
+                .clone(),
+            (_, method) => {
+                let m = self.fixed_defocus(method, gaze);
+                vec![self.defocus_view(gpu, view, focus, m)?]
+            }
+        };
+        Ok(RenderOutput {
+            images,
+            planned: None,
+            cost: None,
+        })
+    }
+
+    /// `ask` of `content` on the GPU from its RGB-D uploaded there once per content frame and
+    /// eye, where the rig renders there and the method renders from GPU memory
+    /// ([`from_device`]); `None`: render it on the host's copy (a GPU failure moves the rig to
+    /// the CPU).
+    fn frame_on_gpu(
+        &self,
+        ask: &Ask,
+        content: &ContentFrame,
+    ) -> Result<Option<RenderOutput>, RenderError> {
+        if !from_device(ask) {
+            return Ok(None);
+        }
+        let Some(gpu) = lock(&self.compute).gpu.clone() else {
+            return Ok(None);
+        };
+        let rendered = self
+            .resident(&gpu, content)
+            .and_then(|view| self.render_view(&gpu, ask, content, &view, false));
+        match rendered {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                Ok(None)
+            }
+            r => r.map(Some),
+        }
+    }
+
+    /// `content`'s RGB-D in `gpu`'s memory: uploaded once per content frame and eye.
+    fn resident(&self, gpu: &Gpu, content: &ContentFrame) -> Result<GpuRgbd, RenderError> {
+        let key = (content.number, content.eye);
+        if let Some((_, v)) = lock(&self.resident).iter().find(|(k, _)| *k == key) {
+            return Ok(v.clone());
+        }
+        let view = gpu.upload_rgbd(&content.rgbd)?;
+        lock(&self.compute).ran("content upload", "host to gpu");
+        if self.keeps(content) {
+            lock(&self.resident).push((key, view.clone()));
+        }
+        Ok(view)
+    }
+
+    fn defocus_view(
+        &self,
+        gpu: &Gpu,
+        view: &GpuRgbd,
+        focus: Diopters,
+        method: DefocusMethod,
+    ) -> Result<FrameImage, RenderError> {
+        let image = gpu.defocus_on_gpu(view, focus, &self.eye, method)?;
+        self.ran_on_gpu(gpu, &defocus_label(method));
+        Ok(FrameImage::Gpu(image))
+    }
+
+    /// `label` ran on `gpu`: its GPU time and its backend noted for `/status`.
+    fn ran_on_gpu(&self, gpu: &Gpu, label: &str) {
+        let mut c = lock(&self.compute);
+        c.timed(label, gpu.last_stats().gpu_ns);
+        c.ran(label, "gpu");
     }
 
     /// The GPU context frames are rendered on and left in, while the rig renders on the GPU
@@ -407,6 +579,7 @@ impl RgbdRenderer {
         if self.newest.fetch_max(n, Ordering::AcqRel) < n {
             lock(&self.layers).retain(|l| l.frame >= n);
             lock(&self.panel).retain(|(k, _, _, _)| *k >= n);
+            lock(&self.resident).retain(|((k, _), _)| *k >= n);
         }
     }
 
@@ -429,6 +602,16 @@ impl RgbdRenderer {
         auto: bool,
     ) -> Result<RenderOutput, RenderError> {
         self.take_up(content);
+        let ask = Ask {
+            mode,
+            method,
+            focus,
+            gaze,
+            auto,
+        };
+        if let Some(out) = self.frame_on_gpu(&ask, content)? {
+            return Ok(out);
+        }
         let input = content.rgbd.as_ref();
         let gaze = self.eye_gaze(input, gaze, content.eye, focus);
         if auto && mode == Mode::Varifocal {
@@ -439,13 +622,7 @@ impl RgbdRenderer {
             };
             return Ok(RenderOutput {
                 images: vec![image],
-                planned: Some(Planned {
-                    choice: plan.setting.to_string(),
-                    predicted_psnr_db: plan.predicted_psnr,
-                    predicted_ms: plan.predicted_ms,
-                    budget_ms: self.deadline.budget_ms,
-                    why: plan.why,
-                }),
+                planned: Some(self.planned(&plan)),
                 cost: None,
             });
         }
@@ -454,6 +631,36 @@ impl RgbdRenderer {
             planned: None,
             cost: None,
         })
+    }
+
+    /// What `/status` says of the planner's `plan`.
+    fn planned(&self, plan: &TimedPlan) -> Planned {
+        Planned {
+            choice: plan.setting.to_string(),
+            predicted_psnr_db: plan.predicted_psnr,
+            predicted_ms: plan.predicted_ms,
+            budget_ms: self.deadline.budget_ms,
+            why: plan.why.clone(),
+        }
+    }
+
+    /// The defocus of a varifocal frame with the fixed `method` (gather for any other than
+    /// the pyramid and the light field's), a foveated pyramid around `gaze`.
+    fn fixed_defocus(&self, method: RenderMethod, gaze: [f32; 2]) -> DefocusMethod {
+        match method {
+            RenderMethod::LightFieldDefocus => DefocusMethod::LightField(LightFieldParams {
+                views: 16,
+                mip: true,
+            }),
+            RenderMethod::Pyramid => DefocusMethod::Pyramid(PyramidParams {
+                foveation: self.foveation.map(|f| Foveation {
+                    gaze,
+                    radius_deg: f.radius_deg,
+                    mar_slope: f.mar_slope,
+                }),
+            }),
+            _ => DefocusMethod::Gather,
+        }
     }
 
     fn render_fixed(
@@ -467,32 +674,16 @@ impl RgbdRenderer {
         let input = content.rgbd.as_ref();
         match (mode, method.0) {
             (_, RenderMethod::Views) | (Mode::Lightfield, RenderMethod::Refine) => {
-                Ok(vec![self.panel(content, method.0)?.as_ref().clone().into()])
+                Ok(vec![self.panel(content, method.0)?])
             }
             (Mode::Multifocal, _) => Ok(self.layers(content, method, gaze)?.as_ref().clone()),
             (_, RenderMethod::Network) => Ok(vec![self.net_defocus(mode, input, focus)?.into()]),
             (_, RenderMethod::Refine) => Ok(vec![self.refine_defocus(input, focus)?.into()]),
-            (_, RenderMethod::LightFieldDefocus) => Ok(vec![self.defocus(
+            (_, m) => Ok(vec![self.defocus(
                 input,
                 focus,
-                DefocusMethod::LightField(LightFieldParams {
-                    views: 16,
-                    mip: true,
-                }),
+                self.fixed_defocus(m, gaze),
             )?]),
-            (_, RenderMethod::Pyramid) => {
-                let foveation = self.foveation.map(|f| Foveation {
-                    gaze,
-                    radius_deg: f.radius_deg,
-                    mar_slope: f.mar_slope,
-                });
-                Ok(vec![self.defocus(
-                    input,
-                    focus,
-                    DefocusMethod::Pyramid(PyramidParams { foveation }),
-                )?])
-            }
-            _ => Ok(vec![self.defocus(input, focus, DefocusMethod::Gather)?]),
         }
     }
 
@@ -518,21 +709,54 @@ impl RgbdRenderer {
     /// The lenslet panel image of the light field of the content frame `shown`: the
     /// procedural scene's own views, or views synthesised from a file or stream frame's RGB-D.
     /// With `Refine`, file and stream content's views are the classical ones refined by C5R
-    /// (the procedural scene's own views need no synthesis).
+    /// (the procedural scene's own views need no synthesis). Views synthesised by the classical
+    /// method on the GPU are resampled there, the panel left in GPU memory.
     fn panel(
         &self,
         content: &ContentFrame,
         method: RenderMethod,
-    ) -> Result<Arc<RgbImage>, RenderError> {
+    ) -> Result<FrameImage, RenderError> {
         if let Some((_, _, _, p)) = lock(&self.panel)
             .iter()
             .find(|(n, e, m, _)| *n == content.number && *e == content.eye && *m == method)
         {
             return Ok(p.clone());
         }
-        let (views, pixel_pitch_tan) = self.views(content, method)?;
-        let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
-        let panel = Arc::new(lenslet_panel(&images, pixel_pitch_tan, self.size)?);
+        let panel = if method == RenderMethod::Views && content.scene.is_none() {
+            let input = self.light_field_inputs(content);
+            self.on_backend("light-field panel", |gpu| match gpu {
+                Some(g) => {
+                    let view_size = input
+                        .first()
+                        .map_or((0, 0), |v| (v.rgbd.width(), v.rgbd.height()));
+                    let sampling = self.panel_sampling(view_size, self.eye.pixel_pitch_tan())?;
+                    Ok(FrameImage::Gpu(g.lenslet_panel_on_gpu(
+                        &input, LF_GRID, LF_SPAN_M, &self.eye, &sampling,
+                    )?))
+                }
+                None => {
+                    let views =
+                        Cpu.synthesize_light_field(&input, LF_GRID, LF_SPAN_M, &self.eye, &|_| {})?;
+                    let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
+                    Ok(lenslet_panel(&images, self.eye.pixel_pitch_tan(), self.size)?.into())
+                }
+            })?
+        } else {
+            // Views on the host (the scene's ray cast, or refined by the net): resampled on
+            // the rig's backend.
+            let (views, pixel_pitch_tan) = self.views(content, method)?;
+            let images: Vec<RgbImage> = views.into_iter().map(|v| v.image).collect();
+            self.on_backend("lenslet panel", |gpu| match gpu {
+                Some(g) => {
+                    let view_size = images.first().map_or((0, 0), |v| (v.width(), v.height()));
+                    let sampling = self.panel_sampling(view_size, pixel_pitch_tan)?;
+                    Ok(FrameImage::Gpu(g.lenslet_panel_of_views_on_gpu(
+                        &images, LF_GRID, &sampling,
+                    )?))
+                }
+                None => Ok(lenslet_panel(&images, pixel_pitch_tan, self.size)?.into()),
+            })?
+        };
         // Kept unless the content moved on while it was made.
         if self.keeps(content) {
             lock(&self.panel).push((content.number, content.eye, method, panel.clone()));
@@ -550,6 +774,38 @@ impl RgbdRenderer {
         method: RenderMethod,
     ) -> Result<Vec<LfView>, RenderError> {
         Ok(self.views(content, method)?.0)
+    }
+
+    /// How the lenslet panel over the display samples a light field of views `view_size`
+    /// pixels of `pixel_pitch_tan` (dioptra-sched's, for the GPU's resampling).
+    fn panel_sampling(
+        &self,
+        view_size: (usize, usize),
+        pixel_pitch_tan: f32,
+    ) -> Result<PanelSampling, RenderError> {
+        let geometry = GridGeometry {
+            grid: LF_GRID,
+            spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
+            pixel_pitch_tan,
+            view_size,
+        };
+        let s = sampling(&geometry, &lenslet_display(self.size))?;
+        Ok(PanelSampling {
+            cols: s.cols,
+            rows: s.rows,
+        })
+    }
+
+    /// What a file or stream frame's light field is synthesised from: its views (a view
+    /// grid), or the frame as the view from the pupil's centre.
+    fn light_field_inputs(&self, content: &ContentFrame) -> Vec<RgbdView> {
+        match &content.views {
+            Some(views) => self.eye_inputs(views, content.eye),
+            None => vec![RgbdView {
+                position: [0.0, 0.0],
+                rgbd: content.rgbd.as_ref().clone(),
+            }],
+        }
     }
 
     /// The light field's views and their pixel pitch (tangent).
@@ -581,18 +837,11 @@ impl RgbdRenderer {
                         )
                     })
                     .collect::<Result<Vec<_>, _>>()?;
+                lock(&self.compute).ran("views (scene ray cast)", "cpu");
                 (views, vcam.eye.pixel_pitch_tan())
             }
             None => {
-                // The frame's views (a view grid), or the frame as the view from the pupil's
-                // centre, warped to each lens position.
-                let input = match &content.views {
-                    Some(views) => self.eye_inputs(views, content.eye),
-                    None => vec![RgbdView {
-                        position: [0.0, 0.0],
-                        rgbd: content.rgbd.as_ref().clone(),
-                    }],
-                };
+                let input = self.light_field_inputs(content);
                 let views = if method == RenderMethod::Refine {
                     self.refine_light_field(&input)?
                 } else {
@@ -611,13 +860,15 @@ impl RgbdRenderer {
         })
     }
 
-    /// The layers of `content` for its eye by `method`, made once per content frame (the
-    /// hybrid's again when the eye's `gaze` moved further than its cross-fade's width).
-    fn layers(
+    /// The layers `method` made of `content` (its eye's), kept or made by `make` (with a note
+    /// of what ran for `/status`); the hybrid's are made again when the eye's `gaze` moved
+    /// further than its cross-fade's width.
+    fn cached_layers(
         &self,
         content: &ContentFrame,
         method: Method,
         gaze: [f32; 2],
+        make: impl FnOnce() -> Result<(Vec<FrameImage>, serde_json::Value), RenderError>,
     ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
         let input = content.rgbd.as_ref();
         let gaze_moved = |at: [f32; 2]| -> bool {
@@ -635,7 +886,46 @@ impl RgbdRenderer {
         }) {
             return Ok(l.images.clone());
         }
-        let mut note = serde_json::json!({ "method": method.as_str() });
+        let (images, note) = make()?;
+        let images = Arc::new(images);
+        lock(&self.compute).decomposed(content.eye, note);
+        if self.keeps(content) {
+            let mut cache = lock(&self.layers);
+            cache.retain(|l| {
+                !(l.frame == content.number && l.eye == content.eye && l.method == method)
+            });
+            cache.push(CachedLayers {
+                frame: content.number,
+                eye: content.eye,
+                method,
+                gaze,
+                images: images.clone(),
+            });
+        }
+        Ok(images)
+    }
+
+    /// The layers of `content` for its eye by `method`, made once per content frame (the
+    /// hybrid's around the eye's `gaze`).
+    fn layers(
+        &self,
+        content: &ContentFrame,
+        method: Method,
+        gaze: [f32; 2],
+    ) -> Result<Arc<Vec<FrameImage>>, RenderError> {
+        self.cached_layers(content, method, gaze, || {
+            self.make_layers(content, method, gaze)
+        })
+    }
+
+    fn make_layers(
+        &self,
+        content: &ContentFrame,
+        method: Method,
+        gaze: [f32; 2],
+    ) -> Result<(Vec<FrameImage>, serde_json::Value), RenderError> {
+        let input = content.rgbd.as_ref();
+        let mut note = method_note(method);
         let images = if method.0 == RenderMethod::Hybrid {
             let (layers, report) = self.on_backend("hybrid", |gpu| {
                 backend_of(gpu).hybrid_blend(
@@ -713,22 +1003,7 @@ impl RgbdRenderer {
         } else {
             self.linear(input)?
         };
-        let images = Arc::new(images);
-        lock(&self.compute).decomposed(content.eye, note);
-        if self.keeps(content) {
-            let mut cache = lock(&self.layers);
-            cache.retain(|l| {
-                !(l.frame == content.number && l.eye == content.eye && l.method == method)
-            });
-            cache.push(CachedLayers {
-                frame: content.number,
-                eye: content.eye,
-                method,
-                gaze,
-                images: images.clone(),
-            });
-        }
-        Ok(images)
+        Ok((images, note))
     }
 
     /// Pixels per degree at the centre of an image `width` pixels across the eye's field.
@@ -744,12 +1019,38 @@ impl Renderer for RgbdRenderer {
     fn backend_status(&self) -> serde_json::Value {
         RgbdRenderer::backend_status(self)
     }
+    /// On the GPU, for the methods that render from an RGB-D in GPU memory (the varifocal
+    /// defocus methods, chosen or `auto`, and multifocal linear blending): a GPU failure moves
+    /// the rig to the CPU, where the caller makes the views.
+    fn render_eyes_on_device(
+        &self,
+        job: &RenderJob,
+        content: &ContentFrame,
+        positions: [[f32; 2]; 2],
+    ) -> Option<Result<EyesOnDevice, RenderError>> {
+        if !from_device(&Ask::of(job)) {
+            return None;
+        }
+        let gpu = lock(&self.compute).gpu.clone()?;
+        match self.eyes_from_gpu(&gpu, job, content, positions) {
+            Err(RenderError::Gpu(e)) => {
+                lock(&self.compute).fall_back(&e);
+                None
+            }
+            made => Some(made),
+        }
+    }
     fn network_missing(&self) -> Vec<(Mode, RenderMethod, String)> {
         self.nets
             .iter()
             .filter_map(|((m, r), n)| n.as_ref().err().map(|e| (*m, *r, e.clone())))
             .collect()
     }
+}
+
+/// What `/status` says of a multifocal decomposition other than the hybrid: its method.
+fn method_note(method: Method) -> serde_json::Value {
+    serde_json::json!({ "method": method.as_str() })
 }
 
 /// What `/status` says of a hybrid decomposition: whether the fovea was optimised (a blurred
@@ -799,23 +1100,83 @@ fn eye_deadline(display: &Display) -> Deadline {
 fn lenslet_panel(
     views: &[RgbImage],
     pixel_pitch_tan: f32,
-    (w, h): (usize, usize),
+    size: (usize, usize),
 ) -> Result<RgbImage, RenderError> {
-    use dioptra_sched::lenslet::{elemental_images, LensletDisplay, ViewGrid};
     let grid = ViewGrid {
         grid: LF_GRID,
         spacing_m: LF_SPAN_M / (LF_GRID - 1) as f32,
         views,
         pixel_pitch_tan,
     };
-    let display = LensletDisplay {
+    Ok(elemental_images(&grid, &lenslet_display(size))?)
+}
+
+/// The lenslet display over a `w` x `h` panel: (w / 5) x (h / 5) lenslets of 5 x 5 pixels.
+fn lenslet_display((w, h): (usize, usize)) -> LensletDisplay {
+    LensletDisplay {
         lenslets: [(w / 5).max(1), (h / 5).max(1)],
         pixels_per_lenslet: 5,
         lenslet_pitch_m: 0.000_25,
         gap_m: 0.000_94,
         eye_relief_m: 0.015,
-    };
-    Ok(elemental_images(&grid, &display)?)
+    }
+}
+
+/// What a frame is asked for: the job's or `render_frame`'s.
+#[derive(Debug, Clone, Copy)]
+struct Ask {
+    mode: Mode,
+    method: Method,
+    focus: Diopters,
+    gaze: Option<[f32; 2]>,
+    auto: bool,
+}
+
+impl Ask {
+    fn of(job: &RenderJob) -> Ask {
+        Ask {
+            mode: job.mode,
+            method: job.method,
+            focus: job.focus,
+            gaze: job.gaze,
+            auto: job.auto,
+        }
+    }
+}
+
+/// Whether `ask` renders from an RGB-D in GPU memory on the GPU: the varifocal defocus
+/// methods (chosen or `auto`) and multifocal linear blending.
+fn from_device(ask: &Ask) -> bool {
+    match (ask.mode, ask.method.0) {
+        (Mode::Varifocal, _) if ask.auto => true,
+        (Mode::Varifocal, m) => matches!(
+            m,
+            RenderMethod::Gather | RenderMethod::Pyramid | RenderMethod::LightFieldDefocus
+        ),
+        (Mode::Multifocal, m) => m == RenderMethod::Linear,
+        _ => false,
+    }
+}
+
+/// A defocus method's name in `/status`.
+fn defocus_label(method: DefocusMethod) -> String {
+    match method {
+        DefocusMethod::Gather => "gather".to_string(),
+        DefocusMethod::Pyramid(_) => "pyramid".to_string(),
+        DefocusMethod::LightField(p) => format!("lightfield-{}", p.views),
+    }
+}
+
+/// `method` with its foveation (if any) centred on `gaze`.
+fn foveated_at(method: DefocusMethod, gaze: [f32; 2]) -> DefocusMethod {
+    match method {
+        DefocusMethod::Pyramid(PyramidParams { foveation: Some(f) }) => {
+            DefocusMethod::Pyramid(PyramidParams {
+                foveation: Some(Foveation { gaze, ..f }),
+            })
+        }
+        m => m,
+    }
 }
 
 /// The backend of `on_backend`'s choice: the rig's GPU, or the CPU.
@@ -913,6 +1274,10 @@ struct Compute {
     decompositions: std::collections::BTreeMap<&'static str, serde_json::Value>,
     /// Why the rig renders on the CPU although the config asked for (or allowed) the GPU.
     cpu_because: Option<String>,
+    /// Per stage of a frame (each eye's view, each method, the light-field panel, the content
+    /// upload), where it ran (`gpu`, `cpu`, or `host to gpu` for an upload) and how many times:
+    /// `/status`'s `render.stages`, one `{"stage", "on", "count"}` each.
+    stages: std::collections::BTreeMap<String, std::collections::BTreeMap<&'static str, u64>>,
 }
 
 impl Compute {
@@ -926,6 +1291,7 @@ impl Compute {
             gpu_time: Default::default(),
             decompositions: Default::default(),
             cpu_because: because,
+            stages: Default::default(),
         }
     }
 
@@ -956,6 +1322,7 @@ impl Compute {
             gpu_time: Default::default(),
             decompositions: Default::default(),
             cpu_because: None,
+            stages: Default::default(),
         })
     }
 
@@ -1002,12 +1369,24 @@ impl Compute {
         }
     }
 
+    /// `stage` ran `on` (a backend, or what crossed between them).
+    fn ran(&mut self, stage: &str, on: &'static str) {
+        *self
+            .stages
+            .entry(stage.to_string())
+            .or_default()
+            .entry(on)
+            .or_default() += 1;
+    }
+
     fn fall_back(&mut self, e: &dioptra_render::GpuError) {
         if self.cpu_because.is_none() {
             tracing::error!(error = %e, "the GPU failed; rendering on the CPU from now on");
             let decompositions = std::mem::take(&mut self.decompositions);
+            let stages = std::mem::take(&mut self.stages);
             *self = Compute::cpu(Some(format!("the GPU failed: {e}")));
             self.decompositions = decompositions;
+            self.stages = stages;
         }
     }
 
@@ -1066,6 +1445,15 @@ impl Compute {
             // The newest multifocal decomposition per eye: which ran, and the hybrid's fovea
             // (optimised at a depth step, or linear).
             "decomposition": self.decompositions,
+            "stages": self
+                .stages
+                .iter()
+                .flat_map(|(stage, on)| {
+                    on.iter().map(move |(on, count)| {
+                        serde_json::json!({"stage": stage, "on": on, "count": count})
+                    })
+                })
+                .collect::<Vec<_>>(),
         })
     }
 }
@@ -1564,6 +1952,258 @@ mod tests {
         let cfg = RigConfig::parse(&text).unwrap();
         let shipped = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
         assert_ne!(panel(&shipped, RenderMethod::Refine).unwrap(), classical);
+    }
+
+    /// A binocular rig on the GPU backend makes each eye's view of a one-RGB-D frame on the
+    /// device, once per content frame, and renders each eye from there: the images stay in GPU
+    /// memory (nothing read back), `/status` says where each stage ran, and the images are the
+    /// CPU rig's (views synthesised and rendered on the host) within 1e-3.
+    #[test]
+    fn a_gpu_rig_makes_and_renders_each_eyes_view_on_the_device() {
+        let Some((gpu, cpu, cfg)) = on_gpu_and_cpu(crate::config::EXAMPLE_SIM_BINOCULAR_RIG) else {
+            return;
+        };
+        let views = crate::content::stereo::EyeViews::new(&cfg.eye, &cfg.display).unwrap();
+        let positions = [views.position(Side::Left), views.position(Side::Right)];
+        let host = |img: &FrameImage| img.to_host().unwrap().into_owned();
+        for (k, (mode, method, auto)) in [
+            (Mode::Varifocal, RenderMethod::Gather, false),
+            (Mode::Varifocal, RenderMethod::Pyramid, false),
+            (Mode::Multifocal, RenderMethod::Linear, false),
+            (Mode::Varifocal, RenderMethod::Gather, true),
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let frame = ContentFrame::new(k as u64 + 1, Arc::new(scene_rgbd(&gpu)));
+            assert!(views.synthesises(&frame));
+            let reads = gpu.backend_status()["images_read_back"].as_u64();
+            let job = RenderJob {
+                frame: 1,
+                mode,
+                method: Method(method),
+                focus: Diopters(1.2),
+                focus_right: Some(Diopters(0.8)),
+                gaze: Some([60.0, 50.0]),
+                auto,
+                display_time: Timestamp::ZERO,
+            };
+            let made = gpu
+                .render_eyes_on_device(&job, &frame, positions)
+                .expect("made on the device")
+                .unwrap();
+            assert!(made.made, "{method:?}: the views made for the frame");
+            let again = gpu
+                .render_eyes_on_device(&job, &frame, positions)
+                .unwrap()
+                .unwrap();
+            assert!(!again.made, "{method:?}: the views kept for the frame");
+            assert_eq!(
+                gpu.backend_status()["images_read_back"].as_u64(),
+                reads,
+                "{method:?}: nothing read back to render both eyes"
+            );
+            let ([left, right], _) = views.of(&frame).unwrap();
+            let eyes = [
+                (frame.for_eye(Side::Left, left), job.clone()),
+                (
+                    frame.for_eye(Side::Right, right),
+                    RenderJob {
+                        focus: Diopters(0.8),
+                        ..job.clone()
+                    },
+                ),
+            ];
+            for (out, (eye_frame, eye_job)) in made.outputs.iter().zip(&eyes) {
+                assert!(
+                    out.images.iter().all(|i| matches!(i, FrameImage::Gpu(_))),
+                    "{method:?}: left in GPU memory"
+                );
+                if auto {
+                    assert!(out.planned.is_some());
+                    continue;
+                }
+                let want = cpu.render(eye_job, eye_frame).unwrap();
+                assert_eq!(out.images.len(), want.images.len());
+                for (a, b) in out.images.iter().zip(&want.images) {
+                    let (a, b) = (host(a), host(b));
+                    let max = (0..3)
+                        .flat_map(|c| {
+                            let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                            a.iter()
+                                .zip(b)
+                                .map(|(x, y)| (x - y).abs())
+                                .collect::<Vec<_>>()
+                        })
+                        .fold(0.0f32, f32::max);
+                    eprintln!("{method:?} {:?}: max |gpu - cpu| = {max:e}", eye_frame.eye);
+                    assert!(max < 1e-3, "{method:?} {:?}: {max}", eye_frame.eye);
+                }
+            }
+        }
+        let st = gpu.backend_status();
+        let ran = |stage: &str, on: &str| {
+            st["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["stage"] == stage && s["on"] == on)
+                .map_or(0, |s| s["count"].as_u64().unwrap())
+        };
+        assert_eq!(ran("eye views", "gpu"), 4, "{st}");
+        for stage in ["eye views", "gather", "pyramid", "linear"] {
+            assert!(ran(stage, "gpu") > 0, "{stage}: {st}");
+            assert_eq!(ran(stage, "cpu"), 0, "{stage}: {st}");
+        }
+        // Methods that cannot render from GPU memory (here the network) are left to the host.
+        let net = RenderJob {
+            frame: 1,
+            mode: Mode::Varifocal,
+            method: Method(RenderMethod::Network),
+            focus: Diopters(1.0),
+            focus_right: None,
+            gaze: None,
+            auto: false,
+            display_time: Timestamp::ZERO,
+        };
+        let frame = ContentFrame::new(9, Arc::new(scene_rgbd(&gpu)));
+        assert!(gpu.render_eyes_on_device(&net, &frame, positions).is_none());
+    }
+
+    /// The renderers of `rig` (its content still) on the GPU and on the CPU, and its config;
+    /// `None` (skipped) without a GPU adapter unless DIOPTRA_REQUIRE_GPU is 1.
+    fn on_gpu_and_cpu(rig: &str) -> Option<(RgbdRenderer, RgbdRenderer, RigConfig)> {
+        let on = |backend: &str| {
+            let text =
+                format!("{rig}\n[content]\nanimate = false\n\n[render]\nbackend = \"{backend}\"\n");
+            let cfg = RigConfig::parse(&text).unwrap();
+            (
+                RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics),
+                cfg,
+            )
+        };
+        let (gpu, cfg) = on("gpu");
+        match gpu {
+            Ok(gpu) => Some((gpu, on("cpu").0.unwrap(), cfg)),
+            Err(e) if std::env::var("DIOPTRA_REQUIRE_GPU").as_deref() != Ok("1") => {
+                eprintln!("skipped: no GPU adapter ({e})");
+                None
+            }
+            Err(e) => panic!("GPU required (DIOPTRA_REQUIRE_GPU=1): {e}"),
+        }
+    }
+
+    /// On the GPU a content frame's RGB-D is uploaded once, however many frames (foci) show
+    /// it, and each is rendered from GPU memory: the CPU rig's images within 1e-3.
+    #[test]
+    fn a_gpu_rig_uploads_a_content_frame_once_and_renders_it_from_there() {
+        let Some((gpu, cpu, _)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
+            return;
+        };
+        let frame = ContentFrame::new(1, Arc::new(scene_rgbd(&gpu)));
+        let reads = gpu.backend_status()["images_read_back"].as_u64();
+        let render = |r: &RgbdRenderer, focus: f32| {
+            r.render_frame(
+                &frame,
+                Mode::Varifocal,
+                Method(RenderMethod::Gather),
+                Diopters(focus),
+                None,
+                false,
+            )
+            .unwrap()
+            .images
+            .remove(0)
+        };
+        let on_gpu = [render(&gpu, 0.5), render(&gpu, 2.5)];
+        assert!(on_gpu.iter().all(|i| matches!(i, FrameImage::Gpu(_))));
+        assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
+        for (image, focus) in on_gpu.iter().zip([0.5, 2.5]) {
+            let (a, b) = (image.to_host().unwrap(), render(&cpu, focus));
+            let b = b.to_host().unwrap();
+            let max = (0..3)
+                .flat_map(|c| {
+                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                    a.iter()
+                        .zip(b)
+                        .map(|(x, y)| (x - y).abs())
+                        .collect::<Vec<_>>()
+                })
+                .fold(0.0f32, f32::max);
+            assert!(max < 1e-3, "{focus} D: {max}");
+        }
+        let st = gpu.backend_status();
+        let count = |stage: &str, on: &str| {
+            st["stages"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|s| s["stage"] == stage && s["on"] == on)
+                .map_or(0, |s| s["count"].as_u64().unwrap())
+        };
+        assert_eq!(count("content upload", "host to gpu"), 1, "{st}");
+        assert_eq!(count("gather", "gpu"), 2, "{st}");
+        assert_eq!(count("gather", "cpu"), 0, "{st}");
+    }
+
+    /// On the GPU the light-field panel is made there and left in GPU memory: a file or stream
+    /// frame's views synthesised and resampled there, the procedural scene's ray-cast views
+    /// uploaded and resampled there; the CPU rig's panels within 1e-3.
+    #[test]
+    fn a_gpu_rigs_light_field_panel_is_made_and_kept_on_the_device() {
+        let Some((gpu, cpu, cfg)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
+            return;
+        };
+        let content = crate::content::open(
+            &cfg.content,
+            &cfg.display,
+            &cfg.eye,
+            &cfg.api,
+            crate::content::scene::Pacing::Simulated,
+        )
+        .unwrap();
+        let scene = content.poll(Timestamp::ZERO).unwrap();
+        assert!(scene.scene.is_some());
+        let file = ContentFrame::new(scene.number + 1, Arc::new(scene_rgbd(&gpu)));
+        for (frame, stage) in [(&scene, "lenslet panel"), (&file, "light-field panel")] {
+            let reads = gpu.backend_status()["images_read_back"].as_u64();
+            let panel = |r: &RgbdRenderer| {
+                r.render_frame(
+                    frame,
+                    Mode::Lightfield,
+                    Method(RenderMethod::Views),
+                    Diopters(1.0),
+                    None,
+                    false,
+                )
+                .unwrap()
+                .images
+                .remove(0)
+            };
+            let on_gpu = panel(&gpu);
+            assert!(
+                matches!(on_gpu, FrameImage::Gpu(_)),
+                "{stage}: in GPU memory"
+            );
+            assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
+            let (a, b) = (on_gpu.to_host().unwrap(), panel(&cpu));
+            let b = b.to_host().unwrap();
+            let max = (0..3)
+                .flat_map(|c| {
+                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                    a.iter()
+                        .zip(b)
+                        .map(|(x, y)| (x - y).abs())
+                        .collect::<Vec<_>>()
+                })
+                .fold(0.0f32, f32::max);
+            eprintln!("{stage}: max |gpu - cpu| = {max:e}");
+            assert!(max < 1e-3, "{stage}: {max}");
+            let st = gpu.backend_status();
+            let stages = st["stages"].as_array().unwrap();
+            let on = |on: &str| stages.iter().any(|s| s["stage"] == stage && s["on"] == on);
+            assert!(on("gpu") && !on("cpu"), "{stage}: {st}");
+        }
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.

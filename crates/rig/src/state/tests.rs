@@ -10,7 +10,11 @@ use crate::{Rig, RigSetup};
 /// Every key path of `v` (`a.b.c`; an array's elements under `a[]`), except below the keys
 /// whose children are data rather than a schema (latency stages, errors by method).
 fn key_paths(v: &Value, at: &str, out: &mut BTreeSet<String>) {
-    const DATA: [&str; 2] = ["scheduler.latency_us", "render_errors.by_method"];
+    const DATA: [&str; 3] = [
+        "scheduler.latency_us",
+        "render_errors.by_method",
+        "render.stages",
+    ];
     if DATA.contains(&at) {
         return;
     }
@@ -174,6 +178,7 @@ const ONE_LENS: &[&str] = &[
     "render.refine",
     "render.refine_tiles_run",
     "render.spectral_on",
+    "render.stages",
     "render.timestamps",
     "render_errors",
     "render_errors.by_method",
@@ -315,6 +320,7 @@ const LENS_PER_EYE: &[&str] = &[
     "eye_views.last_error",
     "eye_views.last_ms",
     "eye_views.made",
+    "eye_views.made_on",
     "eye_views.source",
     "focus",
     "focus.commanded_d",
@@ -366,6 +372,7 @@ const LENS_PER_EYE: &[&str] = &[
     "render.refine",
     "render.refine_tiles_run",
     "render.spectral_on",
+    "render.stages",
     "render.timestamps",
     "render_errors",
     "render_errors.by_method",
