@@ -24,19 +24,8 @@ struct Params {
 
 // Bilinear read of plane `base` at (x, y), pixel centres at +0.5, edges clamped.
 fn bilinear(base: u32, x: f32, y: f32) -> f32 {
-    let fx = x - 0.5;
-    let fy = y - 0.5;
-    let x0 = floor(fx);
-    let y0 = floor(fy);
-    let tx = fx - x0;
-    let ty = fy - y0;
-    let xa = u32(clamp(i32(x0), 0, i32(p.vw) - 1));
-    let xb = u32(clamp(i32(x0) + 1, 0, i32(p.vw) - 1));
-    let ya = u32(clamp(i32(y0), 0, i32(p.vh) - 1));
-    let yb = u32(clamp(i32(y0) + 1, 0, i32(p.vh) - 1));
-    let a = views[base + ya * p.vw + xa] * (1.0 - tx) + views[base + ya * p.vw + xb] * tx;
-    let b = views[base + yb * p.vw + xa] * (1.0 - tx) + views[base + yb * p.vw + xb] * tx;
-    return a * (1.0 - ty) + b * ty;
+    let t = bilinear_taps(base, x, y, p.vw, p.vh);
+    return bilinear_mix(t, views[t.i00], views[t.i10], views[t.i01], views[t.i11]);
 }
 
 @compute @workgroup_size(16, 16)

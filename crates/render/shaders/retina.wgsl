@@ -52,19 +52,8 @@ fn convolve(@builtin(global_invocation_id) g: vec3<u32>) {
 @group(0) @binding(3) var<storage, read_write> s_out: array<f32>;
 
 fn bilinear(base: u32, x: f32, y: f32) -> f32 {
-    let fx = x - 0.5;
-    let fy = y - 0.5;
-    let x0 = floor(fx);
-    let y0 = floor(fy);
-    let tx = fx - x0;
-    let ty = fy - y0;
-    let xa = u32(clamp(i32(x0), 0, i32(p.w) - 1));
-    let xb = u32(clamp(i32(x0) + 1, 0, i32(p.w) - 1));
-    let ya = u32(clamp(i32(y0), 0, i32(p.h) - 1));
-    let yb = u32(clamp(i32(y0) + 1, 0, i32(p.h) - 1));
-    let a = views[base + ya * p.w + xa] * (1.0 - tx) + views[base + ya * p.w + xb] * tx;
-    let b = views[base + yb * p.w + xa] * (1.0 - tx) + views[base + yb * p.w + xb] * tx;
-    return a * (1.0 - ty) + b * ty;
+    let t = bilinear_taps(base, x, y, p.w, p.h);
+    return bilinear_mix(t, views[t.i00], views[t.i10], views[t.i01], views[t.i11]);
 }
 
 @compute @workgroup_size(16, 16)

@@ -89,19 +89,8 @@ fn read_input(v: u32, s: vec2<u32>, fx: f32, fy: f32) -> vec4<f32> {
 }
 
 fn bilinear(base: u32, x: f32, y: f32) -> f32 {
-    let fx = x - 0.5;
-    let fy = y - 0.5;
-    let x0 = floor(fx);
-    let y0 = floor(fy);
-    let tx = fx - x0;
-    let ty = fy - y0;
-    let xa = u32(clamp(i32(x0), 0, i32(p.w) - 1));
-    let xb = u32(clamp(i32(x0) + 1, 0, i32(p.w) - 1));
-    let ya = u32(clamp(i32(y0), 0, i32(p.h) - 1));
-    let yb = u32(clamp(i32(y0) + 1, 0, i32(p.h) - 1));
-    let a = colors[base + ya * p.w + xa] * (1.0 - tx) + colors[base + ya * p.w + xb] * tx;
-    let b = colors[base + yb * p.w + xa] * (1.0 - tx) + colors[base + yb * p.w + xb] * tx;
-    return a * (1.0 - ty) + b * ty;
+    let t = bilinear_taps(base, x, y, p.w, p.h);
+    return bilinear_mix(t, colors[t.i00], colors[t.i10], colors[t.i01], colors[t.i11]);
 }
 
 @compute @workgroup_size(16, 16)

@@ -72,6 +72,7 @@ const LIGHTFIELD_WGSL: &str = include_str!("../../shaders/lightfield.wgsl");
 const OPTIMIZE_WGSL: &str = include_str!("../../shaders/optimize.wgsl");
 const VIEWS_WGSL: &str = include_str!("../../shaders/views.wgsl");
 const LENSLET_WGSL: &str = include_str!("../../shaders/lenslet.wgsl");
+const BILINEAR_WGSL: &str = include_str!("../../shaders/bilinear.wgsl");
 const FOVEATE_WGSL: &str = include_str!("../../shaders/foveate.wgsl");
 const SPECTRAL_WGSL: &str = include_str!("../../shaders/spectral.wgsl");
 const PYRAMID_WGSL: &str = include_str!("../../shaders/pyramid.wgsl");
@@ -599,7 +600,7 @@ pub(crate) fn shared_wgsl() -> String {
         "const PREFILTER: f32 = {PREFILTER:?};\nconst LEVEL_SIGMA = array<f32, {}>({});\nconst FOV_CELL: u32 = {FOV_CELL}u;\nconst WG1: u32 = {WG1}u;\nconst MAX_PLANES: u32 = {MAX_PLANES}u;\n{}",
         LEVEL_SIGMA.len(),
         sigma.join(", "),
-        crate::pyramid::shared_wgsl() + &crate::foveated::shared_wgsl()
+        crate::pyramid::shared_wgsl() + &crate::foveated::shared_wgsl() + BILINEAR_WGSL
     )
 }
 
