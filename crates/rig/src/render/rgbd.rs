@@ -2027,29 +2027,14 @@ mod tests {
                 assert_eq!(out.images.len(), want.images.len());
                 for (a, b) in out.images.iter().zip(&want.images) {
                     let (a, b) = (host(a), host(b));
-                    let max = (0..3)
-                        .flat_map(|c| {
-                            let (a, b) = (a.channels[c].data(), b.channels[c].data());
-                            a.iter()
-                                .zip(b)
-                                .map(|(x, y)| (x - y).abs())
-                                .collect::<Vec<_>>()
-                        })
-                        .fold(0.0f32, f32::max);
+                    let max = max_abs_difference(&a, &b);
                     eprintln!("{method:?} {:?}: max |gpu - cpu| = {max:e}", eye_frame.eye);
                     assert!(max < 1e-3, "{method:?} {:?}: {max}", eye_frame.eye);
                 }
             }
         }
         let st = gpu.backend_status();
-        let ran = |stage: &str, on: &str| {
-            st["stages"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|s| s["stage"] == stage && s["on"] == on)
-                .map_or(0, |s| s["count"].as_u64().unwrap())
-        };
+        let ran = |stage: &str, on: &str| stage_count(&st, stage, on);
         assert_eq!(ran("eye views", "gpu"), 4, "{st}");
         for stage in ["eye views", "gather", "pyramid", "linear"] {
             assert!(ran(stage, "gpu") > 0, "{stage}: {st}");
@@ -2121,26 +2106,11 @@ mod tests {
         for (image, focus) in on_gpu.iter().zip([0.5, 2.5]) {
             let (a, b) = (image.to_host().unwrap(), render(&cpu, focus));
             let b = b.to_host().unwrap();
-            let max = (0..3)
-                .flat_map(|c| {
-                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
-                    a.iter()
-                        .zip(b)
-                        .map(|(x, y)| (x - y).abs())
-                        .collect::<Vec<_>>()
-                })
-                .fold(0.0f32, f32::max);
+            let max = max_abs_difference(&a, &b);
             assert!(max < 1e-3, "{focus} D: {max}");
         }
         let st = gpu.backend_status();
-        let count = |stage: &str, on: &str| {
-            st["stages"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .find(|s| s["stage"] == stage && s["on"] == on)
-                .map_or(0, |s| s["count"].as_u64().unwrap())
-        };
+        let count = |stage: &str, on: &str| stage_count(&st, stage, on);
         assert_eq!(count("content upload", "host to gpu"), 1, "{st}");
         assert_eq!(count("gather", "gpu"), 2, "{st}");
         assert_eq!(count("gather", "cpu"), 0, "{st}");
@@ -2188,22 +2158,36 @@ mod tests {
             assert_eq!(gpu.backend_status()["images_read_back"].as_u64(), reads);
             let (a, b) = (on_gpu.to_host().unwrap(), panel(&cpu));
             let b = b.to_host().unwrap();
-            let max = (0..3)
-                .flat_map(|c| {
-                    let (a, b) = (a.channels[c].data(), b.channels[c].data());
-                    a.iter()
-                        .zip(b)
-                        .map(|(x, y)| (x - y).abs())
-                        .collect::<Vec<_>>()
-                })
-                .fold(0.0f32, f32::max);
+            let max = max_abs_difference(&a, &b);
             eprintln!("{stage}: max |gpu - cpu| = {max:e}");
             assert!(max < 1e-3, "{stage}: {max}");
             let st = gpu.backend_status();
-            let stages = st["stages"].as_array().unwrap();
-            let on = |on: &str| stages.iter().any(|s| s["stage"] == stage && s["on"] == on);
+            let on = |on: &str| stage_count(&st, stage, on) > 0;
             assert!(on("gpu") && !on("cpu"), "{stage}: {st}");
         }
+    }
+
+    /// How many times `/status` `render.stages` says `stage` ran `on` a backend.
+    fn stage_count(status: &serde_json::Value, stage: &str, on: &str) -> u64 {
+        status["stages"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|s| s["stage"] == stage && s["on"] == on)
+            .map_or(0, |s| s["count"].as_u64().unwrap())
+    }
+
+    /// The largest difference between two images' channel values.
+    fn max_abs_difference(a: &RgbImage, b: &RgbImage) -> f32 {
+        (0..3)
+            .flat_map(|c| {
+                let (a, b) = (a.channels[c].data(), b.channels[c].data());
+                a.iter()
+                    .zip(b)
+                    .map(|(x, y)| (x - y).abs())
+                    .collect::<Vec<_>>()
+            })
+            .fold(0.0f32, f32::max)
     }
 
     /// The light-field panel `r` shows for `frame` with `method`.
