@@ -152,58 +152,77 @@ impl FrameStats {
         let fovea = fovea_px(&eye, fovea_radius_deg);
         let mut frame_histogram = DepthHistogram::new(dmax);
         let mut region_histogram = DepthHistogram::new(dmax);
-        let dist2 = |i: usize| {
-            let dx = (i % w) as f32 + 0.5 - gaze[0];
-            let dy = (i / w) as f32 + 0.5 - gaze[1];
+        let dist2 = |x: usize, y: usize| {
+            let dx = x as f32 + 0.5 - gaze[0];
+            let dy = y as f32 + 0.5 - gaze[1];
             dx * dx + dy * dy
+        };
+        // The rows or columns within `radius` of the gaze's `c` (of `n`), a pixel to spare: a
+        // pixel beyond them is farther from the gaze than `radius` (none for a gaze not finite).
+        let near = |c: f32, n: usize, radius: f32| -> std::ops::Range<usize> {
+            let lo = (c - radius - 1.0).floor().max(0.0) as usize;
+            let hi = ((c + radius + 1.0).ceil().max(0.0) as usize).min(n);
+            lo.min(hi)..hi
         };
         // The farthest depth inside the fovea: content beyond it outside the fovea is hidden
         // behind the fovea's content and cannot blur into it.
-        let farthest_in_fovea = depth
-            .iter()
-            .enumerate()
-            .filter(|&(i, d)| d.is_finite() && dist2(i) <= fovea * fovea)
-            .map(|(_, &d)| d)
-            .fold(f32::INFINITY, f32::min);
-        let (mut rlo, mut rhi) = (f32::INFINITY, f32::NEG_INFINITY);
-        // Squared forward differences of the colour at pixel i, summed over x, y and the
-        // channels (None on the last row and column).
-        let gradient = |i: usize| {
-            let (x, y) = (i % w, i / w);
-            (x + 1 < w && y + 1 < h).then(|| {
-                input
-                    .color
-                    .channels
-                    .iter()
-                    .map(|c| {
-                        let v = c.row(y)[x];
-                        let (gx, gy) = (c.row(y)[x + 1] - v, c.row(y + 1)[x] - v);
-                        f64::from(gx * gx + gy * gy)
-                    })
-                    .sum::<f64>()
-            })
-        };
-        let (mut frame_g, mut region_g) = ((0.0f64, 0u64), (0.0f64, 0u64));
-        for (i, &d) in depth.iter().enumerate() {
-            frame_histogram.add(d);
-            let g = gradient(i);
-            if let Some(g) = g {
-                frame_g = (frame_g.0 + g, frame_g.1 + 3);
-            }
-            if !d.is_finite() {
-                continue;
-            }
-            // Outside the fovea, a pixel matters when its blur disk reaches into the fovea
-            // and it is not behind everything there.
-            let reach = fovea + (0.5 * eye.coc_px(Diopters(d), focus)).min(REACH_CAP_PX);
-            let r2 = dist2(i);
-            if r2 <= fovea * fovea || (r2 <= reach * reach && d >= farthest_in_fovea) {
-                region_histogram.add(d);
-                if let Some(g) = g {
-                    region_g = (region_g.0 + g, region_g.1 + 3);
+        let mut farthest_in_fovea = f32::INFINITY;
+        for y in near(gaze[1], h, fovea) {
+            for x in near(gaze[0], w, fovea) {
+                let d = depth[y * w + x];
+                if d.is_finite() && dist2(x, y) <= fovea * fovea {
+                    farthest_in_fovea = farthest_in_fovea.min(d);
                 }
-                rlo = rlo.min(d);
-                rhi = rhi.max(d);
+            }
+        }
+        // A pixel joins the region within its blur's reach of the fovea, at most
+        // REACH_CAP_PX beyond it: only these rows and columns are asked.
+        let (region_rows, region_cols) = (
+            near(gaze[1], h, fovea + REACH_CAP_PX),
+            near(gaze[0], w, fovea + REACH_CAP_PX),
+        );
+        let (mut rlo, mut rhi) = (f32::INFINITY, f32::NEG_INFINITY);
+        let channels = &input.color.channels;
+        let (mut frame_g, mut region_g) = ((0.0f64, 0u64), (0.0f64, 0u64));
+        for y in 0..h {
+            let depth_row = &depth[y * w..(y + 1) * w];
+            // This row and the next of each channel: the colour's forward differences.
+            let rows = (y + 1 < h)
+                .then(|| [0, 1, 2].map(|c| (channels[c].row(y), channels[c].row(y + 1))));
+            for (x, &d) in depth_row.iter().enumerate() {
+                frame_histogram.add(d);
+                // Squared forward differences of the colour, summed over x, y and the
+                // channels (None on the last row and column).
+                let g = rows.as_ref().filter(|_| x + 1 < w).map(|rows| {
+                    rows.iter()
+                        .map(|(row, below)| {
+                            let v = row[x];
+                            let (gx, gy) = (row[x + 1] - v, below[x] - v);
+                            f64::from(gx * gx + gy * gy)
+                        })
+                        .sum::<f64>()
+                });
+                if let Some(g) = g {
+                    frame_g = (frame_g.0 + g, frame_g.1 + 3);
+                }
+                if !d.is_finite() || !region_rows.contains(&y) || !region_cols.contains(&x) {
+                    continue;
+                }
+                // Outside the fovea, a pixel matters when its blur disk reaches into the
+                // fovea and it is not behind everything there.
+                let r2 = dist2(x, y);
+                let within_reach = || {
+                    let reach = fovea + (0.5 * eye.coc_px(Diopters(d), focus)).min(REACH_CAP_PX);
+                    r2 <= reach * reach
+                };
+                if r2 <= fovea * fovea || (d >= farthest_in_fovea && within_reach()) {
+                    region_histogram.add(d);
+                    if let Some(g) = g {
+                        region_g = (region_g.0 + g, region_g.1 + 3);
+                    }
+                    rlo = rlo.min(d);
+                    rhi = rhi.max(d);
+                }
             }
         }
         if rlo > rhi {
@@ -1238,3 +1257,4 @@ pub fn predict_frame_cost(spec: &FrameSpec) -> Result<FrameCost, RenderError> {
         ),
     })
 }
+
