@@ -1257,4 +1257,3 @@ pub fn predict_frame_cost(spec: &FrameSpec) -> Result<FrameCost, RenderError> {
         ),
     })
 }
-
