@@ -35,6 +35,19 @@ use crate::display::config::Display;
 use crate::optics::config::Eye;
 use config::{ContentConfig, ContentSource, DEFAULT_VIEW_SPAN_MM};
 
+/// Tests' content of `cfg` on the simulated clock.
+#[cfg(test)]
+pub(crate) fn open_simulated(cfg: &crate::config::RigConfig) -> Arc<dyn Content> {
+    open(
+        &cfg.content,
+        &cfg.display,
+        &cfg.eye,
+        &cfg.api,
+        scene::Pacing::Simulated,
+    )
+    .unwrap()
+}
+
 /// The content source `[content]` describes, at the display's size, seen by `eye` (the scene;
 /// `api`: where a stream's ring goes by default); `pacing` says whether the loop waits for the
 /// animated scene's frames (on a simulated clock). CPU work (the scene's first frame is ray

@@ -192,14 +192,7 @@ async fn a_pushed_frames_depth_reaches_the_scheduler_before_the_next_render_requ
     let text = crate::config::EXAMPLE_SIM_RIG.to_string()
         + "\n[content]\nsource = \"stream\"\nring = \"none\"\n";
     let cfg = RigConfig::parse(&text).unwrap();
-    let content = crate::content::open(
-        &cfg.content,
-        &cfg.display,
-        &cfg.eye,
-        &cfg.api,
-        crate::content::scene::Pacing::Simulated,
-    )
-    .unwrap();
+    let content = crate::content::open_simulated(&cfg);
     let log = Log::default();
     let clock: Arc<dyn crate::Clock> = Arc::new(dioptra_sim::tokio_clock::TokioClock::new());
     let mut setup = RigSetup::new(cfg);

@@ -1712,14 +1712,7 @@ mod tests {
             + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
         let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
-        let content = crate::content::open(
-            &cfg.content,
-            &cfg.display,
-            &cfg.eye,
-            &cfg.api,
-            crate::content::scene::Pacing::Simulated,
-        )
-        .unwrap();
+        let content = crate::content::open_simulated(&cfg);
         let frame = content.poll(Timestamp::ZERO).unwrap();
         let views = crate::content::stereo::EyeViews::new(&cfg.eye, &cfg.display).unwrap();
         let ([left, right], _) = views.of(&frame).unwrap();
@@ -1765,14 +1758,7 @@ mod tests {
             + "\n[content]\nsource = \"stream\"\nring = \"none\"\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
         let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
-        let content = crate::content::open(
-            &cfg.content,
-            &cfg.display,
-            &cfg.eye,
-            &cfg.api,
-            crate::content::scene::Pacing::Simulated,
-        )
-        .unwrap();
+        let content = crate::content::open_simulated(&cfg);
         let (w, h) = (96, 96);
         // At optical infinity every view is the frame itself: the panel is the lenslet
         // resampling of 25 copies of it.
@@ -1823,14 +1809,7 @@ mod tests {
             + "\n[content]\nanimate = false\n\n[render]\nbackend = \"cpu\"\n";
         let cfg = RigConfig::parse(&text).unwrap();
         let r = RgbdRenderer::new(&cfg.render, &cfg.eye, &cfg.display, &cfg.optics).unwrap();
-        let content = crate::content::open(
-            &cfg.content,
-            &cfg.display,
-            &cfg.eye,
-            &cfg.api,
-            crate::content::scene::Pacing::Simulated,
-        )
-        .unwrap();
+        let content = crate::content::open_simulated(&cfg);
         let scene = content.poll(Timestamp::ZERO).unwrap().scene.unwrap();
         let (w, h) = r.size;
         let cam = Camera::new(r.eye, w, h);
@@ -2124,14 +2103,7 @@ mod tests {
         let Some((gpu, cpu, cfg)) = on_gpu_and_cpu(EXAMPLE_SIM_RIG) else {
             return;
         };
-        let content = crate::content::open(
-            &cfg.content,
-            &cfg.display,
-            &cfg.eye,
-            &cfg.api,
-            crate::content::scene::Pacing::Simulated,
-        )
-        .unwrap();
+        let content = crate::content::open_simulated(&cfg);
         let scene = content.poll(Timestamp::ZERO).unwrap();
         assert!(scene.scene.is_some());
         let file = ContentFrame::new(scene.number + 1, Arc::new(scene_rgbd(&gpu)));

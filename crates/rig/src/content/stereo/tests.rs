@@ -1,6 +1,5 @@
 use super::*;
 use crate::config::{RigConfig, EXAMPLE_SIM_BINOCULAR_RIG};
-use crate::content::scene::Pacing;
 use dioptra_core::Timestamp;
 
 fn binocular() -> RigConfig {
@@ -170,14 +169,7 @@ fn a_mono_frame_shows_each_eye_the_wall_beside_a_near_square_not_a_ghost_of_it()
 #[test]
 fn one_rgbd_gives_each_eye_a_view_close_to_the_one_ray_cast_there() {
     let cfg = binocular();
-    let content = crate::content::open(
-        &cfg.content,
-        &cfg.display,
-        &cfg.eye,
-        &cfg.api,
-        Pacing::Simulated,
-    )
-    .unwrap();
+    let content = crate::content::open_simulated(&cfg);
     let scene_frame = content.poll(Timestamp::ZERO).unwrap();
     let views = EyeViews::new(&cfg.eye, &cfg.display).unwrap();
     let (cast, source) = views.of(&scene_frame).unwrap();
