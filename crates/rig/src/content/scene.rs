@@ -227,9 +227,17 @@ fn nearest_upscale(v: &Rgbd, width: usize, height: usize) -> Result<Rgbd, Render
     let xs: Vec<usize> = (0..width).map(|x| (x * w / width).min(w - 1)).collect();
     let scale = |p: &Plane| -> Result<Plane, RenderError> {
         let mut out = Vec::with_capacity(width * height);
+        let mut above = None;
         for y in 0..height {
-            let row = p.row((y * h / height).min(h - 1));
-            out.extend(xs.iter().map(|&x| row[x]));
+            let src = (y * h / height).min(h - 1);
+            if above == Some(src) {
+                // The row above came from the same row: copy it rather than gather again.
+                out.extend_from_within(out.len() - width..);
+            } else {
+                let row = p.row(src);
+                out.extend(xs.iter().map(|&x| row[x]));
+                above = Some(src);
+            }
         }
         Ok(Plane::from_vec(width, height, out)?)
     };
@@ -640,6 +648,38 @@ fn render_ahead(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each output pixel is the input's at `(x * w / width, y * h / height)`, at a scale
+    /// that is not a whole number and one that shrinks, colour and depth alike.
+    #[test]
+    fn the_nearest_upscale_takes_each_pixel_from_the_nearest_input_pixel() {
+        use dioptra_core::{DepthMap, Plane, RgbImage};
+        let (w, h) = (7usize, 5usize);
+        let plane = |k: f32| {
+            Plane::from_vec(w, h, (0..w * h).map(|i| k + i as f32 * 0.01).collect()).unwrap()
+        };
+        let v = Rgbd::new(
+            RgbImage::from_planes(plane(0.0), plane(0.1), plane(0.2)).unwrap(),
+            DepthMap::from_diopters(plane(1.0)).unwrap(),
+        )
+        .unwrap();
+        for (width, height) in [(23usize, 17usize), (3, 2), (7, 5)] {
+            let up = nearest_upscale(&v, width, height).unwrap();
+            assert_eq!((up.width(), up.height()), (width, height));
+            for y in 0..height {
+                for x in 0..width {
+                    let (sx, sy) = (x * w / width, y * h / height);
+                    for c in 0..3 {
+                        assert_eq!(
+                            up.color.channels[c].row(y)[x],
+                            v.color.channels[c].row(sy)[sx]
+                        );
+                    }
+                    assert_eq!(up.depth.plane().row(y)[x], v.depth.plane().row(sy)[sx]);
+                }
+            }
+        }
+    }
 
     fn scene(pacing: Pacing) -> AnimatedScene {
         let eye = dioptra_core::EyeModel {
