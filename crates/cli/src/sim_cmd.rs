@@ -40,9 +40,10 @@ pub struct SceneArgs {
     /// Scene seed; seeds 1000000..2000000 are the test split, all others training.
     #[arg(long)]
     seed: u64,
-    /// Image width and height, pixels.
-    #[arg(long, default_value_t = 256)]
-    size: usize,
+    /// Image size, pixels: `N` for N x N, or `WIDTHxHEIGHT` (e.g. `960x1080`, one eye of a
+    /// 1080p panel split side by side).
+    #[arg(long, default_value = "256", value_parser = parse_image_size)]
+    size: (usize, usize),
     #[arg(long)]
     out: PathBuf,
     /// Ground-truth focal-stack slices over --range.
@@ -81,10 +82,24 @@ pub fn run(args: Args) -> Result<()> {
     }
 }
 
-fn scene(a: SceneArgs) -> Result<()> {
-    if a.size == 0 || a.size > 8192 {
-        bail!("--size must be 1 to 8192");
+/// `--size`: `N` or `WIDTHxHEIGHT`, each side 1 to 8192 pixels.
+fn parse_image_size(s: &str) -> Result<(usize, usize), String> {
+    let side = |v: &str| -> Result<usize, String> {
+        match v.trim().parse::<usize>() {
+            Ok(n) if (1..=8192).contains(&n) => Ok(n),
+            _ => Err(format!(
+                "`{v}` is not a side of 1 to 8192 pixels (give N, or WIDTHxHEIGHT such as 960x1080)"
+            )),
+        }
+    };
+    match s.split_once(['x', 'X']) {
+        Some((w, h)) => Ok((side(w)?, side(h)?)),
+        None => side(s).map(|n| (n, n)),
     }
+}
+
+fn scene(a: SceneArgs) -> Result<()> {
+    let (width, height) = a.size;
     let range: Vec<f32> = a
         .range
         .split(',')
@@ -100,7 +115,7 @@ fn scene(a: SceneArgs) -> Result<()> {
         ..EyeModel::default()
     }
     .validated()?;
-    let cam = Camera::square(eye, a.size);
+    let cam = Camera::new(eye, width, height);
     let opts = SceneOptions {
         semi_transparent: a.semi_transparent,
         ..SceneOptions::default()
@@ -124,8 +139,8 @@ fn scene(a: SceneArgs) -> Result<()> {
         foci.len(),
         a.samples,
         a.lf_grid * a.lf_grid,
-        a.size,
-        a.size
+        width,
+        height
     );
     let pb = bar(foci.len(), "ground truth")?;
     for &q in &foci {
@@ -138,10 +153,9 @@ fn scene(a: SceneArgs) -> Result<()> {
     let mut meta = String::new();
     writeln!(
         meta,
-        "seed = {}\nsplit = \"{:?}\"\nsize = {}\nfov_deg = {}\npupil_mm = {}",
+        "seed = {}\nsplit = \"{:?}\"\nwidth = {width}\nheight = {height}\nfov_deg = {}\npupil_mm = {}",
         a.seed,
         Split::of(a.seed),
-        a.size,
         a.fov_deg,
         a.pupil_mm
     )?;

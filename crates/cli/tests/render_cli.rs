@@ -600,3 +600,55 @@ fn refine_runs_with_the_shipped_weights_on_both_backends() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Width and height of a PNG, from its IHDR chunk.
+fn png_size(path: &Path) -> (u32, u32) {
+    let b = std::fs::read(path).expect("png");
+    let be = |i: usize| u32::from_be_bytes(b[i..i + 4].try_into().unwrap());
+    assert_eq!(&b[12..16], b"IHDR", "{}", path.display());
+    (be(16), be(20))
+}
+
+#[test]
+fn sim_scene_takes_a_panel_shaped_size() {
+    let dir = std::env::temp_dir().join(format!("dioptra-cli-scene-wxh-{}", std::process::id()));
+    sim_scene(&dir, "1000002", "24x16");
+    assert_eq!(png_size(&dir.join("color.png")), (24, 16));
+    assert_eq!(png_size(&dir.join("depth.png")), (24, 16));
+    assert_eq!(png_size(&dir.join("lightfield/view_00_00.png")), (24, 16));
+    let toml = std::fs::read_to_string(dir.join("scene.toml")).unwrap();
+    assert!(toml.contains("width = 24\nheight = 16"), "{toml}");
+    // A non-square scene renders through the bounded-cost method at its own size.
+    let out = dir.join("p.png").display().to_string();
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "render",
+            "--focus",
+            "1.0",
+            "--method",
+            "pyramid",
+            "--backend",
+            "cpu",
+            "--out",
+            &out,
+        ],
+    );
+    assert!(ok, "{text}");
+    assert_eq!(png_size(Path::new(&out)), (24, 16));
+    for bad in ["0x16", "24x", "24xfoo", "9000"] {
+        let (ok, text) = dioptra(&[
+            "sim",
+            "scene",
+            "--seed",
+            "1",
+            "--size",
+            bad,
+            "--out",
+            &dir.join("bad").display().to_string(),
+        ]);
+        assert!(!ok && text.contains("--size"), "{bad}: {text}");
+        assert!(text.contains("WIDTHxHEIGHT"), "{bad}: {text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
