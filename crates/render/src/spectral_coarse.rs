@@ -16,7 +16,7 @@
 
 use crate::common::eye_for;
 use crate::error::RenderError;
-use crate::multifocal::{linear_blend, Layers};
+use crate::multifocal::{check_planes, layers_of, linear_weights, rows_of, Layers};
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
@@ -120,6 +120,61 @@ pub fn down_rgbd(input: &Rgbd, s: usize) -> Result<Rgbd, RenderError> {
     Ok(Rgbd::new(color, depth)?)
 }
 
+/// `input` at 1/s resolution (colour and depth box-averaged, as [`box_down`]) and its linear
+/// blending's layers box-averaged (`[plane * 3 + channel]`, each `ceil(w / s)` x
+/// `ceil(h / s)`), in one pass over the input: the fine linear layers are never stored.
+fn down_with_linear(
+    input: &Rgbd,
+    planes: &[Diopters],
+    s: usize,
+) -> Result<(Rgbd, Vec<Vec<f32>>), RenderError> {
+    let (fw, fh) = (input.width(), input.height());
+    let (w, h) = (fw.div_ceil(s), fh.div_ceil(s));
+    let k = 3 * planes.len();
+    let depth = input.depth.data();
+    let color: Vec<&[f32]> = input.color.channels.iter().map(|p| p.data()).collect();
+    // Per coarse row: colour (3), depth (1), then the linear layers (k), `w` values each.
+    let rows: Vec<Vec<f32>> = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let mut acc = vec![0.0f32; (4 + k) * w];
+            let rows = (y * s..((y + 1) * s).min(fh)).len();
+            for sy in y * s..y * s + rows {
+                for x in 0..fw {
+                    let (i, cx) = (sy * fw + x, x / s);
+                    let (a, b, t) = linear_weights(planes, depth[i]);
+                    for (c, col) in color.iter().enumerate() {
+                        let v = col[i];
+                        acc[c * w + cx] += v;
+                        acc[(4 + a * 3 + c) * w + cx] += v * (1.0 - t);
+                        acc[(4 + b * 3 + c) * w + cx] += v * t;
+                    }
+                    acc[3 * w + cx] += depth[i];
+                }
+            }
+            for x in 0..w {
+                let cols = (x * s..((x + 1) * s).min(fw)).len();
+                let inv = 1.0 / (rows * cols) as f32;
+                for j in 0..4 + k {
+                    acc[j * w + x] *= inv;
+                }
+            }
+            acc
+        })
+        .collect();
+    let plane = |j: usize| -> Vec<f32> {
+        rows.iter()
+            .flat_map(|r| r[j * w..(j + 1) * w].iter().copied())
+            .collect()
+    };
+    let p = |j: usize| Plane::from_vec(w, h, plane(j));
+    let small = Rgbd::new(
+        RgbImage::from_planes(p(0)?, p(1)?, p(2)?)?,
+        DepthMap::from_diopters(p(3)?)?,
+    )?;
+    Ok((small, (4..4 + k).map(plane).collect()))
+}
+
 /// The layers of `input` solved on a 1/s grid by `solve` (the coarse RGB-D and its eye; the
 /// CPU's [`crate::spectral::spectral_blend`] or a backend's, with its report `R`), plus
 /// linear blending's detail above that grid, clamped to the display's [0, 1].
@@ -131,9 +186,10 @@ pub fn coarse_blend_with<R>(
     solve: impl FnOnce(&Rgbd, &EyeModel) -> Result<(Layers, R), RenderError>,
 ) -> Result<(Layers, R), RenderError> {
     crate::common::check_rgbd(input)?;
+    check_planes(planes)?;
     let (w, h) = (input.width(), input.height());
     let eye = eye_for(eye, w)?;
-    let small = down_rgbd(input, s)?;
+    let (small, down_linear) = down_with_linear(input, planes, s)?;
     let seye = eye_with_pitch(&eye, eye.pixel_pitch_tan() * s as f32, small.width())?;
     let (solved, report) = solve(&small, &seye)?;
     if solved.images.len() != planes.len()
@@ -144,46 +200,57 @@ pub fn coarse_blend_with<R>(
             "the coarse spectral layers do not match the planes and the coarse grid",
         ));
     }
-    let mut layers = linear_blend(input, planes)?;
-    let (cw, ch) = (small.width(), small.height());
-    let (tx, ty) = (up_taps(w, cw, s), up_taps(h, ch, s));
-    let jobs: Vec<(&mut Plane, &Plane)> = layers
+    // The solve's change to the coarse linear layers, [plane * 3 + channel].
+    let change: Vec<Vec<f32>> = solved
         .images
-        .iter_mut()
-        .zip(&solved.images)
-        .flat_map(|(l, y)| l.channels.iter_mut().zip(y.channels.iter()))
+        .iter()
+        .flat_map(|img| img.channels.iter())
+        .zip(down_linear)
+        .map(|(y, mut d)| {
+            d.iter_mut().zip(y.data()).for_each(|(d, &y)| *d = y - *d);
+            d
+        })
         .collect();
-    jobs.into_par_iter()
-        .try_for_each(|(lin, sol)| -> Result<(), RenderError> {
-            // The solve's change to the coarse linear layer, each coarse row upsampled along x
-            // once, then each fine row a blend of two of those.
-            let mut change = box_down(lin, s)?;
-            for (c, &y) in change.data_mut().iter_mut().zip(sol.data()) {
-                *c = y - *c;
-            }
-            let wide: Vec<Vec<f32>> = (0..ch)
-                .map(|y| {
-                    let r = change.row(y);
-                    tx.iter()
-                        .map(|&(a, b, u)| r[a] + (r[b] - r[a]) * u)
-                        .collect()
-                })
-                .collect();
-            for (row, &(i0, i1, t)) in lin.data_mut().chunks_exact_mut(w).zip(&ty) {
-                let (r0, r1) = (&wide[i0], &wide[i1]);
-                for ((o, &a), &b) in row.iter_mut().zip(r0).zip(r1) {
-                    *o = (*o + a + (b - a) * t).clamp(0.0, 1.0);
+    // Per fine row: the change upsampled (the two coarse rows blended, then along x) plus
+    // the pixel's linear blending, clamped.
+    let (cw, k) = (small.width(), change.len());
+    let (tx, ty) = (up_taps(w, cw, s), up_taps(h, small.height(), s));
+    let depth = input.depth.data();
+    let mut data: Vec<Vec<f32>> = (0..k).map(|_| vec![0.0f32; w * h]).collect();
+    rows_of(&mut data, w)
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(y, out)| {
+            let (i0, i1, t) = ty[y];
+            let mut mix = vec![0.0f32; cw];
+            for (o, ch) in out.iter_mut().zip(&change) {
+                let (r0, r1) = (&ch[i0 * cw..][..cw], &ch[i1 * cw..][..cw]);
+                for ((m, &a), &b) in mix.iter_mut().zip(r0).zip(r1) {
+                    *m = a + (b - a) * t;
+                }
+                for (o, &(a, b, u)) in o.iter_mut().zip(&tx) {
+                    *o = mix[a] + (mix[b] - mix[a]) * u;
                 }
             }
-            Ok(())
-        })?;
-    Ok((layers, report))
+            for (x, &d) in depth[y * w..(y + 1) * w].iter().enumerate() {
+                let (a, b, t) = linear_weights(planes, d);
+                for (c, col) in input.color.channels.iter().enumerate() {
+                    let v = col.data()[y * w + x];
+                    out[a * 3 + c][x] += v * (1.0 - t);
+                    out[b * 3 + c][x] += v * t;
+                }
+            }
+            for o in out.iter_mut() {
+                o.iter_mut().for_each(|v| *v = v.clamp(0.0, 1.0));
+            }
+        });
+    Ok((layers_of(planes, w, h, data)?, report))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::multifocal::DEFAULT_PLANES;
+    use crate::multifocal::{linear_blend, DEFAULT_PLANES};
 
     /// A textured RGB-D at 1.1 D everywhere.
     fn rgbd(w: usize, h: usize) -> Rgbd {
