@@ -224,13 +224,30 @@ fn main() {
             &seen(&l),
             &format!("grid 1/{s} plus linear detail"),
         );
-        // Other grids: `SPECTRAL_SCALES="2 3 ..."`.
+        // Other grids and settings: `SPECTRAL_SCALES="2 3 4:gather 4:foci4 4:views6 ..."`
+        // (the scale, then optionally gather targets, the focal samples or the composite's
+        // light-field views).
         for v in std::env::var("SPECTRAL_SCALES")
             .unwrap_or_default()
             .split_whitespace()
-            .filter_map(|v| v.parse::<usize>().ok())
         {
-            let p = SpectralParams { scale: v, ..d };
+            let mut f = v.split(':');
+            let Some(scale) = f.next().and_then(|s| s.parse::<usize>().ok()) else {
+                continue;
+            };
+            let mut p = SpectralParams { scale, ..d };
+            for opt in f {
+                if opt == "gather" {
+                    p.targets = SpectralTargets::Defocus(dioptra_render::DefocusMethod::Gather);
+                } else if let Some(n) = opt.strip_prefix("foci").and_then(|n| n.parse().ok()) {
+                    p.focal_samples = n;
+                } else if let (Some(n), SpectralTargets::Composite(lp)) = (
+                    opt.strip_prefix("views").and_then(|n| n.parse().ok()),
+                    p.targets,
+                ) {
+                    p.targets = SpectralTargets::Composite(LightFieldParams { views: n, ..lp });
+                }
+            }
             let (t, c, (l, _)) = timed(|| {
                 cpu.spectral_blend(&input, &planes, &eye, p)
                     .expect("spectral")
