@@ -30,12 +30,14 @@
 //!
 //! Where the time goes at a panel's size (960 x 1080 per eye, 20 degrees over the width, so
 //! 48 px per degree and blur kernels up to 22 px across; `examples/spectral_profile`, 2 cores):
-//! the composite target stack (its light field at 6 foci over the pixels a blurred step
-//! reaches, a third of the image on a test scene, and the disk blur elsewhere) about 60 %,
-//! the FFTs on the 1000 x 1125 grid (30 forward for the targets and the prior, 12 inverse, 24
-//! per step and 12 for the final objective) the rest; the per-frequency matrices (one 4 x 4
-//! solve per frequency) are built once per settings. The gaze-contingent hybrid runs this on
-//! a window around the gaze instead.
+//! at full resolution the composite target stack (its light field at 6 foci over the pixels a
+//! blurred step reaches, a third of the image on a test scene, and the disk blur elsewhere)
+//! about 60 % of 3 s of CPU, the FFTs on the 1000 x 1125 grid (30 forward for the targets and
+//! the prior, 12 inverse, 24 per step and 12 for the final objective) the rest; the
+//! per-frequency matrices (one 4 x 4 solve per frequency) are built once per settings. So
+//! [`spectral_blend`] solves on a grid coarsened from the blur (`scale`, 1/4 there: about
+//! 160 ms of CPU) plus linear blending's detail above it ([`crate::spectral_coarse`]); the
+//! gaze-contingent hybrid runs the solve on a window around the gaze instead.
 
 use crate::common::eye_for;
 use crate::defocus::DefocusMethod;
