@@ -66,7 +66,11 @@ pub fn scale_for(
 
 /// The same eye seeing `width` pixels at `pitch` (tangent units per pixel): a window of a
 /// larger image, or a coarser grid over the same field.
-pub fn eye_with_pitch(eye: &EyeModel, pitch: f32, width: usize) -> Result<EyeModel, RenderError> {
+pub(crate) fn eye_with_pitch(
+    eye: &EyeModel,
+    pitch: f32,
+    width: usize,
+) -> Result<EyeModel, RenderError> {
     let fov = 2.0 * (0.5 * pitch * width as f32).atan().to_degrees();
     eye_for(
         &EyeModel {
