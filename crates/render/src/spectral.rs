@@ -1503,6 +1503,10 @@ pub(crate) mod tests {
                 solver: SpectralSolver::Admm { rho: f32::NAN },
                 ..SpectralParams::default()
             },
+            SpectralParams {
+                scale: crate::spectral_coarse::MAX_SCALE + 1,
+                ..SpectralParams::default()
+            },
         ] {
             assert!(spectral_blend(&input, &planes(), &e, p).is_err(), "{p:?}");
         }
