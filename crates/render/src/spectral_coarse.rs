@@ -20,10 +20,10 @@ use crate::multifocal::{check_planes, layers_of, linear_weights, rows_of, Layers
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
-/// With `scale` = 0 the grid is coarsened until the widest blur (CoC diameter of a plane at
-/// the farthest focal sample) is at most this many of its pixels; below it the image is
-/// solved at full resolution. Chosen by measurement at 960 x 1080 (crates/render/README.md):
-/// a 1/4 grid there.
+/// With `scale` = 0 the grid is coarsened as far as the widest blur (CoC diameter of a plane
+/// at the farthest focal sample) stays at least this many of its pixels: the image's own grid
+/// while that blur is under twice this. Chosen for time at 960 x 1080 (a 1/4 grid there, 1/2
+/// at 8 px; what each costs in accuracy is in crates/render/README.md).
 pub const AUTO_MIN_BLUR_PX: f32 = 5.0;
 
 /// The largest grid divisor there is: beyond it the grid would not hold the blur itself.
