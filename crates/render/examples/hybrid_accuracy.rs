@@ -6,7 +6,9 @@
 //! `cargo run --release -p dioptra-render --example hybrid_accuracy -- [WIDTH] [HEIGHT] [SCENES] [SAMPLES] [FOCI] [CACHE]`
 //! (defaults 960 x 1080, 2 test scenes, 16 ground-truth rays per pixel, 12 foci over 0.1 to
 //! 2.2 D, truth cached as EXR in CACHE, default target/hybrid-accuracy). The gaze is the
-//! image centre, or `HYBRID_GAZE=x,y` (fractions of the size). Variants of the hybrid:
+//! image centre, or `HYBRID_GAZE=x,y` (fractions of the size). Spectral at full resolution
+//! (the reference), its default (on the grid its `scale` chooses from the blur) and, with
+//! `SPECTRAL_SCALES="2 3 ..."`, on those grids. Variants of the hybrid:
 //! `HYBRID_VARIANTS="SCALE:FOVEA_DEG:EDGES:STEPS:SOLVER:VIEWS:FOCI ..."` (default "default",
 //! the defaults; SCALE 0 automatic; EDGES 1 optimise only where a depth step reaches the
 //! fovea, 0 always; STEPS the spectral solve's steps after the clamp; SOLVER pg or admmRHO;
@@ -20,6 +22,7 @@ use dioptra_render::io::{read_color, write_color};
 use dioptra_render::metrics::psnr;
 use dioptra_render::multifocal::{linspace, DEFAULT_PLANES};
 use dioptra_render::spectral::{SpectralSolver, SpectralTargets};
+use dioptra_render::spectral_coarse::scale_for;
 use dioptra_render::{backend, Layers, LightFieldParams, SpectralParams};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
 use std::path::PathBuf;
@@ -178,8 +181,13 @@ fn main() {
                 / r.len() as f64
         };
         let (tl, cl, lin) = timed(|| cpu.linear_blend(&input, &planes).expect("linear"));
+        // Full spectral: the reference, at full resolution.
+        let full = SpectralParams {
+            scale: 1,
+            ..SpectralParams::default()
+        };
         let (ts, cs, (spec, _)) = timed(|| {
-            cpu.spectral_blend(&input, &planes, &eye, SpectralParams::default())
+            cpu.spectral_blend(&input, &planes, &eye, full)
                 .expect("spectral")
         });
         let spec_seen = seen(&spec);
@@ -201,7 +209,51 @@ fn main() {
         };
         let lin_seen = seen(&lin);
         row("linear", tl, cl, &lin_seen, "");
-        row("spectral", ts, cs, &spec_seen, "");
+        row("spectral, full resolution", ts, cs, &spec_seen, "");
+        // The default, on the grid it chooses from the blur.
+        let d = SpectralParams::default();
+        let s = scale_for(&eye, &planes, w, d.scale, d.focal_range).expect("scale");
+        let (t, c, (l, _)) = timed(|| {
+            cpu.spectral_blend(&input, &planes, &eye, d)
+                .expect("spectral")
+        });
+        row(
+            "spectral (default)",
+            t,
+            c,
+            &seen(&l),
+            &format!("grid 1/{s} plus linear detail"),
+        );
+        // Other grids and settings: `SPECTRAL_SCALES="2 3 4:gather 4:foci4 4:views6 ..."`
+        // (the scale, then optionally gather targets, the focal samples or the composite's
+        // light-field views).
+        for v in std::env::var("SPECTRAL_SCALES")
+            .unwrap_or_default()
+            .split_whitespace()
+        {
+            let mut f = v.split(':');
+            let Some(scale) = f.next().and_then(|s| s.parse::<usize>().ok()) else {
+                continue;
+            };
+            let mut p = SpectralParams { scale, ..d };
+            for opt in f {
+                if opt == "gather" {
+                    p.targets = SpectralTargets::Defocus(dioptra_render::DefocusMethod::Gather);
+                } else if let Some(n) = opt.strip_prefix("foci").and_then(|n| n.parse().ok()) {
+                    p.focal_samples = n;
+                } else if let (Some(n), SpectralTargets::Composite(lp)) = (
+                    opt.strip_prefix("views").and_then(|n| n.parse().ok()),
+                    p.targets,
+                ) {
+                    p.targets = SpectralTargets::Composite(LightFieldParams { views: n, ..lp });
+                }
+            }
+            let (t, c, (l, _)) = timed(|| {
+                cpu.spectral_blend(&input, &planes, &eye, p)
+                    .expect("spectral")
+            });
+            row(&format!("spectral, grid 1/{v}"), t, c, &seen(&l), "");
+        }
         // Other solvers for the full spectral: `SPECTRAL_SOLVERS="pg:10 admm:0.3:2 ..."`.
         for v in std::env::var("SPECTRAL_SOLVERS")
             .unwrap_or_default()
@@ -224,7 +276,7 @@ fn main() {
             let p = SpectralParams {
                 solver,
                 iterations: steps,
-                ..SpectralParams::default()
+                ..full
             };
             let (t, c, (l, rep)) = timed(|| {
                 cpu.spectral_blend(&input, &planes, &eye, p)

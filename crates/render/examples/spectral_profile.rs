@@ -3,14 +3,16 @@
 //!
 //! `cargo run --release -p dioptra-render --example spectral_profile -- [WIDTH] [HEIGHT] [RUNS]`
 //! `[FOV_DEG]` (defaults 960 x 1080, 3 runs, 20 degrees over the width; a test scene of
-//! dioptra-sim).
+//! dioptra-sim). First the whole default decomposition (on the grid its `scale` chooses),
+//! then the full-resolution stages.
 
 use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::composite::{composite_stack, step_reach};
 use dioptra_render::gather::gather_smooth;
 use dioptra_render::lightfield::LightFieldPrep;
 use dioptra_render::multifocal::{linear_blend, DEFAULT_PLANES};
-use dioptra_render::spectral::{SpectralPlan, SpectralTargets};
+use dioptra_render::spectral::{spectral_blend, SpectralPlan, SpectralTargets};
+use dioptra_render::spectral_coarse::scale_for;
 use dioptra_render::SpectralParams;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
 use std::time::Instant;
@@ -85,6 +87,27 @@ fn main() {
         return;
     }
     println!("{w} x {h}, {} threads", rayon::current_num_threads());
+    // The whole decomposition as `method = "spectral"` runs it (its defaults: the grid chosen
+    // from the blur), then `SPECTRAL_SCALE=S` (1: full resolution) if set;
+    // `SPECTRAL_PROFILE_WHOLE=N`: only this, N runs.
+    let whole_runs = std::env::var("SPECTRAL_PROFILE_WHOLE")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok());
+    let scale_env = std::env::var("SPECTRAL_SCALE")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok());
+    for scale in [Some(params.scale), scale_env].into_iter().flatten() {
+        let p = SpectralParams { scale, ..params };
+        let s = scale_for(&eye, &planes, w, p.scale, p.focal_range).expect("scale");
+        let (t, (_, rep)) = timed(whole_runs.unwrap_or(runs), || {
+            spectral_blend(&input, &planes, &eye, p).expect("spectral")
+        });
+        report(&format!("spectral_blend, scale {scale} (grid 1/{s})"), t);
+        println!("{rep:?}");
+    }
+    if whole_runs.is_some() {
+        return;
+    }
     let (t, plan) = timed(1, || {
         SpectralPlan::new(&eye, &planes, w, h, params).expect("plan")
     });

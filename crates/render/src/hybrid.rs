@@ -33,6 +33,9 @@ use crate::composite::step_reach;
 use crate::error::{invalid, RenderError};
 use crate::multifocal::{check_planes, linear_blend, Layers};
 use crate::spectral::{SpectralParams, SpectralReport};
+use crate::spectral_coarse::{
+    auto_scale, box_down, down_rgbd, eye_with_pitch, up_taps, widest_blur_px,
+};
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
@@ -101,7 +104,7 @@ impl HybridParams {
         if self.scale > 0 {
             return self.scale;
         }
-        ((max_blur_px / AUTO_MIN_BLUR_PX).floor() as usize).clamp(1, 16)
+        auto_scale(max_blur_px, AUTO_MIN_BLUR_PX)
     }
 }
 
@@ -144,19 +147,6 @@ pub struct HybridStages {
     pub compose: f64,
 }
 
-/// The same eye seeing `width` pixels at `pitch` (tangent units per pixel): a window of a
-/// larger image, or a coarser grid over the same field.
-fn eye_with_pitch(eye: &EyeModel, pitch: f32, width: usize) -> Result<EyeModel, RenderError> {
-    let fov = 2.0 * (0.5 * pitch * width as f32).atan().to_degrees();
-    eye_for(
-        &EyeModel {
-            fov_horizontal_deg: fov,
-            ..*eye
-        },
-        width,
-    )
-}
-
 /// The window's geometry for an image, a gaze and the settings (before any solve).
 pub fn window_for(
     width: usize,
@@ -169,12 +159,7 @@ pub fn window_for(
     let eye = eye_for(eye, width)?;
     let pitch = eye.pixel_pitch_tan();
     let px_per_deg = 1.0f32.to_radians().tan() / pitch;
-    // The widest blur: a plane seen at the farthest focal sample.
-    let (lo, hi) = params.spectral.focal_range;
-    let max_blur = planes
-        .iter()
-        .flat_map(|&p| [eye.coc_px(p, Diopters(lo)), eye.coc_px(p, Diopters(hi))])
-        .fold(0.0f32, f32::max);
+    let max_blur = widest_blur_px(&eye, planes, params.spectral.focal_range);
     let reach = 0.5 * max_blur + 1.0;
     let inner = params.fovea_deg * px_per_deg + reach;
     let outer = inner + params.blend_deg * px_per_deg;
@@ -212,51 +197,17 @@ fn crop_plane(p: &Plane, x0: usize, y0: usize, w: usize, h: usize) -> Result<Pla
     Ok(Plane::from_vec(w, h, out)?)
 }
 
-/// Box average over s x s blocks (the size a multiple of s).
-fn box_down(p: &Plane, s: usize) -> Result<Plane, RenderError> {
-    let (w, h) = (p.width() / s, p.height() / s);
-    let inv = 1.0 / (s * s) as f32;
-    let mut out = vec![0.0f32; w * h];
-    out.par_chunks_mut(w.max(1))
-        .enumerate()
-        .for_each(|(y, row)| {
-            for sy in y * s..(y + 1) * s {
-                for (o, block) in row.iter_mut().zip(p.row(sy).chunks_exact(s)) {
-                    *o += block.iter().sum::<f32>();
-                }
-            }
-            row.iter_mut().for_each(|v| *v *= inv);
-        });
-    Ok(Plane::from_vec(w, h, out)?)
-}
-
-/// Per fine coordinate of `n` upsampled by `s` from `cn` coarse ones: the two coarse indices
-/// and the weight of the second (pixel centres aligned, edges clamped).
-fn up_taps(n: usize, cn: usize, s: usize) -> Vec<(usize, usize, f32)> {
-    (0..n)
-        .map(|x| {
-            let u = ((x as f32 + 0.5) / s as f32 - 0.5).max(0.0);
-            let i = (u.floor() as usize).min(cn.max(1) - 1);
-            (i, (i + 1).min(cn.max(1) - 1), u - i as f32)
-        })
-        .collect()
-}
-
 /// The window of `input`, at 1/s resolution.
 fn window_input(input: &Rgbd, win: &HybridWindow) -> Result<Rgbd, RenderError> {
-    let s = win.scale;
-    let cut = |p: &Plane| -> Result<Plane, RenderError> {
-        let c = crop_plane(p, win.x0, win.y0, win.width, win.height)?;
-        if s == 1 {
-            Ok(c)
-        } else {
-            box_down(&c, s)
-        }
-    };
+    let cut = |p: &Plane| crop_plane(p, win.x0, win.y0, win.width, win.height);
     let [r, g, b] = &input.color.channels;
     let color = RgbImage::from_planes(cut(r)?, cut(g)?, cut(b)?)?;
-    let depth = DepthMap::from_diopters(cut(input.depth.plane())?)?;
-    Ok(Rgbd::new(color, depth)?)
+    let window = Rgbd::new(color, DepthMap::from_diopters(cut(input.depth.plane())?)?)?;
+    if win.scale == 1 {
+        Ok(window)
+    } else {
+        down_rgbd(&window, win.scale)
+    }
 }
 
 /// Whether a blurred depth step reaches within `radius` pixels of `gaze` at any of `foci`
@@ -351,7 +302,15 @@ pub fn hybrid_blend_with(
     let s = win.scale;
     let small = window_input(input, &win)?;
     let seye = eye_with_pitch(&eye, eye.pixel_pitch_tan() * s as f32, small.width())?;
-    let (solved, rep) = spectral(&small, &seye, params.spectral)?;
+    // The window is solved on its own grid (the hybrid's `scale`), not coarsened again.
+    let (solved, rep) = spectral(
+        &small,
+        &seye,
+        SpectralParams {
+            scale: 1,
+            ..params.spectral
+        },
+    )?;
     report.stages_ms.solve = ms(t);
     let t = std::time::Instant::now();
     if solved.images.len() != planes.len()
@@ -496,6 +455,8 @@ mod tests {
             edges_only: false,
             spectral: SpectralParams {
                 targets: SpectralTargets::Defocus(DefocusMethod::Gather),
+                // Full spectral, which the tests hold the hybrid to, at full resolution.
+                scale: 1,
                 ..SpectralParams::default()
             },
         }

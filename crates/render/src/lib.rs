@@ -16,6 +16,8 @@
 //!    eyepiece pre-warp's mesh and its CPU twin;
 //! 5. [`composite`], [`defocus`], [`multifocal`], [`retina`], [`views`], [`foveate`],
 //!    [`foveated`]: methods built on those; [`planner`], which predicts them;
+//!    [`spectral_coarse`]: a decomposition solved on a coarser grid, linear blending's detail
+//!    above it;
 //! 6. [`spectral`]: the spectral decomposition, whose targets are rendered by the methods below;
 //!    [`hybrid`]: spectral near the gaze, linear blending elsewhere;
 //! 7. [`backend`]: the [`Backend`] trait and the types of its methods;
@@ -46,6 +48,7 @@ pub mod planner;
 pub mod pyramid;
 pub mod retina;
 pub mod spectral;
+pub mod spectral_coarse;
 pub mod transfer;
 pub mod views;
 pub mod warp;

@@ -97,6 +97,22 @@ pub(crate) fn check_planes(planes: &[Diopters]) -> Result<(), RenderError> {
     Ok(())
 }
 
+/// Linear blending's split of depth `d` (diopters): the two planes bracketing it and the
+/// weight of the second; outside the planes, all on the nearest.
+#[inline]
+pub(crate) fn linear_weights(planes: &[Diopters], d: f32) -> (usize, usize, f32) {
+    let np = planes.len();
+    let k = planes.partition_point(|p| p.0 <= d);
+    if k == 0 {
+        (0, 0, 0.0)
+    } else if k == np {
+        (k - 1, k - 1, 0.0)
+    } else {
+        let (p0, p1) = (planes[k - 1].0, planes[k].0);
+        (k - 1, k, (d - p0) / (p1 - p0))
+    }
+}
+
 /// Linear blending: each pixel's colour is split between the two planes bracketing its depth,
 /// in proportion to dioptric distance; depths outside the planes go to the nearest plane.
 pub fn linear_blend(input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderError> {
@@ -106,35 +122,46 @@ pub fn linear_blend(input: &Rgbd, planes: &[Diopters]) -> Result<Layers, RenderE
     let depth = input.depth.data();
     // Per plane and channel, filled row by row in parallel.
     let mut data: Vec<Vec<f32>> = (0..np * 3).map(|_| vec![0.0f32; w * h]).collect();
-    let mut rows: Vec<Vec<&mut [f32]>> = (0..h).map(|_| Vec::with_capacity(np * 3)).collect();
+    rows_of(&mut data, w)
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(y, out)| {
+            for (x, &d) in depth[y * w..(y + 1) * w].iter().enumerate() {
+                let i = y * w + x;
+                let (a, b, t) = linear_weights(planes, d);
+                for c in 0..3 {
+                    let v = input.color.channels[c].data()[i];
+                    out[a * 3 + c][x] += v * (1.0 - t);
+                    out[b * 3 + c][x] += v * t;
+                }
+            }
+        });
+    layers_of(planes, w, h, data)
+}
+
+/// Each row (`w` values) of every plane in `data`: `[y][plane]`, for filling the rows in
+/// parallel.
+pub(crate) fn rows_of(data: &mut [Vec<f32>], w: usize) -> Vec<Vec<&mut [f32]>> {
+    let h = data.first().map_or(0, |d| d.len() / w.max(1));
+    let mut rows: Vec<Vec<&mut [f32]>> = (0..h).map(|_| Vec::with_capacity(data.len())).collect();
     for d in data.iter_mut() {
         for (y, r) in d.chunks_mut(w).enumerate() {
             rows[y].push(r);
         }
     }
-    rows.par_iter_mut().enumerate().for_each(|(y, out)| {
-        for (x, &d) in depth[y * w..(y + 1) * w].iter().enumerate() {
-            let i = y * w + x;
-            let k = planes.partition_point(|p| p.0 <= d);
-            let (a, b, t) = if k == 0 {
-                (0, 0, 0.0)
-            } else if k == np {
-                (k - 1, k - 1, 0.0)
-            } else {
-                let (p0, p1) = (planes[k - 1].0, planes[k].0);
-                (k - 1, k, (d - p0) / (p1 - p0))
-            };
-            for c in 0..3 {
-                let v = input.color.channels[c].data()[i];
-                out[a * 3 + c][x] += v * (1.0 - t);
-                out[b * 3 + c][x] += v * t;
-            }
-        }
-    });
-    drop(rows);
+    rows
+}
+
+/// Layers on `planes` from `w` x `h` planes `[plane * 3 + channel]`.
+pub(crate) fn layers_of(
+    planes: &[Diopters],
+    w: usize,
+    h: usize,
+    data: Vec<Vec<f32>>,
+) -> Result<Layers, RenderError> {
     let mut it = data.into_iter();
-    let mut images = Vec::with_capacity(np);
-    for _ in 0..np {
+    let mut images = Vec::with_capacity(planes.len());
+    for _ in 0..planes.len() {
         let mut next = || Plane::from_vec(w, h, it.next().unwrap_or_default());
         images.push(RgbImage::from_planes(next()?, next()?, next()?)?);
     }

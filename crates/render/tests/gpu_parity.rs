@@ -13,6 +13,7 @@ use dioptra_render::metrics::disk_mask;
 use dioptra_render::multifocal::{linspace, Layers, DEFAULT_PLANES};
 use dioptra_render::retina::LfView;
 use dioptra_render::spectral::{SpectralPlan, SpectralReport, SpectralSolver, SpectralTargets};
+use dioptra_render::spectral_coarse::scale_for;
 use dioptra_render::views::RgbdView;
 use dioptra_render::{
     Backend, Cpu, DefocusMethod, Gpu, GpuError, LightFieldParams, OptimizeParams, RenderError,
@@ -750,10 +751,13 @@ fn spectral_blend_matches_cpu() {
                 (SpectralSolver::ProjectedGradient, 5),
                 (SpectralSolver::Admm { rho: 0.3 }, 3),
             ] {
+                // Full resolution: the FFT grids above (the coarse grid is checked in
+                // spectral_defaults_match_cpu).
                 let params = SpectralParams {
                     targets,
                     iterations,
                     solver,
+                    scale: 1,
                     ..SpectralParams::default()
                 };
                 let (cl, cr) = Cpu.spectral_blend(input, &planes, eye, params).unwrap();
@@ -793,7 +797,11 @@ fn spectral_defaults_match_cpu() {
         ..EyeModel::default()
     };
     let input = scene_rgbd(96);
-    let params = SpectralParams::default();
+    // At full resolution (this eye's blur would have the default solve a 1/2 grid: below).
+    let params = SpectralParams {
+        scale: 1,
+        ..SpectralParams::default()
+    };
     let SpectralTargets::Composite(lf) = params.targets else {
         panic!(
             "the default targets are the composite: {:?}",
@@ -865,6 +873,25 @@ fn spectral_defaults_match_cpu() {
     eprintln!("spectral defaults on a slanted plane: max |gpu - cpu| = {max:e}; {gr:?}");
     assert!(max < 1e-3, "{max}");
     same_report(&cr, &gr, "defaults on a slanted plane");
+    // The default's own grid (1/2 here, chosen from the blur) plus linear detail: the same
+    // on both, kept in GPU memory too.
+    let coarse = SpectralParams::default();
+    assert_eq!(
+        scale_for(&eye, &planes, w, coarse.scale, coarse.focal_range).unwrap(),
+        2
+    );
+    let (cl, cr) = Cpu.spectral_blend(&slanted, &planes, &eye, coarse).unwrap();
+    let (gl, gr) = g.spectral_blend(&slanted, &planes, &eye, coarse).unwrap();
+    let max = layers_diff(&cl, &gl);
+    eprintln!("spectral defaults on a 1/2 grid: max |gpu - cpu| = {max:e}; {gr:?}");
+    assert!(max < 1e-3, "{max}");
+    same_report(&cr, &gr, "defaults on a 1/2 grid");
+    let (kept, _) = g
+        .spectral_blend_on_gpu(&slanted, &planes, &eye, coarse)
+        .unwrap();
+    for (k, img) in kept.iter().zip(&gl.images) {
+        assert_eq!(&k.read().unwrap(), img);
+    }
 }
 
 /// The gaze-contingent hybrid: the window's spectral solve on the GPU, the rest as the CPU's.

@@ -994,6 +994,24 @@ pub(super) fn synthesize_light_field(
     Ok((out, total))
 }
 
+/// Host images in GPU memory, each its own buffer of three packed planes, one submission.
+pub(super) fn upload_images(ctx: &Arc<GpuContext>, images: &[RgbImage]) -> Out<Vec<GpuImage>> {
+    let mut f = Frame::new(ctx)?;
+    let bufs = images
+        .iter()
+        .map(|img| f.upload("image", &planar(img)))
+        .collect::<Result<Vec<_>, _>>()?;
+    let (_, s) = f.finish()?;
+    let out = bufs
+        .into_iter()
+        .zip(images)
+        .map(|(buf, img)| {
+            GpuImage::new(ctx, buf, ImageLayout::packed(img.width(), img.height(), 0))
+        })
+        .collect();
+    Ok((out, s))
+}
+
 /// `input` in GPU memory: colour planes and depth in one buffer, one submission.
 pub(super) fn upload_rgbd(ctx: &Arc<GpuContext>, input: &Rgbd) -> Out<GpuRgbd> {
     check_rgbd(input)?;

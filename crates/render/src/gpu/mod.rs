@@ -196,7 +196,28 @@ impl Gpu {
         Ok((out, report))
     }
 
-    /// [`Backend::spectral_blend`], one image per plane, left in GPU memory.
+    /// The grid [`Backend::spectral_blend`] solves `input` on, as the CPU's
+    /// ([`crate::spectral_coarse::scale_for`]).
+    fn spectral_scale(
+        input: &Rgbd,
+        planes: &[Diopters],
+        eye: &EyeModel,
+        params: &SpectralParams,
+    ) -> Result<usize, RenderError> {
+        crate::common::check_rgbd(input)?;
+        crate::multifocal::check_planes(planes)?;
+        params.check()?;
+        crate::spectral_coarse::scale_for(
+            eye,
+            planes,
+            input.width(),
+            params.scale,
+            params.focal_range,
+        )
+    }
+
+    /// [`Backend::spectral_blend`], one image per plane, left in GPU memory (solved on a
+    /// coarser grid, the layers are composed on the host and uploaded).
     pub fn spectral_blend_on_gpu(
         &self,
         input: &Rgbd,
@@ -204,6 +225,16 @@ impl Gpu {
         eye: &EyeModel,
         params: SpectralParams,
     ) -> Result<(Vec<GpuImage>, SpectralReport), RenderError> {
+        if Self::spectral_scale(input, planes, eye, &params)? > 1 {
+            let (layers, report) = self.spectral_blend(input, planes, eye, params)?;
+            let (images, s) = kernels::upload_images(&self.ctx, &layers.images)?;
+            self.record(s);
+            let images = images
+                .into_iter()
+                .map(|i| i.counted_by(&self.images_read_back))
+                .collect();
+            return Ok((images, report));
+        }
         let (out, report) = self.spectral_to(
             input,
             planes,
@@ -331,6 +362,13 @@ impl Backend for Gpu {
         eye: &EyeModel,
         params: SpectralParams,
     ) -> Result<(Layers, SpectralReport), RenderError> {
+        let s = Self::spectral_scale(input, planes, eye, &params)?;
+        let params = SpectralParams { scale: 1, ..params };
+        if s > 1 {
+            return crate::spectral_coarse::coarse_blend_with(input, planes, eye, s, |small, e| {
+                self.spectral_blend(small, planes, e, params)
+            });
+        }
         let (images, report) = self.spectral_to(
             input,
             planes,
