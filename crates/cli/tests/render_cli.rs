@@ -143,6 +143,8 @@ fn scene_render_metrics_round_trip() {
         args.extend_from_slice(extra);
         let (ok, text) = on_scene(&dir, &args);
         assert!(ok && text.contains("spectral decomposition"), "{text}");
+        // At 32 px the blur is small: the default solves the image's own grid.
+        assert!(text.contains("full resolution"), "{text}");
         for p in ["0.20", "0.80", "1.40", "2.00"] {
             assert!(
                 Path::new(&format!("{out}/layer_{p}D.exr")).exists(),
@@ -163,6 +165,34 @@ fn scene_render_metrics_round_trip() {
         ],
     );
     assert!(!ok && text.contains("prior"), "{text}");
+    // A coarser grid asked for says so; one beyond the largest divisor is refused naming --scale.
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "decompose",
+            "--method",
+            "spectral",
+            "--scale",
+            "2",
+            "--out",
+            &d("s2"),
+        ],
+    );
+    assert!(ok && text.contains("1/2 grid"), "{text}");
+    assert!(Path::new(&d("s2/layer_0.20D.exr")).exists(), "{text}");
+    let (ok, text) = on_scene(
+        &dir,
+        &[
+            "decompose",
+            "--method",
+            "spectral",
+            "--scale",
+            "17",
+            "--out",
+            &d("bad"),
+        ],
+    );
+    assert!(!ok && text.contains("--scale 17"), "{text}");
 
     // The gaze-contingent hybrid (issue 54): the window around the gaze is solved, or the
     // frame is linear blending where no depth step reaches the fovea; either way it says
