@@ -150,9 +150,9 @@ impl FrameWide {
             for &d in &depth[y * w..(y + 1) * w] {
                 histogram.add(d);
             }
-            if y + 1 < h {
+            if let Some(rows) = colour_rows(input, y) {
                 for x in 0..w.saturating_sub(1) {
-                    gradient = (gradient.0 + colour_gradient(input, x, y), gradient.1 + 3);
+                    gradient = (gradient.0 + colour_gradient(&rows, x), gradient.1 + 3);
                 }
             }
         }
@@ -172,15 +172,19 @@ impl FrameWide {
     }
 }
 
-/// The squared forward differences (x and y) of `input`'s colour at `(x, y)`, summed over the
-/// channels: the pixel must have a right and a lower neighbour.
-fn colour_gradient(input: &Rgbd, x: usize, y: usize) -> f64 {
-    input
-        .color
-        .channels
-        .iter()
-        .map(|c| {
-            let (row, below) = (c.row(y), c.row(y + 1));
+/// Row `y` and the next of each colour channel of `input` (`None` on the last row).
+type ColourRows<'a> = [(&'a [f32], &'a [f32]); 3];
+
+fn colour_rows(input: &Rgbd, y: usize) -> Option<ColourRows<'_>> {
+    let c = &input.color.channels;
+    (y + 1 < input.height()).then(|| [0, 1, 2].map(|k| (c[k].row(y), c[k].row(y + 1))))
+}
+
+/// The squared forward differences (x and y) of the colour at column `x` of `rows`, summed
+/// over the channels: the pixel must have a right neighbour.
+fn colour_gradient(rows: &ColourRows<'_>, x: usize) -> f64 {
+    rows.iter()
+        .map(|(row, below)| {
             let v = row[x];
             let (gx, gy) = (row[x + 1] - v, below[x] - v);
             f64::from(gx * gx + gy * gy)
@@ -272,6 +276,7 @@ impl FrameStats {
         let (mut rlo, mut rhi) = (f32::INFINITY, f32::NEG_INFINITY);
         let mut region_g = (0.0f64, 0u64);
         for y in near(gaze[1], h, fovea + REACH_CAP_PX) {
+            let rows = colour_rows(input, y);
             for x in near(gaze[0], w, fovea + REACH_CAP_PX) {
                 let d = depth[y * w + x];
                 if !d.is_finite() {
@@ -286,8 +291,8 @@ impl FrameStats {
                 };
                 if r2 <= fovea * fovea || (d >= farthest_in_fovea && within_reach()) {
                     region_histogram.add(d);
-                    if y + 1 < h && x + 1 < w {
-                        region_g = (region_g.0 + colour_gradient(input, x, y), region_g.1 + 3);
+                    if let (Some(rows), true) = (&rows, x + 1 < w) {
+                        region_g = (region_g.0 + colour_gradient(rows, x), region_g.1 + 3);
                     }
                     rlo = rlo.min(d);
                     rhi = rhi.max(d);
