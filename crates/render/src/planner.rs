@@ -117,6 +117,81 @@ fn fovea_px(eye: &EyeModel, radius_deg: f32) -> f32 {
 /// Blur radius beyond which the widened region stops growing, pixels.
 const REACH_CAP_PX: f32 = 48.0;
 
+/// What [`FrameStats`] takes from the whole frame: it depends on the frame alone (not the
+/// gaze, the focus or the fovea), so a rig computes it once per content frame and eye and
+/// gives it to [`FrameStats::around`] for each render of that frame.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FrameWide {
+    width: usize,
+    height: usize,
+    /// The largest finite depth (0 D for none): the histograms' span.
+    dmax: f32,
+    /// The smallest and largest depth (`None`: an empty frame).
+    range: Option<(f32, f32)>,
+    /// Depths of the whole frame.
+    histogram: DepthHistogram,
+    /// The squared forward differences of the colour summed over the frame, and how many.
+    gradient: (f64, u64),
+}
+
+impl FrameWide {
+    /// The whole-frame statistics of `input`.
+    pub fn of(input: &Rgbd) -> FrameWide {
+        let (w, h) = (input.width(), input.height());
+        let depth = input.depth.data();
+        let dmax = depth
+            .iter()
+            .copied()
+            .filter(|d| d.is_finite())
+            .fold(0.0f32, f32::max);
+        let mut histogram = DepthHistogram::new(dmax);
+        let mut gradient = (0.0f64, 0u64);
+        for y in 0..h {
+            for &d in &depth[y * w..(y + 1) * w] {
+                histogram.add(d);
+            }
+            if let Some(rows) = colour_rows(input, y) {
+                for x in 0..w.saturating_sub(1) {
+                    gradient = (gradient.0 + colour_gradient(&rows, x), gradient.1 + 3);
+                }
+            }
+        }
+        FrameWide {
+            width: w,
+            height: h,
+            dmax,
+            range: input.depth.range().map(|(a, b)| (a.0, b.0)),
+            histogram,
+            gradient,
+        }
+    }
+
+    /// Whether these are `input`'s statistics as far as its size tells.
+    fn fits(&self, input: &Rgbd) -> bool {
+        (self.width, self.height) == (input.width(), input.height())
+    }
+}
+
+/// Row `y` and the next of each colour channel of `input` (`None` on the last row).
+type ColourRows<'a> = [(&'a [f32], &'a [f32]); 3];
+
+fn colour_rows(input: &Rgbd, y: usize) -> Option<ColourRows<'_>> {
+    let c = &input.color.channels;
+    (y + 1 < input.height()).then(|| [0, 1, 2].map(|k| (c[k].row(y), c[k].row(y + 1))))
+}
+
+/// The squared forward differences (x and y) of the colour at column `x` of `rows`, summed
+/// over the channels: the pixel must have a right neighbour.
+fn colour_gradient(rows: &ColourRows<'_>, x: usize) -> f64 {
+    rows.iter()
+        .map(|(row, below)| {
+            let v = row[x];
+            let (gx, gy) = (row[x + 1] - v, below[x] - v);
+            f64::from(gx * gx + gy * gy)
+        })
+        .sum::<f64>()
+}
+
 impl FrameStats {
     /// The statistics of `input` for a viewer looking at `gaze` (pixels) focused at `focus`,
     /// the fovea [`FOVEA_RADIUS_DEG`] around the gaze.
@@ -133,25 +208,46 @@ impl FrameStats {
         focus: Diopters,
         eye: &EyeModel,
     ) -> FrameStats {
+        Self::around(
+            &FrameWide::of(input),
+            input,
+            gaze,
+            fovea_radius_deg,
+            focus,
+            eye,
+        )
+    }
+
+    /// [`FrameStats::from_rgbd_around`] from `input`'s whole-frame statistics `wide` (kept
+    /// from an earlier call on the same frame; recomputed if they are not of its size): only
+    /// the pixels near the gaze are read.
+    pub fn around(
+        wide: &FrameWide,
+        input: &Rgbd,
+        gaze: [f32; 2],
+        fovea_radius_deg: f32,
+        focus: Diopters,
+        eye: &EyeModel,
+    ) -> FrameStats {
+        if !wide.fits(input) {
+            return Self::around(
+                &FrameWide::of(input),
+                input,
+                gaze,
+                fovea_radius_deg,
+                focus,
+                eye,
+            );
+        }
         let (w, h) = (input.width(), input.height());
         let eye = eye.with_width(w.min(u32::MAX as usize) as u32);
         let depth = input.depth.data();
-        let dmax = depth
-            .iter()
-            .copied()
-            .filter(|d| d.is_finite())
-            .fold(0.0f32, f32::max);
-        let (lo, hi) = input
-            .depth
-            .range()
-            .map(|(a, b)| (a.0, b.0))
-            .unwrap_or((focus.0, focus.0));
+        let (lo, hi) = wide.range.unwrap_or((focus.0, focus.0));
         let frame_coc_px = eye
             .coc_px(Diopters(lo), focus)
             .max(eye.coc_px(Diopters(hi), focus));
         let fovea = fovea_px(&eye, fovea_radius_deg);
-        let mut frame_histogram = DepthHistogram::new(dmax);
-        let mut region_histogram = DepthHistogram::new(dmax);
+        let mut region_histogram = DepthHistogram::new(wide.dmax);
         let dist2 = |x: usize, y: usize| {
             let dx = x as f32 + 0.5 - gaze[0];
             let dy = y as f32 + 0.5 - gaze[1];
@@ -176,36 +272,14 @@ impl FrameStats {
             }
         }
         // A pixel joins the region within its blur's reach of the fovea, at most
-        // REACH_CAP_PX beyond it: only these rows and columns are asked.
-        let (region_rows, region_cols) = (
-            near(gaze[1], h, fovea + REACH_CAP_PX),
-            near(gaze[0], w, fovea + REACH_CAP_PX),
-        );
+        // REACH_CAP_PX beyond it: only these rows and columns are read.
         let (mut rlo, mut rhi) = (f32::INFINITY, f32::NEG_INFINITY);
-        let channels = &input.color.channels;
-        let (mut frame_g, mut region_g) = ((0.0f64, 0u64), (0.0f64, 0u64));
-        for y in 0..h {
-            let depth_row = &depth[y * w..(y + 1) * w];
-            // This row and the next of each channel: the colour's forward differences.
-            let rows = (y + 1 < h)
-                .then(|| [0, 1, 2].map(|c| (channels[c].row(y), channels[c].row(y + 1))));
-            for (x, &d) in depth_row.iter().enumerate() {
-                frame_histogram.add(d);
-                // Squared forward differences of the colour, summed over x, y and the
-                // channels (None on the last row and column).
-                let g = rows.as_ref().filter(|_| x + 1 < w).map(|rows| {
-                    rows.iter()
-                        .map(|(row, below)| {
-                            let v = row[x];
-                            let (gx, gy) = (row[x + 1] - v, below[x] - v);
-                            f64::from(gx * gx + gy * gy)
-                        })
-                        .sum::<f64>()
-                });
-                if let Some(g) = g {
-                    frame_g = (frame_g.0 + g, frame_g.1 + 3);
-                }
-                if !d.is_finite() || !region_rows.contains(&y) || !region_cols.contains(&x) {
+        let mut region_g = (0.0f64, 0u64);
+        for y in near(gaze[1], h, fovea + REACH_CAP_PX) {
+            let rows = colour_rows(input, y);
+            for x in near(gaze[0], w, fovea + REACH_CAP_PX) {
+                let d = depth[y * w + x];
+                if !d.is_finite() {
                     continue;
                 }
                 // Outside the fovea, a pixel matters when its blur disk reaches into the
@@ -217,8 +291,8 @@ impl FrameStats {
                 };
                 if r2 <= fovea * fovea || (d >= farthest_in_fovea && within_reach()) {
                     region_histogram.add(d);
-                    if let Some(g) = g {
-                        region_g = (region_g.0 + g, region_g.1 + 3);
+                    if let (Some(rows), true) = (&rows, x + 1 < w) {
+                        region_g = (region_g.0 + colour_gradient(rows, x), region_g.1 + 3);
                     }
                     rlo = rlo.min(d);
                     rhi = rhi.max(d);
@@ -228,12 +302,12 @@ impl FrameStats {
         if rlo > rhi {
             // A gaze off the image: the region is empty; judge by the whole frame.
             (rlo, rhi) = (lo, hi);
-            region_histogram = frame_histogram.clone();
-            region_g = frame_g;
+            region_histogram = wide.histogram.clone();
+            region_g = wide.gradient;
         }
         if region_g.1 == 0 {
             // A region of one row or column: the frame's texture stands in.
-            region_g = frame_g;
+            region_g = wide.gradient;
         }
         let region_gradient = (region_g.0 / region_g.1.max(1) as f64) as f32;
         let region_coc_px = eye
@@ -246,7 +320,7 @@ impl FrameStats {
             gaze,
             focus,
             eye,
-            frame_histogram,
+            frame_histogram: wide.histogram.clone(),
             region_histogram,
             region_range: (Diopters(rhi), Diopters(rlo)),
             region_coc_px,
@@ -1256,4 +1330,60 @@ pub fn predict_frame_cost(spec: &FrameSpec) -> Result<FrameCost, RenderError> {
             worst_focus.0
         ),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dioptra_core::{DepthMap, Plane, RgbImage};
+
+    /// A `w` x `h` frame: a texture over a depth step (near left, far right) with a ramp.
+    fn frame(w: usize, h: usize) -> Rgbd {
+        let plane = |f: &dyn Fn(usize, usize) -> f32| {
+            Plane::from_vec(w, h, (0..w * h).map(|i| f(i % w, i / w)).collect()).unwrap()
+        };
+        let tex = |k: usize| move |x: usize, y: usize| ((x / 3 + y / 5 + k) % 2) as f32 * 0.4 + 0.1;
+        let color = RgbImage::from_planes(plane(&tex(0)), plane(&tex(1)), plane(&tex(0))).unwrap();
+        let depth = plane(&|x, y| {
+            if x < w / 2 {
+                3.0
+            } else {
+                0.2 + 0.01 * y as f32
+            }
+        });
+        Rgbd::new(color, DepthMap::from_diopters(depth).unwrap()).unwrap()
+    }
+
+    /// One frame's whole-frame statistics serve every gaze, focus and fovea: the statistics
+    /// made from them are those made from the frame alone; statistics of a frame of another
+    /// size are not used.
+    #[test]
+    fn whole_frame_statistics_kept_give_the_statistics_of_any_gaze_and_focus() {
+        let input = frame(120, 90);
+        let eye = EyeModel::default();
+        let wide = FrameWide::of(&input);
+        let other = FrameWide::of(&frame(60, 90));
+        for gaze in [
+            [60.0, 45.0],
+            [0.0, 0.0],
+            [119.5, 89.5],
+            [300.0, -5.0],
+            [f32::NAN, 1.0],
+        ] {
+            for focus in [0.0, 0.5, 3.0] {
+                for fovea in [1.0, FOVEA_RADIUS_DEG] {
+                    let fresh =
+                        FrameStats::from_rgbd_around(&input, gaze, fovea, Diopters(focus), &eye);
+                    for kept in [&wide, &other] {
+                        let st =
+                            FrameStats::around(kept, &input, gaze, fovea, Diopters(focus), &eye);
+                        // Debug, so that a NaN gaze compares equal to itself.
+                        assert_eq!(format!("{st:?}"), format!("{fresh:?}"), "{gaze:?} {focus}");
+                    }
+                }
+            }
+        }
+        assert_eq!(wide.histogram.total(), 120 * 90);
+        assert_eq!(wide.range, Some((0.2, 3.0)));
+    }
 }

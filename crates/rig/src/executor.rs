@@ -295,6 +295,7 @@ pub(crate) async fn run_loop(parts: LoopParts) {
                 }
             }
             Woke::Rendered(done) => {
+                content.rendered(done.took, now);
                 let input = ex.finished(*done, now);
                 engine.step(now, input).unwrap_or_default()
             }

@@ -11,11 +11,20 @@
 //! meanwhile), so a run shows the same frames whatever the machine's load.
 //!
 //! At a panel's size the ray cast can take longer than [`SCENE_UPDATE`]. On the system clock
-//! the worker then casts at the size it can ([`smaller_cast`]: each side divided by up to
+//! the worker then casts at the size it can (from the frame after the first, which is cast
+//! before the loop starts; [`smaller_cast`]: each side divided by up to
 //! [`MAX_CAST_DIVISOR`], the field kept) and scales the frame up to the display's size
 //! (nearest pixel, so no depth is mixed), logs it once per change, and `/status` → `content`
 //! shows `cast_size` and why (`cast_reduced`). On a simulated clock it always casts at full
 //! size (what a run shows does not depend on the machine).
+//!
+//! Nor does it cast frames faster than the rig renders them: on the system clock, when the
+//! recent renders ([`Content::rendered`]) take longer than [`SCENE_UPDATE`], the worker casts
+//! only every [`paced_stride`]-th update (the frames between are skipped, not late), so the
+//! cores go to the renders that show its frames; the first change logged in full, later ones
+//! in a summary at most a minute ([`crate::repeats`]), and `/status` →
+//! `content` shows `update_ms` and why (`update_slowed`). Its frames stay at multiples of
+//! [`SCENE_UPDATE`] of rig time.
 
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -31,6 +40,7 @@ use super::source::Content;
 use crate::display::config::Display;
 use crate::optics::config::Eye;
 use crate::problem::Problem;
+use crate::repeats::{Note, Repeats};
 
 /// The scene's RGB-D is re-rendered this often (rig time).
 pub const SCENE_UPDATE: Duration = Duration::from_millis(50);
@@ -43,6 +53,13 @@ const SAMPLES: usize = 2;
 
 /// The most each side of the cast is divided by when the scene cannot keep up.
 pub const MAX_CAST_DIVISOR: usize = 8;
+
+/// The most [`SCENE_UPDATE`]s between two frames cast when the renders are slow.
+pub const MAX_STRIDE: u64 = 8;
+
+/// The renders whose median time paces the scene ([`paced_stride`]): one slow render (the
+/// first, cold) does not slow it.
+const RENDERS_SEEN: usize = 5;
 
 /// Whether the loop waits for the frame that is due.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -78,6 +95,10 @@ pub struct SceneStatus {
     pub cast_size: [usize; 2],
     /// Why `cast_size` is smaller than the display's; `None`: it is not.
     pub cast_reduced: Option<String>,
+    /// Rig time between two frames cast, ms: [`SCENE_UPDATE`] unless the renders are slower.
+    pub update_ms: f64,
+    /// Why `update_ms` is longer than [`SCENE_UPDATE`]; `None`: it is not.
+    pub update_slowed: Option<String>,
     /// The newest frame failed to render (the next one rendered clears it).
     #[serde(skip)]
     pub failing: bool,
@@ -103,6 +124,11 @@ struct Worker {
     /// The cast's size and why it is smaller than the camera's ([`smaller_cast`]).
     cast_size: [usize; 2],
     cast_reduced: Option<String>,
+    /// Updates between two frames cast ([`paced_stride`]; 0 counts as 1), the recent render
+    /// times it follows, and why it is more than 1.
+    stride: u64,
+    renders: std::collections::VecDeque<Duration>,
+    update_slowed: Option<String>,
     stop: bool,
     /// The worker thread has ended (stopped, or its render panicked).
     ended: bool,
@@ -127,6 +153,8 @@ pub struct AnimatedScene {
     shared: Arc<Shared>,
     on_show: Mutex<OnShow>,
     polled: Mutex<Polled>,
+    /// The changes of the scene's pace, for the log.
+    pace_log: Mutex<Repeats>,
 }
 
 /// What the loop has taken up ([`Content::poll`]).
@@ -294,6 +322,31 @@ impl Drop for EndGuard {
     }
 }
 
+impl Worker {
+    /// Rig time between two frames cast.
+    fn step(&self) -> Duration {
+        SCENE_UPDATE * self.stride.max(1) as u32
+    }
+}
+
+/// The updates between two frames cast (`stride` now) when the recent renders' median time is
+/// `median`: that many [`SCENE_UPDATE`]s rounded up, at most [`MAX_STRIDE`]. It grows as soon
+/// as the median needs it and shrinks only once the median would fit 80 % of the shorter
+/// stride, so a render time near a multiple of the update does not make it flip.
+pub fn paced_stride(stride: u64, median: Duration) -> u64 {
+    let stride = stride.max(1);
+    let updates = |share: f64| {
+        let n = median.as_secs_f64() / (share * SCENE_UPDATE.as_secs_f64());
+        (n.ceil() as u64).clamp(1, MAX_STRIDE)
+    };
+    let wanted = updates(1.0);
+    if wanted > stride {
+        wanted
+    } else {
+        stride.min(updates(0.8))
+    }
+}
+
 impl AnimatedScene {
     /// The scene of `seed` seen through `cam`, rendered at scene time 0; with `animate`, four
     /// of its objects (not the floor plate, its first) move and a worker renders ahead.
@@ -322,14 +375,25 @@ impl AnimatedScene {
         } else {
             Animation::default()
         };
+        let started = Instant::now();
         let first = render(&base, &animation, &cam, Timestamp::ZERO, half_ipd_m)?;
+        let mut worker = Worker {
+            rendered: 1,
+            cast_size: [cam.width, cam.height],
+            ended: animation.is_empty(),
+            ..Worker::default()
+        };
+        // On the system clock the worker starts at the size the first frame's cast says it
+        // keeps up at, not with another full-size cast that the first renders wait behind.
+        let divisor = match pacing {
+            Pacing::RealTime if !animation.is_empty() => smaller_cast(1, started.elapsed()),
+            _ => 1,
+        };
+        if divisor > 1 {
+            note_reduced(&mut worker, &cam, divisor, started.elapsed());
+        }
         let shared = Arc::new(Shared {
-            state: Mutex::new(Worker {
-                rendered: 1,
-                cast_size: [cam.width, cam.height],
-                ended: animation.is_empty(),
-                ..Worker::default()
-            }),
+            state: Mutex::new(worker),
             wake: Condvar::new(),
             rendered: Condvar::new(),
         });
@@ -337,7 +401,7 @@ impl AnimatedScene {
             let (b, a, s) = (base.clone(), animation.clone(), shared.clone());
             std::thread::Builder::new()
                 .name("dioptra-scene".into())
-                .spawn(move || render_ahead(&b, &a, &cam, half_ipd_m, pacing, s))
+                .spawn(move || render_ahead(&b, &a, &cam, half_ipd_m, pacing, divisor, s))
                 .map_err(|e| {
                     RenderError::Input(dioptra_core::InputError::InvalidValue(format!(
                         "cannot start the scene's render thread: {e}"
@@ -365,6 +429,7 @@ impl AnimatedScene {
             pacing,
             shared,
             polled: Mutex::default(),
+            pace_log: Mutex::new(Repeats::new("the procedural scene's pace changed")),
         })
     }
 
@@ -398,8 +463,14 @@ impl AnimatedScene {
         let due = due_at(now);
         let mut on = lock(&self.on_show);
         let mut w = lock(&self.shared.state);
-        if on.time >= due {
-            self.ask(&mut w, on.time + SCENE_UPDATE);
+        // On the system clock the updates between two frames cast (a stride over 1) are
+        // skipped: not due, so not late.
+        let step = match self.pacing {
+            Pacing::RealTime => w.step(),
+            Pacing::Simulated => SCENE_UPDATE,
+        };
+        if on.time + step > due {
+            self.ask(&mut w, on.time + step);
             return None;
         }
         loop {
@@ -418,7 +489,7 @@ impl AnimatedScene {
                     if t < due {
                         count_late(&mut on, due);
                     }
-                    self.ask(&mut w, due + SCENE_UPDATE);
+                    self.ask(&mut w, due + step);
                     return self.take_up(&mut on, t, r, now);
                 }
                 if t <= on.time || t < due {
@@ -498,6 +569,8 @@ impl AnimatedScene {
         st.rendered = w.rendered;
         st.cast_size = w.cast_size;
         st.cast_reduced = w.cast_reduced.clone();
+        st.update_ms = w.step().as_secs_f64() * 1e3;
+        st.update_slowed = w.update_slowed.clone();
         drop(w);
         st.scene_time_ms = on.time.0 as f64 / 1e6;
         st.newest_age_ms = Some(on.since.elapsed().as_secs_f64() * 1e3);
@@ -547,6 +620,46 @@ impl Content for AnimatedScene {
             views: None,
         })
     }
+    fn rendered(&self, took: Duration, now: Timestamp) {
+        if self.pacing == Pacing::Simulated || self.animation.is_empty() {
+            return;
+        }
+        let mut w = lock(&self.shared.state);
+        if w.renders.len() == RENDERS_SEEN {
+            w.renders.pop_front();
+        }
+        w.renders.push_back(took);
+        if w.renders.len() < RENDERS_SEEN {
+            return;
+        }
+        let mut sorted: Vec<Duration> = w.renders.iter().copied().collect();
+        sorted.sort_unstable();
+        let median = sorted[sorted.len() / 2];
+        let stride = paced_stride(w.stride, median);
+        if stride == w.stride.max(1) {
+            return;
+        }
+        w.stride = stride;
+        let median_ms = median.as_secs_f64() * 1e3;
+        let update_ms = w.step().as_secs_f64() * 1e3;
+        let message = if stride == 1 {
+            w.update_slowed = None;
+            format!("the procedural scene is cast every {update_ms:.0} ms again: the renders take {median_ms:.0} ms")
+        } else {
+            let why = format!(
+                "the renders take {median_ms:.0} ms (the median of the newest {RENDERS_SEEN}), longer than the scene's {:.0} ms update: it is cast every {update_ms:.0} ms (the frames between skipped), so the cores go to the renders; a faster method or backend (method, render.backend), foveation (render.foveation) or a smaller panel (display.width, display.height) brings its rate back",
+                SCENE_UPDATE.as_secs_f64() * 1e3
+            );
+            w.update_slowed = Some(why.clone());
+            why
+        };
+        drop(w);
+        match lock(&self.pace_log).note("pace", &message, now) {
+            Note::First => tracing::warn!("{message}"),
+            Note::Summary(summary) => tracing::warn!("{summary}"),
+            Note::Counted => {}
+        }
+    }
     fn next_due(&self) -> Option<Timestamp> {
         // The update after the latest poll's: a frame late on the system clock is taken up
         // by the polls before the loop's other steps, not by waking again at once.
@@ -583,17 +696,46 @@ impl Drop for AnimatedScene {
     }
 }
 
+/// The camera of a cast at `divisor`: `cam`'s field, each side divided by it.
+fn cast_camera(cam: &Camera, divisor: usize) -> Camera {
+    Camera::new(
+        cam.eye,
+        (cam.width / divisor).max(1),
+        (cam.height / divisor).max(1),
+    )
+}
+
+/// Notes (for `/status`) and logs that the scene is cast at `divisor` because a frame took
+/// `took`.
+fn note_reduced(w: &mut Worker, cam: &Camera, divisor: usize, took: Duration) {
+    let cast_cam = cast_camera(cam, divisor);
+    let why = format!(
+        "the procedural scene cannot keep up at the display's {} x {} (a frame took {:.0} ms against {:.0} ms): it is ray cast at {} x {} and scaled up; a smaller panel (display.width, display.height) or content from files or a stream keeps full size",
+        cam.width,
+        cam.height,
+        took.as_secs_f64() * 1e3,
+        SCENE_UPDATE.as_secs_f64() * 1e3,
+        cast_cam.width,
+        cast_cam.height
+    );
+    tracing::warn!("{why}");
+    w.cast_size = [cast_cam.width, cast_cam.height];
+    w.cast_reduced = Some(why);
+}
+
+/// The worker: casts each frame asked for, at `divisor` (then smaller while it cannot keep up,
+/// on the system clock).
 fn render_ahead(
     base: &Scene,
     a: &Animation,
     cam: &Camera,
     half_ipd_m: Option<f32>,
     pacing: Pacing,
+    mut divisor: usize,
     shared: Arc<Shared>,
 ) {
     let _end = EndGuard(shared.clone());
-    let mut divisor = 1;
-    let mut cast_cam = *cam;
+    let mut cast_cam = cast_camera(cam, divisor);
     loop {
         let t = {
             let mut w = lock(&shared.state);
@@ -619,23 +761,8 @@ fn render_ahead(
             let next = smaller_cast(divisor, took);
             if next != divisor {
                 divisor = next;
-                cast_cam = Camera::new(
-                    cam.eye,
-                    (cam.width / divisor).max(1),
-                    (cam.height / divisor).max(1),
-                );
-                let why = format!(
-                    "the procedural scene cannot keep up at the display's {} x {} (a frame took {:.0} ms against {:.0} ms): it is ray cast at {} x {} and scaled up; a smaller panel (display.width, display.height) or content from files or a stream keeps full size",
-                    cam.width,
-                    cam.height,
-                    took.as_secs_f64() * 1e3,
-                    SCENE_UPDATE.as_secs_f64() * 1e3,
-                    cast_cam.width,
-                    cast_cam.height
-                );
-                tracing::warn!("{why}");
-                w.cast_size = [cast_cam.width, cast_cam.height];
-                w.cast_reduced = Some(why);
+                cast_cam = cast_camera(cam, divisor);
+                note_reduced(&mut w, cam, divisor, took);
             }
         }
         w.busy = None;
@@ -734,6 +861,80 @@ mod tests {
         a.wait_rendered();
         assert!(a.frame_at(ms(120)).is_none());
         assert_eq!(a.status().late, 1);
+    }
+
+    #[test]
+    fn the_stride_follows_the_renders_median_time_without_flipping() {
+        let ms = Duration::from_millis;
+        // Renders within an update: every update is cast.
+        assert_eq!(paced_stride(1, ms(30)), 1);
+        assert_eq!(paced_stride(0, ms(50)), 1);
+        // Slower: as many updates as the median takes, rounded up, at most MAX_STRIDE.
+        assert_eq!(paced_stride(1, ms(51)), 2);
+        assert_eq!(paced_stride(1, ms(140)), 3);
+        assert_eq!(paced_stride(2, ms(150)), 3);
+        assert_eq!(paced_stride(1, ms(5000)), MAX_STRIDE);
+        // Shorter only once the median fits 80 % of the shorter stride.
+        assert_eq!(paced_stride(3, ms(110)), 3, "110 ms > 80 % of 2 updates");
+        assert_eq!(paced_stride(3, ms(80)), 2);
+        assert_eq!(paced_stride(3, ms(10)), 1);
+    }
+
+    #[test]
+    fn on_the_system_clock_slow_renders_slow_the_scene_and_the_frames_skipped_are_not_late() {
+        let a = scene(Pacing::RealTime);
+        // A cold first render, then renders of 140 ms: paced by their median, 3 updates.
+        a.rendered(Duration::from_secs(2), ms(0));
+        assert_eq!(
+            a.status().update_ms,
+            50.0,
+            "not paced before {RENDERS_SEEN} renders"
+        );
+        for _ in 1..RENDERS_SEEN {
+            a.rendered(Duration::from_millis(140), ms(0));
+        }
+        let st = a.status();
+        assert_eq!(st.update_ms, 150.0, "{st:?}");
+        let why = st.update_slowed.expect("why the scene is slowed");
+        assert!(
+            why.contains("140 ms") && why.contains("every 150 ms"),
+            "{why}"
+        );
+        // The frame after the first is the one of 150 ms; the polls before it are not late.
+        assert!(a.frame_at(ms(10)).is_none());
+        a.wait_rendered();
+        assert!(a.frame_at(ms(60)).is_none());
+        assert!(a.frame_at(ms(120)).is_none());
+        let (_, arrival) = a.frame_at(ms(155)).expect("the frame of 150 ms");
+        assert_eq!(arrival.arrived, ms(150));
+        a.wait_rendered();
+        assert!(a.frame_at(ms(250)).is_none());
+        let (f, arrival) = a.frame_at(ms(300)).expect("the frame of 300 ms");
+        assert_eq!(arrival.arrived, ms(300));
+        assert_eq!(
+            *f,
+            a.render_at(ms(300)).unwrap(),
+            "frames stay those of their time"
+        );
+        let st = a.status();
+        assert_eq!((st.shown, st.late), (3, 0), "{st:?}");
+        // Fast renders again: every update is cast.
+        for _ in 0..RENDERS_SEEN {
+            a.rendered(Duration::from_millis(20), ms(300));
+        }
+        let st = a.status();
+        assert_eq!((st.update_ms, st.update_slowed), (50.0, None));
+    }
+
+    #[test]
+    fn on_simulated_time_slow_renders_do_not_slow_the_scene() {
+        let a = scene(Pacing::Simulated);
+        for _ in 0..RENDERS_SEEN {
+            a.rendered(Duration::from_millis(400), ms(0));
+        }
+        assert_eq!(a.status().update_ms, 50.0);
+        let (_, arrival) = a.frame_at(ms(50)).expect("the frame of 50 ms");
+        assert_eq!(arrival.arrived, ms(50));
     }
 
     #[test]

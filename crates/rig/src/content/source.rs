@@ -26,6 +26,10 @@ pub trait Content: Send + Sync + 'static {
     fn arrivals(&self) -> Option<Arc<tokio::sync::Notify>> {
         None
     }
+    /// A render of the frame on show finished at `now`, taking `took` (both eyes, on the rig's
+    /// clock): a source whose frames cost CPU to make (the procedural scene) makes them no
+    /// faster than they are rendered.
+    fn rendered(&self, _took: std::time::Duration, _now: Timestamp) {}
     /// What `/status` shows under `content`: the source and its counters.
     fn status(&self) -> serde_json::Value {
         serde_json::Value::Null

@@ -33,7 +33,7 @@ use dioptra_render::hybrid::{HybridParams, HybridReport};
 use dioptra_render::lightfield::LightFieldParams;
 use dioptra_render::multifocal::default_focal_samples;
 use dioptra_render::planner::{
-    self, Deadline, FoveationSettings, FrameStats, Planner, Target, TimedPlan,
+    self, Deadline, FoveationSettings, FrameStats, FrameWide, Planner, Target, TimedPlan,
 };
 use dioptra_render::retina::LfView;
 use dioptra_render::views::RgbdView;
@@ -70,6 +70,9 @@ pub struct RgbdRenderer {
     /// Content frames' RGB-D (per content frame and eye) uploaded to the GPU, while the rig
     /// renders there: each uploaded once however many frames show it.
     resident: Mutex<Vec<(FrameKey, GpuRgbd)>>,
+    /// The planner's whole-frame statistics of content frames' RGB-D (per content frame and
+    /// eye, with the RGB-D they are of): computed once however many renders plan on it.
+    frame_wide: Mutex<Vec<KeptFrameWide>>,
     /// Half the interpupillary distance, metres: where each eye's light field is centred.
     half_ipd_m: f32,
     /// `render.foveation`: the pyramid method's (fixed or the planner's) around each eye's
@@ -91,6 +94,9 @@ type CachedPanel = (u64, Option<Side>, RenderMethod, FrameImage);
 
 /// A content frame's number and the eye it is rendered for.
 type FrameKey = (u64, Option<Side>);
+
+/// The planner's whole-frame statistics of the RGB-D of a content frame and eye.
+type KeptFrameWide = (FrameKey, Arc<Rgbd>, Arc<FrameWide>);
 
 /// Multifocal layers one method made from the content frame numbered `frame`, for `eye`.
 struct CachedLayers {
@@ -145,6 +151,7 @@ impl RgbdRenderer {
             panel: Mutex::new(Vec::new()),
             eye_views: Mutex::new(None),
             resident: Mutex::new(Vec::new()),
+            frame_wide: Mutex::new(Vec::new()),
             half_ipd_m: eye.ipd_mm * 0.5e-3,
             foveation: render.foveation.settings(),
             deadline: eye_deadline(display),
@@ -274,7 +281,7 @@ impl RgbdRenderer {
         if ask.auto && ask.mode == Mode::Varifocal {
             let plan_eye = if synthesised { None } else { frame.eye };
             let plan = self.plan(
-                input,
+                frame,
                 self.eye_gaze(input, ask.gaze, plan_eye, focus),
                 focus,
             );
@@ -540,12 +547,37 @@ impl RgbdRenderer {
     /// The planner's setting for a varifocal frame: the cheapest predicted to meet the
     /// accuracy target in the fovea (the rig's foveation radius, else the planner's) within
     /// the frame's time budget, the rig's foveation offered around `gaze`.
-    fn plan(&self, input: &Rgbd, gaze: [f32; 2], focus: Diopters) -> TimedPlan {
+    fn plan(&self, frame: &ContentFrame, gaze: [f32; 2], focus: Diopters) -> TimedPlan {
         let fovea_deg = self
             .foveation
             .map_or(planner::FOVEA_RADIUS_DEG, |f| f.radius_deg);
-        let stats = FrameStats::from_rgbd_around(input, gaze, fovea_deg, focus, &self.eye);
+        let stats = FrameStats::around(
+            &self.frame_wide(frame),
+            &frame.rgbd,
+            gaze,
+            fovea_deg,
+            focus,
+            &self.eye,
+        );
         Planner.plan_within(&stats, &Target::default(), &self.deadline, self.foveation)
+    }
+
+    /// The planner's whole-frame statistics of `frame`'s RGB-D: computed on its first plan,
+    /// then kept while it is the newest content frame.
+    fn frame_wide(&self, frame: &ContentFrame) -> Arc<FrameWide> {
+        let key = (frame.number, frame.eye);
+        let kept = lock(&self.frame_wide)
+            .iter()
+            .find(|(k, rgbd, _)| *k == key && Arc::ptr_eq(rgbd, &frame.rgbd))
+            .map(|(_, _, wide)| wide.clone());
+        if let Some(wide) = kept {
+            return wide;
+        }
+        let wide = Arc::new(FrameWide::of(&frame.rgbd));
+        if self.keeps(frame) {
+            lock(&self.frame_wide).push((key, frame.rgbd.clone(), wide.clone()));
+        }
+        wide
     }
 
     /// Where `eye`'s gaze falls on its image (pixels), from the gaze on the one image (the
@@ -580,6 +612,7 @@ impl RgbdRenderer {
             lock(&self.layers).retain(|l| l.frame >= n);
             lock(&self.panel).retain(|(k, _, _, _)| *k >= n);
             lock(&self.resident).retain(|((k, _), _)| *k >= n);
+            lock(&self.frame_wide).retain(|((k, _), _, _)| *k >= n);
         }
     }
 
@@ -615,7 +648,7 @@ impl RgbdRenderer {
         let input = content.rgbd.as_ref();
         let gaze = self.eye_gaze(input, gaze, content.eye, focus);
         if auto && mode == Mode::Varifocal {
-            let plan = self.plan(input, gaze, focus);
+            let plan = self.plan(content, gaze, focus);
             let image = match plan.setting.method() {
                 None => FrameImage::Host(input.color.clone()),
                 Some(m) => self.defocus(input, focus, m)?,
@@ -1543,6 +1576,44 @@ mod tests {
             "a cheaper setting under the short budget: {short:?} against {long:?}"
         );
         assert!(short.why.contains("budget"), "{short:?}");
+    }
+
+    /// The planner's whole-frame statistics are computed once per content frame and eye and
+    /// kept while the frame is the newest: each eye's, and a newer frame's, are their own.
+    #[test]
+    fn the_planners_whole_frame_statistics_are_kept_per_content_frame_and_eye() {
+        let r = renderer(64, 60.0, "{ radius_deg = 5.0 }");
+        let frame = step_frame(64);
+        let render = |f: &ContentFrame, focus: f32| {
+            let g = Some([32.0, 32.0]);
+            let m = Method(RenderMethod::Gather);
+            r.render_frame(f, Mode::Varifocal, m, Diopters(focus), g, true)
+                .unwrap()
+        };
+        render(&frame, 0.25);
+        let first = r.frame_wide(&frame);
+        render(&frame, 2.0);
+        assert!(Arc::ptr_eq(&first, &r.frame_wide(&frame)), "kept");
+        assert_eq!(*first, FrameWide::of(&frame.rgbd));
+        // The right eye's view of the same content frame (nearer): its own statistics.
+        let nearer = {
+            let mut rgbd = frame.rgbd.as_ref().clone();
+            let d = rgbd.depth.data().iter().map(|d| d + 0.5).collect();
+            rgbd.depth = dioptra_core::DepthMap::from_diopters(
+                dioptra_core::Plane::from_vec(64, 64, d).unwrap(),
+            )
+            .unwrap();
+            Arc::new(rgbd)
+        };
+        let right = frame.for_eye(Side::Right, nearer);
+        render(&right, 0.25);
+        assert_eq!(*r.frame_wide(&right), FrameWide::of(&right.rgbd));
+        assert_ne!(*r.frame_wide(&right), *first);
+        // A newer content frame: the older frame's are dropped.
+        let newer = ContentFrame::new(2, frame.rgbd.clone());
+        render(&newer, 0.25);
+        assert_eq!(lock(&r.frame_wide).len(), 1);
+        assert!(lock(&r.frame_wide).iter().all(|((n, _), _, _)| *n == 2));
     }
 
     /// Each eye's gaze is where the fixation point (the cyclopean gaze at the focus's
