@@ -346,6 +346,7 @@ impl RigConfig {
         self.eye.check()?;
         self.check_foveation()?;
         self.render.hybrid.check(self.eye.fov_deg)?;
+        self.render.spectral.check()?;
         self.display.check()?;
         self.check_optics_per_lens()?;
         self.check_eye_images()?;

@@ -1284,6 +1284,43 @@ fn hybrid_is_a_multifocal_method_with_its_settings_under_render_hybrid() {
     assert!(e.to_string().contains("varifocal"), "{e}");
 }
 
+/// `[render.spectral]`: the grid the spectral decomposition solves on; errors name the key.
+#[test]
+fn spectral_takes_its_grid_under_render_spectral() {
+    let multifocal = |spectral: &str| {
+        SIM_RIG
+            .replace("mode = \"varifocal\"", "mode = \"multifocal\"")
+            .replace("method = \"gather\"", "method = \"spectral\"")
+            + &format!("\n[render]\nspectral = {spectral}\n")
+    };
+    let d = RigConfig::parse(&multifocal("{}")).unwrap();
+    assert_eq!(
+        d.render.spectral.params(),
+        dioptra_render::SpectralParams::default()
+    );
+    let full = RigConfig::parse(&multifocal("{ scale = 1 }")).unwrap();
+    let p = full.render.spectral.params();
+    assert_eq!(p.scale, 1);
+    assert_eq!(
+        dioptra_render::SpectralParams { scale: 0, ..p },
+        dioptra_render::SpectralParams::default()
+    );
+    for (spectral, says) in [
+        ("{ scale = 17 }", "up to 16"),
+        ("{ scale = -1 }", "expected u32"),
+        ("{ grid = 2 }", "scale"),
+    ] {
+        let e = err(&multifocal(spectral));
+        let key = if spectral.contains("grid") {
+            "render.spectral.grid"
+        } else {
+            "render.spectral.scale"
+        };
+        assert_eq!(e.key(), key, "{spectral}: {e}");
+        assert!(e.to_string().contains(says), "{spectral}: {e}");
+    }
+}
+
 #[test]
 fn pyramid_is_a_varifocal_method() {
     let c =

@@ -1,5 +1,5 @@
 //! `[render]`: where frames are rendered (CPU or GPU, which adapter), the network's weights,
-//! the foveation of the varifocal render and the multifocal hybrid's settings; its defaults
+//! the foveation of the varifocal render and the multifocal hybrid's and spectral settings; its defaults
 //! and checks.
 
 use std::path::PathBuf;
@@ -35,6 +35,47 @@ pub struct Render {
     /// blending elsewhere, e.g. `{ fovea_deg = 2.5, blend_deg = 0.5, scale = 0 }`.
     #[serde(default)]
     pub hybrid: HybridSetting,
+    /// The spectral decomposition's settings (`method = "spectral"`), e.g. `{ scale = 1 }`.
+    #[serde(default)]
+    pub spectral: SpectralSetting,
+}
+
+/// `[render.spectral]`: the spectral multifocal decomposition (Mercier et al. 2017).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SpectralSetting {
+    /// The grid it solves on: 1 the image's own pixels (full resolution: about 3 s of CPU a
+    /// frame per eye at 960 x 1080); s > 1 a grid s times coarser plus linear blending's
+    /// detail above it (faster, less exact); 0 (default) chosen from the widest blur: full
+    /// resolution while it is under 10 px, a 1/4 grid at 960 x 1080 over 20 degrees (about
+    /// 160 ms, 1 to 2 dB below full resolution against the truth). At most 16.
+    #[serde(default)]
+    pub scale: u32,
+}
+
+impl SpectralSetting {
+    /// The decomposition's settings: its defaults with this grid.
+    pub fn params(&self) -> dioptra_render::SpectralParams {
+        dioptra_render::SpectralParams {
+            scale: self.scale as usize,
+            ..dioptra_render::SpectralParams::default()
+        }
+    }
+
+    /// The scale is one the decomposition takes.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        let max = dioptra_render::spectral_coarse::MAX_SCALE;
+        if self.scale as usize > max {
+            return Err(invalid(
+                "render.spectral.scale",
+                format!(
+                    "{}: expected 0 (chosen from the blur), 1 (full resolution) or a divisor up to {max}",
+                    self.scale
+                ),
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// `[render.hybrid]`: the gaze-contingent hybrid multifocal decomposition (after Yu et al.

@@ -61,6 +61,8 @@ pub struct RgbdRenderer {
     layers: Mutex<Vec<CachedLayers>>,
     /// `render.hybrid`: the hybrid decomposition's settings (`method = "hybrid"`).
     hybrid: HybridParams,
+    /// `render.spectral`: the spectral decomposition's settings (`method = "spectral"`).
+    spectral: SpectralParams,
     /// The light-field panels, each made from the content frame numbered with it, for the eye
     /// with it (`None`: the one view of a mono layout).
     panel: Mutex<Vec<CachedPanel>>,
@@ -148,6 +150,7 @@ impl RgbdRenderer {
             newest: AtomicU64::new(0),
             layers: Mutex::new(Vec::new()),
             hybrid: render.hybrid.params(),
+            spectral: render.spectral.params(),
             panel: Mutex::new(Vec::new()),
             eye_views: Mutex::new(None),
             resident: Mutex::new(Vec::new()),
@@ -976,10 +979,12 @@ impl RgbdRenderer {
         } else if method.0 == RenderMethod::Refine {
             on_host(self.refine_decompose(input)?)
         } else if method.0 == RenderMethod::Spectral {
-            // Its default settings (dioptra_render::spectral: a composite stack at 6 foci),
-            // the plan built once for the rig's size (on the GPU, its matrices
-            // uploaded once); on the rig's backend, the layers left on the GPU there.
-            let params = SpectralParams::default();
+            // Its default settings (dioptra_render::spectral: a composite stack at 6 foci) on
+            // the grid `render.spectral.scale` asks, the plan built once for that grid (on the
+            // GPU, its matrices uploaded once); on the rig's backend, the layers left on the
+            // GPU there.
+            let params = self.spectral;
+            note = spectral_note(&self.eye, &self.planes, input.width(), params)?;
             self.on_backend("spectral", |gpu| {
                 Ok(match gpu {
                     Some(g) => on_gpu(
@@ -1084,6 +1089,31 @@ impl Renderer for RgbdRenderer {
 /// What `/status` says of a multifocal decomposition other than the hybrid: its method.
 fn method_note(method: Method) -> serde_json::Value {
     serde_json::json!({ "method": method.as_str() })
+}
+
+/// What `/status` says of a spectral decomposition: the grid it was solved on.
+fn spectral_note(
+    eye: &EyeModel,
+    planes: &[Diopters],
+    width: usize,
+    params: SpectralParams,
+) -> Result<serde_json::Value, RenderError> {
+    let grid = dioptra_render::spectral_coarse::scale_for(
+        eye,
+        planes,
+        width,
+        params.scale,
+        params.focal_range,
+    )?;
+    Ok(serde_json::json!({
+        "method": "spectral",
+        "grid": if grid == 1 {
+            "full resolution".to_string()
+        } else {
+            format!("1/{grid}, plus linear blending's detail (render.spectral.scale = 1 for full resolution)")
+        },
+        "scale": grid,
+    }))
 }
 
 /// What `/status` says of a hybrid decomposition: whether the fovea was optimised (a blurred
@@ -1497,6 +1527,31 @@ mod tests {
     use crate::config::{RigConfig, EXAMPLE_SIM_RIG};
     use crate::content::stream::{ColorFormat, DepthKind, FrameDesc};
     use dioptra_core::Timestamp;
+
+    /// `/status` says which grid a spectral decomposition was solved on: the image's own at a
+    /// small image, 1/4 at a 960 px panel over 20 degrees, what `render.spectral.scale` asks
+    /// when set.
+    #[test]
+    fn the_spectral_note_names_its_grid() {
+        let eye = EyeModel::default();
+        let planes: Vec<Diopters> = dioptra_render::multifocal::DEFAULT_PLANES
+            .iter()
+            .map(|&p| Diopters(p))
+            .collect();
+        let auto = SpectralParams::default();
+        let note = |w: usize, p: SpectralParams| spectral_note(&eye, &planes, w, p).unwrap();
+        let small = note(96, auto);
+        assert_eq!(small["grid"], "full resolution", "{small}");
+        assert_eq!(small["scale"], 1);
+        let panel = note(960, auto);
+        assert_eq!(panel["scale"], 4, "{panel}");
+        assert!(panel["grid"]
+            .as_str()
+            .unwrap()
+            .contains("render.spectral.scale = 1"));
+        let full = note(960, SpectralParams { scale: 1, ..auto });
+        assert_eq!(full["grid"], "full resolution", "{full}");
+    }
 
     /// A textured frame of `size` px: the left half at 3 D, the right at 0.25 D (a depth step
     /// through the middle, where the gaze is).
