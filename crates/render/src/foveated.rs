@@ -24,7 +24,7 @@
 
 use crate::common::{check_focus, check_rgbd, eye_for};
 use crate::error::{invalid, RenderError};
-use crate::pyramid::{render_with, Region, Setup};
+use crate::pyramid::{render_into, render_with, Region, Setup};
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
@@ -358,9 +358,16 @@ pub fn foveated(
     check_focus(focus)?;
     let (w, h) = (input.width(), input.height());
     let plan = FoveationPlan::new(w, h, eye, fov)?;
-    // Each layer's input (downsampled from the one before) and its render.
+    // Each layer's input (downsampled from the one before) and its render; layer 0's straight
+    // into the image (black where it is not computed), which the blend then weighs in place.
     let mut inputs: Vec<Rgbd> = Vec::with_capacity(plan.top);
     let mut renders: Vec<Option<RgbImage>> = vec![None; plan.top + 1];
+    let mut image = [
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+    ];
+    let mut fovea = false;
     let range = input.depth.range();
     for layer in &plan.layers {
         while inputs.len() < layer.level {
@@ -374,17 +381,28 @@ pub fn foveated(
         };
         // Every layer's levels from the full image's depth range, as the GPU twin has them.
         let setup = Setup::with_range(src, range, focus, eye)?;
-        renders[layer.level] = Some(render_with(&setup, src, &layer.region)?);
+        if layer.level == 0 {
+            render_into(&setup, src, &layer.region, &mut image);
+            fovea = true;
+        } else {
+            renders[layer.level] = Some(render_with(&setup, src, &layer.region)?);
+        }
     }
-    let image = blend(&plan, &renders)?;
-    Ok(FoveatedImage { image, plan })
+    blend(&plan, fovea, &renders, &mut image);
+    let [r, g, b] = image.map(|v| Plane::from_vec(w, h, v));
+    Ok(FoveatedImage {
+        image: RgbImage::from_planes(r?, g?, b?)?,
+        plan,
+    })
 }
 
-/// Every pixel: the layers with weight there, each read bilinearly, summed. Row by row: the
-/// acuity levels first (the grid's bilinear interpolation through per-column and per-row
-/// tables), then each layer over the columns where it has weight, its two texel rows
-/// interpolated once there and read at each pixel through a per-column table.
-fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage, RenderError> {
+/// Every pixel of `out`: the layers with weight there, each read bilinearly, summed. `out`
+/// holds layer 0's render where `fovea` (`renders[0]` is not read) and is black elsewhere; the
+/// coarser layers are in `renders`. Row by row: the acuity levels first (the grid's bilinear
+/// interpolation through per-column and per-row tables), then layer 0 weighed in place, then
+/// each coarser layer over the columns where it has weight, its two texel rows interpolated
+/// once there and read at each pixel through a per-column table.
+fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &mut [Vec<f32>; 3]) {
     let (w, h) = (plan.width, plan.height);
     let top = plan.top;
     let planes: Vec<Option<[&[f32]; 3]>> = renders
@@ -407,12 +425,21 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
         (i, (i + 1).min(n - 1), u - i as f32)
     };
     let node_cols: Vec<(usize, usize, f32)> = (0..w).map(|x| node_axis(x, gw)).collect();
-    let mut out = [
-        vec![0.0f32; w * h],
-        vec![0.0f32; w * h],
-        vec![0.0f32; w * h],
-    ];
-    let [r_out, g_out, b_out] = &mut out;
+    // Layer k has weight where k < l < k + 1 + BLEND (open at the ends), and its full weight
+    // where neither fade applies (most pixels).
+    let has = |k: usize, l: f32| {
+        let kf = k as f32;
+        (k == 0 || l > kf) && (k == top || l < kf + 1.0 + BLEND)
+    };
+    let weight = |k: usize, l: f32| {
+        let kf = k as f32;
+        if (k == 0 || l >= kf + BLEND) && (k == top || l <= kf + 1.0) {
+            1.0
+        } else {
+            layer_weight(l, k, top)
+        }
+    };
+    let [r_out, g_out, b_out] = out;
     r_out
         .par_chunks_mut(w)
         .zip(g_out.par_chunks_mut(w))
@@ -432,15 +459,40 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
                     t + fy * (u - t)
                 }));
                 let row = [ro, go, bo];
-                for (k, p) in planes.iter().enumerate() {
+                // Layer 0 in place: as a sum from zero of its weight times its read (at scale 1
+                // a pixel's own texel, both interpolations' fractions 0), as the coarser
+                // layers are added; zero where it has no weight.
+                let span0 = if fovea {
+                    let xa = lev.iter().position(|&l| has(0, l)).unwrap_or(w);
+                    (
+                        xa,
+                        w - lev.iter().rev().position(|&l| has(0, l)).unwrap_or(w - xa),
+                    )
+                } else {
+                    (w, w)
+                };
+                for (x, &l) in lev.iter().enumerate() {
+                    let wt = if (span0.0..span0.1).contains(&x) {
+                        weight(0, l)
+                    } else {
+                        0.0
+                    };
+                    for c in 0..3 {
+                        row[c][x] = if wt > 0.0 {
+                            let v = row[c][x];
+                            let texel = v + 0.0 * (v - v);
+                            0.0 + wt * (texel + 0.0 * (texel - texel))
+                        } else {
+                            0.0
+                        };
+                    }
+                }
+                for (k, p) in planes.iter().enumerate().skip(1) {
                     let Some(p) = p else { continue };
-                    // Layer k has weight where k < l < k + 1 + BLEND (open at the ends).
-                    let kf = k as f32;
-                    let has = |l: f32| (k == 0 || l > kf) && (k == top || l < kf + 1.0 + BLEND);
-                    let Some(xa) = lev.iter().position(|&l| has(l)) else {
+                    let Some(xa) = lev.iter().position(|&l| has(k, l)) else {
                         continue;
                     };
-                    let xb = w - lev.iter().rev().position(|&l| has(l)).unwrap_or(0);
+                    let xb = w - lev.iter().rev().position(|&l| has(k, l)).unwrap_or(0);
                     let s = 1usize << k;
                     let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
                     // The layer's row at this pixel row, interpolated between its two texel
@@ -457,12 +509,7 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
                     for (x, (&l, &(x0, x1, fx))) in
                         lev[xa..xb].iter().zip(&columns[k][xa..xb]).enumerate()
                     {
-                        // Weight 1 where neither fade applies (most pixels), else the fades.
-                        let wt = if (k == 0 || l >= kf + BLEND) && (k == top || l <= kf + 1.0) {
-                            1.0
-                        } else {
-                            layer_weight(l, k, top)
-                        };
+                        let wt = weight(k, l);
                         if wt <= 0.0 {
                             continue;
                         }
@@ -474,8 +521,6 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
                 }
             },
         );
-    let [r, g, b] = out.map(|v| Plane::from_vec(w, h, v));
-    Ok(RgbImage::from_planes(r?, g?, b?)?)
 }
 
 /// The two texels of a layer of scale `s` (`n` texels along the axis) that full-resolution

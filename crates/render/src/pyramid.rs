@@ -809,15 +809,17 @@ pub(crate) fn render_with(
         vec![0.0f32; w * h],
         vec![0.0f32; w * h],
     ];
-    let planar = |[r, g, b]: [Vec<f32>; 3]| -> Result<RgbImage, RenderError> {
-        Ok(RgbImage::from_planes(
-            Plane::from_vec(w, h, r)?,
-            Plane::from_vec(w, h, g)?,
-            Plane::from_vec(w, h, b)?,
-        )?)
-    };
+    render_into(setup, input, region, &mut out);
+    let [r, g, b] = out.map(|v| Plane::from_vec(w, h, v));
+    Ok(RgbImage::from_planes(r?, g?, b?)?)
+}
+
+/// [`render_with`] into `out`, three `w` x `h` planes: writes the pixels of `region` and no
+/// others.
+pub(crate) fn render_into(setup: &Setup, input: &Rgbd, region: &Region, out: &mut [Vec<f32>; 3]) {
+    let (w, h) = (setup.w, setup.h);
     let Some(region) = region.clipped(w, h) else {
-        return planar(out);
+        return;
     };
     let px = Pixels::new(setup, input);
     let (blocks, bw) = receiver_blocks(&px, w, h, &region);
@@ -861,8 +863,7 @@ pub(crate) fn render_with(
         });
         levels.push(imgs);
     }
-    compose(setup, input, &px, &region, &levels, &mut out);
-    planar(out)
+    compose(setup, input, &px, &region, &levels, out);
 }
 
 /// Receivers processed together by the exact pass (one row, consecutive pixels).
@@ -886,19 +887,28 @@ fn compose(
     let reach = (EXACT_RADIUS + 0.5).ceil() as usize;
     // Per pixel, the largest radius an exact-pass source within reach can have: sources
     // below EXACT_RADIUS at their own, larger ones only clamped to the pixel's own radius.
-    let small: Vec<f32> = radius
-        .par_iter()
-        .map(|&r| if r < EXACT_RADIUS { r } else { 0.0 })
-        .collect();
+    let small = |i: usize| {
+        let r = radius[i];
+        if r < EXACT_RADIUS {
+            r
+        } else {
+            0.0
+        }
+    };
     let (mx0, my0) = (region.x0.saturating_sub(GROUP), region.y0);
     let (mx1, my1) = ((region.x1 + GROUP).min(w), region.y1);
-    let local_max = window_max(&small, w, [mx0, my0, mx1, my1], reach);
+    let local_max = window_max(small, w, h, [mx0, my0, mx1, my1], reach);
     let mw = mx1 - mx0;
     // Where every source within reach shares the pixel's depth, the exact pass is the mean
-    // over one ramped disk: per-row prefix sums give it in O(radius).
+    // over one ramped disk: per-row prefix sums give it in O(radius). Flat groups lie within
+    // the region and their disks within `reach` of it.
     let flat = flat_depth(depth, w, h, [mx0, my0, mx1, my1], reach);
-    let prefix = row_prefix(ch, w, my0.saturating_sub(reach), (my1 + reach).min(h));
-    let prefix_y0 = my0.saturating_sub(reach);
+    let prefix = RowPrefix::new(
+        ch,
+        w,
+        [my0.saturating_sub(reach), (my1 + reach).min(h)],
+        (mx1 + reach).min(w),
+    );
     let bound = |x: usize, y: usize| {
         let rc = radius[y * w + x];
         local_max[(y - my0) * mw + (x - mx0)].max(if rc < EXACT_RADIUS { rc } else { 0.0 }) + 0.5
@@ -937,9 +947,7 @@ fn compose(
                     let r = radius[y * w + x0];
                     if r < EXACT_RADIUS {
                         let inv = px.inv_area[y * w + x0];
-                        disks
-                            .get(r)
-                            .sum_group(&prefix, prefix_y0, ch, w, x0, y, inv)
+                        disks.get(r).sum_group(&prefix, ch, w, x0, y, inv)
                     } else {
                         Exact::default()
                     }
@@ -1272,19 +1280,22 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
     let [x0, y0, x1, y1] = rect;
     let rw = x1 - x0;
     let (ty0, ty1) = (y0.saturating_sub(r), (y1 + r).min(h));
-    // Rows: the pixel's depth holds over [x - r, x + r] (clipped to the image).
+    // Rows: the pixel's depth holds over [x - r, x + r] (clipped to the image). The runs are
+    // counted within columns [c0, c1) only: a run cut there is still at least r long.
+    let (c0, c1) = (x0.saturating_sub(r), (x1 + r).min(w));
     let mut rows = vec![false; rw * (ty1 - ty0)];
     rows.par_chunks_mut(rw.max(1)).enumerate().for_each_init(
-        || (vec![0usize; w], vec![0usize; w]),
+        || (vec![0usize; c1 - c0], vec![0usize; c1 - c0]),
         |(left, rights), (i, o)| {
-            let d = &depth[(ty0 + i) * w..(ty0 + i + 1) * w];
-            // left[x]: pixels before x (up to r) equal to d[x]; likewise right.
-            for x in 1..w {
+            let d = &depth[(ty0 + i) * w + c0..(ty0 + i) * w + c1];
+            let n = d.len();
+            // left[x - c0]: pixels before x (up to r) equal to d[x]; likewise right.
+            for x in 1..n {
                 left[x] = if d[x - 1] == d[x] { left[x - 1] + 1 } else { 0 };
             }
             let mut right = 0usize;
-            for x in (0..w).rev() {
-                right = if x + 1 < w && d[x + 1] == d[x] {
+            for x in (0..n).rev() {
+                right = if x + 1 < n && d[x + 1] == d[x] {
                     right + 1
                 } else {
                     0
@@ -1293,7 +1304,7 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
             }
             for (k, o) in o.iter_mut().enumerate() {
                 let x = x0 + k;
-                *o = left[x] >= r.min(x) && rights[x] >= r.min(w - 1 - x);
+                *o = left[x - c0] >= r.min(x) && rights[x - c0] >= r.min(w - 1 - x);
             }
         },
     );
@@ -1351,19 +1362,42 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
     out
 }
 
-/// Per row `y0..y1` of the colour planes, `w + 1` running sums: the sum over `[a, b)` of row
-/// `y`, channel `c` is `p[c][(y - y0) (w + 1) + b] - p[..a]`.
-fn row_prefix(ch: [&[f32]; 3], w: usize, y0: usize, y1: usize) -> [Vec<f32>; 3] {
-    ch.map(|c| {
-        let mut p = vec![0.0f32; (y1 - y0) * (w + 1)];
-        p.par_chunks_mut(w + 1).enumerate().for_each(|(i, row)| {
-            let src = &c[(y0 + i) * w..(y0 + i + 1) * w];
-            for x in 0..w {
-                row[x + 1] = row[x] + src[x];
-            }
-        });
-        p
-    })
+/// Running sums along rows `y0..y1` of the colour planes over columns `0..x1`, from column 0
+/// whatever part is read (so a sum is the same whichever rows and columns were asked for).
+struct RowPrefix {
+    /// Per channel, per row, `x1 + 1` sums: the sum over `[a, b)` of row `y`, channel `c`
+    /// is `sums[c][(y - y0) stride + b] - sums[c][.. + a]`.
+    sums: [Vec<f32>; 3],
+    y0: usize,
+    stride: usize,
+}
+
+impl RowPrefix {
+    fn new(ch: [&[f32]; 3], w: usize, [y0, y1]: [usize; 2], x1: usize) -> RowPrefix {
+        let stride = x1 + 1;
+        let n = (y1 - y0) * stride;
+        let mut sums = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
+        let [r, g, b] = &mut sums;
+        // The three channels in one pass: three independent chains of additions.
+        r.par_chunks_mut(stride)
+            .zip(g.par_chunks_mut(stride))
+            .zip(b.par_chunks_mut(stride))
+            .enumerate()
+            .for_each(|(i, ((r, g), b))| {
+                let at = (y0 + i) * w;
+                let src = [0, 1, 2].map(|c| &ch[c][at..at + x1]);
+                let mut run = [0.0f32; 3];
+                for x in 0..x1 {
+                    run[0] += src[0][x];
+                    run[1] += src[1][x];
+                    run[2] += src[2][x];
+                    r[x + 1] = run[0];
+                    g[x + 1] = run[1];
+                    b[x + 1] = run[2];
+                }
+            });
+        RowPrefix { sums, y0, stride }
+    }
 }
 
 /// Gather's ramped disk of radius `r` as full-weight row spans `(dy, half width)` and ramp
@@ -1421,8 +1455,7 @@ impl FlatDisk {
     #[allow(clippy::too_many_arguments)]
     fn sum_group(
         &self,
-        prefix: &[Vec<f32>; 3],
-        prefix_y0: usize,
+        prefix: &RowPrefix,
         ch: [&[f32]; 3],
         w: usize,
         x0: usize,
@@ -1431,12 +1464,12 @@ impl FlatDisk {
     ) -> Exact {
         let mut a = [[0.0f32; GROUP]; 3];
         for &(dy, f) in &self.spans {
-            let base = ((y as isize + dy) as usize - prefix_y0) * (w + 1) + x0;
+            let base = ((y as isize + dy) as usize - prefix.y0) * prefix.stride + x0;
             for c in 0..3 {
-                let hi: &[f32; GROUP] = prefix[c][base + f + 1..base + f + 1 + GROUP]
+                let hi: &[f32; GROUP] = prefix.sums[c][base + f + 1..base + f + 1 + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
-                let lo: &[f32; GROUP] = prefix[c][base - f..base - f + GROUP]
+                let lo: &[f32; GROUP] = prefix.sums[c][base - f..base - f + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
                 for i in 0..GROUP {
@@ -1481,14 +1514,19 @@ impl FlatDisks {
     }
 }
 
-/// Maximum of `v` (a `w`-wide image, values >= 0) over the `(2r+1)^2` window around each pixel
+/// Maximum of `v` (a `w` x `h` image by pixel index, values >= 0) over the `(2r+1)^2` window around each pixel
 /// of `rect` (`[x0, y0, x1, y1)`), rows then columns; the result is `rect`-sized. Each pass
 /// takes the maximum of windows doubling in length (1, 2, 4 ... the largest power of two
 /// `p <= 2r + 1`), and a window of `2r + 1` is then the maximum of two of length `p`: a few
 /// element-wise maxima per pixel, which vectorise.
-fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
+fn window_max(
+    v: impl Fn(usize) -> f32 + Sync,
+    w: usize,
+    h: usize,
+    rect: [usize; 4],
+    r: usize,
+) -> Vec<f32> {
     let [x0, y0, x1, y1] = rect;
-    let h = v.len() / w.max(1);
     let (rw, rh) = (x1 - x0, y1 - y0);
     let len = 2 * r + 1;
     // Rows y0 - r .. y1 + r (zero outside the image), each the maximum over its row's window.
@@ -1505,7 +1543,7 @@ fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
                 (x0 + i)
                     .checked_sub(r)
                     .filter(|&x| x < w)
-                    .map_or(0.0, |x| v[y * w + x])
+                    .map_or(0.0, |x| v(y * w + x))
             }));
             let p = doubling_max(buf, len, |m, step| {
                 for i in 0..m.len() - step {
@@ -1586,7 +1624,7 @@ mod tests {
             .collect();
         for r in [0usize, 1, 3, 7, 30] {
             for rect in [[0, 0, w, h], [3, 2, 19, 15], [10, 16, 11, 17], [0, 5, 5, 6]] {
-                let got = window_max(&v, w, rect, r);
+                let got = window_max(|i| v[i], w, h, rect, r);
                 let [x0, y0, x1, y1] = rect;
                 for y in y0..y1 {
                     for x in x0..x1 {
