@@ -378,8 +378,11 @@ pub(crate) type KindCells = Vec<Vec<(usize, Rec)>>;
 const SMALL: u8 = 0xff;
 const BACK: u8 = 0x80;
 
-/// Per pixel of the input: the blur radius (px) and the class.
+/// Per pixel of a band of the input's rows (those the render reads): the blur radius (px) and
+/// the class. The pixel of image index `j` is at `j - base` in each array.
 pub(crate) struct Pixels {
+    /// The image index of the band's first pixel (its first row, column 0).
+    pub base: usize,
     pub radius: Vec<f32>,
     /// Gather's weight per unit of cover, `1 / max(radius, 0.5)^2`.
     pub inv_area: Vec<f32>,
@@ -398,10 +401,13 @@ pub(crate) struct Pixels {
 const NOT_EXACT: f32 = -1e30;
 
 impl Pixels {
-    pub fn new(setup: &Setup, input: &Rgbd) -> Pixels {
-        let depth = input.depth.data();
+    /// The pixels of rows `y0..y1`.
+    pub fn new(setup: &Setup, input: &Rgbd, [y0, y1]: [usize; 2]) -> Pixels {
+        let w = setup.w;
+        let depth = &input.depth.data()[y0 * w..y1 * w];
         let n = depth.len();
         let mut px = Pixels {
+            base: y0 * w,
             radius: vec![0.0; n],
             inv_area: vec![0.0; n],
             class: vec![0; n],
@@ -494,7 +500,8 @@ pub(crate) fn aggregate_level(
                 for y in cy * s..((cy + 1) * s).min(h) {
                     let fy = y as f32 + 0.5;
                     let (row0, row1) = (y * w + cx * s, y * w + ((cx + 1) * s).min(w));
-                    for (j, &c) in (row0..row1).zip(&px.class[row0..row1]) {
+                    let band = &px.class[row0 - px.base..row1 - px.base];
+                    for (j, &c) in (row0..row1).zip(band) {
                         if c == SMALL {
                             continue;
                         }
@@ -507,7 +514,7 @@ pub(crate) fn aggregate_level(
                             continue;
                         }
                         any = true;
-                        let r = px.radius[j];
+                        let r = px.radius[j - px.base];
                         let (fx, col) = ((j - y * w) as f32 + 0.5, [ch[0][j], ch[1][j], ch[2][j]]);
                         let mut add = |kind: usize, wt: f32| {
                             let a = &mut acc[kind];
@@ -567,7 +574,11 @@ fn receiver_blocks(px: &Pixels, w: usize, h: usize, region: &Region) -> (Vec<u32
     blocks.par_chunks_mut(bw).enumerate().for_each(|(by, row)| {
         for y in by * TILE..((by + 1) * TILE).min(h) {
             for (a, b) in region.row_runs(y) {
-                for (x, &c) in (a..b).zip(&px.class[y * w + a..y * w + b]) {
+                if a >= b {
+                    continue;
+                }
+                let at = y * w - px.base;
+                for (x, &c) in (a..b).zip(&px.class[at + a..at + b]) {
                     row[x / TILE] |= if c == SMALL {
                         SMALL_BIT
                     } else {
@@ -821,13 +832,22 @@ pub(crate) fn render_into(setup: &Setup, input: &Rgbd, region: &Region, out: &mu
     let Some(region) = region.clipped(w, h) else {
         return;
     };
-    let px = Pixels::new(setup, input);
+    // The rows read: the exact pass's reach around the region's, and the levels' cells.
+    let reach = (EXACT_RADIUS + 0.5).ceil() as usize;
+    let grids: Vec<LevelGrid> = (0..setup.top)
+        .map(|m| LevelGrid::new(m, w, h, &region))
+        .collect();
+    let rows = grids.iter().fold(
+        [region.y0.saturating_sub(reach), (region.y1 + reach).min(h)],
+        |[a, b], g| [a.min(g.rec[1] * g.cell), b.max((g.rec[3] * g.cell).min(h))],
+    );
+    let px = Pixels::new(setup, input, rows);
     let (blocks, bw) = receiver_blocks(&px, w, h, &region);
     let bh = blocks.len() / bw.max(1);
     // Levels: per level, per kind, the spread image if any cell has weight.
     let mut levels: Vec<[Option<LevelImage>; KINDS]> = Vec::with_capacity(setup.top);
-    for m in 0..setup.top {
-        let g = LevelGrid::new(m, w, h, &region);
+    for (m, g) in grids.iter().enumerate() {
+        let g = *g;
         let cells = aggregate_level(setup, input, &px, m, &g);
         // Per texel tile, the receivers whose bilinear reads touch it (through the 8 x 8
         // pixel blocks around its pixels).
@@ -882,13 +902,13 @@ fn compose(
     let depth = input.depth.data();
     let ch = input.color.channels.each_ref().map(|p| p.data());
     let edges = &setup.edges;
-    let radius = &px.radius;
+    let radius = |j: usize| px.radius[j - px.base];
     let offsets = exact_offsets();
     let reach = (EXACT_RADIUS + 0.5).ceil() as usize;
     // Per pixel, the largest radius an exact-pass source within reach can have: sources
     // below EXACT_RADIUS at their own, larger ones only clamped to the pixel's own radius.
     let small = |i: usize| {
-        let r = radius[i];
+        let r = radius(i);
         if r < EXACT_RADIUS {
             r
         } else {
@@ -910,7 +930,7 @@ fn compose(
         (mx1 + reach).min(w),
     );
     let bound = |x: usize, y: usize| {
-        let rc = radius[y * w + x];
+        let rc = radius(y * w + x);
         local_max[(y - my0) * mw + (x - mx0)].max(if rc < EXACT_RADIUS { rc } else { 0.0 }) + 0.5
     };
     // The exact pass's taps as index offsets (interior groups).
@@ -944,9 +964,9 @@ fn compose(
                 let flat_group = interior && (x0..x1).all(|x| flat[(y - my0) * mw + (x - mx0)]);
                 let Exact { acc, wsum, reached } = if flat_group {
                     // One depth over the group and its reach: one radius.
-                    let r = radius[y * w + x0];
+                    let r = radius(y * w + x0);
                     if r < EXACT_RADIUS {
-                        let inv = px.inv_area[y * w + x0];
+                        let inv = px.inv_area[y * w + x0 - px.base];
                         disks.get(r).sum_group(&prefix, ch, w, x0, y, inv)
                     } else {
                         Exact::default()
@@ -977,7 +997,7 @@ fn compose(
                 let mut lacc = [[0.0f32; 4]; GROUP];
                 let bands: [Option<(usize, f32)>; GROUP] = std::array::from_fn(|i| {
                     let x = x0 + i;
-                    let rc = if x < x1 { radius[y * w + x] } else { 0.0 };
+                    let rc = if x < x1 { radius(y * w + x) } else { 0.0 };
                     (rc >= EXACT_RADIUS).then(|| {
                         let b = band_of(rc, edges);
                         (
@@ -1087,38 +1107,44 @@ unsafe fn exact_group_avx(
 ) -> Exact {
     use std::arch::x86_64::*;
     const _: () = assert!(GROUP == 8);
-    // Every tap's eight lanes lie inside every plane: checked once here, not per load.
-    let n = px.radius.len();
+    // Every tap's eight lanes lie inside every plane (the colour's from `at`, the pixels'
+    // from `at - px.base`): checked once here, not per load.
+    let (n, nc) = (px.radius.len(), ch[0].len());
+    let pat = at.wrapping_sub(px.base);
     let inside = [&px.signed, &px.exact, &px.inv_area]
         .iter()
         .all(|v| v.len() == n)
-        && ch.iter().all(|v| v.len() == n)
+        && ch.iter().all(|v| v.len() == nc)
+        && at >= px.base
+        && pat >= *span
+        && pat + span + GROUP <= n
         && at >= *span
-        && at + span + GROUP <= n;
+        && at + span + GROUP <= nc;
     if !inside {
         return exact_group_lanes(taps, limit, at, px, ch);
     }
     // Eight lanes from `v[j..]`.
     macro_rules! lanes {
         ($v:expr, $j:expr) => {
-            // SAFETY: `$j` is `at` or `at` plus a tap's offset, and `inside` holds.
+            // SAFETY: `$j` is `at` (`pat`) or `at` (`pat`) plus a tap's offset for a colour
+            // plane (an array of `px`), and `inside` holds.
             _mm256_loadu_ps($v.as_ptr().add($j))
         };
     }
     let zero = _mm256_setzero_ps();
     let (half, one) = (_mm256_set1_ps(0.5), _mm256_set1_ps(1.0));
-    let neg_rc = _mm256_sub_ps(zero, lanes!(px.radius, at));
-    let rc = lanes!(px.exact, at);
-    let ic = lanes!(px.inv_area, at);
+    let neg_rc = _mm256_sub_ps(zero, lanes!(px.radius, pat));
+    let rc = lanes!(px.exact, pat);
+    let ic = lanes!(px.inv_area, pat);
     let (mut a0, mut a1, mut a2, mut ws, mut far) = (zero, zero, zero, zero, zero);
     for (t, &(off, dist)) in taps.iter().enumerate() {
         if dist > limit {
             break;
         }
-        let j = at.wrapping_add_signed(off);
-        let clamp = _mm256_cmp_ps::<_CMP_LT_OQ>(lanes!(px.signed, j), neg_rc);
-        let r = _mm256_blendv_ps(lanes!(px.exact, j), rc, clamp);
-        let inv = _mm256_blendv_ps(lanes!(px.inv_area, j), ic, clamp);
+        let (j, pj) = (at.wrapping_add_signed(off), pat.wrapping_add_signed(off));
+        let clamp = _mm256_cmp_ps::<_CMP_LT_OQ>(lanes!(px.signed, pj), neg_rc);
+        let r = _mm256_blendv_ps(lanes!(px.exact, pj), rc, clamp);
+        let inv = _mm256_blendv_ps(lanes!(px.inv_area, pj), ic, clamp);
         let c = _mm256_sub_ps(_mm256_add_ps(r, half), _mm256_set1_ps(dist));
         let cover = _mm256_max_ps(_mm256_min_ps(c, one), zero);
         let wgt = _mm256_mul_ps(cover, inv);
@@ -1183,9 +1209,10 @@ fn exact_group_lanes(
     };
     // The receivers: minus their radius (the clamp's test), the radius a clamped source takes
     // (none at or above EXACT_RADIUS) and its weight.
-    let neg_rc = lanes(&px.radius, at).map(|r| -r);
-    let rc = lanes(&px.exact, at);
-    let ic = lanes(&px.inv_area, at);
+    let pat = at - px.base;
+    let neg_rc = lanes(&px.radius, pat).map(|r| -r);
+    let rc = lanes(&px.exact, pat);
+    let ic = lanes(&px.inv_area, pat);
     let (mut a0, mut a1, mut a2) = ([0.0f32; GROUP], [0.0f32; GROUP], [0.0f32; GROUP]);
     let mut ws = [0.0f32; GROUP];
     // The largest weight from a source other than the pixel (the first tap, at distance 0).
@@ -1194,11 +1221,11 @@ fn exact_group_lanes(
         if dist > limit {
             break;
         }
-        let j = at.wrapping_add_signed(off);
+        let (j, pj) = (at.wrapping_add_signed(off), pat.wrapping_add_signed(off));
         let (ss, rs, is) = (
-            lanes(&px.signed, j),
-            lanes(&px.exact, j),
-            lanes(&px.inv_area, j),
+            lanes(&px.signed, pj),
+            lanes(&px.exact, pj),
+            lanes(&px.inv_area, pj),
         );
         let (c0, c1, c2) = (lanes(ch[0], j), lanes(ch[1], j), lanes(ch[2], j));
         for i in 0..GROUP {
@@ -1243,7 +1270,8 @@ fn exact_pixel(
     reached: &mut bool,
 ) {
     let i = y * w + x;
-    let (dc, rc) = (depth[i], px.radius[i]);
+    let b = px.base;
+    let (dc, rc) = (depth[i], px.radius[i - b]);
     for &(dx, dy, dist) in offsets {
         if dist > limit {
             break;
@@ -1253,11 +1281,11 @@ fn exact_pixel(
             continue;
         }
         let j = sy as usize * w + sx as usize;
-        let clamp = depth[j] < dc && px.radius[j] > rc;
+        let clamp = depth[j] < dc && px.radius[j - b] > rc;
         let (r, inv) = if clamp {
-            (rc, px.inv_area[i])
+            (rc, px.inv_area[i - b])
         } else {
-            (px.radius[j], px.inv_area[j])
+            (px.radius[j - b], px.inv_area[j - b])
         };
         if r >= EXACT_RADIUS {
             continue;
