@@ -30,6 +30,8 @@ use rayon::prelude::*;
 
 /// Spacing of the acuity-level grid's nodes, full-resolution pixels.
 pub const GRID: usize = 16;
+/// Pixels per run of a row whose levels' range the blend checks before reading a layer there.
+const SPAN: usize = 16;
 /// The coarsest layer: scale 2^MAX_LAYER.
 pub const MAX_LAYER: usize = 4;
 /// Width of the blend from one layer to the next, in acuity levels: layer `k + 1` fades in
@@ -446,8 +448,9 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
         .zip(b_out.par_chunks_mut(w))
         .enumerate()
         .for_each_init(
-            || (Vec::new(), Vec::new()),
-            |(lev, texels): &mut (Vec<f32>, Vec<[f32; 3]>), (y, ((ro, go), bo))| {
+            || (Vec::new(), Vec::new(), Vec::new()),
+            |(lev, spans, texels): &mut (Vec<f32>, Vec<[f32; 2]>, Vec<[f32; 3]>),
+             (y, ((ro, go), bo))| {
                 let (y0, y1, fy) = node_axis(y, gh);
                 let (top_row, bot_row) = (&plan.levels[y0 * gw..], &plan.levels[y1 * gw..]);
                 lev.clear();
@@ -457,6 +460,15 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                     let t = a + fx * (b - a);
                     let u = c + fx * (d - c);
                     t + fy * (u - t)
+                }));
+                // The levels' range over each run of SPAN pixels: a layer is read only in the
+                // runs where some pixel's level gives it weight.
+                spans.clear();
+                spans.extend(lev.chunks(SPAN).map(|c| {
+                    c.iter()
+                        .fold([f32::INFINITY, f32::NEG_INFINITY], |[a, b], &l| {
+                            [a.min(l), b.max(l)]
+                        })
                 }));
                 let row = [ro, go, bo];
                 // Layer 0 in place: as a sum from zero of its weight times its read (at scale 1
@@ -489,10 +501,25 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                 }
                 for (k, p) in planes.iter().enumerate().skip(1) {
                     let Some(p) = p else { continue };
-                    let Some(xa) = lev.iter().position(|&l| has(k, l)) else {
+                    // Runs where the layer may have weight (a pixel with `has`), and within
+                    // the first and last of them, the first and last such pixel.
+                    let kf = k as f32;
+                    let may = |&[lo, hi]: &[f32; 2]| hi > kf && (k == top || lo < kf + 1.0 + BLEND);
+                    let Some(sa) = spans.iter().position(may) else {
                         continue;
                     };
-                    let xb = w - lev.iter().rev().position(|&l| has(k, l)).unwrap_or(0);
+                    let sb = spans.len() - spans.iter().rev().position(may).unwrap_or(0);
+                    let (pa, pb) = (sa * SPAN, (sb * SPAN).min(w));
+                    let Some(xa) = lev[pa..pb].iter().position(|&l| has(k, l)).map(|x| pa + x)
+                    else {
+                        continue;
+                    };
+                    let xb = pb
+                        - lev[pa..pb]
+                            .iter()
+                            .rev()
+                            .position(|&l| has(k, l))
+                            .unwrap_or(0);
                     let s = 1usize << k;
                     let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
                     // The layer's row at this pixel row, interpolated between its two texel
@@ -506,17 +533,24 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                             a + fy * (b - a)
                         })
                     }));
-                    for (x, (&l, &(x0, x1, fx))) in
-                        lev[xa..xb].iter().zip(&columns[k][xa..xb]).enumerate()
-                    {
-                        let wt = weight(k, l);
-                        if wt <= 0.0 {
-                            continue;
+                    let mut run = xa;
+                    while run < xb {
+                        let end = ((run / SPAN + 1) * SPAN).min(xb);
+                        // A run where no pixel has weight (`weight` gives none) is skipped.
+                        if may(&spans[run / SPAN]) {
+                            for x in run..end {
+                                let wt = weight(k, lev[x]);
+                                if wt <= 0.0 {
+                                    continue;
+                                }
+                                let (x0, x1, fx) = columns[k][x];
+                                let (a, b) = (texels[x0 - ta], texels[x1 - ta]);
+                                for c in 0..3 {
+                                    row[c][x] += wt * (a[c] + fx * (b[c] - a[c]));
+                                }
+                            }
                         }
-                        let (a, b) = (texels[x0 - ta], texels[x1 - ta]);
-                        for c in 0..3 {
-                            row[c][xa + x] += wt * (a[c] + fx * (b[c] - a[c]));
-                        }
+                        run = end;
                     }
                 }
             },
