@@ -470,7 +470,7 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                             [a.min(l), b.max(l)]
                         })
                 }));
-                let row = [ro, go, bo];
+                let mut row = [ro, go, bo];
                 // Layer 0 in place: as a sum from zero of its weight times its read (at scale 1
                 // a pixel's own texel, both interpolations' fractions 0), as the coarser
                 // layers are added; zero where it has no weight.
@@ -489,11 +489,11 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                     } else {
                         0.0
                     };
-                    for c in 0..3 {
-                        row[c][x] = if wt > 0.0 {
-                            let v = row[c][x];
-                            let texel = v + 0.0 * (v - v);
-                            0.0 + wt * (texel + 0.0 * (texel - texel))
+                    for plane in row.iter_mut() {
+                        plane[x] = if wt > 0.0 {
+                            // The reads of a coarser layer: between texel rows, then across.
+                            let texel = lerp(plane[x], plane[x], 0.0);
+                            0.0 + wt * lerp(texel, texel, 0.0)
                         } else {
                             0.0
                         };
@@ -555,6 +555,12 @@ fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &
                 }
             },
         );
+}
+
+/// `a + t (b - a)`: the layers' interpolation, as the blend computes it.
+#[inline(always)]
+fn lerp(a: f32, b: f32, t: f32) -> f32 {
+    a + t * (b - a)
 }
 
 /// The two texels of a layer of scale `s` (`n` texels along the axis) that full-resolution

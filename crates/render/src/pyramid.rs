@@ -1548,15 +1548,15 @@ impl FlatDisk {
         let mut a = [[0.0f32; GROUP]; 3];
         for &(dy, f) in &self.spans {
             let base = ((y as isize + dy) as usize - prefix.y0) * prefix.stride + x0;
-            for c in 0..3 {
-                let hi: &[f32; GROUP] = prefix.sums[c][base + f + 1..base + f + 1 + GROUP]
+            for (a, sums) in a.iter_mut().zip(&prefix.sums) {
+                let hi: &[f32; GROUP] = sums[base + f + 1..base + f + 1 + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
-                let lo: &[f32; GROUP] = prefix.sums[c][base - f..base - f + GROUP]
+                let lo: &[f32; GROUP] = sums[base - f..base - f + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
                 for i in 0..GROUP {
-                    a[c][i] += hi[i] - lo[i];
+                    a[i] += hi[i] - lo[i];
                 }
             }
         }
