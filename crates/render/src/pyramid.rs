@@ -610,7 +610,9 @@ fn readers(kind: usize, m: usize) -> u32 {
 /// A spread level image: r, g, b, weight per texel over the level's grid (zero where not
 /// spread), and per tile of texels whether any weight is there.
 pub(crate) struct LevelImage {
-    pub scale: usize,
+    /// `1 / scale` of the level's texels (px), exact (the scale is a power of two): a pixel's
+    /// texel coordinate is the same product as the quotient.
+    inv_scale: f32,
     pub lw: usize,
     pub lh: usize,
     pub data: Vec<[f32; 4]>,
@@ -639,7 +641,7 @@ impl LevelImage {
     /// the second.
     #[inline]
     fn axis(&self, x: usize, n: usize) -> (usize, usize, f32) {
-        let u = ((x as f32 + 0.5) / self.scale as f32 - 0.5).clamp(0.0, (n - 1) as f32);
+        let u = ((x as f32 + 0.5) * self.inv_scale - 0.5).clamp(0.0, (n - 1) as f32);
         let x0 = u as usize;
         (x0, (x0 + 1).min(n - 1), u - x0 as f32)
     }
@@ -718,8 +720,9 @@ fn spread_kind(rows: &KindCells, g: &LevelGrid, need: &[bool], tw: usize) -> Lev
                 }
             }
         });
+    debug_assert!(g.scale.is_power_of_two());
     LevelImage {
-        scale: g.scale,
+        inv_scale: 1.0 / g.scale as f32,
         lw,
         lh,
         data,
