@@ -11,6 +11,8 @@
 //! `PANEL_TRUTH_SPP=N` the thin-lens truth is ray traced at N samples per pixel and each
 //! defocus method's PSNR against it is printed in the fovea (a disk of 5 degrees radius
 //! around the gaze, as `foveated`'s default full-resolution radius) and over the whole image.
+//! Each method's line ends with a checksum of its last image's bits (FNV-1a over the planes),
+//! so that a change meant to keep outputs identical can be checked at a panel's size.
 
 use dioptra_core::{Diopters, EyeModel, Rgbd};
 use dioptra_render::foveated::{foveated, Foveation};
@@ -50,6 +52,7 @@ fn main() {
         let (mut wall, mut cpu) = (Vec::new(), Vec::new());
         let mut stages = None;
         let mut last = None;
+        let mut checksum = 0u64;
         for _ in 0..frames {
             let (t, c) = (Instant::now(), cpu_ms());
             let img = match method {
@@ -74,6 +77,7 @@ fn main() {
                     psnr(&img, t, None).expect("psnr"),
                 ));
             }
+            checksum = bits_checksum(&img);
             std::hint::black_box(img);
             wall.push(t.elapsed().as_secs_f64() * 1e3);
             cpu.push(cpu_ms() - c);
@@ -83,7 +87,7 @@ fn main() {
             v[v.len() / 2]
         };
         println!(
-            "{method} {w}x{h} {} deg at {} D: median of {frames}: {:.1} ms wall, {:.1} ms CPU (all threads)",
+            "{method} {w}x{h} {} deg at {} D: median of {frames}: {:.1} ms wall, {:.1} ms CPU (all threads), checksum {checksum:016x}",
             eye.fov_horizontal_deg,
             q.0,
             median(&mut wall),
@@ -96,6 +100,16 @@ fn main() {
             println!("  hybrid stages (last frame, wall ms): {s:?}");
         }
     }
+}
+
+/// FNV-1a over the bits of the image's planes, red then green then blue.
+fn bits_checksum(img: &dioptra_core::RgbImage) -> u64 {
+    img.channels
+        .iter()
+        .flat_map(|p| p.data())
+        .fold(0xcbf2_9ce4_8422_2325, |h, v| {
+            (h ^ u64::from(v.to_bits())).wrapping_mul(0x100_0000_01b3)
+        })
 }
 
 /// The process's CPU time so far (user and system, all threads), ms: what a frame cost on a

@@ -24,12 +24,14 @@
 
 use crate::common::{check_focus, check_rgbd, eye_for};
 use crate::error::{invalid, RenderError};
-use crate::pyramid::{render_with, Region, Setup};
+use crate::pyramid::{render_into, render_with, Region, Setup};
 use dioptra_core::{DepthMap, Diopters, EyeModel, Plane, RgbImage, Rgbd};
 use rayon::prelude::*;
 
 /// Spacing of the acuity-level grid's nodes, full-resolution pixels.
 pub const GRID: usize = 16;
+/// Pixels per run of a row whose levels' range the blend checks before reading a layer there.
+const SPAN: usize = 16;
 /// The coarsest layer: scale 2^MAX_LAYER.
 pub const MAX_LAYER: usize = 4;
 /// Width of the blend from one layer to the next, in acuity levels: layer `k + 1` fades in
@@ -358,9 +360,16 @@ pub fn foveated(
     check_focus(focus)?;
     let (w, h) = (input.width(), input.height());
     let plan = FoveationPlan::new(w, h, eye, fov)?;
-    // Each layer's input (downsampled from the one before) and its render.
+    // Each layer's input (downsampled from the one before) and its render; layer 0's straight
+    // into the image (black where it is not computed), which the blend then weighs in place.
     let mut inputs: Vec<Rgbd> = Vec::with_capacity(plan.top);
     let mut renders: Vec<Option<RgbImage>> = vec![None; plan.top + 1];
+    let mut image = [
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+        vec![0.0f32; w * h],
+    ];
+    let mut fovea = false;
     let range = input.depth.range();
     for layer in &plan.layers {
         while inputs.len() < layer.level {
@@ -374,17 +383,28 @@ pub fn foveated(
         };
         // Every layer's levels from the full image's depth range, as the GPU twin has them.
         let setup = Setup::with_range(src, range, focus, eye)?;
-        renders[layer.level] = Some(render_with(&setup, src, &layer.region)?);
+        if layer.level == 0 {
+            render_into(&setup, src, &layer.region, &mut image);
+            fovea = true;
+        } else {
+            renders[layer.level] = Some(render_with(&setup, src, &layer.region)?);
+        }
     }
-    let image = blend(&plan, &renders)?;
-    Ok(FoveatedImage { image, plan })
+    blend(&plan, fovea, &renders, &mut image);
+    let [r, g, b] = image.map(|v| Plane::from_vec(w, h, v));
+    Ok(FoveatedImage {
+        image: RgbImage::from_planes(r?, g?, b?)?,
+        plan,
+    })
 }
 
-/// Every pixel: the layers with weight there, each read bilinearly, summed. Row by row: the
-/// acuity levels first (the grid's bilinear interpolation through per-column and per-row
-/// tables), then each layer over the columns where it has weight, its two texel rows
-/// interpolated once there and read at each pixel through a per-column table.
-fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage, RenderError> {
+/// Every pixel of `out`: the layers with weight there, each read bilinearly, summed. `out`
+/// holds layer 0's render where `fovea` (`renders[0]` is not read) and is black elsewhere; the
+/// coarser layers are in `renders`. Row by row: the acuity levels first (the grid's bilinear
+/// interpolation through per-column and per-row tables), then layer 0 weighed in place, then
+/// each coarser layer over the columns where it has weight, its two texel rows interpolated
+/// once there and read at each pixel through a per-column table.
+fn blend(plan: &FoveationPlan, fovea: bool, renders: &[Option<RgbImage>], out: &mut [Vec<f32>; 3]) {
     let (w, h) = (plan.width, plan.height);
     let top = plan.top;
     let planes: Vec<Option<[&[f32]; 3]>> = renders
@@ -407,20 +427,30 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
         (i, (i + 1).min(n - 1), u - i as f32)
     };
     let node_cols: Vec<(usize, usize, f32)> = (0..w).map(|x| node_axis(x, gw)).collect();
-    let mut out = [
-        vec![0.0f32; w * h],
-        vec![0.0f32; w * h],
-        vec![0.0f32; w * h],
-    ];
-    let [r_out, g_out, b_out] = &mut out;
+    // Layer k has weight where k < l < k + 1 + BLEND (open at the ends), and its full weight
+    // where neither fade applies (most pixels).
+    let has = |k: usize, l: f32| {
+        let kf = k as f32;
+        (k == 0 || l > kf) && (k == top || l < kf + 1.0 + BLEND)
+    };
+    let weight = |k: usize, l: f32| {
+        let kf = k as f32;
+        if (k == 0 || l >= kf + BLEND) && (k == top || l <= kf + 1.0) {
+            1.0
+        } else {
+            layer_weight(l, k, top)
+        }
+    };
+    let [r_out, g_out, b_out] = out;
     r_out
         .par_chunks_mut(w)
         .zip(g_out.par_chunks_mut(w))
         .zip(b_out.par_chunks_mut(w))
         .enumerate()
         .for_each_init(
-            || (Vec::new(), Vec::new()),
-            |(lev, texels): &mut (Vec<f32>, Vec<[f32; 3]>), (y, ((ro, go), bo))| {
+            || (Vec::new(), Vec::new(), Vec::new()),
+            |(lev, spans, texels): &mut (Vec<f32>, Vec<[f32; 2]>, Vec<[f32; 3]>),
+             (y, ((ro, go), bo))| {
                 let (y0, y1, fy) = node_axis(y, gh);
                 let (top_row, bot_row) = (&plan.levels[y0 * gw..], &plan.levels[y1 * gw..]);
                 lev.clear();
@@ -431,16 +461,65 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
                     let u = c + fx * (d - c);
                     t + fy * (u - t)
                 }));
-                let row = [ro, go, bo];
-                for (k, p) in planes.iter().enumerate() {
+                // The levels' range over each run of SPAN pixels: a layer is read only in the
+                // runs where some pixel's level gives it weight.
+                spans.clear();
+                spans.extend(lev.chunks(SPAN).map(|c| {
+                    c.iter()
+                        .fold([f32::INFINITY, f32::NEG_INFINITY], |[a, b], &l| {
+                            [a.min(l), b.max(l)]
+                        })
+                }));
+                let mut row = [ro, go, bo];
+                // Layer 0 in place: as a sum from zero of its weight times its read (at scale 1
+                // a pixel's own texel, both interpolations' fractions 0), as the coarser
+                // layers are added; zero where it has no weight.
+                let span0 = if fovea {
+                    let xa = lev.iter().position(|&l| has(0, l)).unwrap_or(w);
+                    (
+                        xa,
+                        w - lev.iter().rev().position(|&l| has(0, l)).unwrap_or(w - xa),
+                    )
+                } else {
+                    (w, w)
+                };
+                for (x, &l) in lev.iter().enumerate() {
+                    let wt = if (span0.0..span0.1).contains(&x) {
+                        weight(0, l)
+                    } else {
+                        0.0
+                    };
+                    for plane in row.iter_mut() {
+                        plane[x] = if wt > 0.0 {
+                            // The reads of a coarser layer: between texel rows, then across.
+                            let texel = lerp(plane[x], plane[x], 0.0);
+                            0.0 + wt * lerp(texel, texel, 0.0)
+                        } else {
+                            0.0
+                        };
+                    }
+                }
+                for (k, p) in planes.iter().enumerate().skip(1) {
                     let Some(p) = p else { continue };
-                    // Layer k has weight where k < l < k + 1 + BLEND (open at the ends).
+                    // Runs where the layer may have weight (a pixel with `has`), and within
+                    // the first and last of them, the first and last such pixel.
                     let kf = k as f32;
-                    let has = |l: f32| (k == 0 || l > kf) && (k == top || l < kf + 1.0 + BLEND);
-                    let Some(xa) = lev.iter().position(|&l| has(l)) else {
+                    let may = |&[lo, hi]: &[f32; 2]| hi > kf && (k == top || lo < kf + 1.0 + BLEND);
+                    let Some(sa) = spans.iter().position(may) else {
                         continue;
                     };
-                    let xb = w - lev.iter().rev().position(|&l| has(l)).unwrap_or(0);
+                    let sb = spans.len() - spans.iter().rev().position(may).unwrap_or(0);
+                    let (pa, pb) = (sa * SPAN, (sb * SPAN).min(w));
+                    let Some(xa) = lev[pa..pb].iter().position(|&l| has(k, l)).map(|x| pa + x)
+                    else {
+                        continue;
+                    };
+                    let xb = pb
+                        - lev[pa..pb]
+                            .iter()
+                            .rev()
+                            .position(|&l| has(k, l))
+                            .unwrap_or(0);
                     let s = 1usize << k;
                     let (lw, lh) = (w.div_ceil(s), h.div_ceil(s));
                     // The layer's row at this pixel row, interpolated between its two texel
@@ -454,28 +533,34 @@ fn blend(plan: &FoveationPlan, renders: &[Option<RgbImage>]) -> Result<RgbImage,
                             a + fy * (b - a)
                         })
                     }));
-                    for (x, (&l, &(x0, x1, fx))) in
-                        lev[xa..xb].iter().zip(&columns[k][xa..xb]).enumerate()
-                    {
-                        // Weight 1 where neither fade applies (most pixels), else the fades.
-                        let wt = if (k == 0 || l >= kf + BLEND) && (k == top || l <= kf + 1.0) {
-                            1.0
-                        } else {
-                            layer_weight(l, k, top)
-                        };
-                        if wt <= 0.0 {
-                            continue;
+                    let mut run = xa;
+                    while run < xb {
+                        let end = ((run / SPAN + 1) * SPAN).min(xb);
+                        // A run where no pixel has weight (`weight` gives none) is skipped.
+                        if may(&spans[run / SPAN]) {
+                            for x in run..end {
+                                let wt = weight(k, lev[x]);
+                                if wt <= 0.0 {
+                                    continue;
+                                }
+                                let (x0, x1, fx) = columns[k][x];
+                                let (a, b) = (texels[x0 - ta], texels[x1 - ta]);
+                                for c in 0..3 {
+                                    row[c][x] += wt * (a[c] + fx * (b[c] - a[c]));
+                                }
+                            }
                         }
-                        let (a, b) = (texels[x0 - ta], texels[x1 - ta]);
-                        for c in 0..3 {
-                            row[c][xa + x] += wt * (a[c] + fx * (b[c] - a[c]));
-                        }
+                        run = end;
                     }
                 }
             },
         );
-    let [r, g, b] = out.map(|v| Plane::from_vec(w, h, v));
-    Ok(RgbImage::from_planes(r?, g?, b?)?)
+}
+
+/// `a + t (b - a)`: the layers' interpolation, as the blend computes it.
+#[inline(always)]
+fn lerp(a: f32, b: f32, t: f32) -> f32 {
+    a + t * (b - a)
 }
 
 /// The two texels of a layer of scale `s` (`n` texels along the axis) that full-resolution

@@ -378,8 +378,11 @@ pub(crate) type KindCells = Vec<Vec<(usize, Rec)>>;
 const SMALL: u8 = 0xff;
 const BACK: u8 = 0x80;
 
-/// Per pixel of the input: the blur radius (px) and the class.
+/// Per pixel of a band of the input's rows (those the render reads): the blur radius (px) and
+/// the class. The pixel of image index `j` is at `j - base` in each array.
 pub(crate) struct Pixels {
+    /// The image index of the band's first pixel (its first row, column 0).
+    pub base: usize,
     pub radius: Vec<f32>,
     /// Gather's weight per unit of cover, `1 / max(radius, 0.5)^2`.
     pub inv_area: Vec<f32>,
@@ -398,10 +401,13 @@ pub(crate) struct Pixels {
 const NOT_EXACT: f32 = -1e30;
 
 impl Pixels {
-    pub fn new(setup: &Setup, input: &Rgbd) -> Pixels {
-        let depth = input.depth.data();
+    /// The pixels of rows `y0..y1`.
+    pub fn new(setup: &Setup, input: &Rgbd, [y0, y1]: [usize; 2]) -> Pixels {
+        let w = setup.w;
+        let depth = &input.depth.data()[y0 * w..y1 * w];
         let n = depth.len();
         let mut px = Pixels {
+            base: y0 * w,
             radius: vec![0.0; n],
             inv_area: vec![0.0; n],
             class: vec![0; n],
@@ -494,7 +500,8 @@ pub(crate) fn aggregate_level(
                 for y in cy * s..((cy + 1) * s).min(h) {
                     let fy = y as f32 + 0.5;
                     let (row0, row1) = (y * w + cx * s, y * w + ((cx + 1) * s).min(w));
-                    for (j, &c) in (row0..row1).zip(&px.class[row0..row1]) {
+                    let band = &px.class[row0 - px.base..row1 - px.base];
+                    for (j, &c) in (row0..row1).zip(band) {
                         if c == SMALL {
                             continue;
                         }
@@ -507,7 +514,7 @@ pub(crate) fn aggregate_level(
                             continue;
                         }
                         any = true;
-                        let r = px.radius[j];
+                        let r = px.radius[j - px.base];
                         let (fx, col) = ((j - y * w) as f32 + 0.5, [ch[0][j], ch[1][j], ch[2][j]]);
                         let mut add = |kind: usize, wt: f32| {
                             let a = &mut acc[kind];
@@ -567,7 +574,11 @@ fn receiver_blocks(px: &Pixels, w: usize, h: usize, region: &Region) -> (Vec<u32
     blocks.par_chunks_mut(bw).enumerate().for_each(|(by, row)| {
         for y in by * TILE..((by + 1) * TILE).min(h) {
             for (a, b) in region.row_runs(y) {
-                for (x, &c) in (a..b).zip(&px.class[y * w + a..y * w + b]) {
+                if a >= b {
+                    continue;
+                }
+                let at = y * w - px.base;
+                for (x, &c) in (a..b).zip(&px.class[at + a..at + b]) {
                     row[x / TILE] |= if c == SMALL {
                         SMALL_BIT
                     } else {
@@ -599,7 +610,9 @@ fn readers(kind: usize, m: usize) -> u32 {
 /// A spread level image: r, g, b, weight per texel over the level's grid (zero where not
 /// spread), and per tile of texels whether any weight is there.
 pub(crate) struct LevelImage {
-    pub scale: usize,
+    /// `1 / scale` of the level's texels (px), exact (the scale is a power of two): a pixel's
+    /// texel coordinate is the same product as the quotient.
+    inv_scale: f32,
     pub lw: usize,
     pub lh: usize,
     pub data: Vec<[f32; 4]>,
@@ -628,7 +641,7 @@ impl LevelImage {
     /// the second.
     #[inline]
     fn axis(&self, x: usize, n: usize) -> (usize, usize, f32) {
-        let u = ((x as f32 + 0.5) / self.scale as f32 - 0.5).clamp(0.0, (n - 1) as f32);
+        let u = ((x as f32 + 0.5) * self.inv_scale - 0.5).clamp(0.0, (n - 1) as f32);
         let x0 = u as usize;
         (x0, (x0 + 1).min(n - 1), u - x0 as f32)
     }
@@ -683,27 +696,18 @@ fn spread_kind(rows: &KindCells, g: &LevelGrid, need: &[bool], tw: usize) -> Lev
                     diff.clear();
                     diff.resize(x1 - x0 + 1, [0.0f32; 4]);
                     let row = &mut band[(y - ty * TILE) * lw + x0..(y - ty * TILE) * lw + x1];
-                    let fy = y as f32 + 0.5;
                     // Cells whose texels lie within `reach` of this row and of the span.
                     let lo = (y.saturating_sub(reach) / ratio).max(cy0);
                     let hi = ((y + reach) / ratio + 1).min(cy1);
-                    for cells in &rows[lo.min(hi) - cy0..hi.max(lo) - cy0] {
-                        if cells.is_empty() {
-                            continue;
-                        }
-                        let a = cells.partition_point(|c| (c.0 + 1) * ratio + reach <= x0);
-                        let b = cells.partition_point(|c| c.0 * ratio < x1 + reach);
-                        for (_, r) in &cells[a..b] {
-                            spread_row(r, fy, x0, x1, row, &mut diff);
-                        }
-                    }
-                    let mut run = [0.0f32; 4];
-                    for (o, d) in row.iter_mut().zip(&diff) {
-                        for c in 0..4 {
-                            run[c] += d[c];
-                            o[c] += run[c];
-                        }
-                    }
+                    let near = TexelRow {
+                        cells: &rows[lo.min(hi) - cy0..hi.max(lo) - cy0],
+                        ratio,
+                        reach,
+                        y,
+                        x0,
+                        x1,
+                    };
+                    near.spread(row, &mut diff);
                 }
                 for (t, nz) in nz.iter_mut().enumerate().take(tx).skip(start) {
                     let (a, b) = ((t * TILE).max(x0), ((t + 1) * TILE).min(x1));
@@ -716,8 +720,9 @@ fn spread_kind(rows: &KindCells, g: &LevelGrid, need: &[bool], tw: usize) -> Lev
                 }
             }
         });
+    debug_assert!(g.scale.is_power_of_two());
     LevelImage {
-        scale: g.scale,
+        inv_scale: 1.0 / g.scale as f32,
         lw,
         lh,
         data,
@@ -726,10 +731,74 @@ fn spread_kind(rows: &KindCells, g: &LevelGrid, need: &[bool], tw: usize) -> Lev
     }
 }
 
+/// The cells near one texel row `y` of a level (within `reach` texels of the row and of its
+/// columns `[x0, x1)`), rows of cells `ratio` texels a side.
+struct TexelRow<'a> {
+    cells: &'a [Vec<(usize, Rec)>],
+    ratio: usize,
+    reach: usize,
+    y: usize,
+    x0: usize,
+    x1: usize,
+}
+
+impl TexelRow<'_> {
+    /// Adds the cells' disks to `row` (columns `[x0, x1)`) through `diff` (zero, one longer).
+    fn spread(&self, row: &mut [[f32; 4]], diff: &mut [[f32; 4]]) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx") {
+                // SAFETY: the CPU has AVX (checked just above).
+                return unsafe { self.spread_avx(row, diff) };
+            }
+        }
+        self.spread_any(row, diff)
+    }
+
+    /// [`TexelRow::spread_any`] compiled for AVX: the disks' bounds are rounded by single
+    /// instructions (SSE4.1's) instead of calls to the C library; the same IEEE operations
+    /// otherwise, so the same sums bit for bit.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx")]
+    unsafe fn spread_avx(&self, row: &mut [[f32; 4]], diff: &mut [[f32; 4]]) {
+        self.spread_any(row, diff)
+    }
+
+    #[inline(always)]
+    fn spread_any(&self, row: &mut [[f32; 4]], diff: &mut [[f32; 4]]) {
+        let &TexelRow {
+            cells,
+            ratio,
+            reach,
+            y,
+            x0,
+            x1,
+        } = self;
+        let fy = y as f32 + 0.5;
+        for cells in cells {
+            if cells.is_empty() {
+                continue;
+            }
+            let a = cells.partition_point(|c| (c.0 + 1) * ratio + reach <= x0);
+            let b = cells.partition_point(|c| c.0 * ratio < x1 + reach);
+            for (_, r) in &cells[a..b] {
+                spread_row(r, fy, x0, x1, row, diff);
+            }
+        }
+        let mut run = [0.0f32; 4];
+        for (o, d) in row.iter_mut().zip(diff.iter()) {
+            for c in 0..4 {
+                run[c] += d[c];
+                o[c] += run[c];
+            }
+        }
+    }
+}
+
 /// One cell's disk on the texel row at height `fy`, within columns `[x0, x1)` (`row` and
 /// `diff` start at column `x0`): the full-weight span as two differences in `diff`, the ramp
 /// texels directly in `row`.
-#[inline]
+#[inline(always)]
 fn spread_row(r: &Rec, fy: f32, x0: usize, x1: usize, row: &mut [[f32; 4]], diff: &mut [[f32; 4]]) {
     let dy = fy - r[1];
     let outer = r[2] + 0.5;
@@ -809,23 +878,34 @@ pub(crate) fn render_with(
         vec![0.0f32; w * h],
         vec![0.0f32; w * h],
     ];
-    let planar = |[r, g, b]: [Vec<f32>; 3]| -> Result<RgbImage, RenderError> {
-        Ok(RgbImage::from_planes(
-            Plane::from_vec(w, h, r)?,
-            Plane::from_vec(w, h, g)?,
-            Plane::from_vec(w, h, b)?,
-        )?)
-    };
+    render_into(setup, input, region, &mut out);
+    let [r, g, b] = out.map(|v| Plane::from_vec(w, h, v));
+    Ok(RgbImage::from_planes(r?, g?, b?)?)
+}
+
+/// [`render_with`] into `out`, three `w` x `h` planes: writes the pixels of `region` and no
+/// others.
+pub(crate) fn render_into(setup: &Setup, input: &Rgbd, region: &Region, out: &mut [Vec<f32>; 3]) {
+    let (w, h) = (setup.w, setup.h);
     let Some(region) = region.clipped(w, h) else {
-        return planar(out);
+        return;
     };
-    let px = Pixels::new(setup, input);
+    // The rows read: the exact pass's reach around the region's, and the levels' cells.
+    let reach = (EXACT_RADIUS + 0.5).ceil() as usize;
+    let grids: Vec<LevelGrid> = (0..setup.top)
+        .map(|m| LevelGrid::new(m, w, h, &region))
+        .collect();
+    let rows = grids.iter().fold(
+        [region.y0.saturating_sub(reach), (region.y1 + reach).min(h)],
+        |[a, b], g| [a.min(g.rec[1] * g.cell), b.max((g.rec[3] * g.cell).min(h))],
+    );
+    let px = Pixels::new(setup, input, rows);
     let (blocks, bw) = receiver_blocks(&px, w, h, &region);
     let bh = blocks.len() / bw.max(1);
     // Levels: per level, per kind, the spread image if any cell has weight.
     let mut levels: Vec<[Option<LevelImage>; KINDS]> = Vec::with_capacity(setup.top);
-    for m in 0..setup.top {
-        let g = LevelGrid::new(m, w, h, &region);
+    for (m, g) in grids.iter().enumerate() {
+        let g = *g;
         let cells = aggregate_level(setup, input, &px, m, &g);
         // Per texel tile, the receivers whose bilinear reads touch it (through the 8 x 8
         // pixel blocks around its pixels).
@@ -861,8 +941,7 @@ pub(crate) fn render_with(
         });
         levels.push(imgs);
     }
-    compose(setup, input, &px, &region, &levels, &mut out);
-    planar(out)
+    compose(setup, input, &px, &region, &levels, out);
 }
 
 /// Receivers processed together by the exact pass (one row, consecutive pixels).
@@ -881,26 +960,35 @@ fn compose(
     let depth = input.depth.data();
     let ch = input.color.channels.each_ref().map(|p| p.data());
     let edges = &setup.edges;
-    let radius = &px.radius;
+    let radius = |j: usize| px.radius[j - px.base];
     let offsets = exact_offsets();
     let reach = (EXACT_RADIUS + 0.5).ceil() as usize;
     // Per pixel, the largest radius an exact-pass source within reach can have: sources
     // below EXACT_RADIUS at their own, larger ones only clamped to the pixel's own radius.
-    let small: Vec<f32> = radius
-        .par_iter()
-        .map(|&r| if r < EXACT_RADIUS { r } else { 0.0 })
-        .collect();
+    let small = |i: usize| {
+        let r = radius(i);
+        if r < EXACT_RADIUS {
+            r
+        } else {
+            0.0
+        }
+    };
     let (mx0, my0) = (region.x0.saturating_sub(GROUP), region.y0);
     let (mx1, my1) = ((region.x1 + GROUP).min(w), region.y1);
-    let local_max = window_max(&small, w, [mx0, my0, mx1, my1], reach);
+    let local_max = window_max(small, w, h, [mx0, my0, mx1, my1], reach);
     let mw = mx1 - mx0;
     // Where every source within reach shares the pixel's depth, the exact pass is the mean
-    // over one ramped disk: per-row prefix sums give it in O(radius).
+    // over one ramped disk: per-row prefix sums give it in O(radius). Flat groups lie within
+    // the region and their disks within `reach` of it.
     let flat = flat_depth(depth, w, h, [mx0, my0, mx1, my1], reach);
-    let prefix = row_prefix(ch, w, my0.saturating_sub(reach), (my1 + reach).min(h));
-    let prefix_y0 = my0.saturating_sub(reach);
+    let prefix = RowPrefix::new(
+        ch,
+        w,
+        [my0.saturating_sub(reach), (my1 + reach).min(h)],
+        (mx1 + reach).min(w),
+    );
     let bound = |x: usize, y: usize| {
-        let rc = radius[y * w + x];
+        let rc = radius(y * w + x);
         local_max[(y - my0) * mw + (x - mx0)].max(if rc < EXACT_RADIUS { rc } else { 0.0 }) + 0.5
     };
     // The exact pass's taps as index offsets (interior groups).
@@ -934,12 +1022,10 @@ fn compose(
                 let flat_group = interior && (x0..x1).all(|x| flat[(y - my0) * mw + (x - mx0)]);
                 let Exact { acc, wsum, reached } = if flat_group {
                     // One depth over the group and its reach: one radius.
-                    let r = radius[y * w + x0];
+                    let r = radius(y * w + x0);
                     if r < EXACT_RADIUS {
-                        let inv = px.inv_area[y * w + x0];
-                        disks
-                            .get(r)
-                            .sum_group(&prefix, prefix_y0, ch, w, x0, y, inv)
+                        let inv = px.inv_area[y * w + x0 - px.base];
+                        disks.get(r).sum_group(&prefix, ch, w, x0, y, inv)
                     } else {
                         Exact::default()
                     }
@@ -969,7 +1055,7 @@ fn compose(
                 let mut lacc = [[0.0f32; 4]; GROUP];
                 let bands: [Option<(usize, f32)>; GROUP] = std::array::from_fn(|i| {
                     let x = x0 + i;
-                    let rc = if x < x1 { radius[y * w + x] } else { 0.0 };
+                    let rc = if x < x1 { radius(y * w + x) } else { 0.0 };
                     (rc >= EXACT_RADIUS).then(|| {
                         let b = band_of(rc, edges);
                         (
@@ -1079,38 +1165,44 @@ unsafe fn exact_group_avx(
 ) -> Exact {
     use std::arch::x86_64::*;
     const _: () = assert!(GROUP == 8);
-    // Every tap's eight lanes lie inside every plane: checked once here, not per load.
-    let n = px.radius.len();
+    // Every tap's eight lanes lie inside every plane (the colour's from `at`, the pixels'
+    // from `at - px.base`): checked once here, not per load.
+    let (n, nc) = (px.radius.len(), ch[0].len());
+    let pat = at.wrapping_sub(px.base);
     let inside = [&px.signed, &px.exact, &px.inv_area]
         .iter()
         .all(|v| v.len() == n)
-        && ch.iter().all(|v| v.len() == n)
+        && ch.iter().all(|v| v.len() == nc)
+        && at >= px.base
+        && pat >= *span
+        && pat + span + GROUP <= n
         && at >= *span
-        && at + span + GROUP <= n;
+        && at + span + GROUP <= nc;
     if !inside {
         return exact_group_lanes(taps, limit, at, px, ch);
     }
     // Eight lanes from `v[j..]`.
     macro_rules! lanes {
         ($v:expr, $j:expr) => {
-            // SAFETY: `$j` is `at` or `at` plus a tap's offset, and `inside` holds.
+            // SAFETY: `$j` is `at` (`pat`) or `at` (`pat`) plus a tap's offset for a colour
+            // plane (an array of `px`), and `inside` holds.
             _mm256_loadu_ps($v.as_ptr().add($j))
         };
     }
     let zero = _mm256_setzero_ps();
     let (half, one) = (_mm256_set1_ps(0.5), _mm256_set1_ps(1.0));
-    let neg_rc = _mm256_sub_ps(zero, lanes!(px.radius, at));
-    let rc = lanes!(px.exact, at);
-    let ic = lanes!(px.inv_area, at);
+    let neg_rc = _mm256_sub_ps(zero, lanes!(px.radius, pat));
+    let rc = lanes!(px.exact, pat);
+    let ic = lanes!(px.inv_area, pat);
     let (mut a0, mut a1, mut a2, mut ws, mut far) = (zero, zero, zero, zero, zero);
     for (t, &(off, dist)) in taps.iter().enumerate() {
         if dist > limit {
             break;
         }
-        let j = at.wrapping_add_signed(off);
-        let clamp = _mm256_cmp_ps::<_CMP_LT_OQ>(lanes!(px.signed, j), neg_rc);
-        let r = _mm256_blendv_ps(lanes!(px.exact, j), rc, clamp);
-        let inv = _mm256_blendv_ps(lanes!(px.inv_area, j), ic, clamp);
+        let (j, pj) = (at.wrapping_add_signed(off), pat.wrapping_add_signed(off));
+        let clamp = _mm256_cmp_ps::<_CMP_LT_OQ>(lanes!(px.signed, pj), neg_rc);
+        let r = _mm256_blendv_ps(lanes!(px.exact, pj), rc, clamp);
+        let inv = _mm256_blendv_ps(lanes!(px.inv_area, pj), ic, clamp);
         let c = _mm256_sub_ps(_mm256_add_ps(r, half), _mm256_set1_ps(dist));
         let cover = _mm256_max_ps(_mm256_min_ps(c, one), zero);
         let wgt = _mm256_mul_ps(cover, inv);
@@ -1175,9 +1267,10 @@ fn exact_group_lanes(
     };
     // The receivers: minus their radius (the clamp's test), the radius a clamped source takes
     // (none at or above EXACT_RADIUS) and its weight.
-    let neg_rc = lanes(&px.radius, at).map(|r| -r);
-    let rc = lanes(&px.exact, at);
-    let ic = lanes(&px.inv_area, at);
+    let pat = at - px.base;
+    let neg_rc = lanes(&px.radius, pat).map(|r| -r);
+    let rc = lanes(&px.exact, pat);
+    let ic = lanes(&px.inv_area, pat);
     let (mut a0, mut a1, mut a2) = ([0.0f32; GROUP], [0.0f32; GROUP], [0.0f32; GROUP]);
     let mut ws = [0.0f32; GROUP];
     // The largest weight from a source other than the pixel (the first tap, at distance 0).
@@ -1186,11 +1279,11 @@ fn exact_group_lanes(
         if dist > limit {
             break;
         }
-        let j = at.wrapping_add_signed(off);
+        let (j, pj) = (at.wrapping_add_signed(off), pat.wrapping_add_signed(off));
         let (ss, rs, is) = (
-            lanes(&px.signed, j),
-            lanes(&px.exact, j),
-            lanes(&px.inv_area, j),
+            lanes(&px.signed, pj),
+            lanes(&px.exact, pj),
+            lanes(&px.inv_area, pj),
         );
         let (c0, c1, c2) = (lanes(ch[0], j), lanes(ch[1], j), lanes(ch[2], j));
         for i in 0..GROUP {
@@ -1235,7 +1328,8 @@ fn exact_pixel(
     reached: &mut bool,
 ) {
     let i = y * w + x;
-    let (dc, rc) = (depth[i], px.radius[i]);
+    let b = px.base;
+    let (dc, rc) = (depth[i], px.radius[i - b]);
     for &(dx, dy, dist) in offsets {
         if dist > limit {
             break;
@@ -1245,11 +1339,11 @@ fn exact_pixel(
             continue;
         }
         let j = sy as usize * w + sx as usize;
-        let clamp = depth[j] < dc && px.radius[j] > rc;
+        let clamp = depth[j] < dc && px.radius[j - b] > rc;
         let (r, inv) = if clamp {
-            (rc, px.inv_area[i])
+            (rc, px.inv_area[i - b])
         } else {
-            (px.radius[j], px.inv_area[j])
+            (px.radius[j - b], px.inv_area[j - b])
         };
         if r >= EXACT_RADIUS {
             continue;
@@ -1272,19 +1366,22 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
     let [x0, y0, x1, y1] = rect;
     let rw = x1 - x0;
     let (ty0, ty1) = (y0.saturating_sub(r), (y1 + r).min(h));
-    // Rows: the pixel's depth holds over [x - r, x + r] (clipped to the image).
+    // Rows: the pixel's depth holds over [x - r, x + r] (clipped to the image). The runs are
+    // counted within columns [c0, c1) only: a run cut there is still at least r long.
+    let (c0, c1) = (x0.saturating_sub(r), (x1 + r).min(w));
     let mut rows = vec![false; rw * (ty1 - ty0)];
     rows.par_chunks_mut(rw.max(1)).enumerate().for_each_init(
-        || (vec![0usize; w], vec![0usize; w]),
+        || (vec![0usize; c1 - c0], vec![0usize; c1 - c0]),
         |(left, rights), (i, o)| {
-            let d = &depth[(ty0 + i) * w..(ty0 + i + 1) * w];
-            // left[x]: pixels before x (up to r) equal to d[x]; likewise right.
-            for x in 1..w {
+            let d = &depth[(ty0 + i) * w + c0..(ty0 + i) * w + c1];
+            let n = d.len();
+            // left[x - c0]: pixels before x (up to r) equal to d[x]; likewise right.
+            for x in 1..n {
                 left[x] = if d[x - 1] == d[x] { left[x - 1] + 1 } else { 0 };
             }
             let mut right = 0usize;
-            for x in (0..w).rev() {
-                right = if x + 1 < w && d[x + 1] == d[x] {
+            for x in (0..n).rev() {
+                right = if x + 1 < n && d[x + 1] == d[x] {
                     right + 1
                 } else {
                     0
@@ -1293,7 +1390,7 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
             }
             for (k, o) in o.iter_mut().enumerate() {
                 let x = x0 + k;
-                *o = left[x] >= r.min(x) && rights[x] >= r.min(w - 1 - x);
+                *o = left[x - c0] >= r.min(x) && rights[x - c0] >= r.min(w - 1 - x);
             }
         },
     );
@@ -1351,19 +1448,42 @@ fn flat_depth(depth: &[f32], w: usize, h: usize, rect: [usize; 4], r: usize) -> 
     out
 }
 
-/// Per row `y0..y1` of the colour planes, `w + 1` running sums: the sum over `[a, b)` of row
-/// `y`, channel `c` is `p[c][(y - y0) (w + 1) + b] - p[..a]`.
-fn row_prefix(ch: [&[f32]; 3], w: usize, y0: usize, y1: usize) -> [Vec<f32>; 3] {
-    ch.map(|c| {
-        let mut p = vec![0.0f32; (y1 - y0) * (w + 1)];
-        p.par_chunks_mut(w + 1).enumerate().for_each(|(i, row)| {
-            let src = &c[(y0 + i) * w..(y0 + i + 1) * w];
-            for x in 0..w {
-                row[x + 1] = row[x] + src[x];
-            }
-        });
-        p
-    })
+/// Running sums along rows `y0..y1` of the colour planes over columns `0..x1`, from column 0
+/// whatever part is read (so a sum is the same whichever rows and columns were asked for).
+struct RowPrefix {
+    /// Per channel, per row, `x1 + 1` sums: the sum over `[a, b)` of row `y`, channel `c`
+    /// is `sums[c][(y - y0) stride + b] - sums[c][.. + a]`.
+    sums: [Vec<f32>; 3],
+    y0: usize,
+    stride: usize,
+}
+
+impl RowPrefix {
+    fn new(ch: [&[f32]; 3], w: usize, [y0, y1]: [usize; 2], x1: usize) -> RowPrefix {
+        let stride = x1 + 1;
+        let n = (y1 - y0) * stride;
+        let mut sums = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
+        let [r, g, b] = &mut sums;
+        // The three channels in one pass: three independent chains of additions.
+        r.par_chunks_mut(stride)
+            .zip(g.par_chunks_mut(stride))
+            .zip(b.par_chunks_mut(stride))
+            .enumerate()
+            .for_each(|(i, ((r, g), b))| {
+                let at = (y0 + i) * w;
+                let src = [0, 1, 2].map(|c| &ch[c][at..at + x1]);
+                let mut run = [0.0f32; 3];
+                for x in 0..x1 {
+                    run[0] += src[0][x];
+                    run[1] += src[1][x];
+                    run[2] += src[2][x];
+                    r[x + 1] = run[0];
+                    g[x + 1] = run[1];
+                    b[x + 1] = run[2];
+                }
+            });
+        RowPrefix { sums, y0, stride }
+    }
 }
 
 /// Gather's ramped disk of radius `r` as full-weight row spans `(dy, half width)` and ramp
@@ -1421,8 +1541,7 @@ impl FlatDisk {
     #[allow(clippy::too_many_arguments)]
     fn sum_group(
         &self,
-        prefix: &[Vec<f32>; 3],
-        prefix_y0: usize,
+        prefix: &RowPrefix,
         ch: [&[f32]; 3],
         w: usize,
         x0: usize,
@@ -1431,16 +1550,16 @@ impl FlatDisk {
     ) -> Exact {
         let mut a = [[0.0f32; GROUP]; 3];
         for &(dy, f) in &self.spans {
-            let base = ((y as isize + dy) as usize - prefix_y0) * (w + 1) + x0;
-            for c in 0..3 {
-                let hi: &[f32; GROUP] = prefix[c][base + f + 1..base + f + 1 + GROUP]
+            let base = ((y as isize + dy) as usize - prefix.y0) * prefix.stride + x0;
+            for (a, sums) in a.iter_mut().zip(&prefix.sums) {
+                let hi: &[f32; GROUP] = sums[base + f + 1..base + f + 1 + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
-                let lo: &[f32; GROUP] = prefix[c][base - f..base - f + GROUP]
+                let lo: &[f32; GROUP] = sums[base - f..base - f + GROUP]
                     .try_into()
                     .unwrap_or(&[0.0; GROUP]);
                 for i in 0..GROUP {
-                    a[c][i] += hi[i] - lo[i];
+                    a[i] += hi[i] - lo[i];
                 }
             }
         }
@@ -1481,14 +1600,19 @@ impl FlatDisks {
     }
 }
 
-/// Maximum of `v` (a `w`-wide image, values >= 0) over the `(2r+1)^2` window around each pixel
+/// Maximum of `v` (a `w` x `h` image by pixel index, values >= 0) over the `(2r+1)^2` window around each pixel
 /// of `rect` (`[x0, y0, x1, y1)`), rows then columns; the result is `rect`-sized. Each pass
 /// takes the maximum of windows doubling in length (1, 2, 4 ... the largest power of two
 /// `p <= 2r + 1`), and a window of `2r + 1` is then the maximum of two of length `p`: a few
 /// element-wise maxima per pixel, which vectorise.
-fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
+fn window_max(
+    v: impl Fn(usize) -> f32 + Sync,
+    w: usize,
+    h: usize,
+    rect: [usize; 4],
+    r: usize,
+) -> Vec<f32> {
     let [x0, y0, x1, y1] = rect;
-    let h = v.len() / w.max(1);
     let (rw, rh) = (x1 - x0, y1 - y0);
     let len = 2 * r + 1;
     // Rows y0 - r .. y1 + r (zero outside the image), each the maximum over its row's window.
@@ -1505,7 +1629,7 @@ fn window_max(v: &[f32], w: usize, rect: [usize; 4], r: usize) -> Vec<f32> {
                 (x0 + i)
                     .checked_sub(r)
                     .filter(|&x| x < w)
-                    .map_or(0.0, |x| v[y * w + x])
+                    .map_or(0.0, |x| v(y * w + x))
             }));
             let p = doubling_max(buf, len, |m, step| {
                 for i in 0..m.len() - step {
@@ -1586,7 +1710,7 @@ mod tests {
             .collect();
         for r in [0usize, 1, 3, 7, 30] {
             for rect in [[0, 0, w, h], [3, 2, 19, 15], [10, 16, 11, 17], [0, 5, 5, 6]] {
-                let got = window_max(&v, w, rect, r);
+                let got = window_max(|i| v[i], w, h, rect, r);
                 let [x0, y0, x1, y1] = rect;
                 for y in y0..y1 {
                     for x in x0..x1 {
