@@ -166,32 +166,24 @@ fn scene_render_metrics_round_trip() {
     );
     assert!(!ok && text.contains("prior"), "{text}");
     // A coarser grid asked for says so; one beyond the largest divisor is refused naming --scale.
-    let (ok, text) = on_scene(
-        &dir,
-        &[
-            "decompose",
-            "--method",
-            "spectral",
-            "--scale",
-            "2",
-            "--out",
-            &d("s2"),
-        ],
-    );
+    let spectral_at = |scale: &str, out: &str| {
+        on_scene(
+            &dir,
+            &[
+                "decompose",
+                "--method",
+                "spectral",
+                "--scale",
+                scale,
+                "--out",
+                &d(out),
+            ],
+        )
+    };
+    let (ok, text) = spectral_at("2", "s2");
     assert!(ok && text.contains("1/2 grid"), "{text}");
     assert!(Path::new(&d("s2/layer_0.20D.exr")).exists(), "{text}");
-    let (ok, text) = on_scene(
-        &dir,
-        &[
-            "decompose",
-            "--method",
-            "spectral",
-            "--scale",
-            "17",
-            "--out",
-            &d("bad"),
-        ],
-    );
+    let (ok, text) = spectral_at("17", "bad");
     assert!(!ok && text.contains("--scale 17"), "{text}");
 
     // The gaze-contingent hybrid (issue 54): the window around the gaze is solved, or the
