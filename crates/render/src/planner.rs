@@ -229,16 +229,13 @@ impl FrameStats {
         focus: Diopters,
         eye: &EyeModel,
     ) -> FrameStats {
-        if !wide.fits(input) {
-            return Self::around(
-                &FrameWide::of(input),
-                input,
-                gaze,
-                fovea_radius_deg,
-                focus,
-                eye,
-            );
-        }
+        let fresh;
+        let wide = if wide.fits(input) {
+            wide
+        } else {
+            fresh = FrameWide::of(input);
+            &fresh
+        };
         let (w, h) = (input.width(), input.height());
         let eye = eye.with_width(w.min(u32::MAX as usize) as u32);
         let depth = input.depth.data();
