@@ -6,20 +6,7 @@
 use dioptra_net::gpu::GpuNet;
 use dioptra_net::weights::SplitMix;
 use dioptra_net::{Act, Arch, CpuNet, Weights};
-use std::time::Instant;
-
-fn median_ms(n: usize, f: &mut dyn FnMut()) -> f64 {
-    f();
-    let mut t: Vec<f64> = (0..n)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[n / 2]
-}
+use dioptra_render::timing::median_wall_ms;
 
 fn main() {
     // `cargo test --benches` runs this with --bench absent: do nothing then.
@@ -56,13 +43,9 @@ fn main() {
             (0..n).map(|_| rng.uniform()).collect(),
         )
         .expect("input");
-        let g = median_ms(3, &mut || {
-            gpu.forward(&x).expect("gpu forward");
-        });
+        let g = median_wall_ms(3, || gpu.forward(&x).expect("gpu forward")).0;
         let s = gpu.last_stats();
-        let c = median_ms(3, &mut || {
-            cpu.forward(&x).expect("cpu forward");
-        });
+        let c = median_wall_ms(3, || cpu.forward(&x).expect("cpu forward")).0;
         eprintln!(
             "| {name} ({} layers x {} ch, r={}) | {g:.1} | {} | {} | {} | {:.2} | {:.2} | {c:.1} |",
             arch.layers,

@@ -10,10 +10,11 @@ use dioptra_core::{Diopters, EyeModel, RgbImage, Rgbd};
 use dioptra_render::foveate::LogPolar;
 use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::retina::LfView;
+use dioptra_render::timing::median_wall_ms;
 use dioptra_render::{Backend, Cpu, DefocusMethod, Gpu, Layers, LightFieldParams};
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
 use std::hint::black_box;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 fn input() -> Rgbd {
     let cam = Camera::square(EyeModel::default(), 512);
@@ -178,20 +179,6 @@ fn benches(c: &mut Criterion) {
     table(&gpu, &input, &other, &layers, &views, &fov);
 }
 
-/// Median wall time of `n` calls after one warm-up, milliseconds.
-fn median_ms(n: usize, f: &mut dyn FnMut()) -> f64 {
-    f();
-    let mut t: Vec<f64> = (0..n)
-        .map(|_| {
-            let s = Instant::now();
-            f();
-            s.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[n / 2]
-}
-
 /// The report table: per method, GPU wall time (uploads and readbacks included), GPU time
 /// from timestamp queries, dispatches, submissions and bytes moved per frame, and the CPU
 /// backend's wall time on the same input (median of 3 each).
@@ -268,9 +255,9 @@ fn table(
     eprintln!("| method (512x512) | GPU wall ms | GPU time ms (timestamps) | dispatches | submissions | MB up | MB down | CPU wall ms |");
     eprintln!("|---|---|---|---|---|---|---|---|");
     for (name, call) in &methods {
-        let g = median_ms(3, &mut || call(gpu));
+        let g = median_wall_ms(3, || call(gpu)).0;
         let s = gpu.last_stats();
-        let c = median_ms(3, &mut || call(&Cpu));
+        let c = median_wall_ms(3, || call(&Cpu)).0;
         eprintln!(
             "| {name} | {g:.1} | {} | {} | {} | {:.2} | {:.2} | {c:.1} |",
             s.gpu_ns

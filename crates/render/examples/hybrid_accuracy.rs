@@ -23,37 +23,18 @@ use dioptra_render::metrics::psnr;
 use dioptra_render::multifocal::{linspace, DEFAULT_PLANES};
 use dioptra_render::spectral::{SpectralSolver, SpectralTargets};
 use dioptra_render::spectral_coarse::scale_for;
+use dioptra_render::timing::{process_cpu_ms, wall_times_ms};
 use dioptra_render::{backend, Layers, LightFieldParams, SpectralParams};
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
 use std::path::PathBuf;
 use std::time::Instant;
 
-/// CPU time of the whole process, seconds (user + system), from /proc (Linux); 0 elsewhere.
-fn cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return 0.0;
-    };
-    // Fields after the command name (which is in parentheses): utime and stime are the 12th
-    // and 13th, in clock ticks (100 per second on Linux).
-    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
-}
-
 /// Median wall time (ms) of 3 runs after a warm-up, the mean CPU time (ms) and the last output.
 fn timed<T>(mut f: impl FnMut() -> T) -> (f64, f64, T) {
-    let mut out = f();
-    let mut t = Vec::new();
-    let c0 = cpu_seconds();
-    for _ in 0..3 {
-        let s = Instant::now();
-        out = f();
-        t.push(s.elapsed().as_secs_f64() * 1e3);
-    }
-    let cpu = (cpu_seconds() - c0) * 1e3 / 3.0;
-    t.sort_by(f64::total_cmp);
-    (t[1], cpu, out)
+    f();
+    let c0 = process_cpu_ms();
+    let (t, out) = wall_times_ms(3, f);
+    (t[1], (process_cpu_ms() - c0) / 3.0, out)
 }
 
 fn disk_mask(w: usize, h: usize, centre: [f32; 2], radius: f32) -> Plane {

@@ -21,6 +21,7 @@ use dioptra_render::hybrid::{hybrid_blend, HybridParams};
 use dioptra_render::metrics::{disk_mask, psnr};
 use dioptra_render::multifocal::DEFAULT_PLANES;
 use dioptra_render::pyramid::pyramid;
+use dioptra_render::timing::process_cpu_ms;
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
 use std::time::Instant;
 
@@ -54,7 +55,7 @@ fn main() {
         let mut last = None;
         let mut checksum = 0u64;
         for _ in 0..frames {
-            let (t, c) = (Instant::now(), cpu_ms());
+            let (t, c) = (Instant::now(), process_cpu_ms());
             let img = match method {
                 "hybrid" => {
                     let (layers, report) =
@@ -80,7 +81,7 @@ fn main() {
             checksum = bits_checksum(&img);
             std::hint::black_box(img);
             wall.push(t.elapsed().as_secs_f64() * 1e3);
-            cpu.push(cpu_ms() - c);
+            cpu.push(process_cpu_ms() - c);
         }
         let median = |v: &mut Vec<f64>| {
             v.sort_by(f64::total_cmp);
@@ -110,14 +111,4 @@ fn bits_checksum(img: &dioptra_core::RgbImage) -> u64 {
         .fold(0xcbf2_9ce4_8422_2325, |h, v| {
             (h ^ u64::from(v.to_bits())).wrapping_mul(0x100_0000_01b3)
         })
-}
-
-/// The process's CPU time so far (user and system, all threads), ms: what a frame cost on a
-/// machine shared with other work, where its wall time depends on that work.
-fn cpu_ms() -> f64 {
-    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
-    // SAFETY: getrusage writes the struct it is given.
-    unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
-    let t = |v: libc::timeval| v.tv_sec as f64 * 1e3 + v.tv_usec as f64 * 1e-3;
-    t(u.ru_utime) + t(u.ru_stime)
 }

@@ -17,12 +17,12 @@ use dioptra_render::io::{read_color, write_color};
 use dioptra_render::metrics::psnr;
 use dioptra_render::multifocal::{default_focal_samples, DEFAULT_PLANES};
 use dioptra_render::spectral::{SpectralPlan, SpectralTargets};
+use dioptra_render::timing::median_wall_ms;
 use dioptra_render::{
     backend, DefocusMethod, Layers, LightFieldParams, OptimizeParams, SpectralParams,
 };
 use dioptra_sim::scene::{render_pinhole, render_thin_lens, Camera, Scene, Split};
 use std::path::PathBuf;
-use std::time::Instant;
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -30,15 +30,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// Median time (ms) of 3 runs after a warm-up, and the last output.
-fn timed<T>(mut f: impl FnMut() -> T) -> (f64, T) {
-    let mut out = f();
-    let mut t = Vec::new();
-    for _ in 0..3 {
-        let s = Instant::now();
-        out = f();
-        t.push(s.elapsed().as_secs_f64() * 1e3);
-    }
-    (median(t), out)
+fn timed<T>(f: impl FnMut() -> T) -> (f64, T) {
+    median_wall_ms(3, f)
 }
 
 struct SceneData {

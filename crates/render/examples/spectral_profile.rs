@@ -13,20 +13,9 @@ use dioptra_render::lightfield::LightFieldPrep;
 use dioptra_render::multifocal::{linear_blend, DEFAULT_PLANES};
 use dioptra_render::spectral::{spectral_blend, SpectralPlan, SpectralTargets};
 use dioptra_render::spectral_coarse::scale_for;
+use dioptra_render::timing::{process_cpu_ms, wall_times_ms};
 use dioptra_render::SpectralParams;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene, Split};
-use std::time::Instant;
-
-/// CPU time of the whole process, seconds (user + system), from /proc (Linux); 0 elsewhere.
-fn cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return 0.0;
-    };
-    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = rest.split_whitespace().collect();
-    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (ticks(11) + ticks(12)) / 100.0
-}
 
 thread_local! {
     static CPU_MS: std::cell::Cell<f64> = const { std::cell::Cell::new(0.0) };
@@ -34,16 +23,10 @@ thread_local! {
 
 /// Median wall time (ms) of `runs` runs after a warm-up (the mean CPU time per run in CPU_MS).
 fn timed<T>(runs: usize, mut f: impl FnMut() -> T) -> (f64, T) {
-    let mut out = f();
-    let mut t = Vec::new();
-    let c0 = cpu_seconds();
-    for _ in 0..runs {
-        let s = Instant::now();
-        out = f();
-        t.push(s.elapsed().as_secs_f64() * 1e3);
-    }
-    CPU_MS.set((cpu_seconds() - c0) * 1e3 / runs as f64);
-    t.sort_by(f64::total_cmp);
+    f();
+    let c0 = process_cpu_ms();
+    let (t, out) = wall_times_ms(runs, f);
+    CPU_MS.set((process_cpu_ms() - c0) / runs as f64);
     (t[t.len() / 2], out)
 }
 

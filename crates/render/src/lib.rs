@@ -9,7 +9,7 @@
 //! checks both in CI; `LAYERS` is this list). Lowest first:
 //!
 //! 1. [`error`] (the GPU's errors too, so that everything below the backends can return them);
-//! 2. `alloc`, `common`, `fft2`, [`io`]: support with no optics method in it; [`transfer`]: the
+//! 2. `alloc`, `common`, `fft2`, [`io`], [`timing`]: support with no optics method in it; [`transfer`]: the
 //!    panel's transfer function as a table (its CPU pass);
 //! 3. [`kernel`]: blur kernels and convolution;
 //! 4. [`gather`], [`lightfield`], [`metrics`], [`pyramid`]: methods on one image; [`warp`]: the
@@ -49,6 +49,7 @@ pub mod pyramid;
 pub mod retina;
 pub mod spectral;
 pub mod spectral_coarse;
+pub mod timing;
 pub mod transfer;
 pub mod views;
 pub mod warp;

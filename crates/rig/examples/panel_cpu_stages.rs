@@ -7,9 +7,8 @@
 //!
 //! Prints each stage's median and fastest wall time.
 
-use std::time::Instant;
-
 use dioptra_core::{EyeModel, Rgbd};
+use dioptra_render::timing::wall_times_ms;
 use dioptra_render::views::{synthesize_rgbd_view, RgbdView};
 use dioptra_rig::display::blit::pack_rgba8_srgb;
 use dioptra_sim::scene::{render_pinhole, Camera, Scene};
@@ -33,14 +32,7 @@ fn main() {
     let scene = Scene::generate(SEED);
     let cam = Camera::new(eye, w, h);
     let time = |name: &str, f: &mut dyn FnMut()| {
-        let mut t: Vec<f64> = (0..frames)
-            .map(|_| {
-                let s = Instant::now();
-                f();
-                s.elapsed().as_secs_f64() * 1e3
-            })
-            .collect();
-        t.sort_by(f64::total_cmp);
+        let (t, ()) = wall_times_ms(frames, f);
         println!(
             "{name} {w}x{h}: median {:.1} ms, fastest {:.1} ms ({frames} runs)",
             t[t.len() / 2],
